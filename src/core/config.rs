@@ -1,0 +1,833 @@
+//! Channel parameters: the user-facing settings of SPEC §1 (milliseconds, optional overrides,
+//! profiles), their validation against 000's limits table, and the validated, nanosecond
+//! [`ChannelConfig`] the state machine runs on.
+//!
+//! Nothing here reads a clock or touches I/O: validation is a pure function so the ROS side can
+//! answer a parameter request synchronously with exactly the verdict the core would give.
+
+use super::Nanos;
+use std::fmt;
+use std::str::FromStr;
+
+/// Nanoseconds in one millisecond.
+pub const NS_PER_MS: Nanos = 1_000_000;
+
+/// Longest period accepted, in ms (one hour).
+pub const MAX_PERIOD_MS: u64 = 3_600_000;
+
+/// Longest watchdog timeout accepted, in ms (one day).
+pub const MAX_TIMEOUT_MS: u64 = 86_400_000;
+
+/// The electrical kind of output, which sets the limits of 000's table.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum OutputKind {
+    /// Transistor (solid-state) output: period >= 5 ms, shortest on/off time 0.1 ms (000).
+    #[default]
+    Transistor,
+    /// Relay output: period >= 100 ms, minimum on time >= 50 ms (000).
+    Relay,
+}
+
+impl OutputKind {
+    /// Shortest period accepted when the period is not 0, in ms (000: transistor 5, relay 100).
+    pub const fn min_period_ms(self) -> u64 {
+        match self {
+            OutputKind::Transistor => 5,
+            OutputKind::Relay => 100,
+        }
+    }
+
+    /// The hardware floor for on and off times, in ns (000: transistor 0.1 ms, relay 50 ms).
+    pub const fn floor_ns(self) -> Nanos {
+        match self {
+            OutputKind::Transistor => 100_000,
+            OutputKind::Relay => 50 * NS_PER_MS,
+        }
+    }
+
+    /// Shortest explicit (non-zero) minimum time accepted, in ms (000: relay min on 50 ms).
+    pub const fn min_explicit_time_ms(self) -> u64 {
+        match self {
+            OutputKind::Transistor => 0,
+            OutputKind::Relay => 50,
+        }
+    }
+
+    /// The parameter spelling: `transistor` or `relay`.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            OutputKind::Transistor => "transistor",
+            OutputKind::Relay => "relay",
+        }
+    }
+}
+
+/// What happens to a pulse or break shorter than its minimum (SPEC §1.2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum ShortPulse {
+    /// 000, 001, 003: a too-short pulse is not emitted (output 0 for the period), a too-short
+    /// break is not emitted (output 1 for the period); E1 is set.
+    #[default]
+    Suppress,
+    /// 002: a too-short pulse is raised to the minimum (bLmtSwiTi), the break shrinks to keep the
+    /// period; likewise a too-short break is raised to its minimum.
+    Stretch,
+    /// 004: the Frequency_Output edge band `edge_band` decides constant 0 / PWM / constant 1.
+    Band,
+}
+
+impl ShortPulse {
+    /// The parameter spelling.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            ShortPulse::Suppress => "suppress",
+            ShortPulse::Stretch => "stretch",
+            ShortPulse::Band => "band",
+        }
+    }
+}
+
+/// When a new command takes effect (SPEC §1.3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum ApplyAt {
+    /// 000: the running period completes with the times computed at its start.
+    #[default]
+    NextPeriod,
+    /// 002: the running on or off step completes with its latched time.
+    NextStep,
+    /// 003: the running pulse or break is extended or ended at once (never below its minimum).
+    Immediate,
+}
+
+impl ApplyAt {
+    /// The parameter spelling.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            ApplyAt::NextPeriod => "next_period",
+            ApplyAt::NextStep => "next_step",
+            ApplyAt::Immediate => "immediate",
+        }
+    }
+}
+
+/// What a falling edge of enable does to the output (SPEC §1.4).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum OnDisable {
+    /// 000, 002: the output goes to 0 at once.
+    #[default]
+    Off,
+    /// 004: the output keeps its current level until enabled again.
+    Hold,
+}
+
+impl OnDisable {
+    /// The parameter spelling.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            OnDisable::Off => "off",
+            OnDisable::Hold => "hold",
+        }
+    }
+}
+
+/// A coherent set of policies named after the vendor block it reproduces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum Profile {
+    /// Eaton Pico GFX PW01/PW02 (000): suppress, next_period, off; min off = min on.
+    #[default]
+    PicoGfx,
+    /// Beckhoff FB_BA_PWM (002): stretch the on time only, next_step, off; min off = floor.
+    TwincatBa,
+    /// Siemens TCONT_CP pulse generator (003): suppress, immediate, off; min off = min on.
+    TcontCp,
+    /// Schneider PWM (001): suppress, next_period, off; min off = min on.
+    SchneiderPwm,
+    /// Schneider Frequency_Output (004): band, next_period, hold; min off = min on.
+    FrequencyOutput,
+}
+
+impl Profile {
+    /// Every profile, in documentation order.
+    pub const ALL: [Profile; 5] = [
+        Profile::PicoGfx,
+        Profile::TwincatBa,
+        Profile::TcontCp,
+        Profile::SchneiderPwm,
+        Profile::FrequencyOutput,
+    ];
+
+    /// The parameter spelling.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Profile::PicoGfx => "pico_gfx",
+            Profile::TwincatBa => "twincat_ba",
+            Profile::TcontCp => "tcont_cp",
+            Profile::SchneiderPwm => "schneider_pwm",
+            Profile::FrequencyOutput => "frequency_output",
+        }
+    }
+
+    /// The short-pulse policy this profile implies.
+    pub const fn short_pulse(self) -> ShortPulse {
+        match self {
+            Profile::TwincatBa => ShortPulse::Stretch,
+            Profile::FrequencyOutput => ShortPulse::Band,
+            _ => ShortPulse::Suppress,
+        }
+    }
+
+    /// The apply-at policy this profile implies.
+    pub const fn apply_at(self) -> ApplyAt {
+        match self {
+            Profile::TwincatBa => ApplyAt::NextStep,
+            Profile::TcontCp => ApplyAt::Immediate,
+            _ => ApplyAt::NextPeriod,
+        }
+    }
+
+    /// The disable policy this profile implies.
+    pub const fn on_disable(self) -> OnDisable {
+        match self {
+            Profile::FrequencyOutput => OnDisable::Hold,
+            _ => OnDisable::Off,
+        }
+    }
+
+    /// Whether an unset `min_off_ms` follows `min_on_ms` (000) or falls to the hardware floor
+    /// (002: nMinSwiTi limits the switch-on time only).
+    pub const fn min_off_follows_min_on(self) -> bool {
+        !matches!(self, Profile::TwincatBa)
+    }
+
+    /// The vendor block this profile reproduces, for documentation and diagnostics.
+    pub const fn vendor_block(self) -> &'static str {
+        match self {
+            Profile::PicoGfx => "Eaton Pico GFX PW01/PW02",
+            Profile::TwincatBa => "Beckhoff TwinCAT FB_BA_PWM",
+            Profile::TcontCp => "Siemens S7 TCONT_CP pulse generator",
+            Profile::SchneiderPwm => "Schneider process library PWM",
+            Profile::FrequencyOutput => "Schneider Frequency_Output",
+        }
+    }
+}
+
+/// A policy or profile name that is not one of the accepted spellings.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("`{value}` is not one of: {accepted}")]
+pub struct UnknownName {
+    /// What was asked for (truncated to its first 32 bytes when longer).
+    pub value: ShortStr,
+    /// The accepted spellings, `|`-separated.
+    pub accepted: &'static str,
+}
+
+/// A short, `Copy` string for error values (at most 32 bytes, cut at a char boundary).
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub struct ShortStr {
+    buf: [u8; 32],
+    len: u8,
+}
+
+impl ShortStr {
+    /// Keeps the first 32 bytes of `s` (at a char boundary).
+    pub fn new(s: &str) -> Self {
+        let mut end = s.len().min(32);
+        while !s.is_char_boundary(end) {
+            end -= 1;
+        }
+        let mut buf = [0u8; 32];
+        buf[..end].copy_from_slice(&s.as_bytes()[..end]);
+        ShortStr {
+            buf,
+            len: end as u8,
+        }
+    }
+
+    /// The kept text.
+    pub fn as_str(&self) -> &str {
+        // Always cut at a char boundary of valid UTF-8 in `new`.
+        std::str::from_utf8(&self.buf[..self.len as usize]).unwrap_or("")
+    }
+}
+
+impl fmt::Display for ShortStr {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl fmt::Debug for ShortStr {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        fmt::Debug::fmt(self.as_str(), f)
+    }
+}
+
+macro_rules! named_enum {
+    ($ty:ty, $accepted:literal, [$($v:expr),+ $(,)?]) => {
+        impl FromStr for $ty {
+            type Err = UnknownName;
+            fn from_str(s: &str) -> Result<Self, UnknownName> {
+                [$($v),+]
+                    .into_iter()
+                    .find(|v| v.as_str() == s)
+                    .ok_or(UnknownName { value: ShortStr::new(s), accepted: $accepted })
+            }
+        }
+        impl fmt::Display for $ty {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str(self.as_str())
+            }
+        }
+    };
+}
+
+named_enum!(
+    OutputKind,
+    "transistor|relay",
+    [OutputKind::Transistor, OutputKind::Relay]
+);
+named_enum!(
+    ShortPulse,
+    "suppress|stretch|band",
+    [ShortPulse::Suppress, ShortPulse::Stretch, ShortPulse::Band]
+);
+named_enum!(
+    ApplyAt,
+    "next_period|next_step|immediate",
+    [ApplyAt::NextPeriod, ApplyAt::NextStep, ApplyAt::Immediate]
+);
+named_enum!(OnDisable, "off|hold", [OnDisable::Off, OnDisable::Hold]);
+named_enum!(
+    Profile,
+    "pico_gfx|twincat_ba|tcont_cp|schneider_pwm|frequency_output",
+    [
+        Profile::PicoGfx,
+        Profile::TwincatBa,
+        Profile::TcontCp,
+        Profile::SchneiderPwm,
+        Profile::FrequencyOutput
+    ]
+);
+
+/// The settings of one channel as a user states them (SPEC §1 table): milliseconds, a profile,
+/// and optional policy overrides. `None` means "as the profile says".
+///
+/// Convert with [`ChannelParams::validate`] into the [`ChannelConfig`] the core runs on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChannelParams {
+    /// Period `T` in ms; 0 means no pulses, output held at 0 (000). 0, or 5 (transistor) /
+    /// 100 (relay) ..= 3 600 000.
+    pub period_ms: u64,
+    /// Minimum on time in ms (ME / T_MINI / nMinSwiTi / P_B_TM); 0 means the hardware floor.
+    pub min_on_ms: u64,
+    /// Minimum off time in ms; `None` means as the profile says (000: equal to `min_on_ms`).
+    pub min_off_ms: Option<u64>,
+    /// Transistor or relay limits (000's table).
+    pub output_kind: OutputKind,
+    /// Profile setting the policies below when they are `None`.
+    pub profile: Profile,
+    /// Short-pulse policy override.
+    pub short_pulse: Option<ShortPulse>,
+    /// Frequency_Output edge `i_rEdge` (004), 0..=1, used by [`ShortPulse::Band`].
+    pub edge_band: f64,
+    /// Apply-at policy override.
+    pub apply_at: Option<ApplyAt>,
+    /// Disable policy override.
+    pub on_disable: Option<OnDisable>,
+    /// Watchdog in ms: no command for this long puts the channel in its safe state (off);
+    /// 0 disables. 0..=86 400 000.
+    pub command_timeout_ms: u64,
+    /// Invert the electrical level of the output line (applied by the output backend).
+    pub active_low: bool,
+}
+
+impl Default for ChannelParams {
+    fn default() -> Self {
+        ChannelParams {
+            period_ms: 1000,
+            min_on_ms: 0,
+            min_off_ms: None,
+            output_kind: OutputKind::Transistor,
+            profile: Profile::PicoGfx,
+            short_pulse: None,
+            edge_band: 0.0,
+            apply_at: None,
+            on_disable: None,
+            command_timeout_ms: 0,
+            active_low: false,
+        }
+    }
+}
+
+/// Which minimum time an error speaks of.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MinTime {
+    /// `min_on_ms`.
+    On,
+    /// `min_off_ms`.
+    Off,
+}
+
+impl fmt::Display for MinTime {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            MinTime::On => "min_on_ms",
+            MinTime::Off => "min_off_ms",
+        })
+    }
+}
+
+/// Why a set of channel parameters is refused. The old settings stay in force.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum ConfigError {
+    /// A non-zero period below the output kind's minimum (000: transistor 5 ms, relay 100 ms).
+    #[error(
+        "period_ms {period_ms} is below the {kind} minimum of {min_ms} ms (0 stops the pulses)"
+    )]
+    PeriodTooShort {
+        /// The refused period, ms.
+        period_ms: u64,
+        /// The minimum for this kind, ms.
+        min_ms: u64,
+        /// The output kind.
+        kind: OutputKind,
+    },
+    /// A period above one hour.
+    #[error("period_ms {period_ms} is above the maximum of {max_ms} ms")]
+    PeriodTooLong {
+        /// The refused period, ms.
+        period_ms: u64,
+        /// The maximum, ms.
+        max_ms: u64,
+    },
+    /// A minimum time longer than the period.
+    #[error("{which} {value_ms} is longer than period_ms {period_ms}")]
+    MinTimeAbovePeriod {
+        /// Which minimum.
+        which: MinTime,
+        /// Its value, ms.
+        value_ms: u64,
+        /// The period, ms.
+        period_ms: u64,
+    },
+    /// An explicit relay minimum time below 50 ms (000: relay minimum on duration 50 ms).
+    #[error("{which} {value_ms} is below the relay minimum of {min_ms} ms (0 means the floor)")]
+    RelayMinTimeTooShort {
+        /// Which minimum.
+        which: MinTime,
+        /// Its value, ms.
+        value_ms: u64,
+        /// The relay minimum, ms.
+        min_ms: u64,
+    },
+    /// The effective minima together do not fit in one period, so some duties would have
+    /// neither a valid pulse nor a valid break.
+    #[error(
+        "effective min on {min_on_us} us + min off {min_off_us} us exceed period_ms {period_ms}; \
+         lower one, or set min_off_ms explicitly"
+    )]
+    MinimaExceedPeriod {
+        /// Effective minimum on time, µs.
+        min_on_us: u64,
+        /// Effective minimum off time, µs.
+        min_off_us: u64,
+        /// The period, ms.
+        period_ms: u64,
+    },
+    /// `edge_band` outside 0..=1 or not a number (004: i_rEdge range 0.0..1.0).
+    #[error("edge_band {value} is outside 0..1")]
+    EdgeBandOutOfRange {
+        /// The refused value.
+        value: f64,
+    },
+    /// A watchdog timeout above one day.
+    #[error("command_timeout_ms {value_ms} is above the maximum of {max_ms} ms")]
+    TimeoutTooLong {
+        /// The refused value, ms.
+        value_ms: u64,
+        /// The maximum, ms.
+        max_ms: u64,
+    },
+}
+
+/// Validated channel settings in nanoseconds, with every profile default resolved.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChannelConfig {
+    /// Period `T`, ns; 0 = no pulses, output held at 0.
+    pub period: Nanos,
+    /// Effective minimum on time, ns (never below the hardware floor).
+    pub min_on: Nanos,
+    /// Effective minimum off time, ns (never below the hardware floor).
+    pub min_off: Nanos,
+    /// Short-pulse policy in force.
+    pub short_pulse: ShortPulse,
+    /// Edge band (004), 0..=1.
+    pub edge_band: f64,
+    /// Apply-at policy in force.
+    pub apply_at: ApplyAt,
+    /// Disable policy in force.
+    pub on_disable: OnDisable,
+    /// Watchdog timeout, ns; 0 = disabled.
+    pub command_timeout: Nanos,
+    /// The parameters this was made from (for status and round trips).
+    pub params: ChannelParams,
+}
+
+impl ChannelParams {
+    /// The profile's policy unless overridden.
+    pub fn effective_short_pulse(&self) -> ShortPulse {
+        self.short_pulse.unwrap_or(self.profile.short_pulse())
+    }
+
+    /// The profile's policy unless overridden.
+    pub fn effective_apply_at(&self) -> ApplyAt {
+        self.apply_at.unwrap_or(self.profile.apply_at())
+    }
+
+    /// The profile's policy unless overridden.
+    pub fn effective_on_disable(&self) -> OnDisable {
+        self.on_disable.unwrap_or(self.profile.on_disable())
+    }
+
+    /// Checks every limit of SPEC §1 and 000's table and resolves the profile.
+    ///
+    /// The checks run in a fixed order so the reason given is deterministic: period, minimum
+    /// times, their sum, edge band, watchdog.
+    pub fn validate(&self) -> Result<ChannelConfig, ConfigError> {
+        let kind = self.output_kind;
+        if self.period_ms != 0 && self.period_ms < kind.min_period_ms() {
+            return Err(ConfigError::PeriodTooShort {
+                period_ms: self.period_ms,
+                min_ms: kind.min_period_ms(),
+                kind,
+            });
+        }
+        if self.period_ms > MAX_PERIOD_MS {
+            return Err(ConfigError::PeriodTooLong {
+                period_ms: self.period_ms,
+                max_ms: MAX_PERIOD_MS,
+            });
+        }
+        let min_off_ms = match self.min_off_ms {
+            Some(v) => v,
+            None if self.profile.min_off_follows_min_on() => self.min_on_ms,
+            None => 0,
+        };
+        for (which, value_ms) in [(MinTime::On, self.min_on_ms), (MinTime::Off, min_off_ms)] {
+            if value_ms != 0 && value_ms < kind.min_explicit_time_ms() {
+                return Err(ConfigError::RelayMinTimeTooShort {
+                    which,
+                    value_ms,
+                    min_ms: kind.min_explicit_time_ms(),
+                });
+            }
+            // With no pulses (period 0) the minima are kept for when a period is set again.
+            if self.period_ms != 0 && value_ms > self.period_ms {
+                return Err(ConfigError::MinTimeAbovePeriod {
+                    which,
+                    value_ms,
+                    period_ms: self.period_ms,
+                });
+            }
+        }
+        let floor = kind.floor_ns();
+        let min_on = (self.min_on_ms * NS_PER_MS).max(floor);
+        let min_off = (min_off_ms * NS_PER_MS).max(floor);
+        let period = self.period_ms * NS_PER_MS;
+        if period != 0 && min_on + min_off > period {
+            return Err(ConfigError::MinimaExceedPeriod {
+                min_on_us: min_on / 1000,
+                min_off_us: min_off / 1000,
+                period_ms: self.period_ms,
+            });
+        }
+        if !(0.0..=1.0).contains(&self.edge_band) {
+            return Err(ConfigError::EdgeBandOutOfRange {
+                value: self.edge_band,
+            });
+        }
+        if self.command_timeout_ms > MAX_TIMEOUT_MS {
+            return Err(ConfigError::TimeoutTooLong {
+                value_ms: self.command_timeout_ms,
+                max_ms: MAX_TIMEOUT_MS,
+            });
+        }
+        Ok(ChannelConfig {
+            period,
+            min_on,
+            min_off,
+            short_pulse: self.effective_short_pulse(),
+            edge_band: self.edge_band,
+            apply_at: self.effective_apply_at(),
+            on_disable: self.effective_on_disable(),
+            command_timeout: self.command_timeout_ms * NS_PER_MS,
+            params: *self,
+        })
+    }
+}
+
+impl Default for ChannelConfig {
+    fn default() -> Self {
+        // The defaults of SPEC §1 are valid by construction.
+        match ChannelParams::default().validate() {
+            Ok(c) => c,
+            Err(e) => unreachable!("default parameters are valid: {e}"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params() -> ChannelParams {
+        ChannelParams::default()
+    }
+
+    #[test]
+    fn defaults_match_spec_table() {
+        let c = ChannelConfig::default();
+        assert_eq!(c.period, 1000 * NS_PER_MS);
+        // 000: ME = 0 gives the 0.1 ms hardware floor; min off = min on.
+        assert_eq!(c.min_on, 100_000);
+        assert_eq!(c.min_off, 100_000);
+        assert_eq!(c.short_pulse, ShortPulse::Suppress);
+        assert_eq!(c.apply_at, ApplyAt::NextPeriod);
+        assert_eq!(c.on_disable, OnDisable::Off);
+        assert_eq!(c.command_timeout, 0);
+    }
+
+    #[test]
+    fn transistor_period_limits_000() {
+        for (p, ok) in [
+            (0, true),
+            (4, false),
+            (5, true),
+            (65_535, true),
+            (3_600_000, true),
+        ] {
+            let r = ChannelParams {
+                period_ms: p,
+                ..params()
+            }
+            .validate();
+            assert_eq!(r.is_ok(), ok, "period {p}: {r:?}");
+        }
+        assert_eq!(
+            ChannelParams {
+                period_ms: 3_600_001,
+                ..params()
+            }
+            .validate(),
+            Err(ConfigError::PeriodTooLong {
+                period_ms: 3_600_001,
+                max_ms: MAX_PERIOD_MS
+            })
+        );
+    }
+
+    #[test]
+    fn relay_limits_000() {
+        let relay = ChannelParams {
+            output_kind: OutputKind::Relay,
+            ..params()
+        };
+        assert_eq!(
+            ChannelParams {
+                period_ms: 99,
+                ..relay
+            }
+            .validate(),
+            Err(ConfigError::PeriodTooShort {
+                period_ms: 99,
+                min_ms: 100,
+                kind: OutputKind::Relay
+            })
+        );
+        assert_eq!(
+            ChannelParams {
+                min_on_ms: 49,
+                ..relay
+            }
+            .validate(),
+            Err(ConfigError::RelayMinTimeTooShort {
+                which: MinTime::On,
+                value_ms: 49,
+                min_ms: 50
+            })
+        );
+        // 0 means the relay floor of 50 ms, for on and off alike.
+        let c = ChannelParams {
+            period_ms: 100,
+            ..relay
+        }
+        .validate()
+        .unwrap();
+        assert_eq!((c.min_on, c.min_off), (50 * NS_PER_MS, 50 * NS_PER_MS));
+    }
+
+    #[test]
+    fn min_off_follows_min_on_unless_profile_says_otherwise() {
+        let c = ChannelParams {
+            min_on_ms: 30,
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        assert_eq!(c.min_off, 30 * NS_PER_MS, "000: min off = min on");
+        let c = ChannelParams {
+            min_on_ms: 30,
+            profile: Profile::TwincatBa,
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        assert_eq!(c.min_off, 100_000, "002: nMinSwiTi limits the on time only");
+        let c = ChannelParams {
+            min_on_ms: 30,
+            min_off_ms: Some(10),
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        assert_eq!(c.min_off, 10 * NS_PER_MS);
+    }
+
+    #[test]
+    fn minima_must_fit_the_period() {
+        assert_eq!(
+            ChannelParams {
+                period_ms: 100,
+                min_on_ms: 101,
+                min_off_ms: Some(0),
+                ..params()
+            }
+            .validate(),
+            Err(ConfigError::MinTimeAbovePeriod {
+                which: MinTime::On,
+                value_ms: 101,
+                period_ms: 100
+            })
+        );
+        assert_eq!(
+            ChannelParams {
+                period_ms: 100,
+                min_on_ms: 60,
+                ..params()
+            }
+            .validate(),
+            Err(ConfigError::MinimaExceedPeriod {
+                min_on_us: 60_000,
+                min_off_us: 60_000,
+                period_ms: 100
+            })
+        );
+        // Period 0 keeps the minima for later.
+        assert!(ChannelParams {
+            period_ms: 0,
+            min_on_ms: 500,
+            ..params()
+        }
+        .validate()
+        .is_ok());
+    }
+
+    #[test]
+    fn edge_band_range_004() {
+        for v in [-0.1, 1.1, f64::NAN, f64::INFINITY] {
+            let r = ChannelParams {
+                edge_band: v,
+                ..params()
+            }
+            .validate();
+            assert!(
+                matches!(r, Err(ConfigError::EdgeBandOutOfRange { .. })),
+                "{v}"
+            );
+        }
+        for v in [0.0, 0.5, 1.0] {
+            assert!(ChannelParams {
+                edge_band: v,
+                ..params()
+            }
+            .validate()
+            .is_ok());
+        }
+    }
+
+    #[test]
+    fn profiles_set_policies_and_explicit_values_override() {
+        let expect = [
+            (
+                Profile::PicoGfx,
+                ShortPulse::Suppress,
+                ApplyAt::NextPeriod,
+                OnDisable::Off,
+            ),
+            (
+                Profile::TwincatBa,
+                ShortPulse::Stretch,
+                ApplyAt::NextStep,
+                OnDisable::Off,
+            ),
+            (
+                Profile::TcontCp,
+                ShortPulse::Suppress,
+                ApplyAt::Immediate,
+                OnDisable::Off,
+            ),
+            (
+                Profile::SchneiderPwm,
+                ShortPulse::Suppress,
+                ApplyAt::NextPeriod,
+                OnDisable::Off,
+            ),
+            (
+                Profile::FrequencyOutput,
+                ShortPulse::Band,
+                ApplyAt::NextPeriod,
+                OnDisable::Hold,
+            ),
+        ];
+        for (profile, sp, aa, od) in expect {
+            let c = ChannelParams {
+                profile,
+                ..params()
+            }
+            .validate()
+            .unwrap();
+            assert_eq!(
+                (c.short_pulse, c.apply_at, c.on_disable),
+                (sp, aa, od),
+                "{profile}"
+            );
+            let c = ChannelParams {
+                profile,
+                short_pulse: Some(ShortPulse::Stretch),
+                apply_at: Some(ApplyAt::Immediate),
+                on_disable: Some(OnDisable::Hold),
+                ..params()
+            }
+            .validate()
+            .unwrap();
+            assert_eq!(
+                (c.short_pulse, c.apply_at, c.on_disable),
+                (ShortPulse::Stretch, ApplyAt::Immediate, OnDisable::Hold)
+            );
+        }
+    }
+
+    #[test]
+    fn names_round_trip_and_unknown_names_say_what_is_accepted() {
+        for p in Profile::ALL {
+            assert_eq!(p.as_str().parse::<Profile>(), Ok(p));
+        }
+        let e = "pico".parse::<Profile>().unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "`pico` is not one of: pico_gfx|twincat_ba|tcont_cp|schneider_pwm|frequency_output"
+        );
+        assert_eq!("relay".parse::<OutputKind>(), Ok(OutputKind::Relay));
+        assert!("x".repeat(100).parse::<ApplyAt>().is_err());
+    }
+}

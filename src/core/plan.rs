@@ -1,0 +1,263 @@
+//! The on/off times one step or period gets for a duty: SPEC §1.2's minimum-time rules.
+//!
+//! A pure function of the duty and the configuration, so the state machine, the status report
+//! and the tests all agree on what a duty produces.
+
+use super::config::{ChannelConfig, ShortPulse};
+use super::Nanos;
+
+/// Which rule shaped a plan, so the ROS side can say why the applied duty differs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Rule {
+    /// The duty was reproduced as commanded.
+    #[default]
+    Exact,
+    /// Period 0: no pulses, output held at 0 (000).
+    NoPeriod,
+    /// `suppress`: the pulse was shorter than the minimum on time; output 0 for the period (000).
+    SuppressedPulse,
+    /// `suppress`: the break was shorter than the minimum off time; output 1 for the period (000).
+    SuppressedBreak,
+    /// `stretch`: the pulse was raised to the minimum on time (002's bLmtSwiTi).
+    StretchedPulse,
+    /// `stretch`: the break was raised to the minimum off time.
+    StretchedBreak,
+    /// `band`: the duty lay in the lower edge band; constant 0 (004).
+    BandLow,
+    /// `band`: the duty lay in the upper edge band; constant 1 (004).
+    BandHigh,
+}
+
+/// The times of one period for one duty.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Plan {
+    /// The duty fraction the plan was made for, 0..=1.
+    pub duty: f64,
+    /// On time, ns.
+    pub t_on: Nanos,
+    /// Off time, ns; `t_on + t_off` is the period.
+    pub t_off: Nanos,
+    /// E1 (000): the commanded duty could not be reproduced because of a minimum time.
+    pub e1: bool,
+    /// The minimum-time limit flag (002's bLmtSwiTi): a time was raised to its minimum.
+    pub limited: bool,
+    /// The rule that shaped this plan.
+    pub rule: Rule,
+}
+
+impl Plan {
+    /// The duty actually delivered, `t_on / T` (0 with no period).
+    pub fn applied_duty(&self) -> f64 {
+        let period = self.t_on + self.t_off;
+        if period == 0 {
+            0.0
+        } else {
+            self.t_on as f64 / period as f64
+        }
+    }
+
+    /// Makes the plan for duty fraction `duty` (0..=1) under `cfg`.
+    pub fn new(duty: f64, cfg: &ChannelConfig) -> Plan {
+        let period = cfg.period;
+        let base = Plan {
+            duty,
+            ..Plan::default()
+        };
+        if period == 0 {
+            return Plan {
+                rule: Rule::NoPeriod,
+                ..base
+            };
+        }
+        let constant = |on: bool, rule: Rule, e1: bool| Plan {
+            t_on: if on { period } else { 0 },
+            t_off: if on { 0 } else { period },
+            e1,
+            rule,
+            ..base
+        };
+        // 002: the minimum switching time is deactivated for 0 % and 100 %.
+        if duty <= 0.0 {
+            return constant(false, Rule::Exact, false);
+        }
+        if duty >= 1.0 {
+            return constant(true, Rule::Exact, false);
+        }
+        if cfg.short_pulse == ShortPulse::Band {
+            // 004's truth table.
+            let e = cfg.edge_band;
+            if e < 0.5 {
+                if duty < e {
+                    return constant(false, Rule::BandLow, false);
+                }
+                if duty > 1.0 - e {
+                    return constant(true, Rule::BandHigh, false);
+                }
+            } else {
+                return if duty < e {
+                    constant(false, Rule::BandLow, false)
+                } else {
+                    constant(true, Rule::BandHigh, false)
+                };
+            }
+        }
+        // Round to the nearest ns; the whole period stays exactly `period`.
+        let t_on = ((duty * period as f64).round() as Nanos).min(period);
+        let t_off = period - t_on;
+        if t_on < cfg.min_on {
+            return match cfg.short_pulse {
+                ShortPulse::Stretch => Plan {
+                    t_on: cfg.min_on,
+                    t_off: period - cfg.min_on,
+                    e1: true,
+                    limited: true,
+                    rule: Rule::StretchedPulse,
+                    ..base
+                },
+                // `band` keeps suppress as its safety net inside the PWM range.
+                ShortPulse::Suppress | ShortPulse::Band => {
+                    constant(false, Rule::SuppressedPulse, true)
+                }
+            };
+        }
+        if t_off < cfg.min_off {
+            return match cfg.short_pulse {
+                ShortPulse::Stretch => Plan {
+                    t_on: period - cfg.min_off,
+                    t_off: cfg.min_off,
+                    e1: true,
+                    limited: true,
+                    rule: Rule::StretchedBreak,
+                    ..base
+                },
+                ShortPulse::Suppress | ShortPulse::Band => {
+                    constant(true, Rule::SuppressedBreak, true)
+                }
+            };
+        }
+        Plan {
+            t_on,
+            t_off,
+            ..base
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::config::{ChannelParams, NS_PER_MS};
+
+    fn cfg(period_ms: u64, min_on_ms: u64, sp: ShortPulse, edge: f64) -> ChannelConfig {
+        ChannelParams {
+            period_ms,
+            min_on_ms,
+            short_pulse: Some(sp),
+            edge_band: edge,
+            ..ChannelParams::default()
+        }
+        .validate()
+        .unwrap()
+    }
+
+    const MS: Nanos = NS_PER_MS;
+
+    #[test]
+    fn on_time_proportional_period_unchanged_000() {
+        let c = cfg(1000, 0, ShortPulse::Suppress, 0.0);
+        let p = Plan::new(0.37, &c);
+        assert_eq!((p.t_on, p.t_off, p.e1), (370 * MS, 630 * MS, false));
+    }
+
+    #[test]
+    fn suppress_short_pulse_gives_0_and_e1_000() {
+        // 000: "If the actual value specified via SV ... is shorter than the minimum on duration,
+        // the output ... is accordingly 0"; E1 is set.
+        let c = cfg(1000, 100, ShortPulse::Suppress, 0.0);
+        let p = Plan::new(0.05, &c);
+        assert_eq!(
+            (p.t_on, p.t_off, p.e1, p.limited),
+            (0, 1000 * MS, true, false)
+        );
+        assert_eq!(p.rule, Rule::SuppressedPulse);
+    }
+
+    #[test]
+    fn suppress_short_break_gives_1_and_e1_000() {
+        // 000: "If the off duration ... is less than the minimum off duration, Q1 or Q2 are
+        // permanently on."
+        let c = cfg(1000, 100, ShortPulse::Suppress, 0.0);
+        let p = Plan::new(0.95, &c);
+        assert_eq!((p.t_on, p.t_off, p.e1), (1000 * MS, 0, true));
+        assert_eq!(p.rule, Rule::SuppressedBreak);
+    }
+
+    #[test]
+    fn stretch_raises_on_time_and_sets_limit_flag_002() {
+        let c = cfg(1000, 100, ShortPulse::Stretch, 0.0);
+        let p = Plan::new(0.05, &c);
+        assert_eq!(
+            (p.t_on, p.t_off, p.e1, p.limited),
+            (100 * MS, 900 * MS, true, true)
+        );
+        let p = Plan::new(0.95, &c);
+        assert_eq!((p.t_on, p.t_off, p.limited), (900 * MS, 100 * MS, true));
+    }
+
+    #[test]
+    fn zero_and_full_are_exact_and_never_flag_002() {
+        for sp in [ShortPulse::Suppress, ShortPulse::Stretch, ShortPulse::Band] {
+            let c = cfg(1000, 400, sp, 0.3);
+            let p = Plan::new(0.0, &c);
+            assert_eq!((p.t_on, p.e1, p.limited), (0, false, false), "{sp}");
+            let p = Plan::new(1.0, &c);
+            assert_eq!((p.t_off, p.e1, p.limited), (0, false, false), "{sp}");
+        }
+    }
+
+    #[test]
+    fn hardware_floor_applies_with_me_zero_000() {
+        // 000: the shortest on duration of a transistor output is 0.1 ms.
+        let c = cfg(1000, 0, ShortPulse::Suppress, 0.0);
+        assert!(Plan::new(0.00005, &c).e1, "50 us < 100 us floor");
+        assert!(
+            !Plan::new(0.0001, &c).e1,
+            "exactly the floor is reproducible"
+        );
+        assert!(Plan::new(0.99995, &c).e1, "50 us break < floor");
+    }
+
+    #[test]
+    fn band_truth_table_below_half_004() {
+        let c = cfg(1000, 0, ShortPulse::Band, 0.2);
+        assert_eq!(Plan::new(0.19, &c).rule, Rule::BandLow);
+        assert_eq!(Plan::new(0.19, &c).t_on, 0);
+        assert_eq!(Plan::new(0.2, &c).t_on, 200 * MS, "d == e is PWM");
+        assert_eq!(Plan::new(0.5, &c).t_on, 500 * MS);
+        assert_eq!(Plan::new(0.8, &c).t_on, 800 * MS, "d == 1-e is PWM");
+        assert_eq!(Plan::new(0.81, &c).rule, Rule::BandHigh);
+        assert_eq!(Plan::new(0.81, &c).t_off, 0);
+        assert!(
+            !Plan::new(0.81, &c).e1,
+            "the band is a policy, not a minimum time"
+        );
+    }
+
+    #[test]
+    fn band_truth_table_at_or_above_half_004() {
+        let c = cfg(1000, 0, ShortPulse::Band, 0.7);
+        assert_eq!(Plan::new(0.69, &c).t_on, 0);
+        assert_eq!(Plan::new(0.7, &c).t_off, 0, "d >= e gives 1");
+        let c = cfg(1000, 0, ShortPulse::Band, 0.5);
+        assert_eq!(Plan::new(0.49, &c).t_on, 0);
+        assert_eq!(Plan::new(0.5, &c).t_off, 0);
+    }
+
+    #[test]
+    fn period_zero_means_no_pulses_000() {
+        let c = cfg(0, 0, ShortPulse::Suppress, 0.0);
+        let p = Plan::new(0.5, &c);
+        assert_eq!((p.t_on, p.t_off, p.rule), (0, 0, Rule::NoPeriod));
+        assert_eq!(p.applied_duty(), 0.0);
+    }
+}

@@ -1,0 +1,162 @@
+//! A virtual-time bench for one channel: inputs at chosen instants, deadlines processed one by
+//! one exactly when due, every event recorded with its cause. `wave()` prints the edges the way
+//! the seeds draw timing diagrams: `H@0 L@370 H@1000` (level @ ms).
+
+use crate::core::{Channel, ChannelParams, Command, Event, Level, Nanos, Status, NS_PER_MS};
+
+/// One millisecond in ns.
+pub const MS: Nanos = NS_PER_MS;
+
+/// What made the channel act.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Cause {
+    /// A deadline (step end or watchdog).
+    Deadline,
+    /// A duty command.
+    Command,
+    /// An enable change.
+    Enable,
+    /// A configuration change.
+    Config,
+}
+
+/// An event with when and why it happened.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Logged {
+    pub now: Nanos,
+    pub cause: Cause,
+    pub event: Event,
+}
+
+pub struct Bench {
+    pub ch: Channel,
+    pub now: Nanos,
+    pub log: Vec<Logged>,
+}
+
+impl Bench {
+    pub fn new(params: ChannelParams) -> Bench {
+        Bench {
+            ch: Channel::new(params.validate().expect("test parameters are valid"), 0),
+            now: 0,
+            log: Vec::new(),
+        }
+    }
+
+    fn record(&mut self, cause: Cause, f: impl FnOnce(&mut Channel, Nanos, &mut dyn FnMut(Event))) {
+        let now = self.now;
+        let log = &mut self.log;
+        f(&mut self.ch, now, &mut |event| {
+            log.push(Logged { now, cause, event })
+        });
+    }
+
+    /// Runs every deadline up to and including `t` ns, each at its own instant.
+    pub fn run_to(&mut self, t: Nanos) -> &mut Self {
+        while let Some(d) = self.ch.poll_at() {
+            if d > t {
+                break;
+            }
+            assert!(d >= self.now, "deadline {d} lies before now {}", self.now);
+            self.now = d;
+            self.record(Cause::Deadline, |ch, now, emit| ch.poll(now, emit));
+        }
+        self.now = t;
+        self
+    }
+
+    /// Runs to `ms` milliseconds.
+    pub fn at(&mut self, ms: f64) -> &mut Self {
+        self.run_to((ms * MS as f64).round() as Nanos)
+    }
+
+    pub fn enable(&mut self) -> &mut Self {
+        self.record(Cause::Enable, |ch, now, emit| {
+            ch.set_enable(now, true, emit)
+        });
+        self
+    }
+
+    pub fn disable(&mut self) -> &mut Self {
+        self.record(Cause::Enable, |ch, now, emit| {
+            ch.set_enable(now, false, emit)
+        });
+        self
+    }
+
+    pub fn command(&mut self, c: Command) -> &mut Self {
+        self.record(Cause::Command, |ch, now, emit| ch.command(now, c, emit));
+        self
+    }
+
+    pub fn duty(&mut self, percent: f64) -> &mut Self {
+        self.command(Command::Percent(percent))
+    }
+
+    pub fn params(&mut self, p: ChannelParams) -> &mut Self {
+        let cfg = p.validate().expect("test parameters are valid");
+        self.record(Cause::Config, |ch, now, emit| ch.set_config(now, cfg, emit));
+        self
+    }
+
+    pub fn status(&self) -> Status {
+        self.ch.status(self.now)
+    }
+
+    /// Every edge: (time ns, level).
+    pub fn edges(&self) -> Vec<(Nanos, Level)> {
+        self.log
+            .iter()
+            .filter_map(|l| match l.event {
+                Event::Edge { at, level } => Some((at, level)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// The edges as a timing diagram: `H@0 L@370 H@1000`, times in ms.
+    pub fn wave(&self) -> String {
+        self.edges()
+            .iter()
+            .map(|(t, l)| {
+                let ms = *t as f64 / MS as f64;
+                let c = if l.is_high() { 'H' } else { 'L' };
+                format!("{c}@{}", trim(ms))
+            })
+            .collect::<Vec<_>>()
+            .join(" ")
+    }
+
+    /// Events other than edges and plans, for asserting flags, watchdog and rejections.
+    pub fn notes(&self) -> Vec<(Nanos, Event)> {
+        self.log
+            .iter()
+            .filter(|l| !matches!(l.event, Event::Edge { .. } | Event::Plan(_)))
+            .map(|l| (l.now, l.event))
+            .collect()
+    }
+
+    /// Total on time within [from, to), ns.
+    pub fn on_time(&self, from: Nanos, to: Nanos) -> Nanos {
+        let mut total = 0;
+        let mut level = Level::Low;
+        let mut since = 0;
+        for (t, l) in self.edges() {
+            if level.is_high() {
+                total += t.clamp(from, to) - since.clamp(from, to);
+            }
+            level = l;
+            since = t;
+        }
+        if level.is_high() {
+            total += to - since.clamp(from, to);
+        }
+        total
+    }
+}
+
+fn trim(ms: f64) -> String {
+    let s = format!("{ms:.4}");
+    let s = s.trim_end_matches('0').trim_end_matches('.');
+    s.to_string()
+}

@@ -1,0 +1,6 @@
+//! Virtual-time tests of the channel core: rule by rule against the seeds, then properties over
+//! random input sequences.
+
+mod harness;
+mod props;
+mod rules;

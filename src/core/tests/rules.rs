@@ -1,0 +1,624 @@
+//! Every channel rule of SPEC §1 in virtual time, each test naming the seed it checks.
+
+use super::harness::{Bench, Cause, MS};
+use crate::core::{
+    ApplyAt, ChannelParams, Command, CommandError, Event, Level, OnDisable, OutputKind, Profile,
+    Rule,
+};
+
+fn p() -> ChannelParams {
+    ChannelParams::default()
+}
+
+fn with(f: impl FnOnce(&mut ChannelParams)) -> ChannelParams {
+    let mut params = p();
+    f(&mut params);
+    params
+}
+
+// ---- 1. period and duty ----------------------------------------------------------------------
+
+#[test]
+fn on_time_proportional_to_sv_period_unchanged_000() {
+    let mut b = Bench::new(p());
+    b.duty(37.0).enable().at(2500.0);
+    assert_eq!(b.wave(), "H@0 L@370 H@1000 L@1370 H@2000 L@2370");
+}
+
+#[test]
+fn sv_4095_is_full_scale_000() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.command(Command::Sv(2048)).enable().at(150.0);
+    // 2048/4095 of 100 ms = 50.012 ms, to the ns.
+    let t_on = (2048.0 / 4095.0 * 100.0 * MS as f64).round() as u64;
+    assert_eq!(
+        b.edges(),
+        vec![
+            (0, Level::High),
+            (t_on, Level::Low),
+            (100 * MS, Level::High)
+        ]
+    );
+}
+
+#[test]
+fn fraction_command_004() {
+    // 004: q_xOput TRUE for TimeBase * i_rIput, then FALSE for TimeBase * (1 - i_rIput).
+    let mut b = Bench::new(with(|p| p.profile = Profile::FrequencyOutput));
+    b.command(Command::Fraction(0.5)).enable().at(1500.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@1000 L@1500");
+}
+
+#[test]
+fn period_zero_gives_no_pulses_and_holds_0_000() {
+    let mut b = Bench::new(with(|p| p.period_ms = 0));
+    b.duty(50.0).enable().at(5000.0);
+    assert_eq!(b.wave(), "");
+    assert_eq!(b.ch.poll_at(), None);
+    assert!(!b.status().active);
+    // Setting a period starts pulsing at once: there is no period boundary to wait for.
+    b.params(with(|p| p.period_ms = 100)).at(5150.0);
+    assert_eq!(b.wave(), "H@5000 L@5050 H@5100 L@5150");
+}
+
+#[test]
+fn period_to_zero_applies_at_the_boundary_and_holds_0_000() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.duty(50.0).enable().at(20.0);
+    b.params(with(|p| p.period_ms = 0)).at(500.0);
+    assert_eq!(b.wave(), "H@0 L@50");
+    assert_eq!(b.ch.level(), Level::Low);
+}
+
+// ---- 1.1 commands ----------------------------------------------------------------------------
+
+#[test]
+fn nan_and_inf_are_refused_and_last_command_stays_001() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.duty(30.0).enable().at(10.0);
+    b.duty(f64::NAN)
+        .duty(f64::INFINITY)
+        .duty(f64::NEG_INFINITY)
+        .at(250.0);
+    assert_eq!(b.wave(), "H@0 L@30 H@100 L@130 H@200 L@230");
+    let notes = b.notes();
+    assert!(notes.contains(&(10 * MS, Event::Rejected(CommandError::NotANumber))));
+    assert_eq!(
+        notes
+            .iter()
+            .filter(|(_, e)| *e == Event::Rejected(CommandError::Infinite))
+            .count(),
+        2
+    );
+    assert_eq!(b.status().duty_commanded, 0.3);
+}
+
+#[test]
+fn out_of_range_is_clamped_and_flagged_002() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.duty(150.0).enable().at(250.0);
+    assert_eq!(b.wave(), "H@0", "clamped to 100 %: constant on");
+    assert!(b.notes().contains(&(
+        0,
+        Event::Clamped {
+            requested: 150.0,
+            applied: 1.0
+        }
+    )));
+    let s = b.status();
+    assert!(s.command_clamped);
+    assert_eq!((s.duty_requested, s.duty_commanded), (150.0, 1.0));
+    b.duty(-3.0).at(400.0);
+    assert_eq!(b.wave(), "H@0 L@300", "clamped to 0 % from the next period");
+    b.duty(20.0);
+    assert!(
+        !b.status().command_clamped,
+        "a valid command clears the flag"
+    );
+}
+
+#[test]
+fn sv_above_4095_is_clamped_000() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.command(Command::Sv(60000)).enable();
+    assert_eq!(b.status().duty_commanded, 1.0);
+    assert!(b.status().command_clamped);
+}
+
+// ---- 1.1 enable --------------------------------------------------------------------------------
+
+#[test]
+fn rising_enable_starts_a_period_with_its_on_phase_000_004() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.duty(40.0).at(1234.5).enable().at(1400.0);
+    assert_eq!(b.wave(), "H@1234.5 L@1274.5 H@1334.5 L@1374.5");
+}
+
+#[test]
+fn rising_enable_at_0_and_100_goes_straight_there_without_minimum_002() {
+    // Hold keeps the line high after disable; re-enabling at 0 % drops it at once even though
+    // the pulse that is held is shorter than min_off would allow after it.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 100;
+        p.min_on_ms = 40;
+        p.on_disable = Some(OnDisable::Hold);
+    }));
+    b.duty(50.0).enable().at(10.0).disable().at(11.0);
+    b.duty(0.0).enable().at(12.0);
+    assert_eq!(b.wave(), "H@0 L@11");
+    b.disable().duty(100.0).enable();
+    assert_eq!(b.wave(), "H@0 L@11 H@12", "100 %: straight on");
+    assert!(!b.status().e1);
+}
+
+#[test]
+fn falling_enable_sets_output_0_at_once_000() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.duty(80.0).enable().at(30.0).disable().at(500.0);
+    assert_eq!(b.wave(), "H@0 L@30");
+    assert_eq!(b.ch.poll_at(), None, "no deadlines while disabled");
+}
+
+#[test]
+fn disable_hold_keeps_the_level_until_enabled_004() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 100;
+        p.profile = Profile::FrequencyOutput;
+    }));
+    b.duty(80.0).enable().at(30.0).disable().at(500.0);
+    assert_eq!(b.wave(), "H@0", "held high");
+    b.duty(20.0).enable().at(650.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@520 H@600 L@620",
+        "new period from the enable"
+    );
+}
+
+#[test]
+fn disabled_channel_still_computes_on_and_off_times_002() {
+    let mut b = Bench::new(with(|p| p.period_ms = 10_000));
+    b.duty(25.0);
+    let s = b.status();
+    assert!(!s.enabled && !s.active);
+    assert_eq!((s.t_on, s.t_off), (2500 * MS, 7500 * MS));
+    assert_eq!(s.duty_applied, 0.25);
+    assert_eq!(b.wave(), "");
+}
+
+// ---- 1.2 minimum on and off times -------------------------------------------------------------
+
+#[test]
+fn suppress_pulse_below_me_gives_0_and_e1_000() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+    }));
+    b.duty(5.0).enable().at(3000.0);
+    assert_eq!(b.wave(), "", "050 ms < ME 100 ms: no pulse");
+    assert!(b.notes().contains(&(
+        0,
+        Event::Flags {
+            e1: true,
+            limited: false
+        }
+    )));
+    assert_eq!(b.status().rule, Rule::SuppressedPulse);
+}
+
+#[test]
+fn suppress_break_below_min_off_gives_1_and_e1_000() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+    }));
+    b.duty(95.0).enable().at(3000.0);
+    assert_eq!(
+        b.wave(),
+        "H@0",
+        "50 ms break < min off = ME: permanently on"
+    );
+    assert!(b.status().e1);
+}
+
+#[test]
+fn e1_is_a_state_updated_every_period_and_reported_on_change_000() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+    }));
+    b.duty(5.0)
+        .enable()
+        .at(500.0)
+        .duty(50.0)
+        .at(2500.0)
+        .duty(5.0)
+        .at(3500.0);
+    let flags: Vec<_> = b
+        .notes()
+        .into_iter()
+        .filter_map(|(t, e)| match e {
+            Event::Flags { e1, .. } => Some((t / MS, e1)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(flags, vec![(0, true), (1000, false), (3000, true)]);
+    assert_eq!(b.wave(), "H@1000 L@1500 H@2000 L@2500");
+}
+
+#[test]
+fn stretch_raises_pulse_to_min_and_sets_limit_flag_002() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.profile = Profile::TwincatBa;
+    }));
+    b.duty(5.0).enable().at(1500.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@1000 L@1100");
+    let s = b.status();
+    assert!(s.limited && s.e1);
+    assert_eq!((s.t_on, s.t_off), (100 * MS, 900 * MS));
+}
+
+#[test]
+fn zero_and_hundred_percent_are_exact_and_never_flag_002() {
+    for profile in Profile::ALL {
+        let mut b = Bench::new(with(|p| {
+            p.period_ms = 1000;
+            p.min_on_ms = 300;
+            p.profile = profile;
+        }));
+        b.duty(0.0).enable().at(2500.0);
+        assert_eq!(b.wave(), "", "{profile}");
+        b.duty(100.0).at(4500.0);
+        // 003 ends a break at once when the new command leaves no room for it.
+        let expect = if profile == Profile::TcontCp {
+            "H@2500"
+        } else {
+            "H@3000"
+        };
+        assert_eq!(b.wave(), expect, "{profile}");
+        assert!(
+            !b.notes()
+                .iter()
+                .any(|(_, e)| matches!(e, Event::Flags { .. })),
+            "{profile}: no E1 or limit flag at 0 / 100 %"
+        );
+    }
+}
+
+#[test]
+fn band_below_half_follows_004_truth_table() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.profile = Profile::FrequencyOutput;
+        p.edge_band = 0.2;
+    }));
+    b.duty(10.0).enable().at(1500.0);
+    assert_eq!(b.wave(), "", "i_rIput < i_rEdge: FALSE");
+    b.duty(50.0).at(2500.0);
+    assert_eq!(b.wave(), "H@2000 L@2500", "inside the band: PWM");
+    b.duty(90.0).at(4500.0);
+    assert_eq!(b.wave(), "H@2000 L@2500 H@3000", "above 1 - i_rEdge: TRUE");
+    assert!(!b.status().e1, "the band is a policy, not a minimum time");
+}
+
+#[test]
+fn band_at_or_above_half_follows_004_truth_table() {
+    // 004's example: edge 0.5 gives 500/500 ms at 0.5 input; edge 0.7 turns that input FALSE.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.profile = Profile::FrequencyOutput;
+        p.edge_band = 0.5;
+    }));
+    b.command(Command::Fraction(0.5)).enable().at(1500.0);
+    assert_eq!(
+        b.wave(),
+        "H@0",
+        "edge 0.5, input 0.5: i_rEdge <= i_rIput gives TRUE"
+    );
+    b.params(with(|p| {
+        p.period_ms = 1000;
+        p.profile = Profile::FrequencyOutput;
+        p.edge_band = 0.7;
+    }))
+    .at(2500.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@2000",
+        "edge 0.7: input below edge gives FALSE"
+    );
+    b.command(Command::Fraction(0.7)).at(3500.0);
+    assert_eq!(b.wave(), "H@0 L@2000 H@3000");
+}
+
+// ---- 1.3 apply_at ------------------------------------------------------------------------------
+
+#[test]
+fn next_period_completes_the_running_period_000() {
+    let mut b = Bench::new(with(|p| p.period_ms = 1000));
+    b.duty(60.0).enable().at(100.0).duty(20.0).at(2500.0);
+    assert_eq!(b.wave(), "H@0 L@600 H@1000 L@1200 H@2000 L@2200");
+    // applied stays 60 % until the period ends
+    let mut b = Bench::new(with(|p| p.period_ms = 1000));
+    b.duty(60.0).enable().at(100.0).duty(20.0);
+    let s = b.status();
+    assert_eq!((s.duty_commanded, s.duty_applied), (0.2, 0.6));
+}
+
+#[test]
+fn next_step_completes_the_running_step_with_its_latched_time_002() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.apply_at = Some(ApplyAt::NextStep);
+    }));
+    // On step latched at 60 % (600 ms); during it the command drops to 20 %: the on step still
+    // runs 600 ms, then the off step takes the new off time, 800 ms.
+    b.duty(60.0).enable().at(100.0).duty(20.0).at(2500.0);
+    assert_eq!(b.wave(), "H@0 L@600 H@1400 L@1600 H@2400");
+}
+
+#[test]
+fn immediate_extends_a_running_pulse_003() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.profile = Profile::TcontCp;
+    }));
+    b.duty(30.0).enable().at(200.0).duty(50.0).at(1100.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@1000", "pulse extended to 500 ms");
+}
+
+#[test]
+fn immediate_ends_a_running_pulse_now_003() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.profile = Profile::TcontCp;
+    }));
+    b.duty(60.0).enable().at(400.0).duty(30.0).at(1100.0);
+    // 400 ms already elapsed >= the new 300 ms: the pulse ends now; the break then lasts its
+    // full new length, 700 ms.
+    assert_eq!(b.wave(), "H@0 L@400 H@1100");
+}
+
+#[test]
+fn immediate_never_ends_a_pulse_below_min_on_003() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.profile = Profile::TcontCp;
+    }));
+    b.duty(60.0).enable().at(30.0).duty(0.0).at(500.0);
+    assert_eq!(b.wave(), "H@0 L@100", "P_B_TM: the pulse lasts its minimum");
+}
+
+#[test]
+fn immediate_extends_and_ends_a_break_003() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.profile = Profile::TcontCp;
+    }));
+    // Break from 500 ms, 500 ms long. At 600 ms the command drops to 20 %: the break is
+    // extended to 800 ms (until 1300).
+    b.duty(50.0).enable().at(600.0).duty(20.0).at(1350.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@1300");
+    // During the next break (from 1500), the command rises to 90 %: the 100 ms break has
+    // already passed at 1700, so it ends now and a pulse starts.
+    b.at(1700.0).duty(90.0).at(1750.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@1300 L@1500 H@1700");
+}
+
+#[test]
+fn immediate_never_ends_a_break_below_min_off_003() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.profile = Profile::TcontCp;
+    }));
+    b.duty(50.0).enable().at(520.0).duty(100.0).at(700.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@600");
+}
+
+// ---- 1.5 parameter changes --------------------------------------------------------------------
+
+#[test]
+fn period_change_takes_effect_at_the_next_boundary() {
+    let mut b = Bench::new(with(|p| p.period_ms = 1000));
+    b.duty(50.0)
+        .enable()
+        .at(100.0)
+        .params(with(|p| p.period_ms = 200))
+        .at(1500.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@500 H@1000 L@1100 H@1200 L@1300 H@1400 L@1500"
+    );
+    assert!(b.ch.pending_config().is_none());
+}
+
+#[test]
+fn minimum_change_takes_effect_at_the_next_boundary() {
+    let mut b = Bench::new(with(|p| p.period_ms = 1000));
+    b.duty(5.0)
+        .enable()
+        .at(10.0)
+        .params(with(|p| p.min_on_ms = 100))
+        .at(2500.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@50",
+        "the running period keeps its 50 ms pulse"
+    );
+    assert!(b.status().e1);
+}
+
+#[test]
+fn immediate_policy_applies_a_parameter_change_at_once_003() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.profile = Profile::TcontCp;
+    }));
+    b.duty(50.0).enable().at(100.0);
+    b.params(with(|p| {
+        p.period_ms = 400;
+        p.profile = Profile::TcontCp;
+    }))
+    .at(700.0);
+    assert_eq!(b.wave(), "H@0 L@200 H@400 L@600");
+}
+
+#[test]
+fn watchdog_timeout_change_applies_at_once() {
+    let mut b = Bench::new(with(|p| p.period_ms = 1000));
+    b.duty(50.0).enable().at(100.0);
+    b.params(with(|p| {
+        p.period_ms = 1000;
+        p.command_timeout_ms = 200;
+    }))
+    .at(300.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@200",
+        "tripped 200 ms after the last command"
+    );
+}
+
+// ---- watchdog ----------------------------------------------------------------------------------
+
+#[test]
+fn watchdog_forces_off_and_a_command_recovers() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.command_timeout_ms = 1500;
+    }));
+    b.duty(60.0).enable().at(1000.0).duty(60.0).at(2800.0);
+    // last command at 1000 ms: trips at 2500 ms, mid-pulse (2000..2600): output off at once.
+    assert_eq!(b.wave(), "H@0 L@600 H@1000 L@1600 H@2000 L@2500");
+    assert!(b
+        .notes()
+        .contains(&(2500 * MS, Event::Watchdog { tripped: true })));
+    let s = b.status();
+    assert!(s.watchdog_tripped && !s.active);
+    assert_eq!(s.duty_applied, 0.0);
+    b.duty(60.0).at(3700.0);
+    assert!(b
+        .notes()
+        .contains(&(2800 * MS, Event::Watchdog { tripped: false })));
+    assert_eq!(
+        b.wave(),
+        "H@0 L@600 H@1000 L@1600 H@2000 L@2500 H@3000 L@3600",
+        "resumes on the period grid"
+    );
+}
+
+#[test]
+fn enabling_with_a_stale_command_trips_at_once() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.command_timeout_ms = 500;
+    }));
+    b.duty(80.0).at(2000.0).enable().at(3000.0);
+    assert_eq!(
+        b.wave(),
+        "",
+        "the 2 s old command does not drive the heater"
+    );
+    assert!(b
+        .notes()
+        .contains(&(2000 * MS, Event::Watchdog { tripped: true })));
+}
+
+#[test]
+fn watchdog_sleeps_while_disabled() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.command_timeout_ms = 500;
+    }));
+    b.duty(80.0).at(5000.0);
+    assert!(!b
+        .notes()
+        .iter()
+        .any(|(_, e)| matches!(e, Event::Watchdog { .. })));
+}
+
+// ---- late polling ------------------------------------------------------------------------------
+
+#[test]
+fn a_late_poll_merges_past_edges_and_reports_them() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.duty(50.0).enable();
+    // One poll 260 ms late: edges at 50, 100, 150, 200, 250 all lie in the past.
+    let mut events = Vec::new();
+    b.ch.poll(260 * MS, &mut |e| events.push(e));
+    assert_eq!(
+        events
+            .iter()
+            .filter(|e| matches!(e, Event::Edge { .. }))
+            .count(),
+        1
+    );
+    assert!(events.contains(&Event::Edge {
+        at: 250 * MS,
+        level: Level::Low
+    }));
+    assert!(events.contains(&Event::Missed { edges: 4 }));
+    assert_eq!(b.ch.poll_at(), Some(300 * MS), "the grid is kept");
+}
+
+// ---- status ------------------------------------------------------------------------------------
+
+#[test]
+fn status_counts_down_the_running_step_002() {
+    let mut b = Bench::new(with(|p| p.period_ms = 10_000));
+    b.duty(30.0).enable().at(1000.0);
+    let s = b.status();
+    assert_eq!((s.remaining_on, s.remaining_off), (2000 * MS, 0));
+    assert_eq!(s.remaining_at(2500 * MS), (500 * MS, 0));
+    b.at(4000.0);
+    let s = b.status();
+    assert_eq!((s.remaining_on, s.remaining_off), (0, 6000 * MS));
+    assert!(s.enabled && s.active);
+    assert_eq!(s.level, Level::Low);
+}
+
+#[test]
+fn relay_profile_limits_apply_000() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.output_kind = OutputKind::Relay;
+    }));
+    b.duty(3.0).enable().at(2000.0);
+    assert_eq!(b.wave(), "", "30 ms < the relay's 50 ms floor: suppressed");
+    assert!(b.status().e1);
+}
+
+#[test]
+fn every_edge_is_logged_with_its_cause() {
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.duty(50.0).enable().at(60.0).disable();
+    let causes: Vec<_> = b
+        .log
+        .iter()
+        .filter(|l| matches!(l.event, Event::Edge { .. }))
+        .map(|l| l.cause)
+        .collect();
+    assert_eq!(causes, vec![Cause::Enable, Cause::Deadline]);
+}
+
+#[test]
+fn restarting_pulses_from_period_zero_keeps_the_minimum_break() {
+    let p100 = with(|p| {
+        p.period_ms = 100;
+        p.min_on_ms = 20;
+    });
+    let p0 = ChannelParams {
+        period_ms: 0,
+        ..p100
+    };
+    let mut b = Bench::new(p100);
+    // 100 %: constant on; period 0 takes effect at the 100 ms boundary and drops the output.
+    b.duty(100.0).enable().at(20.0).params(p0).at(105.0);
+    assert_eq!(b.wave(), "H@0 L@100");
+    // 5 ms later pulses are asked for again: the output waits for the 20 ms minimum break.
+    b.params(p100).at(300.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@120");
+}

@@ -1,0 +1,86 @@
+//! The output thread: the only place where time is read and outputs are written.
+//!
+//! Requests arrive from the ROS side through a wait-free ring buffer and an eventfd wake-up;
+//! the thread sleeps on a timerfd armed with absolute CLOCK_MONOTONIC deadlines, polls the
+//! channel cores, writes edges to the [`Output`](crate::output::Output) and sends reports back
+//! through a second ring buffer that never blocks it (a full buffer drops and counts).
+
+use crate::core::{ChannelConfig, Command, Event, Level, Nanos, Status};
+
+/// An input for one channel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Input {
+    /// A duty command (percent, SV or fraction).
+    Command(Command),
+    /// EN.
+    Enable(bool),
+    /// A validated configuration.
+    Config(ChannelConfig),
+}
+
+/// An input addressed to a channel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Request {
+    /// Channel index, 0 = pw01.
+    pub channel: usize,
+    /// What to do.
+    pub input: Input,
+}
+
+/// One edge as it reached the line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EdgeReport {
+    /// Channel index, 0 = pw01.
+    pub channel: usize,
+    /// The new logical level.
+    pub level: Level,
+    /// Per-channel sequence number, from 1.
+    pub seq: u64,
+    /// When the core scheduled the edge, monotonic ns.
+    pub scheduled_ns: Nanos,
+    /// When the write returned, monotonic ns.
+    pub actual_ns: Nanos,
+    /// When the write returned, wall-clock ns since the Unix epoch.
+    pub wall_ns: i64,
+}
+
+impl EdgeReport {
+    /// Actual minus scheduled time, ns (negative: early).
+    pub fn lateness_ns(&self) -> i64 {
+        self.actual_ns as i64 - self.scheduled_ns as i64
+    }
+}
+
+/// What the output thread reports.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Report {
+    /// An edge was written.
+    Edge(EdgeReport),
+    /// A core event other than an edge (flags, plan, watchdog, rejection, clamp, missed).
+    Core {
+        /// Channel index.
+        channel: usize,
+        /// The event.
+        event: Event,
+    },
+    /// A status snapshot, taken at monotonic time `at_ns`, after anything changed.
+    Status {
+        /// Channel index.
+        channel: usize,
+        /// The snapshot.
+        status: Status,
+        /// Monotonic ns at which it was taken.
+        at_ns: Nanos,
+    },
+    /// Writing to the output failed: every other line was driven inactive and the thread
+    /// stopped.
+    OutputFault {
+        /// Channel index whose write failed.
+        channel: usize,
+    },
+}
+
+mod thread;
+pub(crate) mod worker;
+
+pub use thread::{spawn, Engine, EngineError, EngineHandle, EngineOptions, Reports, Requests};

@@ -1,0 +1,388 @@
+//! The dedicated output thread: sleeps on a timerfd armed with absolute CLOCK_MONOTONIC
+//! deadlines (no drift, no rounding to a timer wheel), wakes early only when a request arrives
+//! on its eventfd, and never blocks on the ROS side.
+//!
+//! Real-time set-up is opt-in (`rt_priority`): SCHED_FIFO and mlockall, each refused cleanly
+//! with one log line when the process lacks the privilege.
+
+use super::worker::{Stop, Worker};
+use super::{Report, Request};
+use crate::clock;
+use crate::core::ChannelConfig;
+use crate::output::{EmergencyOff, Output};
+use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+use nix::sys::eventfd::{EfdFlags, EventFd};
+use nix::sys::time::TimeSpec;
+use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
+use std::os::fd::{AsFd, BorrowedFd};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+/// Options of the output thread.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EngineOptions {
+    /// SCHED_FIFO priority 1..=99 for the output thread (and mlockall); `None` = normal
+    /// scheduling.
+    pub rt_priority: Option<i32>,
+    /// Capacity of each ring buffer (requests in, reports out), entries.
+    pub queue_capacity: usize,
+}
+
+impl Default for EngineOptions {
+    fn default() -> Self {
+        EngineOptions {
+            rt_priority: None,
+            queue_capacity: 4096,
+        }
+    }
+}
+
+/// Errors of the output thread.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    /// No channel was configured.
+    #[error("no channel configured")]
+    NoChannels,
+    /// The output drives fewer lines than there are channels.
+    #[error("the output has {lines} lines for {channels} channels")]
+    LineCount {
+        /// Lines the output drives.
+        lines: usize,
+        /// Channels configured.
+        channels: usize,
+    },
+    /// A request named a channel that does not exist.
+    #[error("no channel with index {0}")]
+    NoSuchChannel(usize),
+    /// The request queue is full (the output thread is not keeping up).
+    #[error("request queue full ({capacity} entries); request dropped")]
+    QueueFull {
+        /// Queue capacity, entries.
+        capacity: usize,
+    },
+    /// The output thread has stopped.
+    #[error("the output thread has stopped")]
+    Stopped,
+    /// A system call needed by the output thread failed.
+    #[error("{what} failed")]
+    Sys {
+        /// What was being done.
+        what: &'static str,
+        /// The OS error.
+        #[source]
+        source: nix::Error,
+    },
+    /// Starting the thread failed.
+    #[error("could not start the output thread")]
+    Spawn(#[source] std::io::Error),
+    /// Writing an output failed; every line was driven inactive and the thread stopped.
+    #[error("writing the output of channel {channel} failed: {message}")]
+    OutputFault {
+        /// Channel whose write failed.
+        channel: usize,
+        /// The backend's error, as text.
+        message: String,
+    },
+    /// The output thread panicked.
+    #[error("the output thread panicked")]
+    Panicked,
+}
+
+/// The ROS side's end of the request queue.
+pub struct Requests {
+    tx: rtrb::Producer<Request>,
+    wake: Arc<EventFd>,
+    channels: usize,
+}
+
+impl Requests {
+    /// Queues a request and wakes the output thread. Never blocks.
+    pub fn send(&mut self, request: Request) -> Result<(), EngineError> {
+        if request.channel >= self.channels {
+            return Err(EngineError::NoSuchChannel(request.channel));
+        }
+        if self.tx.is_abandoned() {
+            return Err(EngineError::Stopped);
+        }
+        self.tx.push(request).map_err(|_| EngineError::QueueFull {
+            capacity: self.tx.buffer().capacity(),
+        })?;
+        // EAGAIN here means the counter is saturated, i.e. a wake-up is pending anyway.
+        let _ = self.wake.write(1);
+        Ok(())
+    }
+
+    /// Number of channels.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+}
+
+/// The ROS side's end of the report queue.
+pub struct Reports {
+    rx: rtrb::Consumer<Report>,
+    wake: Arc<EventFd>,
+    dropped: Arc<AtomicU64>,
+}
+
+impl Reports {
+    /// The next report, if any.
+    pub fn try_recv(&mut self) -> Option<Report> {
+        self.rx.pop().ok()
+    }
+
+    /// An eventfd that is readable when reports may be waiting (poll it, or wrap it in an
+    /// async reactor); call [`Reports::clear_wake`] before draining with
+    /// [`Reports::try_recv`].
+    pub fn wake_fd(&self) -> BorrowedFd<'_> {
+        self.wake.as_fd()
+    }
+
+    /// Resets the wake-up eventfd.
+    pub fn clear_wake(&self) {
+        // EAGAIN: nothing was pending.
+        let _ = self.wake.read();
+    }
+
+    /// Reports lost because this side did not drain fast enough.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+
+    /// Blocks up to `timeout` for the wake-up eventfd (for non-async readers such as tests and
+    /// the benchmark). Returns true when it became readable.
+    pub fn wait(&self, timeout: Duration) -> bool {
+        let ms = timeout.as_millis().min(i32::MAX as u128) as i32;
+        let mut fds = [PollFd::new(self.wake.as_fd(), PollFlags::POLLIN)];
+        matches!(poll(&mut fds, PollTimeout::try_from(ms).unwrap_or(PollTimeout::MAX)), Ok(n) if n > 0)
+    }
+
+    /// Whether the output thread has ended (its end of the queue is gone).
+    pub fn is_abandoned(&self) -> bool {
+        self.rx.is_abandoned()
+    }
+}
+
+/// Controls the output thread's life.
+pub struct EngineHandle {
+    thread: Option<JoinHandle<Result<(), EngineError>>>,
+    stop: Arc<AtomicBool>,
+    wake: Arc<EventFd>,
+    emergency: Arc<dyn EmergencyOff>,
+    fault: Arc<Mutex<Option<String>>>,
+}
+
+impl EngineHandle {
+    /// Stops the thread: every output is driven inactive, then the output is dropped (which
+    /// flushes traces) and the thread joined. Returns the thread's own error, if it had one.
+    pub fn shutdown(mut self) -> Result<(), EngineError> {
+        self.stop.store(true, Ordering::SeqCst);
+        let _ = self.wake.write(1);
+        match self.thread.take().map(JoinHandle::join) {
+            Some(Ok(r)) => r,
+            Some(Err(_)) => Err(EngineError::Panicked),
+            None => Ok(()),
+        }
+    }
+
+    /// Whether the thread has ended (after a fault, or after shutdown).
+    pub fn is_finished(&self) -> bool {
+        self.thread.as_ref().is_none_or(JoinHandle::is_finished)
+    }
+
+    /// A handle that drives every output inactive from any thread.
+    pub fn emergency_off(&self) -> Arc<dyn EmergencyOff> {
+        self.emergency.clone()
+    }
+
+    /// The text of the output fault that stopped the thread, if one did.
+    pub fn fault(&self) -> Option<String> {
+        self.fault.lock().map(|f| f.clone()).unwrap_or(None)
+    }
+}
+
+impl Drop for EngineHandle {
+    fn drop(&mut self) {
+        if self.thread.is_some() {
+            self.stop.store(true, Ordering::SeqCst);
+            let _ = self.wake.write(1);
+            if let Some(t) = self.thread.take() {
+                let _ = t.join();
+            }
+        }
+    }
+}
+
+/// A running output thread and both ends of its queues.
+pub struct Engine {
+    /// Requests in.
+    pub requests: Requests,
+    /// Reports out.
+    pub reports: Reports,
+    /// The thread's life.
+    pub handle: EngineHandle,
+}
+
+/// Starts the output thread with one channel per config (channel `i` drives output line `i`).
+/// Every channel starts disabled with its output low.
+pub fn spawn<O: Output>(
+    configs: Vec<ChannelConfig>,
+    output: O,
+    opts: EngineOptions,
+) -> Result<Engine, EngineError> {
+    if configs.is_empty() {
+        return Err(EngineError::NoChannels);
+    }
+    if output.line_count() < configs.len() {
+        return Err(EngineError::LineCount {
+            lines: output.line_count(),
+            channels: configs.len(),
+        });
+    }
+    let sys = |what| move |source| EngineError::Sys { what, source };
+    let flags = EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK;
+    let req_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
+    let rep_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
+    let timer = TimerFd::new(
+        ClockId::CLOCK_MONOTONIC,
+        TimerFlags::TFD_CLOEXEC | TimerFlags::TFD_NONBLOCK,
+    )
+    .map_err(sys("timerfd_create"))?;
+    let (req_tx, mut req_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
+    let (rep_tx, rep_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
+    let dropped = Arc::new(AtomicU64::new(0));
+    let stop = Arc::new(AtomicBool::new(false));
+    let fault = Arc::new(Mutex::new(None));
+    let emergency = output.emergency_off();
+    let channels = configs.len();
+
+    let thread = {
+        let (req_wake, rep_wake, stop, fault, dropped) = (
+            req_wake.clone(),
+            rep_wake.clone(),
+            stop.clone(),
+            fault.clone(),
+            dropped.clone(),
+        );
+        std::thread::Builder::new()
+            .name("pwm-output".into())
+            .spawn(move || {
+                real_time_setup(opts.rt_priority);
+                let worker = Worker::new(&configs, output, rep_tx, dropped, clock::monotonic_ns());
+                run(
+                    worker,
+                    &mut req_rx,
+                    &timer,
+                    &req_wake,
+                    &rep_wake,
+                    &stop,
+                    &fault,
+                )
+            })
+            .map_err(EngineError::Spawn)?
+    };
+    Ok(Engine {
+        requests: Requests {
+            tx: req_tx,
+            wake: req_wake.clone(),
+            channels,
+        },
+        reports: Reports {
+            rx: rep_rx,
+            wake: rep_wake,
+            dropped,
+        },
+        handle: EngineHandle {
+            thread: Some(thread),
+            stop,
+            wake: req_wake,
+            emergency,
+            fault,
+        },
+    })
+}
+
+fn run<O: Output>(
+    mut worker: Worker<O>,
+    requests: &mut rtrb::Consumer<Request>,
+    timer: &TimerFd,
+    req_wake: &EventFd,
+    rep_wake: &EventFd,
+    stop: &AtomicBool,
+    fault: &Mutex<Option<String>>,
+) -> Result<(), EngineError> {
+    let sys = |what| move |source| EngineError::Sys { what, source };
+    loop {
+        if stop.load(Ordering::SeqCst) {
+            break;
+        }
+        if let Err(Stop::Fault { channel, error }) = worker.run(requests) {
+            let message = error.to_string();
+            if let Ok(mut f) = fault.lock() {
+                *f = Some(message.clone());
+            }
+            let _ = rep_wake.write(1);
+            return Err(EngineError::OutputFault { channel, message });
+        }
+        if worker.take_pushed() {
+            let _ = rep_wake.write(1);
+        }
+        match worker.next_deadline() {
+            // Absolute deadline: a late wake-up does not push later deadlines back.
+            Some(t) => timer
+                .set(
+                    Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(t))),
+                    TimerSetTimeFlags::TFD_TIMER_ABSTIME,
+                )
+                .map_err(sys("timerfd_settime"))?,
+            None => timer.unset().map_err(sys("timerfd_settime"))?,
+        }
+        let mut fds = [
+            PollFd::new(timer.as_fd(), PollFlags::POLLIN),
+            PollFd::new(req_wake.as_fd(), PollFlags::POLLIN),
+        ];
+        match poll(&mut fds, PollTimeout::NONE) {
+            Ok(_) | Err(nix::errno::Errno::EINTR) => {}
+            Err(e) => return Err(sys("poll")(e)),
+        }
+        // Both are non-blocking; EAGAIN just means that one did not fire.
+        let _ = timer.wait();
+        let _ = req_wake.read();
+    }
+    let (output, result) = worker.shut_down();
+    drop(output);
+    let _ = rep_wake.write(1);
+    result.map_err(|e| EngineError::OutputFault {
+        channel: 0,
+        message: e.to_string(),
+    })
+}
+
+/// Timer slack 1 ns always; SCHED_FIFO and mlockall when asked. Refusals are logged once and
+/// the thread carries on with normal scheduling.
+fn real_time_setup(rt_priority: Option<i32>) {
+    if let Err(e) = nix::sys::prctl::set_timerslack(1) {
+        log::warn!("could not set timer slack to 1 ns: {e}");
+    }
+    let Some(prio) = rt_priority else { return };
+    let param = libc::sched_param {
+        sched_priority: prio,
+    };
+    // SAFETY: plain syscall on the calling thread with a valid, initialised sched_param.
+    let rc = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
+    if rc != 0 {
+        log::warn!(
+            "SCHED_FIFO priority {prio} refused ({}); running with normal scheduling \
+             (see launch-notes/realtime.md: rtprio limit or CAP_SYS_NICE)",
+            std::io::Error::last_os_error()
+        );
+        return;
+    }
+    use nix::sys::mman::{mlockall, MlockAllFlags};
+    if let Err(e) = mlockall(MlockAllFlags::MCL_CURRENT | MlockAllFlags::MCL_FUTURE) {
+        log::warn!("mlockall refused ({e}); pages may fault on the output path");
+    }
+    log::info!("output thread running SCHED_FIFO priority {prio}");
+}

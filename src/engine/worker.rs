@@ -1,0 +1,239 @@
+//! The work done at each wake-up, independent of how the wake-up happens: apply requests, poll
+//! the channel cores, write the due edges in one call, and report. The output thread and the
+//! benchmark's tokio baseline both run this same code, so they differ only in how they sleep.
+//!
+//! Nothing here sleeps, locks, or allocates after construction.
+
+use super::{EdgeReport, Input, Report, Request};
+use crate::clock;
+use crate::core::{Channel, ChannelConfig, Event, Level, Nanos};
+use crate::output::{LineChange, Output};
+use rtrb::{Consumer, Producer};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+/// Why the worker stopped.
+#[derive(Debug)]
+pub(crate) enum Stop<E> {
+    /// Writing `channel` failed with `error`; every line was then driven inactive.
+    Fault { channel: usize, error: E },
+}
+
+pub(crate) struct Worker<O: Output> {
+    channels: Vec<Channel>,
+    seq: Vec<u64>,
+    touched: Vec<bool>,
+    changes: Vec<LineChange>,
+    output: O,
+    reports: Producer<Report>,
+    dropped: Arc<AtomicU64>,
+    /// Set when at least one report was pushed since the last `take_pushed`.
+    pushed: bool,
+}
+
+impl<O: Output> Worker<O> {
+    pub(crate) fn new(
+        configs: &[ChannelConfig],
+        output: O,
+        reports: Producer<Report>,
+        dropped: Arc<AtomicU64>,
+        now: Nanos,
+    ) -> Self {
+        let n = configs.len();
+        Worker {
+            channels: configs.iter().map(|c| Channel::new(*c, now)).collect(),
+            seq: vec![0; n],
+            touched: vec![false; n],
+            // At most two edges per channel can come out of one wake-up (a request edge and a
+            // deadline edge); reserve generously so the hot path never grows the vector.
+            changes: Vec::with_capacity(4 * n + 4),
+            output,
+            reports,
+            dropped,
+            pushed: false,
+        }
+    }
+
+    /// The earliest deadline of any channel, monotonic ns.
+    pub(crate) fn next_deadline(&self) -> Option<Nanos> {
+        self.channels.iter().filter_map(Channel::poll_at).min()
+    }
+
+    /// Whether a report was pushed since the last call (the caller then wakes the reader once).
+    pub(crate) fn take_pushed(&mut self) -> bool {
+        std::mem::take(&mut self.pushed)
+    }
+
+    /// Applies every queued request, then every due deadline, writes the resulting edges in one
+    /// call, and reports them.
+    pub(crate) fn run(&mut self, requests: &mut Consumer<Request>) -> Result<(), Stop<O::Error>> {
+        let now = clock::monotonic_ns();
+        while let Ok(req) = requests.pop() {
+            self.apply(now, req);
+        }
+        let now = clock::monotonic_ns();
+        for i in 0..self.channels.len() {
+            if self.channels[i].poll_at().is_some_and(|t| t <= now) {
+                let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
+                self.channels[i].poll(now, &mut |e| sink.event(e));
+                self.pushed |= sink.pushed;
+                self.touched[i] = true;
+            }
+        }
+        self.flush(now)
+    }
+
+    /// Handles one request at `now`.
+    fn apply(&mut self, now: Nanos, req: Request) {
+        let Some(ch) = self.channels.get_mut(req.channel) else {
+            return;
+        };
+        let mut sink = Sink::new(
+            req.channel,
+            &mut self.changes,
+            &mut self.reports,
+            &self.dropped,
+        );
+        let emit = &mut |e| sink.event(e);
+        match req.input {
+            Input::Command(c) => ch.command(now, c, emit),
+            Input::Enable(on) => ch.set_enable(now, on, emit),
+            Input::Config(cfg) => ch.set_config(now, cfg, emit),
+        }
+        self.pushed |= sink.pushed;
+        self.touched[req.channel] = true;
+    }
+
+    /// Writes the collected edges, reports them with their actual time, and sends a status
+    /// snapshot for every channel that was touched.
+    fn flush(&mut self, now: Nanos) -> Result<(), Stop<O::Error>> {
+        if !self.changes.is_empty() {
+            if let Err(error) = self.output.set_levels(&self.changes) {
+                let channel = self.changes[0].line;
+                self.changes.clear();
+                // The write failed: leave nothing on, whatever state the other lines are in.
+                let _ = self.output.set_all_inactive();
+                self.push(Report::OutputFault { channel });
+                return Err(Stop::Fault { channel, error });
+            }
+            let actual_ns = clock::monotonic_ns();
+            let wall_ns = clock::wall_ns();
+            for k in 0..self.changes.len() {
+                let c = self.changes[k];
+                self.seq[c.line] += 1;
+                self.push(Report::Edge(EdgeReport {
+                    channel: c.line,
+                    level: c.level,
+                    seq: self.seq[c.line],
+                    scheduled_ns: c.scheduled_ns,
+                    actual_ns,
+                    wall_ns,
+                }));
+            }
+            self.changes.clear();
+        }
+        for i in 0..self.channels.len() {
+            if std::mem::take(&mut self.touched[i]) {
+                let status = self.channels[i].status(now);
+                self.push(Report::Status {
+                    channel: i,
+                    status,
+                    at_ns: now,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Drives every line inactive (recording the edges of lines that were on) and returns the
+    /// output so the caller can drop it where it wants.
+    pub(crate) fn shut_down(mut self) -> (O, Result<(), O::Error>) {
+        let now = clock::monotonic_ns();
+        for (i, ch) in self.channels.iter().enumerate() {
+            if ch.level() == Level::High {
+                self.changes.push(LineChange {
+                    line: i,
+                    level: Level::Low,
+                    scheduled_ns: now,
+                });
+            }
+        }
+        let r = if self.changes.is_empty() {
+            Ok(())
+        } else {
+            self.output.set_levels(&self.changes)
+        };
+        self.changes.clear();
+        // Explicitly, whatever the cores believed.
+        let r2 = self.output.set_all_inactive();
+        (self.output, r.and(r2))
+    }
+
+    fn push(&mut self, report: Report) {
+        push_report(&mut self.reports, &self.dropped, report);
+        self.pushed = true;
+    }
+}
+
+fn push_report(reports: &mut Producer<Report>, dropped: &AtomicU64, report: Report) {
+    if reports.push(report).is_err() {
+        // The reader lags: never wait for it, count what is lost.
+        dropped.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// Routes a channel's core events: edges to the write batch, the rest to the report queue.
+struct Sink<'a> {
+    channel: usize,
+    changes: &'a mut Vec<LineChange>,
+    reports: &'a mut Producer<Report>,
+    dropped: &'a AtomicU64,
+    pushed: bool,
+}
+
+impl<'a> Sink<'a> {
+    fn new(
+        channel: usize,
+        changes: &'a mut Vec<LineChange>,
+        reports: &'a mut Producer<Report>,
+        dropped: &'a AtomicU64,
+    ) -> Self {
+        Sink {
+            channel,
+            changes,
+            reports,
+            dropped,
+            pushed: false,
+        }
+    }
+
+    fn event(&mut self, e: Event) {
+        match e {
+            Event::Edge { at, level } => {
+                // A request and a deadline in one wake-up can both move a line: keep only the
+                // last level per line, so no zero-width pulse is written.
+                if let Some(prev) = self.changes.iter().position(|c| c.line == self.channel) {
+                    self.changes.remove(prev);
+                    self.event(Event::Missed { edges: 2 });
+                } else {
+                    self.changes.push(LineChange {
+                        line: self.channel,
+                        level,
+                        scheduled_ns: at,
+                    });
+                }
+            }
+            event => {
+                push_report(
+                    self.reports,
+                    self.dropped,
+                    Report::Core {
+                        channel: self.channel,
+                        event,
+                    },
+                );
+                self.pushed = true;
+            }
+        }
+    }
+}

@@ -1,0 +1,48 @@
+//! Output backends: where the logical levels decided by the core become electrical levels.
+//!
+//! The trait is shaped like embedded-hal's `OutputPin`: small, fallible, with a [`Level`] type
+//! rather than a bare bool. A backend owns every line of the node (one request for the process
+//! lifetime on real hardware) and sets several lines in one call when edges coincide.
+//! Backends never decide timing; they write what they are told, when they are told.
+
+pub use crate::core::{Level, Nanos};
+
+/// One line change handed to a backend.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LineChange {
+    /// Index of the line among the node's bound lines (= channel index, 0 = pw01).
+    pub line: usize,
+    /// The new logical level (High = on); the backend applies `active_low`.
+    pub level: Level,
+    /// When the core scheduled this edge, monotonic ns (recorded by tracing backends).
+    pub scheduled_ns: Nanos,
+}
+
+/// A set of output lines driven together.
+///
+/// Implementations must leave every line inactive when dropped, and must make
+/// [`Output::set_all_inactive`] work even after a failed write.
+pub trait Output: Send + 'static {
+    /// The backend's error.
+    type Error: std::error::Error + Send + Sync + 'static;
+
+    /// Number of lines this backend drives.
+    fn line_count(&self) -> usize;
+
+    /// Writes the given logical levels, in one call where the hardware allows.
+    fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), Self::Error>;
+
+    /// Drives every line inactive (logical low), as on shutdown or after a fault.
+    fn set_all_inactive(&mut self) -> Result<(), Self::Error>;
+
+    /// A handle that drives every line inactive from any thread (panic hook, signal path),
+    /// without going through the thread that owns the backend.
+    fn emergency_off(&self) -> std::sync::Arc<dyn EmergencyOff>;
+}
+
+/// Drives every line of a backend inactive from any thread. Must not block for long and must
+/// not panic: it runs inside the panic hook.
+pub trait EmergencyOff: Send + Sync {
+    /// Drives every line inactive; best effort, errors are swallowed after being printed.
+    fn all_inactive(&self);
+}
