@@ -46,3 +46,15 @@ pub trait EmergencyOff: Send + Sync {
     /// Drives every line inactive; best effort, errors are swallowed after being printed.
     fn all_inactive(&self);
 }
+
+pub mod bindings;
+pub mod gpio;
+pub mod safety;
+pub mod sim;
+pub mod trace;
+
+pub use bindings::{check_unique, BindingError, LineAddr};
+pub use gpio::{GpioError, GpioLine, GpioOutput};
+pub use safety::{install_panic_hook, EmergencyRegistry, PANIC_EXIT_CODE};
+pub use sim::{SimOutput, SimProbe};
+pub use trace::{EdgeRecord, TraceError, TraceSpec};

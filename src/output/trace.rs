@@ -1,0 +1,774 @@
+//! Trace files of the simulated sink: every edge with its actual and scheduled time, as CSV and
+//! as IEEE 1364 VCD (viewable in GTKWave or Surfer).
+//!
+//! Writers here do buffered file I/O and allocate: they must never run on the output thread.
+//! The simulated sink ([`super::sim`]) hands them records from a background thread or from an
+//! explicit flush.
+
+use crate::core::{Level, Nanos};
+use std::collections::HashSet;
+use std::fs::File;
+use std::io::{self, BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+/// Module name of the VCD scope holding one wire per channel.
+pub const VCD_SCOPE: &str = "pwm_actuator";
+
+/// Header line of the CSV trace.
+pub const CSV_HEADER: &str = "t_ns,channel,level,scheduled_ns";
+
+/// Errors of the trace layer.
+#[derive(Debug, thiserror::Error)]
+pub enum TraceError {
+    /// A trace path has an extension other than `.vcd` or `.csv`.
+    #[error("trace file {path}: unknown extension, expected .vcd or .csv")]
+    UnknownExtension {
+        /// The offending path.
+        path: PathBuf,
+    },
+    /// The same trace path was given twice (two writers would garble the file).
+    #[error("trace file {path} is given twice")]
+    DuplicatePath {
+        /// The repeated path.
+        path: PathBuf,
+    },
+    /// A channel name cannot be written to a trace (empty, whitespace, control characters,
+    /// `,` or `"`).
+    #[error("channel name {name:?} cannot be used in a trace: it must be non-empty printable ASCII without spaces, commas or quotes")]
+    InvalidChannelName {
+        /// The offending name.
+        name: String,
+    },
+    /// Two channels have the same name: their records could not be told apart.
+    #[error("channel name {name:?} is used twice")]
+    DuplicateChannelName {
+        /// The repeated name.
+        name: String,
+    },
+    /// A record names a channel index that the trace was not created with.
+    #[error("edge record for channel index {channel}, but the trace has {count} channels")]
+    UnknownChannel {
+        /// The record's channel index.
+        channel: usize,
+        /// Number of channels of the trace.
+        count: usize,
+    },
+    /// A trace file could not be created.
+    #[error("cannot create trace file {path}")]
+    Create {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: io::Error,
+    },
+    /// Writing or flushing a trace file failed; later records are not written to that file.
+    #[error("cannot write trace file {path}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        #[source]
+        source: io::Error,
+    },
+    /// Records were lost because the trace buffer was full when an edge happened.
+    #[error("{dropped} edge records were not traced: the trace buffer was full")]
+    Overflow {
+        /// Records lost so far (total since start).
+        dropped: u64,
+    },
+    /// The background trace writer thread could not be started.
+    #[error("cannot start the trace writer thread")]
+    Spawn(#[source] io::Error),
+}
+
+/// The format of one trace file, chosen by its extension.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TraceFormat {
+    /// `.vcd`: IEEE 1364 value change dump.
+    Vcd,
+    /// `.csv`: one row per edge, header [`CSV_HEADER`].
+    Csv,
+}
+
+impl TraceFormat {
+    /// The format for a path's extension (case-insensitive), `None` when it is neither.
+    pub fn from_path(path: &Path) -> Option<TraceFormat> {
+        let ext = path.extension()?.to_str()?;
+        if ext.eq_ignore_ascii_case("vcd") {
+            Some(TraceFormat::Vcd)
+        } else if ext.eq_ignore_ascii_case("csv") {
+            Some(TraceFormat::Csv)
+        } else {
+            None
+        }
+    }
+}
+
+/// One trace file to write.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TraceFile {
+    /// Where to write it (created or truncated at start).
+    pub path: PathBuf,
+    /// What to write.
+    pub format: TraceFormat,
+}
+
+/// The set of trace files of a simulated sink (any number, any mix of VCD and CSV).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct TraceSpec {
+    files: Vec<TraceFile>,
+}
+
+impl TraceSpec {
+    /// Builds the spec from paths ending in `.vcd` or `.csv` (case-insensitive). Any other
+    /// extension, or a path given twice, is an error naming the path. An empty slice gives an
+    /// empty spec (no trace).
+    pub fn from_paths(paths: &[PathBuf]) -> Result<TraceSpec, TraceError> {
+        let mut files: Vec<TraceFile> = Vec::with_capacity(paths.len());
+        for path in paths {
+            let format = TraceFormat::from_path(path)
+                .ok_or_else(|| TraceError::UnknownExtension { path: path.clone() })?;
+            if files.iter().any(|f| f.path == *path) {
+                return Err(TraceError::DuplicatePath { path: path.clone() });
+            }
+            files.push(TraceFile {
+                path: path.clone(),
+                format,
+            });
+        }
+        Ok(TraceSpec { files })
+    }
+
+    /// The files, in the order given.
+    pub fn files(&self) -> &[TraceFile] {
+        &self.files
+    }
+
+    /// `true` when no file is to be written.
+    pub fn is_empty(&self) -> bool {
+        self.files.is_empty()
+    }
+}
+
+/// One edge as traced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EdgeRecord {
+    /// When the level was actually written, monotonic ns.
+    pub t_ns: Nanos,
+    /// Channel (line) index, 0 = first channel.
+    pub channel: usize,
+    /// The new logical level.
+    pub level: Level,
+    /// When the core scheduled the edge, monotonic ns.
+    pub scheduled_ns: Nanos,
+}
+
+/// Checks that channel names can be written to CSV and VCD unquoted and are unique.
+pub fn validate_channel_names(names: &[String]) -> Result<(), TraceError> {
+    let mut seen = HashSet::with_capacity(names.len());
+    for name in names {
+        let ok = !name.is_empty()
+            && name
+                .bytes()
+                .all(|b| b.is_ascii_graphic() && b != b',' && b != b'"');
+        if !ok {
+            return Err(TraceError::InvalidChannelName { name: name.clone() });
+        }
+        if !seen.insert(name.as_str()) {
+            return Err(TraceError::DuplicateChannelName { name: name.clone() });
+        }
+    }
+    Ok(())
+}
+
+fn level_digit(level: Level) -> char {
+    if level.is_high() {
+        '1'
+    } else {
+        '0'
+    }
+}
+
+fn unknown_channel(channel: usize, count: usize) -> io::Error {
+    io::Error::new(
+        io::ErrorKind::InvalidInput,
+        TraceError::UnknownChannel { channel, count },
+    )
+}
+
+/// CSV trace writer: header [`CSV_HEADER`], one row per edge, absolute monotonic ns, the channel
+/// written by name and the level as 0/1 (logical).
+#[derive(Debug)]
+pub struct CsvTrace<W: Write> {
+    out: W,
+    names: Vec<String>,
+}
+
+impl<W: Write> CsvTrace<W> {
+    /// Writes the header and one row per channel at `start_ns` with level 0 (every output starts
+    /// inactive). Names must have passed [`validate_channel_names`].
+    pub fn new(mut out: W, names: &[String], start_ns: Nanos) -> io::Result<CsvTrace<W>> {
+        writeln!(out, "{CSV_HEADER}")?;
+        for name in names {
+            writeln!(out, "{start_ns},{name},0,{start_ns}")?;
+        }
+        Ok(CsvTrace {
+            out,
+            names: names.to_vec(),
+        })
+    }
+
+    /// Appends one edge row.
+    pub fn record(&mut self, rec: &EdgeRecord) -> io::Result<()> {
+        let name = self
+            .names
+            .get(rec.channel)
+            .ok_or_else(|| unknown_channel(rec.channel, self.names.len()))?;
+        writeln!(
+            self.out,
+            "{},{},{},{}",
+            rec.t_ns,
+            name,
+            level_digit(rec.level),
+            rec.scheduled_ns
+        )
+    }
+
+    /// Flushes buffered rows to the underlying writer.
+    pub fn flush(&mut self) -> io::Result<()> {
+        self.out.flush()
+    }
+
+    /// The underlying writer.
+    pub fn into_inner(self) -> W {
+        self.out
+    }
+}
+
+/// The VCD identifier code of wire `index`: printable ASCII `!`..`~` in base 94, shortest first
+/// (`!`, `"`, ... `~`, `!!`, `"!`, ...).
+pub fn vcd_id(index: usize) -> String {
+    const FIRST: u8 = b'!';
+    const RADIX: usize = (b'~' - b'!' + 1) as usize;
+    let mut id = String::new();
+    let mut n = index;
+    loop {
+        id.push((FIRST + (n % RADIX) as u8) as char);
+        n /= RADIX;
+        if n == 0 {
+            break;
+        }
+        n -= 1;
+    }
+    id
+}
+
+/// VCD trace writer: `$timescale 1ns`, one 1-bit wire per channel in scope [`VCD_SCOPE`],
+/// `$dumpvars` all 0 at `#0`, times relative to the start time.
+///
+/// Times written never decrease: a record older than the last written time (or than the start)
+/// is written at the last time, because VCD readers reject time going backwards.
+#[derive(Debug)]
+pub struct VcdTrace<W: Write> {
+    out: W,
+    ids: Vec<String>,
+    start_ns: Nanos,
+    last_t: Nanos,
+}
+
+impl<W: Write> VcdTrace<W> {
+    /// Writes the header, the definitions and the initial all-0 dump at `#0` (= `start_ns`).
+    /// Names must have passed [`validate_channel_names`].
+    pub fn new(mut out: W, names: &[String], start_ns: Nanos) -> io::Result<VcdTrace<W>> {
+        let ids: Vec<String> = (0..names.len()).map(vcd_id).collect();
+        writeln!(
+            out,
+            "$version pwm_actuator {} $end",
+            env!("CARGO_PKG_VERSION")
+        )?;
+        writeln!(out, "$comment time 0 = CLOCK_MONOTONIC {start_ns} ns $end")?;
+        writeln!(out, "$timescale 1ns $end")?;
+        writeln!(out, "$scope module {VCD_SCOPE} $end")?;
+        for (name, id) in names.iter().zip(&ids) {
+            writeln!(out, "$var wire 1 {id} {name} $end")?;
+        }
+        writeln!(out, "$upscope $end")?;
+        writeln!(out, "$enddefinitions $end")?;
+        writeln!(out, "#0")?;
+        writeln!(out, "$dumpvars")?;
+        for id in &ids {
+            writeln!(out, "0{id}")?;
+        }
+        writeln!(out, "$end")?;
+        Ok(VcdTrace {
+            out,
+            ids,
+            start_ns,
+            last_t: 0,
+        })
+    }
+
+    fn advance_to(&mut self, t_ns: Nanos) -> io::Result<()> {
+        let t = t_ns.saturating_sub(self.start_ns);
+        if t > self.last_t {
+            writeln!(self.out, "#{t}")?;
+            self.last_t = t;
+        }
+        Ok(())
+    }
+
+    /// Appends one value change; changes at the time of the previous one share its `#t`.
+    pub fn record(&mut self, rec: &EdgeRecord) -> io::Result<()> {
+        if rec.channel >= self.ids.len() {
+            return Err(unknown_channel(rec.channel, self.ids.len()));
+        }
+        self.advance_to(rec.t_ns)?;
+        writeln!(
+            self.out,
+            "{}{}",
+            level_digit(rec.level),
+            self.ids[rec.channel]
+        )
+    }
+
+    /// Writes a final time marker at `end_ns` (if later than the last change), so viewers show
+    /// the last levels lasting until then, and flushes.
+    pub fn finish(&mut self, end_ns: Nanos) -> io::Result<()> {
+        self.advance_to(end_ns)?;
+        self.out.flush()
+    }
+
+    /// Flushes buffered changes to the underlying writer.
+    pub fn flush(&mut self) -> io::Result<()> {
+        self.out.flush()
+    }
+
+    /// The underlying writer.
+    pub fn into_inner(self) -> W {
+        self.out
+    }
+}
+
+/// Where a trace goes: any byte sink (a file, a pipe, a buffer in tests).
+pub type TraceOut = Box<dyn Write + Send>;
+
+enum SinkKind {
+    Csv(CsvTrace<BufWriter<TraceOut>>),
+    Vcd(VcdTrace<BufWriter<TraceOut>>),
+}
+
+impl std::fmt::Debug for SinkKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            SinkKind::Csv(_) => "Csv",
+            SinkKind::Vcd(_) => "Vcd",
+        })
+    }
+}
+
+#[derive(Debug)]
+struct Sink {
+    path: PathBuf,
+    kind: SinkKind,
+    /// Set after the first write error: the file is left as it is from then on.
+    failed: bool,
+}
+
+impl Sink {
+    fn run(&mut self, f: impl FnOnce(&mut SinkKind) -> io::Result<()>) -> Result<(), TraceError> {
+        if self.failed {
+            return Ok(());
+        }
+        f(&mut self.kind).map_err(|source| {
+            self.failed = true;
+            TraceError::Write {
+                path: self.path.clone(),
+                source,
+            }
+        })
+    }
+}
+
+/// Writes edge records to every file of a [`TraceSpec`], buffered.
+///
+/// A file whose write fails is abandoned (the error is returned once) while the others go on.
+#[derive(Debug)]
+pub struct TraceWriter {
+    sinks: Vec<Sink>,
+}
+
+impl TraceWriter {
+    /// Creates (truncates) every file of `spec` and writes and flushes its header and initial
+    /// levels (all 0 at `start_ns`, monotonic ns).
+    pub fn create(
+        spec: &TraceSpec,
+        channel_names: &[String],
+        start_ns: Nanos,
+    ) -> Result<TraceWriter, TraceError> {
+        validate_channel_names(channel_names)?;
+        let mut targets = Vec::with_capacity(spec.files.len());
+        for file in &spec.files {
+            let out = File::create(&file.path).map_err(|source| TraceError::Create {
+                path: file.path.clone(),
+                source,
+            })?;
+            targets.push((file.path.clone(), file.format, Box::new(out) as TraceOut));
+        }
+        TraceWriter::from_writers(targets, channel_names, start_ns)
+    }
+
+    /// Like [`TraceWriter::create`] with already opened outputs: (name used in error
+    /// messages, format, output).
+    pub fn from_writers(
+        targets: Vec<(PathBuf, TraceFormat, TraceOut)>,
+        channel_names: &[String],
+        start_ns: Nanos,
+    ) -> Result<TraceWriter, TraceError> {
+        validate_channel_names(channel_names)?;
+        let mut sinks = Vec::with_capacity(targets.len());
+        for (path, format, out) in targets {
+            let out = BufWriter::new(out);
+            // The header is flushed at once: the file is a valid (empty) trace from the start.
+            let kind = match format {
+                TraceFormat::Csv => CsvTrace::new(out, channel_names, start_ns)
+                    .and_then(|mut t| t.flush().map(|()| SinkKind::Csv(t))),
+                TraceFormat::Vcd => VcdTrace::new(out, channel_names, start_ns)
+                    .and_then(|mut t| t.flush().map(|()| SinkKind::Vcd(t))),
+            };
+            let kind = kind.map_err(|source| TraceError::Create {
+                path: path.clone(),
+                source,
+            })?;
+            sinks.push(Sink {
+                path,
+                kind,
+                failed: false,
+            });
+        }
+        Ok(TraceWriter { sinks })
+    }
+
+    fn each(
+        &mut self,
+        mut f: impl FnMut(&mut SinkKind) -> io::Result<()>,
+    ) -> Result<(), TraceError> {
+        let mut first = Ok(());
+        for sink in &mut self.sinks {
+            let r = sink.run(&mut f);
+            if first.is_ok() {
+                first = r;
+            }
+        }
+        first
+    }
+
+    /// Appends records in order to every file; returns the first error (after trying all).
+    pub fn write_records(&mut self, recs: &[EdgeRecord]) -> Result<(), TraceError> {
+        self.each(|kind| {
+            for rec in recs {
+                match kind {
+                    SinkKind::Csv(t) => t.record(rec)?,
+                    SinkKind::Vcd(t) => t.record(rec)?,
+                }
+            }
+            Ok(())
+        })
+    }
+
+    /// Flushes every file.
+    pub fn flush(&mut self) -> Result<(), TraceError> {
+        self.each(|kind| match kind {
+            SinkKind::Csv(t) => t.flush(),
+            SinkKind::Vcd(t) => t.flush(),
+        })
+    }
+
+    /// Ends the trace at `end_ns` (VCD: final time marker) and flushes every file.
+    pub fn finish(&mut self, end_ns: Nanos) -> Result<(), TraceError> {
+        self.each(|kind| match kind {
+            SinkKind::Csv(t) => t.flush(),
+            SinkKind::Vcd(t) => t.finish(end_ns),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(n: &[&str]) -> Vec<String> {
+        n.iter().map(|s| s.to_string()).collect()
+    }
+
+    fn rec(t_ns: Nanos, channel: usize, high: bool, scheduled_ns: Nanos) -> EdgeRecord {
+        EdgeRecord {
+            t_ns,
+            channel,
+            level: Level::from_bool(high),
+            scheduled_ns,
+        }
+    }
+
+    #[test]
+    fn spec_accepts_vcd_and_csv_in_any_number() {
+        let paths: Vec<PathBuf> = ["a.vcd", "b.CSV", "dir/c.csv", "d.Vcd"]
+            .iter()
+            .map(PathBuf::from)
+            .collect();
+        let spec = TraceSpec::from_paths(&paths).unwrap();
+        let formats: Vec<TraceFormat> = spec.files().iter().map(|f| f.format).collect();
+        assert_eq!(
+            formats,
+            [
+                TraceFormat::Vcd,
+                TraceFormat::Csv,
+                TraceFormat::Csv,
+                TraceFormat::Vcd
+            ]
+        );
+        assert_eq!(spec.files()[2].path, PathBuf::from("dir/c.csv"));
+        assert!(TraceSpec::from_paths(&[]).unwrap().is_empty());
+    }
+
+    #[test]
+    fn spec_rejects_other_extensions_naming_the_path() {
+        for bad in ["trace.txt", "trace", "vcd", "trace.vcd.gz"] {
+            let err =
+                TraceSpec::from_paths(&[PathBuf::from("ok.csv"), PathBuf::from(bad)]).unwrap_err();
+            assert!(
+                matches!(&err, TraceError::UnknownExtension { path } if path == Path::new(bad))
+            );
+            assert!(err.to_string().contains(bad), "{err}");
+        }
+    }
+
+    #[test]
+    fn spec_rejects_a_path_given_twice() {
+        let p = PathBuf::from("t.vcd");
+        let err = TraceSpec::from_paths(&[p.clone(), p]).unwrap_err();
+        assert!(matches!(err, TraceError::DuplicatePath { .. }));
+    }
+
+    #[test]
+    fn channel_names_must_be_plain_and_unique() {
+        assert!(validate_channel_names(&names(&["pw01", "pw02", "heater_1"])).is_ok());
+        for bad in ["", "a b", "a,b", "a\"b", "tab\t", "é"] {
+            assert!(
+                matches!(
+                    validate_channel_names(&names(&["pw01", bad])),
+                    Err(TraceError::InvalidChannelName { .. })
+                ),
+                "{bad:?}"
+            );
+        }
+        assert!(matches!(
+            validate_channel_names(&names(&["pw01", "pw01"])),
+            Err(TraceError::DuplicateChannelName { .. })
+        ));
+    }
+
+    #[test]
+    fn csv_rows_read_back() {
+        let start = 5_000_000_000;
+        let mut t = CsvTrace::new(Vec::new(), &names(&["pw01", "pw02"]), start).unwrap();
+        t.record(&rec(start + 1_000_100, 0, true, start + 1_000_000))
+            .unwrap();
+        t.record(&rec(start + 2_000_050, 1, true, start + 2_000_000))
+            .unwrap();
+        t.record(&rec(start + 3_000_000, 0, false, start + 3_000_000))
+            .unwrap();
+        assert!(t.record(&rec(start, 2, true, start)).is_err());
+        let text = String::from_utf8(t.into_inner()).unwrap();
+        let rows: Vec<Vec<&str>> = text.lines().map(|l| l.split(',').collect()).collect();
+        assert_eq!(rows[0], ["t_ns", "channel", "level", "scheduled_ns"]);
+        assert_eq!(rows[1], ["5000000000", "pw01", "0", "5000000000"]);
+        assert_eq!(rows[2], ["5000000000", "pw02", "0", "5000000000"]);
+        assert_eq!(rows[3], ["5001000100", "pw01", "1", "5001000000"]);
+        assert_eq!(rows[4], ["5002000050", "pw02", "1", "5002000000"]);
+        assert_eq!(rows[5], ["5003000000", "pw01", "0", "5003000000"]);
+        assert_eq!(rows.len(), 6);
+    }
+
+    #[test]
+    fn vcd_ids_are_unique_printable_and_short_first() {
+        assert_eq!(vcd_id(0), "!");
+        assert_eq!(vcd_id(1), "\"");
+        assert_eq!(vcd_id(93), "~");
+        assert_eq!(vcd_id(94), "!!");
+        let ids: Vec<String> = (0..20_000).map(vcd_id).collect();
+        let set: HashSet<&String> = ids.iter().collect();
+        assert_eq!(set.len(), ids.len());
+        assert!(ids
+            .iter()
+            .all(|id| id.bytes().all(|b| (b'!'..=b'~').contains(&b))));
+        assert!(ids[..94].iter().all(|id| id.len() == 1));
+    }
+
+    /// A small VCD reader: definitions, and the value changes as (time, id, value).
+    struct ParsedVcd {
+        timescale: String,
+        scope: String,
+        vars: Vec<(String, String)>, // (id, reference)
+        dumpvars: Vec<(String, char)>,
+        changes: Vec<(u64, String, char)>,
+        times: Vec<u64>,
+    }
+
+    fn parse_vcd(text: &str) -> ParsedVcd {
+        let mut p = ParsedVcd {
+            timescale: String::new(),
+            scope: String::new(),
+            vars: Vec::new(),
+            dumpvars: Vec::new(),
+            changes: Vec::new(),
+            times: Vec::new(),
+        };
+        let mut in_defs = true;
+        let mut in_dumpvars = false;
+        let mut now = None;
+        for line in text.lines() {
+            let tok: Vec<&str> = line.split_whitespace().collect();
+            if in_defs {
+                match tok.first().copied() {
+                    Some("$timescale") => p.timescale = tok[1..tok.len() - 1].join(" "),
+                    Some("$scope") => {
+                        assert_eq!(tok[1], "module");
+                        p.scope = tok[2].to_string();
+                    }
+                    Some("$var") => {
+                        assert_eq!(tok.len(), 6, "{line}");
+                        assert_eq!(&tok[1..3], ["wire", "1"]);
+                        assert_eq!(tok[5], "$end");
+                        p.vars.push((tok[3].to_string(), tok[4].to_string()));
+                    }
+                    Some("$enddefinitions") => in_defs = false,
+                    Some("$version" | "$comment" | "$upscope") => {
+                        assert_eq!(tok.last(), Some(&"$end"), "{line}");
+                    }
+                    other => panic!("unexpected definition {other:?}"),
+                }
+                continue;
+            }
+            if let Some(t) = line.strip_prefix('#') {
+                let t: u64 = t.parse().unwrap();
+                if let Some(prev) = now {
+                    assert!(t > prev, "time #{t} after #{prev}");
+                }
+                now = Some(t);
+                p.times.push(t);
+            } else if line == "$dumpvars" {
+                assert_eq!(now, Some(0));
+                in_dumpvars = true;
+            } else if line == "$end" {
+                in_dumpvars = false;
+            } else {
+                let (v, id) = line.split_at(1);
+                let v = v.chars().next().unwrap();
+                assert!(v == '0' || v == '1', "{line}");
+                if in_dumpvars {
+                    p.dumpvars.push((id.to_string(), v));
+                } else {
+                    p.changes.push((now.unwrap(), id.to_string(), v));
+                }
+            }
+        }
+        assert!(!in_defs && !in_dumpvars);
+        p
+    }
+
+    #[test]
+    fn vcd_structure_ids_and_relative_grouped_times() {
+        let start = 7_000_000_000;
+        let mut t = VcdTrace::new(Vec::new(), &names(&["pw01", "pw02", "pw03"]), start).unwrap();
+        t.record(&rec(start + 1_000, 0, true, start + 900)).unwrap();
+        t.record(&rec(start + 1_000, 1, true, start + 1_000))
+            .unwrap();
+        t.record(&rec(start + 5_000, 0, false, start + 5_000))
+            .unwrap();
+        // Older than the last written time: kept at the last time, never going back.
+        t.record(&rec(start + 4_000, 2, true, start + 4_000))
+            .unwrap();
+        t.finish(start + 9_000).unwrap();
+        assert!(t.record(&rec(start + 9_500, 3, true, 0)).is_err());
+        let text = String::from_utf8(t.into_inner()).unwrap();
+        let p = parse_vcd(&text);
+        assert_eq!(p.timescale, "1ns");
+        assert_eq!(p.scope, VCD_SCOPE);
+        assert_eq!(
+            p.vars,
+            [
+                ("!".to_string(), "pw01".to_string()),
+                ("\"".to_string(), "pw02".to_string()),
+                ("#".to_string(), "pw03".to_string())
+            ]
+        );
+        assert_eq!(
+            p.dumpvars,
+            [
+                ("!".to_string(), '0'),
+                ("\"".to_string(), '0'),
+                ("#".to_string(), '0')
+            ]
+        );
+        assert_eq!(p.times, [0, 1_000, 5_000, 9_000]);
+        assert_eq!(
+            p.changes,
+            [
+                (1_000, "!".to_string(), '1'),
+                (1_000, "\"".to_string(), '1'),
+                (5_000, "!".to_string(), '0'),
+                (5_000, "#".to_string(), '1'),
+            ]
+        );
+    }
+
+    #[test]
+    fn vcd_record_before_start_is_written_at_zero() {
+        let start = 1_000;
+        let mut t = VcdTrace::new(Vec::new(), &names(&["pw01"]), start).unwrap();
+        t.record(&rec(10, 0, true, 10)).unwrap();
+        let p = parse_vcd(&String::from_utf8(t.into_inner()).unwrap());
+        assert_eq!(p.times, [0]);
+        assert_eq!(p.changes, [(0, "!".to_string(), '1')]);
+    }
+
+    #[test]
+    fn writer_writes_every_file_of_the_spec() {
+        let dir = std::env::temp_dir().join(format!("pwm_actuator-trace-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let paths = [dir.join("a.csv"), dir.join("b.vcd"), dir.join("c.csv")];
+        let spec = TraceSpec::from_paths(&paths).unwrap();
+        let mut w = TraceWriter::create(&spec, &names(&["pw01", "pw02"]), 100).unwrap();
+        w.write_records(&[rec(150, 1, true, 140), rec(170, 1, false, 170)])
+            .unwrap();
+        w.finish(200).unwrap();
+        for csv in [&paths[0], &paths[2]] {
+            let text = std::fs::read_to_string(csv).unwrap();
+            assert_eq!(
+                text,
+                "t_ns,channel,level,scheduled_ns\n100,pw01,0,100\n100,pw02,0,100\n\
+                 150,pw02,1,140\n170,pw02,0,170\n"
+            );
+        }
+        let p = parse_vcd(&std::fs::read_to_string(&paths[1]).unwrap());
+        assert_eq!(
+            p.changes,
+            [(50, "\"".to_string(), '1'), (70, "\"".to_string(), '0')]
+        );
+        assert_eq!(p.times, [0, 50, 70, 100]);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn create_error_names_the_path() {
+        let spec =
+            TraceSpec::from_paths(&[PathBuf::from("/nonexistent-dir-pwm/trace.vcd")]).unwrap();
+        let err = TraceWriter::create(&spec, &names(&["pw01"]), 0).unwrap_err();
+        assert!(matches!(err, TraceError::Create { .. }));
+        assert!(
+            err.to_string().contains("/nonexistent-dir-pwm/trace.vcd"),
+            "{err}"
+        );
+    }
+}
