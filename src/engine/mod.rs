@@ -80,7 +80,9 @@ pub enum Report {
     },
 }
 
+mod baseline;
 mod thread;
 pub(crate) mod worker;
 
+pub use baseline::spawn_tokio_baseline;
 pub use thread::{spawn, Engine, EngineError, EngineHandle, EngineOptions, Reports, Requests};

@@ -232,6 +232,24 @@ pub fn spawn<O: Output>(
     output: O,
     opts: EngineOptions,
 ) -> Result<Engine, EngineError> {
+    spawn_with(configs, output, opts, Driver::TimerFd)
+}
+
+/// How the output thread sleeps between deadlines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Driver {
+    /// timerfd with absolute CLOCK_MONOTONIC deadlines (the node's driver).
+    TimerFd,
+    /// tokio's `sleep_until` on a current-thread runtime: the benchmark's baseline.
+    TokioSleep,
+}
+
+pub(crate) fn spawn_with<O: Output>(
+    configs: Vec<ChannelConfig>,
+    output: O,
+    opts: EngineOptions,
+    driver: Driver,
+) -> Result<Engine, EngineError> {
     if configs.is_empty() {
         return Err(EngineError::NoChannels);
     }
@@ -271,15 +289,17 @@ pub fn spawn<O: Output>(
             .spawn(move || {
                 real_time_setup(opts.rt_priority);
                 let worker = Worker::new(&configs, output, rep_tx, dropped, clock::monotonic_ns());
-                run(
-                    worker,
-                    &mut req_rx,
-                    &timer,
-                    &req_wake,
-                    &rep_wake,
-                    &stop,
-                    &fault,
-                )
+                let ends = Ends {
+                    requests: &mut req_rx,
+                    req_wake: &req_wake,
+                    rep_wake: &rep_wake,
+                    stop: &stop,
+                    fault: &fault,
+                };
+                match driver {
+                    Driver::TimerFd => run(worker, ends, &timer),
+                    Driver::TokioSleep => super::baseline::run(worker, ends),
+                }
             })
             .map_err(EngineError::Spawn)?
     };
@@ -304,31 +324,54 @@ pub fn spawn<O: Output>(
     })
 }
 
-fn run<O: Output>(
-    mut worker: Worker<O>,
-    requests: &mut rtrb::Consumer<Request>,
-    timer: &TimerFd,
-    req_wake: &EventFd,
-    rep_wake: &EventFd,
-    stop: &AtomicBool,
-    fault: &Mutex<Option<String>>,
-) -> Result<(), EngineError> {
-    let sys = |what| move |source| EngineError::Sys { what, source };
-    loop {
-        if stop.load(Ordering::SeqCst) {
-            break;
+/// The thread's ends of the queues and flags, shared by both drivers.
+pub(crate) struct Ends<'a> {
+    pub(crate) requests: &'a mut rtrb::Consumer<Request>,
+    pub(crate) req_wake: &'a EventFd,
+    pub(crate) rep_wake: &'a EventFd,
+    pub(crate) stop: &'a AtomicBool,
+    pub(crate) fault: &'a Mutex<Option<String>>,
+}
+
+impl Ends<'_> {
+    /// One wake-up's work. `Ok(false)` once a stop is requested; `Err` after an output fault.
+    pub(crate) fn work<O: Output>(&mut self, worker: &mut Worker<O>) -> Result<bool, EngineError> {
+        if self.stop.load(Ordering::SeqCst) {
+            return Ok(false);
         }
-        if let Err(Stop::Fault { channel, error }) = worker.run(requests) {
+        if let Err(Stop::Fault { channel, error }) = worker.run(self.requests) {
             let message = error.to_string();
-            if let Ok(mut f) = fault.lock() {
+            if let Ok(mut f) = self.fault.lock() {
                 *f = Some(message.clone());
             }
-            let _ = rep_wake.write(1);
+            let _ = self.rep_wake.write(1);
             return Err(EngineError::OutputFault { channel, message });
         }
         if worker.take_pushed() {
-            let _ = rep_wake.write(1);
+            let _ = self.rep_wake.write(1);
         }
+        Ok(true)
+    }
+
+    /// Drives every line inactive, drops the output (flushing traces) and wakes the reader.
+    pub(crate) fn finish<O: Output>(&self, worker: Worker<O>) -> Result<(), EngineError> {
+        let (output, result) = worker.shut_down();
+        drop(output);
+        let _ = self.rep_wake.write(1);
+        result.map_err(|e| EngineError::OutputFault {
+            channel: 0,
+            message: e.to_string(),
+        })
+    }
+}
+
+fn run<O: Output>(
+    mut worker: Worker<O>,
+    mut ends: Ends<'_>,
+    timer: &TimerFd,
+) -> Result<(), EngineError> {
+    let sys = |what| move |source| EngineError::Sys { what, source };
+    while ends.work(&mut worker)? {
         match worker.next_deadline() {
             // Absolute deadline: a late wake-up does not push later deadlines back.
             Some(t) => timer
@@ -341,7 +384,7 @@ fn run<O: Output>(
         }
         let mut fds = [
             PollFd::new(timer.as_fd(), PollFlags::POLLIN),
-            PollFd::new(req_wake.as_fd(), PollFlags::POLLIN),
+            PollFd::new(ends.req_wake.as_fd(), PollFlags::POLLIN),
         ];
         match poll(&mut fds, PollTimeout::NONE) {
             Ok(_) | Err(nix::errno::Errno::EINTR) => {}
@@ -349,15 +392,9 @@ fn run<O: Output>(
         }
         // Both are non-blocking; EAGAIN just means that one did not fire.
         let _ = timer.wait();
-        let _ = req_wake.read();
+        let _ = ends.req_wake.read();
     }
-    let (output, result) = worker.shut_down();
-    drop(output);
-    let _ = rep_wake.write(1);
-    result.map_err(|e| EngineError::OutputFault {
-        channel: 0,
-        message: e.to_string(),
-    })
+    ends.finish(worker)
 }
 
 /// Timer slack 1 ns always; SCHED_FIFO and mlockall when asked. Refusals are logged once and

@@ -1,0 +1,338 @@
+//! The output thread on the simulated sink: what reaches the line is what the core scheduled,
+//! a failing write leaves every line inactive, a lagging reader never stalls the thread, and a
+//! shutdown leaves every output off.
+
+use pwm_actuator::core::{Channel, ChannelParams, Command, Event, Level, Nanos};
+use pwm_actuator::engine::{self, EngineError, EngineOptions, Input, Report, Request};
+use pwm_actuator::output::{EmergencyOff, LineChange, Output, SimOutput, TraceSpec};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+fn params(period_ms: u64) -> ChannelParams {
+    ChannelParams {
+        period_ms,
+        ..ChannelParams::default()
+    }
+}
+
+fn names(n: usize) -> Vec<String> {
+    (1..=n).map(|i| format!("pw{i:02}")).collect()
+}
+
+/// Rows of a CSV trace: (t_ns, channel, level, scheduled_ns).
+fn read_csv(path: &std::path::Path) -> Vec<(Nanos, String, u8, Nanos)> {
+    let text = std::fs::read_to_string(path).expect("trace written");
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("t_ns,channel,level,scheduled_ns"));
+    lines
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            assert_eq!(f.len(), 4, "row `{l}`");
+            (
+                f[0].parse().unwrap(),
+                f[1].to_string(),
+                f[2].parse().unwrap(),
+                f[3].parse().unwrap(),
+            )
+        })
+        .collect()
+}
+
+fn send(requests: &mut engine::Requests, channel: usize, input: Input) {
+    requests.send(Request { channel, input }).expect("queued");
+}
+
+#[test]
+fn the_trace_matches_the_core_schedule_edge_for_edge() {
+    let dir = tempdir();
+    let csv = dir.join("run.csv");
+    let output = SimOutput::new(
+        names(2),
+        Some(TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap()),
+    )
+    .unwrap();
+    let p1 = params(20);
+    let p2 = ChannelParams {
+        min_on_ms: 3,
+        ..params(10)
+    };
+    let cfgs = vec![p1.validate().unwrap(), p2.validate().unwrap()];
+    let mut e = engine::spawn(cfgs.clone(), output, EngineOptions::default()).unwrap();
+    send(&mut e.requests, 0, Input::Command(Command::Percent(40.0)));
+    send(&mut e.requests, 1, Input::Command(Command::Percent(45.0)));
+    send(&mut e.requests, 0, Input::Enable(true));
+    send(&mut e.requests, 1, Input::Enable(true));
+    std::thread::sleep(Duration::from_millis(300));
+    send(&mut e.requests, 1, Input::Command(Command::Percent(70.0)));
+    std::thread::sleep(Duration::from_millis(200));
+    e.handle.shutdown().unwrap();
+
+    // Collect the engine's own account of when each input was applied: the first edge of a
+    // channel is its enable; the duty change shows in a Plan report.
+    let mut reports = Vec::new();
+    while let Some(r) = e.reports.try_recv() {
+        reports.push(r);
+    }
+    let rows = read_csv(&csv);
+    for (ch, name) in names(2).iter().enumerate() {
+        let edges: Vec<_> = rows.iter().filter(|r| &r.1 == name).skip(1).collect();
+        assert!(edges.len() > 20, "{name}: {} edges", edges.len());
+        // Replay the same inputs on a core in virtual time.
+        let enable_at = edges[0].3;
+        let mut core = Channel::new(cfgs[ch], 0);
+        let mut want: Vec<(Nanos, Level)> = Vec::new();
+        let mut emit = |ev: Event| {
+            if let Event::Edge { at, level } = ev {
+                want.push((at, level));
+            }
+        };
+        core.command(0, Command::Percent([40.0, 45.0][ch]), &mut emit);
+        core.set_enable(enable_at, true, &mut emit);
+        // Channel 2's duty change: under next_period it takes effect at the first period
+        // boundary after the engine applied it. That boundary is where the on time first
+        // becomes 7 ms; the engine's own status report of the 70 % command must lie in the
+        // period before it.
+        let change_at = (ch == 1).then(|| {
+            let rises: Vec<Nanos> = edges.iter().filter(|r| r.2 == 1).map(|r| r.3).collect();
+            let falls: Vec<Nanos> = edges.iter().filter(|r| r.2 == 0).map(|r| r.3).collect();
+            let k = rises
+                .iter()
+                .zip(&falls)
+                .position(|(r, f)| f - r == 7_000_000)
+                .expect("a 7 ms pulse after the change");
+            let applied = reports
+                .iter()
+                .find_map(|r| match r {
+                    Report::Status {
+                        channel: 1,
+                        status,
+                        at_ns,
+                    } if status.duty_commanded == 0.7 => Some(*at_ns),
+                    _ => None,
+                })
+                .expect("the 70 % command was reported");
+            assert!(
+                applied + 10_000_000 >= rises[k] && applied <= rises[k] + 1_000_000,
+                "command applied at {applied}, first 70 % period at {}",
+                rises[k]
+            );
+            rises[k]
+        });
+        let last_scheduled = edges[edges.len() - 2].3;
+        let mut changed = false;
+        while let Some(t) = core.poll_at() {
+            if let Some(c) = change_at {
+                if !changed && t >= c {
+                    core.command(t - 1, Command::Percent(70.0), &mut emit);
+                    changed = true;
+                }
+            }
+            if t > last_scheduled {
+                break;
+            }
+            core.poll(t, &mut emit);
+        }
+        // All but the shutdown edge were scheduled by the core.
+        let got: Vec<(Nanos, Level)> = edges[..edges.len() - 1]
+            .iter()
+            .map(|r| (r.3, Level::from_bool(r.2 == 1)))
+            .collect();
+        // A thread stalled past two deadlines merges that pulse or break rather than write a
+        // zero-width one, and reports it as Missed. Everything else matches exactly.
+        let reported_missed: u32 = reports
+            .iter()
+            .map(|r| match r {
+                Report::Core {
+                    channel,
+                    event: Event::Missed { edges },
+                } if *channel == ch => *edges,
+                _ => 0,
+            })
+            .sum();
+        let (mut i, mut j, mut merged) = (0, 0, 0u32);
+        while i < got.len() && j < want.len() {
+            if got[i] == want[j] {
+                i += 1;
+                j += 1;
+            } else if j + 1 < want.len() && want[j + 1].0 < got[i].0 {
+                j += 2;
+                merged += 2;
+            } else {
+                panic!(
+                    "{name}: trace edge {i} {:?} is not the core's {:?}",
+                    got[i], want[j]
+                );
+            }
+        }
+        assert_eq!(i, got.len(), "{name}: the replay ran out at edge {i}");
+        assert!(
+            want.len() - j <= 2,
+            "{name}: edges the trace lacks: {:?}",
+            &want[j..]
+        );
+        assert_eq!(e.reports.dropped(), 0);
+        assert_eq!(
+            merged, reported_missed,
+            "{name}: merged edges are the reported ones"
+        );
+        for r in &edges {
+            assert!(r.0 >= r.3, "{name}: written before its schedule: {r:?}");
+            // Very generous: only a stalled machine comes near this.
+            assert!(r.0 - r.3 < 100_000_000, "{name}: 100 ms late: {r:?}");
+        }
+        assert_eq!(edges.last().unwrap().2, 0, "{name}: ends inactive");
+    }
+}
+
+/// A sink whose writes to one line fail after a number of calls.
+struct Failing {
+    inner: SimOutput,
+    line: usize,
+    writes_left: usize,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("injected write failure on line {0}")]
+struct Injected(usize);
+
+impl Output for Failing {
+    type Error = Injected;
+    fn line_count(&self) -> usize {
+        self.inner.line_count()
+    }
+    fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), Injected> {
+        if changes.iter().any(|c| c.line == self.line) {
+            if self.writes_left == 0 {
+                return Err(Injected(self.line));
+            }
+            self.writes_left -= 1;
+        }
+        self.inner.set_levels(changes).map_err(|e| match e {})
+    }
+    fn set_all_inactive(&mut self) -> Result<(), Injected> {
+        self.inner.set_all_inactive().map_err(|e| match e {})
+    }
+    fn emergency_off(&self) -> Arc<dyn EmergencyOff> {
+        self.inner.emergency_off()
+    }
+}
+
+#[test]
+fn a_failing_write_drives_the_other_outputs_inactive_and_stops() {
+    let sim = SimOutput::new(names(3), None).unwrap();
+    let probe = sim.probe();
+    let out = Failing {
+        inner: sim,
+        line: 1,
+        writes_left: 5,
+    };
+    let cfgs = vec![params(10).validate().unwrap(); 3];
+    let mut e = engine::spawn(cfgs, out, EngineOptions::default()).unwrap();
+    // Channels 0 and 2 at 100 %: constantly on, until the fault.
+    for (ch, duty) in [(0, 100.0), (1, 50.0), (2, 100.0)] {
+        send(&mut e.requests, ch, Input::Command(Command::Percent(duty)));
+        send(&mut e.requests, ch, Input::Enable(true));
+    }
+    let start = Instant::now();
+    while !e.handle.is_finished() {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "the fault never stopped the thread"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert_eq!(probe.levels(), vec![Level::Low; 3], "nothing left on");
+    let mut fault = None;
+    while let Some(r) = e.reports.try_recv() {
+        if let Report::OutputFault { channel } = r {
+            fault = Some(channel);
+        }
+    }
+    assert_eq!(fault, Some(1), "the fault is reported with its channel");
+    assert_eq!(
+        e.handle.fault().as_deref(),
+        Some("injected write failure on line 1")
+    );
+    assert!(matches!(
+        e.requests.send(Request {
+            channel: 0,
+            input: Input::Enable(false)
+        }),
+        Err(EngineError::Stopped)
+    ));
+    match e.handle.shutdown() {
+        Err(EngineError::OutputFault {
+            channel: 1,
+            message,
+        }) => {
+            assert!(message.contains("injected"))
+        }
+        other => panic!("shutdown after a fault: {other:?}"),
+    }
+}
+
+#[test]
+fn a_lagging_reader_loses_reports_but_never_stalls_the_thread() {
+    let sim = SimOutput::new(names(1), None).unwrap();
+    let probe = sim.probe();
+    let cfgs = vec![params(5).validate().unwrap()];
+    let opts = EngineOptions {
+        queue_capacity: 16,
+        ..EngineOptions::default()
+    };
+    let mut e = engine::spawn(cfgs, sim, opts).unwrap();
+    send(&mut e.requests, 0, Input::Command(Command::Percent(50.0)));
+    send(&mut e.requests, 0, Input::Enable(true));
+    std::thread::sleep(Duration::from_millis(400));
+    // ~160 edges with their status reports went into a 16-entry queue nobody read.
+    assert!(
+        probe.edge_count() > 100,
+        "edges kept coming: {}",
+        probe.edge_count()
+    );
+    assert!(e.reports.dropped() > 50, "dropped {}", e.reports.dropped());
+    e.handle.shutdown().unwrap();
+}
+
+#[test]
+fn shutdown_leaves_every_output_inactive() {
+    let sim = SimOutput::new(names(2), None).unwrap();
+    let probe = sim.probe();
+    let cfgs = vec![params(1000).validate().unwrap(); 2];
+    let mut e = engine::spawn(cfgs, sim, EngineOptions::default()).unwrap();
+    for ch in 0..2 {
+        send(&mut e.requests, ch, Input::Command(Command::Percent(90.0)));
+        send(&mut e.requests, ch, Input::Enable(true));
+    }
+    let start = Instant::now();
+    while probe.levels() != vec![Level::High; 2] {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "never switched on"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    e.handle.shutdown().unwrap();
+    assert_eq!(probe.levels(), vec![Level::Low; 2]);
+    let last: Vec<_> = probe
+        .recent_edges()
+        .iter()
+        .rev()
+        .take(2)
+        .map(|r| r.level)
+        .collect();
+    assert_eq!(last, vec![Level::Low; 2], "the shutdown edges are recorded");
+}
+
+fn tempdir() -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!(
+        "pwm_actuator_engine_{}_{}",
+        std::process::id(),
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0)
+    ));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
