@@ -1,1 +1,29 @@
-//! The ROS 2 shell around the output thread: topics, parameters, diagnostics.
+//! The ROS 2 shell around the output thread: topics, parameters, diagnostics, logging and the
+//! command line.
+//!
+//! It only translates: ROS messages and parameter changes become engine requests, engine
+//! reports become ROS messages and log lines. It never decides timing (the core does) and
+//! never writes an output (the engine does).
+//!
+//! - [`args`]: `--ros-args` and parameter files; [`cli`]: the node's own options.
+//! - [`names`]: node identity, `~` expansion and remapping.
+//! - [`params`]: parameter declarations and the one store both parameter doors write through.
+//! - [`msg`]: the messages; [`qos`]: their QoS.
+//! - [`bridge`]: ROS <-> output thread; [`services`]: the parameter services.
+//! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself.
+//! - [`node`]: start-up, wiring, shutdown ([`run`]).
+
+pub mod args;
+pub mod bridge;
+pub mod cli;
+pub mod console;
+pub mod diagnostics;
+pub mod logging;
+pub mod msg;
+pub mod names;
+pub mod node;
+pub mod params;
+pub mod qos;
+pub mod services;
+
+pub use node::run;

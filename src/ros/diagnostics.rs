@@ -1,0 +1,422 @@
+//! What the node knows about each channel's health, and how it reads as a
+//! `diagnostic_msgs/DiagnosticStatus` (one per channel, named `<node name>: <ch>`, hardware id
+//! the line or `sim`), following the ROS diagnostics conventions: OK; WARN when E1 or the
+//! minimum-time limit acts, when the command in force was clamped, or for a while after a
+//! command was refused; ERROR on a tripped watchdog or an output fault.
+//!
+//! Pure bookkeeping fed by engine reports; it does not publish and does not read clocks (times
+//! are passed in).
+
+use super::msg::{ChannelStatus, DiagnosticStatus, KeyValue};
+use crate::core::{Nanos, Rule, Status, NS_PER_MS};
+
+/// How long a refused command keeps the channel at WARN, ns.
+pub const REFUSAL_WARN_NS: Nanos = 5_000_000_000;
+
+/// The unit of the last duty command received (for messages about clamping).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CommandUnit {
+    /// `~/<ch>/duty`, percent.
+    #[default]
+    Percent,
+    /// `~/<ch>/sv`, raw 0..4095.
+    Sv,
+}
+
+/// The spelling of a plan rule in status messages.
+pub fn rule_name(r: Rule) -> &'static str {
+    match r {
+        Rule::Exact => "exact",
+        Rule::NoPeriod => "no_period",
+        Rule::SuppressedPulse => "suppressed_pulse",
+        Rule::SuppressedBreak => "suppressed_break",
+        Rule::StretchedPulse => "stretched_pulse",
+        Rule::StretchedBreak => "stretched_break",
+        Rule::BandLow => "band_low",
+        Rule::BandHigh => "band_high",
+    }
+}
+
+fn ms(ns: Nanos) -> f64 {
+    ns as f64 / NS_PER_MS as f64
+}
+
+/// The `ChannelStatus` message for a status snapshot; remaining times are taken at `now`
+/// (monotonic ns) and the message is stamped `stamp_ns` (wall clock).
+pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> ChannelStatus {
+    let (rem_on, rem_off) = s.remaining_at(now);
+    ChannelStatus {
+        stamp: ros2_client::builtin_interfaces::Time::from_nanos(stamp_ns),
+        channel: (channel + 1).min(u8::MAX as usize) as u8,
+        enabled: s.enabled,
+        active: s.active,
+        output: s.level.is_high(),
+        duty_commanded: s.duty_commanded * 100.0,
+        duty_applied: s.duty_applied * 100.0,
+        command_clamped: s.command_clamped,
+        period_ms: ms(s.period),
+        on_time_ms: ms(s.t_on),
+        off_time_ms: ms(s.t_off),
+        remaining_on_ms: ms(rem_on),
+        remaining_off_ms: ms(rem_off),
+        e1: s.e1,
+        min_time_limited: s.limited,
+        watchdog_tripped: s.watchdog_tripped,
+        rule: rule_name(s.rule).to_string(),
+    }
+}
+
+/// Whether two snapshots differ in anything but the running step's remaining time (what
+/// "on change" means for `~/<ch>/status`).
+pub fn status_changed(a: &Status, b: &Status) -> bool {
+    a.enabled != b.enabled
+        || a.active != b.active
+        || a.level != b.level
+        || a.duty_commanded != b.duty_commanded
+        || a.command_clamped != b.command_clamped
+        || a.duty_applied != b.duty_applied
+        || a.period != b.period
+        || a.t_on != b.t_on
+        || a.t_off != b.t_off
+        || a.e1 != b.e1
+        || a.limited != b.limited
+        || a.watchdog_tripped != b.watchdog_tripped
+        || a.rule != b.rule
+}
+
+/// Everything the diagnostics say about one channel.
+#[derive(Debug, Clone, Default)]
+pub struct ChannelHealth {
+    /// `pw01`, ...
+    pub name: String,
+    /// The output line, or `sim`.
+    pub hardware_id: String,
+    /// The latest snapshot from the output thread.
+    pub status: Option<Status>,
+    /// The watchdog has tripped (from the event, before any snapshot says so).
+    pub watchdog: bool,
+    /// Writing this channel's output failed.
+    pub output_fault: bool,
+    /// The last refused command: reason and monotonic time.
+    pub last_rejection: Option<(String, Nanos)>,
+    /// The last clamped command, described, and its monotonic time.
+    pub last_clamp: Option<(String, Nanos)>,
+    /// The last refused parameter change, with its reason.
+    pub last_refusal: Option<String>,
+    /// Edges written.
+    pub edges: u64,
+    /// Largest lateness seen, ns.
+    pub max_late_ns: i64,
+    /// Edges merged because the output thread woke too late.
+    pub missed: u64,
+    /// Commands refused (NaN, infinite).
+    pub rejected: u64,
+    /// Commands clamped.
+    pub clamped: u64,
+    /// Unit of the last command received.
+    pub last_unit: CommandUnit,
+    /// The last EN received on `~/<ch>/enable` (or set at start-up).
+    pub last_enable: Option<bool>,
+    /// Messages that could not be published (a subscriber not keeping up).
+    pub publish_failures: u64,
+}
+
+impl ChannelHealth {
+    /// A channel with nothing known yet.
+    pub fn new(name: &str, hardware_id: &str) -> ChannelHealth {
+        ChannelHealth {
+            name: name.to_string(),
+            hardware_id: hardware_id.to_string(),
+            ..ChannelHealth::default()
+        }
+    }
+
+    fn watchdog_tripped(&self) -> bool {
+        self.watchdog || self.status.is_some_and(|s| s.watchdog_tripped)
+    }
+
+    fn recent_rejection(&self, now: Nanos) -> Option<&str> {
+        self.last_rejection
+            .as_ref()
+            .filter(|(_, at)| now.saturating_sub(*at) < REFUSAL_WARN_NS)
+            .map(|(r, _)| r.as_str())
+    }
+
+    /// The diagnostic level at monotonic time `now`.
+    pub fn level(&self, now: Nanos) -> u8 {
+        let s = self.status.as_ref();
+        if self.output_fault || self.watchdog_tripped() {
+            DiagnosticStatus::ERROR
+        } else if self.recent_rejection(now).is_some()
+            || s.is_some_and(|s| s.e1 || s.limited || s.command_clamped)
+        {
+            DiagnosticStatus::WARN
+        } else {
+            DiagnosticStatus::OK
+        }
+    }
+
+    /// The one-line summary at `now`.
+    pub fn message(&self, now: Nanos) -> String {
+        let pct = |x: f64| x * 100.0;
+        if self.output_fault {
+            return "output fault: writing the line failed; every output driven off".into();
+        }
+        let Some(s) = self.status.as_ref() else {
+            return "starting".into();
+        };
+        if self.watchdog_tripped() {
+            return "watchdog: no duty command within command_timeout_ms; output forced off \
+                    until the next command"
+                .into();
+        }
+        let clamp = s
+            .command_clamped
+            .then_some(self.last_clamp.as_ref())
+            .flatten();
+        let rejected_at = self.last_rejection.as_ref().map_or(0, |(_, at)| *at);
+        match (self.recent_rejection(now), clamp) {
+            // Whichever happened last is the news.
+            (Some(_), Some((c, at))) if *at > rejected_at => {
+                return format!("duty command out of range: {c}");
+            }
+            (Some(r), _) => return format!("last duty command refused: {r}"),
+            (None, Some((c, _))) => return format!("duty command out of range: {c}"),
+            (None, None) if s.command_clamped => {
+                return format!(
+                    "duty command out of range, clamped to {:.1} %",
+                    pct(s.duty_commanded)
+                )
+            }
+            (None, None) => {}
+        }
+        if s.e1 {
+            return format!(
+                "E1: {:.1} % cannot be reproduced because of a minimum time ({}); {:.1} % \
+                 applied",
+                pct(s.duty_commanded),
+                rule_name(s.rule),
+                pct(s.duty_applied)
+            );
+        }
+        if s.limited {
+            return format!(
+                "minimum time limit acts ({}); {:.1} % applied for {:.1} % commanded",
+                rule_name(s.rule),
+                pct(s.duty_applied),
+                pct(s.duty_commanded)
+            );
+        }
+        if !s.enabled {
+            "disabled".into()
+        } else if s.period == 0 {
+            "enabled, no pulses (period 0)".into()
+        } else {
+            format!(
+                "enabled, {:.1} % ({:.1} ms on / {:.1} ms off)",
+                pct(s.duty_applied),
+                ms(s.t_on),
+                ms(s.t_off)
+            )
+        }
+    }
+
+    /// The diagnostic status at `now`, named `<node_name>: <ch>`. `dropped` is the number of
+    /// engine reports lost so far (node-wide).
+    pub fn to_status(&self, node_name: &str, now: Nanos, dropped: u64) -> DiagnosticStatus {
+        let mut kv: Vec<(&str, String)> = Vec::new();
+        if let Some(s) = &self.status {
+            kv.extend([
+                ("enabled", s.enabled.to_string()),
+                ("active", s.active.to_string()),
+                ("output", s.level.is_high().to_string()),
+                (
+                    "duty_commanded_pct",
+                    format!("{:.3}", s.duty_commanded * 100.0),
+                ),
+                ("duty_applied_pct", format!("{:.3}", s.duty_applied * 100.0)),
+                ("command_clamped", s.command_clamped.to_string()),
+                ("period_ms", format!("{:.3}", ms(s.period))),
+                ("on_time_ms", format!("{:.3}", ms(s.t_on))),
+                ("off_time_ms", format!("{:.3}", ms(s.t_off))),
+                ("e1", s.e1.to_string()),
+                ("min_time_limited", s.limited.to_string()),
+                ("rule", rule_name(s.rule).to_string()),
+            ]);
+        }
+        kv.extend([
+            ("watchdog_tripped", self.watchdog_tripped().to_string()),
+            ("output_fault", self.output_fault.to_string()),
+            ("edges", self.edges.to_string()),
+            (
+                "max_lateness_us",
+                format!("{:.1}", self.max_late_ns as f64 / 1000.0),
+            ),
+            ("missed_edges", self.missed.to_string()),
+            ("rejected_commands", self.rejected.to_string()),
+            ("clamped_commands", self.clamped.to_string()),
+            (
+                "last_rejection",
+                self.last_rejection
+                    .as_ref()
+                    .map(|(r, _)| r.clone())
+                    .unwrap_or_default(),
+            ),
+            (
+                "last_clamp",
+                self.last_clamp
+                    .as_ref()
+                    .map(|(c, _)| c.clone())
+                    .unwrap_or_default(),
+            ),
+            (
+                "last_refusal",
+                self.last_refusal.clone().unwrap_or_default(),
+            ),
+            ("publish_failures", self.publish_failures.to_string()),
+            ("reports_dropped", dropped.to_string()),
+        ]);
+        DiagnosticStatus {
+            level: self.level(now),
+            name: format!("{node_name}: {}", self.name),
+            message: self.message(now),
+            hardware_id: self.hardware_id.clone(),
+            values: kv
+                .into_iter()
+                .map(|(k, v)| KeyValue {
+                    key: k.to_string(),
+                    value: v,
+                })
+                .collect(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::Level;
+
+    fn status() -> Status {
+        Status {
+            enabled: true,
+            active: true,
+            level: Level::High,
+            duty_commanded: 0.37,
+            duty_requested: 37.0,
+            command_clamped: false,
+            duty_applied: 0.37,
+            period: 1000 * NS_PER_MS,
+            t_on: 370 * NS_PER_MS,
+            t_off: 630 * NS_PER_MS,
+            remaining_on: 100 * NS_PER_MS,
+            remaining_off: 0,
+            step_end: Some(1_100 * NS_PER_MS),
+            e1: false,
+            limited: false,
+            watchdog_tripped: false,
+            rule: Rule::Exact,
+        }
+    }
+
+    fn kv<'a>(d: &'a DiagnosticStatus, key: &str) -> &'a str {
+        d.values
+            .iter()
+            .find(|k| k.key == key)
+            .map(|k| k.value.as_str())
+            .unwrap_or_else(|| panic!("no key {key}"))
+    }
+
+    #[test]
+    fn ok_warn_error() {
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(status());
+        let d = h.to_status("pwm_actuator", 0, 0);
+        assert_eq!(d.level, DiagnosticStatus::OK);
+        assert_eq!(d.name, "pwm_actuator: pw01");
+        assert_eq!(d.hardware_id, "sim");
+        assert_eq!(d.message, "enabled, 37.0 % (370.0 ms on / 630.0 ms off)");
+        assert_eq!(kv(&d, "duty_applied_pct"), "37.000");
+
+        h.status = Some(Status {
+            e1: true,
+            rule: Rule::SuppressedPulse,
+            duty_applied: 0.0,
+            ..status()
+        });
+        let d = h.to_status("n", 0, 0);
+        assert_eq!(d.level, DiagnosticStatus::WARN);
+        assert!(d.message.starts_with("E1:"), "{}", d.message);
+        assert!(d.message.contains("suppressed_pulse"));
+
+        h.watchdog = true;
+        assert_eq!(h.level(0), DiagnosticStatus::ERROR);
+        assert!(h.message(0).starts_with("watchdog"));
+        h.watchdog = false;
+        h.output_fault = true;
+        assert_eq!(h.level(0), DiagnosticStatus::ERROR);
+        assert!(h.message(0).starts_with("output fault"));
+    }
+
+    #[test]
+    fn a_refusal_warns_for_a_while_and_stays_listed() {
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(status());
+        h.last_rejection = Some(("duty command is NaN; last valid command kept".into(), 1_000));
+        h.rejected = 1;
+        assert_eq!(h.level(2_000), DiagnosticStatus::WARN);
+        assert_eq!(
+            h.message(2_000),
+            "last duty command refused: duty command is NaN; last valid command kept"
+        );
+        let later = 1_000 + REFUSAL_WARN_NS;
+        assert_eq!(h.level(later), DiagnosticStatus::OK);
+        let d = h.to_status("n", later, 3);
+        assert_eq!(
+            kv(&d, "last_rejection"),
+            "duty command is NaN; last valid command kept"
+        );
+        assert_eq!(kv(&d, "rejected_commands"), "1");
+        assert_eq!(kv(&d, "reports_dropped"), "3");
+    }
+
+    #[test]
+    fn clamped_command_in_force_warns() {
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(Status {
+            command_clamped: true,
+            duty_commanded: 1.0,
+            ..status()
+        });
+        h.last_clamp = Some(("150 % clamped to 100.0 %".into(), 10));
+        assert_eq!(h.level(20), DiagnosticStatus::WARN);
+        let clamped = "duty command out of range: 150 % clamped to 100.0 %";
+        assert_eq!(h.message(20), clamped);
+        // The more recent of a refusal and a clamp is the message.
+        h.last_rejection = Some(("duty command is NaN; last valid command kept".into(), 5));
+        assert_eq!(h.message(20), clamped);
+        h.last_rejection = Some(("duty command is NaN; last valid command kept".into(), 15));
+        assert!(h.message(20).starts_with("last duty command refused"));
+    }
+
+    #[test]
+    fn status_message_and_change_detection() {
+        let s = status();
+        let m = status_msg(0, &s, 1_050 * NS_PER_MS, 5);
+        assert_eq!(m.channel, 1);
+        assert_eq!(m.duty_commanded, 37.0);
+        assert_eq!(m.on_time_ms, 370.0);
+        assert_eq!(m.remaining_on_ms, 50.0);
+        assert_eq!(m.rule, "exact");
+        let later = Status {
+            remaining_on: 10,
+            ..s
+        };
+        assert!(!status_changed(&s, &later));
+        let off = Status {
+            level: Level::Low,
+            ..s
+        };
+        assert!(status_changed(&s, &off));
+    }
+}

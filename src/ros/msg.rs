@@ -1,0 +1,226 @@
+//! The ROS messages the node exchanges, as serde structs laid out field for field like their
+//! `.msg` definitions (CDR encodes fields in declaration order, so the order is the contract).
+//!
+//! `pwm_actuator_msgs/*` mirror `msg/*.msg` of this repository (checked by
+//! `tests/ros_msgs.rs`); the others mirror `std_msgs`, `diagnostic_msgs` and
+//! `builtin_interfaces` of ROS 2 Jazzy. No logic lives here.
+
+use ros2_client::builtin_interfaces::Time;
+use ros2_client::{Message, MessageTypeName};
+use serde::{Deserialize, Serialize};
+
+/// A message type with its ROS package and name.
+pub trait RosMessage: Message {
+    /// ROS package, e.g. `std_msgs`.
+    const PACKAGE: &'static str;
+    /// Type name inside the package, e.g. `Float64`.
+    const NAME: &'static str;
+
+    /// The ros2-client type name.
+    fn type_name() -> MessageTypeName {
+        MessageTypeName::new(Self::PACKAGE, Self::NAME)
+    }
+}
+
+macro_rules! ros_message {
+    ($ty:ident, $pkg:literal, $name:literal) => {
+        impl Message for $ty {}
+        impl RosMessage for $ty {
+            const PACKAGE: &'static str = $pkg;
+            const NAME: &'static str = $name;
+        }
+    };
+}
+
+/// The package of this node's own messages.
+pub const MSG_PACKAGE: &str = "pwm_actuator_msgs";
+
+/// `std_msgs/Float64`.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Float64 {
+    /// The value.
+    pub data: f64,
+}
+ros_message!(Float64, "std_msgs", "Float64");
+
+/// `std_msgs/UInt16`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct UInt16 {
+    /// The value.
+    pub data: u16,
+}
+ros_message!(UInt16, "std_msgs", "UInt16");
+
+/// `std_msgs/Bool`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct Bool {
+    /// The value.
+    pub data: bool,
+}
+ros_message!(Bool, "std_msgs", "Bool");
+
+/// `std_msgs/Header`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Header {
+    /// Wall-clock time of the data.
+    pub stamp: Time,
+    /// Coordinate frame; empty here.
+    pub frame_id: String,
+}
+
+/// `diagnostic_msgs/KeyValue`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct KeyValue {
+    /// What the value is.
+    pub key: String,
+    /// The value as text.
+    pub value: String,
+}
+ros_message!(KeyValue, "diagnostic_msgs", "KeyValue");
+
+/// `diagnostic_msgs/DiagnosticStatus`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DiagnosticStatus {
+    /// [`DiagnosticStatus::OK`], `WARN`, `ERROR` or `STALE` (a `byte` in the `.msg`).
+    pub level: u8,
+    /// `<node name>: <channel>`.
+    pub name: String,
+    /// One-line summary.
+    pub message: String,
+    /// The output line (`/dev/gpiochip0:17`) or `sim`.
+    pub hardware_id: String,
+    /// The status figures.
+    pub values: Vec<KeyValue>,
+}
+ros_message!(DiagnosticStatus, "diagnostic_msgs", "DiagnosticStatus");
+
+impl DiagnosticStatus {
+    /// Everything is fine.
+    pub const OK: u8 = 0;
+    /// Working, but something needs attention.
+    pub const WARN: u8 = 1;
+    /// Not working as commanded.
+    pub const ERROR: u8 = 2;
+    /// No recent information.
+    pub const STALE: u8 = 3;
+}
+
+/// `diagnostic_msgs/DiagnosticArray`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DiagnosticArray {
+    /// Stamp of the report.
+    pub header: Header,
+    /// One status per channel.
+    pub status: Vec<DiagnosticStatus>,
+}
+ros_message!(DiagnosticArray, "diagnostic_msgs", "DiagnosticArray");
+
+/// `pwm_actuator_msgs/OutputEdge` (msg/OutputEdge.msg): one output transition.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OutputEdge {
+    /// Wall-clock (ROS) time at which the line was written.
+    pub stamp: Time,
+    /// Channel number: 1 = pw01, 2 = pw02, ...
+    pub channel: u8,
+    /// Logical level after the edge: true = on (active), whatever the line's polarity.
+    pub level: bool,
+    /// Per-channel sequence number, from 1; a gap means a lost message.
+    pub seq: u64,
+    /// Actual write time minus scheduled time, ns (monotonic clock).
+    pub lateness_ns: i64,
+}
+ros_message!(OutputEdge, "pwm_actuator_msgs", "OutputEdge");
+
+/// `pwm_actuator_msgs/ChannelStatus` (msg/ChannelStatus.msg). Times in ms, duties in percent.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChannelStatus {
+    /// Wall-clock time of the snapshot.
+    pub stamp: Time,
+    /// Channel number: 1 = pw01, 2 = pw02, ...
+    pub channel: u8,
+    /// EN: the channel is enabled.
+    pub enabled: bool,
+    /// Enabled, period > 0 and watchdog not tripped (004's q_xActv).
+    pub active: bool,
+    /// Logical output level: true = on.
+    pub output: bool,
+    /// Last valid command after clamping, percent 0..100.
+    pub duty_commanded: f64,
+    /// Duty delivered by the plan in force (on time / period), percent 0..100.
+    pub duty_applied: f64,
+    /// The last valid command was out of range and was clamped.
+    pub command_clamped: bool,
+    /// Period in force, ms (0: no pulses).
+    pub period_ms: f64,
+    /// On time of the plan in force, ms (002's fActTiOn).
+    pub on_time_ms: f64,
+    /// Off time of the plan in force, ms (002's fActTiOff).
+    pub off_time_ms: f64,
+    /// Remaining time of the running on step, ms (002's nRemTiOn).
+    pub remaining_on_ms: f64,
+    /// Remaining time of the running off step, ms (002's nRemTiOff).
+    pub remaining_off_ms: f64,
+    /// E1 (000): the commanded duty could not be reproduced because of a minimum time.
+    pub e1: bool,
+    /// A pulse or break was raised to its minimum (002's bLmtSwiTi).
+    pub min_time_limited: bool,
+    /// No command for command_timeout_ms: output forced off until the next command.
+    pub watchdog_tripped: bool,
+    /// The rule that shaped the plan: exact, no_period, suppressed_pulse, suppressed_break,
+    /// stretched_pulse, stretched_break, band_low, band_high.
+    pub rule: String,
+}
+ros_message!(ChannelStatus, "pwm_actuator_msgs", "ChannelStatus");
+
+/// `pwm_actuator_msgs/ChannelParams` (msg/ChannelParams.msg): several parameters of one channel,
+/// applied together or refused whole. Only the fields named in `set` are applied.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct ChannelParams {
+    /// Names of the fields to apply, e.g. `["period_ms", "min_on_ms"]`. Must not be empty.
+    pub set: Vec<String>,
+    /// Period T, ms; 0 = no pulses.
+    pub period_ms: i64,
+    /// Minimum on time, ms; 0 = the hardware floor.
+    pub min_on_ms: i64,
+    /// Minimum off time, ms; -1 = as the profile says.
+    pub min_off_ms: i64,
+    /// `transistor` or `relay`.
+    pub output_kind: String,
+    /// `pico_gfx`, `twincat_ba`, `tcont_cp`, `schneider_pwm` or `frequency_output`.
+    pub profile: String,
+    /// `suppress`, `stretch`, `band`, or "" = as the profile says.
+    pub short_pulse: String,
+    /// Frequency_Output edge band i_rEdge, 0..1.
+    pub edge_band: f64,
+    /// `next_period`, `next_step`, `immediate`, or "" = as the profile says.
+    pub apply_at: String,
+    /// `off`, `hold`, or "" = as the profile says.
+    pub on_disable: String,
+    /// Watchdog, ms; 0 disables.
+    pub command_timeout_ms: i64,
+    /// Invert the electrical level of the output line (read-only after start).
+    pub active_low: bool,
+}
+ros_message!(ChannelParams, "pwm_actuator_msgs", "ChannelParams");
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn type_names_are_the_ros_ones() {
+        assert_eq!(
+            OutputEdge::type_name().dds_msg_type(),
+            "pwm_actuator_msgs::msg::dds_::OutputEdge_"
+        );
+        assert_eq!(
+            DiagnosticArray::type_name().dds_msg_type(),
+            "diagnostic_msgs::msg::dds_::DiagnosticArray_"
+        );
+        assert_eq!(
+            Float64::type_name().dds_msg_type(),
+            "std_msgs::msg::dds_::Float64_"
+        );
+        assert_eq!(OutputEdge::PACKAGE, MSG_PACKAGE);
+    }
+}

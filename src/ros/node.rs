@@ -1,0 +1,688 @@
+//! Start-up, wiring and shutdown of the node: parse the command line, build the parameters,
+//! open the output, create the ROS entities, start the output thread and the tasks that move
+//! messages between ROS and it, then wait for SIGINT/SIGTERM or a fault and stop cleanly.
+//!
+//! Order matters for safety: duplicate GPIO lines are refused before any hardware is opened,
+//! and the panic hook holds the output's emergency handle before the output thread starts. On
+//! the way out the output thread drives every output inactive and the trace files are flushed
+//! before the process exits.
+
+use super::args::{self, ArgsError, Remap, RosArgs};
+use super::bridge::{Bridge, ChannelPubs};
+use super::cli::{self, CliError, Flags, DEMO_ORIGIN};
+use super::diagnostics::CommandUnit;
+use super::logging::{self, LogConfig};
+use super::msg::{self, RosMessage};
+use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
+use super::params::{
+    self, show_value, OutputChoice, ParamError, ParamStore, StartValue, StartupConfig,
+};
+use super::qos;
+use super::services::{self, ServiceError};
+use crate::core::{ChannelConfig, Command};
+use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
+use crate::output::{
+    check_unique, install_panic_hook, BindingError, GpioError, GpioLine, GpioOutput, LineAddr,
+    Output, SimOutput, TraceError, TraceSpec,
+};
+use futures::StreamExt;
+use log::{debug, error, info, warn};
+use ros2_client::{
+    Context, ContextOptions, Message, Node, NodeName, NodeOptions, Publisher, QosProfile,
+    Subscription,
+};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::task::JoinHandle;
+
+/// The node's name before remapping.
+pub const NODE_NAME: &str = "pwm_actuator";
+
+/// Highest `ROS_DOMAIN_ID` accepted (the DDS port mapping's limit).
+pub const MAX_DOMAIN_ID: u16 = 232;
+
+/// Exit code for a bad command line or configuration.
+pub const EXIT_USAGE: i32 = 2;
+
+/// Exit code for a failure while running (output fault, ROS failure).
+pub const EXIT_FAILURE: i32 = 1;
+
+/// Why the node could not start or stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    /// Bad `--ros-args` or parameter file.
+    #[error(transparent)]
+    Args(#[from] ArgsError),
+    /// Bad node option.
+    #[error(transparent)]
+    Cli(#[from] CliError),
+    /// A name that does not resolve.
+    #[error(transparent)]
+    Name(#[from] NameError),
+    /// `ROS_DOMAIN_ID` is not a domain id.
+    #[error("ROS_DOMAIN_ID `{value}` is not a domain id: expected an integer 0..={max}")]
+    DomainId {
+        /// The value found.
+        value: String,
+        /// The highest id.
+        max: u16,
+    },
+    /// A start-up parameter value refused.
+    #[error(transparent)]
+    Param(#[from] ParamError),
+    /// Two channels bound to one line.
+    #[error(transparent)]
+    Binding(#[from] BindingError),
+    /// The trace files cannot be written.
+    #[error("trace: {0}")]
+    Trace(#[source] TraceError),
+    /// The GPIO lines cannot be opened.
+    #[error("cannot open the GPIO output: {0}")]
+    Gpio(#[source] GpioError),
+    /// The output thread cannot start or failed.
+    #[error("output thread: {0}")]
+    Engine(#[source] EngineError),
+    /// A ROS entity cannot be created.
+    #[error("ROS: cannot create {what}")]
+    Ros {
+        /// What.
+        what: String,
+        /// Why (ros2-client's error).
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// A parameter service cannot be created.
+    #[error(transparent)]
+    Service(#[from] ServiceError),
+    /// The async runtime cannot start.
+    #[error("cannot start the async runtime: {0}")]
+    Runtime(#[source] std::io::Error),
+}
+
+impl NodeError {
+    /// The process exit code for this error.
+    pub fn exit_code(&self) -> i32 {
+        match self {
+            NodeError::Args(_)
+            | NodeError::Cli(_)
+            | NodeError::Name(_)
+            | NodeError::DomainId { .. }
+            | NodeError::Param(_)
+            | NodeError::Binding(_)
+            | NodeError::Trace(_) => EXIT_USAGE,
+            _ => EXIT_FAILURE,
+        }
+    }
+}
+
+fn ros_err(what: impl Into<String>) -> impl FnOnce(ros2_client::CreateError) -> NodeError {
+    let what = what.into();
+    move |e| NodeError::Ros {
+        what,
+        source: Box::new(e),
+    }
+}
+
+/// The error and its causes, `: `-separated.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut src = e.source();
+    while let Some(c) = src {
+        let t = c.to_string();
+        if !s.contains(&t) {
+            s.push_str(": ");
+            s.push_str(&t);
+        }
+        src = c.source();
+    }
+    s
+}
+
+/// Reads `ROS_DOMAIN_ID` (unset or empty: 0).
+pub fn domain_id_from(value: Option<&str>) -> Result<u16, NodeError> {
+    match value.map(str::trim) {
+        None | Some("") => Ok(0),
+        Some(v) => v
+            .parse::<u16>()
+            .ok()
+            .filter(|d| *d <= MAX_DOMAIN_ID)
+            .ok_or_else(|| NodeError::DomainId {
+                value: v.to_string(),
+                max: MAX_DOMAIN_ID,
+            }),
+    }
+}
+
+/// Runs the node with the command line `args` (without the program name) until SIGINT or
+/// SIGTERM; returns the process exit code (0 after a clean stop).
+pub fn run(args: &[String]) -> i32 {
+    let mut logger_ready = false;
+    match run_inner(args, &mut logger_ready) {
+        Ok(code) => code,
+        Err(e) => {
+            if logger_ready {
+                error!("{}", chain(&e));
+            } else {
+                eprintln!("[ERROR] [{NODE_NAME}]: {}", chain(&e));
+            }
+            e.exit_code()
+        }
+    }
+}
+
+fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError> {
+    let parsed = args::parse(args)?;
+    let flags = cli::parse_flags(&parsed.app)?;
+    if flags.help {
+        print!("{}", cli::USAGE);
+        return Ok(0);
+    }
+    if flags.version {
+        println!("pwm_actuator_node {}", env!("CARGO_PKG_VERSION"));
+        return Ok(0);
+    }
+    let id = NodeIdentity::from_remaps(NODE_NAME, "/", &parsed.ros.remaps)?;
+    *logger_ready = logging::init(LogConfig::from_args(&parsed.ros, NODE_NAME, &id.name)).is_ok();
+    if parsed.ros.log_config_file.is_some() {
+        warn!("--log-config-file is not supported; use --log-level");
+    }
+    let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())?;
+    let fqn = id.fully_qualified();
+    let start = start_values(&flags, &parsed.ros, &id, &fqn)?;
+    let su = params::start_up(&start)?;
+    for n in &su.notes {
+        info!("{n}");
+    }
+    for w in &su.warnings {
+        warn!("{w}");
+    }
+    for ign in su
+        .ignored
+        .iter()
+        .filter(|i| !i.ends_with(&format!("({DEMO_ORIGIN})")))
+    {
+        warn!("ignoring a value for {ign}: this node has no such parameter");
+    }
+    let cfg = StartupConfig::from_store(&su.store)?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("pwm-ros")
+        .enable_all()
+        .build()
+        .map_err(NodeError::Runtime)?;
+    rt.block_on(serve(id, parsed.ros, su.store, cfg, domain))
+}
+
+/// The start-up values: options first, then the ROS arguments in order. Logs where a ROS
+/// argument overrides an option.
+fn start_values(
+    flags: &Flags,
+    ros: &RosArgs,
+    id: &NodeIdentity,
+    fqn: &str,
+) -> Result<Vec<StartValue>, NodeError> {
+    let mut v = flags.start_values();
+    let from_options: Vec<(String, String)> = v
+        .iter()
+        .map(|s| (s.name.clone(), s.origin.clone()))
+        .collect();
+    for o in ros.overrides(&id.name, fqn)? {
+        if let Some((_, opt)) = from_options.iter().find(|(n, _)| *n == o.name) {
+            info!(
+                "{} = {} from {} overrides {opt}",
+                o.name,
+                show_value(&o.value),
+                o.origin
+            );
+        }
+        v.push(StartValue {
+            name: o.name,
+            value: o.value,
+            origin: o.origin,
+        });
+    }
+    Ok(v)
+}
+
+/// An opened output backend.
+enum Opened {
+    Sim(SimOutput),
+    Gpio(GpioOutput),
+}
+
+/// Opens the output (refusing duplicate GPIO lines before any chip is opened) and installs
+/// the panic hook with its emergency handle. Returns it with each channel's hardware id.
+fn open_output(cfg: &StartupConfig) -> Result<(Opened, Vec<String>), NodeError> {
+    let names: Vec<String> = cfg.channels.iter().map(|c| c.name.clone()).collect();
+    match &cfg.output {
+        OutputChoice::Sim { trace } => {
+            let spec = TraceSpec::from_paths(trace).map_err(NodeError::Trace)?;
+            for f in spec.files() {
+                info!("tracing edges to {}", f.path.display());
+            }
+            let out = SimOutput::new(names.clone(), Some(spec)).map_err(NodeError::Trace)?;
+            install_panic_hook(out.emergency_off());
+            Ok((Opened::Sim(out), vec!["sim".to_string(); names.len()]))
+        }
+        OutputChoice::Gpio { lines } => {
+            // 000: no double output assignments, checked before any chip is opened.
+            let bindings: Vec<(String, LineAddr)> = lines
+                .iter()
+                .map(|l| {
+                    (
+                        l.channel.clone(),
+                        LineAddr::Gpio {
+                            chip: PathBuf::from(&l.chip),
+                            offset: l.offset,
+                        },
+                    )
+                })
+                .collect();
+            check_unique(&bindings)?;
+            let gpio: Vec<GpioLine> = lines
+                .iter()
+                .map(|l| GpioLine {
+                    name: l.channel.clone(),
+                    chip: PathBuf::from(&l.chip),
+                    offset: l.offset,
+                    active_low: l.active_low,
+                })
+                .collect();
+            let out = GpioOutput::open(&gpio).map_err(NodeError::Gpio)?;
+            install_panic_hook(out.emergency_off());
+            let ids = lines
+                .iter()
+                .map(|l| format!("{}:{}", l.chip, l.offset))
+                .collect();
+            Ok((Opened::Gpio(out), ids))
+        }
+    }
+}
+
+/// Starts the output thread on the opened output.
+fn start_engine(cfg: &StartupConfig, output: Opened) -> Result<Engine, NodeError> {
+    let configs: Vec<ChannelConfig> = cfg.channels.iter().map(|c| c.config).collect();
+    let opts = EngineOptions {
+        rt_priority: cfg.rt_priority,
+        ..EngineOptions::default()
+    };
+    match output {
+        Opened::Sim(out) => engine::spawn(configs, out, opts),
+        Opened::Gpio(out) => engine::spawn(configs, out, opts),
+    }
+    .map_err(NodeError::Engine)
+}
+
+/// Resolves a topic name of this node.
+fn topic(
+    node: &Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    name: &str,
+    type_name: ros2_client::MessageTypeName,
+    qos: &QosProfile,
+) -> Result<(String, rustdds::Topic), NodeError> {
+    let full = id.resolve(name, NameKind::Topic, remaps)?;
+    let t = node
+        .create_topic(&to_ros_name(&full)?, type_name, qos)
+        .map_err(ros_err(format!("topic {full}")))?;
+    Ok((full, t))
+}
+
+fn publisher<M: RosMessage>(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    name: &str,
+    qos: QosProfile,
+) -> Result<Publisher<M>, NodeError> {
+    let (full, t) = topic(node, id, remaps, name, M::type_name(), &qos)?;
+    debug!("publishing {full}");
+    node.create_publisher(&t, Some(qos))
+        .map_err(ros_err(format!("publisher {full}")))
+}
+
+fn subscription<M: RosMessage + 'static>(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    name: &str,
+) -> Result<(String, Subscription<M>), NodeError> {
+    let qos = qos::commands();
+    let (full, t) = topic(node, id, remaps, name, M::type_name(), &qos)?;
+    debug!("subscribing {full}");
+    let s = node
+        .create_subscription(&t, Some(qos))
+        .map_err(ros_err(format!("subscription {full}")))?;
+    Ok((full, s))
+}
+
+/// Runs `on_msg` for every message of `sub`, until the task is aborted.
+fn listen<M, F>(full: String, sub: Subscription<M>, mut on_msg: F) -> JoinHandle<()>
+where
+    M: Message + Send + Sync + 'static,
+    F: FnMut(M) + Send + 'static,
+{
+    tokio::spawn(async move {
+        let stream = sub.async_stream();
+        futures::pin_mut!(stream);
+        while let Some(r) = stream.next().await {
+            match r {
+                Ok((m, _info)) => on_msg(m),
+                Err(e) => warn!("{full}: unreadable message: {e}"),
+            }
+        }
+    })
+}
+
+/// Moves reports from the output thread to ROS until `quit` is set or the output thread ends.
+/// A plain thread: it sleeps on the engine's eventfd ([`Reports::wait`]) and publishes, which
+/// never waits for a subscriber.
+fn pump(bridge: Arc<Bridge>, mut reports: Reports, quit: Arc<AtomicBool>) {
+    while !quit.load(Ordering::SeqCst) {
+        reports.wait(Duration::from_millis(100));
+        // Cleared before draining, so a report queued meanwhile wakes the next wait at once.
+        reports.clear_wake();
+        while let Some(r) = reports.try_recv() {
+            bridge.handle(r);
+        }
+        bridge.after_batch(reports.dropped());
+        if reports.is_abandoned() {
+            while let Some(r) = reports.try_recv() {
+                bridge.handle(r);
+            }
+            bridge.stop.notify_one();
+            return;
+        }
+    }
+}
+
+async fn diagnostics_loop(bridge: Arc<Bridge>) {
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = bridge.diag_now.notified() => {}
+        }
+        bridge.publish_diagnostics();
+        // Coalesce bursts of level changes into at most 20 messages per second.
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+async fn status_loop(bridge: Arc<Bridge>) {
+    loop {
+        let rate = bridge.status_rate_hz();
+        if rate > 0.0 && rate.is_finite() {
+            tokio::time::sleep(Duration::from_secs_f64(1.0 / rate)).await;
+            bridge.publish_all_status();
+        } else {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+}
+
+async fn serve(
+    id: NodeIdentity,
+    ros: RosArgs,
+    store: ParamStore,
+    cfg: StartupConfig,
+    domain: u16,
+) -> Result<i32, NodeError> {
+    let remaps = &ros.remaps;
+    let fqn = id.fully_qualified();
+    // The output first: configuration and hardware errors stop the node before it joins ROS.
+    let (output, hardware_ids) = open_output(&cfg)?;
+
+    let context = Context::with_options(ContextOptions::new().domain_id(domain))
+        .map_err(ros_err("the DDS participant"))?;
+    let node_name = NodeName::new(&id.namespace, &id.name).map_err(|e| NodeError::Ros {
+        what: format!("node {fqn}"),
+        source: Box::new(e),
+    })?;
+    let mut node = context
+        .new_node(
+            node_name,
+            NodeOptions::new()
+                .enable_rosout(ros.rosout_logs != Some(false))
+                .start_parameter_services(false),
+        )
+        .map_err(|e| NodeError::Ros {
+            what: format!("node {fqn}"),
+            source: Box::new(e),
+        })?;
+    logging::attach_rosout(node.logging_handle());
+    let spinner = node.spinner().map_err(ros_err("the node spinner"))?;
+    let spin_task = tokio::spawn(async move {
+        if let Err(e) = spinner.spin().await {
+            warn!("ROS spinner stopped: {e}");
+        }
+    });
+    let mut tasks: Vec<JoinHandle<()>> = Vec::new();
+
+    let n = cfg.channels.len();
+    let mut pubs = Vec::with_capacity(n);
+    for c in &cfg.channels {
+        pubs.push(ChannelPubs {
+            edges: publisher(
+                &mut node,
+                &id,
+                remaps,
+                &format!("~/{}/edges", c.name),
+                qos::edges(),
+            )?,
+            e1: publisher(
+                &mut node,
+                &id,
+                remaps,
+                &format!("~/{}/e1", c.name),
+                qos::e1(),
+            )?,
+            status: publisher(
+                &mut node,
+                &id,
+                remaps,
+                &format!("~/{}/status", c.name),
+                qos::status(),
+            )?,
+        });
+    }
+    let diagnostics = publisher(&mut node, &id, remaps, "/diagnostics", qos::diagnostics())?;
+    let param_events = node
+        .create_publisher(&context.get_parameter_events_topic(), None)
+        .map_err(ros_err("publisher /parameter_events"))?;
+
+    let engine = start_engine(&cfg, output)?;
+    let Engine {
+        requests,
+        reports,
+        handle,
+    } = engine;
+    let bridge = Arc::new(Bridge::new(
+        id.name.clone(),
+        fqn.clone(),
+        store,
+        requests,
+        param_events,
+        pubs,
+        diagnostics,
+        hardware_ids,
+    ));
+    // rclcpp announces declared parameters as new on /parameter_events; so does this node.
+    let declared = bridge.with_params(|s| {
+        s.all()
+            .into_iter()
+            .map(|(name, value)| ros2_client::parameters::raw::Parameter {
+                name,
+                value: value.into(),
+            })
+            .collect()
+    });
+    bridge.publish_param_event(declared, Vec::new());
+    for ch in 0..n {
+        bridge.publish_e1(ch, false);
+    }
+
+    for (ch, c) in cfg.channels.iter().enumerate() {
+        let b = Arc::clone(&bridge);
+        let (full, s) =
+            subscription::<msg::Float64>(&mut node, &id, remaps, &format!("~/{}/duty", c.name))?;
+        tasks.push(listen(full, s, move |m| {
+            b.command(ch, Command::Percent(m.data), CommandUnit::Percent)
+        }));
+        let b = Arc::clone(&bridge);
+        let (full, s) =
+            subscription::<msg::UInt16>(&mut node, &id, remaps, &format!("~/{}/sv", c.name))?;
+        tasks.push(listen(full, s, move |m| {
+            b.command(ch, Command::Sv(m.data), CommandUnit::Sv)
+        }));
+        let b = Arc::clone(&bridge);
+        let (full, s) =
+            subscription::<msg::Bool>(&mut node, &id, remaps, &format!("~/{}/enable", c.name))?;
+        tasks.push(listen(full, s, move |m| b.enable(ch, m.data)));
+        let b = Arc::clone(&bridge);
+        let door = format!("~/{}/params", c.name);
+        let (full, s) = subscription::<msg::ChannelParams>(&mut node, &id, remaps, &door)?;
+        tasks.push(listen(full, s, move |m| {
+            match params::items_from_msg(ch, &m) {
+                Ok(items) => {
+                    // A refusal is logged and recorded by `set_params` itself.
+                    let _ = b.set_params(items, &door);
+                }
+                Err(e) => b.refused_message(ch, &door, &e.to_string()),
+            }
+        }));
+    }
+    tasks.extend(services::spawn(&mut node, &id, remaps, &bridge)?);
+    let quit = Arc::new(AtomicBool::new(false));
+    let pump_thread = {
+        let (b, q) = (Arc::clone(&bridge), Arc::clone(&quit));
+        std::thread::Builder::new()
+            .name("pwm-reports".into())
+            .spawn(move || pump(b, reports, q))
+            .map_err(NodeError::Runtime)?
+    };
+    tasks.push(tokio::spawn(diagnostics_loop(Arc::clone(&bridge))));
+    tasks.push(tokio::spawn(status_loop(Arc::clone(&bridge))));
+
+    // Start-up duty and enable: the duty first, so the first period already uses it.
+    for (ch, c) in cfg.channels.iter().enumerate() {
+        if c.duty_percent != 0.0 {
+            let _ = bridge.send(ch, Input::Command(Command::Percent(c.duty_percent)));
+        }
+        if c.enable {
+            info!(
+                "{}: enabled at start-up, duty {:.1} %",
+                c.name, c.duty_percent
+            );
+            let _ = bridge.send(ch, Input::Enable(true));
+        }
+    }
+    info!(
+        "{fqn} running: {n} channel{} ({}), ROS domain {domain}",
+        if n == 1 { "" } else { "s" },
+        match &cfg.output {
+            OutputChoice::Sim { trace } if trace.is_empty() => "sim output".to_string(),
+            OutputChoice::Sim { trace } => format!("sim output, {} trace file(s)", trace.len()),
+            OutputChoice::Gpio { .. } => "gpio output".to_string(),
+        }
+    );
+
+    let reason = wait_for_stop(&bridge).await;
+    info!("{reason}: stopping");
+    for t in &tasks {
+        t.abort();
+    }
+    quit.store(true, Ordering::SeqCst);
+    if pump_thread.join().is_err() {
+        warn!("the report thread panicked");
+    }
+    // Drives every output inactive, flushes the traces, joins the output thread.
+    let fault_text = handle.fault();
+    let result = handle.shutdown();
+    for t in tasks {
+        let _ = t.await;
+    }
+    drop(bridge);
+    // Dropping the node tells its spinner to stop.
+    drop(node);
+    let _ = tokio::time::timeout(Duration::from_secs(1), spin_task).await;
+    drop(context);
+    let faulted = bridge_fault(fault_text.as_deref(), &result);
+    match result {
+        Ok(()) if !faulted => {
+            info!("all outputs off; bye");
+            Ok(0)
+        }
+        Ok(()) => Ok(EXIT_FAILURE),
+        Err(e) => {
+            error!("output thread: {}", chain(&e));
+            Ok(EXIT_FAILURE)
+        }
+    }
+}
+
+fn bridge_fault(fault: Option<&str>, result: &Result<(), EngineError>) -> bool {
+    if let Some(f) = fault {
+        error!("output fault: {f}");
+    }
+    fault.is_some() || result.is_err()
+}
+
+/// Waits for SIGINT, SIGTERM, or the bridge asking to stop; says which.
+async fn wait_for_stop(bridge: &Bridge) -> String {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut int = signal(SignalKind::interrupt()).ok();
+    let mut term = signal(SignalKind::terminate()).ok();
+    async fn next(s: &mut Option<tokio::signal::unix::Signal>) {
+        match s {
+            Some(s) => {
+                s.recv().await;
+            }
+            None => std::future::pending::<()>().await,
+        }
+    }
+    tokio::select! {
+        _ = next(&mut int) => "SIGINT".to_string(),
+        _ = next(&mut term) => "SIGTERM".to_string(),
+        _ = bridge.stop.notified() => {
+            if bridge.fault.load(Ordering::SeqCst) {
+                "output fault".to_string()
+            } else {
+                "the output thread ended".to_string()
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn domain_ids() {
+        assert_eq!(domain_id_from(None).unwrap(), 0);
+        assert_eq!(domain_id_from(Some("")).unwrap(), 0);
+        assert_eq!(domain_id_from(Some("42")).unwrap(), 42);
+        assert_eq!(domain_id_from(Some(" 7 ")).unwrap(), 7);
+        for bad in ["233", "-1", "abc", "1.5", "70000"] {
+            let e = domain_id_from(Some(bad)).unwrap_err();
+            assert_eq!(e.exit_code(), EXIT_USAGE);
+            assert!(e.to_string().contains(bad), "{e}");
+        }
+    }
+
+    #[test]
+    fn error_chains_are_joined_once() {
+        let e = NodeError::Trace(TraceError::UnknownExtension {
+            path: "x.txt".into(),
+        });
+        assert_eq!(
+            chain(&e),
+            "trace: trace file x.txt: unknown extension, expected .vcd or .csv"
+        );
+    }
+}

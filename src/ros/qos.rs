@@ -1,0 +1,80 @@
+//! The QoS of every topic and service of the node, in one place so the README can state them.
+//!
+//! | topic / service | reliability | durability | history | notes |
+//! |---|---|---|---|---|
+//! | `~/<ch>/duty`, `~/<ch>/sv`, `~/<ch>/enable`, `~/<ch>/params` (in) | reliable | volatile | keep last 10 | rclpy's default (`create_publisher(..., 10)`); best-effort publishers do not match |
+//! | `~/<ch>/edges` (out) | reliable | volatile | keep last 100 | never blocks the node: a full send window drops and counts |
+//! | `~/<ch>/status` (out) | reliable | volatile | keep last 10 | as above |
+//! | `~/<ch>/e1` (out) | reliable | transient local | keep last 1 | a late subscriber asking for transient local gets the current E1 |
+//! | `/diagnostics` (out) | reliable | volatile | keep last 10 | as `diagnostic_updater` publishes |
+//! | parameter services | reliable | volatile | keep last 10 | `rmw_qos_profile_services_default` |
+//! | `/parameter_events` (out) | reliable | transient local | keep last 1 | ros2-client's topic QoS; rclpy's volatile subscribers match |
+//! | `/rosout` (out) | reliable | transient local | keep last 1 | ros2-client's topic QoS |
+//!
+//! Only QoS values here; no entities are created.
+
+use ros2_client::qos::{Durability, History, WhenFull};
+use ros2_client::QosProfile;
+use std::time::Duration;
+
+/// Subscriptions to commands: rclpy's default profile (reliable, volatile, keep last 10).
+pub fn commands() -> QosProfile {
+    QosProfile::publisher_default().history(History::KeepLast { depth: 10 })
+}
+
+/// Edge events: reliable, keep last 100; a publish never waits for a slow subscriber.
+pub fn edges() -> QosProfile {
+    QosProfile::publisher_default()
+        .history(History::KeepLast { depth: 100 })
+        .reliability_reliable(WhenFull::Fail)
+}
+
+/// Status snapshots: reliable, keep last 10, never waiting.
+pub fn status() -> QosProfile {
+    QosProfile::publisher_default()
+        .history(History::KeepLast { depth: 10 })
+        .reliability_reliable(WhenFull::Fail)
+}
+
+/// E1: latched (transient local, keep last 1).
+pub fn e1() -> QosProfile {
+    QosProfile::publisher_default()
+        .history(History::KeepLast { depth: 1 })
+        .durability(Durability::TransientLocal)
+        .reliability_reliable(WhenFull::Wait(Duration::from_millis(10)))
+}
+
+/// `/diagnostics`: reliable, volatile, keep last 10.
+pub fn diagnostics() -> QosProfile {
+    QosProfile::publisher_default()
+        .history(History::KeepLast { depth: 10 })
+        .reliability_reliable(WhenFull::Wait(Duration::from_millis(10)))
+}
+
+/// Parameter services: `rmw_qos_profile_services_default` (reliable, volatile, keep last 10).
+pub fn services() -> QosProfile {
+    QosProfile::publisher_default().history(History::KeepLast { depth: 10 })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ros2_client::qos::Reliability;
+
+    #[test]
+    fn profiles() {
+        assert!(matches!(
+            commands().reliability,
+            Reliability::Reliable { .. }
+        ));
+        assert_eq!(commands().durability, Durability::Volatile);
+        assert_eq!(commands().history, History::KeepLast { depth: 10 });
+        assert_eq!(e1().durability, Durability::TransientLocal);
+        assert_eq!(
+            edges().reliability,
+            Reliability::Reliable {
+                when_full: WhenFull::Fail
+            }
+        );
+    }
+}

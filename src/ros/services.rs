@@ -1,0 +1,252 @@
+//! The six standard parameter services (`~/get_parameters`, `~/get_parameter_types`,
+//! `~/set_parameters`, `~/set_parameters_atomically`, `~/list_parameters`,
+//! `~/describe_parameters`), served from the node's own parameter store.
+//!
+//! ros2-client 0.12.1 can serve parameters itself, but its `describe_parameters` answers every
+//! name with "(description missing, not implemented)" and no range, its validator sees one
+//! value at a time (so `set_parameters_atomically` cannot check `min_on_ms <= period_ms`
+//! across the values), and it refuses any type change. So the node turns those services off
+//! (`NodeOptions::start_parameter_services(false)`) and offers the same six services, with the
+//! same names, types and QoS, here. Handlers only read the store or call
+//! [`Bridge::set_params`]; they never block.
+
+use super::args::Remap;
+use super::bridge::Bridge;
+use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
+use futures::StreamExt;
+use log::{debug, warn};
+use ros2_client::parameters::raw;
+use ros2_client::rcl_interfaces::{
+    DescribeParametersRequest, DescribeParametersResponse, GetParameterTypesRequest,
+    GetParameterTypesResponse, GetParametersRequest, GetParametersResponse, ListParametersRequest,
+    ListParametersResponse, ListParametersResult, SetParametersAtomicallyResponse,
+    SetParametersRequest, SetParametersResponse,
+};
+use ros2_client::{Message, Node, ParameterValue, Server, ServiceMapping, ServiceTypeName};
+use std::sync::Arc;
+use tokio::task::JoinHandle;
+
+/// Errors creating the services.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// A service name that does not resolve (e.g. a bad remap).
+    #[error(transparent)]
+    Name(#[from] NameError),
+    /// DDS refused to create the service.
+    #[error("cannot create service {name}")]
+    Create {
+        /// The service.
+        name: String,
+        /// Why.
+        #[source]
+        source: ros2_client::CreateError,
+    },
+}
+
+fn get(b: &Bridge, req: GetParametersRequest) -> GetParametersResponse {
+    b.with_params(|s| GetParametersResponse {
+        values: req
+            .names
+            .iter()
+            .map(|n| s.get(n).cloned().unwrap_or(ParameterValue::NotSet).into())
+            .collect(),
+    })
+}
+
+fn get_types(b: &Bridge, req: GetParameterTypesRequest) -> GetParameterTypesResponse {
+    b.with_params(|s| GetParameterTypesResponse {
+        values: req
+            .names
+            .iter()
+            .map(|n| {
+                s.descriptor(n)
+                    .map_or(raw::ParameterType::NOT_SET, |d| d.ptype.raw())
+            })
+            .collect(),
+    })
+}
+
+fn list(b: &Bridge, req: ListParametersRequest) -> ListParametersResponse {
+    let (names, prefixes) = b.with_params(|s| s.list(&req.prefixes, req.depth));
+    ListParametersResponse {
+        result: ListParametersResult { names, prefixes },
+    }
+}
+
+fn describe(b: &Bridge, req: DescribeParametersRequest) -> DescribeParametersResponse {
+    b.with_params(|s| DescribeParametersResponse {
+        values: req
+            .names
+            .iter()
+            .map(|n| match s.descriptor(n) {
+                Some(d) => d.to_raw(),
+                None => raw::ParameterDescriptor {
+                    name: n.clone(),
+                    r#type: raw::ParameterType::NOT_SET,
+                    description: "not declared".into(),
+                    additional_constraints: String::new(),
+                    read_only: true,
+                    dynamic_typing: false,
+                    floating_point_range: vec![],
+                    integer_range: vec![],
+                },
+            })
+            .collect(),
+    })
+}
+
+fn result(r: Result<(), String>) -> raw::SetParametersResult {
+    match r {
+        Ok(()) => raw::SetParametersResult {
+            successful: true,
+            reason: String::new(),
+        },
+        Err(reason) => raw::SetParametersResult {
+            successful: false,
+            reason,
+        },
+    }
+}
+
+fn items(req: SetParametersRequest) -> Vec<(String, ParameterValue)> {
+    req.parameter
+        .into_iter()
+        .map(|p| (p.name, ParameterValue::from(p.value)))
+        .collect()
+}
+
+/// `set_parameters`: each parameter on its own, in order, as rclcpp does.
+fn set(b: &Bridge, req: SetParametersRequest) -> SetParametersResponse {
+    SetParametersResponse {
+        results: items(req)
+            .into_iter()
+            .map(|item| {
+                result(
+                    b.set_params(vec![item], "set_parameters")
+                        .map_err(|e| e.to_string()),
+                )
+            })
+            .collect(),
+    }
+}
+
+/// `set_parameters_atomically`: all or nothing.
+fn set_atomically(b: &Bridge, req: SetParametersRequest) -> SetParametersAtomicallyResponse {
+    SetParametersAtomicallyResponse {
+        result: result(
+            b.set_params(items(req), "set_parameters_atomically")
+                .map_err(|e| e.to_string()),
+        ),
+    }
+}
+
+fn spawn_server<Req, Resp>(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    bridge: &Arc<Bridge>,
+    base: &'static str,
+    type_name: &'static str,
+    handler: fn(&Bridge, Req) -> Resp,
+) -> Result<JoinHandle<()>, ServiceError>
+where
+    Req: Message + Clone + Send + Sync + 'static,
+    Resp: Message + Send + Sync + 'static,
+{
+    let full = id.resolve(&format!("~/{base}"), NameKind::Service, remaps)?;
+    let qos = super::qos::services();
+    let server: Server<Req, Resp> = node
+        .create_server(
+            ServiceMapping::Enhanced,
+            &to_ros_name(&full)?,
+            &ServiceTypeName::new("rcl_interfaces", type_name),
+            qos.clone(),
+            qos,
+        )
+        .map_err(|source| ServiceError::Create {
+            name: full.clone(),
+            source,
+        })?;
+    let bridge = Arc::clone(bridge);
+    Ok(tokio::spawn(async move {
+        let stream = server.receive_request_stream();
+        futures::pin_mut!(stream);
+        while let Some(r) = stream.next().await {
+            match r {
+                Ok((id, req)) => {
+                    debug!("{full}: request");
+                    let resp = handler(&bridge, req);
+                    if let Err(e) = server.async_send_response(id, resp).await {
+                        warn!("{full}: cannot send the response: {e}");
+                    }
+                }
+                Err(e) => warn!("{full}: unreadable request: {e}"),
+            }
+        }
+    }))
+}
+
+/// Creates the six parameter services and the tasks serving them.
+pub fn spawn(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    bridge: &Arc<Bridge>,
+) -> Result<Vec<JoinHandle<()>>, ServiceError> {
+    Ok(vec![
+        spawn_server(
+            node,
+            id,
+            remaps,
+            bridge,
+            "get_parameters",
+            "GetParameters",
+            get,
+        )?,
+        spawn_server(
+            node,
+            id,
+            remaps,
+            bridge,
+            "get_parameter_types",
+            "GetParameterTypes",
+            get_types,
+        )?,
+        spawn_server(
+            node,
+            id,
+            remaps,
+            bridge,
+            "set_parameters",
+            "SetParameters",
+            set,
+        )?,
+        spawn_server(
+            node,
+            id,
+            remaps,
+            bridge,
+            "set_parameters_atomically",
+            "SetParametersAtomically",
+            set_atomically,
+        )?,
+        spawn_server(
+            node,
+            id,
+            remaps,
+            bridge,
+            "list_parameters",
+            "ListParameters",
+            list,
+        )?,
+        spawn_server(
+            node,
+            id,
+            remaps,
+            bridge,
+            "describe_parameters",
+            "DescribeParameters",
+            describe,
+        )?,
+    ])
+}

@@ -1,0 +1,194 @@
+//! The ROS side in-process, on an output that fails: an output fault is reported as ERROR on
+//! /diagnostics, asks the node to stop, and a parameter change the output thread can no longer
+//! take is refused with nothing changed. (The sim and GPIO outputs cannot be made to fail from
+//! outside, so this drives the bridge directly with a failing output.)
+
+#[path = "common/ros_harness.rs"]
+mod ros_harness;
+
+use pwm_actuator::core::Command;
+use pwm_actuator::engine::{self, EngineError, EngineOptions};
+use pwm_actuator::output::{EmergencyOff, LineChange, Output};
+use pwm_actuator::ros::bridge::{Bridge, ChangeError, ChannelPubs};
+use pwm_actuator::ros::diagnostics::CommandUnit;
+use pwm_actuator::ros::msg::{DiagnosticArray, DiagnosticStatus, RosMessage};
+use pwm_actuator::ros::names::to_ros_name;
+use pwm_actuator::ros::params::{ParamStore, Phase};
+use ros2_client::{Context, ContextOptions, Node, NodeName, NodeOptions, ParameterValue};
+use ros_harness::*;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+#[derive(Debug, thiserror::Error)]
+#[error("simulated write failure")]
+struct WriteFailed;
+
+/// Accepts `ok_writes` writes, then fails every one.
+struct FailingOutput {
+    ok_writes: usize,
+}
+
+struct NoOff;
+
+impl EmergencyOff for NoOff {
+    fn all_inactive(&self) {}
+}
+
+impl Output for FailingOutput {
+    type Error = WriteFailed;
+
+    fn line_count(&self) -> usize {
+        1
+    }
+
+    fn set_levels(&mut self, _: &[LineChange]) -> Result<(), WriteFailed> {
+        if self.ok_writes == 0 {
+            return Err(WriteFailed);
+        }
+        self.ok_writes -= 1;
+        Ok(())
+    }
+
+    fn set_all_inactive(&mut self) -> Result<(), WriteFailed> {
+        Ok(())
+    }
+
+    fn emergency_off(&self) -> Arc<dyn EmergencyOff> {
+        Arc::new(NoOff)
+    }
+}
+
+fn publisher<M: RosMessage>(
+    node: &mut Node,
+    topic: &str,
+    qos: ros2_client::QosProfile,
+) -> ros2_client::Publisher<M> {
+    let t = node
+        .create_topic(&to_ros_name(topic).unwrap(), M::type_name(), &qos)
+        .unwrap();
+    node.create_publisher(&t, Some(qos)).unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_output_fault_is_an_error_and_stops_the_node() {
+    let dom = Domain::acquire();
+    let ctx = Context::with_options(ContextOptions::new().domain_id(dom.id)).unwrap();
+    let mut node = ctx
+        .new_node(
+            NodeName::new("/", "bridge_test").unwrap(),
+            NodeOptions::new().start_parameter_services(false),
+        )
+        .unwrap();
+    let spinner = node.spinner().unwrap();
+    tokio::spawn(spinner.spin());
+
+    let mut store = ParamStore::new(1);
+    let a = store
+        .check(
+            &[("pw01.period_ms".into(), ParameterValue::Integer(50))],
+            Phase::StartUp,
+        )
+        .unwrap();
+    store.commit(&a);
+    let engine = engine::spawn(
+        vec![store.channel_config(0).unwrap()],
+        FailingOutput { ok_writes: 2 },
+        EngineOptions::default(),
+    )
+    .unwrap();
+    let pubs = vec![ChannelPubs {
+        edges: publisher(&mut node, "/bridge_test/pw01/edges", default_qos()),
+        e1: publisher(&mut node, "/bridge_test/pw01/e1", latched_qos()),
+        status: publisher(&mut node, "/bridge_test/pw01/status", default_qos()),
+    }];
+    let diagnostics = publisher::<DiagnosticArray>(&mut node, "/diagnostics", default_qos());
+    let events = node
+        .create_publisher(&ctx.get_parameter_events_topic(), None)
+        .unwrap();
+    let bridge = Arc::new(Bridge::new(
+        "bridge_test".into(),
+        "/bridge_test".into(),
+        store,
+        engine.requests,
+        events,
+        pubs,
+        diagnostics,
+        vec!["test:0".into()],
+    ));
+
+    let mut ros = Ros::new(dom.id);
+    let diag = ros.sub::<DiagnosticArray>(
+        "/diagnostics",
+        "diagnostic_msgs",
+        "DiagnosticArray",
+        default_qos(),
+    );
+
+    // The report pump, as the node runs it.
+    let mut reports = engine.reports;
+    let b = Arc::clone(&bridge);
+    let pump = std::thread::spawn(move || {
+        while !reports.is_abandoned() {
+            reports.wait(Duration::from_millis(50));
+            reports.clear_wake();
+            while let Some(r) = reports.try_recv() {
+                b.handle(r);
+            }
+            b.after_batch(reports.dropped());
+        }
+        while let Some(r) = reports.try_recv() {
+            b.handle(r);
+        }
+    });
+
+    // Make sure the observer hears /diagnostics before the fault: the node publishes the ERROR
+    // once, at the fault, and then stops.
+    let mut heard = false;
+    for _ in 0..50 {
+        bridge.publish_diagnostics();
+        if next(&diag, Duration::from_millis(300)).await.is_some() {
+            heard = true;
+            break;
+        }
+    }
+    assert!(heard, "the observer receives /diagnostics");
+
+    bridge.command(0, Command::Percent(50.0), CommandUnit::Percent);
+    bridge.enable(0, true);
+    // Two edges are written, the third write fails.
+    tokio::time::timeout(LONG, bridge.stop.notified())
+        .await
+        .expect("the bridge asks the node to stop");
+    assert!(bridge.fault.load(Ordering::SeqCst));
+    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
+        a.status
+            .iter()
+            .any(|s| s.name == "bridge_test: pw01" && s.level == DiagnosticStatus::ERROR)
+    })
+    .await
+    .expect("ERROR on /diagnostics");
+    let d = &a.status[0];
+    assert!(d.message.starts_with("output fault"), "{}", d.message);
+    assert_eq!(kv(d, "output_fault"), "true");
+    assert_eq!(d.hardware_id, "test:0");
+
+    // The output thread is gone: a parameter change cannot reach it and changes nothing.
+    let r = bridge.set_params(
+        vec![("pw01.period_ms".into(), ParameterValue::Integer(200))],
+        "test",
+    );
+    assert!(matches!(r, Err(ChangeError::Engine { .. })), "{r:?}");
+    assert_eq!(
+        bridge.with_params(|s| s.int("pw01.period_ms")),
+        Some(50),
+        "the store keeps the old value"
+    );
+
+    let result = engine.handle.shutdown();
+    assert!(
+        matches!(result, Err(EngineError::OutputFault { channel: 0, .. })),
+        "{result:?}"
+    );
+    pump.join().unwrap();
+}

@@ -1,0 +1,194 @@
+//! The command line of the node as a process: help, errors with their reasons and exit codes,
+//! clean shutdown on SIGINT and SIGTERM with the trace flushed, `ROS_DOMAIN_ID` checking.
+
+#[path = "common/ros_harness.rs"]
+mod ros_harness;
+
+use nix::sys::signal::Signal;
+use ros_harness::*;
+use std::process::Command;
+
+/// Runs the node to completion. `domain` is the `ROS_DOMAIN_ID` text; `None` takes a free
+/// domain (the node may get as far as joining it).
+fn run(args: &[&str], domain: Option<&str>) -> (Option<i32>, String, String) {
+    let held = Domain::acquire();
+    let id = held.id.to_string();
+    let out = Command::new(env!("CARGO_BIN_EXE_pwm_actuator_node"))
+        .args(args)
+        .env("ROS_DOMAIN_ID", domain.unwrap_or(&id))
+        .output()
+        .expect("the node binary runs");
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn help_prints_the_synopsis() {
+    let (code, out, _) = run(&["--help"], None);
+    assert_eq!(code, Some(0));
+    for s in [
+        "--demo",
+        "--ros-args",
+        "__node",
+        "--params-file",
+        "ROS_DOMAIN_ID",
+        "~/<ch>/duty",
+    ] {
+        assert!(out.contains(s), "{s} missing from:\n{out}");
+    }
+    let (code, out, _) = run(&["--version"], None);
+    assert_eq!(code, Some(0));
+    assert!(out.starts_with("pwm_actuator_node "));
+}
+
+#[test]
+fn bad_command_lines_exit_2_with_a_reason() {
+    let cases: &[(&[&str], Option<&str>, &str)] = &[
+        (&["--fast"], None, "unknown option `--fast`"),
+        (
+            &["--ros-args", "--fast"],
+            None,
+            "unknown ROS argument `--fast`",
+        ),
+        (
+            &["--ros-args", "-p", "pw01.period_ms"],
+            None,
+            "expected NAME:=VALUE",
+        ),
+        (
+            &["--ros-args", "-r", "__ns:=plant"],
+            None,
+            "must be absolute",
+        ),
+        (
+            &["--ros-args", "--params-file", "/nonexistent.yaml"],
+            None,
+            "cannot read parameter file /nonexistent.yaml",
+        ),
+        (&[], Some("999"), "ROS_DOMAIN_ID `999` is not a domain id"),
+        (&[], Some("abc"), "ROS_DOMAIN_ID `abc`"),
+        (
+            &["--ros-args", "-p", "pw01.period_ms:=4"],
+            None,
+            "pw01: period_ms 4 is below the transistor minimum",
+        ),
+        (
+            &["--ros-args", "-p", "pw01.period_ms:=500.5"],
+            None,
+            "not a whole number",
+        ),
+        (
+            &["--ros-args", "-p", "pw01.duty:=150"],
+            None,
+            "150.0 is outside 0.0..100.0",
+        ),
+        (
+            &["--ros-args", "-p", "pw01.profile:=pico"],
+            None,
+            "`pico` is not one of",
+        ),
+        (&["--channels", "0"], None, "0 is outside 1..99"),
+        (&["--output", "gpio"], None, "set pw01.gpio_line"),
+        (
+            &[
+                "--output",
+                "gpio",
+                "--line",
+                "pw01=3",
+                "--line",
+                "pw02=gpiochip0:3",
+            ],
+            None,
+            "pw01 and pw02 are both bound to",
+        ),
+        (
+            &[
+                "--output", "gpio", "--line", "pw01=1", "--line", "pw02=2", "--trace", "x.vcd",
+            ],
+            None,
+            "sim output only",
+        ),
+        (&["--trace", "x.txt"], None, "unknown extension"),
+    ];
+    for (args, domain, why) in cases {
+        let (code, _, err) = run(args, *domain);
+        assert_eq!(code, Some(2), "{args:?}: {err}");
+        assert!(err.contains(why), "{args:?}: expected {why:?} in:\n{err}");
+    }
+}
+
+#[test]
+fn a_missing_gpio_chip_is_a_runtime_error_that_names_it() {
+    let (code, _, err) = run(
+        &[
+            "--output",
+            "gpio",
+            "--line",
+            "pw01=/dev/gpiochip_none:1",
+            "--line",
+            "pw02=/dev/gpiochip_none:2",
+        ],
+        None,
+    );
+    // No GPIO hardware here: opening fails before any output is driven.
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("gpiochip_none"), "{err}");
+}
+
+#[test]
+fn sigterm_and_sigint_stop_cleanly_and_flush_the_trace() {
+    let dir = std::env::temp_dir().join(format!("pwm_actuator_ros_cli_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (i, sig) in [Signal::SIGTERM, Signal::SIGINT].into_iter().enumerate() {
+        let vcd = dir.join(format!("t{i}.vcd"));
+        let csv = dir.join(format!("t{i}.csv"));
+        let (v, c) = (
+            vcd.to_string_lossy().to_string(),
+            csv.to_string_lossy().to_string(),
+        );
+        let dom = Domain::acquire();
+        let node = NodeProc::start(
+            dom.id,
+            &[
+                "--demo",
+                "--trace",
+                &v,
+                "--trace",
+                &c,
+                "--ros-args",
+                "-p",
+                "pw01.period_ms:=50",
+                "-p",
+                "pw02.period_ms:=50",
+            ],
+        );
+        node.wait_running();
+        assert!(node.wait_log("pw02 ↓", LONG), "{}", node.log());
+        let (status, log) = node.stop_with(sig);
+        assert_eq!(status.code(), Some(0), "{log}");
+        assert!(log.contains(&format!("{sig:?}: stopping")), "{log}");
+        assert!(log.contains("all outputs off"), "{log}");
+        let vcd = std::fs::read_to_string(&vcd).expect("VCD written");
+        assert!(vcd.contains("$var wire 1 ! pw01 $end"), "{vcd}");
+        assert!(
+            vcd.lines().filter(|l| *l == "1!").count() >= 1,
+            "pw01 went on:\n{vcd}"
+        );
+        let csv = std::fs::read_to_string(&csv).expect("CSV written");
+        let rows: Vec<&str> = csv.lines().skip(1).collect();
+        assert!(rows.len() >= 4, "{csv}");
+        // Every line ends inactive.
+        for ch in ["pw01", "pw02"] {
+            let last = rows
+                .iter()
+                .rev()
+                .find(|r| r.split(',').nth(1) == Some(ch))
+                .expect("rows for the channel");
+            assert_eq!(last.split(',').nth(2), Some("0"), "{ch} ends off: {last}");
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,198 @@
+//! The `.msg` files in `msg/` and the serde structs of `pwm_actuator::ros::msg` agree field for
+//! field: same names, same types, same order (the CDR wire layout). The standard messages the
+//! node mirrors are checked against their ROS 2 Jazzy definitions, quoted here.
+
+#[path = "common/ros_shape.rs"]
+mod ros_shape;
+
+use pwm_actuator::ros::msg::*;
+use ros2_client::builtin_interfaces::Time;
+use ros_shape::{parse_msg, shape_of, Shape};
+use std::path::Path;
+
+fn time_shape() -> Shape {
+    Shape::Struct(vec![
+        ("sec".into(), Shape::I32),
+        ("nanosec".into(), Shape::U32),
+    ])
+}
+
+/// Resolves the nested types used by the messages checked here.
+fn nested(name: &str) -> Option<Shape> {
+    match name {
+        "builtin_interfaces/Time" => Some(time_shape()),
+        "std_msgs/Header" => Some(Shape::Struct(vec![
+            ("stamp".into(), time_shape()),
+            ("frame_id".into(), Shape::Str),
+        ])),
+        "KeyValue" | "diagnostic_msgs/KeyValue" => {
+            Some(Shape::Struct(parse_msg(KEY_VALUE, &nested).ok()?))
+        }
+        "DiagnosticStatus" | "diagnostic_msgs/DiagnosticStatus" => {
+            Some(Shape::Struct(parse_msg(DIAGNOSTIC_STATUS, &nested).ok()?))
+        }
+        _ => None,
+    }
+}
+
+fn fields(shape: Shape) -> Vec<(String, Shape)> {
+    match shape {
+        Shape::Struct(f) => f,
+        other => panic!("not a struct: {other:?}"),
+    }
+}
+
+fn check_file(stem: &str, rust: Shape) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("msg")
+        .join(format!("{stem}.msg"));
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let want = parse_msg(&text, &nested).unwrap_or_else(|e| panic!("{stem}.msg: {e}"));
+    assert_eq!(
+        fields(rust),
+        want,
+        "{stem}: Rust struct and {stem}.msg differ"
+    );
+}
+
+fn t() -> Time {
+    Time::from_nanos(1)
+}
+
+#[test]
+fn own_messages_match_their_msg_files() {
+    check_file(
+        OutputEdge::NAME,
+        shape_of(&OutputEdge {
+            stamp: t(),
+            channel: 1,
+            level: true,
+            seq: 1,
+            lateness_ns: 0,
+        }),
+    );
+    check_file(
+        ChannelStatus::NAME,
+        shape_of(&ChannelStatus {
+            stamp: t(),
+            channel: 1,
+            enabled: false,
+            active: false,
+            output: false,
+            duty_commanded: 0.0,
+            duty_applied: 0.0,
+            command_clamped: false,
+            period_ms: 0.0,
+            on_time_ms: 0.0,
+            off_time_ms: 0.0,
+            remaining_on_ms: 0.0,
+            remaining_off_ms: 0.0,
+            e1: false,
+            min_time_limited: false,
+            watchdog_tripped: false,
+            rule: String::new(),
+        }),
+    );
+    check_file(
+        ChannelParams::NAME,
+        shape_of(&ChannelParams {
+            set: vec!["period_ms".into()],
+            ..ChannelParams::default()
+        }),
+    );
+    assert_eq!(OutputEdge::PACKAGE, MSG_PACKAGE);
+    assert_eq!(ChannelStatus::PACKAGE, MSG_PACKAGE);
+    assert_eq!(ChannelParams::PACKAGE, MSG_PACKAGE);
+}
+
+#[test]
+fn every_msg_file_is_mirrored() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("msg");
+    let mut stems: Vec<String> = std::fs::read_dir(&dir)
+        .expect("msg/ exists")
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|x| x == "msg"))
+        .filter_map(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()))
+        .collect();
+    stems.sort();
+    assert_eq!(
+        stems,
+        [ChannelParams::NAME, ChannelStatus::NAME, OutputEdge::NAME],
+        "a .msg file without a Rust mirror (or the reverse)"
+    );
+}
+
+// ROS 2 Jazzy definitions (comments dropped).
+const KEY_VALUE: &str = "string key\nstring value\n";
+const DIAGNOSTIC_STATUS: &str = "byte OK=0\nbyte WARN=1\nbyte ERROR=2\nbyte STALE=3\n\
+    byte level\nstring name\nstring message\nstring hardware_id\nKeyValue[] values\n";
+const DIAGNOSTIC_ARRAY: &str = "std_msgs/Header header\nDiagnosticStatus[] status\n";
+
+#[test]
+fn standard_messages_match_ros() {
+    let kv = || KeyValue {
+        key: String::new(),
+        value: String::new(),
+    };
+    let status = || DiagnosticStatus {
+        level: 0,
+        name: String::new(),
+        message: String::new(),
+        hardware_id: String::new(),
+        values: vec![kv()],
+    };
+    assert_eq!(
+        fields(shape_of(&kv())),
+        parse_msg(KEY_VALUE, &nested).unwrap()
+    );
+    assert_eq!(
+        fields(shape_of(&status())),
+        parse_msg(DIAGNOSTIC_STATUS, &nested).unwrap()
+    );
+    let array = DiagnosticArray {
+        header: Header {
+            stamp: t(),
+            frame_id: String::new(),
+        },
+        status: vec![status()],
+    };
+    assert_eq!(
+        fields(shape_of(&array)),
+        parse_msg(DIAGNOSTIC_ARRAY, &nested).unwrap()
+    );
+    assert_eq!(
+        fields(shape_of(&Float64::default())),
+        vec![("data".into(), Shape::F64)]
+    );
+    assert_eq!(
+        fields(shape_of(&UInt16::default())),
+        vec![("data".into(), Shape::U16)]
+    );
+    assert_eq!(
+        fields(shape_of(&Bool::default())),
+        vec![("data".into(), Shape::Bool)]
+    );
+    assert_eq!(DiagnosticStatus::WARN, 1);
+}
+
+#[test]
+fn the_msg_parser_sees_differences() {
+    // A reordered or retyped field must not pass.
+    let text =
+        "builtin_interfaces/Time stamp\nuint8 channel\nuint64 seq\nbool level\nint64 lateness_ns\n";
+    let want = parse_msg(text, &nested).unwrap();
+    let edge = OutputEdge {
+        stamp: t(),
+        channel: 1,
+        level: true,
+        seq: 1,
+        lateness_ns: 0,
+    };
+    assert_ne!(fields(shape_of(&edge)), want);
+    assert!(parse_msg("float128 x\n", &nested).is_err());
+    assert_eq!(
+        parse_msg("# c\nint64 A=3 # const\nstring[] s # names\n", &nested).unwrap(),
+        vec![("s".to_string(), Shape::Seq(Some(Box::new(Shape::Str))))]
+    );
+}

@@ -1,0 +1,326 @@
+//! The node's topics over ROS: commands in, edges / status / e1 / diagnostics out, and bad
+//! input leaving the node running with its last good state. The node runs as a process on its
+//! own ROS domain; this test talks to it with a ros2-client node.
+
+#[path = "common/ros_harness.rs"]
+mod ros_harness;
+
+use pwm_actuator::ros::msg::{
+    Bool, ChannelStatus, DiagnosticArray, DiagnosticStatus, Float64, OutputEdge, UInt16,
+};
+use ros2_client::Log;
+use ros_harness::*;
+use std::time::Duration;
+
+const PKG: &str = "pwm_actuator_msgs";
+
+fn pw01_diag(a: &DiagnosticArray) -> Option<&DiagnosticStatus> {
+    a.status.iter().find(|s| s.name == "pwm_actuator: pw01")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn commands_in_edges_and_status_out() {
+    let dom = Domain::acquire();
+    let node = NodeProc::start(dom.id, &["--ros-args", "-p", "pw01.period_ms:=100"]);
+    node.wait_running();
+    let mut ros = Ros::new(dom.id);
+    let edges = ros.sub::<OutputEdge>("/pwm_actuator/pw01/edges", PKG, "OutputEdge", default_qos());
+    let status = ros.sub::<ChannelStatus>(
+        "/pwm_actuator/pw01/status",
+        PKG,
+        "ChannelStatus",
+        default_qos(),
+    );
+    let status2 = ros.sub::<ChannelStatus>(
+        "/pwm_actuator/pw02/status",
+        PKG,
+        "ChannelStatus",
+        default_qos(),
+    );
+    let rosout = ros.sub::<Log>("/rosout", "rcl_interfaces", "Log", latched_qos());
+    let duty = ros.publisher::<Float64>("/pwm_actuator/pw01/duty", "std_msgs", "Float64");
+    let enable = ros.publisher::<Bool>("/pwm_actuator/pw01/enable", "std_msgs", "Bool");
+    let sv = ros.publisher::<UInt16>("/pwm_actuator/pw02/sv", "std_msgs", "UInt16");
+    let enable2 = ros.publisher::<Bool>("/pwm_actuator/pw02/enable", "std_msgs", "Bool");
+    ros.matched(&duty).await;
+    ros.matched(&enable).await;
+
+    let s = command_until(&duty, Float64 { data: 30.0 }, &status, |s| {
+        s.duty_commanded == 30.0
+    })
+    .await
+    .expect("status shows the commanded duty");
+    assert!(!s.enabled, "the channel starts disabled");
+    assert_eq!(s.period_ms, 100.0);
+    assert_eq!(
+        s.on_time_ms, 30.0,
+        "t_on = d * T is computed while disabled (002)"
+    );
+    assert_eq!(s.off_time_ms, 70.0);
+
+    let s = command_until(&enable, Bool { data: true }, &status, |s| s.enabled)
+        .await
+        .expect("status shows the channel enabled");
+    assert!(s.active);
+    assert_eq!(s.channel, 1);
+    assert_eq!(s.rule, "exact");
+
+    // Several edges in order: alternating levels, consecutive sequence numbers.
+    let mut got: Vec<OutputEdge> = Vec::new();
+    while got.len() < 4 {
+        let e = next(&edges, LONG).await.expect("edges keep coming");
+        got.push(e);
+    }
+    for w in got.windows(2) {
+        assert_eq!(w[1].seq, w[0].seq + 1, "{got:?}");
+        assert_ne!(w[1].level, w[0].level, "{got:?}");
+        assert_eq!(w[0].channel, 1);
+    }
+    assert!(got.iter().all(|e| e.stamp.to_nanos() > 0));
+
+    // Raw SV on pw02: 4095 is 100 %.
+    ros.matched(&sv).await;
+    command_until(&sv, UInt16 { data: 4095 }, &status2, |s| {
+        s.duty_commanded == 100.0
+    })
+    .await
+    .expect("SV 4095 is 100 %");
+    ros.matched(&enable2).await;
+    let s = command_until(&enable2, Bool { data: true }, &status2, |s| {
+        s.enabled && s.output
+    })
+    .await
+    .expect("100 % is constant on");
+    assert_eq!(s.duty_applied, 100.0);
+    assert_eq!(s.channel, 2);
+
+    // The node's log reaches /rosout.
+    let log = wait_for(&rosout, LONG, |l: &Log| l.name == "pwm_actuator")
+        .await
+        .expect("a /rosout message from the node");
+    assert!(!log.msg.is_empty());
+
+    let (status, log) = node.stop();
+    assert!(status.success(), "{status:?}\n{log}");
+    assert!(log.contains("pw01 ↑ t="), "console edge lines:\n{log}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn e1_is_latched_and_diagnostics_warn() {
+    // 5 % of 100 ms is a 5 ms pulse, below min_on_ms 20: suppressed, E1 (000).
+    let dom = Domain::acquire();
+    let node = NodeProc::start(
+        dom.id,
+        &[
+            "--ros-args",
+            "-p",
+            "pw01.period_ms:=100",
+            "-p",
+            "pw01.min_on_ms:=20",
+            "-p",
+            "pw01.duty:=5.0",
+            "-p",
+            "pw01.enable:=true",
+        ],
+    );
+    node.wait_running();
+    // Subscribed after the node set E1: transient local delivers the current value.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let mut ros = Ros::new(dom.id);
+    let e1 = ros.sub::<Bool>("/pwm_actuator/pw01/e1", "std_msgs", "Bool", latched_qos());
+    let e1_pw02 = ros.sub::<Bool>("/pwm_actuator/pw02/e1", "std_msgs", "Bool", latched_qos());
+    let diag = ros.sub::<DiagnosticArray>(
+        "/diagnostics",
+        "diagnostic_msgs",
+        "DiagnosticArray",
+        default_qos(),
+    );
+    let v = wait_for(&e1, LONG, |b: &Bool| b.data).await;
+    assert!(v.is_some(), "latched E1 = true for pw01");
+    let v = next(&e1_pw02, LONG).await.expect("latched E1 for pw02");
+    assert!(!v.data);
+
+    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
+        pw01_diag(a).is_some_and(|d| d.level == DiagnosticStatus::WARN)
+    })
+    .await
+    .expect("pw01 at WARN");
+    let d = pw01_diag(&a).unwrap();
+    assert!(d.message.starts_with("E1:"), "{}", d.message);
+    assert_eq!(d.hardware_id, "sim");
+    assert_eq!(kv(d, "e1"), "true");
+    assert_eq!(kv(d, "rule"), "suppressed_pulse");
+    let pw02 = a
+        .status
+        .iter()
+        .find(|s| s.name == "pwm_actuator: pw02")
+        .expect("pw02 listed");
+    assert_eq!(pw02.level, DiagnosticStatus::OK);
+    assert_eq!(pw02.message, "disabled");
+    let (status, log) = node.stop();
+    assert!(status.success(), "{log}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
+    let dom = Domain::acquire();
+    let node = NodeProc::start(
+        dom.id,
+        &[
+            "--ros-args",
+            "-p",
+            "pw01.period_ms:=100",
+            "-p",
+            "pw01.enable:=true",
+        ],
+    );
+    node.wait_running();
+    let mut ros = Ros::new(dom.id);
+    let status = ros.sub::<ChannelStatus>(
+        "/pwm_actuator/pw01/status",
+        PKG,
+        "ChannelStatus",
+        default_qos(),
+    );
+    let diag = ros.sub::<DiagnosticArray>(
+        "/diagnostics",
+        "diagnostic_msgs",
+        "DiagnosticArray",
+        default_qos(),
+    );
+    let duty = ros.publisher::<Float64>("/pwm_actuator/pw01/duty", "std_msgs", "Float64");
+    let sv = ros.publisher::<UInt16>("/pwm_actuator/pw01/sv", "std_msgs", "UInt16");
+    ros.matched(&duty).await;
+    command_until(&duty, Float64 { data: 40.0 }, &status, |s| {
+        s.duty_commanded == 40.0
+    })
+    .await
+    .expect("a good command first");
+
+    // NaN and infinities: refused, the last valid command stays in force (001).
+    for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        let _ = duty.publish(Float64 { data: bad });
+    }
+    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
+        pw01_diag(a).is_some_and(|d| kv(d, "rejected_commands") == "3")
+    })
+    .await
+    .expect("three refusals reported");
+    let d = pw01_diag(&a).unwrap();
+    assert_eq!(d.level, DiagnosticStatus::WARN);
+    assert!(
+        d.message.starts_with("last duty command refused"),
+        "{}",
+        d.message
+    );
+    assert!(
+        kv(d, "last_rejection").contains("infinite"),
+        "{:?}",
+        d.values
+    );
+    let s = next(&status, LONG).await.expect("status still published");
+    assert_eq!(s.duty_commanded, 40.0, "the last good command is in force");
+    assert!(node
+        .log()
+        .contains("duty command refused: duty command is NaN"));
+
+    // Out of range: clamped and flagged (001, 002), reported with the reason.
+    let s = command_until(&duty, Float64 { data: 150.0 }, &status, |s| {
+        s.command_clamped
+    })
+    .await
+    .expect("150 % clamped");
+    assert_eq!(s.duty_commanded, 100.0);
+    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
+        pw01_diag(a).is_some_and(|d| d.message.contains("clamped"))
+    })
+    .await
+    .expect("clamping on diagnostics");
+    assert_eq!(pw01_diag(&a).unwrap().level, DiagnosticStatus::WARN);
+    let s = command_until(&duty, Float64 { data: -5.0 }, &status, |s| {
+        s.command_clamped && s.duty_commanded == 0.0
+    })
+    .await
+    .expect("-5 % clamped to 0");
+    assert_eq!(s.duty_commanded, 0.0);
+    // The running period completes first (next_period), then the output stays off.
+    wait_for(&status, LONG, |s: &ChannelStatus| {
+        !s.output && s.duty_applied == 0.0
+    })
+    .await
+    .expect("0 % applied");
+    ros.matched(&sv).await;
+    let s = command_until(&sv, UInt16 { data: 5000 }, &status, |s| {
+        s.command_clamped && s.duty_commanded == 100.0
+    })
+    .await
+    .expect("SV 5000 clamped to 4095");
+    assert!(s.enabled);
+    assert!(
+        node.log().contains("SV 5000 is outside 0..4095"),
+        "{}",
+        node.log()
+    );
+
+    // A good command clears the flag.
+    command_until(&duty, Float64 { data: 20.0 }, &status, |s| {
+        !s.command_clamped && s.duty_commanded == 20.0
+    })
+    .await
+    .expect("back to a good command");
+    let mut node = node;
+    assert!(node.running());
+    let (status, log) = node.stop();
+    assert!(status.success(), "{log}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_watchdog_trips_to_error() {
+    let dom = Domain::acquire();
+    let node = NodeProc::start(
+        dom.id,
+        &[
+            "--ros-args",
+            "-p",
+            "pw01.period_ms:=100",
+            "-p",
+            "pw01.command_timeout_ms:=300",
+        ],
+    );
+    node.wait_running();
+    let mut ros = Ros::new(dom.id);
+    let status = ros.sub::<ChannelStatus>(
+        "/pwm_actuator/pw01/status",
+        PKG,
+        "ChannelStatus",
+        default_qos(),
+    );
+    let diag = ros.sub::<DiagnosticArray>(
+        "/diagnostics",
+        "diagnostic_msgs",
+        "DiagnosticArray",
+        default_qos(),
+    );
+    let duty = ros.publisher::<Float64>("/pwm_actuator/pw01/duty", "std_msgs", "Float64");
+    let enable = ros.publisher::<Bool>("/pwm_actuator/pw01/enable", "std_msgs", "Bool");
+    ros.matched(&enable).await;
+    command_until(&enable, Bool { data: true }, &status, |s| s.enabled)
+        .await
+        .expect("enabled");
+    ros.matched(&duty).await;
+    let _ = duty.publish(Float64 { data: 50.0 });
+    // No further command: after 300 ms the watchdog forces the output off.
+    let s = wait_for(&status, LONG, |s: &ChannelStatus| s.watchdog_tripped)
+        .await
+        .expect("watchdog trips");
+    assert!(!s.active);
+    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
+        pw01_diag(a).is_some_and(|d| d.level == DiagnosticStatus::ERROR)
+    })
+    .await
+    .expect("ERROR on diagnostics");
+    assert!(pw01_diag(&a).unwrap().message.starts_with("watchdog"));
+    assert!(node.wait_log("watchdog tripped", LONG));
+    let (status, log) = node.stop();
+    assert!(status.success(), "{log}");
+}
