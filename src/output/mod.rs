@@ -48,6 +48,7 @@ pub trait EmergencyOff: Send + Sync {
 }
 
 pub mod bindings;
+pub mod fault;
 pub mod gpio;
 pub mod safety;
 pub mod sim;

@@ -21,6 +21,7 @@ use super::qos;
 use super::services::{self, ServiceError};
 use crate::core::{ChannelConfig, Command};
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
+use crate::output::fault::{FailingOutput, Fault, FAULT_ENV};
 use crate::output::{
     check_unique, install_panic_hook, BindingError, GpioError, GpioLine, GpioOutput, LineAddr,
     Output, SimOutput, TraceError, TraceSpec,
@@ -99,6 +100,9 @@ pub enum NodeError {
     /// The async runtime cannot start.
     #[error("cannot start the async runtime: {0}")]
     Runtime(#[source] std::io::Error),
+    /// `PWM_ACTUATOR_FAULT` is malformed.
+    #[error("{0}")]
+    Fault(String),
 }
 
 impl NodeError {
@@ -111,6 +115,7 @@ impl NodeError {
             | NodeError::DomainId { .. }
             | NodeError::Param(_)
             | NodeError::Binding(_)
+            | NodeError::Fault(_)
             | NodeError::Trace(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
@@ -249,6 +254,8 @@ fn start_values(
 /// An opened output backend.
 enum Opened {
     Sim(SimOutput),
+    /// The sim output with injected write failures (`PWM_ACTUATOR_FAULT`, exit-path tests).
+    FailingSim(FailingOutput<SimOutput>),
     Gpio(GpioOutput),
 }
 
@@ -264,7 +271,14 @@ fn open_output(cfg: &StartupConfig) -> Result<(Opened, Vec<String>), NodeError> 
             }
             let out = SimOutput::new(names.clone(), Some(spec)).map_err(NodeError::Trace)?;
             install_panic_hook(out.emergency_off());
-            Ok((Opened::Sim(out), vec!["sim".to_string(); names.len()]))
+            let ids = vec!["sim".to_string(); names.len()];
+            match Fault::from_env().map_err(NodeError::Fault)? {
+                Some(Fault::FailWriteAfter(n)) => {
+                    warn!("{FAULT_ENV}: output writes fail after {n}");
+                    Ok((Opened::FailingSim(FailingOutput::new(out, n)), ids))
+                }
+                _ => Ok((Opened::Sim(out), ids)),
+            }
         }
         OutputChoice::Gpio { lines } => {
             // 000: no double output assignments, checked before any chip is opened.
@@ -310,6 +324,7 @@ fn start_engine(cfg: &StartupConfig, output: Opened) -> Result<Engine, NodeError
     };
     match output {
         Opened::Sim(out) => engine::spawn(configs, out, opts),
+        Opened::FailingSim(out) => engine::spawn(configs, out, opts),
         Opened::Gpio(out) => engine::spawn(configs, out, opts),
     }
     .map_err(NodeError::Engine)
@@ -496,6 +511,13 @@ async fn serve(
         .map_err(ros_err("publisher /parameter_events"))?;
 
     let engine = start_engine(&cfg, output)?;
+    if let Some(Fault::PanicAfterMs(ms)) = Fault::from_env().map_err(NodeError::Fault)? {
+        warn!("{FAULT_ENV}: panicking in {ms} ms");
+        std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(ms));
+            panic!("{FAULT_ENV}: injected panic after {ms} ms");
+        });
+    }
     let Engine {
         requests,
         reports,

@@ -88,8 +88,19 @@ impl NodeProc {
 
     /// Starts the node with `ROS_DOMAIN_ID` set to `domain_env` verbatim.
     pub fn start_env(domain_env: &str, args: &[&str], domain: u16) -> NodeProc {
+        Self::start_with(domain_env, args, domain, &[])
+    }
+
+    /// Starts the node with extra environment variables.
+    pub fn start_with(
+        domain_env: &str,
+        args: &[&str],
+        domain: u16,
+        env: &[(&str, &str)],
+    ) -> NodeProc {
         let mut child = Command::new(env!("CARGO_BIN_EXE_pwm_actuator_node"))
             .args(args)
+            .envs(env.iter().copied())
             .env("ROS_DOMAIN_ID", domain_env)
             .env_remove("ROS_DISTRO")
             .stdin(Stdio::null())

@@ -1,0 +1,149 @@
+//! Fault injection for exit-path tests, switched on only by the `PWM_ACTUATOR_FAULT`
+//! environment variable:
+//!
+//! - `panic-after-ms=N`: a thread of the node panics N ms after start-up;
+//! - `fail-write-after=N`: the output's writes fail after N successful ones.
+//!
+//! Both exist so that "every output ends inactive" can be shown on the real binary, not only
+//! argued. Nothing here is active unless the variable is set.
+
+use super::{EmergencyOff, LineChange, Output};
+use std::sync::Arc;
+
+/// The environment variable that selects a fault.
+pub const FAULT_ENV: &str = "PWM_ACTUATOR_FAULT";
+
+/// A fault to inject.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fault {
+    /// Panic in a separate thread after this many ms.
+    PanicAfterMs(u64),
+    /// Fail every output write after this many successful writes.
+    FailWriteAfter(u64),
+}
+
+impl Fault {
+    /// Reads [`FAULT_ENV`]; `Ok(None)` when unset, `Err` with the reason when malformed.
+    pub fn from_env() -> Result<Option<Fault>, String> {
+        match std::env::var(FAULT_ENV) {
+            Err(_) => Ok(None),
+            Ok(v) => Fault::parse(&v).map(Some),
+        }
+    }
+
+    /// Parses `panic-after-ms=N` or `fail-write-after=N`.
+    pub fn parse(s: &str) -> Result<Fault, String> {
+        let bad = || format!("{FAULT_ENV}=`{s}`: expected panic-after-ms=N or fail-write-after=N");
+        let (kind, n) = s.split_once('=').ok_or_else(bad)?;
+        let n: u64 = n.trim().parse().map_err(|_| bad())?;
+        match kind.trim() {
+            "panic-after-ms" => Ok(Fault::PanicAfterMs(n)),
+            "fail-write-after" => Ok(Fault::FailWriteAfter(n)),
+            _ => Err(bad()),
+        }
+    }
+}
+
+/// The error of an injected write failure.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("injected output write failure after {0} writes ({FAULT_ENV})")]
+pub struct InjectedFailure(pub u64);
+
+/// Wraps an output so that its writes fail after a number of successful ones.
+pub struct FailingOutput<O: Output> {
+    inner: O,
+    writes_left: u64,
+    after: u64,
+}
+
+impl<O: Output> FailingOutput<O> {
+    /// Wraps `inner`; writes fail after `after` successful calls to `set_levels`.
+    pub fn new(inner: O, after: u64) -> Self {
+        FailingOutput {
+            inner,
+            writes_left: after,
+            after,
+        }
+    }
+}
+
+impl<O: Output> Output for FailingOutput<O> {
+    type Error = FaultError<O::Error>;
+
+    fn line_count(&self) -> usize {
+        self.inner.line_count()
+    }
+
+    fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), Self::Error> {
+        if self.writes_left == 0 {
+            return Err(FaultError::Injected(InjectedFailure(self.after)));
+        }
+        self.writes_left -= 1;
+        self.inner.set_levels(changes).map_err(FaultError::Output)
+    }
+
+    fn set_all_inactive(&mut self) -> Result<(), Self::Error> {
+        // Switching off must keep working: that is what is under test.
+        self.inner.set_all_inactive().map_err(FaultError::Output)
+    }
+
+    fn emergency_off(&self) -> Arc<dyn EmergencyOff> {
+        self.inner.emergency_off()
+    }
+}
+
+/// An injected failure or the wrapped output's own error.
+#[derive(Debug, thiserror::Error)]
+pub enum FaultError<E: std::error::Error + 'static> {
+    /// The injected failure.
+    #[error(transparent)]
+    Injected(InjectedFailure),
+    /// The wrapped output failed by itself.
+    #[error(transparent)]
+    Output(E),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::Level;
+    use crate::output::SimOutput;
+
+    #[test]
+    fn parses_both_faults_and_refuses_the_rest() {
+        assert_eq!(
+            Fault::parse("panic-after-ms=300"),
+            Ok(Fault::PanicAfterMs(300))
+        );
+        assert_eq!(
+            Fault::parse("fail-write-after=4"),
+            Ok(Fault::FailWriteAfter(4))
+        );
+        assert!(Fault::parse("panic")
+            .unwrap_err()
+            .contains("panic-after-ms=N"));
+        assert!(Fault::parse("fail-write-after=x").is_err());
+        assert!(Fault::parse("explode=1").is_err());
+    }
+
+    #[test]
+    fn writes_fail_after_the_count_but_switching_off_works() {
+        let sim = SimOutput::new(vec!["pw01".into()], None).unwrap();
+        let probe = sim.probe();
+        let mut out = FailingOutput::new(sim, 1);
+        let on = [LineChange {
+            line: 0,
+            level: Level::High,
+            scheduled_ns: 0,
+        }];
+        assert!(out.set_levels(&on).is_ok());
+        assert_eq!(probe.levels(), vec![Level::High]);
+        let e = out.set_levels(&on).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "injected output write failure after 1 writes (PWM_ACTUATOR_FAULT)"
+        );
+        out.set_all_inactive().unwrap();
+        assert_eq!(probe.levels(), vec![Level::Low]);
+    }
+}

@@ -1,0 +1,130 @@
+//! Every exit path of the real node leaves every output inactive: SIGTERM and SIGINT while an
+//! output is on (exit 0), a panic in any thread (exit 101), a failing output write (exit 1).
+//! Faults are injected with `PWM_ACTUATOR_FAULT` (see `output::fault`).
+
+#[path = "common/ros_harness.rs"]
+mod ros_harness;
+
+use nix::sys::signal::Signal;
+use ros_harness::*;
+use std::path::{Path, PathBuf};
+
+/// A trace path in a fresh directory for this test.
+fn trace(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("pwm_actuator_exit_{}_{name}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(format!("{name}.csv"))
+}
+
+/// pw01 constantly on (100 %), pw02 pulsing, sim output traced to `csv`.
+fn args(csv: &Path) -> Vec<String> {
+    [
+        "--trace",
+        &csv.to_string_lossy(),
+        "--ros-args",
+        "-p",
+        "pw01.enable:=true",
+        "-p",
+        "pw01.duty:=100.0",
+        "-p",
+        "pw02.enable:=true",
+        "-p",
+        "pw02.duty:=50.0",
+        "-p",
+        "pw02.period_ms:=20",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect()
+}
+
+/// The last level written to each channel, from the CSV trace.
+fn last_levels(csv: &Path) -> Vec<(String, String)> {
+    let text = std::fs::read_to_string(csv).expect("trace written");
+    ["pw01", "pw02"]
+        .iter()
+        .map(|ch| {
+            let last = text
+                .lines()
+                .skip(1)
+                .filter(|r| r.split(',').nth(1) == Some(*ch))
+                .last()
+                .unwrap_or_else(|| panic!("no rows for {ch}:\n{text}"));
+            (
+                ch.to_string(),
+                last.split(',').nth(2).unwrap_or("").to_string(),
+            )
+        })
+        .collect()
+}
+
+fn all_off() -> Vec<(String, String)> {
+    vec![("pw01".into(), "0".into()), ("pw02".into(), "0".into())]
+}
+
+fn start(csv: &Path, env: &[(&str, &str)]) -> (NodeProc, Domain) {
+    let dom = Domain::acquire();
+    let a = args(csv);
+    let a: Vec<&str> = a.iter().map(String::as_str).collect();
+    let node = NodeProc::start_with(&dom.id.to_string(), &a, dom.id, env);
+    (node, dom)
+}
+
+#[test]
+fn sigterm_and_sigint_with_an_output_on_exit_0_with_every_output_off() {
+    for sig in [Signal::SIGTERM, Signal::SIGINT] {
+        let csv = trace(&format!("{sig:?}"));
+        let (node, _dom) = start(&csv, &[]);
+        node.wait_running();
+        assert!(
+            node.wait_log("pw01 ↑", LONG),
+            "pw01 never went on:\n{}",
+            node.log()
+        );
+        assert!(node.wait_log("pw02 ↓", LONG), "{}", node.log());
+        let (status, log) = node.stop_with(sig);
+        assert_eq!(status.code(), Some(0), "{sig:?}:\n{log}");
+        assert_eq!(last_levels(&csv), all_off(), "{sig:?}:\n{log}");
+    }
+}
+
+#[test]
+fn a_panic_drives_every_output_off_and_exits_101() {
+    let csv = trace("panic");
+    let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "panic-after-ms=1500")]);
+    node.wait_running();
+    assert!(node.wait_log("pw01 ↑", LONG), "{}", node.log());
+    let status = node.wait_exit(LONG);
+    let log = node.log();
+    assert_eq!(status.code(), Some(101), "{log}");
+    assert!(log.contains("injected panic"), "{log}");
+    assert_eq!(last_levels(&csv), all_off(), "{log}");
+}
+
+#[test]
+fn a_failing_output_write_drives_the_others_off_and_exits_nonzero() {
+    let csv = trace("write");
+    let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "fail-write-after=40")]);
+    node.wait_running();
+    let status = node.wait_exit(LONG);
+    let log = node.log();
+    assert_eq!(status.code(), Some(1), "{log}");
+    assert!(
+        log.contains("injected output write failure"),
+        "the failure is reported:\n{log}"
+    );
+    assert_eq!(last_levels(&csv), all_off(), "{log}");
+}
+
+#[test]
+fn a_malformed_fault_variable_is_refused() {
+    let csv = trace("malformed");
+    let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "explode=1")]);
+    let status = node.wait_exit(LONG);
+    assert_eq!(status.code(), Some(2), "{}", node.log());
+    assert!(
+        node.log().contains("expected panic-after-ms=N"),
+        "{}",
+        node.log()
+    );
+}
