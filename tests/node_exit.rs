@@ -1,5 +1,5 @@
-//! Every exit path of the real node leaves every output inactive: SIGTERM and SIGINT while an
-//! output is on (exit 0), a panic in any thread (exit 101), a failing output write (exit 1).
+//! Every exit path of the real node leaves every output inactive: SIGTERM, SIGINT, SIGHUP and
+//! SIGQUIT while an output is on (exit 0), a panic in any thread (exit 101), a failing output write (exit 1).
 //! Faults are injected with `PWM_ACTUATOR_FAULT` (see `output::fault`).
 
 #[path = "common/ros_harness.rs"]
@@ -71,8 +71,13 @@ fn start(csv: &Path, env: &[(&str, &str)]) -> (NodeProc, Domain) {
 }
 
 #[test]
-fn sigterm_and_sigint_with_an_output_on_exit_0_with_every_output_off() {
-    for sig in [Signal::SIGTERM, Signal::SIGINT] {
+fn stop_signals_with_an_output_on_exit_0_with_every_output_off() {
+    for sig in [
+        Signal::SIGTERM,
+        Signal::SIGINT,
+        Signal::SIGHUP,
+        Signal::SIGQUIT,
+    ] {
         let csv = trace(&format!("{sig:?}"));
         let (node, _dom) = start(&csv, &[]);
         node.wait_running();

@@ -449,6 +449,9 @@ async fn serve(
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
     let fqn = id.fully_qualified();
+    // Signals are caught before any output exists, so no stop request can ever kill the
+    // process with a line left on.
+    let mut signals = StopSignals::catch();
     // The output first: configuration and hardware errors stop the node before it joins ROS.
     let (output, hardware_ids) = open_output(&cfg)?;
 
@@ -613,7 +616,7 @@ async fn serve(
         }
     );
 
-    let reason = wait_for_stop(&bridge).await;
+    let reason = signals.wait(&bridge).await;
     info!("{reason}: stopping");
     for t in &tasks {
         t.abort();
@@ -654,27 +657,56 @@ fn bridge_fault(fault: Option<&str>, result: &Result<(), EngineError>) -> bool {
     fault.is_some() || result.is_err()
 }
 
-/// Waits for SIGINT, SIGTERM, or the bridge asking to stop; says which.
-async fn wait_for_stop(bridge: &Bridge) -> String {
-    use tokio::signal::unix::{signal, SignalKind};
-    let mut int = signal(SignalKind::interrupt()).ok();
-    let mut term = signal(SignalKind::terminate()).ok();
-    async fn next(s: &mut Option<tokio::signal::unix::Signal>) {
-        match s {
-            Some(s) => {
-                s.recv().await;
-            }
-            None => std::future::pending::<()>().await,
-        }
+/// The signals that stop the node cleanly. SIGHUP (a closed terminal or SSH session) and
+/// SIGQUIT are caught too: their default action would end the process without switching the
+/// outputs off.
+struct StopSignals(Vec<(&'static str, tokio::signal::unix::Signal)>);
+
+impl StopSignals {
+    fn catch() -> StopSignals {
+        use tokio::signal::unix::{signal, SignalKind};
+        let kinds = [
+            ("SIGINT", SignalKind::interrupt()),
+            ("SIGTERM", SignalKind::terminate()),
+            ("SIGHUP", SignalKind::hangup()),
+            ("SIGQUIT", SignalKind::quit()),
+        ];
+        StopSignals(
+            kinds
+                .into_iter()
+                .filter_map(|(name, kind)| match signal(kind) {
+                    Ok(s) => Some((name, s)),
+                    Err(e) => {
+                        warn!("cannot catch {name}: {e}");
+                        None
+                    }
+                })
+                .collect(),
+        )
     }
-    tokio::select! {
-        _ = next(&mut int) => "SIGINT".to_string(),
-        _ = next(&mut term) => "SIGTERM".to_string(),
-        _ = bridge.stop.notified() => {
-            if bridge.fault.load(Ordering::SeqCst) {
-                "output fault".to_string()
-            } else {
-                "the output thread ended".to_string()
+
+    /// Waits for a stop signal or the bridge asking to stop; says which.
+    async fn wait(&mut self, bridge: &Bridge) -> String {
+        let signals = &mut self.0;
+        let any_signal = async move {
+            if signals.is_empty() {
+                // select_all needs at least one future; with no signal caught, only the bridge
+                // can stop the node.
+                return std::future::pending().await;
+            }
+            let recv = signals
+                .iter_mut()
+                .map(|(name, s)| Box::pin(async move { s.recv().await.map(|_| *name) }));
+            futures::future::select_all(recv).await.0
+        };
+        tokio::select! {
+            got = any_signal => got.unwrap_or("signal stream closed").to_string(),
+            _ = bridge.stop.notified() => {
+                if bridge.fault.load(Ordering::SeqCst) {
+                    "output fault".to_string()
+                } else {
+                    "the output thread ended".to_string()
+                }
             }
         }
     }
