@@ -111,8 +111,10 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
                     _ => None,
                 })
                 .expect("the 70 % command was reported");
+            // Applied within the period before that boundary; later only if the thread was
+            // stalled past the boundary and caught up with the command already in hand.
             assert!(
-                applied + 10_000_000 >= rises[k] && applied <= rises[k] + 1_000_000,
+                applied + 10_000_000 >= rises[k] && applied <= rises[k] + 100_000_000,
                 "command applied at {applied}, first 70 % period at {}",
                 rises[k]
             );

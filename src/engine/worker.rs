@@ -118,6 +118,7 @@ impl<O: Output> Worker<O> {
             }
             let actual_ns = clock::monotonic_ns();
             let wall_ns = clock::wall_ns();
+            self.report_status(now);
             for k in 0..self.changes.len() {
                 let c = self.changes[k];
                 self.seq[c.line] += 1;
@@ -132,6 +133,13 @@ impl<O: Output> Worker<O> {
             }
             self.changes.clear();
         }
+        self.report_status(now);
+        Ok(())
+    }
+
+    /// Sends a status snapshot for every channel touched since the last one. Called before the
+    /// edge reports of a write, so a reader sees the state an edge belongs to before the edge.
+    fn report_status(&mut self, now: Nanos) {
         for i in 0..self.channels.len() {
             if std::mem::take(&mut self.touched[i]) {
                 let status = self.channels[i].status(now);
@@ -142,7 +150,6 @@ impl<O: Output> Worker<O> {
                 });
             }
         }
-        Ok(())
     }
 
     /// Drives every line inactive (recording the edges of lines that were on) and returns the
