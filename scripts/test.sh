@@ -1,0 +1,164 @@
+#!/usr/bin/env bash
+# The project's test command: sets up the ROS 2 environment (scripts/setup.sh), then checks
+# formatting and lints, builds the release node, runs the Rust tests and the rclpy suite in
+# tests/rclpy against the release binary. Exits non-zero if any step fails; the last line is a
+# summary of all tests run ("total: N passed, N failed, N skipped").
+#
+# Usage: scripts/test.sh [--quick] [-- PYTEST_ARGS...]
+#   --quick   skip `cargo fmt --check` and `cargo clippy`
+#   PYTEST_ARGS are passed to pytest (e.g. `-- -k edges -x`).
+
+set -uo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$REPO" || exit 1
+
+quick=0
+pytest_extra=()
+while (($#)); do
+    case "$1" in
+        --quick) quick=1 ;;
+        --) shift; pytest_extra=("$@"); break ;;
+        -h | --help) sed -n '2,10p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        *) echo "test: unknown argument '$1' (try --help)" >&2; exit 2 ;;
+    esac
+    shift
+done
+
+LOG_DIR="$REPO/target/test-logs"
+mkdir -p "$LOG_DIR"
+SECONDS=0
+failed_steps=()
+skipped_steps=()
+passed=0 failed=0 skipped=0
+
+banner() { printf '\n==== %s ====\n' "$*"; }
+
+run_step() {
+    # run_step NAME COMMAND...: runs COMMAND, records NAME as failed if it exits non-zero.
+    local name=$1 start=$SECONDS rc
+    shift
+    banner "$name"
+    "$@"
+    rc=$?
+    if ((rc != 0)); then
+        failed_steps+=("$name")
+        printf -- '---- %s: FAILED (exit %d, %d s)\n' "$name" "$rc" $((SECONDS - start))
+    else
+        printf -- '---- %s: ok (%d s)\n' "$name" $((SECONDS - start))
+    fi
+    return "$rc"
+}
+
+# 1. The ROS 2 environment. Nothing else can run without it.
+if ! run_step "setup" scripts/setup.sh; then
+    echo "test: setup failed; nothing was tested" >&2
+    echo "total: 0 passed, 0 failed"
+    exit 1
+fi
+
+# 2. Static checks.
+if ((quick)); then
+    skipped_steps+=("cargo fmt" "cargo clippy")
+else
+    run_step "cargo fmt" cargo fmt --all --check
+    run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
+fi
+
+# 3. The release binary the rclpy suite runs.
+release_ok=1
+run_step "cargo build --release" cargo build --release --bins --locked || release_ok=0
+
+# 4. Rust tests, every test binary even after a failure. The full output goes to the console
+# and to a log; the per-binary result lines are counted afterwards.
+# shellcheck disable=SC2317  # called through run_step
+cargo_tests() {
+    cargo test --all-targets --no-fail-fast --locked 2>&1 | tee "$LOG_DIR/cargo-test.log"
+}
+run_step "cargo test" cargo_tests
+cargo_counts="$(awk '
+    /^test result: / {
+        for (i = 1; i <= NF; i++) {
+            if ($(i + 1) ~ /^passed;?$/) p += $i
+            if ($(i + 1) ~ /^failed;?$/) f += $i
+            if ($(i + 1) ~ /^ignored;?$/) s += $i
+        }
+        n++
+    }
+    END { printf "%d %d %d %d", p, f, s, n }' "$LOG_DIR/cargo-test.log")"
+read -r c_pass c_fail c_skip c_bins <<<"$cargo_counts"
+printf 'cargo test: %d passed, %d failed, %d ignored in %d test binaries\n' \
+    "$c_pass" "$c_fail" "$c_skip" "$c_bins"
+grep '^test result: ' "$LOG_DIR/cargo-test.log" | sed 's/^/  /'
+passed=$((passed + c_pass)) failed=$((failed + c_fail)) skipped=$((skipped + c_skip))
+
+# 4b. The GPIO backend against a real gpio-sim chip. The test is ignored by default (counted as
+# skipped above) because it needs the gpio-sim kernel module; run it where a chip exists or
+# can be made through configfs.
+if [[ -w /sys/kernel/config/gpio-sim ]] || compgen -G '/sys/bus/platform/devices/gpio-sim*' >/dev/null; then
+    if run_step "gpio-sim test" cargo test --locked --test output_gpio_sim -- --ignored; then
+        passed=$((passed + 1)) skipped=$((skipped - 1))
+    else
+        failed=$((failed + 1)) skipped=$((skipped - 1))
+    fi
+else
+    echo "gpio-sim test: SKIPPED (no gpio-sim chip: needs the gpio-sim kernel module)"
+fi
+
+# 5. The rclpy suite, with the venv's python and the built messages.
+# shellcheck disable=SC2317  # called through run_step
+rclpy_suite() {
+    local junit="$LOG_DIR/rclpy-junit.xml" rc
+    rm -f "$junit"
+    (
+        # shellcheck source=scripts/env.sh
+        source "$REPO/scripts/env.sh"
+        # ROS logs of the run stay in the checkout (git-ignored), not in ~/.ros.
+        export ROS_HOME="$REPO/.ros-ws/ros_home"
+        export PWM_ACTUATOR_NODE="${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}"
+        exec python -m pytest tests/rclpy -v -ra --junitxml="$junit" "${pytest_extra[@]}"
+    ) </dev/null
+    rc=$?
+    # pytest: 0 all passed, 1 some failed, 5 no test collected (which is a failure here too).
+    if ((rc == 5)); then
+        echo "test: pytest collected no tests" >&2
+    fi
+    if [[ -f "$junit" ]]; then
+        read -r p_tests p_fail p_err p_skip < <(python3 - "$junit" <<'EOF'
+import sys
+import xml.etree.ElementTree as ET
+
+root = ET.parse(sys.argv[1]).getroot()
+suites = [root] if root.tag == "testsuite" else root.findall("testsuite")
+total = [sum(int(s.get(k, 0)) for s in suites) for k in ("tests", "failures", "errors", "skipped")]
+print(*total)
+EOF
+        )
+        passed=$((passed + p_tests - p_fail - p_err - p_skip))
+        failed=$((failed + p_fail + p_err))
+        skipped=$((skipped + p_skip))
+    fi
+    return "$rc"
+}
+if ((release_ok)); then
+    run_step "rclpy tests" rclpy_suite
+else
+    skipped_steps+=("rclpy tests (no release build)")
+    failed_steps+=("rclpy tests")
+fi
+
+banner "summary"
+printf 'time: %d s\n' "$SECONDS"
+((${#skipped_steps[@]})) && printf 'skipped: %s\n' "${skipped_steps[*]}"
+status=0
+if ((${#failed_steps[@]})); then
+    joined="$(printf '%s, ' "${failed_steps[@]}")"
+    printf 'FAILED steps: %s\n' "${joined%, }"
+    status=1
+fi
+if ((passed == 0)); then
+    echo "no test passed"
+    status=1
+fi
+printf 'total: %d passed, %d failed, %d skipped\n' "$passed" "$failed" "$skipped"
+exit "$status"
