@@ -290,8 +290,9 @@ impl Bridge {
             .collect();
         chans.sort_unstable();
         chans.dedup();
+        let now = clock::monotonic_ns();
         for c in chans {
-            health[c].last_refusal = Some(reason.to_string());
+            health[c].last_refusal = Some((reason.to_string(), now));
         }
         drop(health);
         self.diag_now.notify_one();
@@ -301,7 +302,7 @@ impl Bridge {
     pub fn refused_message(&self, channel: usize, door: &str, reason: &str) {
         warn!("parameter change refused (via {door}): {reason}");
         if let Some(h) = lock(&self.health).get_mut(channel) {
-            h.last_refusal = Some(reason.to_string());
+            h.last_refusal = Some((reason.to_string(), clock::monotonic_ns()));
         }
         self.diag_now.notify_one();
     }

@@ -23,6 +23,14 @@ pub enum CommandUnit {
     Sv,
 }
 
+/// The reason of `event` if it happened less than [`REFUSAL_WARN_NS`] before `now`.
+fn recent(event: &Option<(String, Nanos)>, now: Nanos) -> Option<&str> {
+    event
+        .as_ref()
+        .filter(|(_, at)| now.saturating_sub(*at) < REFUSAL_WARN_NS)
+        .map(|(r, _)| r.as_str())
+}
+
 /// The spelling of a plan rule in status messages.
 pub fn rule_name(r: Rule) -> &'static str {
     match r {
@@ -101,8 +109,8 @@ pub struct ChannelHealth {
     pub last_rejection: Option<(String, Nanos)>,
     /// The last clamped command, described, and its monotonic time.
     pub last_clamp: Option<(String, Nanos)>,
-    /// The last refused parameter change, with its reason.
-    pub last_refusal: Option<String>,
+    /// The last refused parameter change: reason and monotonic time.
+    pub last_refusal: Option<(String, Nanos)>,
     /// Edges written.
     pub edges: u64,
     /// Largest lateness seen, ns.
@@ -136,10 +144,11 @@ impl ChannelHealth {
     }
 
     fn recent_rejection(&self, now: Nanos) -> Option<&str> {
-        self.last_rejection
-            .as_ref()
-            .filter(|(_, at)| now.saturating_sub(*at) < REFUSAL_WARN_NS)
-            .map(|(r, _)| r.as_str())
+        recent(&self.last_rejection, now)
+    }
+
+    fn recent_refusal(&self, now: Nanos) -> Option<&str> {
+        recent(&self.last_refusal, now)
     }
 
     /// The diagnostic level at monotonic time `now`.
@@ -148,6 +157,7 @@ impl ChannelHealth {
         if self.output_fault || self.watchdog_tripped() {
             DiagnosticStatus::ERROR
         } else if self.recent_rejection(now).is_some()
+            || self.recent_refusal(now).is_some()
             || s.is_some_and(|s| s.e1 || s.limited || s.command_clamped)
         {
             DiagnosticStatus::WARN
@@ -169,6 +179,18 @@ impl ChannelHealth {
             return "watchdog: no duty command within command_timeout_ms; output forced off \
                     until the next command"
                 .into();
+        }
+        let refused_at = self.last_refusal.as_ref().map_or(0, |(_, at)| *at);
+        let newest_input = self
+            .last_rejection
+            .iter()
+            .chain(&self.last_clamp)
+            .map(|(_, at)| *at)
+            .max();
+        if let Some(r) = self.recent_refusal(now) {
+            if newest_input.is_none_or(|at| refused_at >= at) {
+                return format!("parameter change refused: {r}");
+            }
         }
         let clamp = s
             .command_clamped
@@ -271,7 +293,10 @@ impl ChannelHealth {
             ),
             (
                 "last_refusal",
-                self.last_refusal.clone().unwrap_or_default(),
+                self.last_refusal
+                    .as_ref()
+                    .map(|(r, _)| r.clone())
+                    .unwrap_or_default(),
             ),
             ("publish_failures", self.publish_failures.to_string()),
             ("reports_dropped", dropped.to_string()),
@@ -378,6 +403,25 @@ mod tests {
         );
         assert_eq!(kv(&d, "rejected_commands"), "1");
         assert_eq!(kv(&d, "reports_dropped"), "3");
+    }
+
+    #[test]
+    fn a_refused_parameter_warns_for_a_while_and_stays_listed() {
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(status());
+        let reason = "pw01: period_ms 4 is below the transistor minimum of 5 ms";
+        h.last_refusal = Some((reason.into(), 1_000));
+        assert_eq!(h.level(2_000), DiagnosticStatus::WARN);
+        assert_eq!(
+            h.message(2_000),
+            format!("parameter change refused: {reason}")
+        );
+        let later = 1_000 + REFUSAL_WARN_NS;
+        assert_eq!(h.level(later), DiagnosticStatus::OK);
+        assert_eq!(kv(&h.to_status("n", later, 0), "last_refusal"), reason);
+        // A command refused after the parameter is the newer news.
+        h.last_rejection = Some(("duty command is NaN; last valid command kept".into(), 3_000));
+        assert!(h.message(4_000).starts_with("last duty command refused"));
     }
 
     #[test]
