@@ -520,6 +520,7 @@ class RosClient:
         self.node: Node = rclpy.create_node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
+        self._clients: dict[tuple[Any, str], Any] = {}
 
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=5.0)
@@ -644,16 +645,22 @@ class RosClient:
     ) -> Any:
         """Calls `service` and returns the response; waits `timeout` for the server to appear
         and again for the answer."""
-        client = self.node.create_client(srv_type, service)
-        try:
+        # One client per service, kept for the test: a new client per call is often not yet
+        # matched on the server's side when the request goes out, and the request is then
+        # resent only after Fast DDS's 3 s heartbeat.
+        key = (srv_type, service)
+        client = self._clients.get(key)
+        if client is None:
+            client = self.node.create_client(srv_type, service)
             self.spin_until(client.service_is_ready, f"service {service}", timeout)
-            future = client.call_async(request)
-            self.spin_until(future.done, f"a response from {service}", timeout)
-            if future.exception() is not None:
-                raise future.exception()
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+            # Let the server's reader match ours before the first request.
+            self.spin_for(0.25)
+            self._clients[key] = client
+        future = client.call_async(request)
+        self.spin_until(future.done, f"a response from {service}", timeout)
+        if future.exception() is not None:
+            raise future.exception()
+        return future.result()
 
     def get_parameters(
         self, node: str, names: Sequence[str], timeout: Optional[float] = None
