@@ -37,14 +37,7 @@ from rcl_interfaces.msg import (
     ParameterValue,
     SetParametersResult,
 )
-from rcl_interfaces.srv import (
-    DescribeParameters,
-    GetParameters,
-    ListParameters,
-    SetParameters,
-    SetParametersAtomically,
-)
-from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.parameter import parameter_value_to_python
 from rclpy.qos import qos_profile_parameter_events
 from std_msgs.msg import Float64
 
@@ -91,68 +84,33 @@ def params(*assignments: str) -> list[str]:
 
 
 class Services:
-    """The parameter services of one node, through clients kept for the whole test.
+    """The parameter services of one node: the `ros` fixture's parameter helpers (which keep one
+    client per service for the test) bound to the node's name."""
 
-    Same answers as the `ros` fixture's parameter helpers, which create a client per call: a
-    request sent just after a new client matches can reach the node before its DDS reader has
-    matched the client's writer, and then waits for Fast DDS's next heartbeat (3 s). A client
-    made once and given a moment to settle avoids those stalls.
-    """
-
-    #: Pause after a new client finds the service, seconds (not a timing assertion).
+    #: Pause after a new publisher matches, seconds (not a timing assertion).
     SETTLE_S = 0.25
 
     def __init__(self, ros: RosClient, node: str = NODE) -> None:
         self.ros = ros
         self.node = node
-        self._clients: dict[str, Any] = {}
-
-    def call(self, srv_type: Any, base: str, request: Any) -> Any:
-        name = f"{self.node}/{base}"
-        client = self._clients.get(name)
-        if client is None:
-            client = self.ros.node.create_client(srv_type, name)
-            self.ros.spin_until(client.service_is_ready, f"service {name}")
-            self.ros.spin_for(self.SETTLE_S)
-            self._clients[name] = client
-        future = client.call_async(request)
-        self.ros.spin_until(future.done, f"a response from {name}")
-        if future.exception() is not None:
-            raise future.exception()
-        return future.result()
 
     def get_parameter_values(self, names: Sequence[str]) -> list[ParameterValue]:
-        response = self.call(GetParameters, "get_parameters", GetParameters.Request(names=names))
-        assert len(response.values) == len(names), response
-        return list(response.values)
+        return self.ros.get_parameter_values(self.node, names)
 
     def get_parameters(self, names: Sequence[str]) -> dict[str, Any]:
-        values = self.get_parameter_values(names)
-        return {n: parameter_value_to_python(v) for n, v in zip(names, values)}
+        return self.ros.get_parameters(self.node, names)
 
     def set_parameters(self, values: Mapping[str, Any]) -> dict[str, SetParametersResult]:
-        request = SetParameters.Request(parameters=_param_msgs(values))
-        response = self.call(SetParameters, "set_parameters", request)
-        assert len(response.results) == len(values), response
-        return dict(zip(values, response.results))
+        return self.ros.set_parameters(self.node, values)
 
     def set_parameters_atomically(self, values: Mapping[str, Any]) -> SetParametersResult:
-        request = SetParametersAtomically.Request(parameters=_param_msgs(values))
-        return self.call(SetParametersAtomically, "set_parameters_atomically", request).result
+        return self.ros.set_parameters_atomically(self.node, values)
 
     def list_parameters(self, prefixes: Sequence[str] = ()) -> ListParametersResult:
-        request = ListParameters.Request(prefixes=list(prefixes), depth=0)
-        return self.call(ListParameters, "list_parameters", request).result
+        return self.ros.list_parameters(self.node, prefixes)
 
     def describe_parameters(self, names: Sequence[str]) -> dict[str, ParameterDescriptor]:
-        request = DescribeParameters.Request(names=list(names))
-        response = self.call(DescribeParameters, "describe_parameters", request)
-        assert len(response.descriptors) == len(names), response
-        return dict(zip(names, response.descriptors))
-
-
-def _param_msgs(values: Mapping[str, Any]) -> list[Any]:
-    return [Parameter(n, value=v).to_parameter_msg() for n, v in values.items()]
+        return self.ros.describe_parameters(self.node, names)
 
 
 @pytest.fixture
