@@ -44,7 +44,7 @@ pub(crate) fn run<O: Output>(mut worker: Worker<O>, mut ends: Ends<'_>) -> Resul
         let base_ns = clock::monotonic_ns();
         let at = |t: Nanos| base + Duration::from_nanos(t.saturating_sub(base_ns));
         while ends.work(&mut worker)? {
-            let deadline = ends.next_wake(&worker);
+            let deadline = worker.next_deadline();
             tokio::select! {
                 _ = async {
                     match deadline {

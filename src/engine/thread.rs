@@ -375,18 +375,6 @@ impl Ends<'_> {
         Ok(true)
     }
 
-    /// When the thread must wake next: the earliest channel deadline, or the deferred reader
-    /// wake-up if that comes first.
-    pub(crate) fn next_wake<O: Output>(&self, worker: &Worker<O>) -> Option<Nanos> {
-        let reader = self
-            .wake_pending
-            .then_some(self.last_wake + READER_WAKE_INTERVAL_NS);
-        match (worker.next_deadline(), reader) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
-    }
-
     /// Drives every line inactive, drops the output (flushing traces) and wakes the reader.
     pub(crate) fn finish<O: Output>(&self, worker: Worker<O>) -> Result<(), EngineError> {
         let (output, result) = worker.shut_down();
@@ -406,7 +394,9 @@ fn run<O: Output>(
 ) -> Result<(), EngineError> {
     let sys = |what| move |source| EngineError::Sys { what, source };
     while ends.work(&mut worker)? {
-        match ends.next_wake(&worker) {
+        // A deferred reader wake-up always falls after the next deadline (see `work`), so the
+        // channels' deadlines are the only ones.
+        match worker.next_deadline() {
             // Absolute deadline: a late wake-up does not push later deadlines back.
             Some(t) => timer
                 .set(
