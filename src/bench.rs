@@ -259,23 +259,16 @@ fn run_side(opts: &BenchOptions, params: ChannelParams, baseline: bool) -> Resul
     let expected = (opts.seconds * 2000.0 / opts.period_ms as f64) as usize * opts.channels;
     let reader = std::thread::spawn(move || {
         let mut lateness: Vec<i64> = Vec::with_capacity(expected + 1024);
-        loop {
-            reports.wait(Duration::from_millis(100));
-            reports.clear_wake();
-            while let Some(r) = reports.try_recv() {
+        reports.serve(
+            || false,
+            |r| {
                 if let Report::Edge(e) = r {
                     lateness.push(e.lateness_ns());
                 }
-            }
-            if reports.is_abandoned() {
-                while let Some(r) = reports.try_recv() {
-                    if let Report::Edge(e) = r {
-                        lateness.push(e.lateness_ns());
-                    }
-                }
-                return (lateness, reports.dropped());
-            }
-        }
+            },
+            |_| {},
+        );
+        (lateness, reports.dropped())
     });
 
     let send = |requests: &mut engine::Requests, channel, input| {

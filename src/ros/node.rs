@@ -396,21 +396,13 @@ where
 /// A plain thread: it sleeps on the engine's eventfd ([`Reports::wait`]) and publishes, which
 /// never waits for a subscriber.
 fn pump(bridge: Arc<Bridge>, mut reports: Reports, quit: Arc<AtomicBool>) {
-    while !quit.load(Ordering::SeqCst) {
-        reports.wait(Duration::from_millis(100));
-        // Cleared before draining, so a report queued meanwhile wakes the next wait at once.
-        reports.clear_wake();
-        while let Some(r) = reports.try_recv() {
-            bridge.handle(r);
-        }
-        bridge.after_batch(reports.dropped());
-        if reports.is_abandoned() {
-            while let Some(r) = reports.try_recv() {
-                bridge.handle(r);
-            }
-            bridge.stop.notify_one();
-            return;
-        }
+    let ended = reports.serve(
+        || quit.load(Ordering::SeqCst),
+        |r| bridge.handle(r),
+        |r| bridge.after_batch(r.dropped()),
+    );
+    if ended {
+        bridge.stop.notify_one();
     }
 }
 
