@@ -396,7 +396,8 @@ impl Bridge {
         if self.pubs[ch].edges.publish(m).is_err() {
             lock(&self.health)[ch].publish_failures += 1;
         }
-        // The status snapshot explaining this edge follows it in the same batch.
+        // Its console line is written after the batch, from the status snapshot the output
+        // thread sends ahead of the edges it explains.
         lock(&self.pump).batch_edges.push(*e);
     }
 
