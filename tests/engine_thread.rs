@@ -4,8 +4,8 @@
 
 use pwm_actuator::core::{Channel, ChannelParams, Command, Event, Level, Nanos};
 use pwm_actuator::engine::{self, EngineError, EngineOptions, Input, Report, Request};
-use pwm_actuator::output::{EmergencyOff, LineChange, Output, SimOutput, TraceSpec};
-use std::sync::Arc;
+use pwm_actuator::output::fault::FailingOutput;
+use pwm_actuator::output::{SimOutput, TraceSpec};
 use std::time::{Duration, Instant};
 
 fn params(period_ms: u64) -> ChannelParams {
@@ -186,48 +186,11 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
     }
 }
 
-/// A sink whose writes to one line fail after a number of calls.
-struct Failing {
-    inner: SimOutput,
-    line: usize,
-    writes_left: usize,
-}
-
-#[derive(Debug, thiserror::Error)]
-#[error("injected write failure on line {0}")]
-struct Injected(usize);
-
-impl Output for Failing {
-    type Error = Injected;
-    fn line_count(&self) -> usize {
-        self.inner.line_count()
-    }
-    fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), Injected> {
-        if changes.iter().any(|c| c.line == self.line) {
-            if self.writes_left == 0 {
-                return Err(Injected(self.line));
-            }
-            self.writes_left -= 1;
-        }
-        self.inner.set_levels(changes).map_err(|e| match e {})
-    }
-    fn set_all_inactive(&mut self) -> Result<(), Injected> {
-        self.inner.set_all_inactive().map_err(|e| match e {})
-    }
-    fn emergency_off(&self) -> Arc<dyn EmergencyOff> {
-        self.inner.emergency_off()
-    }
-}
-
 #[test]
 fn a_failing_write_drives_the_other_outputs_inactive_and_stops() {
     let sim = SimOutput::new(names(3), None).unwrap();
     let probe = sim.probe();
-    let out = Failing {
-        inner: sim,
-        line: 1,
-        writes_left: 5,
-    };
+    let out = FailingOutput::new(sim, 5).on_line(1);
     let cfgs = vec![params(10).validate().unwrap(); 3];
     let mut e = engine::spawn(cfgs, out, EngineOptions::default()).unwrap();
     // Channels 0 and 2 at 100 %: constantly on, until the fault.
@@ -253,7 +216,7 @@ fn a_failing_write_drives_the_other_outputs_inactive_and_stops() {
     assert_eq!(fault, Some(1), "the fault is reported with its channel");
     assert_eq!(
         e.handle.fault().as_deref(),
-        Some("injected write failure on line 1")
+        Some("injected output write failure on line 1 after 5 writes (PWM_ACTUATOR_FAULT)")
     );
     assert!(matches!(
         e.requests.send(Request {

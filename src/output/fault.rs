@@ -46,14 +46,23 @@ impl Fault {
 
 /// The error of an injected write failure.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-#[error("injected output write failure after {0} writes ({FAULT_ENV})")]
-pub struct InjectedFailure(pub u64);
+#[error(
+    "injected output write failure{} after {after} writes ({FAULT_ENV})",
+    line.map(|l| format!(" on line {l}")).unwrap_or_default()
+)]
+pub struct InjectedFailure {
+    /// Successful writes before the failures began.
+    pub after: u64,
+    /// The line whose writes fail, if only one line's do.
+    pub line: Option<usize>,
+}
 
 /// Wraps an output so that its writes fail after a number of successful ones.
 pub struct FailingOutput<O: Output> {
     inner: O,
     writes_left: u64,
     after: u64,
+    line: Option<usize>,
 }
 
 impl<O: Output> FailingOutput<O> {
@@ -63,6 +72,16 @@ impl<O: Output> FailingOutput<O> {
             inner,
             writes_left: after,
             after,
+            line: None,
+        }
+    }
+
+    /// Counts and fails only the writes that change `line` (index among the output's lines);
+    /// the others always go through.
+    pub fn on_line(self, line: usize) -> Self {
+        FailingOutput {
+            line: Some(line),
+            ..self
         }
     }
 }
@@ -75,10 +94,18 @@ impl<O: Output> Output for FailingOutput<O> {
     }
 
     fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), Self::Error> {
-        if self.writes_left == 0 {
-            return Err(FaultError::Injected(InjectedFailure(self.after)));
+        let counted = self
+            .line
+            .is_none_or(|l| changes.iter().any(|c| c.line == l));
+        if counted {
+            if self.writes_left == 0 {
+                return Err(FaultError::Injected(InjectedFailure {
+                    after: self.after,
+                    line: self.line,
+                }));
+            }
+            self.writes_left -= 1;
         }
-        self.writes_left -= 1;
         self.inner.set_levels(changes).map_err(FaultError::Output)
     }
 
@@ -145,5 +172,25 @@ mod tests {
         );
         out.set_all_inactive().unwrap();
         assert_eq!(probe.levels(), vec![Level::Low]);
+    }
+
+    #[test]
+    fn a_line_restricted_failure_leaves_the_other_lines_working() {
+        let sim = SimOutput::new(vec!["pw01".into(), "pw02".into()], None).unwrap();
+        let mut out = FailingOutput::new(sim, 0).on_line(1);
+        let change = |line| {
+            [LineChange {
+                line,
+                level: Level::High,
+                scheduled_ns: 0,
+            }]
+        };
+        assert!(out.set_levels(&change(0)).is_ok());
+        assert!(out.set_levels(&change(0)).is_ok());
+        let e = out.set_levels(&change(1)).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "injected output write failure on line 1 after 0 writes (PWM_ACTUATOR_FAULT)"
+        );
     }
 }
