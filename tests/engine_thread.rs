@@ -38,6 +38,9 @@ fn read_csv(path: &std::path::Path) -> Vec<(Nanos, String, u8, Nanos)> {
         .collect()
 }
 
+/// One input or poll of a channel core, handing its events to the given sink.
+type CoreStep<'a> = &'a mut dyn FnMut(&mut Channel, &mut dyn FnMut(Event));
+
 fn send(requests: &mut engine::Requests, channel: usize, input: Input) {
     requests.send(Request { channel, input }).expect("queued");
 }
@@ -81,13 +84,35 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
         let enable_at = edges[0].3;
         let mut core = Channel::new(cfgs[ch], 0);
         let mut want: Vec<(Nanos, Level)> = Vec::new();
-        let mut emit = |ev: Event| {
-            if let Event::Edge { at, level } = ev {
-                want.push((at, level));
+        // The thread tells its cores when each edge really reached the line, and a late edge
+        // moves the next one; the replay is told the same times, from the edge reports.
+        let written: std::collections::HashMap<(Nanos, u8), Nanos> = reports
+            .iter()
+            .filter_map(|r| match r {
+                Report::Edge(e) if e.channel == ch => {
+                    Some(((e.scheduled_ns, u8::from(e.level.is_high())), e.actual_ns))
+                }
+                _ => None,
+            })
+            .collect();
+        let mut step = |core: &mut Channel, f: CoreStep| {
+            let mut events = Vec::new();
+            f(core, &mut |e| events.push(e));
+            for e in events {
+                if let Event::Edge { at, level } = e {
+                    want.push((at, level));
+                    if let Some(actual) = written.get(&(at, u8::from(level.is_high()))) {
+                        core.edge_written(*actual);
+                    }
+                }
             }
         };
-        core.command(0, Command::Percent([40.0, 45.0][ch]), &mut emit);
-        core.set_enable(enable_at, true, &mut emit);
+        step(&mut core, &mut |c, emit| {
+            c.command(0, Command::Percent([40.0, 45.0][ch]), emit)
+        });
+        step(&mut core, &mut |c, emit| {
+            c.set_enable(enable_at, true, emit)
+        });
         // Channel 2's duty change: under next_period it takes effect at the first period
         // boundary after the engine applied it. That boundary is where the on time first
         // becomes 7 ms; the engine's own status report of the 70 % command must lie in the
@@ -125,14 +150,16 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
         while let Some(t) = core.poll_at() {
             if let Some(c) = change_at {
                 if !changed && t >= c {
-                    core.command(t - 1, Command::Percent(70.0), &mut emit);
+                    step(&mut core, &mut |c, emit| {
+                        c.command(t - 1, Command::Percent(70.0), emit)
+                    });
                     changed = true;
                 }
             }
             if t > last_scheduled {
                 break;
             }
-            core.poll(t, &mut emit);
+            step(&mut core, &mut |c, emit| c.poll(t, emit));
         }
         // All but the shutdown edge were scheduled by the core.
         let got: Vec<(Nanos, Level)> = edges[..edges.len() - 1]

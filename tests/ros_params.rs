@@ -60,18 +60,29 @@ async fn parameter_services_set_refuse_describe_and_announce() {
         r[0].1,
         "pw01: period_ms 4 is below the transistor minimum of 5 ms (0 stops the pulses)"
     );
-    let r = p.set(&[("pw01.min_on_ms", V::Integer(600))]).await;
-    assert!(!r[0].0);
+    let (ok, reason) = p
+        .set_atomically(&[
+            ("pw01.output_kind", V::String("relay".into())),
+            ("pw01.min_on_ms", V::Integer(30)),
+        ])
+        .await;
+    assert!(!ok);
     assert!(
-        r[0].1
-            .contains("min_on_ms 600 is longer than period_ms 500"),
-        "{}",
-        r[0].1
+        reason.contains("min_on_ms 30 is below the relay minimum of 50 ms"),
+        "{reason}"
     );
     assert_eq!(
-        p.get(&["pw01.period_ms", "pw01.min_on_ms"]).await,
-        vec![V::Integer(500), V::Integer(0)]
+        p.get(&["pw01.period_ms", "pw01.min_on_ms", "pw01.output_kind"])
+            .await,
+        vec![
+            V::Integer(500),
+            V::Integer(0),
+            V::String("transistor".into())
+        ]
     );
+    // A minimum above the period is a valid vendor setting (000: ME up to 65 535 ms).
+    assert!(p.set(&[("pw01.min_on_ms", V::Integer(600))]).await[0].0);
+    assert!(p.set(&[("pw01.min_on_ms", V::Integer(0))]).await[0].0);
 
     // A whole double is taken as the integer; a fraction is refused.
     assert!(p.set(&[("pw01.period_ms", V::Double(800.0))]).await[0].0);
@@ -93,7 +104,7 @@ async fn parameter_services_set_refuse_describe_and_announce() {
     );
     let (ok, why) = p
         .set_atomically(&[
-            ("pw02.period_ms", V::Integer(100)),
+            ("pw02.period_ms", V::Integer(4)),
             ("pw02.profile", V::String("tcont_cp".into())),
         ])
         .await;
@@ -244,13 +255,15 @@ async fn params_topic_applies_whole_or_refuses_whole() {
     let bad = ChannelParams {
         set: vec!["period_ms".into(), "min_on_ms".into()],
         period_ms: 300,
-        min_on_ms: 400,
+        min_on_ms: 4_000_000,
         ..ChannelParams::default()
     };
     let _ = topic.publish(bad);
     let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
         a.status.iter().any(|s| {
-            s.name == "pwm_actuator: pw01" && kv(s, "last_refusal").contains("min_on_ms 400")
+            s.name == "pwm_actuator: pw01"
+                && kv(s, "last_refusal").contains("min_on_ms")
+                && kv(s, "last_refusal").contains("4000000")
         })
     })
     .await

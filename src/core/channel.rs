@@ -6,6 +6,12 @@
 //! step starts a new period (000: "period duration unchanged"). Which command a step uses depends
 //! on [`ApplyAt`]: the one latched at the period start (000), the one current when the step
 //! starts (002), or the one current right now, extending or ending the running step (003).
+//!
+//! The steps are the schedule; the line is what was really written. A minimum on or off time
+//! is a promise about the line: every change of level the schedule asks for passes a guard that
+//! holds it back until the line has kept its level for its minimum, counted from the time the
+//! last edge really happened (a late poll, or [`Channel::edge_written`], moves that time). Only
+//! the safety offs act at once: a falling enable and a watchdog trip.
 
 use super::command::{Command, CommandError, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
@@ -53,12 +59,22 @@ pub enum Event {
     },
 }
 
-/// The running on or off step.
+/// The running on or off step of the schedule.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Step {
     level: Level,
     start: Nanos,
     end: Nanos,
+}
+
+/// The output line as written, and a change of level the guard is holding back.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Line {
+    level: Level,
+    /// When the line got `level`; `None` while it has never changed (low since creation).
+    since: Option<Nanos>,
+    /// A level the schedule asked for, held back until the given instant.
+    held: Option<(Level, Nanos)>,
 }
 
 /// What a channel reports about itself (002's information outputs, 004's active flag).
@@ -125,15 +141,15 @@ pub struct Channel {
     pending: Option<ChannelConfig>,
     duty: Duty,
     enabled: bool,
+    /// The level the schedule asks for; the line follows it through the guard.
     level: Level,
+    line: Line,
     step: Option<Step>,
     plan: Plan,
     period_start: Nanos,
     last_command_at: Nanos,
     watchdog_tripped: bool,
     flags: (bool, bool),
-    /// When the output last went low, for the minimum break before pulses restart from idle.
-    last_fall: Option<Nanos>,
 }
 
 impl Channel {
@@ -151,19 +167,38 @@ impl Channel {
             duty,
             enabled: false,
             level: Level::Low,
+            line: Line {
+                level: Level::Low,
+                since: None,
+                held: None,
+            },
             step: None,
             plan: Plan::new(0.0, &cfg),
             period_start: now,
             last_command_at: now,
             watchdog_tripped: false,
             flags: (false, false),
-            last_fall: None,
         }
     }
 
-    /// The logical output level.
+    /// The logical level of the output line, as last emitted in an [`Event::Edge`].
     pub fn level(&self) -> Level {
-        self.level
+        self.line.level
+    }
+
+    #[cfg(test)]
+    pub(crate) fn line_since(&self) -> Option<Nanos> {
+        self.line.since
+    }
+
+    /// Tells the channel when its last edge really reached the line (monotonic ns), if that was
+    /// later than the instant it was emitted at: the minimum of the phase it began counts from
+    /// here. The output thread calls this after each write; virtual-time callers need not.
+    pub fn edge_written(&mut self, at: Nanos) {
+        if self.line.since.is_some_and(|s| at > s) {
+            self.line.since = Some(at);
+            self.retime_held();
+        }
     }
 
     /// The configuration in force.
@@ -188,17 +223,21 @@ impl Channel {
 
     /// The next instant (ns) at which [`Channel::poll`] has work, if any.
     pub fn poll_at(&self) -> Option<Nanos> {
-        match (self.step.map(|s| s.end), self.watchdog_deadline()) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        [
+            self.step.map(|s| s.end),
+            self.watchdog_deadline(),
+            self.line.held.map(|(_, at)| at),
+        ]
+        .into_iter()
+        .flatten()
+        .min()
     }
 
     /// Processes every deadline at or before `now`. When several edges fall due together (the
     /// caller was late by more than a step), only the net level change is emitted, at the time
     /// of the last one, and the rest are reported as [`Event::Missed`].
     pub fn poll(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
-        let before = self.level;
+        let before = self.line;
         let mut edges = 0u32;
         let mut last_at = now;
         {
@@ -216,12 +255,19 @@ impl Channel {
                 self.advance(t, &mut inner);
             }
         }
-        let changed = self.level != before;
+        let changed = self.line.level != before.level;
         if changed {
+            // The edge reaches the line now, however long ago it was due: the minimum of the
+            // phase it begins counts from now, so a late edge moves the next one.
+            self.line.since = Some(now);
             emit(Event::Edge {
                 at: last_at,
-                level: self.level,
+                level: self.line.level,
             });
+            self.retime_held();
+        } else if edges > 0 {
+            // Edges that cancelled out never reached the line.
+            self.line.since = before.since;
         }
         let missed = edges - u32::from(changed);
         if missed > 0 {
@@ -269,16 +315,34 @@ impl Channel {
             // A stale command does not get a fresh lease: the watchdog counts from the last
             // command, not from the enable.
             self.trip_if_stale(now, emit);
-            // 002: 0 % straight to off, 100 % straight to on, no minimum time; otherwise 000/004:
-            // a new period starting with its on phase.
-            self.start_period(now, emit);
+            // 000/004: a new period starting with its on phase; 002: 0 % straight to off and
+            // 100 % straight to on, with no minimum-time rule on the duty. The line's minimum
+            // break still holds: toggling EN never puts a break shorter than it on the line, so
+            // the period starts once the break since the last real fall has lasted min off (as
+            // a restart from 0 % or from period 0 does).
+            match self.break_ends_at() {
+                Some(end) if end > now && self.cfg.period > 0 => {
+                    self.step = Some(Step {
+                        level: Level::Low,
+                        start: now,
+                        end,
+                    });
+                }
+                _ => self.start_period(now, emit),
+            }
         } else {
             self.step = None;
             if let Some(p) = self.pending.take() {
-                self.cfg = p;
+                self.put_config(p);
             }
-            if self.cfg.on_disable == OnDisable::Off {
-                self.set_level(Level::Low, now, emit);
+            match self.cfg.on_disable {
+                // 000, 002: a falling EN sets the output to 0 at once, a safety off.
+                OnDisable::Off => self.force_low(now, emit),
+                // 004: the line keeps the level it has; nothing held back is written later.
+                OnDisable::Hold => {
+                    self.line.held = None;
+                    self.level = self.line.level;
+                }
             }
             self.latch(Plan::new(self.effective_duty(), &self.cfg), emit);
         }
@@ -294,11 +358,18 @@ impl Channel {
         self.trip_if_stale(now, emit);
         if !self.enabled {
             self.pending = None;
-            self.cfg = cfg;
+            self.put_config(cfg);
             self.latch(Plan::new(self.effective_duty(), &self.cfg), emit);
+            // A line held on (004's hold) stays on only while the configuration still holds
+            // it: `off` or period 0 switch it off now (after its minimum on time).
+            if self.level == Level::High
+                && (self.cfg.on_disable == OnDisable::Off || self.cfg.period == 0)
+            {
+                self.set_level(Level::Low, now, emit);
+            }
         } else if self.step.is_none() || self.cfg.apply_at == ApplyAt::Immediate {
             self.pending = None;
-            self.cfg = cfg;
+            self.put_config(cfg);
             self.reevaluate(now, emit);
         } else {
             self.pending = Some(cfg);
@@ -315,7 +386,7 @@ impl Channel {
         Status {
             enabled: self.enabled,
             active: self.enabled && self.cfg.period > 0 && !self.watchdog_tripped,
-            level: self.level,
+            level: self.line.level,
             duty_commanded: self.duty.fraction,
             duty_requested: self.duty.requested,
             command_clamped: self.duty.clamped,
@@ -341,21 +412,88 @@ impl Channel {
         }
     }
 
+    /// The watchdog guards every state in which the line is or will be high: enabled, or
+    /// disabled with the line held on (004's hold).
     fn watchdog_deadline(&self) -> Option<Nanos> {
-        (self.enabled && self.cfg.command_timeout > 0 && !self.watchdog_tripped).then(|| {
+        let guarding = self.enabled || self.level == Level::High || self.line.level == Level::High;
+        (guarding && self.cfg.command_timeout > 0 && !self.watchdog_tripped).then(|| {
             self.last_command_at
                 .saturating_add(self.cfg.command_timeout)
         })
     }
 
-    fn set_level(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
-        if level != self.level {
-            self.level = level;
-            if level == Level::Low {
-                self.last_fall = Some(at);
-            }
-            emit(Event::Edge { at, level });
+    /// Makes `cfg` the configuration in force. A change held back for the line is re-timed
+    /// for the new minima.
+    fn put_config(&mut self, cfg: ChannelConfig) {
+        self.cfg = cfg;
+        self.retime_held();
+    }
+
+    /// Moves a change held back for the line to no earlier than the end of the minimum of the
+    /// phase the line is in (after the phase's start or the minima changed).
+    fn retime_held(&mut self) {
+        if let (Some((level, at)), Some(since)) = (self.line.held, self.line.since) {
+            let earliest = since.saturating_add(self.min_for(self.line.level));
+            self.line.held = Some((level, at.max(earliest)));
         }
+    }
+
+    /// The minimum time the line must keep `level` once it has it, ns.
+    fn min_for(&self, level: Level) -> Nanos {
+        match level {
+            Level::High => self.cfg.min_on,
+            Level::Low => self.cfg.min_off,
+        }
+    }
+
+    /// When the line's current break reaches its minimum, if the line is low and has ever
+    /// been high.
+    fn break_ends_at(&self) -> Option<Nanos> {
+        match (self.line.level, self.line.since) {
+            (Level::Low, Some(since)) => Some(since.saturating_add(self.cfg.min_off)),
+            _ => None,
+        }
+    }
+
+    /// The schedule asks for `level` at `at`: the line follows at once if it has kept its level
+    /// for its minimum, else the change is held back until it has. Asking for the level the
+    /// line has cancels a change held back (that pulse or break never reaches the line).
+    fn set_level(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        self.level = level;
+        if level == self.line.level {
+            if self.line.held.take().is_some() {
+                emit(Event::Missed { edges: 2 });
+            }
+            return;
+        }
+        let earliest = self
+            .line
+            .since
+            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)));
+        if at >= earliest {
+            self.write_line(level, at, emit);
+        } else {
+            self.line.held = Some((level, earliest));
+        }
+    }
+
+    /// A safety off (falling EN, watchdog trip): the line goes low at `at`, whatever its
+    /// minimum on time.
+    fn force_low(&mut self, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        self.level = Level::Low;
+        self.line.held = None;
+        if self.line.level != Level::Low {
+            self.write_line(Level::Low, at, emit);
+        }
+    }
+
+    fn write_line(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        self.line = Line {
+            level,
+            since: Some(at),
+            held: None,
+        };
+        emit(Event::Edge { at, level });
     }
 
     /// Makes `plan` the plan in force and reports what changed.
@@ -381,6 +519,12 @@ impl Channel {
             self.trip(t, emit);
             return;
         }
+        if let Some((level, at)) = self.line.held {
+            if at == t {
+                self.write_line(level, t, emit);
+                return;
+            }
+        }
         let Some(step) = self.step else { return };
         debug_assert_eq!(step.end, t);
         match step.level {
@@ -392,7 +536,7 @@ impl Channel {
     /// The decision step before an on step: a new period begins at `t`.
     fn start_period(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         if let Some(p) = self.pending.take() {
-            self.cfg = p;
+            self.put_config(p);
         }
         let plan = Plan::new(self.effective_duty(), &self.cfg);
         self.latch(plan, emit);
@@ -455,12 +599,12 @@ impl Channel {
             if self.enabled && self.cfg.period > 0 {
                 // Pulses restart from idle (period 0 -> T): the break since the output last
                 // went low must still reach the minimum off time.
-                match self.last_fall.map(|t| t + self.cfg.min_off) {
-                    Some(earliest) if earliest > now => {
+                match self.break_ends_at() {
+                    Some(end) if end > now => {
                         self.step = Some(Step {
                             level: Level::Low,
-                            start: earliest - self.cfg.min_off,
-                            end: earliest,
+                            start: now,
+                            end,
                         });
                     }
                     _ => self.start_period(now, emit),
@@ -472,7 +616,20 @@ impl Channel {
             Level::High => (plan.t_on, self.cfg.min_on),
             Level::Low => (plan.t_off, self.cfg.min_off),
         };
-        let end = (step.start + len).max(now).max(step.start + min);
+        // 003 compares with "the previous impulse/break length": the real length of the phase
+        // on the line, from its last edge, not from the step the schedule restarted at a hidden
+        // period boundary while the output was held constant.
+        let end = if step.level == self.line.level {
+            let phase_start = self.line.since.unwrap_or(0);
+            phase_start
+                .saturating_add(len)
+                .max(now)
+                .max(phase_start.saturating_add(min))
+        } else {
+            // The line has not followed this step yet (its change is held back): there is no
+            // phase on the line to keep, and ending the step cancels the change.
+            step.start.saturating_add(len).max(now)
+        };
         self.step = Some(Step { end, ..step });
         self.poll(now, emit);
     }
@@ -506,6 +663,6 @@ impl Channel {
                 end,
             });
         }
-        self.set_level(Level::Low, t, emit);
+        self.force_low(t, emit);
     }
 }

@@ -400,16 +400,6 @@ pub enum ConfigError {
         /// The maximum, ms.
         max_ms: u64,
     },
-    /// A minimum time longer than the period.
-    #[error("{which} {value_ms} is longer than period_ms {period_ms}")]
-    MinTimeAbovePeriod {
-        /// Which minimum.
-        which: MinTime,
-        /// Its value, ms.
-        value_ms: u64,
-        /// The period, ms.
-        period_ms: u64,
-    },
     /// An explicit relay minimum time below 50 ms (000: relay minimum on duration 50 ms).
     #[error("{which} {value_ms} is below the relay minimum of {min_ms} ms (0 means the floor)")]
     RelayMinTimeTooShort {
@@ -420,19 +410,15 @@ pub enum ConfigError {
         /// The relay minimum, ms.
         min_ms: u64,
     },
-    /// The effective minima together do not fit in one period, so some duties would have
-    /// neither a valid pulse nor a valid break.
-    #[error(
-        "effective min on {min_on_us} us + min off {min_off_us} us exceed period_ms {period_ms}; \
-         lower one, or set min_off_ms explicitly"
-    )]
-    MinimaExceedPeriod {
-        /// Effective minimum on time, µs.
-        min_on_us: u64,
-        /// Effective minimum off time, µs.
-        min_off_us: u64,
-        /// The period, ms.
-        period_ms: u64,
+    /// A minimum time above the longest period accepted (one hour), whatever the period.
+    #[error("{which} {value_ms} is above the maximum of {max_ms} ms")]
+    MinTimeTooLong {
+        /// Which minimum.
+        which: MinTime,
+        /// Its value, ms.
+        value_ms: u64,
+        /// The maximum, ms.
+        max_ms: u64,
     },
     /// `edge_band` outside 0..=1 or not a number (004: i_rEdge range 0.0..1.0).
     #[error("edge_band {value} is outside 0..1")]
@@ -521,26 +507,31 @@ impl ChannelParams {
                     min_ms: kind.min_explicit_time_ms(),
                 });
             }
-            // With no pulses (period 0) the minima are kept for when a period is set again.
-            if self.period_ms != 0 && value_ms > self.period_ms {
-                return Err(ConfigError::MinTimeAbovePeriod {
+            // No vendor allows more than an hour (000: ME <= 65 535 ms); the bound also keeps
+            // the nanosecond arithmetic below far from overflow.
+            if value_ms > MAX_PERIOD_MS {
+                return Err(ConfigError::MinTimeTooLong {
                     which,
                     value_ms,
-                    period_ms: self.period_ms,
+                    max_ms: MAX_PERIOD_MS,
                 });
             }
         }
-        let floor = kind.floor_ns();
-        let min_on = (self.min_on_ms * NS_PER_MS).max(floor);
-        let min_off = (min_off_ms * NS_PER_MS).max(floor);
+        // A minimum longer than the period is valid (000: ME up to 65 535 ms whatever PD; 002:
+        // nMinSwiTi "limited to values between 0 and nPrd"): it acts as the period, so every
+        // duty other than 0 and 100 % gives a constant output for the period, with E1. With no
+        // pulses (period 0) the minima are kept as given for when a period is set again.
+        let effective = |ms: u64| {
+            let ms = if self.period_ms == 0 {
+                ms
+            } else {
+                ms.min(self.period_ms)
+            };
+            (ms * NS_PER_MS).max(kind.floor_ns())
+        };
+        let min_on = effective(self.min_on_ms);
+        let min_off = effective(min_off_ms);
         let period = self.period_ms * NS_PER_MS;
-        if period != 0 && min_on + min_off > period {
-            return Err(ConfigError::MinimaExceedPeriod {
-                min_on_us: min_on / 1000,
-                min_off_us: min_off / 1000,
-                period_ms: self.period_ms,
-            });
-        }
         if !(0.0..=1.0).contains(&self.edge_band) {
             return Err(ConfigError::EdgeBandOutOfRange {
                 value: self.edge_band,
@@ -694,42 +685,94 @@ mod tests {
     }
 
     #[test]
-    fn minima_must_fit_the_period() {
-        assert_eq!(
-            ChannelParams {
-                period_ms: 100,
-                min_on_ms: 101,
-                min_off_ms: Some(0),
+    fn minima_above_half_the_period_are_valid_000_002() {
+        // 000: ME is 0..65 535 ms whatever PD, and "minimum off duration = minimum on
+        // duration", so ME above PD/2 is a valid Pico GFX setting.
+        let c = ChannelParams {
+            period_ms: 100,
+            min_on_ms: 60,
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        assert_eq!((c.min_on, c.min_off), (60 * NS_PER_MS, 60 * NS_PER_MS));
+        // 002: nMinSwiTi "limited to values between 0 and nPrd": equal is valid, above is
+        // limited to the period rather than refused.
+        for min_on_ms in [1000, 1500, 65_535] {
+            let c = ChannelParams {
+                period_ms: 1000,
+                min_on_ms,
+                profile: Profile::TwincatBa,
                 ..params()
             }
-            .validate(),
-            Err(ConfigError::MinTimeAbovePeriod {
-                which: MinTime::On,
-                value_ms: 101,
-                period_ms: 100
-            })
-        );
-        assert_eq!(
-            ChannelParams {
-                period_ms: 100,
-                min_on_ms: 60,
-                ..params()
-            }
-            .validate(),
-            Err(ConfigError::MinimaExceedPeriod {
-                min_on_us: 60_000,
-                min_off_us: 60_000,
-                period_ms: 100
-            })
-        );
-        // Period 0 keeps the minima for later.
-        assert!(ChannelParams {
+            .validate()
+            .unwrap();
+            assert_eq!(c.min_on, 1000 * NS_PER_MS, "{min_on_ms}");
+        }
+        // 000's relay table: PD 150 with ME 100.
+        let c = ChannelParams {
+            period_ms: 150,
+            min_on_ms: 100,
+            output_kind: OutputKind::Relay,
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        assert_eq!((c.min_on, c.min_off), (100 * NS_PER_MS, 100 * NS_PER_MS));
+        // Period 0 keeps the minima as given, for later.
+        let c = ChannelParams {
             period_ms: 0,
             min_on_ms: 500,
             ..params()
         }
         .validate()
-        .is_ok());
+        .unwrap();
+        assert_eq!(c.min_on, 500 * NS_PER_MS);
+    }
+
+    #[test]
+    fn huge_minima_are_refused_without_overflow() {
+        // u64 ms * 1e6 overflows above 1.8e13 ms: the check comes first, with a typed error,
+        // whatever the period (0 included).
+        for period_ms in [0, 1000] {
+            for (which, p) in [
+                (
+                    MinTime::On,
+                    ChannelParams {
+                        period_ms,
+                        min_on_ms: 20_000_000_000_000,
+                        ..params()
+                    },
+                ),
+                (
+                    MinTime::Off,
+                    ChannelParams {
+                        period_ms,
+                        min_off_ms: Some(u64::MAX),
+                        ..params()
+                    },
+                ),
+            ] {
+                let e = p.validate().unwrap_err();
+                assert!(
+                    matches!(e, ConfigError::MinTimeTooLong { which: w, max_ms: MAX_PERIOD_MS, .. } if w == which),
+                    "{e:?}"
+                );
+            }
+        }
+        let e = ChannelParams {
+            command_timeout_ms: u64::MAX,
+            ..params()
+        }
+        .validate()
+        .unwrap_err();
+        assert!(matches!(e, ConfigError::TimeoutTooLong { .. }));
+        assert!(ChannelParams {
+            period_ms: u64::MAX,
+            ..params()
+        }
+        .validate()
+        .is_err());
     }
 
     #[test]

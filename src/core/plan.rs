@@ -84,28 +84,35 @@ impl Plan {
             return constant(true, Rule::Exact, false);
         }
         if cfg.short_pulse == ShortPulse::Band {
-            // 004's truth table.
+            // 004 with one rule for every row of its truth table and its worked example (edge
+            // 0.5, input 0.5: 500 ms on, 500 ms off): below the edge FALSE, above 1 - edge
+            // TRUE, PWM in between, both boundaries inclusive as the user wrote them.
             let e = cfg.edge_band;
-            if e < 0.5 {
-                if duty < e {
-                    return constant(false, Rule::BandLow, false);
-                }
-                if duty > 1.0 - e {
-                    return constant(true, Rule::BandHigh, false);
-                }
-            } else {
-                return if duty < e {
-                    constant(false, Rule::BandLow, false)
-                } else {
-                    constant(true, Rule::BandHigh, false)
-                };
+            if definitely_less(duty, e) {
+                return constant(false, Rule::BandLow, false);
+            }
+            if definitely_less(1.0 - e, duty) {
+                return constant(true, Rule::BandHigh, false);
             }
         }
         // Round to the nearest ns; the whole period stays exactly `period`.
         let t_on = ((duty * period as f64).round() as Nanos).min(period);
         let t_off = period - t_on;
+        // A stretched time that leaves no valid break or pulse beside it (the minima together
+        // exceed the period): the whole period goes to the stretched side, flagged.
+        let stretched_full = |on: bool, rule: Rule| Plan {
+            t_on: if on { period } else { 0 },
+            t_off: if on { 0 } else { period },
+            e1: true,
+            limited: true,
+            rule,
+            ..base
+        };
         if t_on < cfg.min_on {
             return match cfg.short_pulse {
+                ShortPulse::Stretch if period - cfg.min_on.min(period) < cfg.min_off => {
+                    stretched_full(true, Rule::StretchedPulse)
+                }
                 ShortPulse::Stretch => Plan {
                     t_on: cfg.min_on,
                     t_off: period - cfg.min_on,
@@ -122,6 +129,11 @@ impl Plan {
         }
         if t_off < cfg.min_off {
             return match cfg.short_pulse {
+                // The pulse left beside a stretched break would be below min on: the duty is
+                // high, so the break goes instead (as suppress would).
+                ShortPulse::Stretch if period - cfg.min_off.min(period) < cfg.min_on => {
+                    stretched_full(true, Rule::StretchedBreak)
+                }
                 ShortPulse::Stretch => Plan {
                     t_on: period - cfg.min_off,
                     t_off: cfg.min_off,
@@ -141,6 +153,16 @@ impl Plan {
             ..base
         }
     }
+}
+
+/// Relative tolerance under which two duty fractions count as equal: far below any duty a
+/// period can resolve (1 ns of a 1 s period is 1e-9), far above the rounding of `pct / 100` or
+/// `1 - edge` (a few 1e-16).
+const DUTY_EPSILON: f64 = 1e-12;
+
+/// `a < b` by more than float rounding: `0.67 < 1 - 0.33` is false here, as the user meant.
+fn definitely_less(a: f64, b: f64) -> bool {
+    a < b - DUTY_EPSILON
 }
 
 #[cfg(test)]
@@ -245,12 +267,103 @@ mod tests {
 
     #[test]
     fn band_truth_table_at_or_above_half_004() {
+        // 004's rows for i_rEdge >= 0.5: below the edge FALSE, from it TRUE.
         let c = cfg(1000, 0, ShortPulse::Band, 0.7);
         assert_eq!(Plan::new(0.69, &c).t_on, 0);
         assert_eq!(Plan::new(0.7, &c).t_off, 0, "d >= e gives 1");
         let c = cfg(1000, 0, ShortPulse::Band, 0.5);
         assert_eq!(Plan::new(0.49, &c).t_on, 0);
-        assert_eq!(Plan::new(0.5, &c).t_off, 0);
+        assert_eq!(Plan::new(0.51, &c).t_off, 0);
+    }
+
+    #[test]
+    fn band_worked_example_edge_half_input_half_is_500_500_004() {
+        // 004's example: TimeBase 1 s, i_rEdge 0.5, i_rIput 0.5 gives 500 ms TRUE and 500 ms
+        // FALSE; d < e is FALSE, d > 1 - e is TRUE, neither holds, so PWM.
+        let c = cfg(1000, 0, ShortPulse::Band, 0.5);
+        let p = Plan::new(0.5, &c);
+        assert_eq!((p.t_on, p.t_off, p.rule), (500 * MS, 500 * MS, Rule::Exact));
+    }
+
+    #[test]
+    fn band_boundaries_are_exact_as_written_whatever_the_rounding_004() {
+        // `pct / 100` and `1 - edge` round differently: 0.67 > 1 - 0.33 in binary floats. An
+        // input exactly at either boundary is PWM, at every edge value.
+        for pct in 1..=99u32 {
+            for edge_pct in 0..=50u32 {
+                let e = f64::from(edge_pct) / 100.0;
+                let c = cfg(1000, 0, ShortPulse::Band, e);
+                let d = f64::from(pct) / 100.0;
+                let p = Plan::new(d, &c);
+                let expect = if pct < edge_pct {
+                    Rule::BandLow
+                } else if pct > 100 - edge_pct {
+                    Rule::BandHigh
+                } else {
+                    Rule::Exact
+                };
+                assert_eq!(p.rule, expect, "{pct} % at edge {e}");
+            }
+        }
+        for (pct, e) in [
+            (67.0, 0.33),
+            (66.0, 0.34),
+            (68.0, 0.32),
+            (93.0, 0.07),
+            (80.0, 0.2),
+        ] {
+            let c = cfg(1000, 0, ShortPulse::Band, e);
+            assert_eq!(
+                Plan::new(pct / 100.0, &c).rule,
+                Rule::Exact,
+                "{pct} % at {e}"
+            );
+        }
+    }
+
+    #[test]
+    fn minima_beyond_the_period_give_0_or_1_with_e1_000_002() {
+        // Relay PD 150 ms, ME 100 ms (min off = min on): no duty has both a valid pulse and a
+        // valid break; suppress gives 0 or 1 for the period, with E1.
+        let c = ChannelParams {
+            period_ms: 150,
+            min_on_ms: 100,
+            output_kind: crate::core::OutputKind::Relay,
+            ..ChannelParams::default()
+        }
+        .validate()
+        .unwrap();
+        for pct in 1..100u32 {
+            let p = Plan::new(f64::from(pct) / 100.0, &c);
+            assert!(p.t_on == 0 || p.t_off == 0, "{pct} %: {p:?}");
+            assert!(p.e1 && !p.limited, "{pct} %");
+        }
+        // 002, nMinSwiTi = nPrd: every pulse is raised to the whole period, limit flag set.
+        let c = ChannelParams {
+            period_ms: 1000,
+            min_on_ms: 1000,
+            short_pulse: Some(ShortPulse::Stretch),
+            min_off_ms: Some(0),
+            ..ChannelParams::default()
+        }
+        .validate()
+        .unwrap();
+        let p = Plan::new(0.3, &c);
+        assert_eq!(
+            (p.t_on, p.t_off, p.e1, p.limited),
+            (1000 * MS, 0, true, true)
+        );
+        // Stretch with both minima above half the period: still 0 or 1, never a short phase.
+        let c = cfg(100, 60, ShortPulse::Stretch, 0.0);
+        for pct in 1..100u32 {
+            let p = Plan::new(f64::from(pct) / 100.0, &c);
+            let ok = |t: Nanos, min: Nanos| t == 0 || t >= min;
+            assert!(
+                ok(p.t_on, c.min_on) && ok(p.t_off, c.min_off),
+                "{pct} %: {p:?}"
+            );
+            assert!(p.limited, "{pct} %");
+        }
     }
 
     #[test]

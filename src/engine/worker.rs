@@ -121,6 +121,8 @@ impl<O: Output> Worker<O> {
             self.report_status(now);
             for k in 0..self.changes.len() {
                 let c = self.changes[k];
+                // The minimum of the phase this edge begins counts from when it reached the line.
+                self.channels[c.line].edge_written(actual_ns);
                 self.seq[c.line] += 1;
                 self.push(Report::Edge(EdgeReport {
                     channel: c.line,

@@ -521,7 +521,8 @@ fn channel_decls() -> Vec<Decl> {
             default: || ParameterValue::Integer(0),
             description: "Minimum on time, ms (ME / T_MINI / nMinSwiTi / P_B_TM). 0: the \
                           hardware floor (0.1 ms transistor, 50 ms relay).",
-            constraints: "<= period_ms; relay: 0 or >= 50; min on + min off <= period",
+            constraints: "relay: 0 or >= 50; above period_ms acts as period_ms (every duty \
+                          but 0 and 100 % then gives 0 or 1 with E1)",
             read_only: live,
             range: Range::Integer(0, 3_600_000),
             checked: Checked::Range,
@@ -532,7 +533,7 @@ fn channel_decls() -> Vec<Decl> {
             default: || ParameterValue::Integer(-1),
             description: "Minimum off time, ms. -1: as the profile says (= min_on_ms, except \
                           twincat_ba: the hardware floor).",
-            constraints: "<= period_ms; relay: 0 or >= 50; min on + min off <= period",
+            constraints: "relay: 0 or >= 50; above period_ms acts as period_ms",
             read_only: live,
             range: Range::Integer(-1, 3_600_000),
             checked: Checked::Range,
@@ -1319,14 +1320,20 @@ mod tests {
             e.to_string(),
             "pw01: period_ms 4 is below the transistor minimum of 5 ms (0 stops the pulses)"
         );
-        // min_on_ms <= period_ms, whichever order the values come in.
+        // The relay minimum (000), whichever order the values come in.
         let e = s
-            .check(&[item("pw02.min_on_ms", V::Integer(2000))], Phase::Live)
+            .check(
+                &[
+                    item("pw02.min_on_ms", V::Integer(30)),
+                    item("pw02.output_kind", V::String("relay".into())),
+                ],
+                Phase::Live,
+            )
             .unwrap_err();
         assert!(matches!(
             e,
             ParamError::Channel {
-                source: ConfigError::MinTimeAbovePeriod {
+                source: ConfigError::RelayMinTimeTooShort {
                     which: MinTime::On,
                     ..
                 },
@@ -1430,7 +1437,8 @@ mod tests {
         assert_eq!(changed[0].value.int_value, 500);
         let bad = [
             item("pw01.period_ms", V::Integer(200)),
-            item("pw01.min_on_ms", V::Integer(300)),
+            item("pw01.min_on_ms", V::Integer(30)),
+            item("pw01.output_kind", V::String("relay".into())),
         ];
         assert!(s.check(&bad, Phase::Live).is_err());
         assert_eq!(s.int("pw01.period_ms"), Some(500));

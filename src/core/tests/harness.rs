@@ -14,8 +14,10 @@ pub enum Cause {
     Deadline,
     /// A duty command.
     Command,
-    /// An enable change.
+    /// A rising enable.
     Enable,
+    /// A falling enable.
+    Disable,
     /// A configuration change.
     Config,
 }
@@ -65,6 +67,14 @@ impl Bench {
         self
     }
 
+    /// Polls once at `t` ns, however many deadlines lie before it: a caller that woke late.
+    pub fn poll_late(&mut self, t: Nanos) -> &mut Self {
+        assert!(t >= self.now);
+        self.now = t;
+        self.record(Cause::Deadline, |ch, now, emit| ch.poll(now, emit));
+        self
+    }
+
     /// Runs to `ms` milliseconds.
     pub fn at(&mut self, ms: f64) -> &mut Self {
         self.run_to((ms * MS as f64).round() as Nanos)
@@ -78,7 +88,7 @@ impl Bench {
     }
 
     pub fn disable(&mut self) -> &mut Self {
-        self.record(Cause::Enable, |ch, now, emit| {
+        self.record(Cause::Disable, |ch, now, emit| {
             ch.set_enable(now, false, emit)
         });
         self

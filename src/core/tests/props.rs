@@ -3,8 +3,8 @@
 
 use super::harness::{Bench, Cause, MS};
 use crate::core::{
-    ApplyAt, ChannelConfig, ChannelParams, Command, Event, Level, Nanos, OnDisable, OutputKind,
-    Plan, Profile, ShortPulse,
+    ApplyAt, Channel, ChannelConfig, ChannelParams, Command, Event, Level, Nanos, OnDisable,
+    OutputKind, Plan, Profile, ShortPulse,
 };
 use proptest::prelude::*;
 
@@ -32,8 +32,8 @@ fn arb_percent() -> impl Strategy<Value = f64> {
 fn arb_params() -> impl Strategy<Value = ChannelParams> {
     (
         prop_oneof![1 => Just(0u64), 8 => 5u64..400],
-        prop_oneof![2 => Just(0u64), 3 => 0u64..120],
-        prop_oneof![2 => Just(None), 1 => (0u64..120).prop_map(Some)],
+        prop_oneof![2 => Just(0u64), 3 => 0u64..120, 1 => 0u64..600],
+        prop_oneof![2 => Just(None), 1 => (0u64..120).prop_map(Some), 1 => (0u64..600).prop_map(Some)],
         prop_oneof![4 => Just(OutputKind::Transistor), 1 => Just(OutputKind::Relay)],
         prop::sample::select(Profile::ALL.to_vec()),
         prop::option::of(prop::sample::select(vec![
@@ -120,8 +120,9 @@ fn play(start: ChannelParams, ops: &[(Nanos, Op)]) -> (Bench, Vec<(Nanos, Channe
     (b, history)
 }
 
-/// Edges with whether their timing is governed by the minimum-time rules: edges made by an
-/// enable change or by a watchdog trip act at once, as the seeds say (000 EN, 002 bEn).
+/// Edges with whether their timing is governed by the minimum-time rules: only the safety offs
+/// act at once, as the seeds say (000 EN, 002 bEn: a falling enable; and a watchdog trip).
+/// Rising enables are governed: toggling EN never shortens a break.
 fn timed_edges(b: &Bench) -> Vec<(Nanos, Level, bool)> {
     let mut out = Vec::new();
     let mut tripped_at = None;
@@ -129,8 +130,9 @@ fn timed_edges(b: &Bench) -> Vec<(Nanos, Level, bool)> {
         match l.event {
             Event::Watchdog { tripped: true } => tripped_at = Some(l.now),
             Event::Edge { at, level } => {
-                let governed = l.cause != Cause::Enable && tripped_at != Some(l.now);
-                out.push((at, level, governed));
+                let forced =
+                    level == Level::Low && (l.cause == Cause::Disable || tripped_at == Some(l.now));
+                out.push((at, level, !forced));
             }
             _ => {}
         }
@@ -150,8 +152,9 @@ fn min_during(history: &[(Nanos, ChannelConfig)], a: Nanos, b: Nanos, on: bool) 
 }
 
 proptest! {
-    /// Levels alternate, and no pulse or break between two governed edges is shorter than the
-    /// minimum in force (000, 002, 003: "no pulse and no break shorter than its minimum").
+    /// Levels alternate, and no pulse or break ending in a governed edge is shorter than the
+    /// minimum in force (000, 002, 003: "no pulse and no break shorter than its minimum"),
+    /// whatever enables, commands and parameter changes came in between.
     #[test]
     fn no_pulse_or_break_below_its_minimum(start in arb_params(), ops in arb_ops()) {
         let (b, history) = play(start, &ops);
@@ -162,9 +165,9 @@ proptest! {
             level = *l;
         }
         for w in edges.windows(2) {
-            let ((a, la, ga), (z, _, gz)) = (w[0], w[1]);
+            let ((a, la, _), (z, _, gz)) = (w[0], w[1]);
             prop_assert!(z >= a, "edges in time order");
-            if ga && gz {
+            if gz {
                 let min = min_during(&history, a, z, la.is_high());
                 prop_assert!(
                     z - a >= min,
@@ -269,6 +272,163 @@ proptest! {
             } else {
                 prop_assert!(!trips.iter().any(|t| *t > last && *t < next));
             }
+        }
+    }
+
+    /// With a thread that wakes late and writes late at random, no pulse or break on the line
+    /// (between the instants edges were really written) is shorter than its minimum, except
+    /// where a safety off ends it. A late edge moves the next one (issue: late wake-ups).
+    #[test]
+    fn late_wakeups_and_writes_never_shorten_a_phase_below_its_minimum(
+        start in arb_params(),
+        ops in arb_ops(),
+        delays in prop::collection::vec((0u64..80_000_000, 0u64..200_000), 64),
+    ) {
+        let mut ch = Channel::new(start.validate().unwrap(), 0);
+        let mut now: Nanos = 0;
+        let mut k = 0usize;
+        // (written at, level, governed)
+        let mut line: Vec<(Nanos, Level, bool)> = Vec::new();
+        let mut history = vec![(0, *ch.config())];
+        // PWM_TRACE=1 puts the whole run in the failure message.
+        let trace = std::env::var_os("PWM_TRACE").is_some();
+        let mut dbg_log: Vec<String> = Vec::new();
+        let write = |ch: &mut Channel, at: Nanos, events: &[Event], forced_cause: bool,
+                         line: &mut Vec<(Nanos, Level, bool)>, k: &mut usize| -> Nanos {
+            let tripped = events.contains(&Event::Watchdog { tripped: true });
+            let mut written = at;
+            for e in events {
+                if let Event::Edge { level, .. } = e {
+                    written = at + delays[*k % delays.len()].1;
+                    *k += 1;
+                    ch.edge_written(written);
+                    let forced = *level == Level::Low && (forced_cause || tripped);
+                    line.push((written, *level, !forced));
+                }
+            }
+            written
+        };
+        let mut ends = ops.clone();
+        ends.push((3000 * MS, Op::Duty(f64::NAN)));
+        for (dt, op) in &ends {
+            let target = now + dt;
+            while let Some(d) = ch.poll_at().filter(|d| *d <= target) {
+                let wake = d.max(now) + delays[k % delays.len()].0;
+                k += 1;
+                let mut ev = Vec::new();
+                ch.poll(wake, &mut |e| ev.push(e));
+                if trace { dbg_log.push(format!("poll d={} wake={} {:?} since={:?}", d/1000, wake/1000, ev, ch.line_since())); }
+                now = write(&mut ch, wake, &ev, false, &mut line, &mut k);
+                history.push((now, *ch.config()));
+            }
+            let t = target.max(now);
+            let mut ev = Vec::new();
+            let mut disable = false;
+            match op {
+                Op::Duty(v) => ch.command(t, Command::Percent(*v), &mut |e| ev.push(e)),
+                Op::Sv(v) => ch.command(t, Command::Sv(*v), &mut |e| ev.push(e)),
+                Op::Enable(on) => {
+                    disable = !*on;
+                    ch.set_enable(t, *on, &mut |e| ev.push(e))
+                }
+                Op::Params(p) => ch.set_config(t, p.validate().unwrap(), &mut |e| ev.push(e)),
+            }
+            if trace { dbg_log.push(format!("op t={} {:?} {:?}", t/1000, op, ev)); }
+            now = write(&mut ch, t, &ev, disable, &mut line, &mut k);
+            history.push((now, *ch.config()));
+        }
+        for w in line.windows(2) {
+            let ((a, la, _), (z, lz, gz)) = (w[0], w[1]);
+            prop_assert_ne!(la, lz, "levels alternate");
+            if gz {
+                let min = min_during(&history, a, z, la.is_high());
+                prop_assert!(
+                    z - a >= min,
+                    "{} of {} us written at {} us is below the minimum {} us\n{}",
+                    if la.is_high() { "pulse" } else { "break" },
+                    (z - a) / 1000, a / 1000, min / 1000, dbg_log.join("\n")
+                );
+            }
+        }
+    }
+
+    /// A line held on by 004's hold is switched off by the watchdog: at no instant is the line
+    /// high longer than the timeout after the last valid command, enabled or not.
+    #[test]
+    fn the_watchdog_covers_a_held_line(
+        start in arb_params().prop_filter("pulsing", |p| p.period_ms > 0),
+        timeout_ms in 20u64..800,
+        ops in arb_ops(),
+    ) {
+        let guarded = |p: ChannelParams| ChannelParams {
+            command_timeout_ms: timeout_ms,
+            on_disable: Some(OnDisable::Hold),
+            ..p
+        };
+        let ops: Vec<(Nanos, Op)> = ops
+            .into_iter()
+            .map(|(dt, op)| match op {
+                Op::Params(p) => (dt, Op::Params(guarded(p))),
+                op => (dt, op),
+            })
+            .collect();
+        let (b, _) = play(guarded(start), &ops);
+        // Valid commands, at the instants `play` applied them (the channel counts from 0).
+        let mut commands = vec![0];
+        let mut t = 0;
+        for (dt, op) in &ops {
+            t += dt;
+            if matches!(op, Op::Sv(_)) || matches!(op, Op::Duty(v) if v.is_finite()) {
+                commands.push(t);
+            }
+        }
+        let timeout = timeout_ms * MS;
+        let stale = |x: Nanos, strictly_before: bool| {
+            let last = commands
+                .iter()
+                .copied()
+                .filter(|c| if strictly_before { *c < x } else { *c <= x })
+                .max()
+                .unwrap_or(0);
+            x - last > timeout
+        };
+        let mut runs = Vec::new();
+        let mut high_since = None;
+        for (t, level) in b.edges() {
+            match (level, high_since) {
+                (Level::High, None) => high_since = Some(t),
+                (Level::Low, Some(s)) => {
+                    runs.push((s, t));
+                    high_since = None;
+                }
+                _ => {}
+            }
+        }
+        if let Some(s) = high_since {
+            runs.push((s, b.now));
+        }
+        for (s, e) in runs {
+            prop_assert!(!stale(e, true), "high until {} us, no command for over {} ms", e / 1000, timeout_ms);
+            for c in commands.iter().copied().filter(|c| *c > s && *c <= e) {
+                prop_assert!(!stale(c, true), "high at {} us, no command for over {} ms", c / 1000, timeout_ms);
+            }
+        }
+    }
+
+    /// 004's band is symmetric: duty d at edge e gives the mirror of 1 - d, for every pair
+    /// written in whole percent.
+    #[test]
+    fn the_band_boundary_is_symmetric(pct in 0u32..=100, edge_pct in 0u32..=100) {
+        let cfg = ChannelParams {
+            period_ms: 1000,
+            short_pulse: Some(ShortPulse::Band),
+            edge_band: f64::from(edge_pct) / 100.0,
+            ..ChannelParams::default()
+        }.validate().unwrap();
+        let p = Plan::new(f64::from(pct) / 100.0, &cfg);
+        let q = Plan::new(f64::from(100 - pct) / 100.0, &cfg);
+        if 2 * edge_pct <= 100 {
+            prop_assert_eq!((p.t_on, p.t_off), (q.t_off, q.t_on), "{} % / {} %", pct, 100 - pct);
         }
     }
 }

@@ -135,20 +135,112 @@ fn rising_enable_starts_a_period_with_its_on_phase_000_004() {
 }
 
 #[test]
-fn rising_enable_at_0_and_100_goes_straight_there_without_minimum_002() {
-    // Hold keeps the line high after disable; re-enabling at 0 % drops it at once even though
-    // the pulse that is held is shorter than min_off would allow after it.
+fn rising_enable_at_0_and_100_goes_straight_there_without_minimum_rule_002() {
+    // 002: at 0 % and 100 % no minimum-time rule changes the duty: 0 % is off and 100 % on,
+    // straight from the enable. The line's own minima still hold.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 100;
+        p.min_on_ms = 40;
+        p.on_disable = Some(OnDisable::Hold);
+    }));
+    b.duty(50.0).enable().at(60.0).disable().at(61.0);
+    b.duty(0.0).enable().at(62.0);
+    assert_eq!(b.wave(), "H@0 L@50", "held low, stays low at 0 %");
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 100;
+        p.min_on_ms = 40;
+        p.on_disable = Some(OnDisable::Hold);
+    }));
+    b.duty(50.0)
+        .enable()
+        .at(45.0)
+        .disable()
+        .duty(0.0)
+        .enable()
+        .at(46.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@45",
+        "0 %: straight off, the pulse had its 40 ms"
+    );
+    b.at(200.0).disable().duty(100.0).enable().at(201.0);
+    assert_eq!(b.wave(), "H@0 L@45 H@200", "100 %: straight on");
+    assert!(!b.status().e1);
+}
+
+#[test]
+fn rising_enable_at_0_keeps_a_held_pulse_to_its_minimum() {
+    // A pulse held by `hold` (004) and then ended by an enable at 0 % still lasts min on.
     let mut b = Bench::new(with(|p| {
         p.period_ms = 100;
         p.min_on_ms = 40;
         p.on_disable = Some(OnDisable::Hold);
     }));
     b.duty(50.0).enable().at(10.0).disable().at(11.0);
-    b.duty(0.0).enable().at(12.0);
-    assert_eq!(b.wave(), "H@0 L@11");
-    b.disable().duty(100.0).enable();
-    assert_eq!(b.wave(), "H@0 L@11 H@12", "100 %: straight on");
-    assert!(!b.status().e1);
+    b.duty(0.0).enable().at(100.0);
+    assert_eq!(b.wave(), "H@0 L@40");
+    assert!(b
+        .notes()
+        .iter()
+        .all(|(_, e)| !matches!(e, Event::Missed { .. })));
+}
+
+#[test]
+fn en_toggling_never_shortens_the_break_below_min_off_000_002() {
+    // 000/002: EN's falling edge acts at once; a rising edge starts the on phase only once the
+    // break since the last real fall has lasted min off (relay 500 ms).
+    let relay = with(|p| {
+        p.period_ms = 2000;
+        p.output_kind = OutputKind::Relay;
+        p.min_on_ms = 500;
+    });
+    let mut b = Bench::new(relay);
+    b.duty(50.0)
+        .enable()
+        .at(100.0)
+        .disable()
+        .at(101.0)
+        .enable()
+        .at(3000.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@600 L@1600 H@2600");
+    // Forty toggles 5 ms apart: one pulse that runs its time, never a 5 ms phase.
+    let mut b = Bench::new(relay);
+    b.duty(50.0).enable();
+    for k in 1..=40u32 {
+        b.at(f64::from(k) * 5.0);
+        if k % 2 == 1 {
+            b.disable();
+        } else {
+            b.enable();
+        }
+    }
+    b.at(1000.0);
+    let edges = b.edges();
+    assert_eq!(b.wave(), "H@0 L@5 H@505");
+    for w in edges.windows(2) {
+        if w[0].1 == Level::Low {
+            assert!(w[1].0 - w[0].0 >= 500 * MS, "{}", b.wave());
+        }
+    }
+}
+
+#[test]
+fn en_toggling_with_hold_never_shortens_the_break() {
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.on_disable = Some(OnDisable::Hold);
+    }));
+    // The break from 500 is held by a disable at 501 and the enable at 503 starts the next
+    // period only once it has lasted 100 ms.
+    b.duty(50.0)
+        .enable()
+        .at(501.0)
+        .disable()
+        .at(503.0)
+        .enable()
+        .at(1000.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@600");
 }
 
 #[test]
@@ -305,18 +397,15 @@ fn band_below_half_follows_004_truth_table() {
 
 #[test]
 fn band_at_or_above_half_follows_004_truth_table() {
-    // 004's example: edge 0.5 gives 500/500 ms at 0.5 input; edge 0.7 turns that input FALSE.
+    // 004's worked example: TimeBase 1 s, edge 0.5, input 0.5 gives 500 ms TRUE, 500 ms FALSE.
     let mut b = Bench::new(with(|p| {
         p.period_ms = 1000;
         p.profile = Profile::FrequencyOutput;
         p.edge_band = 0.5;
     }));
     b.command(Command::Fraction(0.5)).enable().at(1500.0);
-    assert_eq!(
-        b.wave(),
-        "H@0",
-        "edge 0.5, input 0.5: i_rEdge <= i_rIput gives TRUE"
-    );
+    assert_eq!(b.wave(), "H@0 L@500 H@1000 L@1500", "edge 0.5, input 0.5");
+    // Edge 0.7: an input below the edge is FALSE, one at the edge TRUE.
     b.params(with(|p| {
         p.period_ms = 1000;
         p.profile = Profile::FrequencyOutput;
@@ -325,11 +414,33 @@ fn band_at_or_above_half_follows_004_truth_table() {
     .at(2500.0);
     assert_eq!(
         b.wave(),
-        "H@0 L@2000",
-        "edge 0.7: input below edge gives FALSE"
+        "H@0 L@500 H@1000 L@1500",
+        "input 0.5 < edge 0.7: FALSE"
     );
     b.command(Command::Fraction(0.7)).at(3500.0);
-    assert_eq!(b.wave(), "H@0 L@2000 H@3000");
+    assert_eq!(b.wave(), "H@0 L@500 H@1000 L@1500 H@3000");
+}
+
+#[test]
+fn band_upper_boundary_is_pwm_as_written_004() {
+    // 67 % at edge 0.33 lies exactly on 1 - edge: PWM, like 20 % at edge 0.2 on the lower one.
+    for (pct, edge) in [
+        (67.0, 0.33),
+        (66.0, 0.34),
+        (68.0, 0.32),
+        (93.0, 0.07),
+        (80.0, 0.2),
+    ] {
+        let mut b = Bench::new(with(|p| {
+            p.period_ms = 1000;
+            p.profile = Profile::FrequencyOutput;
+            p.edge_band = edge;
+        }));
+        b.duty(pct).enable().at(999.0);
+        let on = format!("L@{}", pct * 10.0);
+        assert_eq!(b.wave(), format!("H@0 {on}"), "{pct} % at edge {edge}");
+        assert_eq!(b.status().rule, Rule::Exact);
+    }
 }
 
 // ---- 1.3 apply_at ------------------------------------------------------------------------------
@@ -416,6 +527,47 @@ fn immediate_never_ends_a_break_below_min_off_003() {
     }));
     b.duty(50.0).enable().at(520.0).duty(100.0).at(700.0);
     assert_eq!(b.wave(), "H@0 L@500 H@600");
+}
+
+#[test]
+fn immediate_measures_the_break_from_the_real_last_edge_003() {
+    // 003 compares the new times with "the previous impulse/break length". 5 % is suppressed
+    // (50 ms < P_B_TM 100 ms), so the line has been low since 0; at 2100 ms the command
+    // rises to 50 %: the break has lasted 2.1 s, so the impulse starts at once.
+    let tcont = with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.profile = Profile::TcontCp;
+    });
+    let mut b = Bench::new(tcont);
+    b.duty(5.0).enable().at(2100.0).duty(50.0).at(3000.0);
+    assert_eq!(b.wave(), "H@2100 L@2600");
+}
+
+#[test]
+fn immediate_measures_the_impulse_from_the_real_last_edge_003() {
+    // The mirror case: 95 % (break 50 ms < 100 ms suppressed) holds the line high from 0; at
+    // 2100 ms 50 %: the impulse has lasted 2.1 s, so it ends at once.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.profile = Profile::TcontCp;
+    }));
+    b.duty(95.0).enable().at(2100.0).duty(50.0).at(2700.0);
+    assert_eq!(b.wave(), "H@0 L@2100 H@2600");
+}
+
+#[test]
+fn immediate_counts_p_b_tm_from_the_real_last_edge_003() {
+    // P_B_TM 300 ms: after 2 s low, 100 % at 2000.05 ms switches on at once; the minimum
+    // break is counted from the real fall, not from the hidden period boundary at 2000 ms.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 300;
+        p.profile = Profile::TcontCp;
+    }));
+    b.duty(5.0).enable().at(2000.05).duty(100.0).at(2500.0);
+    assert_eq!(b.wave(), "H@2000.05");
 }
 
 // ---- 1.5 parameter changes --------------------------------------------------------------------
@@ -528,7 +680,7 @@ fn enabling_with_a_stale_command_trips_at_once() {
 }
 
 #[test]
-fn watchdog_sleeps_while_disabled() {
+fn watchdog_sleeps_while_disabled_and_off() {
     let mut b = Bench::new(with(|p| {
         p.period_ms = 1000;
         p.command_timeout_ms = 500;
@@ -538,6 +690,49 @@ fn watchdog_sleeps_while_disabled() {
         .notes()
         .iter()
         .any(|(_, e)| matches!(e, Event::Watchdog { .. })));
+}
+
+#[test]
+fn watchdog_switches_off_a_line_held_on_004() {
+    // 004's hold keeps the line high while disabled; the watchdog covers every state in
+    // which the line is high, so the held line goes off when commands stop.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.profile = Profile::FrequencyOutput;
+        p.command_timeout_ms = 500;
+    }));
+    b.duty(80.0).enable().at(300.0).disable().at(5000.0);
+    assert_eq!(b.wave(), "H@0 L@500");
+    assert!(b
+        .notes()
+        .contains(&(500 * MS, Event::Watchdog { tripped: true })));
+}
+
+#[test]
+fn a_held_line_goes_off_when_the_configuration_no_longer_holds_it() {
+    let hold = with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.profile = Profile::FrequencyOutput;
+    });
+    // on_disable set to `off` while disabled and held high: off at once.
+    let mut b = Bench::new(hold);
+    b.duty(80.0).enable().at(300.0).disable().at(400.0);
+    b.params(ChannelParams {
+        on_disable: Some(OnDisable::Off),
+        ..hold
+    })
+    .at(2000.0);
+    assert_eq!(b.wave(), "H@0 L@400");
+    // period 0 likewise, but never before the pulse has had its minimum on time.
+    let mut b = Bench::new(hold);
+    b.duty(80.0).enable().at(30.0).disable().at(40.0);
+    b.params(ChannelParams {
+        period_ms: 0,
+        ..hold
+    })
+    .at(2000.0);
+    assert_eq!(b.wave(), "H@0 L@100");
 }
 
 // ---- late polling ------------------------------------------------------------------------------
@@ -562,6 +757,40 @@ fn a_late_poll_merges_past_edges_and_reports_them() {
     }));
     assert!(events.contains(&Event::Missed { edges: 4 }));
     assert_eq!(b.ch.poll_at(), Some(300 * MS), "the grid is kept");
+}
+
+#[test]
+fn a_late_edge_moves_the_next_one_so_the_break_keeps_its_minimum() {
+    // Relay 200 ms at 50 %, minimum 50 ms: the fall due at 100 ms is written 58 ms late. The
+    // rise due at 200 ms would leave a 42 ms break; it moves to 208 ms, and the grid resumes
+    // (the pulse still ends at 300 ms).
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 200;
+        p.output_kind = OutputKind::Relay;
+    }));
+    b.duty(50.0).enable().poll_late(158 * MS);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@100",
+        "the fall is reported at its scheduled time"
+    );
+    b.at(201.0);
+    assert_eq!(b.ch.poll_at(), Some(208 * MS), "held back to 158 + 50 ms");
+    b.at(500.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@208 L@300 H@400 L@500");
+}
+
+#[test]
+fn a_write_confirmed_late_moves_the_next_edge() {
+    // The output thread says when the write really happened: a rise due at 0 that reached
+    // the line at 60 us cannot be followed by a fall at 100 us (transistor floor 100 us).
+    let mut b = Bench::new(with(|p| p.period_ms = 100));
+    b.command(Command::Percent(0.1)).enable();
+    b.ch.edge_written(60_000);
+    b.at(0.1);
+    assert_eq!(b.ch.poll_at(), Some(160_000), "held back to 60 + 100 us");
+    b.at(99.0);
+    assert_eq!(b.edges(), vec![(0, Level::High), (160_000, Level::Low)]);
 }
 
 // ---- status ------------------------------------------------------------------------------------
