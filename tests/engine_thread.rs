@@ -214,6 +214,52 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
 }
 
 #[test]
+fn a_split_range_pair_is_never_high_together_on_the_line() {
+    // 001's split range: hot and cold change sign every 35 ms while both pulse at 10 ms
+    // periods with different phases; on the trace (written times) the two lines never overlap.
+    let dir = tempdir();
+    let csv = dir.join("pair.csv");
+    let output = SimOutput::new(
+        names(2),
+        Some(TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap()),
+    )
+    .unwrap();
+    let hot = params(10);
+    let cold = ChannelParams {
+        apply_at: Some(pwm_actuator::core::ApplyAt::Immediate),
+        ..params(7)
+    };
+    let cfgs = vec![hot.validate().unwrap(), cold.validate().unwrap()];
+    let mut e = engine::spawn(cfgs, output, EngineOptions::default()).unwrap();
+    send(&mut e.requests, 0, Input::Pair(1));
+    send(&mut e.requests, 1, Input::Pair(0));
+    send(&mut e.requests, 0, Input::Enable(true));
+    send(&mut e.requests, 1, Input::Enable(true));
+    for k in 0..12 {
+        let signed = if k % 2 == 0 { 70.0 } else { -80.0 };
+        let (h, c) = pwm_actuator::core::split_command(signed, 0.0);
+        send(&mut e.requests, 0, Input::Command(h));
+        send(&mut e.requests, 1, Input::Command(c));
+        std::thread::sleep(Duration::from_millis(35));
+    }
+    e.handle.shutdown().unwrap();
+    let rows = read_csv(&csv);
+    let mut high = [false; 2];
+    let (mut rises, mut overlaps) = ([0; 2], Vec::new());
+    for (t, ch, level, _) in &rows {
+        let i = usize::from(ch == "pw02");
+        high[i] = *level == 1;
+        rises[i] += usize::from(*level == 1);
+        if high[0] && high[1] {
+            overlaps.push(*t);
+        }
+    }
+    assert!(overlaps.is_empty(), "both high at {overlaps:?}");
+    assert!(rises[0] >= 6 && rises[1] >= 6, "both sides ran: {rises:?}");
+    assert_eq!(high, [false, false], "both end inactive");
+}
+
+#[test]
 fn a_failing_write_drives_the_other_outputs_inactive_and_stops() {
     let sim = SimOutput::new(names(3), None).unwrap();
     let probe = sim.probe();

@@ -75,6 +75,9 @@ struct Line {
     since: Option<Nanos>,
     /// A level the schedule asked for, held back until the given instant.
     held: Option<(Level, Nanos)>,
+    /// An interlock forbids the line to go high (its partner of a split-range pair is high); a
+    /// rise asked for meanwhile is held back until it is released.
+    locked: bool,
 }
 
 /// What a channel reports about itself (002's information outputs, 004's active flag).
@@ -171,6 +174,7 @@ impl Channel {
                 level: Level::Low,
                 since: None,
                 held: None,
+                locked: false,
             },
             step: None,
             plan: Plan::new(0.0, &cfg),
@@ -226,11 +230,38 @@ impl Channel {
         [
             self.step.map(|s| s.end),
             self.watchdog_deadline(),
-            self.line.held.map(|(_, at)| at),
+            self.line
+                .held
+                .filter(|(level, _)| !(self.line.locked && *level == Level::High))
+                .map(|(_, at)| at),
         ]
         .into_iter()
         .flatten()
         .min()
+    }
+
+    /// Whether the line is interlocked (see [`Channel::set_interlock`]).
+    pub fn interlocked(&self) -> bool {
+        self.line.locked
+    }
+
+    /// Engages or releases the interlock at `now`: while engaged the line never goes high; a
+    /// rise the schedule asks for is held back and written on release (still no earlier than
+    /// the minimum break since the last real fall). Engaging it does not switch a high line
+    /// off: the caller engages it only while the line is low (001's split range: the partner
+    /// of a pair is high).
+    pub fn set_interlock(&mut self, now: Nanos, on: bool, emit: &mut dyn FnMut(Event)) {
+        if on == self.line.locked {
+            return;
+        }
+        self.line.locked = on;
+        if !on {
+            if let Some((Level::High, at)) = self.line.held {
+                if at <= now {
+                    self.write_line(Level::High, now, emit);
+                }
+            }
+        }
     }
 
     /// Processes every deadline at or before `now`. When several edges fall due together (the
@@ -470,10 +501,10 @@ impl Channel {
             .line
             .since
             .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)));
-        if at >= earliest {
+        if at >= earliest && !(self.line.locked && level == Level::High) {
             self.write_line(level, at, emit);
         } else {
-            self.line.held = Some((level, earliest));
+            self.line.held = Some((level, earliest.max(at)));
         }
     }
 
@@ -492,6 +523,7 @@ impl Channel {
             level,
             since: Some(at),
             held: None,
+            locked: self.line.locked,
         };
         emit(Event::Edge { at, level });
     }
@@ -520,7 +552,7 @@ impl Channel {
             return;
         }
         if let Some((level, at)) = self.line.held {
-            if at == t {
+            if at == t && !(self.line.locked && level == Level::High) {
                 self.write_line(level, t, emit);
                 return;
             }

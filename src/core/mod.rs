@@ -7,6 +7,7 @@
 pub mod channel;
 pub mod command;
 pub mod config;
+pub mod interlock;
 pub mod plan;
 
 pub use channel::{Channel, Event, Status};
@@ -15,6 +16,7 @@ pub use config::{
     ApplyAt, ChannelConfig, ChannelParams, ConfigError, MinTime, OnDisable, OutputKind, Profile,
     ShortPulse, NS_PER_MS,
 };
+pub use interlock::{split_command, Interlocks, PairError};
 pub use plan::{Plan, Rule};
 
 /// Nanoseconds of a monotonic clock (an instant) or a duration in nanoseconds.

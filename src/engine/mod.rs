@@ -16,6 +16,9 @@ pub enum Input {
     Enable(bool),
     /// A validated configuration.
     Config(ChannelConfig),
+    /// Pairs the channel with another for split range (001): from then on the two lines are
+    /// never high together. Sent once at start-up; a channel already paired ignores it.
+    Pair(usize),
 }
 
 /// An input addressed to a channel.

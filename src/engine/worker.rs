@@ -6,7 +6,7 @@
 
 use super::{EdgeReport, Input, Report, Request};
 use crate::clock;
-use crate::core::{Channel, ChannelConfig, Event, Level, Nanos};
+use crate::core::{Channel, ChannelConfig, Event, Interlocks, Level, Nanos};
 use crate::output::{LineChange, Output};
 use rtrb::{Consumer, Producer};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -21,6 +21,7 @@ pub(crate) enum Stop<E> {
 
 pub(crate) struct Worker<O: Output> {
     channels: Vec<Channel>,
+    interlocks: Interlocks,
     seq: Vec<u64>,
     touched: Vec<bool>,
     changes: Vec<LineChange>,
@@ -42,6 +43,7 @@ impl<O: Output> Worker<O> {
         let n = configs.len();
         Worker {
             channels: configs.iter().map(|c| Channel::new(*c, now)).collect(),
+            interlocks: Interlocks::new(n),
             seq: vec![0; n],
             touched: vec![false; n],
             // At most two edges per channel can come out of one wake-up (a request edge and a
@@ -78,9 +80,28 @@ impl<O: Output> Worker<O> {
                 self.channels[i].poll(now, &mut |e| sink.event(e));
                 self.pushed |= sink.pushed;
                 self.touched[i] = true;
+                self.sync_pair(i, now);
             }
         }
         self.flush(now)
+    }
+
+    /// After channel `i` acted: its split-range partner, if any, is interlocked while `i` is
+    /// high and released (its held rise written in this same batch, after `i`'s fall) when not.
+    fn sync_pair(&mut self, i: usize, now: Nanos) {
+        let Some(p) = self.interlocks.partner(i) else {
+            return;
+        };
+        let (changes, reports, dropped) = (&mut self.changes, &mut self.reports, &self.dropped);
+        let mut pushed = false;
+        self.interlocks
+            .sync(&mut self.channels, i, now, &mut |c, e| {
+                let mut sink = Sink::new(c, changes, reports, dropped);
+                sink.event(e);
+                pushed |= sink.pushed;
+            });
+        self.pushed |= pushed;
+        self.touched[p] = true;
     }
 
     /// Handles one request at `now`.
@@ -99,9 +120,15 @@ impl<O: Output> Worker<O> {
             Input::Command(c) => ch.command(now, c, emit),
             Input::Enable(on) => ch.set_enable(now, on, emit),
             Input::Config(cfg) => ch.set_config(now, cfg, emit),
+            Input::Pair(partner) => {
+                // Refused pairs (unknown channel, already paired) are checked by the caller at
+                // start-up; here they are ignored rather than stop the thread.
+                let _ = self.interlocks.pair(req.channel, partner);
+            }
         }
         self.pushed |= sink.pushed;
         self.touched[req.channel] = true;
+        self.sync_pair(req.channel, now);
     }
 
     /// Writes the collected edges, reports them with their actual time, and sends a status
