@@ -1,12 +1,9 @@
 //! `pwm_actuator_node`: the ROS 2 node (see `pwm_actuator::ros`), or `pwm_actuator_node bench
 //! ...` for the timing benchmark.
 
-use std::process::ExitCode;
+mod bench;
 
-/// `pwm_actuator_node bench [...]`.
-fn bench(args: &[String]) -> i32 {
-    pwm_actuator::bench::main(args)
-}
+use std::process::ExitCode;
 
 fn main() -> ExitCode {
     let mut args = Vec::new();
@@ -20,7 +17,7 @@ fn main() -> ExitCode {
         }
     }
     let code = match args.first().map(String::as_str) {
-        Some("bench") => bench(&args[1..]),
+        Some("bench") => bench::main(&args[1..]),
         _ => pwm_actuator::ros::run(&args),
     };
     ExitCode::from(u8::try_from(code).unwrap_or(1))

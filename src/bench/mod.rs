@@ -1,14 +1,19 @@
 //! `pwm_actuator_node bench`: edge lateness of the output thread against a tokio `sleep_until`
 //! baseline, in one run, with the same channels, period, duty and simulated output.
 //!
-//! Both sides run the very same per-wake-up work (`engine::worker`); only the way they sleep
-//! differs. Lateness is the time the output write returned minus the time the core scheduled
-//! the edge, read from the edge reports the ROS side would publish.
+//! Both sides run the very same output thread and per-wake-up work (`engine::spawn_with`);
+//! only the loop that puts the thread to sleep differs ([`baseline`] for tokio). Lateness is
+//! the time the output write returned minus the time the core scheduled the edge, read from
+//! the edge reports the ROS side would publish.
+//!
+//! Part of the binary, not of the library: nothing the node runs depends on it.
 
-use crate::clock;
-use crate::core::{ChannelParams, Command, Nanos, NS_PER_MS};
-use crate::engine::{self, Engine, EngineOptions, Input, Report, Request};
-use crate::output::SimOutput;
+mod baseline;
+
+use pwm_actuator::clock;
+use pwm_actuator::core::{ChannelParams, Command, Nanos, NS_PER_MS};
+use pwm_actuator::engine::{self, Engine, EngineOptions, Input, Report, Request};
+use pwm_actuator::output::SimOutput;
 use std::fmt::Write as _;
 use std::time::Duration;
 
@@ -249,7 +254,7 @@ fn run_side(opts: &BenchOptions, params: ChannelParams, baseline: bool) -> Resul
         mut reports,
         handle,
     } = if baseline {
-        engine::spawn_tokio_baseline(configs, output, engine_opts)
+        baseline::spawn(configs, output, engine_opts)
     } else {
         engine::spawn(configs, output, engine_opts)
     }
