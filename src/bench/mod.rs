@@ -9,11 +9,13 @@
 //! Part of the binary, not of the library: nothing the node runs depends on it.
 
 mod baseline;
+mod floor;
 
 use pwm_actuator::clock;
 use pwm_actuator::core::{ChannelParams, Command, Nanos, NS_PER_MS};
 use pwm_actuator::engine::{self, Engine, EngineOptions, Input, Report, Request};
 use pwm_actuator::output::SimOutput;
+use serde::Serialize;
 use std::fmt::Write as _;
 use std::time::Duration;
 
@@ -51,7 +53,7 @@ impl Default for BenchOptions {
 }
 
 /// One side's figures.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
 pub struct Figures {
     /// Edges written.
     pub edges: usize,
@@ -67,6 +69,10 @@ pub struct Figures {
     pub max_us: f64,
     /// Process CPU time over wall time, percent of one core.
     pub cpu_pct: f64,
+    /// The report reader thread's share of `cpu_pct` (the rest is the output thread;
+    /// the main thread sleeps), percent
+    /// of one core; 0 for the floor, which has no reader.
+    pub reader_cpu_pct: f64,
     /// Peak resident set size during the run, KiB.
     pub rss_kb: u64,
     /// Host CPU steal during the run, percent of all CPU time (from /proc/stat).
@@ -151,63 +157,118 @@ pub fn main(args: &[String]) -> i32 {
                 .unwrap_or_default()
         );
     }
-    let ours = match run_side(&opts, params, false) {
-        Ok(f) => f,
+    let (ours, deadlines) = match run_side(&opts, params, Side::Ours) {
+        Ok(r) => r,
         Err(e) => {
             eprintln!("bench (timerfd thread): {e}");
             return 1;
         }
     };
-    let baseline = match run_side(&opts, params, true) {
-        Ok(f) => f,
+    let (baseline, _) = match run_side(&opts, params, Side::Baseline) {
+        Ok(r) => r,
         Err(e) => {
             eprintln!("bench (tokio baseline): {e}");
             return 1;
         }
     };
-    let ratio = |b: f64, o: f64| if o > 0.0 { b / o } else { f64::INFINITY };
-    let (r50, r99) = (
-        ratio(baseline.p50_us, ours.p50_us),
-        ratio(baseline.p99_us, ours.p99_us),
-    );
+    let floor = match run_floor(&opts, params, &deadlines) {
+        Ok(f) => f,
+        Err(e) => {
+            eprintln!("bench (bare timer floor): {e}");
+            return 1;
+        }
+    };
+    let summary = Summary::new(ours, baseline, floor);
     if opts.json {
-        println!(
-            "{{\"ours\": {}, \"baseline\": {}, \"ratio_p50\": {:.2}, \"ratio_p99\": {:.2}}}",
-            json(&ours),
-            json(&baseline),
-            r50,
-            r99
-        );
+        match serde_json::to_string(&summary) {
+            Ok(j) => println!("{j}"),
+            Err(e) => {
+                eprintln!("bench: {e}");
+                return 1;
+            }
+        }
     } else {
-        println!("{}", table(&ours, &baseline));
-        println!("ratio baseline/ours: p50 {r50:.1}x, p99 {r99:.1}x");
+        println!("{}", table(&summary));
+        println!(
+            "ratio baseline/ours: p50 {:.1}x, p99 {:.1}x",
+            summary.ratio_p50, summary.ratio_p99
+        );
+        println!(
+            "ratio ours/floor: p50 {:.1}x, p99 {:.1}x, cpu {:.1}x",
+            summary.ours_over_floor_p50, summary.ours_over_floor_p99, summary.ours_over_floor_cpu
+        );
     }
     0
 }
 
-fn json(f: &Figures) -> String {
-    format!(
-        "{{\"p50_us\": {:.2}, \"p99_us\": {:.2}, \"p999_us\": {:.2}, \"max_us\": {:.2}, \
-         \"early\": {}, \"edges\": {}, \"cpu_pct\": {:.2}, \"rss_kb\": {}, \"steal_pct\": {:.2}, \
-         \"dropped\": {}}}",
-        f.p50_us,
-        f.p99_us,
-        f.p999_us,
-        f.max_us,
-        f.early,
-        f.edges,
-        f.cpu_pct,
-        f.rss_kb,
-        f.steal_pct,
-        f.dropped
-    )
+/// Everything one run measured, as `--json` prints it. Figures are rounded to 0.01; a ratio
+/// whose divisor is 0 is `null`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Summary {
+    /// The output thread (timerfd).
+    pub ours: Figures,
+    /// The same thread and work asleep in tokio's `sleep_until`.
+    pub baseline: Figures,
+    /// A bare timerfd loop on ours' deadlines that does no work.
+    pub floor: Figures,
+    /// Baseline p50 over ours.
+    pub ratio_p50: f64,
+    /// Baseline p99 over ours.
+    pub ratio_p99: f64,
+    /// Ours p50 over the floor's.
+    pub ours_over_floor_p50: f64,
+    /// Ours p99 over the floor's.
+    pub ours_over_floor_p99: f64,
+    /// Ours CPU over the floor's.
+    pub ours_over_floor_cpu: f64,
 }
 
-fn table(ours: &Figures, baseline: &Figures) -> String {
-    let mut s = String::new();
+impl Summary {
+    fn new(ours: Figures, baseline: Figures, floor: Figures) -> Summary {
+        let ratio = |a: f64, b: f64| round2(if b > 0.0 { a / b } else { f64::INFINITY });
+        Summary {
+            ratio_p50: ratio(baseline.p50_us, ours.p50_us),
+            ratio_p99: ratio(baseline.p99_us, ours.p99_us),
+            ours_over_floor_p50: ratio(ours.p50_us, floor.p50_us),
+            ours_over_floor_p99: ratio(ours.p99_us, floor.p99_us),
+            ours_over_floor_cpu: ratio(ours.cpu_pct, floor.cpu_pct),
+            ours: ours.rounded(),
+            baseline: baseline.rounded(),
+            floor: floor.rounded(),
+        }
+    }
+}
+
+/// Rounds to 0.01 (what the figures' precision supports); serde_json writes infinities as
+/// `null`.
+fn round2(x: f64) -> f64 {
+    if x.is_finite() {
+        (x * 100.0).round() / 100.0
+    } else {
+        x
+    }
+}
+
+impl Figures {
+    fn rounded(self) -> Figures {
+        Figures {
+            p50_us: round2(self.p50_us),
+            p99_us: round2(self.p99_us),
+            p999_us: round2(self.p999_us),
+            max_us: round2(self.max_us),
+            cpu_pct: round2(self.cpu_pct),
+            reader_cpu_pct: round2(self.reader_cpu_pct),
+            steal_pct: round2(self.steal_pct),
+            ..self
+        }
+    }
+}
+
+fn table(s: &Summary) -> String {
+    let mut t = String::new();
     let _ = writeln!(
-        s,
-        "{:<18} {:>7} {:>6} {:>9} {:>9} {:>9} {:>9} {:>6} {:>8} {:>6}",
+        t,
+        "{:<18} {:>7} {:>6} {:>9} {:>9} {:>9} {:>9} {:>6} {:>7} {:>8} {:>6}",
         "",
         "edges",
         "early",
@@ -216,13 +277,18 @@ fn table(ours: &Figures, baseline: &Figures) -> String {
         "p99.9 us",
         "max us",
         "cpu %",
+        "reader%",
         "rss KiB",
         "steal%"
     );
-    for (name, f) in [("ours (timerfd)", ours), ("baseline (tokio)", baseline)] {
+    for (name, f) in [
+        ("ours (timerfd)", &s.ours),
+        ("baseline (tokio)", &s.baseline),
+        ("floor (bare timer)", &s.floor),
+    ] {
         let _ = writeln!(
-            s,
-            "{:<18} {:>7} {:>6} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6.2} {:>8} {:>6.2}",
+            t,
+            "{:<18} {:>7} {:>6} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6.2} {:>7.2} {:>8} {:>6.2}",
             name,
             f.edges,
             f.early,
@@ -231,49 +297,62 @@ fn table(ours: &Figures, baseline: &Figures) -> String {
             f.p999_us,
             f.max_us,
             f.cpu_pct,
+            f.reader_cpu_pct,
             f.rss_kb,
             f.steal_pct
         );
     }
-    s.trim_end().to_string()
+    t.trim_end().to_string()
 }
 
-/// Runs one side and measures it.
-fn run_side(opts: &BenchOptions, params: ChannelParams, baseline: bool) -> Result<Figures, String> {
+/// Which sleeping loop a side runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Side {
+    /// The node's own: `engine::spawn`, timerfd.
+    Ours,
+    /// tokio's `sleep_until` ([`baseline`]).
+    Baseline,
+}
+
+/// Runs one side and measures it. Also returns the scheduled time of every measured edge,
+/// monotonic ns relative to the first enable, ascending (the floor replays them).
+fn run_side(
+    opts: &BenchOptions,
+    params: ChannelParams,
+    side: Side,
+) -> Result<(Figures, Vec<Nanos>), String> {
     let cfg = params.validate().map_err(|e| e.to_string())?;
     let names: Vec<String> = (1..=opts.channels).map(|i| format!("pw{i:02}")).collect();
     let output = SimOutput::new(names, None).map_err(|e| e.to_string())?;
-    let engine_opts = EngineOptions {
-        rt_priority: opts.rt_priority,
-        queue_capacity: 16_384,
-    };
     let configs = vec![cfg; opts.channels];
     reset_peak_rss();
     let Engine {
         mut requests,
         mut reports,
         handle,
-    } = if baseline {
-        baseline::spawn(configs, output, engine_opts)
-    } else {
-        engine::spawn(configs, output, engine_opts)
+    } = match side {
+        Side::Ours => engine::spawn(configs, output, engine_options(opts)),
+        Side::Baseline => baseline::spawn(configs, output, engine_options(opts)),
     }
     .map_err(|e| e.to_string())?;
 
     // The reader: what the ROS side does, minus publishing.
-    let expected = (opts.seconds * 2000.0 / opts.period_ms as f64) as usize * opts.channels;
+    let expected = expected_edges(opts);
     let reader = std::thread::spawn(move || {
-        let mut lateness: Vec<i64> = Vec::with_capacity(expected + 1024);
+        let mut edges: Vec<(i64, Nanos)> = Vec::with_capacity(expected + 1024);
+        let (cpu0, wall0) = (thread_cpu_ns(), clock::monotonic_ns());
         reports.serve(
             || false,
             |r| {
                 if let Report::Edge(e) = r {
-                    lateness.push(e.lateness_ns());
+                    edges.push((e.lateness_ns(), e.scheduled_ns));
                 }
             },
             |_| {},
         );
-        (lateness, reports.dropped())
+        let wall = clock::monotonic_ns() - wall0;
+        let cpu_pct = 100.0 * thread_cpu_ns().saturating_sub(cpu0) as f64 / wall.max(1) as f64;
+        (edges, reports.dropped(), cpu_pct)
     });
 
     let send = |requests: &mut engine::Requests, channel, input| {
@@ -301,33 +380,115 @@ fn run_side(opts: &BenchOptions, params: ChannelParams, baseline: bool) -> Resul
         send(&mut requests, ch, Input::Enable(true))?;
     }
     // Measure a whole window after the last enable.
-    let cpu0 = process_cpu_ns();
-    let steal0 = read_steal();
-    let wall0 = clock::monotonic_ns();
-    sleep_until(wall0 + (opts.seconds * 1e9) as Nanos);
-    let wall = clock::monotonic_ns() - wall0;
-    let cpu = process_cpu_ns().saturating_sub(cpu0);
-    let steal = match (steal0, read_steal()) {
-        (Some((s0, t0)), Some((s1, t1))) if t1 > t0 => 100.0 * (s1 - s0) as f64 / (t1 - t0) as f64,
-        _ => 0.0,
-    };
-    let rss_kb = peak_rss_kb();
+    let window = Window::start();
+    sleep_until(window.wall0 + (opts.seconds * 1e9) as Nanos);
+    let measured = window.end();
     handle.shutdown().map_err(|e| e.to_string())?;
     drop(requests);
-    let (mut lateness, dropped) = reader.join().map_err(|_| "reader thread panicked")?;
+    let (mut edges, dropped, reader_cpu_pct) =
+        reader.join().map_err(|_| "reader thread panicked")?;
     // The shutdown edges are not scheduled by the core's timing: leave them out.
-    lateness.truncate(lateness.len().saturating_sub(opts.channels));
-    Ok(figures(&mut lateness, cpu, wall, rss_kb, steal, dropped))
+    edges.truncate(edges.len().saturating_sub(opts.channels));
+    let mut deadlines: Vec<Nanos> = edges.iter().map(|e| e.1.saturating_sub(t0)).collect();
+    deadlines.sort_unstable();
+    let mut lateness: Vec<i64> = edges.iter().map(|e| e.0).collect();
+    let figures = Figures {
+        reader_cpu_pct,
+        ..figures(&mut lateness, measured, dropped)
+    };
+    Ok((figures, deadlines))
 }
 
-fn figures(
-    lateness: &mut [i64],
+/// Runs the floor on `deadlines` (relative, as [`run_side`] returns them) and measures it.
+fn run_floor(
+    opts: &BenchOptions,
+    params: ChannelParams,
+    deadlines: &[Nanos],
+) -> Result<Figures, String> {
+    let cfg = params.validate().map_err(|e| e.to_string())?;
+    let names: Vec<String> = (1..=opts.channels).map(|i| format!("pw{i:02}")).collect();
+    let output = SimOutput::new(names, None).map_err(|e| e.to_string())?;
+    reset_peak_rss();
+    let t0 = clock::monotonic_ns() + 20 * NS_PER_MS;
+    let absolute: Vec<Nanos> = deadlines.iter().map(|d| t0 + d).collect();
+    let last = absolute.last().copied().unwrap_or(t0);
+    let floor = floor::spawn(
+        vec![cfg; opts.channels],
+        output,
+        engine_options(opts),
+        absolute,
+    )
+    .map_err(|e| e.to_string())?;
+    // CPU is measured from the first deadline to the last, as long as the other sides' window.
+    let first = deadlines.first().copied().unwrap_or(0);
+    sleep_until(t0 + first);
+    let window = Window::start();
+    sleep_until(last + NS_PER_MS);
+    let measured = window.end();
+    floor.handle.shutdown().map_err(|e| e.to_string())?;
+    let mut lateness = floor
+        .lateness
+        .recv()
+        .map_err(|_| "the floor thread sent no figures")?;
+    Ok(figures(&mut lateness, measured, 0))
+}
+
+fn engine_options(opts: &BenchOptions) -> EngineOptions {
+    EngineOptions {
+        rt_priority: opts.rt_priority,
+        queue_capacity: 16_384,
+    }
+}
+
+/// Edges a side should write in its window: 2 per period per channel.
+fn expected_edges(opts: &BenchOptions) -> usize {
+    (opts.seconds * 2000.0 / opts.period_ms as f64) as usize * opts.channels
+}
+
+/// CPU, wall time, steal and peak RSS over a measurement window.
+struct Window {
+    cpu0: u64,
+    steal0: Option<(u64, u64)>,
+    wall0: Nanos,
+}
+
+/// What a [`Window`] measured.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct Measured {
     cpu_ns: u64,
     wall_ns: u64,
     rss_kb: u64,
     steal_pct: f64,
-    dropped: u64,
-) -> Figures {
+}
+
+impl Window {
+    fn start() -> Window {
+        Window {
+            cpu0: process_cpu_ns(),
+            steal0: read_steal(),
+            wall0: clock::monotonic_ns(),
+        }
+    }
+
+    fn end(self) -> Measured {
+        let wall_ns = clock::monotonic_ns() - self.wall0;
+        let cpu_ns = process_cpu_ns().saturating_sub(self.cpu0);
+        let steal_pct = match (self.steal0, read_steal()) {
+            (Some((s0, t0)), Some((s1, t1))) if t1 > t0 => {
+                100.0 * (s1 - s0) as f64 / (t1 - t0) as f64
+            }
+            _ => 0.0,
+        };
+        Measured {
+            cpu_ns,
+            wall_ns,
+            rss_kb: peak_rss_kb(),
+            steal_pct,
+        }
+    }
+}
+
+fn figures(lateness: &mut [i64], m: Measured, dropped: u64) -> Figures {
     lateness.sort_unstable();
     let pct = |p: f64| -> f64 {
         if lateness.is_empty() {
@@ -343,13 +504,14 @@ fn figures(
         p99_us: pct(99.0),
         p999_us: pct(99.9),
         max_us: lateness.last().map_or(0.0, |m| *m as f64 / 1000.0),
-        cpu_pct: if wall_ns > 0 {
-            100.0 * cpu_ns as f64 / wall_ns as f64
+        cpu_pct: if m.wall_ns > 0 {
+            100.0 * m.cpu_ns as f64 / m.wall_ns as f64
         } else {
             0.0
         },
-        rss_kb,
-        steal_pct,
+        reader_cpu_pct: 0.0,
+        rss_kb: m.rss_kb,
+        steal_pct: m.steal_pct,
         dropped,
     }
 }
@@ -359,6 +521,14 @@ fn sleep_until(t: Nanos) {
     if t > now {
         std::thread::sleep(Duration::from_nanos(t - now));
     }
+}
+
+/// User + system CPU time of the calling thread, ns.
+fn thread_cpu_ns() -> u64 {
+    use nix::time::{clock_gettime, ClockId};
+    clock_gettime(ClockId::CLOCK_THREAD_CPUTIME_ID)
+        .map(|t| t.tv_sec() as u64 * 1_000_000_000 + t.tv_nsec() as u64)
+        .unwrap_or(0)
 }
 
 /// User + system CPU time of the whole process, ns.
@@ -437,7 +607,13 @@ mod tests {
     fn percentiles_and_early_edges() {
         let mut l: Vec<i64> = (1..=1000).map(|i| i * 1000).collect();
         l[0] = -5000;
-        let f = figures(&mut l, 50, 1000, 1, 0.0, 0);
+        let m = Measured {
+            cpu_ns: 50,
+            wall_ns: 1000,
+            rss_kb: 1,
+            steal_pct: 0.0,
+        };
+        let f = figures(&mut l, m, 0);
         assert_eq!(f.edges, 1000);
         assert_eq!(f.early, 1);
         assert_eq!(f.max_us, 1000.0);
@@ -459,16 +635,44 @@ mod tests {
             period_ms: 10,
             ..ChannelParams::default()
         };
-        for baseline in [false, true] {
-            let f = run_side(&opts, params, baseline).unwrap();
+        let (ours, deadlines) = run_side(&opts, params, Side::Ours).unwrap();
+        let (baseline, _) = run_side(&opts, params, Side::Baseline).unwrap();
+        for (side, f) in [("ours", ours), ("baseline", baseline)] {
             // 2 channels x 2 edges x 50 periods = 200, give or take the window's ends.
             assert!(
                 f.edges >= 150 && f.edges <= 260,
-                "{baseline}: {} edges",
+                "{side}: {} edges",
                 f.edges
             );
             assert_eq!(f.early, 0, "an absolute deadline is never written early");
             assert_eq!(f.dropped, 0);
         }
+        assert_eq!(deadlines.len(), ours.edges);
+        assert!(deadlines.windows(2).all(|w| w[0] <= w[1]));
+        // The floor wakes once for each of ours' edges, never early.
+        let floor = run_floor(&opts, params, &deadlines).unwrap();
+        assert_eq!(floor.edges, ours.edges);
+        assert_eq!(floor.early, 0);
+    }
+
+    #[test]
+    fn json_keeps_the_old_keys_and_adds_the_floor() {
+        let f = |p50_us, p99_us, cpu_pct| Figures {
+            p50_us,
+            p99_us,
+            cpu_pct,
+            ..Figures::default()
+        };
+        let s = Summary::new(f(20.0, 300.0, 2.0), f(900.0, 1800.0, 2.0), f(8.0, 0.0, 1.0));
+        let v: serde_json::Value = serde_json::to_value(s).unwrap();
+        for key in ["ours", "baseline", "floor"] {
+            assert!(v[key]["p50_us"].is_number(), "{key}: {v}");
+        }
+        assert_eq!(v["ratio_p50"], 45.0);
+        assert_eq!(v["ratio_p99"], 6.0);
+        assert_eq!(v["ours_over_floor_p50"], 2.5);
+        assert_eq!(v["ours_over_floor_cpu"], 2.0);
+        // A zero divisor is not a number JSON can carry.
+        assert!(v["ours_over_floor_p99"].is_null());
     }
 }
