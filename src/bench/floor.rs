@@ -25,8 +25,8 @@ pub struct Floor {
     pub lateness: mpsc::Receiver<Vec<i64>>,
 }
 
-/// Starts a thread that sleeps until each of `deadlines` (monotonic ns, ascending; equal
-/// deadlines are one wake-up, measured once per entry) and records how late it woke.
+/// Starts a thread that sleeps until each of `deadlines` (monotonic ns, ascending) and records
+/// how late it woke, once per entry; every deadline already due at a wake-up is taken by it.
 /// `configs` and `output` only give the thread its usual set-up: no channel is ever enabled,
 /// no request sent, no edge written.
 pub fn spawn<O: Output>(
@@ -59,6 +59,8 @@ pub fn spawn<O: Output>(
 
 /// The loop: the same syscalls per wake-up as the output thread's loop (arm the timer with an
 /// absolute deadline, poll it beside the request eventfd, read the timer), then one clock read.
+/// A deadline not yet due when the timer is armed cannot be taken early: the timer is
+/// absolute.
 /// After the last deadline it only waits for the stop.
 fn sleep_until_each<O: Output>(
     thread: &mut OutputThread<O>,
@@ -91,8 +93,10 @@ fn sleep_until_each<O: Output>(
         if timer_fired {
             let _ = timer.wait();
             let now = clock::monotonic_ns();
-            let t = deadlines[next];
-            while deadlines.get(next) == Some(&t) {
+            // Every deadline that is due is taken at this wake-up, as the output thread writes
+            // every due edge in one go; re-arming for a deadline already past would cost the
+            // floor syscalls ours does not make.
+            while let Some(&t) = deadlines.get(next).filter(|t| **t <= now) {
                 lateness.push(now as i64 - t as i64);
                 next += 1;
             }
