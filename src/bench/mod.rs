@@ -11,6 +11,7 @@
 mod baseline;
 mod floor;
 
+use clap::Args;
 use pwm_actuator::clock;
 use pwm_actuator::core::{ChannelParams, Command, Nanos, NS_PER_MS};
 use pwm_actuator::engine::{self, Engine, EngineOptions, Input, Report, Request};
@@ -19,22 +20,29 @@ use serde::Serialize;
 use std::fmt::Write as _;
 use std::time::Duration;
 
-/// What to run.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// What to run: the options of `pwm_actuator_node bench`.
+#[derive(Debug, Clone, Copy, PartialEq, Args)]
 pub struct BenchOptions {
-    /// Number of channels.
+    /// Number of channels, 1..=256
+    #[arg(long, value_name = "N", default_value_t = 2, value_parser = number::<usize>, allow_hyphen_values = true)]
     pub channels: usize,
-    /// Period of every channel, ms.
+    /// Period of every channel, ms
+    #[arg(long = "period-ms", value_name = "MS", default_value_t = 5, value_parser = number::<u64>, allow_hyphen_values = true)]
     pub period_ms: u64,
-    /// Duty of every channel, percent.
+    /// Duty of every channel, percent (0..=100)
+    #[arg(long = "duty", value_name = "PCT", default_value_t = 37.0, value_parser = number::<f64>, allow_hyphen_values = true)]
     pub duty_percent: f64,
-    /// Start offset between consecutive channels, ms (wrapped into the period).
+    /// Start offset between consecutive channels, ms, >= 0 (wrapped into the period)
+    #[arg(long = "offset-ms", value_name = "MS", default_value_t = 1.3, value_parser = number::<f64>, allow_hyphen_values = true)]
     pub offset_ms: f64,
-    /// Length of each side's run, s.
+    /// Length of each side's run, s, in (0, 3600]
+    #[arg(long, value_name = "S", default_value_t = 10.0, value_parser = number::<f64>, allow_hyphen_values = true)]
     pub seconds: f64,
-    /// SCHED_FIFO priority for both sides' output threads, if any.
+    /// SCHED_FIFO priority 1..=99 of every side's output thread (needs CAP_SYS_NICE)
+    #[arg(long = "rt-priority", value_name = "P", value_parser = number::<i32>, allow_hyphen_values = true)]
     pub rt_priority: Option<i32>,
-    /// Print one JSON object instead of the table.
+    /// Print one JSON object instead of the table
+    #[arg(long)]
     pub json: bool,
 }
 
@@ -81,61 +89,58 @@ pub struct Figures {
     pub dropped: u64,
 }
 
-const USAGE: &str = "usage: pwm_actuator_node bench [--channels N] [--period-ms MS] [--duty PCT] \
-[--offset-ms MS] [--seconds S] [--rt-priority P] [--json]";
-
-/// Parses the bench's arguments.
-pub fn parse_args(args: &[String]) -> Result<BenchOptions, String> {
-    let mut o = BenchOptions::default();
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        let mut value = |name: &str| {
-            it.next()
-                .ok_or_else(|| format!("{name} needs a value\n{USAGE}"))
-                .cloned()
-        };
-        fn num<T: std::str::FromStr>(name: &str, v: &str) -> Result<T, String> {
-            v.parse()
-                .map_err(|_| format!("{name}: `{v}` is not a valid number\n{USAGE}"))
-        }
-        match a.as_str() {
-            "--channels" => o.channels = num("--channels", &value("--channels")?)?,
-            "--period-ms" => o.period_ms = num("--period-ms", &value("--period-ms")?)?,
-            "--duty" => o.duty_percent = num("--duty", &value("--duty")?)?,
-            "--offset-ms" => o.offset_ms = num("--offset-ms", &value("--offset-ms")?)?,
-            "--seconds" => o.seconds = num("--seconds", &value("--seconds")?)?,
-            "--rt-priority" => {
-                o.rt_priority = Some(num("--rt-priority", &value("--rt-priority")?)?)
-            }
-            "--json" => o.json = true,
-            "-h" | "--help" => return Err(USAGE.to_string()),
-            other => return Err(format!("unknown bench option `{other}`\n{USAGE}")),
-        }
-    }
-    if o.channels == 0 || o.channels > 256 {
-        return Err(format!("--channels {} is outside 1..256", o.channels));
-    }
-    if !(o.seconds > 0.0 && o.seconds <= 3600.0) {
-        return Err(format!("--seconds {} is outside (0, 3600]", o.seconds));
-    }
-    if !(0.0..=100.0).contains(&o.duty_percent) {
-        return Err(format!("--duty {} is outside 0..100", o.duty_percent));
-    }
-    if !(o.offset_ms >= 0.0 && o.offset_ms.is_finite()) {
-        return Err(format!("--offset-ms {} must be >= 0", o.offset_ms));
-    }
-    Ok(o)
+/// The `bench` subcommand: its options and its `--help`.
+pub fn command() -> clap::Command {
+    BenchOptions::augment_args(clap::Command::new("bench"))
+        .about(
+            "Edge lateness, CPU and memory of the output thread against a tokio sleep_until \
+             baseline and a bare timerfd floor, in one run on the simulated output",
+        )
+        .args_override_self(true)
+        // The node's command turns clap's generated help flag off for all its subcommands (it
+        // has its own, for `Flags::help`), so the bench declares clap's help action itself.
+        .disable_help_flag(true)
+        .arg(
+            clap::Arg::new("help")
+                .short('h')
+                .long("help")
+                .action(clap::ArgAction::Help)
+                .help("Print help"),
+        )
 }
 
-/// Entry point of `pwm_actuator_node bench ARGS`; returns the process exit code.
-pub fn main(args: &[String]) -> i32 {
-    let opts = match parse_args(args) {
-        Ok(o) => o,
-        Err(e) => {
-            eprintln!("{e}");
-            return 2;
+/// A number, or why not.
+fn number<T: std::str::FromStr>(v: &str) -> Result<T, String> {
+    v.parse()
+        .map_err(|_| format!("`{v}` is not a valid number"))
+}
+
+impl BenchOptions {
+    /// Checks the ranges clap does not know.
+    pub fn validate(&self) -> Result<(), String> {
+        let o = self;
+        if o.channels == 0 || o.channels > 256 {
+            return Err(format!("--channels {} is outside 1..256", o.channels));
         }
-    };
+        if !(o.seconds > 0.0 && o.seconds <= 3600.0) {
+            return Err(format!("--seconds {} is outside (0, 3600]", o.seconds));
+        }
+        if !(0.0..=100.0).contains(&o.duty_percent) {
+            return Err(format!("--duty {} is outside 0..100", o.duty_percent));
+        }
+        if !(o.offset_ms >= 0.0 && o.offset_ms.is_finite()) {
+            return Err(format!("--offset-ms {} must be >= 0", o.offset_ms));
+        }
+        Ok(())
+    }
+}
+
+/// Runs `pwm_actuator_node bench` with `opts`; returns the process exit code (2: bad options).
+pub fn run(opts: BenchOptions) -> i32 {
+    if let Err(e) = opts.validate() {
+        eprintln!("{e}");
+        return 2;
+    }
     let params = ChannelParams {
         period_ms: opts.period_ms,
         ..ChannelParams::default()
@@ -573,6 +578,18 @@ fn read_steal() -> Option<(u64, u64)> {
 mod tests {
     use super::*;
 
+    /// Parses the bench's arguments as `pwm_actuator_node bench ARGS` does.
+    fn parse_args(args: &[String]) -> Result<BenchOptions, String> {
+        let m = command()
+            .no_binary_name(true)
+            .try_get_matches_from(args)
+            .map_err(|e| e.render().to_string())?;
+        let o = <BenchOptions as clap::FromArgMatches>::from_arg_matches(&m)
+            .map_err(|e| e.render().to_string())?;
+        o.validate()?;
+        Ok(o)
+    }
+
     fn args(s: &str) -> Vec<String> {
         s.split_whitespace().map(String::from).collect()
     }
@@ -582,6 +599,7 @@ mod tests {
         let o = parse_args(&[]).unwrap();
         assert_eq!((o.channels, o.period_ms, o.duty_percent), (2, 5, 37.0));
         assert_eq!((o.offset_ms, o.seconds, o.json), (1.3, 10.0, false));
+        assert_eq!(o, BenchOptions::default());
     }
 
     #[test]
@@ -600,7 +618,15 @@ mod tests {
             .contains("--bogus"));
         assert!(parse_args(&args("--seconds"))
             .unwrap_err()
-            .contains("needs a value"));
+            .contains("a value is required for '--seconds"));
+        assert_eq!(
+            parse_args(&args("--rt-priority 50")).unwrap().rt_priority,
+            Some(50)
+        );
+        // A negative value reaches the range check instead of passing for an option.
+        assert!(parse_args(&args("--offset-ms -1"))
+            .unwrap_err()
+            .contains("--offset-ms -1 must be >= 0"));
     }
 
     #[test]
