@@ -6,7 +6,6 @@
 //! from the output thread to the ROS side ([`ros`]) for publishing.
 #![warn(missing_docs)]
 
-pub mod bench;
 pub mod clock;
 pub mod core;
 pub mod engine;

@@ -1,11 +1,79 @@
 //! `pwm_actuator_node`: the ROS 2 node (see `pwm_actuator::ros`), or `pwm_actuator_node bench
 //! ...` for the timing benchmark.
+//!
+//! One command line, parsed by clap: the node's options ([`cli::Flags`]) and a subcommand per
+//! other job, each with its own generated `--help`. The `--ros-args` blocks are split off
+//! first, by hand, because they follow rcl's rules rather than clap's.
 
+mod bench;
+
+use clap::error::ErrorKind;
+use clap::FromArgMatches;
+use pwm_actuator::ros::{self, args::RosArgs, cli};
 use std::process::ExitCode;
 
-/// `pwm_actuator_node bench [...]`.
-fn bench(args: &[String]) -> i32 {
-    pwm_actuator::bench::main(args)
+/// What the command line asks for.
+enum Invocation {
+    /// Run the node; it parses and reports its own options and ROS arguments.
+    Node,
+    /// Run the benchmark.
+    Bench(bench::BenchOptions),
+    /// Already answered (help, or a subcommand's usage error): exit with this code.
+    Exit(u8),
+}
+
+/// The whole command line: the node's options, and the subcommands.
+fn command() -> clap::Command {
+    cli::command()
+        .override_usage(format!(
+            "{}\n       pwm_actuator_node <COMMAND> [OPTIONS]",
+            cli::NODE_USAGE
+        ))
+        .subcommand(bench::command())
+        .args_conflicts_with_subcommands(true)
+        .disable_help_subcommand(true)
+}
+
+fn invocation(args: &[String]) -> Invocation {
+    // A malformed ROS argument is the node's to report, in its own format.
+    let Ok(split) = ros::args::parse(args) else {
+        return Invocation::Node;
+    };
+    let mut cmd = command();
+    let argv = std::iter::once("pwm_actuator_node").chain(split.app.iter().map(String::as_str));
+    match cmd.try_get_matches_from_mut(argv) {
+        Ok(m) => match m.subcommand() {
+            Some(("bench", sub)) => {
+                if split.ros != RosArgs::default() {
+                    eprintln!("bench: takes no ROS arguments (--ros-args)");
+                    return Invocation::Exit(2);
+                }
+                match bench::BenchOptions::from_arg_matches(sub) {
+                    Ok(o) => Invocation::Bench(o),
+                    Err(e) => {
+                        let _ = e.print();
+                        Invocation::Exit(2)
+                    }
+                }
+            }
+            _ if m.get_flag("help") => {
+                println!("{}", cmd.render_help().to_string().trim_end());
+                Invocation::Exit(0)
+            }
+            _ => Invocation::Node,
+        },
+        // A subcommand's own `--help`.
+        Err(e) if e.kind() == ErrorKind::DisplayHelp => {
+            let _ = e.print();
+            Invocation::Exit(0)
+        }
+        Err(e) if split.app.first().is_some_and(|a| a == "bench") => {
+            let _ = e.print();
+            Invocation::Exit(2)
+        }
+        // The node's own options: the node reports the error in its format.
+        Err(_) => Invocation::Node,
+    }
 }
 
 fn main() -> ExitCode {
@@ -19,9 +87,21 @@ fn main() -> ExitCode {
             }
         }
     }
-    let code = match args.first().map(String::as_str) {
-        Some("bench") => bench(&args[1..]),
-        _ => pwm_actuator::ros::run(&args),
+    let code = match invocation(&args) {
+        Invocation::Node => ros::run(&args),
+        Invocation::Bench(opts) => bench::run(opts),
+        Invocation::Exit(code) => return ExitCode::from(code),
     };
     ExitCode::from(u8::try_from(code).unwrap_or(1))
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own consistency checks (unique names, valid settings) on the whole command line
+    /// and on the bench subcommand alone, as its tests build it.
+    #[test]
+    fn the_command_line_passes_clap_checks() {
+        super::command().debug_assert();
+        super::bench::command().debug_assert();
+    }
 }

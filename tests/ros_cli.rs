@@ -39,9 +39,61 @@ fn help_prints_the_synopsis() {
     ] {
         assert!(out.contains(s), "{s} missing from:\n{out}");
     }
+    // Generated from the options, so every option is listed, and the subcommands too.
+    for s in [
+        "--output <sim|gpio>",
+        "--status-rate <HZ>",
+        "-V, --version",
+        "bench",
+    ] {
+        assert!(out.contains(s), "{s} missing from:\n{out}");
+    }
     let (code, out, _) = run(&["--version"], None);
     assert_eq!(code, Some(0));
     assert!(out.starts_with("pwm_actuator_node "));
+}
+
+#[test]
+fn bench_has_its_own_help_and_usage_errors() {
+    for help in ["--help", "-h"] {
+        let (code, out, err) = run(&["bench", help], None);
+        assert_eq!(code, Some(0), "{err}");
+        assert!(out.contains("pwm_actuator_node bench"), "{out}");
+        for s in [
+            "--channels <N>",
+            "--period-ms <MS>",
+            "--duty <PCT>",
+            "--offset-ms <MS>",
+            "--seconds <S>",
+            "--rt-priority <P>",
+            "--json",
+            "[default: 37]",
+        ] {
+            assert!(out.contains(s), "{s} missing from:\n{out}");
+        }
+        // The node's options are not the bench's.
+        assert!(!out.contains("--demo"), "{out}");
+    }
+    let cases: &[(&[&str], &str)] = &[
+        (&["bench", "--bogus"], "--bogus"),
+        (&["bench", "--channels", "x"], "`x` is not a valid number"),
+        (
+            &["bench", "--channels", "0"],
+            "--channels 0 is outside 1..256",
+        ),
+        (&["bench", "--seconds"], "a value is required"),
+        (
+            &["bench", "--ros-args", "-p", "x:=1"],
+            "takes no ROS arguments",
+        ),
+        // Subcommands come first; after the node's options a word is an unknown option.
+        (&["--demo", "bench"], "unknown option `bench`"),
+    ];
+    for (args, why) in cases {
+        let (code, _, err) = run(args, None);
+        assert_eq!(code, Some(2), "{args:?}: {err}");
+        assert!(err.contains(why), "{args:?}: expected {why:?} in:\n{err}");
+    }
 }
 
 #[test]

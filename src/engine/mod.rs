@@ -83,9 +83,10 @@ pub enum Report {
     },
 }
 
-mod baseline;
 mod thread;
 pub(crate) mod worker;
 
-pub use baseline::spawn_tokio_baseline;
-pub use thread::{spawn, Engine, EngineError, EngineHandle, EngineOptions, Reports, Requests};
+pub use thread::{
+    spawn, spawn_with, Engine, EngineError, EngineHandle, EngineOptions, OutputThread, Reports,
+    Requests,
+};

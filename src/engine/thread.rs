@@ -254,49 +254,51 @@ pub struct Engine {
 }
 
 /// Starts the output thread with one channel per config (channel `i` drives output line `i`).
-/// Every channel starts disabled with its output low.
+/// Every channel starts disabled with its output low. The thread sleeps on a timerfd armed
+/// with absolute CLOCK_MONOTONIC deadlines.
 pub fn spawn<O: Output>(
     configs: Vec<ChannelConfig>,
     output: O,
     opts: EngineOptions,
 ) -> Result<Engine, EngineError> {
-    spawn_with(configs, output, opts, Driver::TimerFd)
-}
-
-/// How the output thread sleeps between deadlines.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Driver {
-    /// timerfd with absolute CLOCK_MONOTONIC deadlines (the node's driver).
-    TimerFd,
-    /// tokio's `sleep_until` on a current-thread runtime: the benchmark's baseline.
-    TokioSleep,
-}
-
-pub(crate) fn spawn_with<O: Output>(
-    configs: Vec<ChannelConfig>,
-    output: O,
-    opts: EngineOptions,
-    driver: Driver,
-) -> Result<Engine, EngineError> {
-    if configs.is_empty() {
-        return Err(EngineError::NoChannels);
-    }
-    if output.line_count() < configs.len() {
-        return Err(EngineError::LineCount {
-            lines: output.line_count(),
-            channels: configs.len(),
-        });
-    }
-    let sys = |what| move |source| EngineError::Sys { what, source };
-    let flags = EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK;
-    let req_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
-    let rep_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
+    check_lines(&configs, &output)?;
     let timer = TimerFd::new(
         ClockId::CLOCK_MONOTONIC,
         TimerFlags::TFD_CLOEXEC | TimerFlags::TFD_NONBLOCK,
     )
-    .map_err(sys("timerfd_create"))?;
-    let (req_tx, mut req_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
+    .map_err(|source| EngineError::Sys {
+        what: "timerfd_create",
+        source,
+    })?;
+    spawn_with(configs, output, opts, move |thread| {
+        sleep_on_timerfd(thread, &timer)
+    })
+}
+
+/// Starts the output thread like [`spawn`], but with `run` as the loop that puts it to sleep
+/// between wake-ups. `run` calls [`OutputThread::work`] at every wake-up until it returns
+/// `Ok(false)` (stop requested) and then returns `Ok(())`; the thread then drives every line
+/// inactive. An `Err` from `work` (an output fault) should be returned as is.
+///
+/// The node always uses [`spawn`]; this exists so that other ways of sleeping (the
+/// benchmark's tokio baseline, its bare timer floor) run on the very same thread set-up:
+/// priority, timer slack, queues and per-wake-up work.
+pub fn spawn_with<O, R>(
+    configs: Vec<ChannelConfig>,
+    output: O,
+    opts: EngineOptions,
+    run: R,
+) -> Result<Engine, EngineError>
+where
+    O: Output,
+    R: FnOnce(&mut OutputThread<O>) -> Result<(), EngineError> + Send + 'static,
+{
+    check_lines(&configs, &output)?;
+    let sys = |what| move |source| EngineError::Sys { what, source };
+    let flags = EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK;
+    let req_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
+    let rep_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
+    let (req_tx, req_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
     let (rep_tx, rep_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
     let dropped = Arc::new(AtomicU64::new(0));
     let stop = Arc::new(AtomicBool::new(false));
@@ -316,20 +318,19 @@ pub(crate) fn spawn_with<O: Output>(
             .name("pwm-output".into())
             .spawn(move || {
                 real_time_setup(opts.rt_priority);
-                let worker = Worker::new(&configs, output, rep_tx, dropped, clock::monotonic_ns());
-                let ends = Ends {
-                    requests: &mut req_rx,
-                    req_wake: &req_wake,
-                    rep_wake: &rep_wake,
-                    stop: &stop,
-                    fault: &fault,
+                let mut thread = OutputThread {
+                    worker: Worker::new(&configs, output, rep_tx, dropped, clock::monotonic_ns()),
+                    requests: req_rx,
+                    req_wake,
+                    rep_wake,
+                    stop,
+                    fault,
                     last_wake: 0,
                     wake_pending: false,
                 };
-                match driver {
-                    Driver::TimerFd => run(worker, ends, &timer),
-                    Driver::TokioSleep => super::baseline::run(worker, ends),
-                }
+                // After a fault the worker has already driven every line inactive.
+                run(&mut thread)?;
+                thread.finish()
             })
             .map_err(EngineError::Spawn)?
     };
@@ -354,17 +355,34 @@ pub(crate) fn spawn_with<O: Output>(
     })
 }
 
-/// The thread's ends of the queues and flags, shared by both drivers.
-pub(crate) struct Ends<'a> {
-    pub(crate) requests: &'a mut rtrb::Consumer<Request>,
-    pub(crate) req_wake: &'a EventFd,
-    pub(crate) rep_wake: &'a EventFd,
-    pub(crate) stop: &'a AtomicBool,
-    pub(crate) fault: &'a Mutex<Option<String>>,
+/// Refuses an empty channel list and an output with too few lines.
+fn check_lines<O: Output>(configs: &[ChannelConfig], output: &O) -> Result<(), EngineError> {
+    if configs.is_empty() {
+        return Err(EngineError::NoChannels);
+    }
+    if output.line_count() < configs.len() {
+        return Err(EngineError::LineCount {
+            lines: output.line_count(),
+            channels: configs.len(),
+        });
+    }
+    Ok(())
+}
+
+/// The output thread as its sleeping loop sees it: the channel cores and the output (behind
+/// [`OutputThread::work`]), the thread's ends of the request and report queues, and the
+/// bookkeeping of reader wake-ups. Lives on the output thread only.
+pub struct OutputThread<O: Output> {
+    worker: Worker<O>,
+    requests: rtrb::Consumer<Request>,
+    req_wake: Arc<EventFd>,
+    rep_wake: Arc<EventFd>,
+    stop: Arc<AtomicBool>,
+    fault: Arc<Mutex<Option<String>>>,
     /// When the reader was last woken, monotonic ns.
-    pub(crate) last_wake: Nanos,
+    last_wake: Nanos,
     /// Reports are waiting that the reader has not been woken for.
-    pub(crate) wake_pending: bool,
+    wake_pending: bool,
 }
 
 /// The reader (the ROS side) is woken at most this often while edges come thick and fast, ns.
@@ -374,13 +392,15 @@ pub(crate) struct Ends<'a> {
 /// delivered within the interval.
 pub(crate) const READER_WAKE_INTERVAL_NS: Nanos = 2_000_000;
 
-impl Ends<'_> {
-    /// One wake-up's work. `Ok(false)` once a stop is requested; `Err` after an output fault.
-    pub(crate) fn work<O: Output>(&mut self, worker: &mut Worker<O>) -> Result<bool, EngineError> {
-        if self.stop.load(Ordering::SeqCst) {
+impl<O: Output> OutputThread<O> {
+    /// One wake-up's work: apply the queued requests, write the edges that are due, report,
+    /// and wake the reader when it is time. `Ok(false)` once a stop is requested (nothing was
+    /// done); `Err` after an output fault (every line was driven inactive).
+    pub fn work(&mut self) -> Result<bool, EngineError> {
+        if self.stop_requested() {
             return Ok(false);
         }
-        if let Err(Stop::Fault { channel, error }) = worker.run(self.requests) {
+        if let Err(Stop::Fault { channel, error }) = self.worker.run(&mut self.requests) {
             let message = error.to_string();
             if let Ok(mut f) = self.fault.lock() {
                 *f = Some(message.clone());
@@ -388,12 +408,12 @@ impl Ends<'_> {
             let _ = self.rep_wake.write(1);
             return Err(EngineError::OutputFault { channel, message });
         }
-        self.wake_pending |= worker.take_pushed();
+        self.wake_pending |= self.worker.take_pushed();
         if self.wake_pending {
             let now = clock::monotonic_ns();
             let due = self.last_wake + READER_WAKE_INTERVAL_NS;
             // Defer only to a wake-up that is coming anyway before the interval ends.
-            let comes_anyway = worker.next_deadline().is_some_and(|t| t < due);
+            let comes_anyway = self.worker.next_deadline().is_some_and(|t| t < due);
             if now >= due || !comes_anyway {
                 let _ = self.rep_wake.write(1);
                 self.last_wake = now;
@@ -403,9 +423,32 @@ impl Ends<'_> {
         Ok(true)
     }
 
+    /// The earliest deadline of any channel, monotonic ns; `None` when no channel has one
+    /// (sleep until a request arrives).
+    pub fn next_deadline(&self) -> Option<Nanos> {
+        self.worker.next_deadline()
+    }
+
+    /// Whether [`EngineHandle::shutdown`] (or dropping the handle) asked the thread to stop.
+    pub fn stop_requested(&self) -> bool {
+        self.stop.load(Ordering::SeqCst)
+    }
+
+    /// An eventfd that becomes readable when a request (or a stop) arrives; a loop sleeps on
+    /// it beside its timer and calls [`OutputThread::clear_request_wake`] when it fired.
+    pub fn request_wake_fd(&self) -> BorrowedFd<'_> {
+        self.req_wake.as_fd()
+    }
+
+    /// Resets the request eventfd.
+    pub fn clear_request_wake(&self) {
+        // EAGAIN: nothing was pending.
+        let _ = self.req_wake.read();
+    }
+
     /// Drives every line inactive, drops the output (flushing traces) and wakes the reader.
-    pub(crate) fn finish<O: Output>(&self, worker: Worker<O>) -> Result<(), EngineError> {
-        let (output, result) = worker.shut_down();
+    fn finish(self) -> Result<(), EngineError> {
+        let (output, result) = self.worker.shut_down();
         drop(output);
         let _ = self.rep_wake.write(1);
         result.map_err(|e| EngineError::OutputFault {
@@ -415,16 +458,17 @@ impl Ends<'_> {
     }
 }
 
-fn run<O: Output>(
-    mut worker: Worker<O>,
-    mut ends: Ends<'_>,
+/// The node's loop: sleeps on `timer` armed with the next absolute CLOCK_MONOTONIC deadline,
+/// or on the request eventfd, whichever fires first.
+fn sleep_on_timerfd<O: Output>(
+    thread: &mut OutputThread<O>,
     timer: &TimerFd,
 ) -> Result<(), EngineError> {
     let sys = |what| move |source| EngineError::Sys { what, source };
-    while ends.work(&mut worker)? {
+    while thread.work()? {
         // A deferred reader wake-up always falls after the next deadline (see `work`), so the
         // channels' deadlines are the only ones.
-        match worker.next_deadline() {
+        match thread.next_deadline() {
             // Absolute deadline: a late wake-up does not push later deadlines back.
             Some(t) => timer
                 .set(
@@ -436,7 +480,7 @@ fn run<O: Output>(
         }
         let mut fds = [
             PollFd::new(timer.as_fd(), PollFlags::POLLIN),
-            PollFd::new(ends.req_wake.as_fd(), PollFlags::POLLIN),
+            PollFd::new(thread.request_wake_fd(), PollFlags::POLLIN),
         ];
         match poll(&mut fds, PollTimeout::NONE) {
             Ok(_) | Err(nix::errno::Errno::EINTR) => {}
@@ -449,10 +493,10 @@ fn run<O: Output>(
             let _ = timer.wait();
         }
         if request_fired {
-            let _ = ends.req_wake.read();
+            thread.clear_request_wake();
         }
     }
-    ends.finish(worker)
+    Ok(())
 }
 
 /// Timer slack 1 ns always; SCHED_FIFO and mlockall when asked. Refusals are logged once and

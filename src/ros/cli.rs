@@ -4,33 +4,24 @@
 //! lowest first, is: built-in default, option, then `--params-file` and `-p` in the order they
 //! appear.
 //!
-//! Parsing only: nothing here starts anything.
+//! Parsed with clap ([`command`]); the `--ros-args` blocks are split off before, by hand
+//! ([`super::args`]), because they follow rcl's rules. Parsing only: nothing here starts
+//! anything.
 
 use super::params::{channel_of, StartValue};
+use clap::error::{ContextKind, ContextValue, ErrorKind};
+use clap::{ArgAction, Args, FromArgMatches};
 use ros2_client::ParameterValue;
 
-/// The command-line synopsis printed by `--help`.
-pub const USAGE: &str = "\
-pwm_actuator_node: time-proportioned pulses (software PWM) for heaters, valves and relays, as a
-ROS 2 node.
+/// The usage line of the node (a program with subcommands adds its own).
+pub const NODE_USAGE: &str = "pwm_actuator_node [OPTIONS] [--ros-args ROS_ARGUMENTS... [--]]";
 
-Usage:
-  pwm_actuator_node [OPTIONS] [--ros-args ROS_ARGUMENTS... [--]]
-  pwm_actuator_node bench [BENCH_OPTIONS]
-
-Options (each sets the start-up value of the ROS parameter in brackets; --params-file and -p
-override it):
-  --demo                    enable pw01 at 37 % and pw02 at 5 % [pwNN.enable, pwNN.duty]
-  --output sim|gpio         output backend (default sim) [output]
-  --trace FILE              trace of the sim output, FILE.vcd or FILE.csv; repeatable [trace]
-  --line CH=[CHIP:]OFFSET   GPIO line of a channel, e.g. pw01=17 or pw02=/dev/gpiochip1:4
-                            [CH.gpio_chip, CH.gpio_line]
-  --channels N              number of channels pw01..pwNN (default 2) [channels]
-  --status-rate HZ          periodic ~/<ch>/status rate, 0 = on change only (default 10)
-                            [status_rate_hz]
-  --rt-priority N           SCHED_FIFO priority of the output thread, 0 = off [rt_priority]
-  -h, --help                print this text
-  -V, --version             print the version
+/// The part of `--help` that is not generated from the options: the ROS arguments, which
+/// follow rcl's rules and are split off by hand ([`super::args`]), the environment and the
+/// topics.
+pub const ROS_HELP: &str = "\
+Each option sets the start-up value of the ROS parameter in brackets; --params-file and -p
+override it.
 
 ROS arguments (standard, as for any ROS 2 node):
   --ros-args -r __node:=NAME -r __ns:=/NS -r FROM:=TO -p NAME:=VALUE --params-file FILE.yaml
@@ -40,8 +31,7 @@ Environment: ROS_DOMAIN_ID (0..232, default 0).
 
 Topics, relative to the node (<ch> = pw01, pw02, ...): in ~/<ch>/duty (std_msgs/Float64, %),
 ~/<ch>/sv (std_msgs/UInt16, 0..4095), ~/<ch>/enable (std_msgs/Bool), ~/<ch>/params
-(pwm_actuator_msgs/ChannelParams); out ~/<ch>/edges, ~/<ch>/e1, ~/<ch>/status, /diagnostics.
-";
+(pwm_actuator_msgs/ChannelParams); out ~/<ch>/edges, ~/<ch>/e1, ~/<ch>/status, /diagnostics.";
 
 /// A malformed option.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -62,26 +52,66 @@ pub enum CliError {
     },
 }
 
-/// The options given.
-#[derive(Debug, Clone, Default, PartialEq)]
+/// The node's own options. Each sets the start-up value of the ROS parameter in brackets;
+/// `--params-file` and `-p` override it.
+#[derive(Debug, Clone, Default, PartialEq, Args)]
 pub struct Flags {
-    /// `--help`.
+    /// Print this help
+    #[arg(short = 'h', long = "help", action = ArgAction::SetTrue)]
     pub help: bool,
-    /// `--version`.
+    /// Print the version
+    #[arg(short = 'V', long = "version", action = ArgAction::SetTrue)]
     pub version: bool,
-    /// `--demo`.
+    /// Enable pw01 at 37 % and pw02 at 5 %; sets the start-up value of `pwNN.enable`, `pwNN.duty`.
+    #[arg(help = "Enable pw01 at 37 % and pw02 at 5 % [pwNN.enable, pwNN.duty]")]
+    #[arg(long)]
     pub demo: bool,
-    /// `--output`.
+    /// Output backend (default sim); sets the start-up value of `output`.
+    #[arg(help = "Output backend (default sim) [output]")]
+    #[arg(long, value_name = "sim|gpio", value_parser = parse_output, allow_hyphen_values = true)]
     pub output: Option<String>,
-    /// `--trace`, in order.
+    /// Trace of the sim output, FILE.vcd or FILE.csv; repeatable; sets the start-up value of
+    /// `trace`.
+    #[arg(help = "Trace of the sim output, FILE.vcd or FILE.csv; repeatable [trace]")]
+    #[arg(long, value_name = "FILE", action = ArgAction::Append, allow_hyphen_values = true)]
     pub trace: Vec<String>,
-    /// `--line CH=[CHIP:]OFFSET`: (channel, chip, offset).
+    /// GPIO line of a channel, e.g. pw01=17 or pw02=/dev/gpiochip1:4; repeatable; sets the start-up
+    /// value of `CH.gpio_chip`, `CH.gpio_line`.
+    #[arg(
+        help = "GPIO line of a channel, e.g. pw01=17 or pw02=/dev/gpiochip1:4; repeatable [CH.gpio_chip, CH.gpio_line]"
+    )]
+    #[arg(
+        long = "line",
+        value_name = "CH=[CHIP:]OFFSET",
+        value_parser = parse_line,
+        action = ArgAction::Append,
+        allow_hyphen_values = true
+    )]
     pub lines: Vec<(String, Option<String>, i64)>,
-    /// `--channels`.
+    /// Number of channels pw01..pwNN (default 2); sets the start-up value of `channels`.
+    #[arg(help = "Number of channels pw01..pwNN (default 2) [channels]")]
+    #[arg(long, value_name = "N", value_parser = parse_integer, allow_hyphen_values = true)]
     pub channels: Option<i64>,
-    /// `--status-rate`.
+    /// Periodic `~/<ch>/status` rate in Hz, 0 = on change only (default 10); sets the start-up
+    /// value of `status_rate_hz`.
+    #[arg(
+        help = "Periodic ~/<ch>/status rate in Hz, 0 = on change only (default 10) [status_rate_hz]"
+    )]
+    #[arg(
+        long = "status-rate",
+        value_name = "HZ",
+        value_parser = parse_number,
+        allow_hyphen_values = true
+    )]
     pub status_rate_hz: Option<f64>,
-    /// `--rt-priority`.
+    /// SCHED_FIFO priority of the output thread, 0 = off; sets the start-up value of `rt_priority`.
+    #[arg(help = "SCHED_FIFO priority of the output thread, 0 = off [rt_priority]")]
+    #[arg(
+        long = "rt-priority",
+        value_name = "N",
+        value_parser = parse_integer,
+        allow_hyphen_values = true
+    )]
     pub rt_priority: Option<i64>,
 }
 
@@ -89,69 +119,78 @@ pub struct Flags {
 /// does not exist).
 pub const DEMO_ORIGIN: &str = "--demo";
 
-/// Parses the node's own options.
+/// The node's command line as clap sees it: the options of [`Flags`] (ROS arguments are split
+/// off before), its `--help` text, and last-one-wins for repeated single-valued options.
+pub fn command() -> clap::Command {
+    Flags::augment_args(clap::Command::new("pwm_actuator_node"))
+        .about(
+            "pwm_actuator_node: time-proportioned pulses (software PWM) for heaters, valves and \
+             relays, as a ROS 2 node.",
+        )
+        .override_usage(NODE_USAGE)
+        .after_help(ROS_HELP)
+        .disable_help_flag(true)
+        .disable_version_flag(true)
+        .args_override_self(true)
+}
+
+/// The `--help` text of the node.
+pub fn help() -> String {
+    command().render_help().to_string()
+}
+
+/// Parses the node's own options (the command line without the program name and without the
+/// `--ros-args` blocks).
 pub fn parse_flags(args: &[String]) -> Result<Flags, CliError> {
-    let mut f = Flags::default();
-    let mut it = args.iter();
-    while let Some(arg) = it.next() {
-        let (opt, inline) = match arg.split_once('=') {
-            Some((o, v)) if o.starts_with("--") => (o, Some(v.to_string())),
-            _ => (arg.as_str(), None),
+    let matches = command()
+        .no_binary_name(true)
+        .try_get_matches_from(args)
+        .map_err(|e| CliError::from_clap(&e))?;
+    Flags::from_arg_matches(&matches).map_err(|e| CliError::from_clap(&e))
+}
+
+impl CliError {
+    /// The error clap reported, in this node's words.
+    pub fn from_clap(e: &clap::Error) -> CliError {
+        let context = |kind| match e.get(kind) {
+            Some(ContextValue::String(s)) => s.clone(),
+            _ => String::new(),
         };
-        let mut value = || -> Result<String, CliError> {
-            match &inline {
-                Some(v) => Ok(v.clone()),
-                None => it
-                    .next()
-                    .cloned()
-                    .ok_or_else(|| CliError::MissingValue(opt.to_string())),
-            }
-        };
-        let bad = |reason: String| CliError::BadValue {
-            option: opt.to_string(),
-            reason,
-        };
-        match opt {
-            "-h" | "--help" => f.help = true,
-            "-V" | "--version" => f.version = true,
-            "--demo" => f.demo = true,
-            "--output" => {
-                let v = value()?;
-                if v != "sim" && v != "gpio" {
-                    return Err(bad(format!("`{v}` is not one of: sim|gpio")));
-                }
-                f.output = Some(v);
-            }
-            "--trace" => f.trace.push(value()?),
-            "--line" => {
-                let v = value()?;
-                f.lines.push(parse_line(&v).map_err(bad)?);
-            }
-            "--channels" => {
-                let v = value()?;
-                f.channels = Some(
-                    v.parse()
-                        .map_err(|_| bad(format!("`{v}` is not an integer")))?,
-                );
-            }
-            "--status-rate" => {
-                let v = value()?;
-                f.status_rate_hz = Some(
-                    v.parse()
-                        .map_err(|_| bad(format!("`{v}` is not a number")))?,
-                );
-            }
-            "--rt-priority" => {
-                let v = value()?;
-                f.rt_priority = Some(
-                    v.parse()
-                        .map_err(|_| bad(format!("`{v}` is not an integer")))?,
-                );
-            }
-            _ => return Err(CliError::Unknown(arg.clone())),
+        // clap names an option with its value placeholder: `--trace <FILE>`.
+        let arg = context(ContextKind::InvalidArg);
+        let option = arg
+            .split_whitespace()
+            .next()
+            .unwrap_or_default()
+            .to_string();
+        let value = context(ContextKind::InvalidValue);
+        match e.kind() {
+            ErrorKind::UnknownArgument => CliError::Unknown(arg),
+            ErrorKind::InvalidValue if value.is_empty() => CliError::MissingValue(option),
+            _ => CliError::BadValue {
+                option,
+                reason: match std::error::Error::source(e) {
+                    Some(why) => why.to_string(),
+                    None => e.kind().as_str().unwrap_or("invalid").to_string(),
+                },
+            },
         }
     }
-    Ok(f)
+}
+
+fn parse_output(v: &str) -> Result<String, String> {
+    match v {
+        "sim" | "gpio" => Ok(v.to_string()),
+        _ => Err(format!("`{v}` is not one of: sim|gpio")),
+    }
+}
+
+fn parse_integer(v: &str) -> Result<i64, String> {
+    v.parse().map_err(|_| format!("`{v}` is not an integer"))
+}
+
+fn parse_number(v: &str) -> Result<f64, String> {
+    v.parse().map_err(|_| format!("`{v}` is not a number"))
 }
 
 /// Parses `CH=[CHIP:]OFFSET`.
@@ -327,5 +366,47 @@ mod tests {
             assert!(e.to_string().contains(why), "{a:?}: {e}");
         }
         assert!(flags(&["-h"]).unwrap().help);
+    }
+
+    #[test]
+    fn repeated_options_keep_the_last_and_values_may_start_with_a_dash() {
+        let f = flags(&[
+            "--channels",
+            "2",
+            "--channels",
+            "4",
+            "--demo",
+            "--demo",
+            "--rt-priority",
+            "-1",
+        ])
+        .unwrap();
+        assert_eq!(
+            (f.channels, f.demo, f.rt_priority),
+            (Some(4), true, Some(-1))
+        );
+        // A value is whatever follows the option, as before.
+        assert_eq!(flags(&["--trace", "--demo"]).unwrap().trace, vec!["--demo"]);
+        assert!(flags(&["-V"]).unwrap().version);
+        assert_eq!(
+            flags(&["--demo", "extra"]),
+            Err(CliError::Unknown("extra".into()))
+        );
+    }
+
+    #[test]
+    fn help_is_generated_from_the_options_and_keeps_the_ros_part() {
+        let h = help();
+        for s in [
+            "--demo",
+            "--output <sim|gpio>",
+            "--line <CH=[CHIP:]OFFSET>",
+            "[status_rate_hz]",
+            "--ros-args",
+            "ROS_DOMAIN_ID",
+            "~/<ch>/duty",
+        ] {
+            assert!(h.contains(s), "{s} missing from:\n{h}");
+        }
     }
 }

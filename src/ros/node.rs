@@ -181,7 +181,7 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
     let parsed = args::parse(args)?;
     let flags = cli::parse_flags(&parsed.app)?;
     if flags.help {
-        print!("{}", cli::USAGE);
+        println!("{}", cli::help().trim_end());
         return Ok(0);
     }
     if flags.version {

@@ -1,38 +1,38 @@
-//! The benchmark's baseline: the same per-wake-up work as the output thread, scheduled by
+//! The benchmark's baseline: the output thread's very same per-wake-up work, put to sleep by
 //! tokio's `sleep_until` on a current-thread runtime, as an async node would naturally do it.
 //! tokio's timer wheel has millisecond resolution, which is why the node does not use it for
 //! edges; this module exists so that claim is measured, not asserted.
+//!
+//! Benchmark only: the node always starts its output thread with `engine::spawn`.
 
-use super::thread::{spawn_with, Driver, Ends};
-use super::worker::Worker;
-use super::{Engine, EngineError, EngineOptions};
-use crate::clock;
-use crate::core::{ChannelConfig, Nanos};
-use crate::output::Output;
+use pwm_actuator::clock;
+use pwm_actuator::core::{ChannelConfig, Nanos};
+use pwm_actuator::engine::{self, Engine, EngineError, EngineOptions, OutputThread};
+use pwm_actuator::output::Output;
 use std::os::fd::AsFd;
 use std::time::Duration;
 use tokio::io::unix::AsyncFd;
 use tokio::io::Interest;
 
 /// Starts an output thread that sleeps with tokio's `sleep_until` instead of a timerfd.
-/// For comparison only (`pwm_actuator_node bench`); the node always uses [`super::spawn`].
-pub fn spawn_tokio_baseline<O: Output>(
+pub fn spawn<O: Output>(
     configs: Vec<ChannelConfig>,
     output: O,
     opts: EngineOptions,
 ) -> Result<Engine, EngineError> {
-    spawn_with(configs, output, opts, Driver::TokioSleep)
+    engine::spawn_with(configs, output, opts, sleep_with_tokio)
 }
 
-pub(crate) fn run<O: Output>(mut worker: Worker<O>, mut ends: Ends<'_>) -> Result<(), EngineError> {
+/// The loop: `sleep_until` the next deadline, or until the request eventfd is readable.
+fn sleep_with_tokio<O: Output>(thread: &mut OutputThread<O>) -> Result<(), EngineError> {
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(EngineError::Spawn)?;
-    let result = rt.block_on(async {
+    rt.block_on(async {
         // tokio watches a duplicate of the request eventfd that it owns outright.
-        let dup = ends
-            .req_wake
+        let dup = thread
+            .request_wake_fd()
             .as_fd()
             .try_clone_to_owned()
             .map_err(EngineError::Spawn)?;
@@ -43,8 +43,8 @@ pub(crate) fn run<O: Output>(mut worker: Worker<O>, mut ends: Ends<'_>) -> Resul
         let base = tokio::time::Instant::now();
         let base_ns = clock::monotonic_ns();
         let at = |t: Nanos| base + Duration::from_nanos(t.saturating_sub(base_ns));
-        while ends.work(&mut worker)? {
-            let deadline = worker.next_deadline();
+        while thread.work()? {
+            let deadline = thread.next_deadline();
             tokio::select! {
                 _ = async {
                     match deadline {
@@ -56,12 +56,10 @@ pub(crate) fn run<O: Output>(mut worker: Worker<O>, mut ends: Ends<'_>) -> Resul
                     if let Ok(mut g) = guard {
                         g.clear_ready();
                     }
-                    let _ = ends.req_wake.read();
+                    thread.clear_request_wake();
                 }
             }
         }
         Ok(())
-    });
-    let finish = ends.finish(worker);
-    result.and(finish)
+    })
 }

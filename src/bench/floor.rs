@@ -1,0 +1,109 @@
+//! The benchmark's floor: a bare timerfd loop that wakes at the very deadlines the output thread
+//! was given in the same run and does nothing else, on the same thread set-up (priority, timer
+//! slack, mlockall) because it is started with `engine::spawn_with` too. Its lateness is
+//! measured when the timer's wake-up has been read, so it is what any user-space timer thread
+//! reaches on this kernel and machine; the output thread cannot do better than that.
+//!
+//! Benchmark only.
+
+use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+use nix::sys::time::TimeSpec;
+use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
+use pwm_actuator::clock;
+use pwm_actuator::core::{ChannelConfig, Nanos};
+use pwm_actuator::engine::{self, EngineError, EngineHandle, EngineOptions, OutputThread};
+use pwm_actuator::output::Output;
+use std::os::fd::AsFd;
+use std::sync::mpsc;
+use std::time::Duration;
+
+/// A running floor loop.
+pub struct Floor {
+    /// Stops the thread (after its last deadline, or early).
+    pub handle: EngineHandle,
+    /// The lateness of every deadline, ns, in order; sent once the thread stops.
+    pub lateness: mpsc::Receiver<Vec<i64>>,
+}
+
+/// Starts a thread that sleeps until each of `deadlines` (monotonic ns, ascending) and records
+/// how late it woke, once per entry; every deadline already due at a wake-up is taken by it.
+/// `configs` and `output` only give the thread its usual set-up: no channel is ever enabled,
+/// no request sent, no edge written.
+pub fn spawn<O: Output>(
+    configs: Vec<ChannelConfig>,
+    output: O,
+    opts: EngineOptions,
+    deadlines: Vec<Nanos>,
+) -> Result<Floor, EngineError> {
+    let timer = TimerFd::new(
+        ClockId::CLOCK_MONOTONIC,
+        TimerFlags::TFD_CLOEXEC | TimerFlags::TFD_NONBLOCK,
+    )
+    .map_err(|source| EngineError::Sys {
+        what: "timerfd_create",
+        source,
+    })?;
+    let (tx, rx) = mpsc::channel();
+    let engine = engine::spawn_with(configs, output, opts, move |thread| {
+        // Allocated before the first deadline, as the output thread's buffers are.
+        let mut lateness = Vec::with_capacity(deadlines.len());
+        let result = sleep_until_each(thread, &timer, &deadlines, &mut lateness);
+        let _ = tx.send(lateness);
+        result
+    })?;
+    Ok(Floor {
+        handle: engine.handle,
+        lateness: rx,
+    })
+}
+
+/// The loop: the same syscalls per wake-up as the output thread's loop (arm the timer with an
+/// absolute deadline, poll it beside the request eventfd, read the timer), then one clock read.
+/// A deadline not yet due when the timer is armed cannot be taken early: the timer is
+/// absolute.
+/// After the last deadline it only waits for the stop.
+fn sleep_until_each<O: Output>(
+    thread: &mut OutputThread<O>,
+    timer: &TimerFd,
+    deadlines: &[Nanos],
+    lateness: &mut Vec<i64>,
+) -> Result<(), EngineError> {
+    let sys = |what| move |source| EngineError::Sys { what, source };
+    let mut next = 0;
+    while !thread.stop_requested() {
+        match deadlines.get(next) {
+            Some(&t) => timer
+                .set(
+                    Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(t))),
+                    TimerSetTimeFlags::TFD_TIMER_ABSTIME,
+                )
+                .map_err(sys("timerfd_settime"))?,
+            None => timer.unset().map_err(sys("timerfd_settime"))?,
+        }
+        let mut fds = [
+            PollFd::new(timer.as_fd(), PollFlags::POLLIN),
+            PollFd::new(thread.request_wake_fd(), PollFlags::POLLIN),
+        ];
+        match poll(&mut fds, PollTimeout::NONE) {
+            Ok(_) | Err(nix::errno::Errno::EINTR) => {}
+            Err(e) => return Err(sys("poll")(e)),
+        }
+        let fired = |fd: &PollFd| fd.revents().is_some_and(|r| r.contains(PollFlags::POLLIN));
+        let (timer_fired, request_fired) = (fired(&fds[0]), fired(&fds[1]));
+        if timer_fired {
+            let _ = timer.wait();
+            let now = clock::monotonic_ns();
+            // Every deadline that is due is taken at this wake-up, as the output thread writes
+            // every due edge in one go; re-arming for a deadline already past would cost the
+            // floor syscalls ours does not make.
+            while let Some(&t) = deadlines.get(next).filter(|t| **t <= now) {
+                lateness.push(now as i64 - t as i64);
+                next += 1;
+            }
+        }
+        if request_fired {
+            thread.clear_request_wake();
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,704 @@
+//! `pwm_actuator_node bench`: edge lateness of the output thread against a tokio `sleep_until`
+//! baseline, in one run, with the same channels, period, duty and simulated output.
+//!
+//! Both sides run the very same output thread and per-wake-up work (`engine::spawn_with`);
+//! only the loop that puts the thread to sleep differs ([`baseline`] for tokio). Lateness is
+//! the time the output write returned minus the time the core scheduled the edge, read from
+//! the edge reports the ROS side would publish.
+//!
+//! Part of the binary, not of the library: nothing the node runs depends on it.
+
+mod baseline;
+mod floor;
+
+use clap::Args;
+use pwm_actuator::clock;
+use pwm_actuator::core::{ChannelParams, Command, Nanos, NS_PER_MS};
+use pwm_actuator::engine::{self, Engine, EngineOptions, Input, Report, Request};
+use pwm_actuator::output::SimOutput;
+use serde::Serialize;
+use std::fmt::Write as _;
+use std::time::Duration;
+
+/// What to run: the options of `pwm_actuator_node bench`.
+#[derive(Debug, Clone, Copy, PartialEq, Args)]
+pub struct BenchOptions {
+    /// Number of channels, 1..=256
+    #[arg(long, value_name = "N", default_value_t = 2, value_parser = number::<usize>, allow_hyphen_values = true)]
+    pub channels: usize,
+    /// Period of every channel, ms
+    #[arg(long = "period-ms", value_name = "MS", default_value_t = 5, value_parser = number::<u64>, allow_hyphen_values = true)]
+    pub period_ms: u64,
+    /// Duty of every channel, percent (0..=100)
+    #[arg(long = "duty", value_name = "PCT", default_value_t = 37.0, value_parser = number::<f64>, allow_hyphen_values = true)]
+    pub duty_percent: f64,
+    /// Start offset between consecutive channels, ms, >= 0 (wrapped into the period)
+    #[arg(long = "offset-ms", value_name = "MS", default_value_t = 1.3, value_parser = number::<f64>, allow_hyphen_values = true)]
+    pub offset_ms: f64,
+    /// Length of each side's run, s, in (0, 3600]
+    #[arg(long, value_name = "S", default_value_t = 10.0, value_parser = number::<f64>, allow_hyphen_values = true)]
+    pub seconds: f64,
+    /// SCHED_FIFO priority 1..=99 of every side's output thread (needs CAP_SYS_NICE)
+    #[arg(long = "rt-priority", value_name = "P", value_parser = number::<i32>, allow_hyphen_values = true)]
+    pub rt_priority: Option<i32>,
+    /// Print one JSON object instead of the table
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl Default for BenchOptions {
+    fn default() -> Self {
+        BenchOptions {
+            channels: 2,
+            period_ms: 5,
+            duty_percent: 37.0,
+            offset_ms: 1.3,
+            seconds: 10.0,
+            rt_priority: None,
+            json: false,
+        }
+    }
+}
+
+/// One side's figures.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct Figures {
+    /// Edges written.
+    pub edges: usize,
+    /// Edges written before their scheduled time.
+    pub early: usize,
+    /// Median lateness, µs.
+    pub p50_us: f64,
+    /// 99th percentile lateness, µs.
+    pub p99_us: f64,
+    /// 99.9th percentile lateness, µs.
+    pub p999_us: f64,
+    /// Largest lateness, µs.
+    pub max_us: f64,
+    /// Process CPU time over wall time, percent of one core.
+    pub cpu_pct: f64,
+    /// The report reader thread's share of `cpu_pct` (the rest is the output thread;
+    /// the main thread sleeps), percent
+    /// of one core; 0 for the floor, which has no reader.
+    pub reader_cpu_pct: f64,
+    /// Peak resident set size during the run, KiB.
+    pub rss_kb: u64,
+    /// Host CPU steal during the run, percent of all CPU time (from /proc/stat).
+    pub steal_pct: f64,
+    /// Reports dropped because the reader lagged.
+    pub dropped: u64,
+}
+
+/// The `bench` subcommand: its options and its `--help`.
+pub fn command() -> clap::Command {
+    BenchOptions::augment_args(clap::Command::new("bench"))
+        .about(
+            "Edge lateness, CPU and memory of the output thread against a tokio sleep_until \
+             baseline and a bare timerfd floor, in one run on the simulated output",
+        )
+        .args_override_self(true)
+        // The node's command turns clap's generated help flag off for all its subcommands (it
+        // has its own, for `Flags::help`), so the bench declares clap's help action itself.
+        .disable_help_flag(true)
+        .arg(
+            clap::Arg::new("help")
+                .short('h')
+                .long("help")
+                .action(clap::ArgAction::Help)
+                .help("Print help"),
+        )
+}
+
+/// A number, or why not.
+fn number<T: std::str::FromStr>(v: &str) -> Result<T, String> {
+    v.parse()
+        .map_err(|_| format!("`{v}` is not a valid number"))
+}
+
+impl BenchOptions {
+    /// Checks the ranges clap does not know.
+    pub fn validate(&self) -> Result<(), String> {
+        let o = self;
+        if o.channels == 0 || o.channels > 256 {
+            return Err(format!("--channels {} is outside 1..256", o.channels));
+        }
+        if !(o.seconds > 0.0 && o.seconds <= 3600.0) {
+            return Err(format!("--seconds {} is outside (0, 3600]", o.seconds));
+        }
+        if !(0.0..=100.0).contains(&o.duty_percent) {
+            return Err(format!("--duty {} is outside 0..100", o.duty_percent));
+        }
+        if !(o.offset_ms >= 0.0 && o.offset_ms.is_finite()) {
+            return Err(format!("--offset-ms {} must be >= 0", o.offset_ms));
+        }
+        Ok(())
+    }
+}
+
+/// Runs `pwm_actuator_node bench` with `opts`; returns the process exit code (2: bad options).
+pub fn run(opts: BenchOptions) -> i32 {
+    if let Err(e) = opts.validate() {
+        eprintln!("{e}");
+        return 2;
+    }
+    let params = ChannelParams {
+        period_ms: opts.period_ms,
+        ..ChannelParams::default()
+    };
+    if let Err(e) = params.validate() {
+        eprintln!("--period-ms: {e}");
+        return 2;
+    }
+    if !opts.json {
+        println!(
+            "pwm_actuator bench: {} channels, period {} ms, duty {} %, offset {} ms, {} s per side, sim output{}",
+            opts.channels,
+            opts.period_ms,
+            opts.duty_percent,
+            opts.offset_ms,
+            opts.seconds,
+            opts.rt_priority
+                .map(|p| format!(", SCHED_FIFO {p}"))
+                .unwrap_or_default()
+        );
+    }
+    let (ours, deadlines) = match run_side(&opts, params, Side::Ours) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("bench (timerfd thread): {e}");
+            return 1;
+        }
+    };
+    let (baseline, _) = match run_side(&opts, params, Side::Baseline) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("bench (tokio baseline): {e}");
+            return 1;
+        }
+    };
+    let floor = match run_floor(&opts, params, &deadlines) {
+        Ok(f) => f,
+        Err(e) => {
+            eprintln!("bench (bare timer floor): {e}");
+            return 1;
+        }
+    };
+    let summary = Summary::new(ours, baseline, floor);
+    if opts.json {
+        match serde_json::to_string(&summary) {
+            Ok(j) => println!("{j}"),
+            Err(e) => {
+                eprintln!("bench: {e}");
+                return 1;
+            }
+        }
+    } else {
+        println!("{}", table(&summary));
+        println!(
+            "ratio baseline/ours: p50 {:.1}x, p99 {:.1}x",
+            summary.ratio_p50, summary.ratio_p99
+        );
+        println!(
+            "ratio ours/floor: p50 {:.1}x, p99 {:.1}x, cpu {:.1}x",
+            summary.ours_over_floor_p50, summary.ours_over_floor_p99, summary.ours_over_floor_cpu
+        );
+    }
+    0
+}
+
+/// Everything one run measured, as `--json` prints it. Figures are rounded to 0.01; a ratio
+/// whose divisor is 0 is `null`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Summary {
+    /// The output thread (timerfd).
+    pub ours: Figures,
+    /// The same thread and work asleep in tokio's `sleep_until`.
+    pub baseline: Figures,
+    /// A bare timerfd loop on ours' deadlines that does no work.
+    pub floor: Figures,
+    /// Baseline p50 over ours.
+    pub ratio_p50: f64,
+    /// Baseline p99 over ours.
+    pub ratio_p99: f64,
+    /// Ours p50 over the floor's.
+    pub ours_over_floor_p50: f64,
+    /// Ours p99 over the floor's.
+    pub ours_over_floor_p99: f64,
+    /// Ours CPU over the floor's.
+    pub ours_over_floor_cpu: f64,
+}
+
+impl Summary {
+    fn new(ours: Figures, baseline: Figures, floor: Figures) -> Summary {
+        let ratio = |a: f64, b: f64| round2(if b > 0.0 { a / b } else { f64::INFINITY });
+        Summary {
+            ratio_p50: ratio(baseline.p50_us, ours.p50_us),
+            ratio_p99: ratio(baseline.p99_us, ours.p99_us),
+            ours_over_floor_p50: ratio(ours.p50_us, floor.p50_us),
+            ours_over_floor_p99: ratio(ours.p99_us, floor.p99_us),
+            ours_over_floor_cpu: ratio(ours.cpu_pct, floor.cpu_pct),
+            ours: ours.rounded(),
+            baseline: baseline.rounded(),
+            floor: floor.rounded(),
+        }
+    }
+}
+
+/// Rounds to 0.01 (what the figures' precision supports); serde_json writes infinities as
+/// `null`.
+fn round2(x: f64) -> f64 {
+    if x.is_finite() {
+        (x * 100.0).round() / 100.0
+    } else {
+        x
+    }
+}
+
+impl Figures {
+    fn rounded(self) -> Figures {
+        Figures {
+            p50_us: round2(self.p50_us),
+            p99_us: round2(self.p99_us),
+            p999_us: round2(self.p999_us),
+            max_us: round2(self.max_us),
+            cpu_pct: round2(self.cpu_pct),
+            reader_cpu_pct: round2(self.reader_cpu_pct),
+            steal_pct: round2(self.steal_pct),
+            ..self
+        }
+    }
+}
+
+fn table(s: &Summary) -> String {
+    let mut t = String::new();
+    let _ = writeln!(
+        t,
+        "{:<18} {:>7} {:>6} {:>9} {:>9} {:>9} {:>9} {:>6} {:>7} {:>8} {:>6}",
+        "",
+        "edges",
+        "early",
+        "p50 us",
+        "p99 us",
+        "p99.9 us",
+        "max us",
+        "cpu %",
+        "reader%",
+        "rss KiB",
+        "steal%"
+    );
+    for (name, f) in [
+        ("ours (timerfd)", &s.ours),
+        ("baseline (tokio)", &s.baseline),
+        ("floor (bare timer)", &s.floor),
+    ] {
+        let _ = writeln!(
+            t,
+            "{:<18} {:>7} {:>6} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6.2} {:>7.2} {:>8} {:>6.2}",
+            name,
+            f.edges,
+            f.early,
+            f.p50_us,
+            f.p99_us,
+            f.p999_us,
+            f.max_us,
+            f.cpu_pct,
+            f.reader_cpu_pct,
+            f.rss_kb,
+            f.steal_pct
+        );
+    }
+    t.trim_end().to_string()
+}
+
+/// Which sleeping loop a side runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Side {
+    /// The node's own: `engine::spawn`, timerfd.
+    Ours,
+    /// tokio's `sleep_until` ([`baseline`]).
+    Baseline,
+}
+
+/// Runs one side and measures it. Also returns the scheduled time of every measured edge,
+/// monotonic ns relative to the first enable, ascending (the floor replays them).
+fn run_side(
+    opts: &BenchOptions,
+    params: ChannelParams,
+    side: Side,
+) -> Result<(Figures, Vec<Nanos>), String> {
+    let cfg = params.validate().map_err(|e| e.to_string())?;
+    let names: Vec<String> = (1..=opts.channels).map(|i| format!("pw{i:02}")).collect();
+    let output = SimOutput::new(names, None).map_err(|e| e.to_string())?;
+    let configs = vec![cfg; opts.channels];
+    reset_peak_rss();
+    let Engine {
+        mut requests,
+        mut reports,
+        handle,
+    } = match side {
+        Side::Ours => engine::spawn(configs, output, engine_options(opts)),
+        Side::Baseline => baseline::spawn(configs, output, engine_options(opts)),
+    }
+    .map_err(|e| e.to_string())?;
+
+    // The reader: what the ROS side does, minus publishing.
+    let expected = expected_edges(opts);
+    let reader = std::thread::spawn(move || {
+        let mut edges: Vec<(i64, Nanos)> = Vec::with_capacity(expected + 1024);
+        let (cpu0, wall0) = (thread_cpu_ns(), clock::monotonic_ns());
+        reports.serve(
+            || false,
+            |r| {
+                if let Report::Edge(e) = r {
+                    edges.push((e.lateness_ns(), e.scheduled_ns));
+                }
+            },
+            |_| {},
+        );
+        let wall = clock::monotonic_ns() - wall0;
+        let cpu_pct = 100.0 * thread_cpu_ns().saturating_sub(cpu0) as f64 / wall.max(1) as f64;
+        (edges, reports.dropped(), cpu_pct)
+    });
+
+    let send = |requests: &mut engine::Requests, channel, input| {
+        requests
+            .send(Request { channel, input })
+            .map_err(|e| e.to_string())
+    };
+    for ch in 0..opts.channels {
+        send(
+            &mut requests,
+            ch,
+            Input::Command(Command::Percent(opts.duty_percent)),
+        )?;
+    }
+    // Stagger the channels' period starts by the offset, wrapped into the period.
+    let period_ns = opts.period_ms * NS_PER_MS;
+    let offset_ns = (opts.offset_ms * NS_PER_MS as f64) as Nanos;
+    let t0 = clock::monotonic_ns() + 20 * NS_PER_MS;
+    let mut order: Vec<(Nanos, usize)> = (0..opts.channels)
+        .map(|ch| ((ch as Nanos * offset_ns) % period_ns.max(1), ch))
+        .collect();
+    order.sort_unstable();
+    for (off, ch) in order {
+        sleep_until(t0 + off);
+        send(&mut requests, ch, Input::Enable(true))?;
+    }
+    // Measure a whole window after the last enable.
+    let window = Window::start();
+    sleep_until(window.wall0 + (opts.seconds * 1e9) as Nanos);
+    let measured = window.end();
+    handle.shutdown().map_err(|e| e.to_string())?;
+    drop(requests);
+    let (mut edges, dropped, reader_cpu_pct) =
+        reader.join().map_err(|_| "reader thread panicked")?;
+    // The shutdown edges are not scheduled by the core's timing: leave them out.
+    edges.truncate(edges.len().saturating_sub(opts.channels));
+    let mut deadlines: Vec<Nanos> = edges.iter().map(|e| e.1.saturating_sub(t0)).collect();
+    deadlines.sort_unstable();
+    let mut lateness: Vec<i64> = edges.iter().map(|e| e.0).collect();
+    let figures = Figures {
+        reader_cpu_pct,
+        ..figures(&mut lateness, measured, dropped)
+    };
+    Ok((figures, deadlines))
+}
+
+/// Runs the floor on `deadlines` (relative, as [`run_side`] returns them) and measures it.
+fn run_floor(
+    opts: &BenchOptions,
+    params: ChannelParams,
+    deadlines: &[Nanos],
+) -> Result<Figures, String> {
+    let cfg = params.validate().map_err(|e| e.to_string())?;
+    let names: Vec<String> = (1..=opts.channels).map(|i| format!("pw{i:02}")).collect();
+    let output = SimOutput::new(names, None).map_err(|e| e.to_string())?;
+    reset_peak_rss();
+    let t0 = clock::monotonic_ns() + 20 * NS_PER_MS;
+    let absolute: Vec<Nanos> = deadlines.iter().map(|d| t0 + d).collect();
+    let last = absolute.last().copied().unwrap_or(t0);
+    let floor = floor::spawn(
+        vec![cfg; opts.channels],
+        output,
+        engine_options(opts),
+        absolute,
+    )
+    .map_err(|e| e.to_string())?;
+    // CPU is measured from the first deadline to the last, as long as the other sides' window.
+    let first = deadlines.first().copied().unwrap_or(0);
+    sleep_until(t0 + first);
+    let window = Window::start();
+    sleep_until(last + NS_PER_MS);
+    let measured = window.end();
+    floor.handle.shutdown().map_err(|e| e.to_string())?;
+    let mut lateness = floor
+        .lateness
+        .recv()
+        .map_err(|_| "the floor thread sent no figures")?;
+    Ok(figures(&mut lateness, measured, 0))
+}
+
+fn engine_options(opts: &BenchOptions) -> EngineOptions {
+    EngineOptions {
+        rt_priority: opts.rt_priority,
+        queue_capacity: 16_384,
+    }
+}
+
+/// Edges a side should write in its window: 2 per period per channel.
+fn expected_edges(opts: &BenchOptions) -> usize {
+    (opts.seconds * 2000.0 / opts.period_ms as f64) as usize * opts.channels
+}
+
+/// CPU, wall time, steal and peak RSS over a measurement window.
+struct Window {
+    cpu0: u64,
+    steal0: Option<(u64, u64)>,
+    wall0: Nanos,
+}
+
+/// What a [`Window`] measured.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct Measured {
+    cpu_ns: u64,
+    wall_ns: u64,
+    rss_kb: u64,
+    steal_pct: f64,
+}
+
+impl Window {
+    fn start() -> Window {
+        Window {
+            cpu0: process_cpu_ns(),
+            steal0: read_steal(),
+            wall0: clock::monotonic_ns(),
+        }
+    }
+
+    fn end(self) -> Measured {
+        let wall_ns = clock::monotonic_ns() - self.wall0;
+        let cpu_ns = process_cpu_ns().saturating_sub(self.cpu0);
+        let steal_pct = match (self.steal0, read_steal()) {
+            (Some((s0, t0)), Some((s1, t1))) if t1 > t0 => {
+                100.0 * (s1 - s0) as f64 / (t1 - t0) as f64
+            }
+            _ => 0.0,
+        };
+        Measured {
+            cpu_ns,
+            wall_ns,
+            rss_kb: peak_rss_kb(),
+            steal_pct,
+        }
+    }
+}
+
+fn figures(lateness: &mut [i64], m: Measured, dropped: u64) -> Figures {
+    lateness.sort_unstable();
+    let pct = |p: f64| -> f64 {
+        if lateness.is_empty() {
+            return 0.0;
+        }
+        let i = ((p / 100.0) * (lateness.len() - 1) as f64).round() as usize;
+        lateness[i.min(lateness.len() - 1)] as f64 / 1000.0
+    };
+    Figures {
+        edges: lateness.len(),
+        early: lateness.iter().filter(|l| **l < 0).count(),
+        p50_us: pct(50.0),
+        p99_us: pct(99.0),
+        p999_us: pct(99.9),
+        max_us: lateness.last().map_or(0.0, |m| *m as f64 / 1000.0),
+        cpu_pct: if m.wall_ns > 0 {
+            100.0 * m.cpu_ns as f64 / m.wall_ns as f64
+        } else {
+            0.0
+        },
+        reader_cpu_pct: 0.0,
+        rss_kb: m.rss_kb,
+        steal_pct: m.steal_pct,
+        dropped,
+    }
+}
+
+fn sleep_until(t: Nanos) {
+    let now = clock::monotonic_ns();
+    if t > now {
+        std::thread::sleep(Duration::from_nanos(t - now));
+    }
+}
+
+/// User + system CPU time of the calling thread, ns.
+fn thread_cpu_ns() -> u64 {
+    use nix::time::{clock_gettime, ClockId};
+    clock_gettime(ClockId::CLOCK_THREAD_CPUTIME_ID)
+        .map(|t| t.tv_sec() as u64 * 1_000_000_000 + t.tv_nsec() as u64)
+        .unwrap_or(0)
+}
+
+/// User + system CPU time of the whole process, ns.
+fn process_cpu_ns() -> u64 {
+    use nix::time::{clock_gettime, ClockId};
+    clock_gettime(ClockId::CLOCK_PROCESS_CPUTIME_ID)
+        .map(|t| t.tv_sec() as u64 * 1_000_000_000 + t.tv_nsec() as u64)
+        .unwrap_or(0)
+}
+
+/// Resets the kernel's peak-RSS mark for this process so each side reports its own peak.
+fn reset_peak_rss() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
+fn peak_rss_kb() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|v| v.parse().ok())
+        })
+        .unwrap_or(0)
+}
+
+/// (steal, total) jiffies from the aggregate line of /proc/stat.
+fn read_steal() -> Option<(u64, u64)> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let line = stat.lines().next()?;
+    let v: Vec<u64> = line
+        .split_whitespace()
+        .skip(1)
+        .filter_map(|x| x.parse().ok())
+        .collect();
+    let steal = *v.get(7)?;
+    Some((steal, v.iter().take(8).sum()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Parses the bench's arguments as `pwm_actuator_node bench ARGS` does.
+    fn parse_args(args: &[String]) -> Result<BenchOptions, String> {
+        let m = command()
+            .no_binary_name(true)
+            .try_get_matches_from(args)
+            .map_err(|e| e.render().to_string())?;
+        let o = <BenchOptions as clap::FromArgMatches>::from_arg_matches(&m)
+            .map_err(|e| e.render().to_string())?;
+        o.validate()?;
+        Ok(o)
+    }
+
+    fn args(s: &str) -> Vec<String> {
+        s.split_whitespace().map(String::from).collect()
+    }
+
+    #[test]
+    fn defaults_are_the_issue_load() {
+        let o = parse_args(&[]).unwrap();
+        assert_eq!((o.channels, o.period_ms, o.duty_percent), (2, 5, 37.0));
+        assert_eq!((o.offset_ms, o.seconds, o.json), (1.3, 10.0, false));
+        assert_eq!(o, BenchOptions::default());
+    }
+
+    #[test]
+    fn options_parse_and_bad_values_say_why() {
+        let o = parse_args(&args("--channels 64 --period-ms 10 --seconds 2 --json")).unwrap();
+        assert_eq!(
+            (o.channels, o.period_ms, o.seconds, o.json),
+            (64, 10, 2.0, true)
+        );
+        assert!(parse_args(&args("--channels x"))
+            .unwrap_err()
+            .contains("`x` is not a valid number"));
+        assert!(parse_args(&args("--channels 0")).is_err());
+        assert!(parse_args(&args("--bogus"))
+            .unwrap_err()
+            .contains("--bogus"));
+        assert!(parse_args(&args("--seconds"))
+            .unwrap_err()
+            .contains("a value is required for '--seconds"));
+        assert_eq!(
+            parse_args(&args("--rt-priority 50")).unwrap().rt_priority,
+            Some(50)
+        );
+        // A negative value reaches the range check instead of passing for an option.
+        assert!(parse_args(&args("--offset-ms -1"))
+            .unwrap_err()
+            .contains("--offset-ms -1 must be >= 0"));
+    }
+
+    #[test]
+    fn percentiles_and_early_edges() {
+        let mut l: Vec<i64> = (1..=1000).map(|i| i * 1000).collect();
+        l[0] = -5000;
+        let m = Measured {
+            cpu_ns: 50,
+            wall_ns: 1000,
+            rss_kb: 1,
+            steal_pct: 0.0,
+        };
+        let f = figures(&mut l, m, 0);
+        assert_eq!(f.edges, 1000);
+        assert_eq!(f.early, 1);
+        assert_eq!(f.max_us, 1000.0);
+        assert_eq!(f.p50_us, 501.0);
+        assert_eq!(f.cpu_pct, 5.0);
+    }
+
+    /// A short real run of both sides: every edge is reported and none is early. Bounds are
+    /// loose on purpose; the figures themselves belong to the benchmark's printout.
+    #[test]
+    fn both_sides_run_and_report_every_edge() {
+        let opts = BenchOptions {
+            channels: 2,
+            period_ms: 10,
+            seconds: 0.5,
+            ..BenchOptions::default()
+        };
+        let params = ChannelParams {
+            period_ms: 10,
+            ..ChannelParams::default()
+        };
+        let (ours, deadlines) = run_side(&opts, params, Side::Ours).unwrap();
+        let (baseline, _) = run_side(&opts, params, Side::Baseline).unwrap();
+        for (side, f) in [("ours", ours), ("baseline", baseline)] {
+            // 2 channels x 2 edges x 50 periods = 200, give or take the window's ends.
+            assert!(
+                f.edges >= 150 && f.edges <= 260,
+                "{side}: {} edges",
+                f.edges
+            );
+            assert_eq!(f.early, 0, "an absolute deadline is never written early");
+            assert_eq!(f.dropped, 0);
+        }
+        assert_eq!(deadlines.len(), ours.edges);
+        assert!(deadlines.windows(2).all(|w| w[0] <= w[1]));
+        // The floor wakes once for each of ours' edges, never early.
+        let floor = run_floor(&opts, params, &deadlines).unwrap();
+        assert_eq!(floor.edges, ours.edges);
+        assert_eq!(floor.early, 0);
+    }
+
+    #[test]
+    fn json_keeps_the_old_keys_and_adds_the_floor() {
+        let f = |p50_us, p99_us, cpu_pct| Figures {
+            p50_us,
+            p99_us,
+            cpu_pct,
+            ..Figures::default()
+        };
+        let s = Summary::new(f(20.0, 300.0, 2.0), f(900.0, 1800.0, 2.0), f(8.0, 0.0, 1.0));
+        let v: serde_json::Value = serde_json::to_value(s).unwrap();
+        for key in ["ours", "baseline", "floor"] {
+            assert!(v[key]["p50_us"].is_number(), "{key}: {v}");
+        }
+        assert_eq!(v["ratio_p50"], 45.0);
+        assert_eq!(v["ratio_p99"], 6.0);
+        assert_eq!(v["ours_over_floor_p50"], 2.5);
+        assert_eq!(v["ours_over_floor_cpu"], 2.0);
+        // A zero divisor is not a number JSON can carry.
+        assert!(v["ours_over_floor_p99"].is_null());
+    }
+}
