@@ -374,3 +374,47 @@ fn tempdir() -> std::path::PathBuf {
     std::fs::create_dir_all(&d).unwrap();
     d
 }
+
+#[test]
+fn a_loop_that_fails_still_leaves_every_output_inactive() {
+    // A sleeping loop that ends with a failed system call (here a made-up EIO after the lines
+    // went high) must not leave the lines where they were.
+    let sim = SimOutput::new(names(2), None).unwrap();
+    let probe = sim.probe();
+    let cfgs = vec![params(1000).validate().unwrap(); 2];
+    let seen_high = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let fail_now = std::sync::Arc::clone(&seen_high);
+    let mut e = engine::spawn_with(cfgs, sim, EngineOptions::default(), move |thread| {
+        let start = Instant::now();
+        while !fail_now.load(std::sync::atomic::Ordering::SeqCst)
+            && start.elapsed() < Duration::from_secs(20)
+        {
+            thread.work()?;
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        Err(EngineError::Sys {
+            what: "poll",
+            source: nix::errno::Errno::EIO,
+        })
+    })
+    .unwrap();
+    for ch in 0..2 {
+        send(&mut e.requests, ch, Input::Command(Command::Percent(100.0)));
+        send(&mut e.requests, ch, Input::Enable(true));
+    }
+    let start = Instant::now();
+    while probe.levels() != vec![Level::High; 2] {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "never switched on"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    seen_high.store(true, std::sync::atomic::Ordering::SeqCst);
+    let r = e.handle.shutdown();
+    assert!(
+        matches!(r, Err(EngineError::Sys { what: "poll", .. })),
+        "{r:?}"
+    );
+    assert_eq!(probe.levels(), vec![Level::Low; 2]);
+}

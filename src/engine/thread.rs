@@ -328,9 +328,12 @@ where
                     last_wake: 0,
                     wake_pending: false,
                 };
-                // After a fault the worker has already driven every line inactive.
-                run(&mut thread)?;
-                thread.finish()
+                // Every way out of the loop drives every line inactive: after an output fault
+                // the worker has already tried, and tries once more here; after a failed
+                // system call (timerfd, poll) this is the only place that does it.
+                let ran = run(&mut thread);
+                let finished = thread.finish();
+                ran.and(finished)
             })
             .map_err(EngineError::Spawn)?
     };
