@@ -164,6 +164,16 @@ fn bad_command_lines_exit_2_with_a_reason() {
             "sim output only",
         ),
         (&["--trace", "x.txt"], None, "unknown extension"),
+        (
+            &["--ros-args", "-p", "split:=zone:pw01:pw09"],
+            None,
+            "split: `pw09` is not a channel of this node (pw01..pw02)",
+        ),
+        (
+            &["--ros-args", "-p", "split:=zone:pw01:pw01"],
+            None,
+            "used twice",
+        ),
     ];
     for (args, domain, why) in cases {
         let (code, _, err) = run(args, *domain);

@@ -19,7 +19,8 @@ use super::params::{
 };
 use super::qos;
 use super::services::{self, ServiceError};
-use crate::core::{ChannelConfig, Command};
+use super::split::{self, SplitError};
+use crate::core::{split_command, ChannelConfig, Command};
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::output::fault::{FailingOutput, Fault, FAULT_ENV};
 use crate::output::{
@@ -79,6 +80,9 @@ pub enum NodeError {
     /// The trace files cannot be written.
     #[error("trace: {0}")]
     Trace(#[source] TraceError),
+    /// The `split` parameter is refused.
+    #[error(transparent)]
+    Split(#[from] SplitError),
     /// The GPIO lines cannot be opened.
     #[error("cannot open the GPIO output: {0}")]
     Gpio(#[source] GpioError),
@@ -116,6 +120,7 @@ impl NodeError {
             | NodeError::Param(_)
             | NodeError::Binding(_)
             | NodeError::Fault(_)
+            | NodeError::Split(_)
             | NodeError::Trace(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
@@ -211,13 +216,15 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         warn!("ignoring a value for {ign}: this node has no such parameter");
     }
     let cfg = StartupConfig::from_store(&su.store)?;
+    let channel_names: Vec<String> = cfg.channels.iter().map(|c| c.name.clone()).collect();
+    let splits = split::parse(su.store.string("split").unwrap_or(""), &channel_names)?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("pwm-ros")
         .enable_all()
         .build()
         .map_err(NodeError::Runtime)?;
-    rt.block_on(serve(id, parsed.ros, su.store, cfg, domain))
+    rt.block_on(serve(id, parsed.ros, su.store, cfg, splits, domain))
 }
 
 /// The start-up values: options first, then the ROS arguments in order. Logs where a ROS
@@ -437,6 +444,7 @@ async fn serve(
     ros: RosArgs,
     store: ParamStore,
     cfg: StartupConfig,
+    splits: Vec<split::SplitPair>,
     domain: u16,
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
@@ -571,6 +579,29 @@ async fn serve(
                 }
                 Err(e) => b.refused_message(ch, &door, &e.to_string()),
             }
+        }));
+    }
+    // 001's split range: the output thread keeps each pair's lines apart from the start.
+    for pair in &splits {
+        let (hot, cold) = (&cfg.channels[pair.hot].name, &cfg.channels[pair.cold].name);
+        info!(
+            "split {}: {hot} hot, {cold} cold, dead band {} %",
+            pair.name, pair.deadband_pct
+        );
+        let _ = bridge.send(pair.hot, Input::Pair(pair.cold));
+        let _ = bridge.send(pair.cold, Input::Pair(pair.hot));
+        let b = Arc::clone(&bridge);
+        let (hot, cold, band) = (pair.hot, pair.cold, pair.deadband_pct);
+        let (full, s) = subscription::<msg::Float64>(
+            &mut node,
+            &id,
+            remaps,
+            &format!("~/split/{}/command", pair.name),
+        )?;
+        tasks.push(listen(full, s, move |m| {
+            let (h, c) = split_command(m.data, band);
+            b.command(hot, h, CommandUnit::Percent);
+            b.command(cold, c, CommandUnit::Percent);
         }));
     }
     tasks.extend(services::spawn(&mut node, &id, remaps, &bridge)?);

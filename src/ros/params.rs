@@ -477,6 +477,19 @@ fn node_decls() -> Vec<Decl> {
             checked: Checked::Range,
         },
         Decl {
+            suffix: "split",
+            ptype: String,
+            default: || ParameterValue::String(std::string::String::new()),
+            description: "Split-range pairs (001), comma-separated NAME:HOT:COLD[:DEADBAND_PCT]: \
+                          ~/split/NAME/command (std_msgs/Float64, -100..100 %) drives HOT when \
+                          positive and COLD when negative; the two lines are never high \
+                          together. Empty: none.",
+            constraints: "each channel in one pair at most",
+            read_only: Some(START_UP),
+            range: Range::Unbounded,
+            checked: Checked::Range,
+        },
+        Decl {
             suffix: "rt_priority",
             ptype: Integer,
             default: || ParameterValue::Integer(0),

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from typing import Sequence
 
+from std_msgs.msg import Float64
+
 from helpers_rules import (
     MS,
     NODE,
@@ -262,3 +264,95 @@ def test_en_toggling_never_puts_a_short_break_on_the_line(node_process, ros):
     assert rises, run
     assert rises[0].scheduled_ns - falls[0].scheduled_ns >= 400 * MS
     assert rises[0].t_ns - falls[0].t_ns >= 400 * MS
+
+
+# ---------------------------------------------------------------------------------------------
+# 001: split range
+# ---------------------------------------------------------------------------------------------
+
+
+def overlaps(a: Sequence[Edge], b: Sequence[Edge], written: bool) -> list[int]:
+    """Instants at which both traces are high (merged in time order; at equal instants a fall
+    counts before a rise, as the node writes them)."""
+    tagged = sorted(
+        [((e.t_ns if written else e.scheduled_ns), e.level, i) for i, es in ((0, a), (1, b))
+         for e in es]
+    )
+    high, out = [0, 0], []
+    for t, level, i in tagged:
+        high[i] = level
+        if high[0] and high[1]:
+            out.append(t)
+    return out
+
+
+def test_split_range_drives_one_side_and_never_overlaps(node_process, ros):
+    """001's "Hot/Cold or Split Range case": one signed command on ~/split/zone/command drives
+    pw01 (hot) when positive and pw02 (cold) when negative, the other held at 0, with a 2 %
+    dead band around 0. On every sign change the two lines never overlap (trace, scheduled and
+    written times), and the one starting waits out its own minimum break: cold's breaks are never
+    below its 150 ms minimum."""
+    proc, hot, cold = start(node_process, ros, channels=("pw01", "pw02"), split="zone:pw01:pw02:2",
+                            pw01__period_ms=300, pw01__enable=True,
+                            pw02__period_ms=500, pw02__min_on_ms=150,
+                            pw02__apply_at="immediate", pw02__enable=True)
+    command = ros.publisher(Float64, f"{NODE}/split/zone/command")
+    ros.wait_for_subscribers(command, 1)
+
+    def signed(value: float, hot_pct: float, cold_pct: float):
+        command.publish(Float64(data=value))
+        hot.wait_status(lambda s: close(s.duty_commanded, hot_pct), f"hot {hot_pct} %",
+                        start=len(hot.status.messages) - 1)
+        cold.wait_status(lambda s: close(s.duty_commanded, cold_pct), f"cold {cold_pct} %",
+                         start=len(cold.status.messages) - 1)
+
+    signed(1.5, 0.0, 0.0)  # inside the dead band: both off
+    for k in range(6):
+        if k % 2 == 0:
+            signed(80.0, 80.0, 0.0)
+        else:
+            signed(-70.0, 0.0, 70.0)
+        observe_until(hot, mono_ns() + 400 * MS)
+    traces = close_all_traces(proc, ("pw01", "pw02"))
+    h, c = traces["pw01"][1:], traces["pw02"][1:]
+    assert len(pulses(h)) >= 3 and len(pulses(c)) >= 3, (h, c)
+    for written in (False, True):
+        both = overlaps(h, c, written)
+        assert not both, f"hot and cold both high ({'written' if written else 'scheduled'}) at {both}"
+    assert_no_phase_below(c, 0, 150 * MS, "cold")
+
+
+# ---------------------------------------------------------------------------------------------
+# The minimum is a property of the line: a stalled process
+# ---------------------------------------------------------------------------------------------
+
+
+def test_stalls_of_the_process_never_shorten_a_phase_below_its_minimum(node_process, ros):
+    """A relay at 200 ms / 50 %, minimum 50 ms on and off; the whole node is stopped (SIGSTOP)
+    for 80 ms at a time, at random phases, twenty times. An edge written late moves the next one:
+    no pulse and no break on the line (written times) is below 50 ms, and every edge was
+    written no earlier than scheduled."""
+    import random
+    import signal
+
+    proc, ch = start(node_process, ros, pw01__output_kind="relay", pw01__period_ms=200,
+                     pw01__duty=50.0, pw01__enable=True)
+    wait_trace(proc, lambda es: len(es) >= 3, "pulsing", spin=ch.ros.spin_once)
+    rng = random.Random(8)
+    for _ in range(20):
+        observe_until(ch, mono_ns() + rng.randrange(20, 150) * MS)
+        proc.send_signal(signal.SIGSTOP)
+        stopped = mono_ns()
+        while mono_ns() - stopped < 80 * MS:
+            pass
+        proc.send_signal(signal.SIGCONT)
+    observe_until(ch, mono_ns() + 500 * MS)
+    edges = close_trace(proc)[1:]
+    assert len(edges) > 20, edges
+    late = [e for e in edges if e.t_ns < e.scheduled_ns]
+    assert not late, f"written before their schedule: {late}"
+    # The shutdown edge may cut the last pulse: leave it out.
+    for level, t0, length in phases(edges[:-1], written=True):
+        assert length >= 50 * MS, (
+            f"a {length / MS:.3f} ms {'pulse' if level else 'break'} on the line at {t0}"
+        )
