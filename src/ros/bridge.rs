@@ -91,6 +91,8 @@ pub struct Bridge {
     pub diag_now: tokio::sync::Notify,
     /// Woken when the node must stop (output fault, output thread gone).
     pub stop: tokio::sync::Notify,
+    /// Woken when `status_rate_hz` changes.
+    pub status_rate_changed: tokio::sync::Notify,
 }
 
 impl Bridge {
@@ -153,6 +155,7 @@ impl Bridge {
             fault: AtomicBool::new(false),
             diag_now: tokio::sync::Notify::new(),
             stop: tokio::sync::Notify::new(),
+            status_rate_changed: tokio::sync::Notify::new(),
             names,
         }
     }
@@ -262,6 +265,7 @@ impl Bridge {
                 "status_rate_hz" => {
                     if let ParameterValue::Double(r) = value {
                         self.status_rate_bits.store(r.to_bits(), Ordering::Relaxed);
+                        self.status_rate_changed.notify_one();
                     }
                 }
                 "edge_log_rate" => {

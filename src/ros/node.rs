@@ -421,15 +421,46 @@ async fn diagnostics_loop(bridge: Arc<Bridge>) {
 }
 
 async fn status_loop(bridge: Arc<Bridge>) {
+    periodic_status(
+        || bridge.status_rate_hz(),
+        &bridge.status_rate_changed,
+        || bridge.publish_all_status(),
+    )
+    .await
+}
+
+/// Calls `publish` at `rate()` Hz, forever; a rate of 0 (on change only) publishes nothing.
+/// `changed` is notified when the rate changes, so a new rate never waits for the end of a
+/// sleep that an old, slow rate started.
+async fn periodic_status(
+    rate: impl Fn() -> f64,
+    changed: &tokio::sync::Notify,
+    mut publish: impl FnMut(),
+) {
     loop {
-        let rate = bridge.status_rate_hz();
-        if rate > 0.0 && rate.is_finite() {
-            tokio::time::sleep(Duration::from_secs_f64(1.0 / rate)).await;
-            bridge.publish_all_status();
-        } else {
-            tokio::time::sleep(Duration::from_millis(200)).await;
+        match status_period(rate()) {
+            Some(period) => {
+                tokio::select! {
+                    _ = tokio::time::sleep(period) => publish(),
+                    _ = changed.notified() => {}
+                }
+            }
+            None => changed.notified().await,
         }
     }
+}
+
+/// The period of the periodic status at `rate_hz`, or `None` for no periodic status (0, and
+/// anything that is not a positive finite rate). Never panics: the parameter checks keep the
+/// rate in 0.01..1000 Hz, and whatever reaches here is clamped to that.
+fn status_period(rate_hz: f64) -> Option<Duration> {
+    if !(rate_hz > 0.0 && rate_hz.is_finite()) {
+        return None;
+    }
+    let rate = rate_hz.clamp(params::MIN_STATUS_RATE_HZ, params::MAX_STATUS_RATE_HZ);
+    // 1/rate is within 1 ms..100 s here, so the conversion cannot fail; the fallback is the
+    // slowest period all the same.
+    Some(Duration::try_from_secs_f64(1.0 / rate).unwrap_or(Duration::from_secs(100)))
 }
 
 async fn serve(
@@ -718,6 +749,93 @@ mod tests {
             let e = domain_id_from(Some(bad)).unwrap_err();
             assert_eq!(e.exit_code(), EXIT_USAGE);
             assert!(e.to_string().contains(bad), "{e}");
+        }
+    }
+
+    /// Runs `periodic_status` at `first` Hz, switches to `second` Hz after `switch_ms` and
+    /// returns the times (ms after the switch) of the publishes within `window_ms` of it.
+    fn publishes_after_a_rate_change(
+        first: f64,
+        second: f64,
+        switch_ms: u64,
+        window_ms: u64,
+    ) -> Vec<u128> {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_time()
+            .build()
+            .unwrap();
+        let bits = Arc::new(std::sync::atomic::AtomicU64::new(first.to_bits()));
+        let changed = Arc::new(tokio::sync::Notify::new());
+        let times = Arc::new(std::sync::Mutex::new(Vec::new()));
+        rt.block_on(async {
+            let (b, c, t) = (Arc::clone(&bits), Arc::clone(&changed), Arc::clone(&times));
+            let start = std::time::Instant::now();
+            let switch = start + Duration::from_millis(switch_ms);
+            let task = tokio::spawn(async move {
+                periodic_status(
+                    || f64::from_bits(b.load(Ordering::Relaxed)),
+                    &c,
+                    || t.lock().unwrap().push(std::time::Instant::now()),
+                )
+                .await
+            });
+            tokio::time::sleep_until(switch.into()).await;
+            bits.store(second.to_bits(), Ordering::Relaxed);
+            changed.notify_one();
+            tokio::time::sleep(Duration::from_millis(window_ms)).await;
+            task.abort();
+            let times = times.lock().unwrap();
+            times
+                .iter()
+                .filter(|t| **t >= switch)
+                .map(|t| (*t - switch).as_millis())
+                .collect()
+        })
+    }
+
+    #[test]
+    fn a_new_status_rate_does_not_wait_for_the_old_sleep() {
+        // 0.01 Hz sleeps 100 s; after the change to 10 Hz the first status is due in 0.1 s.
+        let after = publishes_after_a_rate_change(0.01, 10.0, 50, 1000);
+        assert!(
+            after.first().is_some_and(|ms| *ms <= 300),
+            "publishes after the change (ms): {after:?}"
+        );
+        assert!(
+            after.len() >= 5,
+            "publishes after the change (ms): {after:?}"
+        );
+    }
+
+    #[test]
+    fn any_status_rate_gives_a_usable_period_or_none() {
+        for rate in [
+            1e-20,
+            5e-324,
+            f64::MIN_POSITIVE,
+            -0.0,
+            0.0,
+            -1.0,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::MAX,
+        ] {
+            // A rate the parameter checks refuse never reaches the loop; if one did, it must
+            // not panic (run on this thread, so a panic fails the test).
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_time()
+                .build()
+                .unwrap();
+            let changed = tokio::sync::Notify::new();
+            let ended = rt.block_on(async {
+                tokio::time::timeout(
+                    Duration::from_millis(30),
+                    periodic_status(|| rate, &changed, || {}),
+                )
+                .await
+            });
+            assert!(ended.is_err(), "the loop ended at {rate:?}");
         }
     }
 

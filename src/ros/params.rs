@@ -25,6 +25,12 @@ use std::path::PathBuf;
 /// Most channels a node may have (names stay two digits: `pw01`..`pw99`).
 pub const MAX_CHANNELS: usize = 99;
 
+/// Slowest periodic status rate, Hz (one message every 100 s); 0 means on change only.
+pub const MIN_STATUS_RATE_HZ: f64 = 0.01;
+
+/// Fastest periodic status rate, Hz.
+pub const MAX_STATUS_RATE_HZ: f64 = 1000.0;
+
 /// Channels when nothing says otherwise (000: PW01, PW02).
 pub const DEFAULT_CHANNELS: usize = 2;
 
@@ -351,6 +357,17 @@ fn check_range(d: &Descriptor, v: &ParameterValue) -> Result<(), ParamError> {
                 format!("{to:?}"),
             ))
         }
+        // 0 is "off"; any other rate must give a period the node can sleep for (1/1e-20 s
+        // is no Duration).
+        (Range::Double(_, to), ParameterValue::Double(x))
+            if suffix(&d.name) == "status_rate_hz" && *x != 0.0 && *x < MIN_STATUS_RATE_HZ =>
+        {
+            Err(out(
+                format!("{x:?}"),
+                format!("{MIN_STATUS_RATE_HZ:?}"),
+                format!("{to:?}"),
+            ))
+        }
         _ => Ok(()),
     }
 }
@@ -460,9 +477,9 @@ fn node_decls() -> Vec<Decl> {
             default: || ParameterValue::Double(10.0),
             description: "Rate of the periodic ~/<ch>/status messages, Hz (they are also sent \
                           on every change). 0: on change only.",
-            constraints: "",
+            constraints: "0, or 0.01..1000",
             read_only: None,
-            range: Range::Double(0.0, 1000.0),
+            range: Range::Double(0.0, MAX_STATUS_RATE_HZ),
             checked: Checked::Range,
         },
         Decl {
@@ -1361,6 +1378,43 @@ mod tests {
                 .starts_with("pw01: edge_band NaN is outside 0..1"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn status_rate_is_off_or_a_rate_the_node_can_keep() {
+        let s = ParamStore::new(1);
+        for bad in [1e-20, 5e-324, 0.009, -0.5, 1000.5, f64::NAN, f64::INFINITY] {
+            let e = s
+                .check(&[item("status_rate_hz", V::Double(bad))], Phase::Live)
+                .unwrap_err();
+            assert!(
+                matches!(&e, ParamError::OutOfRange { name, .. } if name == "status_rate_hz"),
+                "{bad:?}: {e}"
+            );
+        }
+        let e = s
+            .check(&[item("status_rate_hz", V::Double(1e-20))], Phase::Live)
+            .unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "parameter `status_rate_hz`: 1e-20 is outside 0.01..1000.0 (0 = on change only)"
+        );
+        for ok in [0.0, 0.01, 2.5, 1000.0] {
+            assert!(
+                s.check(&[item("status_rate_hz", V::Double(ok))], Phase::Live)
+                    .is_ok(),
+                "{ok}"
+            );
+        }
+        // The same at start-up (`--status-rate 5e-324`, `-p`, a parameter file): a bad
+        // configuration, exit 2.
+        assert!(matches!(
+            start_up(&[sv("status_rate_hz", V::Double(5e-324))]),
+            Err(ParamError::OutOfRange { .. })
+        ));
+        let d = s.descriptor("status_rate_hz").unwrap().to_raw();
+        assert_eq!(d.floating_point_range[0].to_value, 1000.0);
+        assert!(d.additional_constraints.contains("0.01"), "{d:?}");
     }
 
     #[test]

@@ -1,0 +1,70 @@
+"""Careless and hostile inputs, as any participant on the ROS domain can send them (issue 9):
+parameter values the node cannot use, and strings made to forge or flood its log.
+
+Each test talks to the node only over ROS (and reads its stderr, as an operator would).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from conftest import ManagedProcess, RosClient
+from pwm_actuator_msgs.msg import ChannelParams, ChannelStatus
+from rcl_interfaces.msg import Log
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+NODE = "/pwm_actuator"
+
+
+def start_node(node_process, ros_args: Sequence[str] = (), args: Sequence[str] = ()) -> ManagedProcess:
+    """Starts the node with `*args --ros-args *ros_args` and waits until it is running."""
+    argv = [*args, *(["--ros-args", *ros_args] if ros_args else [])]
+    proc = node_process(argv)
+    proc.wait_for_output("running:")
+    return proc
+
+
+def set_rate(ros: RosClient, value: float):
+    return ros.set_parameters(NODE, {"status_rate_hz": value})["status_rate_hz"]
+
+
+# ---------------------------------------------------------------------------------------------
+# status_rate_hz
+# ---------------------------------------------------------------------------------------------
+
+
+def test_a_status_rate_the_node_cannot_keep_is_refused_and_a_new_rate_applies_at_once(
+    ros, node_process
+):
+    status = ros.subscribe(ChannelStatus, f"{NODE}/pw01/status")
+    proc = start_node(node_process, ["-p", "status_rate_hz:=0.01"])
+    status.wait_for_publishers()
+
+    # 1/1e-20 s is no Duration: it used to be accepted and then panic the node (exit 101).
+    for bad in (1e-20, 5e-324, 0.001):
+        result = set_rate(ros, bad)
+        assert not result.successful, bad
+        assert "0.01..1000" in result.reason, result.reason
+    assert ros.get_parameters(NODE, ["status_rate_hz"]) == {"status_rate_hz": 0.01}
+    ros.spin_for(0.5)
+    assert proc.is_running(), proc.output()
+
+    # 0.01 Hz sleeps 100 s; the change to 10 Hz must not wait for that sleep to end.
+    ros.spin_for(1.0)
+    assert set_rate(ros, 10.0).successful
+    start = len(status.messages)
+    ros.spin_for(1.5)
+    got = len(status.messages) - start
+    assert got >= 8, f"{got} status messages in the 1.5 s after switching to 10 Hz"
+    assert proc.is_running(), proc.output()
+
+
+def test_a_start_up_status_rate_the_node_cannot_keep_is_a_configuration_error(node_process):
+    for i, argv in enumerate(
+        (["--status-rate", "5e-324"], ["--ros-args", "-p", "status_rate_hz:=1e-20"])
+    ):
+        proc = node_process(argv, name=f"bad-rate-{i}")
+        code = proc.wait_exit()
+        assert code == 2, f"{argv}: exit {code}\n{proc.output()}"
+        assert "status_rate_hz" in proc.stderr() and "0.01..1000" in proc.stderr(), proc.output()
+        assert "panicked" not in proc.stderr(), proc.output()
