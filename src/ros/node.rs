@@ -170,7 +170,7 @@ pub fn run(args: &[String]) -> i32 {
             if logger_ready {
                 error!("{}", chain(&e));
             } else {
-                eprintln!("[ERROR] [{NODE_NAME}]: {}", chain(&e));
+                eprintln!("[ERROR] [{NODE_NAME}]: {}", logging::for_log(&chain(&e)));
             }
             e.exit_code()
         }
@@ -411,7 +411,7 @@ async fn diagnostics_loop(bridge: Arc<Bridge>) {
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
-            _ = tick.tick() => {}
+            _ = tick.tick() => logging::flush_suppressed(),
             _ = bridge.diag_now.notified() => {}
         }
         bridge.publish_diagnostics();

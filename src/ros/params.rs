@@ -12,6 +12,7 @@
 //! whole number (`500.0` becomes `500`), a double parameter accepts an integer (`1` becomes
 //! `1.0`); both are lossless and reported as notes. Anything else of the wrong type is refused.
 
+use super::logging::{escape_controls, shown};
 use super::msg;
 use crate::core::config::{ShortStr, UnknownName};
 use crate::core::{
@@ -157,7 +158,7 @@ pub enum ParamError {
     /// No such parameter.
     #[error("parameter `{name}` is not declared{hint}")]
     Undeclared {
-        /// The name asked for.
+        /// The name asked for, as [`shown`] echoes input (escaped, bounded).
         name: String,
         /// A hint (e.g. the channel count), starting with a separator, or empty.
         hint: String,
@@ -203,7 +204,8 @@ pub enum ParamError {
         note: &'static str,
     },
     /// A string that names none of the accepted choices.
-    #[error("parameter `{name}`: {source}")]
+    // The core keeps 32 bytes of the value as given; escaped here like all echoed input.
+    #[error("parameter `{name}`: {}", escape_controls(&.source.to_string()))]
     BadChoice {
         /// The parameter.
         name: String,
@@ -237,7 +239,7 @@ pub enum ParamError {
     UnknownField {
         /// Channel name.
         channel: String,
-        /// The name given.
+        /// The name given, as [`shown`] echoes input (escaped, bounded).
         field: String,
         /// The fields there are.
         fields: &'static str,
@@ -262,7 +264,7 @@ fn describe_value(v: &ParameterValue) -> String {
         ParameterValue::Boolean(b) => format!("the bool {b}"),
         ParameterValue::Integer(i) => format!("the integer {i}"),
         ParameterValue::Double(d) => format!("the double {d}"),
-        ParameterValue::String(s) => format!("the string {s:?}"),
+        ParameterValue::String(s) => format!("the string \"{}\"", shown(s)),
         ParameterValue::ByteArray(_) => "a byte array".into(),
         ParameterValue::BooleanArray(_) => "a bool array".into(),
         ParameterValue::IntegerArray(_) => "an integer array".into(),
@@ -928,7 +930,7 @@ impl ParamStore {
         let mut order: Vec<String> = Vec::new();
         for (name, value) in items {
             let d = self.decls.get(name).ok_or_else(|| ParamError::Undeclared {
-                name: name.clone(),
+                name: shown(name),
                 hint: self.undeclared_hint(name),
             })?;
             let (v, note) = coerce(d, value)?;
@@ -1037,7 +1039,7 @@ pub fn items_from_msg(
                 _ => {
                     return Err(ParamError::UnknownField {
                         channel: channel.clone(),
-                        field: field.clone(),
+                        field: shown(field),
                         fields: MSG_FIELDS,
                     })
                 }
@@ -1505,6 +1507,59 @@ mod tests {
             .check(&[item("speed", V::Integer(1))], Phase::Live)
             .unwrap_err();
         assert_eq!(e.to_string(), "parameter `speed` is not declared");
+    }
+
+    #[test]
+    fn refusals_echo_input_escaped_and_bounded() {
+        let s = ParamStore::new(1);
+        let forged = "x\n[ERROR] [0] [pwm_actuator]: forged\u{1b}[2J";
+        let long = "n".repeat(4 << 20);
+        let reasons = [
+            s.check(&[item(forged, V::Integer(1))], Phase::Live)
+                .unwrap_err()
+                .to_string(),
+            s.check(&[item(&long, V::Integer(1))], Phase::Live)
+                .unwrap_err()
+                .to_string(),
+            s.check(
+                &[item("pw01.period_ms", V::String(format!("{forged}{long}")))],
+                Phase::Live,
+            )
+            .unwrap_err()
+            .to_string(),
+            s.check(
+                &[item("pw01.profile", V::String(format!("{forged}{long}")))],
+                Phase::Live,
+            )
+            .unwrap_err()
+            .to_string(),
+            items_from_msg(
+                0,
+                &msg::ChannelParams {
+                    set: vec![format!("{forged}{long}")],
+                    ..Default::default()
+                },
+            )
+            .unwrap_err()
+            .to_string(),
+        ];
+        for r in &reasons {
+            assert!(
+                !r.chars().any(|c| c.is_control()),
+                "{}",
+                &r[..r.len().min(300)]
+            );
+            assert!(r.len() < 400, "{} bytes: {}", r.len(), &r[..300]);
+        }
+        assert_eq!(
+            reasons[0],
+            "parameter `x\\n[ERROR] [0] [pwm_actuator]: forged\\u{1b}[2J` is not declared"
+        );
+        assert!(
+            reasons[1].contains(&format!("`{}… (4194304 bytes)`", "n".repeat(64))),
+            "{}",
+            reasons[1]
+        );
     }
 
     #[test]

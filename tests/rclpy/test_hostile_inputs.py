@@ -68,3 +68,81 @@ def test_a_start_up_status_rate_the_node_cannot_keep_is_a_configuration_error(no
         assert code == 2, f"{argv}: exit {code}\n{proc.output()}"
         assert "status_rate_hz" in proc.stderr() and "0.01..1000" in proc.stderr(), proc.output()
         assert "panicked" not in proc.stderr(), proc.output()
+
+
+# ---------------------------------------------------------------------------------------------
+# What the node says about input: escaped, bounded, rate-limited
+# ---------------------------------------------------------------------------------------------
+
+#: A parameter name made to forge a log line and clear the terminal.
+FORGED = "x\n[ERROR] [0] [pwm_actuator]: forged\x1b[2J"
+REFUSED = "parameter change refused"
+
+
+def matched_publisher(ros: RosClient, msg_type, topic: str):
+    publisher = ros.publisher(msg_type, topic)
+    ros.wait_for_subscribers(publisher)
+    ros.spin_for(0.25)
+    return publisher
+
+
+def test_refusals_do_not_forge_or_flood_the_log(ros, node_process):
+    rosout = ros.subscribe(
+        Log,
+        "/rosout",
+        QoSProfile(
+            depth=1000,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE,
+        ),
+    )
+    proc = start_node(node_process)
+
+    # A forged name through the parameter services: refused, and echoed escaped.
+    result = ros.set_parameters(NODE, {FORGED: 1})[FORGED]
+    assert not result.successful
+    assert "x\\n[ERROR] [0] [pwm_actuator]: forged\\u{1b}[2J" in result.reason, result.reason
+    assert "\n" not in result.reason and "\x1b" not in result.reason, repr(result.reason)
+
+    # The same with 1 MiB more through the parameter topic: echoed as 64 characters and a size.
+    pub = matched_publisher(ros, ChannelParams, f"{NODE}/pw01/params")
+    huge = FORGED + "A" * (1 << 20)
+    ros.publish_until(
+        pub,
+        ChannelParams(set=[huge]),
+        lambda: "bytes)` in `set` is not a ChannelParams field" in proc.stderr(),
+        "the bounded refusal of the huge field name in the log",
+    )
+    stderr = proc.stderr()
+    assert "\x1b" not in stderr, "raw ESC in the node's stderr"
+    assert not any(l.startswith("[ERROR] [0]") for l in stderr.splitlines()), "a forged line"
+    assert len(stderr.encode()) < 64 * 1024, f"{len(stderr.encode())} bytes of log"
+
+    # A flood of refusals: a few lines, then one count of the rest.
+    bad = ChannelParams(set=["nope"])
+    for _ in range(60):
+        pub.publish(bad)
+        ros.spin_for(0.02)
+    ros.spin_until(
+        lambda: "similar messages suppressed" in proc.stderr(),
+        "the count of suppressed refusals",
+        timeout=30,
+    )
+    lines = [l for l in proc.stderr().splitlines() if REFUSED in l]
+    assert len(lines) <= 25, f"{len(lines)} refusal lines:\n" + "\n".join(lines[:40])
+
+    # /rosout carries the same bounded, escaped text.
+    ours = [m for m in rosout.messages if m.name == "pwm_actuator"]
+    refusals = [m.msg for m in ours if REFUSED in m.msg]
+    assert refusals, [m.msg for m in ours][:20]
+    for text in refusals:
+        assert "\n" not in text and "\x1b" not in text, repr(text[:200])
+        assert len(text.encode()) < 4096, len(text.encode())
+    assert any("similar messages suppressed" in m.msg for m in ours) or ros.spin_until(
+        lambda: any(
+            "similar messages suppressed" in m.msg
+            for m in rosout.messages
+            if m.name == "pwm_actuator"
+        ),
+        "the count on /rosout",
+    )
