@@ -203,12 +203,13 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
     for w in &su.warnings {
         warn!("{w}");
     }
-    for ign in su
-        .ignored
-        .iter()
-        .filter(|i| !i.ends_with(&format!("({DEMO_ORIGIN})")))
-    {
-        warn!("ignoring a value for {ign}: this node has no such parameter");
+    let (each, more) = ignored_warnings(&su.ignored);
+    for w in each {
+        warn!("{w}");
+    }
+    // A line of its own (and its own place for the log's rate limit).
+    if let Some(more) = more {
+        warn!("{more}");
     }
     let cfg = StartupConfig::from_store(&su.store)?;
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -218,6 +219,31 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         .build()
         .map_err(NodeError::Runtime)?;
     rt.block_on(serve(id, parsed.ros, su.store, cfg, domain))
+}
+
+/// Most "no such parameter" warnings written at start-up; the rest are counted in one line.
+const MAX_IGNORED_WARNINGS: usize = 10;
+
+/// The warnings for start-up values of parameters this node does not have (`name (origin)`),
+/// bounded: a parameter file with a million unknown keys gives [`MAX_IGNORED_WARNINGS`] lines
+/// and a count, not a million lines. Values set by `--demo` for a channel that does not exist
+/// are not worth a warning. Returns the lines for the first ones, and the count of the rest.
+fn ignored_warnings(ignored: &[String]) -> (Vec<String>, Option<String>) {
+    let demo = format!("({DEMO_ORIGIN})");
+    let mut relevant = ignored.iter().filter(|i| !i.ends_with(&demo));
+    let out: Vec<String> = relevant
+        .by_ref()
+        .take(MAX_IGNORED_WARNINGS)
+        .map(|i| format!("ignoring a value for {i}: this node has no such parameter"))
+        .collect();
+    let more = relevant.count();
+    let summary = (more > 0).then(|| {
+        format!(
+            "ignoring {more} more value{} for parameters this node does not have",
+            if more == 1 { "" } else { "s" }
+        )
+    });
+    (out, summary)
 }
 
 /// The start-up values: options first, then the ROS arguments in order. Logs where a ROS
@@ -837,6 +863,27 @@ mod tests {
             });
             assert!(ended.is_err(), "the loop ended at {rate:?}");
         }
+    }
+
+    #[test]
+    fn unknown_start_up_values_give_a_bounded_warning() {
+        let few: Vec<String> = vec!["a (-p)".into(), "pw03.duty (--demo)".into()];
+        assert_eq!(
+            ignored_warnings(&few),
+            (
+                vec!["ignoring a value for a (-p): this node has no such parameter".to_string()],
+                None
+            )
+        );
+        let many: Vec<String> = (0..1_500_000)
+            .map(|i| format!("k{i} (--params-file big.yaml)"))
+            .collect();
+        let (each, more) = ignored_warnings(&many);
+        assert_eq!(each.len(), MAX_IGNORED_WARNINGS);
+        assert_eq!(
+            more.as_deref(),
+            Some("ignoring 1499990 more values for parameters this node does not have")
+        );
     }
 
     #[test]
