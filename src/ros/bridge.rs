@@ -12,7 +12,9 @@
 //! wait-free request queue.
 
 use super::console::EdgeLines;
-use super::diagnostics::{status_changed, status_msg, ChannelHealth, CommandUnit};
+use super::diagnostics::{
+    clamp_text, percent, status_changed, status_msg, ChannelHealth, CommandUnit,
+};
 use super::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
 use super::params::{self, show_value, ParamError, ParamStore, Phase};
 use crate::clock;
@@ -415,7 +417,7 @@ impl Bridge {
             .iter()
             .map(|h| {
                 h.status
-                    .map_or((0.0, false), |s| (s.duty_commanded * 100.0, s.e1))
+                    .map_or((0.0, false), |s| (percent(s.duty_commanded), s.e1))
             })
             .collect();
         let mut lines = Vec::new();
@@ -479,16 +481,7 @@ impl Bridge {
                 let text = {
                     let mut health = lock(&self.health);
                     let h = &mut health[ch];
-                    let text = match h.last_unit {
-                        CommandUnit::Percent => format!(
-                            "{requested} % is outside 0..100, clamped to {:.1} %",
-                            applied * 100.0
-                        ),
-                        CommandUnit::Sv => format!(
-                            "SV {requested} is outside 0..4095, clamped to {:.1} %",
-                            applied * 100.0
-                        ),
-                    };
+                    let text = clamp_text(h.last_unit, requested, applied);
                     h.clamped += 1;
                     h.last_clamp = Some((text.clone(), now));
                     text

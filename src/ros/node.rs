@@ -650,7 +650,8 @@ async fn serve(
         if c.enable {
             info!(
                 "{}: enabled at start-up, duty {:.1} %",
-                c.name, c.duty_percent
+                c.name,
+                c.duty_percent + 0.0
             );
             let _ = bridge.send(ch, Input::Enable(true));
         }
