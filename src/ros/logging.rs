@@ -28,6 +28,7 @@ use std::cell::Cell;
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::io::Write;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, OnceLock};
 
 /// The log target prefix of this crate.
@@ -103,6 +104,37 @@ pub fn for_log(text: &str) -> Cow<'_, str> {
         end -= 1;
     }
     Cow::Owned(format!("{}… ({} bytes)", &escaped[..end], text.len()))
+}
+
+/// Set once the node has begun to tear down its ROS entities.
+static SHUTTING_DOWN: AtomicBool = AtomicBool::new(false);
+
+/// Says that the node is stopping: from now on rustdds's complaints about removing readers and
+/// writers are taken as debug records (see [`effective_level`]).
+pub fn shutting_down() {
+    SHUTTING_DOWN.store(true, Ordering::SeqCst);
+}
+
+/// The level a record is written at. One exception to "as logged": rustdds 0.15 asks its event
+/// loop to remove each dropped reader or writer through a queue of 4 and logs an ERROR
+/// (`Cannot remove Reader ... TrySendError::Full`) when that queue stays full for 20 ms
+/// (`remove_reader` in its `dds/pubsub.rs`). That happens when the node drops all its entities
+/// at once on a loaded machine, and it does not matter then: the participant, with everything
+/// in it, is dropped right after. During shutdown only, that message is taken as debug
+/// (`--log-level rustdds:=debug` still shows it).
+pub fn effective_level(
+    level: log::Level,
+    target: &str,
+    text: &str,
+    shutting_down: bool,
+) -> log::Level {
+    let removal =
+        text.starts_with("Cannot remove Reader ") || text.starts_with("Cannot remove Writer ");
+    if shutting_down && level == log::Level::Error && target.starts_with("rustdds") && removal {
+        log::Level::Debug
+    } else {
+        level
+    }
 }
 
 /// A place in the code that logs (file and line), the unit of rate limiting.
@@ -386,29 +418,31 @@ impl Log for Logger {
             record.target()
         };
         let text = record.args().to_string();
-        if record.level() <= log::Level::Warn {
+        let level = effective_level(
+            record.level(),
+            record.target(),
+            &text,
+            SHUTTING_DOWN.load(Ordering::Relaxed),
+        );
+        if level > self.config.level_for(record.target()) {
+            return;
+        }
+        if level <= log::Level::Warn {
             let site = (
                 record.file_static().unwrap_or("?"),
                 record.line().unwrap_or(0),
             );
-            let admit = self.limiter.lock().map(|mut l| {
-                l.admit(
-                    site,
-                    record.level(),
-                    name,
-                    &text,
-                    crate::clock::monotonic_ns(),
-                )
-            });
+            let admit = self
+                .limiter
+                .lock()
+                .map(|mut l| l.admit(site, level, name, &text, crate::clock::monotonic_ns()));
             match admit {
                 Ok(Admit::Suppress) => return,
-                Ok(Admit::Show(Some(summary))) => {
-                    self.write(record.level(), name, own, &summary, record)
-                }
+                Ok(Admit::Show(Some(summary))) => self.write(level, name, own, &summary, record),
                 _ => {}
             }
         }
-        self.write(record.level(), name, own, &text, record);
+        self.write(level, name, own, &text, record);
     }
 
     fn flush(&self) {
@@ -540,6 +574,27 @@ mod tests {
                 "… 1 similar message suppressed in the last 10 s; last: again".to_string()
             ))
         );
+    }
+
+    #[test]
+    fn rustdds_entity_removal_errors_are_debug_during_shutdown_only() {
+        use log::Level::{Debug, Error, Warn};
+        let full = "Cannot remove Reader GUID {0112b35f EntityId {[0, 0, 85] \
+                    EntityKind::READER_NO_KEY_USER_DEFINED}} : TrySendError::Full(..)";
+        let t = "rustdds::dds::pubsub";
+        assert_eq!(effective_level(Error, t, full, true), Debug);
+        assert_eq!(
+            effective_level(Error, t, "Cannot remove Writer GUID {..} : Full", true),
+            Debug
+        );
+        // While running it is an error like any other, and nothing else is touched.
+        assert_eq!(effective_level(Error, t, full, false), Error);
+        assert_eq!(effective_level(Error, t, "some other failure", true), Error);
+        assert_eq!(
+            effective_level(Error, "pwm_actuator::ros", full, true),
+            Error
+        );
+        assert_eq!(effective_level(Warn, t, full, true), Warn);
     }
 
     #[test]

@@ -668,6 +668,7 @@ async fn serve(
 
     let reason = signals.wait(&bridge).await;
     info!("{reason}: stopping");
+    logging::shutting_down();
     for t in &tasks {
         t.abort();
     }
