@@ -88,9 +88,14 @@ fn unknown_keys_give_a_bounded_number_of_warnings() {
 
 #[test]
 fn unusable_status_rates_exit_2() {
+    let path = file(
+        "rate.yaml",
+        "/**:\n  ros__parameters:\n    status_rate_hz: 1.0e-20\n",
+    );
     for args in [
         &["--status-rate", "5e-324"][..],
         &["--ros-args", "-p", "status_rate_hz:=1e-20"][..],
+        &["--ros-args", "--params-file", path.to_str().unwrap()][..],
     ] {
         let (code, err) = run(args);
         assert_eq!(code, Some(2), "{args:?}: {err}");
