@@ -14,8 +14,72 @@
 //! an error, as in rcl.
 
 use ros2_client::ParameterValue;
+use std::collections::HashMap;
+use std::io::Read;
 use std::path::{Path, PathBuf};
+use yaml_rust2::parser::{Event, Parser};
 use yaml_rust2::{Yaml, YamlLoader};
+
+/// Largest parameter file read, bytes (1 MiB; a parameter file of this node is a few KiB).
+pub const MAX_PARAMS_FILE_BYTES: u64 = 1 << 20;
+
+/// Most YAML nodes a parameter file or a `-p` value may describe, aliases counted as expanded
+/// (a "billion laughs" file of a few hundred bytes expands to gigabytes).
+pub const MAX_YAML_NODES: u64 = 100_000;
+
+/// Deepest nesting of YAML mappings and sequences in a parameter file or a `-p` value.
+pub const MAX_YAML_DEPTH: usize = 64;
+
+/// Checks the bounds of a YAML text before it is loaded: at most [`MAX_YAML_NODES`] nodes with
+/// every alias expanded, and at most [`MAX_YAML_DEPTH`] levels. Walks the parser's events
+/// without building anything, so a text that breaks a bound costs no more than its size.
+fn check_yaml_bounds(text: &str) -> Result<(), String> {
+    let mut parser = Parser::new_from_str(text);
+    // Open collections: (anchor id, node count when it opened).
+    let mut open: Vec<(usize, u64)> = Vec::new();
+    // Anchored nodes' sizes, aliases inside them expanded.
+    let mut sizes: HashMap<usize, u64> = HashMap::new();
+    let mut nodes: u64 = 0;
+    loop {
+        let (event, _) = parser
+            .next_token()
+            .map_err(|e| format!("not valid YAML: {e}"))?;
+        match event {
+            Event::StreamEnd => return Ok(()),
+            Event::Scalar(_, _, anchor, _) => {
+                nodes += 1;
+                if anchor > 0 {
+                    sizes.insert(anchor, 1);
+                }
+            }
+            Event::SequenceStart(anchor, _) | Event::MappingStart(anchor, _) => {
+                nodes += 1;
+                open.push((anchor, nodes));
+                if open.len() > MAX_YAML_DEPTH {
+                    return Err(format!(
+                        "mappings and sequences nested deeper than {MAX_YAML_DEPTH} levels"
+                    ));
+                }
+            }
+            Event::SequenceEnd | Event::MappingEnd => {
+                if let Some((anchor, start)) = open.pop() {
+                    if anchor > 0 {
+                        sizes.insert(anchor, nodes - start + 1);
+                    }
+                }
+            }
+            Event::Alias(id) => {
+                nodes = nodes.saturating_add(sizes.get(&id).copied().unwrap_or(1));
+            }
+            _ => {}
+        }
+        if nodes > MAX_YAML_NODES {
+            return Err(format!(
+                "more than {MAX_YAML_NODES} nodes with its aliases expanded (an alias bomb?)"
+            ));
+        }
+    }
+}
 
 /// Errors in the ROS arguments or in a parameter file.
 #[derive(Debug, thiserror::Error)]
@@ -381,6 +445,7 @@ pub fn parse_assignment(arg: &str) -> Result<ParamAssignment, ArgsError> {
 /// `[1, 2]` integer array, anything else a string. An empty value is refused (write `''` for
 /// an empty string).
 pub fn parse_yaml_value(text: &str) -> Result<ParameterValue, String> {
+    check_yaml_bounds(text)?;
     let docs = YamlLoader::load_from_str(text).map_err(|e| format!("not valid YAML: {e}"))?;
     match docs.as_slice() {
         [] => Err("no value after `:=` (for an empty string write `''`)".into()),
@@ -478,9 +543,32 @@ pub struct FileSection {
 
 /// Reads and parses a ROS 2 parameter file.
 pub fn load_params_file(path: &Path) -> Result<Vec<FileSection>, ArgsError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ArgsError::ReadParamsFile {
+    let read_err = |source| ArgsError::ReadParamsFile {
         path: path.to_path_buf(),
         source,
+    };
+    // Read at most one byte more than the bound, whatever the file claims to be (a FIFO,
+    // /dev/zero).
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_PARAMS_FILE_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(read_err)?;
+    if bytes.len() as u64 > MAX_PARAMS_FILE_BYTES {
+        let size = std::fs::metadata(path)
+            .ok()
+            .map(|m| m.len())
+            .filter(|l| *l > MAX_PARAMS_FILE_BYTES)
+            .map_or_else(String::new, |l| format!(" ({l} bytes)"));
+        return Err(ArgsError::BadParamsFile {
+            path: path.to_path_buf(),
+            reason: format!("the file is larger than 1 MiB{size}"),
+        });
+    }
+    let text = String::from_utf8(bytes).map_err(|e| {
+        read_err(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            e.utf8_error(),
+        ))
     })?;
     parse_params_yaml(&text).map_err(|reason| ArgsError::BadParamsFile {
         path: path.to_path_buf(),
@@ -491,6 +579,7 @@ pub fn load_params_file(path: &Path) -> Result<Vec<FileSection>, ArgsError> {
 /// Parses the text of a ROS 2 parameter file: node names (`/**`, `node`, `/ns/node`, or nested
 /// `ns: node:`) holding `ros__parameters` mappings.
 pub fn parse_params_yaml(text: &str) -> Result<Vec<FileSection>, String> {
+    check_yaml_bounds(text)?;
     let docs = YamlLoader::load_from_str(text).map_err(|e| format!("not valid YAML: {e}"))?;
     let mut sections = Vec::new();
     for doc in &docs {
@@ -1054,6 +1143,69 @@ other_node:
             assert!(e.contains(why), "{text:?}: {e}");
         }
         assert!(parse_params_yaml("").unwrap().is_empty());
+    }
+
+    /// A YAML "billion laughs": each level is `fan` aliases of the one before, so the text
+    /// stays small and the expanded tree has `fan^levels` leaves.
+    fn alias_bomb(levels: usize, fan: usize) -> String {
+        let mut t = String::from("/**:\n  ros__parameters:\n    l0: &l0 [x]\n");
+        for l in 1..=levels {
+            let refs = vec![format!("*l{}", l - 1); fan].join(", ");
+            t.push_str(&format!("    l{l}: &l{l} [{refs}]\n"));
+        }
+        t
+    }
+
+    #[test]
+    fn params_files_are_bounded() {
+        // 10^6 leaves from a 500-byte text.
+        let bomb = alias_bomb(6, 10);
+        assert!(bomb.len() < 600, "{}", bomb.len());
+        let e = parse_params_yaml(&bomb).unwrap_err();
+        assert!(e.contains("more than 100000 nodes"), "{e}");
+        // A few aliases are fine.
+        let small =
+            parse_params_yaml("/**:\n  ros__parameters:\n    a: &v 5\n    b: *v\n").unwrap();
+        assert_eq!(
+            small[0].params,
+            vec![
+                ("a".to_string(), ParameterValue::Integer(5)),
+                ("b".to_string(), ParameterValue::Integer(5))
+            ]
+        );
+        // The same holds for `-p` values.
+        let inline = format!(
+            "[{}]",
+            (0..6).fold(String::from("&a0 [x]"), |acc, l| format!(
+                "[{acc}, &a{} [{}]]",
+                l + 1,
+                vec![format!("*a{l}"); 10].join(",")
+            ))
+        );
+        assert!(parse_yaml_value(&inline)
+            .unwrap_err()
+            .contains("more than 100000 nodes"));
+        // Nesting.
+        let deep = format!(
+            "/**:\n  ros__parameters:\n    a: {}1{}\n",
+            "[".repeat(100),
+            "]".repeat(100)
+        );
+        let e = parse_params_yaml(&deep).unwrap_err();
+        assert!(e.contains("nested deeper than 64"), "{e}");
+        // Size, checked before the file is parsed.
+        let dir = std::env::temp_dir().join(format!("pwm_actuator_big_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("big.yaml");
+        let mut text = String::from("/**:\n  ros__parameters:\n    a: 1\n");
+        while text.len() <= 1 << 20 {
+            text.push_str("# padding padding padding padding padding padding padding\n");
+        }
+        std::fs::write(&file, &text).unwrap();
+        let e = load_params_file(&file).unwrap_err();
+        assert!(matches!(e, ArgsError::BadParamsFile { .. }), "{e}");
+        assert!(e.to_string().contains("larger than 1 MiB"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

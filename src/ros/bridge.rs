@@ -12,7 +12,9 @@
 //! wait-free request queue.
 
 use super::console::EdgeLines;
-use super::diagnostics::{status_changed, status_msg, ChannelHealth, CommandUnit};
+use super::diagnostics::{
+    clamp_text, percent, status_changed, status_msg, ChannelHealth, CommandUnit,
+};
 use super::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
 use super::params::{self, show_value, ParamError, ParamStore, Phase};
 use crate::clock;
@@ -91,6 +93,8 @@ pub struct Bridge {
     pub diag_now: tokio::sync::Notify,
     /// Woken when the node must stop (output fault, output thread gone).
     pub stop: tokio::sync::Notify,
+    /// Woken when `status_rate_hz` changes.
+    pub status_rate_changed: tokio::sync::Notify,
 }
 
 impl Bridge {
@@ -153,6 +157,7 @@ impl Bridge {
             fault: AtomicBool::new(false),
             diag_now: tokio::sync::Notify::new(),
             stop: tokio::sync::Notify::new(),
+            status_rate_changed: tokio::sync::Notify::new(),
             names,
         }
     }
@@ -262,6 +267,7 @@ impl Bridge {
                 "status_rate_hz" => {
                     if let ParameterValue::Double(r) = value {
                         self.status_rate_bits.store(r.to_bits(), Ordering::Relaxed);
+                        self.status_rate_changed.notify_one();
                     }
                 }
                 "edge_log_rate" => {
@@ -411,7 +417,7 @@ impl Bridge {
             .iter()
             .map(|h| {
                 h.status
-                    .map_or((0.0, false), |s| (s.duty_commanded * 100.0, s.e1))
+                    .map_or((0.0, false), |s| (percent(s.duty_commanded), s.e1))
             })
             .collect();
         let mut lines = Vec::new();
@@ -475,16 +481,7 @@ impl Bridge {
                 let text = {
                     let mut health = lock(&self.health);
                     let h = &mut health[ch];
-                    let text = match h.last_unit {
-                        CommandUnit::Percent => format!(
-                            "{requested} % is outside 0..100, clamped to {:.1} %",
-                            applied * 100.0
-                        ),
-                        CommandUnit::Sv => format!(
-                            "SV {requested} is outside 0..4095, clamped to {:.1} %",
-                            applied * 100.0
-                        ),
-                    };
+                    let text = clamp_text(h.last_unit, requested, applied);
                     h.clamped += 1;
                     h.last_clamp = Some((text.clone(), now));
                     text

@@ -23,6 +23,40 @@ pub enum CommandUnit {
     Sv,
 }
 
+/// What a clamped command is said to have been: `requested` in the command's `unit`, and
+/// the duty fraction `applied`.
+pub fn clamp_text(unit: CommandUnit, requested: f64, applied: f64) -> String {
+    match unit {
+        CommandUnit::Percent => format!(
+            "{} % is outside 0..100, clamped to {:.1} %",
+            show_number(requested),
+            percent(applied)
+        ),
+        CommandUnit::Sv => format!(
+            "SV {} is outside 0..4095, clamped to {:.1} %",
+            show_number(requested),
+            percent(applied)
+        ),
+    }
+}
+
+/// A number from input, shown in a few characters: as written up to a million in size,
+/// scientific beyond and for tiny fractions (`1e308`, not its 309 digits).
+pub fn show_number(x: f64) -> String {
+    if x != 0.0 && x.is_finite() && !(1e-4..1e6).contains(&x.abs()) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
+
+/// A duty fraction in percent, as reported: a command of -0.0 (which is in range, and kept
+/// as given) reads as 0, not -0.
+pub fn percent(fraction: f64) -> f64 {
+    // -0.0 + 0.0 is +0.0; every other value is unchanged.
+    fraction * 100.0 + 0.0
+}
+
 /// The reason of `event` if it happened less than [`REFUSAL_WARN_NS`] before `now`.
 fn recent(event: &Option<(String, Nanos)>, now: Nanos) -> Option<&str> {
     event
@@ -59,8 +93,8 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         enabled: s.enabled,
         active: s.active,
         output: s.level.is_high(),
-        duty_commanded: s.duty_commanded * 100.0,
-        duty_applied: s.duty_applied * 100.0,
+        duty_commanded: percent(s.duty_commanded),
+        duty_applied: percent(s.duty_applied),
         command_clamped: s.command_clamped,
         period_ms: ms(s.period),
         on_time_ms: ms(s.t_on),
@@ -168,7 +202,7 @@ impl ChannelHealth {
 
     /// The one-line summary at `now`.
     pub fn message(&self, now: Nanos) -> String {
-        let pct = |x: f64| x * 100.0;
+        let pct = percent;
         if self.output_fault {
             return "output fault: writing the line failed; every output driven off".into();
         }
@@ -254,9 +288,12 @@ impl ChannelHealth {
                 ("output", s.level.is_high().to_string()),
                 (
                     "duty_commanded_pct",
-                    format!("{:.3}", s.duty_commanded * 100.0),
+                    format!("{:.3}", percent(s.duty_commanded)),
                 ),
-                ("duty_applied_pct", format!("{:.3}", s.duty_applied * 100.0)),
+                (
+                    "duty_applied_pct",
+                    format!("{:.3}", percent(s.duty_applied)),
+                ),
                 ("command_clamped", s.command_clamped.to_string()),
                 ("period_ms", format!("{:.3}", ms(s.period))),
                 ("on_time_ms", format!("{:.3}", ms(s.t_on))),
@@ -441,6 +478,51 @@ mod tests {
         assert_eq!(h.message(20), clamped);
         h.last_rejection = Some(("duty command is NaN; last valid command kept".into(), 15));
         assert!(h.message(20).starts_with("last duty command refused"));
+    }
+
+    #[test]
+    fn clamped_commands_are_described_in_a_few_characters() {
+        assert_eq!(
+            clamp_text(CommandUnit::Percent, 1e308, 1.0),
+            "1e308 % is outside 0..100, clamped to 100.0 %"
+        );
+        assert_eq!(
+            clamp_text(CommandUnit::Percent, -1.5e300, 0.0),
+            "-1.5e300 % is outside 0..100, clamped to 0.0 %"
+        );
+        assert_eq!(
+            clamp_text(CommandUnit::Percent, 150.5, 1.0),
+            "150.5 % is outside 0..100, clamped to 100.0 %"
+        );
+        assert_eq!(
+            clamp_text(CommandUnit::Percent, -5e-324, 0.0),
+            "-5e-324 % is outside 0..100, clamped to 0.0 %"
+        );
+        assert_eq!(
+            clamp_text(CommandUnit::Sv, 5000.0, 1.0),
+            "SV 5000 is outside 0..4095, clamped to 100.0 %"
+        );
+    }
+
+    #[test]
+    fn a_negative_zero_command_is_reported_as_zero() {
+        let s = Status {
+            duty_commanded: -0.0,
+            duty_applied: -0.0,
+            ..status()
+        };
+        let m = status_msg(0, &s, 1_050 * NS_PER_MS, 5);
+        assert!(
+            m.duty_commanded == 0.0 && m.duty_commanded.is_sign_positive(),
+            "{:?}",
+            m.duty_commanded
+        );
+        assert!(m.duty_applied.is_sign_positive(), "{:?}", m.duty_applied);
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(s);
+        let d = h.to_status("n", 0, 0);
+        assert_eq!(kv(&d, "duty_commanded_pct"), "0.000");
+        assert_eq!(kv(&d, "duty_applied_pct"), "0.000");
     }
 
     #[test]

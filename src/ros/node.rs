@@ -175,7 +175,7 @@ pub fn run(args: &[String]) -> i32 {
             if logger_ready {
                 error!("{}", chain(&e));
             } else {
-                eprintln!("[ERROR] [{NODE_NAME}]: {}", chain(&e));
+                eprintln!("[ERROR] [{NODE_NAME}]: {}", logging::for_log(&chain(&e)));
             }
             e.exit_code()
         }
@@ -208,12 +208,13 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
     for w in &su.warnings {
         warn!("{w}");
     }
-    for ign in su
-        .ignored
-        .iter()
-        .filter(|i| !i.ends_with(&format!("({DEMO_ORIGIN})")))
-    {
-        warn!("ignoring a value for {ign}: this node has no such parameter");
+    let (each, more) = ignored_warnings(&su.ignored);
+    for w in each {
+        warn!("{w}");
+    }
+    // A line of its own (and its own place for the log's rate limit).
+    if let Some(more) = more {
+        warn!("{more}");
     }
     let cfg = StartupConfig::from_store(&su.store)?;
     let channel_names: Vec<String> = cfg.channels.iter().map(|c| c.name.clone()).collect();
@@ -225,6 +226,31 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         .build()
         .map_err(NodeError::Runtime)?;
     rt.block_on(serve(id, parsed.ros, su.store, cfg, splits, domain))
+}
+
+/// Most "no such parameter" warnings written at start-up; the rest are counted in one line.
+const MAX_IGNORED_WARNINGS: usize = 10;
+
+/// The warnings for start-up values of parameters this node does not have (`name (origin)`),
+/// bounded: a parameter file with a million unknown keys gives [`MAX_IGNORED_WARNINGS`] lines
+/// and a count, not a million lines. Values set by `--demo` for a channel that does not exist
+/// are not worth a warning. Returns the lines for the first ones, and the count of the rest.
+fn ignored_warnings(ignored: &[String]) -> (Vec<String>, Option<String>) {
+    let demo = format!("({DEMO_ORIGIN})");
+    let mut relevant = ignored.iter().filter(|i| !i.ends_with(&demo));
+    let out: Vec<String> = relevant
+        .by_ref()
+        .take(MAX_IGNORED_WARNINGS)
+        .map(|i| format!("ignoring a value for {i}: this node has no such parameter"))
+        .collect();
+    let more = relevant.count();
+    let summary = (more > 0).then(|| {
+        format!(
+            "ignoring {more} more value{} for parameters this node does not have",
+            if more == 1 { "" } else { "s" }
+        )
+    });
+    (out, summary)
 }
 
 /// The start-up values: options first, then the ROS arguments in order. Logs where a ROS
@@ -418,7 +444,7 @@ async fn diagnostics_loop(bridge: Arc<Bridge>) {
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
-            _ = tick.tick() => {}
+            _ = tick.tick() => logging::flush_suppressed(),
             _ = bridge.diag_now.notified() => {}
         }
         bridge.publish_diagnostics();
@@ -428,15 +454,46 @@ async fn diagnostics_loop(bridge: Arc<Bridge>) {
 }
 
 async fn status_loop(bridge: Arc<Bridge>) {
+    periodic_status(
+        || bridge.status_rate_hz(),
+        &bridge.status_rate_changed,
+        || bridge.publish_all_status(),
+    )
+    .await
+}
+
+/// Calls `publish` at `rate()` Hz, forever; a rate of 0 (on change only) publishes nothing.
+/// `changed` is notified when the rate changes, so a new rate never waits for the end of a
+/// sleep that an old, slow rate started.
+async fn periodic_status(
+    rate: impl Fn() -> f64,
+    changed: &tokio::sync::Notify,
+    mut publish: impl FnMut(),
+) {
     loop {
-        let rate = bridge.status_rate_hz();
-        if rate > 0.0 && rate.is_finite() {
-            tokio::time::sleep(Duration::from_secs_f64(1.0 / rate)).await;
-            bridge.publish_all_status();
-        } else {
-            tokio::time::sleep(Duration::from_millis(200)).await;
+        match status_period(rate()) {
+            Some(period) => {
+                tokio::select! {
+                    _ = tokio::time::sleep(period) => publish(),
+                    _ = changed.notified() => {}
+                }
+            }
+            None => changed.notified().await,
         }
     }
+}
+
+/// The period of the periodic status at `rate_hz`, or `None` for no periodic status (0, and
+/// anything that is not a positive finite rate). Never panics: the parameter checks keep the
+/// rate in 0.01..1000 Hz, and whatever reaches here is clamped to that.
+fn status_period(rate_hz: f64) -> Option<Duration> {
+    if !(rate_hz > 0.0 && rate_hz.is_finite()) {
+        return None;
+    }
+    let rate = rate_hz.clamp(params::MIN_STATUS_RATE_HZ, params::MAX_STATUS_RATE_HZ);
+    // 1/rate is within 1 ms..100 s here, so the conversion cannot fail; the fallback is the
+    // slowest period all the same.
+    Some(Duration::try_from_secs_f64(1.0 / rate).unwrap_or(Duration::from_secs(100)))
 }
 
 async fn serve(
@@ -624,7 +681,8 @@ async fn serve(
         if c.enable {
             info!(
                 "{}: enabled at start-up, duty {:.1} %",
-                c.name, c.duty_percent
+                c.name,
+                c.duty_percent + 0.0
             );
             let _ = bridge.send(ch, Input::Enable(true));
         }
@@ -641,6 +699,7 @@ async fn serve(
 
     let reason = signals.wait(&bridge).await;
     info!("{reason}: stopping");
+    logging::shutting_down();
     for t in &tasks {
         t.abort();
     }
@@ -750,6 +809,114 @@ mod tests {
             assert_eq!(e.exit_code(), EXIT_USAGE);
             assert!(e.to_string().contains(bad), "{e}");
         }
+    }
+
+    /// Runs `periodic_status` at `first` Hz, switches to `second` Hz after `switch_ms` and
+    /// returns the times (ms after the switch) of the publishes within `window_ms` of it.
+    fn publishes_after_a_rate_change(
+        first: f64,
+        second: f64,
+        switch_ms: u64,
+        window_ms: u64,
+    ) -> Vec<u128> {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_time()
+            .build()
+            .unwrap();
+        let bits = Arc::new(std::sync::atomic::AtomicU64::new(first.to_bits()));
+        let changed = Arc::new(tokio::sync::Notify::new());
+        let times = Arc::new(std::sync::Mutex::new(Vec::new()));
+        rt.block_on(async {
+            let (b, c, t) = (Arc::clone(&bits), Arc::clone(&changed), Arc::clone(&times));
+            let start = std::time::Instant::now();
+            let switch = start + Duration::from_millis(switch_ms);
+            let task = tokio::spawn(async move {
+                periodic_status(
+                    || f64::from_bits(b.load(Ordering::Relaxed)),
+                    &c,
+                    || t.lock().unwrap().push(std::time::Instant::now()),
+                )
+                .await
+            });
+            tokio::time::sleep_until(switch.into()).await;
+            bits.store(second.to_bits(), Ordering::Relaxed);
+            changed.notify_one();
+            tokio::time::sleep(Duration::from_millis(window_ms)).await;
+            task.abort();
+            let times = times.lock().unwrap();
+            times
+                .iter()
+                .filter(|t| **t >= switch)
+                .map(|t| (*t - switch).as_millis())
+                .collect()
+        })
+    }
+
+    #[test]
+    fn a_new_status_rate_does_not_wait_for_the_old_sleep() {
+        // 0.01 Hz sleeps 100 s; after the change to 10 Hz the first status is due in 0.1 s.
+        let after = publishes_after_a_rate_change(0.01, 10.0, 50, 1000);
+        assert!(
+            after.first().is_some_and(|ms| *ms <= 300),
+            "publishes after the change (ms): {after:?}"
+        );
+        assert!(
+            after.len() >= 5,
+            "publishes after the change (ms): {after:?}"
+        );
+    }
+
+    #[test]
+    fn any_status_rate_gives_a_usable_period_or_none() {
+        for rate in [
+            1e-20,
+            5e-324,
+            f64::MIN_POSITIVE,
+            -0.0,
+            0.0,
+            -1.0,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::MAX,
+        ] {
+            // A rate the parameter checks refuse never reaches the loop; if one did, it must
+            // not panic (run on this thread, so a panic fails the test).
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_time()
+                .build()
+                .unwrap();
+            let changed = tokio::sync::Notify::new();
+            let ended = rt.block_on(async {
+                tokio::time::timeout(
+                    Duration::from_millis(30),
+                    periodic_status(|| rate, &changed, || {}),
+                )
+                .await
+            });
+            assert!(ended.is_err(), "the loop ended at {rate:?}");
+        }
+    }
+
+    #[test]
+    fn unknown_start_up_values_give_a_bounded_warning() {
+        let few: Vec<String> = vec!["a (-p)".into(), "pw03.duty (--demo)".into()];
+        assert_eq!(
+            ignored_warnings(&few),
+            (
+                vec!["ignoring a value for a (-p): this node has no such parameter".to_string()],
+                None
+            )
+        );
+        let many: Vec<String> = (0..1_500_000)
+            .map(|i| format!("k{i} (--params-file big.yaml)"))
+            .collect();
+        let (each, more) = ignored_warnings(&many);
+        assert_eq!(each.len(), MAX_IGNORED_WARNINGS);
+        assert_eq!(
+            more.as_deref(),
+            Some("ignoring 1499990 more values for parameters this node does not have")
+        );
     }
 
     #[test]

@@ -12,6 +12,7 @@
 //! whole number (`500.0` becomes `500`), a double parameter accepts an integer (`1` becomes
 //! `1.0`); both are lossless and reported as notes. Anything else of the wrong type is refused.
 
+use super::logging::{escape_controls, shown};
 use super::msg;
 use crate::core::config::{ShortStr, UnknownName};
 use crate::core::{
@@ -24,6 +25,12 @@ use std::path::PathBuf;
 
 /// Most channels a node may have (names stay two digits: `pw01`..`pw99`).
 pub const MAX_CHANNELS: usize = 99;
+
+/// Slowest periodic status rate, Hz (one message every 100 s); 0 means on change only.
+pub const MIN_STATUS_RATE_HZ: f64 = 0.01;
+
+/// Fastest periodic status rate, Hz.
+pub const MAX_STATUS_RATE_HZ: f64 = 1000.0;
 
 /// Channels when nothing says otherwise (000: PW01, PW02).
 pub const DEFAULT_CHANNELS: usize = 2;
@@ -151,7 +158,7 @@ pub enum ParamError {
     /// No such parameter.
     #[error("parameter `{name}` is not declared{hint}")]
     Undeclared {
-        /// The name asked for.
+        /// The name asked for, as [`shown`] echoes input (escaped, bounded).
         name: String,
         /// A hint (e.g. the channel count), starting with a separator, or empty.
         hint: String,
@@ -197,7 +204,8 @@ pub enum ParamError {
         note: &'static str,
     },
     /// A string that names none of the accepted choices.
-    #[error("parameter `{name}`: {source}")]
+    // The core keeps 32 bytes of the value as given; escaped here like all echoed input.
+    #[error("parameter `{name}`: {}", escape_controls(&.source.to_string()))]
     BadChoice {
         /// The parameter.
         name: String,
@@ -231,7 +239,7 @@ pub enum ParamError {
     UnknownField {
         /// Channel name.
         channel: String,
-        /// The name given.
+        /// The name given, as [`shown`] echoes input (escaped, bounded).
         field: String,
         /// The fields there are.
         fields: &'static str,
@@ -256,7 +264,7 @@ fn describe_value(v: &ParameterValue) -> String {
         ParameterValue::Boolean(b) => format!("the bool {b}"),
         ParameterValue::Integer(i) => format!("the integer {i}"),
         ParameterValue::Double(d) => format!("the double {d}"),
-        ParameterValue::String(s) => format!("the string {s:?}"),
+        ParameterValue::String(s) => format!("the string \"{}\"", shown(s)),
         ParameterValue::ByteArray(_) => "a byte array".into(),
         ParameterValue::BooleanArray(_) => "a bool array".into(),
         ParameterValue::IntegerArray(_) => "an integer array".into(),
@@ -348,6 +356,17 @@ fn check_range(d: &Descriptor, v: &ParameterValue) -> Result<(), ParamError> {
             Err(out(
                 format!("{x:?}"),
                 format!("{from:?}"),
+                format!("{to:?}"),
+            ))
+        }
+        // 0 is "off"; any other rate must give a period the node can sleep for (1/1e-20 s
+        // is no Duration).
+        (Range::Double(_, to), ParameterValue::Double(x))
+            if suffix(&d.name) == "status_rate_hz" && *x != 0.0 && *x < MIN_STATUS_RATE_HZ =>
+        {
+            Err(out(
+                format!("{x:?}"),
+                format!("{MIN_STATUS_RATE_HZ:?}"),
                 format!("{to:?}"),
             ))
         }
@@ -460,9 +479,9 @@ fn node_decls() -> Vec<Decl> {
             default: || ParameterValue::Double(10.0),
             description: "Rate of the periodic ~/<ch>/status messages, Hz (they are also sent \
                           on every change). 0: on change only.",
-            constraints: "",
+            constraints: "0, or 0.01..1000",
             read_only: None,
-            range: Range::Double(0.0, 1000.0),
+            range: Range::Double(0.0, MAX_STATUS_RATE_HZ),
             checked: Checked::Range,
         },
         Decl {
@@ -925,7 +944,7 @@ impl ParamStore {
         let mut order: Vec<String> = Vec::new();
         for (name, value) in items {
             let d = self.decls.get(name).ok_or_else(|| ParamError::Undeclared {
-                name: name.clone(),
+                name: shown(name),
                 hint: self.undeclared_hint(name),
             })?;
             let (v, note) = coerce(d, value)?;
@@ -1034,7 +1053,7 @@ pub fn items_from_msg(
                 _ => {
                     return Err(ParamError::UnknownField {
                         channel: channel.clone(),
-                        field: field.clone(),
+                        field: shown(field),
                         fields: MSG_FIELDS,
                     })
                 }
@@ -1384,6 +1403,43 @@ mod tests {
     }
 
     #[test]
+    fn status_rate_is_off_or_a_rate_the_node_can_keep() {
+        let s = ParamStore::new(1);
+        for bad in [1e-20, 5e-324, 0.009, -0.5, 1000.5, f64::NAN, f64::INFINITY] {
+            let e = s
+                .check(&[item("status_rate_hz", V::Double(bad))], Phase::Live)
+                .unwrap_err();
+            assert!(
+                matches!(&e, ParamError::OutOfRange { name, .. } if name == "status_rate_hz"),
+                "{bad:?}: {e}"
+            );
+        }
+        let e = s
+            .check(&[item("status_rate_hz", V::Double(1e-20))], Phase::Live)
+            .unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "parameter `status_rate_hz`: 1e-20 is outside 0.01..1000.0 (0 = on change only)"
+        );
+        for ok in [0.0, 0.01, 2.5, 1000.0] {
+            assert!(
+                s.check(&[item("status_rate_hz", V::Double(ok))], Phase::Live)
+                    .is_ok(),
+                "{ok}"
+            );
+        }
+        // The same at start-up (`--status-rate 5e-324`, `-p`, a parameter file): a bad
+        // configuration, exit 2.
+        assert!(matches!(
+            start_up(&[sv("status_rate_hz", V::Double(5e-324))]),
+            Err(ParamError::OutOfRange { .. })
+        ));
+        let d = s.descriptor("status_rate_hz").unwrap().to_raw();
+        assert_eq!(d.floating_point_range[0].to_value, 1000.0);
+        assert!(d.additional_constraints.contains("0.01"), "{d:?}");
+    }
+
+    #[test]
     fn choices_are_checked_with_the_accepted_spellings() {
         let s = ParamStore::new(1);
         let e = s
@@ -1472,6 +1528,59 @@ mod tests {
             .check(&[item("speed", V::Integer(1))], Phase::Live)
             .unwrap_err();
         assert_eq!(e.to_string(), "parameter `speed` is not declared");
+    }
+
+    #[test]
+    fn refusals_echo_input_escaped_and_bounded() {
+        let s = ParamStore::new(1);
+        let forged = "x\n[ERROR] [0] [pwm_actuator]: forged\u{1b}[2J";
+        let long = "n".repeat(4 << 20);
+        let reasons = [
+            s.check(&[item(forged, V::Integer(1))], Phase::Live)
+                .unwrap_err()
+                .to_string(),
+            s.check(&[item(&long, V::Integer(1))], Phase::Live)
+                .unwrap_err()
+                .to_string(),
+            s.check(
+                &[item("pw01.period_ms", V::String(format!("{forged}{long}")))],
+                Phase::Live,
+            )
+            .unwrap_err()
+            .to_string(),
+            s.check(
+                &[item("pw01.profile", V::String(format!("{forged}{long}")))],
+                Phase::Live,
+            )
+            .unwrap_err()
+            .to_string(),
+            items_from_msg(
+                0,
+                &msg::ChannelParams {
+                    set: vec![format!("{forged}{long}")],
+                    ..Default::default()
+                },
+            )
+            .unwrap_err()
+            .to_string(),
+        ];
+        for r in &reasons {
+            assert!(
+                !r.chars().any(|c| c.is_control()),
+                "{}",
+                &r[..r.len().min(300)]
+            );
+            assert!(r.len() < 400, "{} bytes: {}", r.len(), &r[..300]);
+        }
+        assert_eq!(
+            reasons[0],
+            "parameter `x\\n[ERROR] [0] [pwm_actuator]: forged\\u{1b}[2J` is not declared"
+        );
+        assert!(
+            reasons[1].contains(&format!("`{}… (4194304 bytes)`", "n".repeat(64))),
+            "{}",
+            reasons[1]
+        );
     }
 
     #[test]
