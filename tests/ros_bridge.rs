@@ -10,7 +10,6 @@ use pwm_actuator::core::Command;
 use pwm_actuator::engine::{self, EngineError, EngineOptions};
 use pwm_actuator::output::{EmergencyOff, LineChange, Output};
 use pwm_actuator::ros::bridge::{Bridge, ChangeError, ChannelPubs};
-use pwm_actuator::ros::diagnostics::CommandUnit;
 use pwm_actuator::ros::msg::{DiagnosticArray, DiagnosticStatus, RosMessage};
 use pwm_actuator::ros::names::to_ros_name;
 use pwm_actuator::ros::params::{ParamStore, Phase};
@@ -154,7 +153,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     }
     assert!(heard, "the observer receives /diagnostics");
 
-    bridge.command(0, Command::Percent(50.0), CommandUnit::Percent);
+    bridge.command(0, Command::Percent(50.0));
     bridge.enable(0, true);
     // Two edges are written, the third write fails.
     tokio::time::timeout(LONG, bridge.stop.notified())

@@ -46,8 +46,8 @@ pub enum Event {
     Rejected(CommandError),
     /// A command was out of range and was clamped.
     Clamped {
-        /// The value as requested, in the command's unit.
-        requested: f64,
+        /// The command as requested, with its unit.
+        requested: Command,
         /// The duty fraction applied, 0..=1.
         applied: f64,
     },
@@ -91,8 +91,8 @@ pub struct Status {
     pub level: Level,
     /// The commanded duty after clamping, 0..=1.
     pub duty_commanded: f64,
-    /// The last valid command as requested, in its own unit.
-    pub duty_requested: f64,
+    /// The last valid command as requested, with its unit.
+    pub duty_requested: Command,
     /// The last valid command was out of range and clamped.
     pub command_clamped: bool,
     /// The duty delivered by the plan in force, 0..=1.
@@ -161,7 +161,7 @@ impl Channel {
     pub fn new(cfg: ChannelConfig, now: Nanos) -> Channel {
         let duty = Duty {
             fraction: 0.0,
-            requested: 0.0,
+            requested: Command::Percent(0.0),
             clamped: false,
         };
         Channel {

@@ -34,8 +34,8 @@ pub enum CommandError {
 pub struct Duty {
     /// The fraction in force, 0..=1.
     pub fraction: f64,
-    /// The value as requested, in the command's own unit (percent, SV or fraction).
-    pub requested: f64,
+    /// The command as requested, with its unit (percent, SV or fraction).
+    pub requested: Command,
     /// True when `requested` was outside its range and was clamped.
     pub clamped: bool,
 }
@@ -49,6 +49,24 @@ impl Command {
         }
     }
 
+    /// The name of the command's unit: `%`, `SV` or `fraction`.
+    pub fn unit(&self) -> &'static str {
+        match self {
+            Command::Percent(_) => "%",
+            Command::Sv(_) => "SV",
+            Command::Fraction(_) => "fraction",
+        }
+    }
+
+    /// The top of the command's range in its own unit (100 %, SV 4095, fraction 1).
+    pub fn full_scale(&self) -> f64 {
+        match self {
+            Command::Percent(_) => 100.0,
+            Command::Sv(_) => f64::from(SV_FULL_SCALE),
+            Command::Fraction(_) => 1.0,
+        }
+    }
+
     /// Converts to a duty fraction, clamping finite values and refusing NaN and infinities.
     pub fn to_duty(&self) -> Result<Duty, CommandError> {
         let requested = self.raw();
@@ -58,15 +76,11 @@ impl Command {
         if requested.is_infinite() {
             return Err(CommandError::Infinite);
         }
-        let full_scale = match self {
-            Command::Percent(_) => 100.0,
-            Command::Sv(_) => f64::from(SV_FULL_SCALE),
-            Command::Fraction(_) => 1.0,
-        };
+        let full_scale = self.full_scale();
         let clamped_value = requested.clamp(0.0, full_scale);
         Ok(Duty {
             fraction: clamped_value / full_scale,
-            requested,
+            requested: *self,
             clamped: clamped_value != requested,
         })
     }
@@ -89,7 +103,10 @@ mod tests {
     #[test]
     fn out_of_range_is_clamped_and_flagged_002() {
         let d = Command::Percent(-5.0).to_duty().unwrap();
-        assert_eq!((d.fraction, d.clamped, d.requested), (0.0, true, -5.0));
+        assert_eq!(
+            (d.fraction, d.clamped, d.requested),
+            (0.0, true, Command::Percent(-5.0))
+        );
         let d = Command::Percent(150.0).to_duty().unwrap();
         assert_eq!((d.fraction, d.clamped), (1.0, true));
         let d = Command::Sv(5000).to_duty().unwrap();

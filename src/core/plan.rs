@@ -28,6 +28,28 @@ pub enum Rule {
     BandHigh,
 }
 
+impl Rule {
+    /// The rule's name as reported on `~/<ch>/status` and `/diagnostics`.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Rule::Exact => "exact",
+            Rule::NoPeriod => "no_period",
+            Rule::SuppressedPulse => "suppressed_pulse",
+            Rule::SuppressedBreak => "suppressed_break",
+            Rule::StretchedPulse => "stretched_pulse",
+            Rule::StretchedBreak => "stretched_break",
+            Rule::BandLow => "band_low",
+            Rule::BandHigh => "band_high",
+        }
+    }
+}
+
+impl std::fmt::Display for Rule {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// The times of one period for one duty.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Plan {

@@ -12,9 +12,7 @@
 //! wait-free request queue.
 
 use super::console::EdgeLines;
-use super::diagnostics::{
-    clamp_text, percent, status_changed, status_msg, ChannelHealth, CommandUnit,
-};
+use super::diagnostics::{clamp_text, percent, status_changed, status_msg, ChannelHealth};
 use super::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
 use super::params::{self, show_value, ParamError, ParamStore, Phase};
 use crate::clock;
@@ -193,10 +191,7 @@ impl Bridge {
 
     /// A duty command from `~/<ch>/duty` or `~/<ch>/sv`. The core refuses NaN and infinities
     /// and clamps out-of-range values; its verdict comes back as a report.
-    pub fn command(&self, channel: usize, command: Command, unit: CommandUnit) {
-        if let Some(h) = lock(&self.health).get_mut(channel) {
-            h.last_unit = unit;
-        }
+    pub fn command(&self, channel: usize, command: Command) {
         debug!(
             "{}: command {command:?}",
             self.names.get(channel).map_or("?", String::as_str)
@@ -481,7 +476,7 @@ impl Bridge {
                 let text = {
                     let mut health = lock(&self.health);
                     let h = &mut health[ch];
-                    let text = clamp_text(h.last_unit, requested, applied);
+                    let text = clamp_text(requested, applied);
                     h.clamped += 1;
                     h.last_clamp = Some((text.clone(), now));
                     text

@@ -8,36 +8,25 @@
 //! are passed in).
 
 use super::msg::{ChannelStatus, DiagnosticStatus, KeyValue};
-use crate::core::{Nanos, Rule, Status, NS_PER_MS};
+use crate::core::{Command, Nanos, Status, NS_PER_MS};
 
 /// How long a refused command keeps the channel at WARN, ns.
 pub const REFUSAL_WARN_NS: Nanos = 5_000_000_000;
 
-/// The unit of the last duty command received (for messages about clamping).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum CommandUnit {
-    /// `~/<ch>/duty`, percent.
-    #[default]
-    Percent,
-    /// `~/<ch>/sv`, raw 0..4095.
-    Sv,
-}
-
-/// What a clamped command is said to have been: `requested` in the command's `unit`, and
-/// the duty fraction `applied`.
-pub fn clamp_text(unit: CommandUnit, requested: f64, applied: f64) -> String {
-    match unit {
-        CommandUnit::Percent => format!(
-            "{} % is outside 0..100, clamped to {:.1} %",
-            show_number(requested),
-            percent(applied)
-        ),
-        CommandUnit::Sv => format!(
-            "SV {} is outside 0..4095, clamped to {:.1} %",
-            show_number(requested),
-            percent(applied)
-        ),
-    }
+/// What a clamped command is said to have been: `requested` in its own unit, and the duty
+/// fraction `applied`.
+pub fn clamp_text(requested: Command, applied: f64) -> String {
+    let value = show_number(requested.raw());
+    let range = format!("0..{}", show_number(requested.full_scale()));
+    let asked = match requested {
+        Command::Percent(_) => format!("{value} %"),
+        Command::Sv(_) => format!("SV {value}"),
+        Command::Fraction(_) => format!("fraction {value}"),
+    };
+    format!(
+        "{asked} is outside {range}, clamped to {:.1} %",
+        percent(applied)
+    )
 }
 
 /// A number from input, shown in a few characters: as written up to a million in size,
@@ -65,20 +54,6 @@ fn recent(event: &Option<(String, Nanos)>, now: Nanos) -> Option<&str> {
         .map(|(r, _)| r.as_str())
 }
 
-/// The spelling of a plan rule in status messages.
-pub fn rule_name(r: Rule) -> &'static str {
-    match r {
-        Rule::Exact => "exact",
-        Rule::NoPeriod => "no_period",
-        Rule::SuppressedPulse => "suppressed_pulse",
-        Rule::SuppressedBreak => "suppressed_break",
-        Rule::StretchedPulse => "stretched_pulse",
-        Rule::StretchedBreak => "stretched_break",
-        Rule::BandLow => "band_low",
-        Rule::BandHigh => "band_high",
-    }
-}
-
 fn ms(ns: Nanos) -> f64 {
     ns as f64 / NS_PER_MS as f64
 }
@@ -104,7 +79,7 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         e1: s.e1,
         min_time_limited: s.limited,
         watchdog_tripped: s.watchdog_tripped,
-        rule: rule_name(s.rule).to_string(),
+        rule: s.rule.as_str().to_string(),
     }
 }
 
@@ -155,8 +130,6 @@ pub struct ChannelHealth {
     pub rejected: u64,
     /// Commands clamped.
     pub clamped: u64,
-    /// Unit of the last command received.
-    pub last_unit: CommandUnit,
     /// The last EN received on `~/<ch>/enable` (or set at start-up).
     pub last_enable: Option<bool>,
     /// Messages that could not be published (a subscriber not keeping up).
@@ -251,14 +224,14 @@ impl ChannelHealth {
                 "E1: {:.1} % cannot be reproduced because of a minimum time ({}); {:.1} % \
                  applied",
                 pct(s.duty_commanded),
-                rule_name(s.rule),
+                s.rule.as_str(),
                 pct(s.duty_applied)
             );
         }
         if s.limited {
             return format!(
                 "minimum time limit acts ({}); {:.1} % applied for {:.1} % commanded",
-                rule_name(s.rule),
+                s.rule.as_str(),
                 pct(s.duty_applied),
                 pct(s.duty_commanded)
             );
@@ -300,7 +273,7 @@ impl ChannelHealth {
                 ("off_time_ms", format!("{:.3}", ms(s.t_off))),
                 ("e1", s.e1.to_string()),
                 ("min_time_limited", s.limited.to_string()),
-                ("rule", rule_name(s.rule).to_string()),
+                ("rule", s.rule.as_str().to_string()),
             ]);
         }
         kv.extend([
@@ -358,6 +331,7 @@ impl ChannelHealth {
 mod tests {
     use super::*;
     use crate::core::Level;
+    use crate::core::Rule;
 
     fn status() -> Status {
         Status {
@@ -365,7 +339,7 @@ mod tests {
             active: true,
             level: Level::High,
             duty_commanded: 0.37,
-            duty_requested: 37.0,
+            duty_requested: Command::Percent(37.0),
             command_clamped: false,
             duty_applied: 0.37,
             period: 1000 * NS_PER_MS,
@@ -483,23 +457,23 @@ mod tests {
     #[test]
     fn clamped_commands_are_described_in_a_few_characters() {
         assert_eq!(
-            clamp_text(CommandUnit::Percent, 1e308, 1.0),
+            clamp_text(Command::Percent(1e308), 1.0),
             "1e308 % is outside 0..100, clamped to 100.0 %"
         );
         assert_eq!(
-            clamp_text(CommandUnit::Percent, -1.5e300, 0.0),
+            clamp_text(Command::Percent(-1.5e300), 0.0),
             "-1.5e300 % is outside 0..100, clamped to 0.0 %"
         );
         assert_eq!(
-            clamp_text(CommandUnit::Percent, 150.5, 1.0),
+            clamp_text(Command::Percent(150.5), 1.0),
             "150.5 % is outside 0..100, clamped to 100.0 %"
         );
         assert_eq!(
-            clamp_text(CommandUnit::Percent, -5e-324, 0.0),
+            clamp_text(Command::Percent(-5e-324), 0.0),
             "-5e-324 % is outside 0..100, clamped to 0.0 %"
         );
         assert_eq!(
-            clamp_text(CommandUnit::Sv, 5000.0, 1.0),
+            clamp_text(Command::Sv(5000), 1.0),
             "SV 5000 is outside 0..4095, clamped to 100.0 %"
         );
     }

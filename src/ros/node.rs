@@ -10,7 +10,6 @@
 use super::args::{self, ArgsError, Remap, RosArgs};
 use super::bridge::{Bridge, ChannelPubs};
 use super::cli::{self, CliError, Flags, DEMO_ORIGIN};
-use super::diagnostics::CommandUnit;
 use super::logging::{self, LogConfig};
 use super::msg::{self, RosMessage};
 use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
@@ -613,14 +612,12 @@ async fn serve(
         let (full, s) =
             subscription::<msg::Float64>(&mut node, &id, remaps, &format!("~/{}/duty", c.name))?;
         tasks.push(listen(full, s, move |m| {
-            b.command(ch, Command::Percent(m.data), CommandUnit::Percent)
+            b.command(ch, Command::Percent(m.data))
         }));
         let b = Arc::clone(&bridge);
         let (full, s) =
             subscription::<msg::UInt16>(&mut node, &id, remaps, &format!("~/{}/sv", c.name))?;
-        tasks.push(listen(full, s, move |m| {
-            b.command(ch, Command::Sv(m.data), CommandUnit::Sv)
-        }));
+        tasks.push(listen(full, s, move |m| b.command(ch, Command::Sv(m.data))));
         let b = Arc::clone(&bridge);
         let (full, s) =
             subscription::<msg::Bool>(&mut node, &id, remaps, &format!("~/{}/enable", c.name))?;
@@ -657,8 +654,8 @@ async fn serve(
         )?;
         tasks.push(listen(full, s, move |m| {
             let (h, c) = split_command(m.data, band);
-            b.command(hot, h, CommandUnit::Percent);
-            b.command(cold, c, CommandUnit::Percent);
+            b.command(hot, h);
+            b.command(cold, c);
         }));
     }
     tasks.extend(services::spawn(&mut node, &id, remaps, &bridge)?);

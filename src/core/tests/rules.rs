@@ -101,13 +101,16 @@ fn out_of_range_is_clamped_and_flagged_002() {
     assert!(b.notes().contains(&(
         0,
         Event::Clamped {
-            requested: 150.0,
+            requested: Command::Percent(150.0),
             applied: 1.0
         }
     )));
     let s = b.status();
     assert!(s.command_clamped);
-    assert_eq!((s.duty_requested, s.duty_commanded), (150.0, 1.0));
+    assert_eq!(
+        (s.duty_requested, s.duty_commanded),
+        (Command::Percent(150.0), 1.0)
+    );
     b.duty(-3.0).at(400.0);
     assert_eq!(b.wave(), "H@0 L@300", "clamped to 0 % from the next period");
     b.duty(20.0);
@@ -123,6 +126,24 @@ fn sv_above_4095_is_clamped_000() {
     b.command(Command::Sv(60000)).enable();
     assert_eq!(b.status().duty_commanded, 1.0);
     assert!(b.status().command_clamped);
+}
+
+#[test]
+fn each_clamp_report_carries_its_own_commands_unit() {
+    // Two clamped commands back to back in different units: each report names its own, so a
+    // reader never pairs a value with the other command's unit.
+    let mut b = Bench::new(p());
+    b.command(Command::Sv(5000)).duty(-7.0);
+    let clamps: Vec<Command> = b
+        .notes()
+        .iter()
+        .filter_map(|(_, e)| match e {
+            Event::Clamped { requested, .. } => Some(*requested),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(clamps, vec![Command::Sv(5000), Command::Percent(-7.0)]);
+    assert_eq!(b.status().duty_requested, Command::Percent(-7.0));
 }
 
 // ---- 1.1 enable --------------------------------------------------------------------------------
