@@ -1,0 +1,199 @@
+//! Start-up assembly: the values given on the command line and in parameter files become the
+//! store and the configuration the node starts with.
+
+use super::table::node_decls;
+use super::DEFAULT_CHANNELS;
+use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Phase};
+use crate::core::ChannelConfig;
+use ros2_client::ParameterValue;
+use std::path::PathBuf;
+
+/// A parameter value given at start-up, with where it came from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StartValue {
+    /// Parameter name.
+    pub name: String,
+    /// Value as given.
+    pub value: ParameterValue,
+    /// Where it came from (`--demo`, `-p`, `--params-file x.yaml`, ...).
+    pub origin: String,
+}
+
+/// The store built from start-up values, and what was said about them.
+#[derive(Debug, Clone)]
+pub struct StartUp {
+    /// The store with every start-up value applied.
+    pub store: ParamStore,
+    /// Coercion notes.
+    pub notes: Vec<String>,
+    /// Values for parameters this node does not have, ignored (as rclcpp ignores overrides of
+    /// undeclared parameters), as `name (origin)`.
+    pub ignored: Vec<String>,
+    /// Values accepted by ROS convention but not honoured, with why (`use_sim_time: true`
+    /// from a launch file that sets it for every node).
+    pub warnings: Vec<String>,
+}
+
+/// Builds the store from start-up values applied in order (a later value wins). The channel
+/// count comes from the last `channels` value; values for parameters the node does not
+/// declare are ignored and listed.
+pub fn start_up(values: &[StartValue]) -> Result<StartUp, ParamError> {
+    let channels_decl = make("channels".into(), &node_decls()[0]);
+    let mut channels = DEFAULT_CHANNELS;
+    for v in values.iter().filter(|v| v.name == "channels") {
+        let (c, _) = coerce(&channels_decl, &v.value)?;
+        check_range(&channels_decl, &c)?;
+        if let ParameterValue::Integer(i) = c {
+            channels = i as usize;
+        }
+    }
+    let mut store = ParamStore::new(channels);
+    let mut ignored = Vec::new();
+    let mut warnings = Vec::new();
+    let items: Vec<(String, ParameterValue)> = values
+        .iter()
+        .filter_map(|v| {
+            if v.name == "use_sim_time" && v.value == ParameterValue::Boolean(true) {
+                // Launch files often set it for every node; refusing to start would be worse
+                // than saying plainly that it is not honoured.
+                warnings.push(format!(
+                    "use_sim_time true ({}) ignored: {}",
+                    v.origin,
+                    ParamError::SimTime
+                ));
+                None
+            } else if store.descriptor(&v.name).is_some() {
+                Some((v.name.clone(), v.value.clone()))
+            } else {
+                ignored.push(format!("{} ({})", v.name, v.origin));
+                None
+            }
+        })
+        .collect();
+    let accepted = store.check(&items, Phase::StartUp)?;
+    store.commit(&accepted);
+    // Defaults are valid by construction, but say so if a channel is not.
+    for ch in 0..store.channels() {
+        store.channel_config(ch)?;
+    }
+    Ok(StartUp {
+        store,
+        notes: accepted.notes,
+        ignored,
+        warnings,
+    })
+}
+
+/// One channel's GPIO line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LineSpec {
+    /// Channel name.
+    pub channel: String,
+    /// Chip path or name.
+    pub chip: String,
+    /// Line offset.
+    pub offset: u32,
+    /// Inverted polarity.
+    pub active_low: bool,
+}
+
+/// Where the edges go.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum OutputChoice {
+    /// The simulated sink, with trace files (possibly none).
+    Sim {
+        /// Trace files.
+        trace: Vec<PathBuf>,
+    },
+    /// GPIO lines, one per channel.
+    Gpio {
+        /// The lines, in channel order.
+        lines: Vec<LineSpec>,
+    },
+}
+
+/// One channel at start-up.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChannelStart {
+    /// `pw01`, ...
+    pub name: String,
+    /// Validated configuration.
+    pub config: ChannelConfig,
+    /// Enabled at start-up.
+    pub enable: bool,
+    /// Duty at start-up, percent.
+    pub duty_percent: f64,
+}
+
+/// What the node needs at start-up, read from the store.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StartupConfig {
+    /// Channels in order.
+    pub channels: Vec<ChannelStart>,
+    /// Output backend.
+    pub output: OutputChoice,
+    /// Periodic status rate, Hz (0 = on change only).
+    pub status_rate_hz: f64,
+    /// Edge lines per second and channel (0 = none).
+    pub edge_log_rate: u32,
+    /// SCHED_FIFO priority, if asked for.
+    pub rt_priority: Option<i32>,
+}
+
+impl StartupConfig {
+    /// Reads the start-up configuration from a store built by [`start_up`].
+    pub fn from_store(store: &ParamStore) -> Result<StartupConfig, ParamError> {
+        let mut channels = Vec::new();
+        for ch in 0..store.channels() {
+            let name = channel_name(ch);
+            channels.push(ChannelStart {
+                config: store.channel_config(ch)?,
+                enable: store.bool(&format!("{name}.enable")).unwrap_or(false),
+                duty_percent: store.double(&format!("{name}.duty")).unwrap_or(0.0),
+                name,
+            });
+        }
+        let trace: Vec<PathBuf> = store
+            .string("trace")
+            .unwrap_or("")
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .map(PathBuf::from)
+            .collect();
+        let output = if store.string("output") == Some("gpio") {
+            if !trace.is_empty() {
+                return Err(ParamError::TraceNeedsSim);
+            }
+            let mut lines = Vec::new();
+            for c in &channels {
+                let offset = store.int(&format!("{}.gpio_line", c.name)).unwrap_or(-1);
+                if offset < 0 {
+                    return Err(ParamError::MissingLine {
+                        channel: c.name.clone(),
+                    });
+                }
+                lines.push(LineSpec {
+                    channel: c.name.clone(),
+                    chip: store
+                        .string(&format!("{}.gpio_chip", c.name))
+                        .unwrap_or("/dev/gpiochip0")
+                        .to_string(),
+                    offset: offset.min(u32::MAX as i64) as u32,
+                    active_low: c.config.params.active_low,
+                });
+            }
+            OutputChoice::Gpio { lines }
+        } else {
+            OutputChoice::Sim { trace }
+        };
+        let rt = store.int("rt_priority").unwrap_or(0);
+        Ok(StartupConfig {
+            channels,
+            output,
+            status_rate_hz: store.double("status_rate_hz").unwrap_or(10.0),
+            edge_log_rate: store.int("edge_log_rate").unwrap_or(10).clamp(0, 1000) as u32,
+            rt_priority: (rt > 0).then_some(rt.min(99) as i32),
+        })
+    }
+}

@@ -1,0 +1,309 @@
+//! The one store every door writes through (command line, parameter files, the parameter
+//! services, the `~/<ch>/params` topic), and the whole-change check a change must pass before
+//! it is applied (see the module documentation of [`super`]).
+
+use super::table::{self, channel_decls, node_decls};
+use super::{channel_name, channel_of, check_choice, check_range, coerce, make, Descriptor};
+use super::{shown, ParamError, MAX_CHANNELS};
+use crate::core::{ChannelConfig, ChannelParams};
+use crate::ros::msg;
+use ros2_client::parameters::raw;
+use ros2_client::ParameterValue;
+use std::collections::BTreeMap;
+
+/// Whether a parameter change is made at start-up (read-only ones allowed) or while running.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Defaults, flags, `-p` and parameter files.
+    StartUp,
+    /// Parameter services and the `~/<ch>/params` topic.
+    Live,
+}
+
+/// A checked change, ready to commit.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Accepted {
+    /// The coerced values that differ from the current ones, in the order given (last wins).
+    pub changes: Vec<(String, ParameterValue)>,
+    /// What was coerced, for the log.
+    pub notes: Vec<String>,
+    /// New configurations of channels whose timing settings changed: (index, config).
+    pub configs: Vec<(usize, ChannelConfig)>,
+}
+
+/// Every parameter of the node with its current value.
+#[derive(Debug, Clone)]
+pub struct ParamStore {
+    decls: BTreeMap<String, Descriptor>,
+    values: BTreeMap<String, ParameterValue>,
+    channels: usize,
+}
+
+impl ParamStore {
+    /// Declares the node parameters and those of `channels` channels (clamped to
+    /// 1..=[`MAX_CHANNELS`]), each at its default.
+    pub fn new(channels: usize) -> ParamStore {
+        let channels = channels.clamp(1, MAX_CHANNELS);
+        let mut decls = BTreeMap::new();
+        for d in node_decls() {
+            decls.insert(d.suffix.to_string(), make(d.suffix.to_string(), &d));
+        }
+        for ch in 0..channels {
+            for d in channel_decls() {
+                let name = format!("{}.{}", channel_name(ch), d.suffix);
+                decls.insert(name.clone(), make(name, &d));
+            }
+        }
+        if let Some(d) = decls.get_mut("channels") {
+            d.default = ParameterValue::Integer(channels as i64);
+        }
+        let values = decls
+            .iter()
+            .map(|(k, d)| (k.clone(), d.default.clone()))
+            .collect();
+        ParamStore {
+            decls,
+            values,
+            channels,
+        }
+    }
+
+    /// Number of channels.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    /// The current value of a parameter.
+    pub fn get(&self, name: &str) -> Option<&ParameterValue> {
+        self.values.get(name)
+    }
+
+    /// The declaration of a parameter.
+    pub fn descriptor(&self, name: &str) -> Option<&Descriptor> {
+        self.decls.get(name)
+    }
+
+    /// Every parameter name, sorted.
+    pub fn names(&self) -> Vec<String> {
+        self.values.keys().cloned().collect()
+    }
+
+    /// Every parameter with its current value, sorted by name.
+    pub fn all(&self) -> Vec<(String, ParameterValue)> {
+        self.values
+            .iter()
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect()
+    }
+
+    /// An integer parameter's value.
+    pub fn int(&self, name: &str) -> Option<i64> {
+        match self.values.get(name) {
+            Some(ParameterValue::Integer(i)) => Some(*i),
+            _ => None,
+        }
+    }
+
+    /// A double parameter's value.
+    pub fn double(&self, name: &str) -> Option<f64> {
+        match self.values.get(name) {
+            Some(ParameterValue::Double(x)) => Some(*x),
+            _ => None,
+        }
+    }
+
+    /// A bool parameter's value.
+    pub fn bool(&self, name: &str) -> Option<bool> {
+        match self.values.get(name) {
+            Some(ParameterValue::Boolean(b)) => Some(*b),
+            _ => None,
+        }
+    }
+
+    /// A string parameter's value.
+    pub fn string(&self, name: &str) -> Option<&str> {
+        match self.values.get(name) {
+            Some(ParameterValue::String(s)) => Some(s),
+            _ => None,
+        }
+    }
+
+    /// Answers `list_parameters` the way rclcpp does: with no prefixes, names with fewer than
+    /// `depth` dots (0 = any); otherwise names equal to a prefix or under `prefix.` within
+    /// `depth` further levels. Returns `(names, prefixes)`.
+    pub fn list(&self, prefixes: &[String], depth: u64) -> (Vec<String>, Vec<String>) {
+        let within = |s: &str| depth == 0 || (s.matches('.').count() as u64) < depth;
+        let mut names = Vec::new();
+        let mut found_prefixes: Vec<String> = Vec::new();
+        for name in self.values.keys() {
+            let all = prefixes.is_empty() && within(name);
+            let under = prefixes.iter().any(|p| {
+                name == p
+                    || name
+                        .strip_prefix(p.as_str())
+                        .and_then(|r| r.strip_prefix('.'))
+                        .is_some_and(|r| within(&format!(".{r}")))
+            });
+            if all || under {
+                names.push(name.clone());
+                if let Some((ns, _)) = name.rsplit_once('.') {
+                    if !found_prefixes.iter().any(|p| p == ns) {
+                        found_prefixes.push(ns.to_string());
+                    }
+                }
+            }
+        }
+        (names, found_prefixes)
+    }
+
+    /// The channel's parameters as the core's [`ChannelParams`], from `values`, each mapped
+    /// by its entry in the table.
+    fn channel_params_in(
+        values: &BTreeMap<String, ParameterValue>,
+        ch: usize,
+    ) -> Result<ChannelParams, ParamError> {
+        let prefix = channel_name(ch);
+        let mut params = ChannelParams::default();
+        for d in channel_decls() {
+            let Some(to_core) = d.core else { continue };
+            let name = format!("{prefix}.{}", d.suffix);
+            let value = values.get(&name).cloned().unwrap_or_else(d.default);
+            to_core(&mut params, &value)
+                .map_err(|source| ParamError::BadChoice { name, source })?;
+        }
+        Ok(params)
+    }
+
+    /// Channel `ch`'s settings as the core's [`ChannelParams`].
+    pub fn channel_params(&self, ch: usize) -> Result<ChannelParams, ParamError> {
+        Self::channel_params_in(&self.values, ch)
+    }
+
+    /// Channel `ch`'s validated configuration.
+    pub fn channel_config(&self, ch: usize) -> Result<ChannelConfig, ParamError> {
+        self.channel_params(ch)?
+            .validate()
+            .map_err(|source| ParamError::Channel {
+                channel: channel_name(ch),
+                source,
+            })
+    }
+
+    /// Checks a change as a whole (see the module documentation). Nothing is modified.
+    pub fn check(
+        &self,
+        items: &[(String, ParameterValue)],
+        phase: Phase,
+    ) -> Result<Accepted, ParamError> {
+        let mut working = self.values.clone();
+        let mut notes = Vec::new();
+        let mut order: Vec<String> = Vec::new();
+        for (name, value) in items {
+            let d = self.decls.get(name).ok_or_else(|| ParamError::Undeclared {
+                name: shown(name),
+                hint: self.undeclared_hint(name),
+            })?;
+            let (v, note) = coerce(d, value)?;
+            check_range(d, &v)?;
+            check_choice(d, &v)?;
+            if name == "use_sim_time" && v == ParameterValue::Boolean(true) {
+                return Err(ParamError::SimTime);
+            }
+            if phase == Phase::Live && d.read_only && self.values.get(name) != Some(&v) {
+                return Err(ParamError::ReadOnly {
+                    name: name.clone(),
+                    why: d.why_read_only,
+                });
+            }
+            notes.extend(note);
+            working.insert(name.clone(), v);
+            order.retain(|n| n != name);
+            order.push(name.clone());
+        }
+        let changes: Vec<(String, ParameterValue)> = order
+            .into_iter()
+            .filter_map(|n| {
+                let v = working.get(&n)?;
+                (self.values.get(&n) != Some(v)).then(|| (n, v.clone()))
+            })
+            .collect();
+        let mut touched: Vec<usize> = changes
+            .iter()
+            .filter_map(|(n, _)| channel_of(n).map(|(ch, _)| ch))
+            .collect();
+        touched.sort_unstable();
+        touched.dedup();
+        let mut configs = Vec::new();
+        for ch in touched {
+            let new = Self::channel_params_in(&working, ch)?;
+            let config = new.validate().map_err(|source| ParamError::Channel {
+                channel: channel_name(ch),
+                source,
+            })?;
+            if Self::channel_params_in(&self.values, ch).ok() != Some(new) {
+                configs.push((ch, config));
+            }
+        }
+        Ok(Accepted {
+            changes,
+            notes,
+            configs,
+        })
+    }
+
+    fn undeclared_hint(&self, name: &str) -> String {
+        match channel_of(name) {
+            Some((ch, _)) if ch >= self.channels => format!(
+                " (this node has {} channel{}: pw01..{})",
+                self.channels,
+                if self.channels == 1 { "" } else { "s" },
+                channel_name(self.channels - 1)
+            ),
+            _ => String::new(),
+        }
+    }
+
+    /// Applies a checked change; returns the changed parameters in wire form, for
+    /// `/parameter_events`.
+    pub fn commit(&mut self, accepted: &Accepted) -> Vec<raw::Parameter> {
+        accepted
+            .changes
+            .iter()
+            .map(|(name, value)| {
+                self.values.insert(name.clone(), value.clone());
+                raw::Parameter {
+                    name: name.clone(),
+                    value: value.clone().into(),
+                }
+            })
+            .collect()
+    }
+}
+
+/// The parameter changes a `~/<ch>/params` message asks for: the fields named in `set`, as
+/// `pwNN.field` values, each read by its entry in the table.
+pub fn items_from_msg(
+    ch: usize,
+    m: &msg::ChannelParams,
+) -> Result<Vec<(String, ParameterValue)>, ParamError> {
+    let channel = channel_name(ch);
+    if m.set.is_empty() {
+        return Err(ParamError::EmptySet { channel });
+    }
+    let decls = channel_decls();
+    m.set
+        .iter()
+        .map(|field| {
+            let from_msg = decls
+                .iter()
+                .find(|d| d.suffix == field.as_str())
+                .and_then(|d| d.msg)
+                .ok_or_else(|| ParamError::UnknownField {
+                    channel: channel.clone(),
+                    field: shown(field),
+                    fields: table::msg_fields(),
+                })?;
+            Ok((format!("{channel}.{field}"), from_msg(m)))
+        })
+        .collect()
+}

@@ -1,0 +1,394 @@
+//! The one table of the node's parameters. Every node and channel parameter is declared here
+//! once: name, type, default, range, whether it is read-only, its description with units, what
+//! its special values mean, its accepted spellings, and — for a channel parameter — how it maps
+//! into the core's [`ChannelParams`] and from the `pwm_actuator_msgs/ChannelParams` message. The
+//! parameter services' declarations and descriptors, the validation messages, the message
+//! mapping and the README's tables (compared by a test) all derive from it.
+//!
+//! Defaults and limits of the channel settings come from the core (`ChannelParams::default()`,
+//! `MAX_PERIOD_MS`, `MAX_TIMEOUT_MS`), so none is written twice.
+
+use super::{ParamType, Range, DEFAULT_CHANNELS, MAX_CHANNELS, MAX_STATUS_RATE_HZ};
+use super::{ParameterValue as V, MIN_STATUS_RATE_HZ};
+use crate::core::config::{ShortStr, UnknownName, MAX_PERIOD_MS, MAX_TIMEOUT_MS};
+use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Profile, ShortPulse};
+use crate::ros::msg;
+use std::str::FromStr;
+
+/// Who decides about a value's range.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) enum Checked {
+    /// The advertised range is checked here.
+    Range,
+    /// 0, or a value in `min..=` the advertised maximum (a rate: 0 is "off").
+    OffOr(f64),
+    /// The core's validation gives the verdict (its messages are more precise); only values
+    /// the core cannot represent (negative times) are refused here.
+    Core,
+}
+
+/// Writes a parameter's value into the core's settings; an unknown spelling is refused.
+pub(super) type ToCore = fn(&mut ChannelParams, &V) -> Result<(), UnknownName>;
+
+/// Reads a parameter's value from the `ChannelParams` message.
+pub(super) type FromMsg = fn(&msg::ChannelParams) -> V;
+
+/// Accepts or refuses a string parameter's spelling.
+pub(super) type Choices = fn(&str) -> Result<(), UnknownName>;
+
+/// One parameter (for a channel parameter, without its `pwNN.` prefix).
+pub(super) struct Decl {
+    pub suffix: &'static str,
+    pub ptype: ParamType,
+    pub default: fn() -> V,
+    /// What it is, with its unit.
+    pub description: &'static str,
+    /// Rules the range cannot express (sent as `additional_constraints`).
+    pub constraints: &'static str,
+    /// `Some(why)`: set only at start-up.
+    pub read_only: Option<&'static str>,
+    pub range: Range,
+    pub checked: Checked,
+    /// What special values mean, for refusal messages (` (-1 = ...)`), or empty.
+    pub note: &'static str,
+    /// The accepted spellings of a string parameter.
+    pub choices: Option<Choices>,
+    /// Channel parameters of the core's settings: how the value maps into them.
+    pub core: Option<ToCore>,
+    /// Channel parameters exposed on `~/<ch>/params`: the message field of the same name.
+    pub msg: Option<FromMsg>,
+}
+
+/// Why a start-up-only parameter cannot change while running.
+const START_UP: &str = "it is read at start-up only; restart the node to change it";
+
+impl Decl {
+    const fn new(suffix: &'static str, ptype: ParamType, default: fn() -> V) -> Decl {
+        Decl {
+            suffix,
+            ptype,
+            default,
+            description: "",
+            constraints: "",
+            read_only: None,
+            range: Range::Unbounded,
+            checked: Checked::Range,
+            note: "",
+            choices: None,
+            core: None,
+            msg: None,
+        }
+    }
+}
+
+/// Accepts the spellings of `T` (an empty string too when `empty` means "as the profile says").
+fn spelled<T: FromStr<Err = UnknownName>>(s: &str, empty: bool) -> Result<(), UnknownName> {
+    if empty && s.is_empty() {
+        Ok(())
+    } else {
+        s.parse::<T>().map(drop)
+    }
+}
+
+fn text(v: &V) -> &str {
+    match v {
+        V::String(s) => s,
+        _ => "",
+    }
+}
+
+fn int(v: &V) -> i64 {
+    match v {
+        V::Integer(i) => *i,
+        _ => 0,
+    }
+}
+
+/// A time in ms; negative values were refused by the range checks, `max(0)` guards the cast.
+fn ms(v: &V) -> u64 {
+    int(v).max(0) as u64
+}
+
+/// An optional policy: empty means "as the profile says".
+fn policy<T: FromStr<Err = UnknownName>>(v: &V) -> Result<Option<T>, UnknownName> {
+    match text(v) {
+        "" => Ok(None),
+        s => s.parse().map(Some),
+    }
+}
+
+fn core_defaults() -> ChannelParams {
+    ChannelParams::default()
+}
+
+/// The node-level parameters.
+pub(super) fn node_decls() -> Vec<Decl> {
+    use ParamType::*;
+    vec![
+        Decl {
+            description: "Number of PWM channels, named pw01, pw02, ...",
+            read_only: Some(START_UP),
+            range: Range::Integer(1, MAX_CHANNELS as i64),
+            ..Decl::new("channels", Integer, || V::Integer(DEFAULT_CHANNELS as i64))
+        },
+        Decl {
+            description: "Output backend: sim (simulated sink, optional trace) or gpio (Linux \
+                          GPIO character device, one line per channel).",
+            constraints: "sim|gpio",
+            read_only: Some(START_UP),
+            choices: Some(|s| match s {
+                "sim" | "gpio" => Ok(()),
+                _ => Err(UnknownName {
+                    value: ShortStr::new(s),
+                    accepted: "sim|gpio",
+                }),
+            }),
+            ..Decl::new("output", String, || V::String("sim".into()))
+        },
+        Decl {
+            description: "Trace file(s) of the sim output, comma-separated; .vcd and/or .csv. \
+                          Empty: no trace.",
+            constraints: "sim output only",
+            read_only: Some(START_UP),
+            ..Decl::new("trace", String, || V::String(std::string::String::new()))
+        },
+        Decl {
+            description: "Rate of the periodic ~/<ch>/status messages, Hz (they are also sent \
+                          on every change). 0: on change only.",
+            constraints: "0, or 0.01..1000",
+            range: Range::Double(0.0, MAX_STATUS_RATE_HZ),
+            checked: Checked::OffOr(MIN_STATUS_RATE_HZ),
+            note: " (0 = on change only)",
+            ..Decl::new("status_rate_hz", Double, || V::Double(10.0))
+        },
+        Decl {
+            description: "Console lines per second and channel showing edges (info level); \
+                          edges beyond are summarised once a second. 0: no edge lines.",
+            range: Range::Integer(0, 1000),
+            ..Decl::new("edge_log_rate", Integer, || V::Integer(10))
+        },
+        Decl {
+            description: "Split-range pairs (001), comma-separated NAME:HOT:COLD[:DEADBAND_PCT]: \
+                          ~/split/NAME/command (std_msgs/Float64, -100..100 %) drives HOT when \
+                          positive and COLD when negative; the two lines are never high \
+                          together. Empty: none.",
+            constraints: "each channel in one pair at most",
+            read_only: Some(START_UP),
+            ..Decl::new("split", String, || V::String(std::string::String::new()))
+        },
+        Decl {
+            description: "SCHED_FIFO priority of the output thread (with mlockall). 0: normal \
+                          scheduling.",
+            constraints: "needs CAP_SYS_NICE or an rtprio limit; refused cleanly otherwise",
+            read_only: Some(START_UP),
+            range: Range::Integer(0, 99),
+            ..Decl::new("rt_priority", Integer, || V::Integer(0))
+        },
+        Decl {
+            description: "Standard ROS parameter; always false here.",
+            constraints: "only false: pulses are timed on CLOCK_MONOTONIC",
+            ..Decl::new("use_sim_time", Bool, || V::Boolean(false))
+        },
+    ]
+}
+
+/// The parameters of each channel, `pwNN.<suffix>`.
+pub(super) fn channel_decls() -> Vec<Decl> {
+    use ParamType::*;
+    vec![
+        Decl {
+            description: "Period T, ms. 0: no pulses, output held off (000).",
+            constraints: "0, or >= 5 (transistor) / >= 100 (relay); takes effect at the next \
+                          period boundary",
+            range: Range::Integer(0, MAX_PERIOD_MS as i64),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.period_ms = ms(v);
+                Ok(())
+            }),
+            msg: Some(|m| V::Integer(m.period_ms)),
+            ..Decl::new("period_ms", Integer, || {
+                V::Integer(core_defaults().period_ms as i64)
+            })
+        },
+        Decl {
+            description: "Minimum on time, ms (ME / T_MINI / nMinSwiTi / P_B_TM). 0: the \
+                          hardware floor (0.1 ms transistor, 50 ms relay).",
+            constraints: "relay: 0 or >= 50; above period_ms acts as period_ms (every duty \
+                          but 0 and 100 % then gives 0 or 1 with E1)",
+            range: Range::Integer(0, MAX_PERIOD_MS as i64),
+            core: Some(|c, v| {
+                c.min_on_ms = ms(v);
+                Ok(())
+            }),
+            msg: Some(|m| V::Integer(m.min_on_ms)),
+            ..Decl::new("min_on_ms", Integer, || {
+                V::Integer(core_defaults().min_on_ms as i64)
+            })
+        },
+        Decl {
+            description: "Minimum off time, ms. -1: as the profile says (= min_on_ms, except \
+                          twincat_ba: the hardware floor).",
+            constraints: "relay: 0 or >= 50; above period_ms acts as period_ms",
+            range: Range::Integer(-1, MAX_PERIOD_MS as i64),
+            note: " (-1 = as the profile says)",
+            core: Some(|c, v| {
+                c.min_off_ms = u64::try_from(int(v)).ok();
+                Ok(())
+            }),
+            msg: Some(|m| V::Integer(m.min_off_ms)),
+            ..Decl::new("min_off_ms", Integer, || {
+                V::Integer(core_defaults().min_off_ms.map_or(-1, |v| v as i64))
+            })
+        },
+        Decl {
+            description: "Limits of 000's table: transistor (period >= 5 ms, floor 0.1 ms) or \
+                          relay (period >= 100 ms, min times >= 50 ms).",
+            constraints: "transistor|relay",
+            choices: Some(|s| spelled::<OutputKind>(s, false)),
+            core: Some(|c, v| {
+                c.output_kind = text(v).parse()?;
+                Ok(())
+            }),
+            msg: Some(|m| V::String(m.output_kind.clone())),
+            ..Decl::new("output_kind", String, || {
+                V::String(core_defaults().output_kind.as_str().into())
+            })
+        },
+        Decl {
+            description: "Policy set of a vendor block: pico_gfx (000), schneider_pwm (001), \
+                          twincat_ba (002), tcont_cp (003), frequency_output (004).",
+            constraints: "pico_gfx|twincat_ba|tcont_cp|schneider_pwm|frequency_output",
+            choices: Some(|s| spelled::<Profile>(s, false)),
+            core: Some(|c, v| {
+                c.profile = text(v).parse()?;
+                Ok(())
+            }),
+            msg: Some(|m| V::String(m.profile.clone())),
+            ..Decl::new("profile", String, || {
+                V::String(core_defaults().profile.as_str().into())
+            })
+        },
+        Decl {
+            description: "Pulses or breaks below their minimum: suppress, stretch or band. \
+                          Empty: as the profile says.",
+            constraints: "suppress|stretch|band or empty",
+            choices: Some(|s| spelled::<ShortPulse>(s, true)),
+            core: Some(|c, v| {
+                c.short_pulse = policy(v)?;
+                Ok(())
+            }),
+            msg: Some(|m| V::String(m.short_pulse.clone())),
+            ..Decl::new("short_pulse", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "Frequency_Output edge i_rEdge (004), fraction 0..1, used by \
+                          short_pulse band.",
+            range: Range::Double(0.0, 1.0),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.edge_band = match v {
+                    V::Double(x) => *x,
+                    _ => 0.0,
+                };
+                Ok(())
+            }),
+            msg: Some(|m| V::Double(m.edge_band)),
+            ..Decl::new("edge_band", Double, || V::Double(core_defaults().edge_band))
+        },
+        Decl {
+            description: "When a new duty takes effect: next_period, next_step or immediate. \
+                          Empty: as the profile says.",
+            constraints: "next_period|next_step|immediate or empty",
+            choices: Some(|s| spelled::<ApplyAt>(s, true)),
+            core: Some(|c, v| {
+                c.apply_at = policy(v)?;
+                Ok(())
+            }),
+            msg: Some(|m| V::String(m.apply_at.clone())),
+            ..Decl::new("apply_at", String, || V::String(std::string::String::new()))
+        },
+        Decl {
+            description: "Output on disable: off or hold. Empty: as the profile says.",
+            constraints: "off|hold or empty",
+            choices: Some(|s| spelled::<OnDisable>(s, true)),
+            core: Some(|c, v| {
+                c.on_disable = policy(v)?;
+                Ok(())
+            }),
+            msg: Some(|m| V::String(m.on_disable.clone())),
+            ..Decl::new("on_disable", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "Watchdog, ms: no duty command for this long forces the output off \
+                          until the next one. 0: off.",
+            range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.command_timeout_ms = ms(v);
+                Ok(())
+            }),
+            msg: Some(|m| V::Integer(m.command_timeout_ms)),
+            ..Decl::new("command_timeout_ms", Integer, || {
+                V::Integer(core_defaults().command_timeout_ms as i64)
+            })
+        },
+        Decl {
+            description: "Invert the electrical level of the output line.",
+            constraints: "start-up only",
+            read_only: Some(
+                "changing the polarity of a live line could glitch it; restart the node",
+            ),
+            core: Some(|c, v| {
+                c.active_low = matches!(v, V::Boolean(true));
+                Ok(())
+            }),
+            msg: Some(|m| V::Boolean(m.active_low)),
+            ..Decl::new("active_low", Bool, || {
+                V::Boolean(core_defaults().active_low)
+            })
+        },
+        Decl {
+            description: "Enable the channel at start-up. While running, use ~/<ch>/enable.",
+            constraints: "start-up only",
+            read_only: Some("it is the start-up value; while running, publish on ~/<ch>/enable"),
+            ..Decl::new("enable", Bool, || V::Boolean(false))
+        },
+        Decl {
+            description: "Duty at start-up, percent 0..100. While running, use ~/<ch>/duty or \
+                          ~/<ch>/sv.",
+            constraints: "start-up only",
+            read_only: Some("it is the start-up value; while running, publish on ~/<ch>/duty"),
+            range: Range::Double(0.0, 100.0),
+            ..Decl::new("duty", Double, || V::Double(0.0))
+        },
+        Decl {
+            description: "GPIO character device of the channel's line (output gpio).",
+            read_only: Some(START_UP),
+            ..Decl::new("gpio_chip", String, || V::String("/dev/gpiochip0".into()))
+        },
+        Decl {
+            description: "Line offset on gpio_chip (output gpio). -1: unset.",
+            constraints: "required with output gpio; no line may serve two channels",
+            read_only: Some(START_UP),
+            range: Range::Integer(-1, u32::MAX as i64),
+            note: " (-1 = unset)",
+            ..Decl::new("gpio_line", Integer, || V::Integer(-1))
+        },
+    ]
+}
+
+/// The fields of `pwm_actuator_msgs/ChannelParams` that map onto channel parameters, in table
+/// order, comma-separated.
+pub fn msg_fields() -> String {
+    channel_decls()
+        .iter()
+        .filter(|d| d.msg.is_some())
+        .map(|d| d.suffix)
+        .collect::<Vec<_>>()
+        .join(", ")
+}

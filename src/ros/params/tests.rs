@@ -1,0 +1,538 @@
+use super::*;
+use crate::core::{ChannelConfig, MinTime, OutputKind};
+use crate::ros::msg;
+use ParameterValue as V;
+
+fn sv(name: &str, value: V) -> StartValue {
+    StartValue {
+        name: name.into(),
+        value,
+        origin: "-p".into(),
+    }
+}
+
+fn item(name: &str, value: V) -> (String, V) {
+    (name.into(), value)
+}
+
+#[test]
+fn declares_node_and_channel_parameters_with_defaults() {
+    let s = ParamStore::new(2);
+    assert_eq!(s.int("channels"), Some(2));
+    assert_eq!(s.int("pw01.period_ms"), Some(1000));
+    assert_eq!(s.int("pw02.min_off_ms"), Some(-1));
+    assert_eq!(s.string("pw02.profile"), Some("pico_gfx"));
+    assert_eq!(s.get("pw03.period_ms"), None);
+    assert_eq!(s.channel_config(0).unwrap(), ChannelConfig::default());
+    let d = s.descriptor("pw01.period_ms").unwrap().to_raw();
+    assert_eq!(d.r#type, raw::ParameterType::INTEGER);
+    assert_eq!(d.integer_range[0].to_value, 3_600_000);
+    assert!(!d.description.is_empty() && !d.read_only);
+    assert!(s.descriptor("pw01.active_low").unwrap().read_only);
+    let d = s.descriptor("pw01.edge_band").unwrap().to_raw();
+    assert_eq!(d.floating_point_range[0].to_value, 1.0);
+}
+
+#[test]
+fn coercion_is_lossless_or_refused() {
+    let s = ParamStore::new(1);
+    let a = s
+        .check(&[item("pw01.period_ms", V::Double(500.0))], Phase::Live)
+        .unwrap();
+    assert_eq!(a.changes, vec![item("pw01.period_ms", V::Integer(500))]);
+    assert_eq!(
+        a.notes,
+        vec!["pw01.period_ms: double 500.0 taken as integer 500"]
+    );
+    let a = s
+        .check(&[item("pw01.edge_band", V::Integer(1))], Phase::Live)
+        .unwrap();
+    assert_eq!(a.changes, vec![item("pw01.edge_band", V::Double(1.0))]);
+    let e = s
+        .check(&[item("pw01.period_ms", V::Double(500.5))], Phase::Live)
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "parameter `pw01.period_ms` is an integer; 500.5 is not a whole number"
+    );
+    let e = s
+        .check(
+            &[item("pw01.period_ms", V::String("500".into()))],
+            Phase::Live,
+        )
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "parameter `pw01.period_ms` is an integer; got the string \"500\""
+    );
+    assert!(matches!(
+        s.check(&[item("pw01.period_ms", V::Double(f64::NAN))], Phase::Live),
+        Err(ParamError::WrongType { .. })
+    ));
+    assert!(matches!(
+        s.check(&[item("pw01.active_low", V::Integer(1))], Phase::StartUp),
+        Err(ParamError::WrongType { .. })
+    ));
+}
+
+#[test]
+fn the_core_judges_channel_settings_and_cross_rules() {
+    let s = ParamStore::new(2);
+    let e = s
+        .check(&[item("pw01.period_ms", V::Integer(4))], Phase::Live)
+        .unwrap_err();
+    assert_eq!(
+        e,
+        ParamError::Channel {
+            channel: "pw01".into(),
+            source: ConfigError::PeriodTooShort {
+                period_ms: 4,
+                min_ms: 5,
+                kind: OutputKind::Transistor
+            }
+        }
+    );
+    assert_eq!(
+        e.to_string(),
+        "pw01: period_ms 4 is below the transistor minimum of 5 ms (0 stops the pulses)"
+    );
+    // The relay minimum (000), whichever order the values come in.
+    let e = s
+        .check(
+            &[
+                item("pw02.min_on_ms", V::Integer(30)),
+                item("pw02.output_kind", V::String("relay".into())),
+            ],
+            Phase::Live,
+        )
+        .unwrap_err();
+    assert!(matches!(
+        e,
+        ParamError::Channel {
+            source: ConfigError::RelayMinTimeTooShort {
+                which: MinTime::On,
+                ..
+            },
+            ..
+        }
+    ));
+    let both = [
+        item("pw02.min_on_ms", V::Integer(2000)),
+        item("pw02.period_ms", V::Integer(5000)),
+    ];
+    let a = s.check(&both, Phase::Live).unwrap();
+    assert_eq!(a.configs.len(), 1);
+    assert_eq!(a.configs[0].0, 1);
+    assert_eq!(a.configs[0].1.period, 5000 * crate::core::NS_PER_MS);
+    // Negative times never reach the core.
+    let e = s
+        .check(&[item("pw01.period_ms", V::Integer(-5))], Phase::Live)
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "parameter `pw01.period_ms`: -5 is outside 0..3600000"
+    );
+    let e = s
+        .check(&[item("pw01.min_off_ms", V::Integer(-2))], Phase::Live)
+        .unwrap_err();
+    assert!(e.to_string().contains("(-1 = as the profile says)"), "{e}");
+    let e = s
+        .check(&[item("pw01.edge_band", V::Double(f64::NAN))], Phase::Live)
+        .unwrap_err();
+    assert!(
+        e.to_string()
+            .starts_with("pw01: edge_band NaN is outside 0..1"),
+        "{e}"
+    );
+}
+
+#[test]
+fn status_rate_is_off_or_a_rate_the_node_can_keep() {
+    let s = ParamStore::new(1);
+    for bad in [1e-20, 5e-324, 0.009, -0.5, 1000.5, f64::NAN, f64::INFINITY] {
+        let e = s
+            .check(&[item("status_rate_hz", V::Double(bad))], Phase::Live)
+            .unwrap_err();
+        assert!(
+            matches!(&e, ParamError::OutOfRange { name, .. } if name == "status_rate_hz"),
+            "{bad:?}: {e}"
+        );
+    }
+    let e = s
+        .check(&[item("status_rate_hz", V::Double(1e-20))], Phase::Live)
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "parameter `status_rate_hz`: 1e-20 is outside 0.01..1000.0 (0 = on change only)"
+    );
+    for ok in [0.0, 0.01, 2.5, 1000.0] {
+        assert!(
+            s.check(&[item("status_rate_hz", V::Double(ok))], Phase::Live)
+                .is_ok(),
+            "{ok}"
+        );
+    }
+    // The same at start-up (`--status-rate 5e-324`, `-p`, a parameter file): a bad
+    // configuration, exit 2.
+    assert!(matches!(
+        start_up(&[sv("status_rate_hz", V::Double(5e-324))]),
+        Err(ParamError::OutOfRange { .. })
+    ));
+    let d = s.descriptor("status_rate_hz").unwrap().to_raw();
+    assert_eq!(d.floating_point_range[0].to_value, 1000.0);
+    assert!(d.additional_constraints.contains("0.01"), "{d:?}");
+}
+
+#[test]
+fn choices_are_checked_with_the_accepted_spellings() {
+    let s = ParamStore::new(1);
+    let e = s
+        .check(
+            &[item("pw01.profile", V::String("pico".into()))],
+            Phase::Live,
+        )
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "parameter `pw01.profile`: `pico` is not one of: \
+         pico_gfx|twincat_ba|tcont_cp|schneider_pwm|frequency_output"
+    );
+    assert!(s
+        .check(
+            &[item("pw01.short_pulse", V::String(String::new()))],
+            Phase::Live
+        )
+        .is_ok());
+    assert!(s
+        .check(
+            &[item("pw01.short_pulse", V::String("band".into()))],
+            Phase::Live
+        )
+        .is_ok());
+    assert!(s
+        .check(&[item("output", V::String("spi".into()))], Phase::StartUp)
+        .is_err());
+}
+
+#[test]
+fn read_only_parameters_refuse_live_changes_but_accept_their_value() {
+    let s = ParamStore::new(1);
+    let e = s
+        .check(&[item("pw01.active_low", V::Boolean(true))], Phase::Live)
+        .unwrap_err();
+    assert!(matches!(e, ParamError::ReadOnly { .. }));
+    assert!(e.to_string().contains("glitch"), "{e}");
+    let a = s
+        .check(&[item("pw01.active_low", V::Boolean(false))], Phase::Live)
+        .unwrap();
+    assert!(a.changes.is_empty() && a.configs.is_empty());
+    assert!(s
+        .check(&[item("channels", V::Integer(3))], Phase::Live)
+        .is_err());
+    assert!(s
+        .check(&[item("pw01.active_low", V::Boolean(true))], Phase::StartUp)
+        .is_ok());
+    assert_eq!(
+        s.check(&[item("use_sim_time", V::Boolean(true))], Phase::Live),
+        Err(ParamError::SimTime)
+    );
+}
+
+#[test]
+fn a_refused_change_leaves_the_store_as_it_was() {
+    let mut s = ParamStore::new(1);
+    let a = s
+        .check(&[item("pw01.period_ms", V::Integer(500))], Phase::Live)
+        .unwrap();
+    let changed = s.commit(&a);
+    assert_eq!(changed.len(), 1);
+    assert_eq!(changed[0].name, "pw01.period_ms");
+    assert_eq!(changed[0].value.int_value, 500);
+    let bad = [
+        item("pw01.period_ms", V::Integer(200)),
+        item("pw01.min_on_ms", V::Integer(30)),
+        item("pw01.output_kind", V::String("relay".into())),
+    ];
+    assert!(s.check(&bad, Phase::Live).is_err());
+    assert_eq!(s.int("pw01.period_ms"), Some(500));
+    assert_eq!(s.int("pw01.min_on_ms"), Some(0));
+}
+
+#[test]
+fn undeclared_names_get_a_hint() {
+    let s = ParamStore::new(2);
+    let e = s
+        .check(&[item("pw03.period_ms", V::Integer(1))], Phase::Live)
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "parameter `pw03.period_ms` is not declared (this node has 2 channels: pw01..pw02)"
+    );
+    let e = s
+        .check(&[item("speed", V::Integer(1))], Phase::Live)
+        .unwrap_err();
+    assert_eq!(e.to_string(), "parameter `speed` is not declared");
+}
+
+#[test]
+fn refusals_echo_input_escaped_and_bounded() {
+    let s = ParamStore::new(1);
+    let forged = "x\n[ERROR] [0] [pwm_actuator]: forged\u{1b}[2J";
+    let long = "n".repeat(4 << 20);
+    let reasons = [
+        s.check(&[item(forged, V::Integer(1))], Phase::Live)
+            .unwrap_err()
+            .to_string(),
+        s.check(&[item(&long, V::Integer(1))], Phase::Live)
+            .unwrap_err()
+            .to_string(),
+        s.check(
+            &[item("pw01.period_ms", V::String(format!("{forged}{long}")))],
+            Phase::Live,
+        )
+        .unwrap_err()
+        .to_string(),
+        s.check(
+            &[item("pw01.profile", V::String(format!("{forged}{long}")))],
+            Phase::Live,
+        )
+        .unwrap_err()
+        .to_string(),
+        items_from_msg(
+            0,
+            &msg::ChannelParams {
+                set: vec![format!("{forged}{long}")],
+                ..Default::default()
+            },
+        )
+        .unwrap_err()
+        .to_string(),
+    ];
+    for r in &reasons {
+        assert!(
+            !r.chars().any(|c| c.is_control()),
+            "{}",
+            &r[..r.len().min(300)]
+        );
+        assert!(r.len() < 400, "{} bytes: {}", r.len(), &r[..300]);
+    }
+    assert_eq!(
+        reasons[0],
+        "parameter `x\\n[ERROR] [0] [pwm_actuator]: forged\\u{1b}[2J` is not declared"
+    );
+    assert!(
+        reasons[1].contains(&format!("`{}… (4194304 bytes)`", "n".repeat(64))),
+        "{}",
+        reasons[1]
+    );
+}
+
+#[test]
+fn unchanged_values_are_not_changes() {
+    let s = ParamStore::new(1);
+    let a = s
+        .check(&[item("pw01.period_ms", V::Integer(1000))], Phase::Live)
+        .unwrap();
+    assert_eq!(a, Accepted::default());
+    // The last of repeated values wins.
+    let a = s
+        .check(
+            &[
+                item("pw01.period_ms", V::Integer(10)),
+                item("pw01.period_ms", V::Integer(20)),
+            ],
+            Phase::Live,
+        )
+        .unwrap();
+    assert_eq!(a.changes, vec![item("pw01.period_ms", V::Integer(20))]);
+}
+
+#[test]
+fn list_follows_rclcpp() {
+    let s = ParamStore::new(1);
+    let (names, prefixes) = s.list(&[], 1);
+    assert!(names.contains(&"channels".to_string()));
+    assert!(!names.iter().any(|n| n.contains('.')));
+    assert!(prefixes.is_empty());
+    let (names, prefixes) = s.list(&["pw01".into()], 0);
+    assert!(names.iter().all(|n| n.starts_with("pw01.")));
+    assert!(names.contains(&"pw01.period_ms".to_string()));
+    assert_eq!(prefixes, vec!["pw01".to_string()]);
+}
+
+#[test]
+fn msg_items_use_only_the_fields_in_set() {
+    let m = msg::ChannelParams {
+        set: vec!["period_ms".into(), "profile".into()],
+        period_ms: 500,
+        profile: "tcont_cp".into(),
+        min_on_ms: 99_999,
+        ..Default::default()
+    };
+    assert_eq!(
+        items_from_msg(0, &m).unwrap(),
+        vec![
+            item("pw01.period_ms", V::Integer(500)),
+            item("pw01.profile", V::String("tcont_cp".into()))
+        ]
+    );
+    assert_eq!(
+        items_from_msg(1, &msg::ChannelParams::default()),
+        Err(ParamError::EmptySet {
+            channel: "pw02".into()
+        })
+    );
+    let bad = msg::ChannelParams {
+        set: vec!["period".into()],
+        ..Default::default()
+    };
+    assert!(matches!(
+        items_from_msg(0, &bad),
+        Err(ParamError::UnknownField { .. })
+    ));
+}
+
+#[test]
+fn start_up_reads_channels_first_and_ignores_unknown_names() {
+    let su = start_up(&[
+        sv("pw03.period_ms", V::Integer(300)),
+        sv("channels", V::Integer(3)),
+        sv("other_node_param", V::Integer(1)),
+        sv("pw01.duty", V::Integer(37)),
+        sv("pw01.enable", V::Boolean(true)),
+        sv("pw04.period_ms", V::Integer(1)),
+    ])
+    .unwrap();
+    assert_eq!(su.store.channels(), 3);
+    assert_eq!(su.store.int("pw03.period_ms"), Some(300));
+    assert_eq!(
+        su.ignored,
+        vec!["other_node_param (-p)", "pw04.period_ms (-p)"]
+    );
+    assert_eq!(su.notes, vec!["pw01.duty: integer 37 taken as double 37.0"]);
+    let cfg = StartupConfig::from_store(&su.store).unwrap();
+    assert_eq!(cfg.channels.len(), 3);
+    assert!(cfg.channels[0].enable);
+    assert_eq!(cfg.channels[0].duty_percent, 37.0);
+    assert_eq!(cfg.output, OutputChoice::Sim { trace: vec![] });
+    assert_eq!(cfg.rt_priority, None);
+    assert!(start_up(&[sv("channels", V::Integer(0))]).is_err());
+    assert!(start_up(&[sv("channels", V::Integer(100))]).is_err());
+    assert!(start_up(&[sv("pw01.duty", V::Double(150.0))]).is_err());
+    let su = start_up(&[sv("use_sim_time", V::Boolean(true))]).unwrap();
+    assert_eq!(su.store.bool("use_sim_time"), Some(false));
+    assert!(su.warnings[0].starts_with("use_sim_time true (-p) ignored: "));
+}
+
+#[test]
+fn gpio_needs_lines_and_no_trace() {
+    let su = start_up(&[
+        sv("channels", V::Integer(1)),
+        sv("output", V::String("gpio".into())),
+    ])
+    .unwrap();
+    assert_eq!(
+        StartupConfig::from_store(&su.store),
+        Err(ParamError::MissingLine {
+            channel: "pw01".into()
+        })
+    );
+    let su = start_up(&[
+        sv("channels", V::Integer(1)),
+        sv("output", V::String("gpio".into())),
+        sv("pw01.gpio_line", V::Integer(17)),
+        sv("pw01.active_low", V::Boolean(true)),
+    ])
+    .unwrap();
+    let cfg = StartupConfig::from_store(&su.store).unwrap();
+    assert_eq!(
+        cfg.output,
+        OutputChoice::Gpio {
+            lines: vec![LineSpec {
+                channel: "pw01".into(),
+                chip: "/dev/gpiochip0".into(),
+                offset: 17,
+                active_low: true
+            }]
+        }
+    );
+    let su = start_up(&[
+        sv("output", V::String("gpio".into())),
+        sv("trace", V::String("a.vcd".into())),
+    ])
+    .unwrap();
+    assert_eq!(
+        StartupConfig::from_store(&su.store),
+        Err(ParamError::TraceNeedsSim)
+    );
+    let su = start_up(&[sv("trace", V::String("a.vcd, b.csv".into()))]).unwrap();
+    assert_eq!(
+        StartupConfig::from_store(&su.store).unwrap().output,
+        OutputChoice::Sim {
+            trace: vec!["a.vcd".into(), "b.csv".into()]
+        }
+    );
+}
+
+#[test]
+fn channel_names() {
+    assert_eq!(channel_name(0), "pw01");
+    assert_eq!(channel_name(98), "pw99");
+    assert_eq!(channel_of("pw01.period_ms"), Some((0, "period_ms")));
+    assert_eq!(channel_of("pw12.duty"), Some((11, "duty")));
+    assert_eq!(channel_of("pw1.duty"), None);
+    assert_eq!(channel_of("pw00.duty"), None);
+    assert_eq!(channel_of("channels"), None);
+}
+
+/// The README's parameter tables list exactly the declared parameters, each with its type,
+/// its default and whether it is read-only (`RO`), as the table in `table.rs` says.
+#[test]
+fn the_readme_tables_match_the_parameter_table() {
+    let readme = include_str!("../../../README.md");
+    let section = readme
+        .split("### Parameters")
+        .nth(1)
+        .and_then(|s| s.split("### Command line").next())
+        .expect("a Parameters section before Command line");
+    let mut rows = std::collections::BTreeMap::new();
+    for line in section.lines().filter(|l| l.starts_with("| `")) {
+        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+        let name = cells[1].trim_matches('`').to_string();
+        assert!(
+            rows.insert(name.clone(), (cells[2], cells[3], line.contains("(RO")))
+                .is_none(),
+            "{name} listed twice"
+        );
+    }
+    let declared: Vec<table::Decl> = table::node_decls()
+        .into_iter()
+        .chain(table::channel_decls())
+        .collect();
+    for d in &declared {
+        let Some((ty, default, ro)) = rows.remove(d.suffix) else {
+            panic!("{} is declared but not in the README", d.suffix);
+        };
+        let want_ty = match d.ptype {
+            ParamType::Bool => "bool",
+            ParamType::Integer => "int",
+            ParamType::Double => "double",
+            ParamType::String => "string",
+        };
+        assert_eq!(ty, want_ty, "{}: type", d.suffix);
+        let shown_default = default.trim_matches('`');
+        let same = match (d.default)() {
+            V::Boolean(b) => shown_default == b.to_string(),
+            V::Integer(i) => shown_default.parse::<i64>() == Ok(i),
+            V::Double(x) => shown_default.parse::<f64>() == Ok(x),
+            V::String(s) if s.is_empty() => shown_default == "\"\"",
+            V::String(s) => shown_default == s,
+            other => panic!("{}: default {other:?}", d.suffix),
+        };
+        assert!(same, "{}: README default {default}", d.suffix);
+        let read_only = d.read_only.is_some();
+        // Node parameters say (RO) themselves; a channel parameter's row says it when it is.
+        assert_eq!(ro, read_only, "{}: read-only in the README", d.suffix);
+    }
+    assert!(rows.is_empty(), "in the README but not declared: {rows:?}");
+}
