@@ -9,10 +9,12 @@ mod ros_harness;
 use pwm_actuator::core::Command;
 use pwm_actuator::engine::{self, EngineError, EngineOptions};
 use pwm_actuator::output::{EmergencyOff, LineChange, Output};
-use pwm_actuator::ros::bridge::{Bridge, ChangeError, ChannelPubs};
+use pwm_actuator::ros::diagnostics::ChannelHealth;
+use pwm_actuator::ros::inputs::{ChangeError, Inputs, NOTE_QUEUE};
 use pwm_actuator::ros::msg::{DiagnosticArray, DiagnosticStatus, RosMessage};
 use pwm_actuator::ros::names::to_ros_name;
 use pwm_actuator::ros::params::{ParamStore, Phase};
+use pwm_actuator::ros::reporter::{ChannelPubs, Reporter, StopSignal};
 use ros2_client::{Context, ContextOptions, Node, NodeName, NodeOptions, ParameterValue};
 use ros_harness::*;
 use std::sync::atomic::Ordering;
@@ -105,15 +107,24 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     let events = node
         .create_publisher(&ctx.get_parameter_events_topic(), None)
         .unwrap();
-    let bridge = Arc::new(Bridge::new(
+    let (notes_tx, notes_rx) = std::sync::mpsc::sync_channel(NOTE_QUEUE);
+    let signal = Arc::new(StopSignal::default());
+    let reporter = Reporter::new(
         "bridge_test".into(),
+        vec![ChannelHealth::new("pw01", "test:0")],
+        pubs,
+        diagnostics,
+        notes_rx,
+        10.0,
+        10,
+        Arc::clone(&signal),
+    );
+    let bridge = Arc::new(Inputs::new(
         "/bridge_test".into(),
         store,
         engine.requests,
         events,
-        pubs,
-        diagnostics,
-        vec!["test:0".into()],
+        notes_tx,
     ));
 
     let mut ros = Ros::new(dom.id);
@@ -124,42 +135,31 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         default_qos(),
     );
 
-    // The report pump, as the node runs it.
+    // The report thread, as the node runs it: it owns the reporter.
     let mut reports = engine.reports;
-    let b = Arc::clone(&bridge);
     let pump = std::thread::spawn(move || {
-        while !reports.is_abandoned() {
-            reports.wait(Duration::from_millis(50));
-            reports.clear_wake();
-            while let Some(r) = reports.try_recv() {
-                b.handle(r);
-            }
-            b.after_batch(reports.dropped());
-        }
-        while let Some(r) = reports.try_recv() {
-            b.handle(r);
-        }
+        let reporter = std::cell::RefCell::new(reporter);
+        reports.serve(
+            || false,
+            |r| reporter.borrow_mut().handle(r),
+            |r| reporter.borrow_mut().after_batch(r.dropped()),
+        )
     });
 
-    // Make sure the observer hears /diagnostics before the fault: the node publishes the ERROR
-    // once, at the fault, and then stops.
-    let mut heard = false;
-    for _ in 0..50 {
-        bridge.publish_diagnostics();
-        if next(&diag, Duration::from_millis(300)).await.is_some() {
-            heard = true;
-            break;
-        }
-    }
-    assert!(heard, "the observer receives /diagnostics");
+    // Make sure the observer hears /diagnostics (1 Hz) before the fault: the node publishes
+    // the ERROR once, at the fault, and then stops.
+    assert!(
+        next(&diag, Duration::from_secs(15)).await.is_some(),
+        "the observer receives /diagnostics"
+    );
 
     bridge.command(0, Command::Percent(50.0));
     bridge.enable(0, true);
     // Two edges are written, the third write fails.
-    tokio::time::timeout(LONG, bridge.stop.notified())
+    tokio::time::timeout(LONG, signal.stop.notified())
         .await
-        .expect("the bridge asks the node to stop");
-    assert!(bridge.fault.load(Ordering::SeqCst));
+        .expect("the reporter asks the node to stop");
+    assert!(signal.fault.load(Ordering::SeqCst));
     let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
         a.status
             .iter()
@@ -189,5 +189,8 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         matches!(result, Err(EngineError::OutputFault { channel: 0, .. })),
         "{result:?}"
     );
-    pump.join().unwrap();
+    assert!(
+        pump.join().unwrap(),
+        "the report thread saw the output thread end"
+    );
 }

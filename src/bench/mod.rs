@@ -353,7 +353,7 @@ fn run_side(
                     edges.push((e.lateness_ns(), e.scheduled_ns));
                 }
             },
-            |_| {},
+            |_| Duration::from_millis(100),
         );
         let wall = clock::monotonic_ns() - wall0;
         let cpu_pct = 100.0 * thread_cpu_ns().saturating_sub(cpu0) as f64 / wall.max(1) as f64;

@@ -167,21 +167,23 @@ impl Reports {
     /// Hands every report to `on_report`, batch by batch, calling `after_batch` after each
     /// batch, until `stop()` is true or the output thread has ended. Returns true in the latter
     /// case, after handing over the thread's last reports. Sleeps on the wake-up eventfd
-    /// between batches and looks at `stop` at least every 100 ms.
+    /// between batches, at most as long as the last `after_batch` said (a reader with clocks of
+    /// its own) and never more than 100 ms, so it looks at `stop` at least that often.
     pub fn serve(
         &mut self,
         stop: impl Fn() -> bool,
         mut on_report: impl FnMut(Report),
-        mut after_batch: impl FnMut(&Reports),
+        mut after_batch: impl FnMut(&Reports) -> Duration,
     ) -> bool {
+        let mut wait = Duration::from_millis(100);
         while !stop() {
-            self.wait(Duration::from_millis(100));
+            self.wait(wait.min(Duration::from_millis(100)));
             // Cleared before draining, so a report queued meanwhile wakes the next wait at once.
             self.clear_wake();
             while let Some(r) = self.try_recv() {
                 on_report(r);
             }
-            after_batch(self);
+            wait = after_batch(self);
             if self.is_abandoned() {
                 while let Some(r) = self.try_recv() {
                     on_report(r);

@@ -130,8 +130,6 @@ pub struct ChannelHealth {
     pub rejected: u64,
     /// Commands clamped.
     pub clamped: u64,
-    /// The last EN received on `~/<ch>/enable` (or set at start-up).
-    pub last_enable: Option<bool>,
     /// Messages that could not be published (a subscriber not keeping up).
     pub publish_failures: u64,
 }

@@ -9,22 +9,26 @@
 //! - [`names`]: node identity, `~` expansion and remapping.
 //! - [`params`]: parameter declarations and the one store both parameter doors write through.
 //! - [`msg`]: the messages; [`qos`]: their QoS.
-//! - [`bridge`]: ROS <-> output thread; [`services`]: the parameter services.
+//! - [`inputs`]: ROS callbacks -> output thread (commands, enables, parameter changes);
+//!   [`services`]: the parameter services.
+//! - [`reporter`]: output thread -> ROS (edges, E1, status, `/diagnostics`), owned by the report
+//!   thread.
 //! - [`split`]: split-range pairs (one signed command for a hot and a cold channel).
 //! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself.
 //! - [`node`]: start-up, wiring, shutdown ([`run`]).
 
 pub mod args;
-pub mod bridge;
 pub mod cli;
 pub mod console;
 pub mod diagnostics;
+pub mod inputs;
 pub mod logging;
 pub mod msg;
 pub mod names;
 pub mod node;
 pub mod params;
 pub mod qos;
+pub mod reporter;
 pub mod services;
 pub mod split;
 

@@ -8,8 +8,9 @@
 //! before the process exits.
 
 use super::args::{self, ArgsError, Remap, RosArgs};
-use super::bridge::{Bridge, ChannelPubs};
 use super::cli::{self, CliError, Flags, DEMO_ORIGIN};
+use super::diagnostics::ChannelHealth;
+use super::inputs::{Inputs, NOTE_QUEUE};
 use super::logging::{self, LogConfig};
 use super::msg::{self, RosMessage};
 use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
@@ -17,8 +18,10 @@ use super::params::{
     self, show_value, OutputChoice, ParamError, ParamStore, StartValue, StartupConfig,
 };
 use super::qos;
+use super::reporter::{ChannelPubs, Reporter, StopSignal};
 use super::services::{self, ServiceError};
 use super::split::{self, SplitError};
+use crate::clock;
 use crate::core::{split_command, ChannelConfig, Command};
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::output::fault::{FailingOutput, Fault, FAULT_ENV};
@@ -425,74 +428,20 @@ where
 }
 
 /// Moves reports from the output thread to ROS until `quit` is set or the output thread ends.
-/// A plain thread: it sleeps on the engine's eventfd ([`Reports::wait`]) and publishes, which
-/// never waits for a subscriber.
-fn pump(bridge: Arc<Bridge>, mut reports: Reports, quit: Arc<AtomicBool>) {
+/// A plain thread that owns the reporter: it sleeps on the engine's eventfd ([`Reports::wait`])
+/// or until the reporter's next periodic message, and publishes, which never waits for a
+/// subscriber.
+fn pump(reporter: Reporter, mut reports: Reports, quit: Arc<AtomicBool>, sig: Arc<StopSignal>) {
+    // Both callbacks act on the reporter, one after the other on this thread.
+    let reporter = std::cell::RefCell::new(reporter);
     let ended = reports.serve(
         || quit.load(Ordering::SeqCst),
-        |r| bridge.handle(r),
-        |r| bridge.after_batch(r.dropped()),
+        |r| reporter.borrow_mut().handle(r),
+        |r| reporter.borrow_mut().after_batch(r.dropped()),
     );
     if ended {
-        bridge.stop.notify_one();
+        sig.stop.notify_one();
     }
-}
-
-async fn diagnostics_loop(bridge: Arc<Bridge>) {
-    let mut tick = tokio::time::interval(Duration::from_secs(1));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = tick.tick() => logging::flush_suppressed(),
-            _ = bridge.diag_now.notified() => {}
-        }
-        bridge.publish_diagnostics();
-        // Coalesce bursts of level changes into at most 20 messages per second.
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-}
-
-async fn status_loop(bridge: Arc<Bridge>) {
-    periodic_status(
-        || bridge.status_rate_hz(),
-        &bridge.status_rate_changed,
-        || bridge.publish_all_status(),
-    )
-    .await
-}
-
-/// Calls `publish` at `rate()` Hz, forever; a rate of 0 (on change only) publishes nothing.
-/// `changed` is notified when the rate changes, so a new rate never waits for the end of a
-/// sleep that an old, slow rate started.
-async fn periodic_status(
-    rate: impl Fn() -> f64,
-    changed: &tokio::sync::Notify,
-    mut publish: impl FnMut(),
-) {
-    loop {
-        match status_period(rate()) {
-            Some(period) => {
-                tokio::select! {
-                    _ = tokio::time::sleep(period) => publish(),
-                    _ = changed.notified() => {}
-                }
-            }
-            None => changed.notified().await,
-        }
-    }
-}
-
-/// The period of the periodic status at `rate_hz`, or `None` for no periodic status (0, and
-/// anything that is not a positive finite rate). Never panics: the parameter checks keep the
-/// rate in 0.01..1000 Hz, and whatever reaches here is clamped to that.
-fn status_period(rate_hz: f64) -> Option<Duration> {
-    if !(rate_hz > 0.0 && rate_hz.is_finite()) {
-        return None;
-    }
-    let rate = rate_hz.clamp(params::MIN_STATUS_RATE_HZ, params::MAX_STATUS_RATE_HZ);
-    // 1/rate is within 1 ms..100 s here, so the conversion cannot fail; the fallback is the
-    // slowest period all the same.
-    Some(Duration::try_from_secs_f64(1.0 / rate).unwrap_or(Duration::from_secs(100)))
 }
 
 async fn serve(
@@ -582,18 +531,45 @@ async fn serve(
         reports,
         handle,
     } = engine;
-    let bridge = Arc::new(Bridge::new(
+    let (notes_tx, notes_rx) = std::sync::mpsc::sync_channel(NOTE_QUEUE);
+    let health: Vec<ChannelHealth> = cfg
+        .channels
+        .iter()
+        .zip(
+            hardware_ids
+                .iter()
+                .map(String::as_str)
+                .chain(std::iter::repeat("sim")),
+        )
+        .map(|(c, hw)| {
+            let mut h = ChannelHealth::new(&c.name, hw);
+            // Until the output thread reports, the channel is as the core creates it:
+            // disabled, output off, duty 0.
+            let now = clock::monotonic_ns();
+            h.status = Some(crate::core::Channel::new(c.config, now).status(now));
+            h
+        })
+        .collect();
+    let stop_signal = Arc::new(StopSignal::default());
+    let reporter = Reporter::new(
         id.name.clone(),
+        health,
+        pubs,
+        diagnostics,
+        notes_rx,
+        cfg.status_rate_hz,
+        cfg.edge_log_rate,
+        Arc::clone(&stop_signal),
+    );
+    let inputs = Arc::new(Inputs::new(
         fqn.clone(),
         store,
         requests,
         param_events,
-        pubs,
-        diagnostics,
-        hardware_ids,
+        notes_tx,
     ));
     // rclcpp announces declared parameters as new on /parameter_events; so does this node.
-    let declared = bridge.with_params(|s| {
+    let declared = inputs.with_params(|s| {
         s.all()
             .into_iter()
             .map(|(name, value)| ros2_client::parameters::raw::Parameter {
@@ -602,27 +578,24 @@ async fn serve(
             })
             .collect()
     });
-    bridge.publish_param_event(declared, Vec::new());
-    for ch in 0..n {
-        bridge.publish_e1(ch, false);
-    }
+    inputs.publish_param_event(declared, Vec::new());
 
     for (ch, c) in cfg.channels.iter().enumerate() {
-        let b = Arc::clone(&bridge);
+        let b = Arc::clone(&inputs);
         let (full, s) =
             subscription::<msg::Float64>(&mut node, &id, remaps, &format!("~/{}/duty", c.name))?;
         tasks.push(listen(full, s, move |m| {
             b.command(ch, Command::Percent(m.data))
         }));
-        let b = Arc::clone(&bridge);
+        let b = Arc::clone(&inputs);
         let (full, s) =
             subscription::<msg::UInt16>(&mut node, &id, remaps, &format!("~/{}/sv", c.name))?;
         tasks.push(listen(full, s, move |m| b.command(ch, Command::Sv(m.data))));
-        let b = Arc::clone(&bridge);
+        let b = Arc::clone(&inputs);
         let (full, s) =
             subscription::<msg::Bool>(&mut node, &id, remaps, &format!("~/{}/enable", c.name))?;
         tasks.push(listen(full, s, move |m| b.enable(ch, m.data)));
-        let b = Arc::clone(&bridge);
+        let b = Arc::clone(&inputs);
         let door = format!("~/{}/params", c.name);
         let (full, s) = subscription::<msg::ChannelParams>(&mut node, &id, remaps, &door)?;
         tasks.push(listen(full, s, move |m| {
@@ -642,9 +615,9 @@ async fn serve(
             "split {}: {hot} hot, {cold} cold, dead band {} %",
             pair.name, pair.deadband_pct
         );
-        let _ = bridge.send(pair.hot, Input::Pair(pair.cold));
-        let _ = bridge.send(pair.cold, Input::Pair(pair.hot));
-        let b = Arc::clone(&bridge);
+        let _ = inputs.send(pair.hot, Input::Pair(pair.cold));
+        let _ = inputs.send(pair.cold, Input::Pair(pair.hot));
+        let b = Arc::clone(&inputs);
         let (hot, cold, band) = (pair.hot, pair.cold, pair.deadband_pct);
         let (full, s) = subscription::<msg::Float64>(
             &mut node,
@@ -658,22 +631,20 @@ async fn serve(
             b.command(cold, c);
         }));
     }
-    tasks.extend(services::spawn(&mut node, &id, remaps, &bridge)?);
+    tasks.extend(services::spawn(&mut node, &id, remaps, &inputs)?);
     let quit = Arc::new(AtomicBool::new(false));
     let pump_thread = {
-        let (b, q) = (Arc::clone(&bridge), Arc::clone(&quit));
+        let (q, sig) = (Arc::clone(&quit), Arc::clone(&stop_signal));
         std::thread::Builder::new()
             .name("pwm-reports".into())
-            .spawn(move || pump(b, reports, q))
+            .spawn(move || pump(reporter, reports, q, sig))
             .map_err(NodeError::Runtime)?
     };
-    tasks.push(tokio::spawn(diagnostics_loop(Arc::clone(&bridge))));
-    tasks.push(tokio::spawn(status_loop(Arc::clone(&bridge))));
 
     // Start-up duty and enable: the duty first, so the first period already uses it.
     for (ch, c) in cfg.channels.iter().enumerate() {
         if c.duty_percent != 0.0 {
-            let _ = bridge.send(ch, Input::Command(Command::Percent(c.duty_percent)));
+            let _ = inputs.send(ch, Input::Command(Command::Percent(c.duty_percent)));
         }
         if c.enable {
             info!(
@@ -681,7 +652,7 @@ async fn serve(
                 c.name,
                 c.duty_percent + 0.0
             );
-            let _ = bridge.send(ch, Input::Enable(true));
+            let _ = inputs.send(ch, Input::Enable(true));
         }
     }
     info!(
@@ -694,7 +665,7 @@ async fn serve(
         }
     );
 
-    let reason = signals.wait(&bridge).await;
+    let reason = signals.wait(&stop_signal).await;
     info!("{reason}: stopping");
     logging::shutting_down();
     for t in &tasks {
@@ -710,12 +681,12 @@ async fn serve(
     for t in tasks {
         let _ = t.await;
     }
-    drop(bridge);
+    drop(inputs);
     // Dropping the node tells its spinner to stop.
     drop(node);
     let _ = tokio::time::timeout(Duration::from_secs(1), spin_task).await;
     drop(context);
-    let faulted = bridge_fault(fault_text.as_deref(), &result);
+    let faulted = output_fault(fault_text.as_deref(), &result);
     match result {
         Ok(()) if !faulted => {
             info!("all outputs off; bye");
@@ -729,7 +700,7 @@ async fn serve(
     }
 }
 
-fn bridge_fault(fault: Option<&str>, result: &Result<(), EngineError>) -> bool {
+fn output_fault(fault: Option<&str>, result: &Result<(), EngineError>) -> bool {
     if let Some(f) = fault {
         error!("output fault: {f}");
     }
@@ -764,13 +735,13 @@ impl StopSignals {
         )
     }
 
-    /// Waits for a stop signal or the bridge asking to stop; says which.
-    async fn wait(&mut self, bridge: &Bridge) -> String {
+    /// Waits for a stop signal or the reporter asking to stop; says which.
+    async fn wait(&mut self, stop: &StopSignal) -> String {
         let signals = &mut self.0;
         let any_signal = async move {
             if signals.is_empty() {
-                // select_all needs at least one future; with no signal caught, only the bridge
-                // can stop the node.
+                // select_all needs at least one future; with no signal caught, only the
+                // reporter can stop the node.
                 return std::future::pending().await;
             }
             let recv = signals
@@ -780,8 +751,8 @@ impl StopSignals {
         };
         tokio::select! {
             got = any_signal => got.unwrap_or("signal stream closed").to_string(),
-            _ = bridge.stop.notified() => {
-                if bridge.fault.load(Ordering::SeqCst) {
+            _ = stop.stop.notified() => {
+                if stop.fault.load(Ordering::SeqCst) {
                     "output fault".to_string()
                 } else {
                     "the output thread ended".to_string()
@@ -805,93 +776,6 @@ mod tests {
             let e = domain_id_from(Some(bad)).unwrap_err();
             assert_eq!(e.exit_code(), EXIT_USAGE);
             assert!(e.to_string().contains(bad), "{e}");
-        }
-    }
-
-    /// Runs `periodic_status` at `first` Hz, switches to `second` Hz after `switch_ms` and
-    /// returns the times (ms after the switch) of the publishes within `window_ms` of it.
-    fn publishes_after_a_rate_change(
-        first: f64,
-        second: f64,
-        switch_ms: u64,
-        window_ms: u64,
-    ) -> Vec<u128> {
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_time()
-            .build()
-            .unwrap();
-        let bits = Arc::new(std::sync::atomic::AtomicU64::new(first.to_bits()));
-        let changed = Arc::new(tokio::sync::Notify::new());
-        let times = Arc::new(std::sync::Mutex::new(Vec::new()));
-        rt.block_on(async {
-            let (b, c, t) = (Arc::clone(&bits), Arc::clone(&changed), Arc::clone(&times));
-            let start = std::time::Instant::now();
-            let switch = start + Duration::from_millis(switch_ms);
-            let task = tokio::spawn(async move {
-                periodic_status(
-                    || f64::from_bits(b.load(Ordering::Relaxed)),
-                    &c,
-                    || t.lock().unwrap().push(std::time::Instant::now()),
-                )
-                .await
-            });
-            tokio::time::sleep_until(switch.into()).await;
-            bits.store(second.to_bits(), Ordering::Relaxed);
-            changed.notify_one();
-            tokio::time::sleep(Duration::from_millis(window_ms)).await;
-            task.abort();
-            let times = times.lock().unwrap();
-            times
-                .iter()
-                .filter(|t| **t >= switch)
-                .map(|t| (*t - switch).as_millis())
-                .collect()
-        })
-    }
-
-    #[test]
-    fn a_new_status_rate_does_not_wait_for_the_old_sleep() {
-        // 0.01 Hz sleeps 100 s; after the change to 10 Hz the first status is due in 0.1 s.
-        let after = publishes_after_a_rate_change(0.01, 10.0, 50, 1000);
-        assert!(
-            after.first().is_some_and(|ms| *ms <= 300),
-            "publishes after the change (ms): {after:?}"
-        );
-        assert!(
-            after.len() >= 5,
-            "publishes after the change (ms): {after:?}"
-        );
-    }
-
-    #[test]
-    fn any_status_rate_gives_a_usable_period_or_none() {
-        for rate in [
-            1e-20,
-            5e-324,
-            f64::MIN_POSITIVE,
-            -0.0,
-            0.0,
-            -1.0,
-            f64::NAN,
-            f64::INFINITY,
-            f64::NEG_INFINITY,
-            f64::MAX,
-        ] {
-            // A rate the parameter checks refuse never reaches the loop; if one did, it must
-            // not panic (run on this thread, so a panic fails the test).
-            let rt = tokio::runtime::Builder::new_current_thread()
-                .enable_time()
-                .build()
-                .unwrap();
-            let changed = tokio::sync::Notify::new();
-            let ended = rt.block_on(async {
-                tokio::time::timeout(
-                    Duration::from_millis(30),
-                    periodic_status(|| rate, &changed, || {}),
-                )
-                .await
-            });
-            assert!(ended.is_err(), "the loop ended at {rate:?}");
         }
     }
 

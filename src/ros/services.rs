@@ -8,10 +8,10 @@
 //! across the values), and it refuses any type change. So the node turns those services off
 //! (`NodeOptions::start_parameter_services(false)`) and offers the same six services, with the
 //! same names, types and QoS, here. Handlers only read the store or call
-//! [`Bridge::set_params`]; they never block.
+//! [`Inputs::set_params`]; they never block.
 
 use super::args::Remap;
-use super::bridge::Bridge;
+use super::inputs::Inputs;
 use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
 use futures::StreamExt;
 use log::{debug, warn};
@@ -43,7 +43,7 @@ pub enum ServiceError {
     },
 }
 
-fn get(b: &Bridge, req: GetParametersRequest) -> GetParametersResponse {
+fn get(b: &Inputs, req: GetParametersRequest) -> GetParametersResponse {
     b.with_params(|s| GetParametersResponse {
         values: req
             .names
@@ -53,7 +53,7 @@ fn get(b: &Bridge, req: GetParametersRequest) -> GetParametersResponse {
     })
 }
 
-fn get_types(b: &Bridge, req: GetParameterTypesRequest) -> GetParameterTypesResponse {
+fn get_types(b: &Inputs, req: GetParameterTypesRequest) -> GetParameterTypesResponse {
     b.with_params(|s| GetParameterTypesResponse {
         values: req
             .names
@@ -66,14 +66,14 @@ fn get_types(b: &Bridge, req: GetParameterTypesRequest) -> GetParameterTypesResp
     })
 }
 
-fn list(b: &Bridge, req: ListParametersRequest) -> ListParametersResponse {
+fn list(b: &Inputs, req: ListParametersRequest) -> ListParametersResponse {
     let (names, prefixes) = b.with_params(|s| s.list(&req.prefixes, req.depth));
     ListParametersResponse {
         result: ListParametersResult { names, prefixes },
     }
 }
 
-fn describe(b: &Bridge, req: DescribeParametersRequest) -> DescribeParametersResponse {
+fn describe(b: &Inputs, req: DescribeParametersRequest) -> DescribeParametersResponse {
     b.with_params(|s| DescribeParametersResponse {
         values: req
             .names
@@ -116,7 +116,7 @@ fn items(req: SetParametersRequest) -> Vec<(String, ParameterValue)> {
 }
 
 /// `set_parameters`: each parameter on its own, in order, as rclcpp does.
-fn set(b: &Bridge, req: SetParametersRequest) -> SetParametersResponse {
+fn set(b: &Inputs, req: SetParametersRequest) -> SetParametersResponse {
     SetParametersResponse {
         results: items(req)
             .into_iter()
@@ -131,7 +131,7 @@ fn set(b: &Bridge, req: SetParametersRequest) -> SetParametersResponse {
 }
 
 /// `set_parameters_atomically`: all or nothing.
-fn set_atomically(b: &Bridge, req: SetParametersRequest) -> SetParametersAtomicallyResponse {
+fn set_atomically(b: &Inputs, req: SetParametersRequest) -> SetParametersAtomicallyResponse {
     SetParametersAtomicallyResponse {
         result: result(
             b.set_params(items(req), "set_parameters_atomically")
@@ -144,10 +144,10 @@ fn spawn_server<Req, Resp>(
     node: &mut Node,
     id: &NodeIdentity,
     remaps: &[Remap],
-    bridge: &Arc<Bridge>,
+    inputs: &Arc<Inputs>,
     base: &'static str,
     type_name: &'static str,
-    handler: fn(&Bridge, Req) -> Resp,
+    handler: fn(&Inputs, Req) -> Resp,
 ) -> Result<JoinHandle<()>, ServiceError>
 where
     Req: Message + Clone + Send + Sync + 'static,
@@ -167,7 +167,7 @@ where
             name: full.clone(),
             source,
         })?;
-    let bridge = Arc::clone(bridge);
+    let inputs = Arc::clone(inputs);
     Ok(tokio::spawn(async move {
         let stream = server.receive_request_stream();
         futures::pin_mut!(stream);
@@ -175,7 +175,7 @@ where
             match r {
                 Ok((id, req)) => {
                     debug!("{full}: request");
-                    let resp = handler(&bridge, req);
+                    let resp = handler(&inputs, req);
                     if let Err(e) = server.async_send_response(id, resp).await {
                         warn!("{full}: cannot send the response: {e}");
                     }
@@ -191,14 +191,14 @@ pub fn spawn(
     node: &mut Node,
     id: &NodeIdentity,
     remaps: &[Remap],
-    bridge: &Arc<Bridge>,
+    inputs: &Arc<Inputs>,
 ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
     Ok(vec![
         spawn_server(
             node,
             id,
             remaps,
-            bridge,
+            inputs,
             "get_parameters",
             "GetParameters",
             get,
@@ -207,7 +207,7 @@ pub fn spawn(
             node,
             id,
             remaps,
-            bridge,
+            inputs,
             "get_parameter_types",
             "GetParameterTypes",
             get_types,
@@ -216,7 +216,7 @@ pub fn spawn(
             node,
             id,
             remaps,
-            bridge,
+            inputs,
             "set_parameters",
             "SetParameters",
             set,
@@ -225,7 +225,7 @@ pub fn spawn(
             node,
             id,
             remaps,
-            bridge,
+            inputs,
             "set_parameters_atomically",
             "SetParametersAtomically",
             set_atomically,
@@ -234,7 +234,7 @@ pub fn spawn(
             node,
             id,
             remaps,
-            bridge,
+            inputs,
             "list_parameters",
             "ListParameters",
             list,
@@ -243,7 +243,7 @@ pub fn spawn(
             node,
             id,
             remaps,
-            bridge,
+            inputs,
             "describe_parameters",
             "DescribeParameters",
             describe,

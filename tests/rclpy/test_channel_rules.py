@@ -802,10 +802,12 @@ def test_watchdog_switches_off_at_the_deadline_and_recovers(node_process, ros):
     t_quiet = mono_ns()
     observe_until(ch, t_quiet + 3 * period * MS)
 
+    # The OK may be published with the status that shows the output on again: look from the
+    # command on.
+    diag_from = len(ch.diagnostics.messages)
     second = ch.duty(100.0, confirm=lambda s: s.duty_commanded == 100.0 and not s.watchdog_tripped)
     ch.wait_status(lambda s: s.output, "output on again", start=second.index)
-    d = ch.wait_diag(lambda d: diag_level(d) == OK, "OK after recovery",
-                     start=len(ch.diagnostics.messages))
+    d = ch.wait_diag(lambda d: diag_level(d) == OK, "OK after recovery", start=diag_from)
     assert diag_values(d)["watchdog_tripped"] == "false", d
     ch.wait_status(lambda s: s.watchdog_tripped, "watchdog tripped again",
                    start=len(ch.status.messages))

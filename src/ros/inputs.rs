@@ -1,0 +1,245 @@
+//! The input side of the ROS shell: what the ROS callbacks (topics and parameter services)
+//! share. Commands and enables become requests to the output thread; parameter changes through
+//! either door go through [`Inputs::set_params`].
+//!
+//! "One state, two doors": the parameter services and the `~/<ch>/params` topic both go through
+//! [`Inputs::set_params`], which checks a change whole, hands the new channel configurations to
+//! the output thread, and only then commits the values and announces them on
+//! `/parameter_events`. A refused change leaves everything as it was and is told to the
+//! reporter (for `/diagnostics`) through its small queue, as are the rates it keeps.
+//!
+//! The locks here (the parameter store, the request queue's producer, the last enables) are
+//! shared by the callbacks only, never with the report thread, and are held for bounded work.
+
+use super::params::{self, show_value, ParamError, ParamStore, Phase};
+use super::reporter::Note;
+use crate::clock;
+use crate::core::Command;
+use crate::engine::{EngineError, Input, Request, Requests};
+use crate::output::safety::lock_ignore_poison as lock;
+use log::{debug, info, warn};
+use ros2_client::builtin_interfaces::Time;
+use ros2_client::parameters::raw;
+use ros2_client::{ParameterValue, Publisher};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::SyncSender;
+use std::sync::Mutex;
+
+/// Notes that may wait for the reporter at once; more are dropped and counted.
+pub const NOTE_QUEUE: usize = 64;
+
+/// Why a parameter change was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ChangeError {
+    /// The values were refused.
+    #[error(transparent)]
+    Param(#[from] ParamError),
+    /// The output thread did not take the new configuration; nothing changed.
+    #[error("the output thread did not take the new settings ({source}); nothing changed")]
+    Engine {
+        /// The engine's error.
+        #[source]
+        source: EngineError,
+    },
+}
+
+/// The state the ROS callbacks share (see the module documentation).
+pub struct Inputs {
+    /// Fully qualified node name, for `/parameter_events`.
+    pub fqn: String,
+    /// Channel names, index = channel.
+    pub names: Vec<String>,
+    params: Mutex<ParamStore>,
+    requests: Mutex<Requests>,
+    enables: Mutex<Vec<Option<bool>>>,
+    param_events: Publisher<raw::ParameterEvent>,
+    notes: SyncSender<Note>,
+    notes_lost: AtomicU64,
+}
+
+impl Inputs {
+    /// The input side over `store` and the output thread's `requests`; `notes` goes to the
+    /// reporter (a bounded queue, see [`NOTE_QUEUE`]).
+    pub fn new(
+        fqn: String,
+        store: ParamStore,
+        requests: Requests,
+        param_events: Publisher<raw::ParameterEvent>,
+        notes: SyncSender<Note>,
+    ) -> Inputs {
+        let names: Vec<String> = (0..store.channels()).map(params::channel_name).collect();
+        Inputs {
+            fqn,
+            enables: Mutex::new(vec![None; names.len()]),
+            names,
+            params: Mutex::new(store),
+            requests: Mutex::new(requests),
+            param_events,
+            notes,
+            notes_lost: AtomicU64::new(0),
+        }
+    }
+
+    /// Number of channels.
+    pub fn channels(&self) -> usize {
+        self.names.len()
+    }
+
+    fn name(&self, channel: usize) -> &str {
+        self.names.get(channel).map_or("?", String::as_str)
+    }
+
+    /// Runs `f` on the parameter store (read access for the services).
+    pub fn with_params<R>(&self, f: impl FnOnce(&ParamStore) -> R) -> R {
+        f(&lock(&self.params))
+    }
+
+    /// Notes that could not be queued for the reporter (it did not keep up).
+    pub fn notes_lost(&self) -> u64 {
+        self.notes_lost.load(Ordering::Relaxed)
+    }
+
+    fn note(&self, note: Note) {
+        if self.notes.try_send(note).is_err() {
+            self.notes_lost.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Queues a request for the output thread; a full or closed queue is logged.
+    pub fn send(&self, channel: usize, input: Input) -> Result<(), EngineError> {
+        let r = lock(&self.requests).send(Request { channel, input });
+        if let Err(e) = &r {
+            warn!(
+                "{}: request not delivered to the output thread: {e}",
+                self.name(channel)
+            );
+        }
+        r
+    }
+
+    /// A duty command from `~/<ch>/duty`, `~/<ch>/sv` or a split-range pair. The core refuses
+    /// NaN and infinities and clamps out-of-range values; its verdict, with the command and its
+    /// unit, comes back as a report.
+    pub fn command(&self, channel: usize, command: Command) {
+        debug!("{}: command {command:?}", self.name(channel));
+        let _ = self.send(channel, Input::Command(command));
+    }
+
+    /// EN from `~/<ch>/enable` (or from the start-up value). Logged when it changes.
+    pub fn enable(&self, channel: usize, on: bool) {
+        let was = lock(&self.enables)
+            .get_mut(channel)
+            .and_then(|e| e.replace(on));
+        let name = self.name(channel);
+        if was != Some(on) {
+            info!("{name}: {}", if on { "enabled" } else { "disabled" });
+        } else {
+            debug!("{name}: enable {on} (unchanged)");
+        }
+        let _ = self.send(channel, Input::Enable(on));
+    }
+
+    /// Applies a parameter change through either door (`door` names it in the log), checked
+    /// whole; see the module documentation.
+    pub fn set_params(
+        &self,
+        items: Vec<(String, ParameterValue)>,
+        door: &str,
+    ) -> Result<(), ChangeError> {
+        let mut store = lock(&self.params);
+        let accepted = match store.check(&items, Phase::Live) {
+            Ok(a) => a,
+            Err(e) => {
+                drop(store);
+                self.refused(&items, door, &e.to_string());
+                return Err(e.into());
+            }
+        };
+        // The output thread first: if it cannot take the new configurations, nothing changes.
+        let mut sent = Vec::new();
+        for (ch, cfg) in &accepted.configs {
+            if let Err(source) = lock(&self.requests).send(Request {
+                channel: *ch,
+                input: Input::Config(*cfg),
+            }) {
+                for done in sent {
+                    if let Ok(old) = store.channel_config(done) {
+                        let _ = lock(&self.requests).send(Request {
+                            channel: done,
+                            input: Input::Config(old),
+                        });
+                    }
+                }
+                drop(store);
+                let e = ChangeError::Engine { source };
+                self.refused(&items, door, &e.to_string());
+                return Err(e);
+            }
+            sent.push(*ch);
+        }
+        let changed = store.commit(&accepted);
+        drop(store);
+        for note in &accepted.notes {
+            info!("{note}");
+        }
+        for (name, value) in &accepted.changes {
+            info!("parameter {name} = {} (via {door})", show_value(value));
+            match (name.as_str(), value) {
+                ("status_rate_hz", ParameterValue::Double(r)) => self.note(Note::StatusRate(*r)),
+                ("edge_log_rate", ParameterValue::Integer(r)) => {
+                    self.note(Note::EdgeLogRate((*r).clamp(0, 1000) as u32))
+                }
+                _ => {}
+            }
+        }
+        if accepted.changes.is_empty() {
+            debug!("parameters unchanged (via {door})");
+        }
+        self.publish_param_event(Vec::new(), changed);
+        Ok(())
+    }
+
+    /// Logs a refusal and tells the reporter, for the diagnostics of the channels it names.
+    fn refused(&self, items: &[(String, ParameterValue)], door: &str, reason: &str) {
+        warn!("parameter change refused (via {door}): {reason}");
+        let mut channels: Vec<usize> = items
+            .iter()
+            .filter_map(|(n, _)| params::channel_of(n).map(|(c, _)| c))
+            .filter(|c| *c < self.channels())
+            .collect();
+        channels.sort_unstable();
+        channels.dedup();
+        self.note(Note::Refused {
+            channels,
+            reason: reason.to_string(),
+            at: clock::monotonic_ns(),
+        });
+    }
+
+    /// Records a refusal that names no parameter (e.g. an empty `set`) for `channel`.
+    pub fn refused_message(&self, channel: usize, door: &str, reason: &str) {
+        warn!("parameter change refused (via {door}): {reason}");
+        self.note(Note::Refused {
+            channels: vec![channel],
+            reason: reason.to_string(),
+            at: clock::monotonic_ns(),
+        });
+    }
+
+    /// Publishes a `/parameter_events` message (nothing when both lists are empty).
+    pub fn publish_param_event(&self, new: Vec<raw::Parameter>, changed: Vec<raw::Parameter>) {
+        if new.is_empty() && changed.is_empty() {
+            return;
+        }
+        let ev = raw::ParameterEvent {
+            stamp: Time::from_nanos(clock::wall_ns()),
+            node: self.fqn.clone(),
+            new_parameters: new,
+            changed_parameters: changed,
+            deleted_parameters: Vec::new(),
+        };
+        if let Err(e) = self.param_events.publish(ev) {
+            warn!("cannot publish /parameter_events: {e}");
+        }
+    }
+}

@@ -1,0 +1,451 @@
+//! The reporter: everything the node says about what it did, owned by the report thread.
+//!
+//! Reports from the output thread (edges, flags, status snapshots, faults) become ROS messages
+//! (`~/<ch>/edges`, `~/<ch>/e1`, `~/<ch>/status`), `/diagnostics` and console lines. The
+//! reporter also keeps the clocks of what is published periodically: the status messages at
+//! `status_rate_hz` and `/diagnostics` once a second and at once when a level changes. It is
+//! owned by one thread and works through `&mut self`: no lock is shared with the ROS callbacks,
+//! which reach it only through a small queue of [`Note`]s (parameter refusals and the changes
+//! of the rates it keeps).
+//!
+//! Publishing never waits for a slow subscriber (see [`super::qos`]); what cannot be published
+//! is counted.
+
+use super::console::EdgeLines;
+use super::diagnostics::{clamp_text, status_changed, status_msg, ChannelHealth};
+use super::logging;
+use super::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
+use super::params::{MAX_STATUS_RATE_HZ, MIN_STATUS_RATE_HZ};
+use crate::clock;
+use crate::core::{Event, Nanos, Status};
+use crate::engine::{EdgeReport, Report};
+use log::{debug, error, info, warn};
+use ros2_client::builtin_interfaces::Time;
+use ros2_client::Publisher;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{Receiver, TryRecvError};
+use std::sync::Arc;
+use std::time::Duration;
+
+/// `/diagnostics` is published at least this often, ns (the diagnostic_updater's 1 Hz).
+const DIAGNOSTICS_PERIOD_NS: Nanos = 1_000_000_000;
+
+/// At most one extra `/diagnostics` message per this interval when levels change, ns.
+const DIAGNOSTICS_COALESCE_NS: Nanos = 50_000_000;
+
+/// The longest the report thread sleeps between looks at its clocks and notes.
+pub const MAX_WAIT: Duration = Duration::from_millis(100);
+
+/// What the ROS callbacks tell the reporter.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Note {
+    /// A parameter change was refused: the reason, shown as WARN on the channels it names.
+    Refused {
+        /// Channels the refused change named.
+        channels: Vec<usize>,
+        /// Why, as given to the client.
+        reason: String,
+        /// When, monotonic ns.
+        at: Nanos,
+    },
+    /// `status_rate_hz` changed, Hz (0 = on change only).
+    StatusRate(f64),
+    /// `edge_log_rate` changed, lines per second and channel.
+    EdgeLogRate(u32),
+}
+
+/// The per-channel publishers.
+pub struct ChannelPubs {
+    /// `~/<ch>/edges`.
+    pub edges: Publisher<msg::OutputEdge>,
+    /// `~/<ch>/e1`.
+    pub e1: Publisher<msg::Bool>,
+    /// `~/<ch>/status`.
+    pub status: Publisher<msg::ChannelStatus>,
+}
+
+/// What the reporter shares with the node's main task: the request to stop, and whether an
+/// output fault caused it.
+#[derive(Debug, Default)]
+pub struct StopSignal {
+    /// Woken when the node must stop (output fault, output thread gone).
+    pub stop: tokio::sync::Notify,
+    /// Set when an output fault stopped the output thread.
+    pub fault: AtomicBool,
+}
+
+/// The period of the periodic status at `rate_hz`, or `None` for no periodic status (0, and
+/// anything that is not a positive finite rate). Never panics: the parameter checks keep the
+/// rate in 0.01..1000 Hz, and whatever reaches here is clamped to that.
+pub fn status_period(rate_hz: f64) -> Option<Duration> {
+    if !(rate_hz > 0.0 && rate_hz.is_finite()) {
+        return None;
+    }
+    let rate = rate_hz.clamp(MIN_STATUS_RATE_HZ, MAX_STATUS_RATE_HZ);
+    // 1/rate is within 1 ms..100 s here, so the conversion cannot fail; the fallback is the
+    // slowest period all the same.
+    Some(Duration::try_from_secs_f64(1.0 / rate).unwrap_or(Duration::from_secs(100)))
+}
+
+/// When the periodic status messages are due.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StatusClock {
+    period: Option<Nanos>,
+    next: Nanos,
+}
+
+impl StatusClock {
+    /// A clock at `rate_hz` (0: no periodic status) from `now` (monotonic ns).
+    pub fn new(rate_hz: f64, now: Nanos) -> StatusClock {
+        let mut c = StatusClock {
+            period: None,
+            next: now,
+        };
+        c.set_rate(rate_hz, now);
+        c
+    }
+
+    /// A new rate applies at once: the next status is one new period from `now`, never at the
+    /// end of a period an old, slow rate started.
+    pub fn set_rate(&mut self, rate_hz: f64, now: Nanos) {
+        self.period = status_period(rate_hz).map(|d| d.as_nanos() as Nanos);
+        self.next = now.saturating_add(self.period.unwrap_or(0));
+    }
+
+    /// Whether a status is due at `now`; if so, the next one is scheduled a period later (from
+    /// `now` after a stall, rather than in a burst).
+    pub fn take_due(&mut self, now: Nanos) -> bool {
+        match self.period {
+            Some(period) if now >= self.next => {
+                self.next = self.next.saturating_add(period).max(now);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// When the next status is due, if any.
+    pub fn next(&self) -> Option<Nanos> {
+        self.period.map(|_| self.next)
+    }
+}
+
+/// The report thread's state (see the module documentation).
+pub struct Reporter {
+    node_name: String,
+    names: Vec<String>,
+    start_ns: Nanos,
+    pubs: Vec<ChannelPubs>,
+    diagnostics: Publisher<DiagnosticArray>,
+    health: Vec<ChannelHealth>,
+    lines: EdgeLines,
+    e1_published: Vec<Option<bool>>,
+    levels_published: Vec<u8>,
+    dropped: u64,
+    dropped_seen: u64,
+    notes: Receiver<Note>,
+    status: StatusClock,
+    last_diagnostics: Nanos,
+    signal: Arc<StopSignal>,
+}
+
+impl Reporter {
+    /// A reporter for the channels of `health` (in order), publishing on `pubs` and
+    /// `diagnostics`, reading `notes`, at `status_rate_hz` and `edge_log_rate` to begin with.
+    /// Publishes E1 = false for every channel (latched), so a late subscriber gets a state.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        node_name: String,
+        health: Vec<ChannelHealth>,
+        pubs: Vec<ChannelPubs>,
+        diagnostics: Publisher<DiagnosticArray>,
+        notes: Receiver<Note>,
+        status_rate_hz: f64,
+        edge_log_rate: u32,
+        signal: Arc<StopSignal>,
+    ) -> Reporter {
+        let n = health.len();
+        let now = clock::monotonic_ns();
+        let mut r = Reporter {
+            node_name,
+            names: health.iter().map(|h| h.name.clone()).collect(),
+            start_ns: now,
+            pubs,
+            diagnostics,
+            health,
+            lines: EdgeLines::new(n, edge_log_rate),
+            e1_published: vec![None; n],
+            levels_published: vec![u8::MAX; n],
+            dropped: 0,
+            dropped_seen: 0,
+            notes,
+            status: StatusClock::new(status_rate_hz, now),
+            last_diagnostics: 0,
+            signal,
+        };
+        for ch in 0..n {
+            r.publish_e1(ch, false);
+        }
+        r
+    }
+
+    /// Publishes E1 = `e1` for `channel` (latched).
+    fn publish_e1(&mut self, channel: usize, e1: bool) {
+        if let Some(p) = self.pubs.get(channel) {
+            if let Err(e) = p.e1.publish(msg::Bool { data: e1 }) {
+                warn!("{}: cannot publish e1: {e}", self.names[channel]);
+            }
+        }
+        self.e1_published[channel] = Some(e1);
+    }
+
+    /// Handles one report from the output thread.
+    pub fn handle(&mut self, report: Report) {
+        match report {
+            Report::Edge(e) => self.on_edge(&e),
+            Report::Core { channel, event } => self.on_event(channel, event),
+            Report::Status {
+                channel, status, ..
+            } => {
+                let Some(h) = self.health.get_mut(channel) else {
+                    return;
+                };
+                let changed = h.status.is_none_or(|old| status_changed(&old, &status));
+                h.status = Some(status);
+                if changed {
+                    self.publish_status(channel, &status);
+                }
+            }
+            Report::OutputFault { channel } => {
+                if let Some(h) = self.health.get_mut(channel) {
+                    h.output_fault = true;
+                }
+                error!(
+                    "{}: writing the output failed; every output was driven off and the output \
+                     thread stopped",
+                    self.names.get(channel).map_or("?", String::as_str)
+                );
+                self.signal.fault.store(true, Ordering::SeqCst);
+                self.publish_diagnostics(clock::monotonic_ns());
+                self.signal.stop.notify_one();
+            }
+        }
+    }
+
+    fn on_edge(&mut self, e: &EdgeReport) {
+        let ch = e.channel;
+        if ch >= self.names.len() {
+            return;
+        }
+        let h = &mut self.health[ch];
+        h.edges += 1;
+        h.max_late_ns = h.max_late_ns.max(e.lateness_ns());
+        let m = msg::OutputEdge {
+            stamp: Time::from_nanos(e.wall_ns),
+            channel: (ch + 1).min(u8::MAX as usize) as u8,
+            level: e.level.is_high(),
+            seq: e.seq,
+            lateness_ns: e.lateness_ns(),
+        };
+        if self.pubs[ch].edges.publish(m).is_err() {
+            self.health[ch].publish_failures += 1;
+        }
+        // The output thread sends the status snapshot an edge belongs to ahead of the edge.
+        let (duty, e1) = self.health[ch].status.map_or((0.0, false), |s| {
+            (super::diagnostics::percent(s.duty_commanded), s.e1)
+        });
+        for line in self
+            .lines
+            .edge(ch, &self.names[ch], e, self.start_ns, duty, e1)
+        {
+            info!("{line}");
+        }
+    }
+
+    fn on_event(&mut self, ch: usize, event: Event) {
+        let Some(name) = self.names.get(ch).cloned() else {
+            return;
+        };
+        let now = clock::monotonic_ns();
+        match event {
+            Event::Flags { e1, limited } => {
+                if self.e1_published[ch] != Some(e1) {
+                    self.publish_e1(ch, e1);
+                    if e1 {
+                        info!("{name}: E1 set: the duty cannot be reproduced because of a minimum time");
+                    } else {
+                        info!("{name}: E1 cleared");
+                    }
+                }
+                debug!("{name}: flags e1={e1} limited={limited}");
+            }
+            Event::Watchdog { tripped } => {
+                self.health[ch].watchdog = tripped;
+                if tripped {
+                    warn!(
+                        "{name}: watchdog tripped: no duty command within command_timeout_ms; \
+                         output forced off"
+                    );
+                } else {
+                    info!("{name}: watchdog cleared: a command arrived");
+                }
+            }
+            Event::Rejected(err) => {
+                let h = &mut self.health[ch];
+                h.rejected += 1;
+                h.last_rejection = Some((err.to_string(), now));
+                warn!("{name}: duty command refused: {err}");
+            }
+            Event::Clamped { requested, applied } => {
+                let text = clamp_text(requested, applied);
+                let h = &mut self.health[ch];
+                h.clamped += 1;
+                h.last_clamp = Some((text.clone(), now));
+                warn!("{name}: duty command out of range: {text}");
+            }
+            Event::Missed { edges } => {
+                self.health[ch].missed += u64::from(edges);
+                warn!("{name}: the output thread woke late; {edges} scheduled edges were merged");
+            }
+            Event::Plan(_) | Event::Edge { .. } => {}
+        }
+    }
+
+    fn publish_status(&mut self, ch: usize, s: &Status) {
+        let m = status_msg(ch, s, clock::monotonic_ns(), clock::wall_ns());
+        if self.pubs[ch].status.publish(m).is_err() {
+            self.health[ch].publish_failures += 1;
+        }
+    }
+
+    /// Takes the notes the ROS callbacks queued.
+    fn take_notes(&mut self, now: Nanos) {
+        loop {
+            match self.notes.try_recv() {
+                Ok(Note::Refused {
+                    channels,
+                    reason,
+                    at,
+                }) => {
+                    for c in channels {
+                        if let Some(h) = self.health.get_mut(c) {
+                            h.last_refusal = Some((reason.clone(), at));
+                        }
+                    }
+                }
+                Ok(Note::StatusRate(r)) => self.status.set_rate(r, now),
+                Ok(Note::EdgeLogRate(r)) => self.lines.set_rate(r),
+                Err(TryRecvError::Empty | TryRecvError::Disconnected) => break,
+            }
+        }
+    }
+
+    /// After a batch of reports (and at least every [`MAX_WAIT`]): notes, summaries of
+    /// held-back edge lines, lost reports, the periodic status, and `/diagnostics` when due or
+    /// when a level changed. Returns how long the thread may sleep before the next call.
+    pub fn after_batch(&mut self, dropped_total: u64) -> Duration {
+        let now = clock::monotonic_ns();
+        self.take_notes(now);
+        self.dropped = dropped_total;
+        for s in self.lines.flush(&self.names, now) {
+            info!("{s}");
+        }
+        if dropped_total > self.dropped_seen {
+            warn!(
+                "{} reports from the output thread were lost (the ROS side did not keep up)",
+                dropped_total - self.dropped_seen
+            );
+            self.dropped_seen = dropped_total;
+        }
+        if self.status.take_due(now) {
+            for ch in 0..self.health.len() {
+                if let Some(s) = self.health[ch].status {
+                    self.publish_status(ch, &s);
+                }
+            }
+        }
+        let since = now.saturating_sub(self.last_diagnostics);
+        let levels_changed = || {
+            let levels: Vec<u8> = self.health.iter().map(|h| h.level(now)).collect();
+            levels != self.levels_published
+        };
+        if since >= DIAGNOSTICS_PERIOD_NS || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed())
+        {
+            if since >= DIAGNOSTICS_PERIOD_NS {
+                logging::flush_suppressed();
+            }
+            self.publish_diagnostics(now);
+        }
+        let mut next = self.last_diagnostics + DIAGNOSTICS_PERIOD_NS;
+        if let Some(t) = self.status.next() {
+            next = next.min(t);
+        }
+        Duration::from_nanos(next.saturating_sub(now)).min(MAX_WAIT)
+    }
+
+    /// Publishes `/diagnostics` now.
+    pub fn publish_diagnostics(&mut self, now: Nanos) {
+        let (status, levels): (Vec<DiagnosticStatus>, Vec<u8>) = self
+            .health
+            .iter()
+            .map(|h| {
+                let d = h.to_status(&self.node_name, now, self.dropped);
+                let l = d.level;
+                (d, l)
+            })
+            .unzip();
+        let arr = DiagnosticArray {
+            header: Header {
+                stamp: Time::from_nanos(clock::wall_ns()),
+                frame_id: String::new(),
+            },
+            status,
+        };
+        if let Err(e) = self.diagnostics.publish(arr) {
+            debug!("cannot publish /diagnostics: {e}");
+        }
+        self.levels_published = levels;
+        self.last_diagnostics = now;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MS: Nanos = 1_000_000;
+
+    #[test]
+    fn a_new_status_rate_does_not_wait_for_the_old_period() {
+        // 0.01 Hz is due every 100 s; after the change to 10 Hz at 50 ms the first status is
+        // due 100 ms later, then every 100 ms.
+        let mut c = StatusClock::new(0.01, 0);
+        assert!(!c.take_due(50 * MS));
+        c.set_rate(10.0, 50 * MS);
+        assert_eq!(c.next(), Some(150 * MS));
+        let due: Vec<Nanos> = (50..=1050)
+            .map(|ms| ms * MS)
+            .filter(|t| c.take_due(*t))
+            .map(|t| t / MS)
+            .collect();
+        assert_eq!(due, (1..=10).map(|k| 50 + 100 * k).collect::<Vec<_>>());
+        c.set_rate(0.0, 2000 * MS);
+        assert_eq!(c.next(), None);
+        assert!(!c.take_due(u64::MAX));
+    }
+
+    #[test]
+    fn any_status_rate_gives_a_usable_period_or_none() {
+        for r in [1e-20, 5e-324, f64::MIN_POSITIVE, -0.0, f64::MAX] {
+            let mut c = StatusClock::new(r, u64::MAX - 1);
+            let _ = c.take_due(u64::MAX);
+        }
+        for r in [0.0, -1.0, f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            assert_eq!(status_period(r), None, "{r}");
+        }
+        assert_eq!(status_period(10.0), Some(Duration::from_millis(100)));
+        assert_eq!(status_period(1e-20), Some(Duration::from_secs(100)));
+        assert_eq!(status_period(5e-324), Some(Duration::from_secs(100)));
+        assert_eq!(status_period(1e300), Some(Duration::from_millis(1)));
+    }
+}
