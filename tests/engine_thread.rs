@@ -22,17 +22,15 @@ fn names(n: usize) -> Vec<String> {
 /// Rows of a CSV trace: (t_ns, channel, level, scheduled_ns).
 fn read_csv(path: &std::path::Path) -> Vec<(Nanos, String, u8, Nanos)> {
     let text = std::fs::read_to_string(path).expect("trace written");
-    let mut lines = text.lines();
-    assert_eq!(lines.next(), Some("t_ns,channel,level,scheduled_ns"));
-    lines
-        .map(|l| {
-            let f: Vec<&str> = l.split(',').collect();
-            assert_eq!(f.len(), 4, "row `{l}`");
+    pwm_actuator::output::read_csv(&text)
+        .expect("a CSV trace")
+        .into_iter()
+        .map(|r| {
             (
-                f[0].parse().unwrap(),
-                f[1].to_string(),
-                f[2].parse().unwrap(),
-                f[3].parse().unwrap(),
+                r.t_ns,
+                r.channel,
+                u8::from(r.level.is_high()),
+                r.scheduled_ns,
             )
         })
         .collect()
@@ -48,7 +46,7 @@ fn send(requests: &mut engine::Requests, channel: usize, input: Input) {
 #[test]
 fn the_trace_matches_the_core_schedule_edge_for_edge() {
     let dir = tempdir();
-    let csv = dir.join("run.csv");
+    let csv = dir.path().join("run.csv");
     let output = SimOutput::new(
         names(2),
         Some(TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap()),
@@ -218,7 +216,7 @@ fn a_split_range_pair_is_never_high_together_on_the_line() {
     // 001's split range: hot and cold change sign every 35 ms while both pulse at 10 ms
     // periods with different phases; on the trace (written times) the two lines never overlap.
     let dir = tempdir();
-    let csv = dir.join("pair.csv");
+    let csv = dir.path().join("pair.csv");
     let output = SimOutput::new(
         names(2),
         Some(TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap()),
@@ -362,17 +360,8 @@ fn shutdown_leaves_every_output_inactive() {
     assert_eq!(last, vec![Level::Low; 2], "the shutdown edges are recorded");
 }
 
-fn tempdir() -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!(
-        "pwm_actuator_engine_{}_{}",
-        std::process::id(),
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_nanos())
-            .unwrap_or(0)
-    ));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+fn tempdir() -> tempfile::TempDir {
+    tempfile::tempdir().unwrap()
 }
 
 #[test]

@@ -13,6 +13,12 @@ use std::time::Duration;
 #[derive(Serialize)]
 struct Truncated(u8);
 
+/// Published as the topic's own type, so it matches the node's subscription.
+impl TopicType for Truncated {
+    const PKG: &'static str = "std_msgs";
+    const NAME: &'static str = "Float64";
+}
+
 const UNREADABLE: &str = "unreadable message";
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -21,7 +27,7 @@ async fn malformed_samples_give_a_few_lines_and_a_count() {
     let mut node = NodeProc::start(dom.id, &[]);
     node.wait_running();
     let mut ros = Ros::new(dom.id);
-    let bad = ros.publisher::<Truncated>("/pwm_actuator/pw01/duty", "std_msgs", "Float64");
+    let bad = ros.publisher::<Truncated>("/pwm_actuator/pw01/duty");
     ros.matched(&bad).await;
     let sent = 300;
     for i in 0..sent {

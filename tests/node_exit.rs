@@ -6,14 +6,15 @@
 mod ros_harness;
 
 use nix::sys::signal::Signal;
+use pwm_actuator::core::Level;
 use ros_harness::*;
 use std::path::{Path, PathBuf};
 
-/// A trace path in a fresh directory for this test.
-fn trace(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("pwm_actuator_exit_{}_{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(format!("{name}.csv"))
+/// A trace path in a fresh directory for this test (removed when the guard is dropped).
+fn trace(name: &str) -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(format!("{name}.csv"));
+    (dir, path)
 }
 
 /// pw01 constantly on (100 %), pw02 pulsing, sim output traced to `csv`.
@@ -39,27 +40,24 @@ fn args(csv: &Path) -> Vec<String> {
 }
 
 /// The last level written to each channel, from the CSV trace.
-fn last_levels(csv: &Path) -> Vec<(String, String)> {
+fn last_levels(csv: &Path) -> Vec<(String, Level)> {
     let text = std::fs::read_to_string(csv).expect("trace written");
+    let rows = pwm_actuator::output::read_csv(&text).expect("a CSV trace");
     ["pw01", "pw02"]
         .iter()
         .map(|ch| {
-            let last = text
-                .lines()
-                .skip(1)
-                .filter(|r| r.split(',').nth(1) == Some(*ch))
-                .last()
+            let last = rows
+                .iter()
+                .rev()
+                .find(|r| r.channel == *ch)
                 .unwrap_or_else(|| panic!("no rows for {ch}:\n{text}"));
-            (
-                ch.to_string(),
-                last.split(',').nth(2).unwrap_or("").to_string(),
-            )
+            (ch.to_string(), last.level)
         })
         .collect()
 }
 
-fn all_off() -> Vec<(String, String)> {
-    vec![("pw01".into(), "0".into()), ("pw02".into(), "0".into())]
+fn all_off() -> Vec<(String, Level)> {
+    vec![("pw01".into(), Level::Low), ("pw02".into(), Level::Low)]
 }
 
 fn start(csv: &Path, env: &[(&str, &str)]) -> (NodeProc, Domain) {
@@ -78,7 +76,7 @@ fn stop_signals_with_an_output_on_exit_0_with_every_output_off() {
         Signal::SIGHUP,
         Signal::SIGQUIT,
     ] {
-        let csv = trace(&format!("{sig:?}"));
+        let (_dir, csv) = trace(&format!("{sig:?}"));
         let (node, _dom) = start(&csv, &[]);
         node.wait_running();
         assert!(
@@ -95,7 +93,7 @@ fn stop_signals_with_an_output_on_exit_0_with_every_output_off() {
 
 #[test]
 fn a_panic_drives_every_output_off_and_exits_101() {
-    let csv = trace("panic");
+    let (_dir, csv) = trace("panic");
     let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "panic-after-ms=1500")]);
     node.wait_running();
     assert!(node.wait_log("pw01 ↑", LONG), "{}", node.log());
@@ -108,7 +106,7 @@ fn a_panic_drives_every_output_off_and_exits_101() {
 
 #[test]
 fn a_failing_output_write_drives_the_others_off_and_exits_nonzero() {
-    let csv = trace("write");
+    let (_dir, csv) = trace("write");
     let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "fail-write-after=40")]);
     node.wait_running();
     let status = node.wait_exit(LONG);
@@ -123,7 +121,7 @@ fn a_failing_output_write_drives_the_others_off_and_exits_nonzero() {
 
 #[test]
 fn a_malformed_fault_variable_is_refused() {
-    let csv = trace("malformed");
+    let (_dir, csv) = trace("malformed");
     let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "explode=1")]);
     let status = node.wait_exit(LONG);
     assert_eq!(status.code(), Some(2), "{}", node.log());

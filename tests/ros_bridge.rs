@@ -128,12 +128,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     ));
 
     let mut ros = Ros::new(dom.id);
-    let diag = ros.sub::<DiagnosticArray>(
-        "/diagnostics",
-        "diagnostic_msgs",
-        "DiagnosticArray",
-        default_qos(),
-    );
+    let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
 
     // The report thread, as the node runs it: it owns the reporter.
     let mut reports = engine.reports;

@@ -5,6 +5,7 @@
 mod ros_harness;
 
 use nix::sys::signal::Signal;
+use pwm_actuator::core::Level;
 use ros_harness::*;
 use std::process::Command;
 
@@ -202,8 +203,8 @@ fn a_missing_gpio_chip_is_a_runtime_error_that_names_it() {
 
 #[test]
 fn sigterm_and_sigint_stop_cleanly_and_flush_the_trace() {
-    let dir = std::env::temp_dir().join(format!("pwm_actuator_ros_cli_{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
     for (i, sig) in [Signal::SIGTERM, Signal::SIGINT].into_iter().enumerate() {
         let vcd = dir.join(format!("t{i}.vcd"));
         let csv = dir.join(format!("t{i}.csv"));
@@ -240,17 +241,16 @@ fn sigterm_and_sigint_stop_cleanly_and_flush_the_trace() {
             "pw01 went on:\n{vcd}"
         );
         let csv = std::fs::read_to_string(&csv).expect("CSV written");
-        let rows: Vec<&str> = csv.lines().skip(1).collect();
+        let rows = pwm_actuator::output::read_csv(&csv).expect("a CSV trace");
         assert!(rows.len() >= 4, "{csv}");
         // Every line ends inactive.
         for ch in ["pw01", "pw02"] {
             let last = rows
                 .iter()
                 .rev()
-                .find(|r| r.split(',').nth(1) == Some(ch))
+                .find(|r| r.channel == ch)
                 .expect("rows for the channel");
-            assert_eq!(last.split(',').nth(2), Some("0"), "{ch} ends off: {last}");
+            assert_eq!(last.level, Level::Low, "{ch} ends off: {last:?}");
         }
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }

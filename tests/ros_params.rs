@@ -23,12 +23,7 @@ async fn parameter_services_set_refuse_describe_and_announce() {
     let node = NodeProc::start(dom.id, &[]);
     node.wait_running();
     let mut ros = Ros::new(dom.id);
-    let events = ros.sub::<raw::ParameterEvent>(
-        "/parameter_events",
-        "rcl_interfaces",
-        "ParameterEvent",
-        default_qos(),
-    );
+    let events = ros.sub::<raw::ParameterEvent>("/parameter_events", default_qos());
     let p = ros.params("/pwm_actuator");
     p.ready(&ros).await;
 
@@ -196,23 +191,9 @@ async fn params_topic_applies_whole_or_refuses_whole() {
     let node = NodeProc::start(dom.id, &[]);
     node.wait_running();
     let mut ros = Ros::new(dom.id);
-    let events = ros.sub::<raw::ParameterEvent>(
-        "/parameter_events",
-        "rcl_interfaces",
-        "ParameterEvent",
-        default_qos(),
-    );
-    let diag = ros.sub::<DiagnosticArray>(
-        "/diagnostics",
-        "diagnostic_msgs",
-        "DiagnosticArray",
-        default_qos(),
-    );
-    let topic = ros.publisher::<ChannelParams>(
-        "/pwm_actuator/pw01/params",
-        "pwm_actuator_msgs",
-        "ChannelParams",
-    );
+    let events = ros.sub::<raw::ParameterEvent>("/parameter_events", default_qos());
+    let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
+    let topic = ros.publisher::<ChannelParams>("/pwm_actuator/pw01/params");
     let p = ros.params("/pwm_actuator");
     p.ready(&ros).await;
     ros.matched(&topic).await;

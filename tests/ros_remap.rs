@@ -37,25 +37,10 @@ async fn node_name_namespace_and_topic_remaps() {
         node.log()
     );
     let mut ros = Ros::new(dom.id);
-    let status = ros.sub::<ChannelStatus>(
-        "/plant/heater/pw01/status",
-        "pwm_actuator_msgs",
-        "ChannelStatus",
-        default_qos(),
-    );
-    let diag = ros.sub::<DiagnosticArray>(
-        "/diagnostics",
-        "diagnostic_msgs",
-        "DiagnosticArray",
-        default_qos(),
-    );
-    let events = ros.sub::<raw::ParameterEvent>(
-        "/parameter_events",
-        "rcl_interfaces",
-        "ParameterEvent",
-        default_qos(),
-    );
-    let duty = ros.publisher::<Float64>("/heater_duty", "std_msgs", "Float64");
+    let status = ros.sub::<ChannelStatus>("/plant/heater/pw01/status", default_qos());
+    let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
+    let events = ros.sub::<raw::ParameterEvent>("/parameter_events", default_qos());
+    let duty = ros.publisher::<Float64>("/heater_duty");
     ros.matched(&duty).await;
     let s = command_until(&duty, Float64 { data: 60.0 }, &status, |s| {
         s.duty_commanded == 60.0

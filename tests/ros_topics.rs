@@ -12,8 +12,6 @@ use ros2_client::Log;
 use ros_harness::*;
 use std::time::Duration;
 
-const PKG: &str = "pwm_actuator_msgs";
-
 fn pw01_diag(a: &DiagnosticArray) -> Option<&DiagnosticStatus> {
     a.status.iter().find(|s| s.name == "pwm_actuator: pw01")
 }
@@ -24,24 +22,20 @@ async fn commands_in_edges_and_status_out() {
     let node = NodeProc::start(dom.id, &["--ros-args", "-p", "pw01.period_ms:=100"]);
     node.wait_running();
     let mut ros = Ros::new(dom.id);
-    let edges = ros.sub::<OutputEdge>("/pwm_actuator/pw01/edges", PKG, "OutputEdge", default_qos());
-    let status = ros.sub::<ChannelStatus>(
-        "/pwm_actuator/pw01/status",
-        PKG,
-        "ChannelStatus",
-        default_qos(),
-    );
-    let status2 = ros.sub::<ChannelStatus>(
-        "/pwm_actuator/pw02/status",
-        PKG,
-        "ChannelStatus",
-        default_qos(),
-    );
-    let rosout = ros.sub::<Log>("/rosout", "rcl_interfaces", "Log", latched_qos());
-    let duty = ros.publisher::<Float64>("/pwm_actuator/pw01/duty", "std_msgs", "Float64");
-    let enable = ros.publisher::<Bool>("/pwm_actuator/pw01/enable", "std_msgs", "Bool");
-    let sv = ros.publisher::<UInt16>("/pwm_actuator/pw02/sv", "std_msgs", "UInt16");
-    let enable2 = ros.publisher::<Bool>("/pwm_actuator/pw02/enable", "std_msgs", "Bool");
+    let ChannelTopics {
+        edges,
+        status,
+        duty,
+        enable,
+        ..
+    } = ros.channel("pw01");
+    let ChannelTopics {
+        status: status2,
+        sv,
+        enable: enable2,
+        ..
+    } = ros.channel("pw02");
+    let rosout = ros.sub::<Log>("/rosout", latched_qos());
     ros.matched(&duty).await;
     ros.matched(&enable).await;
 
@@ -127,14 +121,9 @@ async fn e1_is_latched_and_diagnostics_warn() {
     // Subscribed after the node set E1: transient local delivers the current value.
     tokio::time::sleep(Duration::from_millis(500)).await;
     let mut ros = Ros::new(dom.id);
-    let e1 = ros.sub::<Bool>("/pwm_actuator/pw01/e1", "std_msgs", "Bool", latched_qos());
-    let e1_pw02 = ros.sub::<Bool>("/pwm_actuator/pw02/e1", "std_msgs", "Bool", latched_qos());
-    let diag = ros.sub::<DiagnosticArray>(
-        "/diagnostics",
-        "diagnostic_msgs",
-        "DiagnosticArray",
-        default_qos(),
-    );
+    let ChannelTopics { e1, .. } = ros.channel("pw01");
+    let ChannelTopics { e1: e1_pw02, .. } = ros.channel("pw02");
+    let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
     let v = wait_for(&e1, LONG, |b: &Bool| b.data).await;
     assert!(v.is_some(), "latched E1 = true for pw01");
     let v = next(&e1_pw02, LONG).await.expect("latched E1 for pw02");
@@ -176,20 +165,10 @@ async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
     );
     node.wait_running();
     let mut ros = Ros::new(dom.id);
-    let status = ros.sub::<ChannelStatus>(
-        "/pwm_actuator/pw01/status",
-        PKG,
-        "ChannelStatus",
-        default_qos(),
-    );
-    let diag = ros.sub::<DiagnosticArray>(
-        "/diagnostics",
-        "diagnostic_msgs",
-        "DiagnosticArray",
-        default_qos(),
-    );
-    let duty = ros.publisher::<Float64>("/pwm_actuator/pw01/duty", "std_msgs", "Float64");
-    let sv = ros.publisher::<UInt16>("/pwm_actuator/pw01/sv", "std_msgs", "UInt16");
+    let ChannelTopics {
+        status, duty, sv, ..
+    } = ros.channel("pw01");
+    let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
     ros.matched(&duty).await;
     command_until(&duty, Float64 { data: 40.0 }, &status, |s| {
         s.duty_commanded == 40.0
@@ -289,20 +268,13 @@ async fn the_watchdog_trips_to_error() {
     );
     node.wait_running();
     let mut ros = Ros::new(dom.id);
-    let status = ros.sub::<ChannelStatus>(
-        "/pwm_actuator/pw01/status",
-        PKG,
-        "ChannelStatus",
-        default_qos(),
-    );
-    let diag = ros.sub::<DiagnosticArray>(
-        "/diagnostics",
-        "diagnostic_msgs",
-        "DiagnosticArray",
-        default_qos(),
-    );
-    let duty = ros.publisher::<Float64>("/pwm_actuator/pw01/duty", "std_msgs", "Float64");
-    let enable = ros.publisher::<Bool>("/pwm_actuator/pw01/enable", "std_msgs", "Bool");
+    let ChannelTopics {
+        status,
+        duty,
+        enable,
+        ..
+    } = ros.channel("pw01");
+    let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
     ros.matched(&enable).await;
     command_until(&enable, Bool { data: true }, &status, |s| s.enabled)
         .await

@@ -183,8 +183,8 @@ mod tests {
     #[test]
     fn existing_paths_are_canonicalised() {
         // Two spellings of one existing file (through a symlink) are the same chip.
-        let dir = std::env::temp_dir().join(format!("pwm_actuator-bind-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let real = dir.join("chipfile");
         std::fs::write(&real, b"").unwrap();
         let link = dir.join("chiplink");
@@ -198,7 +198,6 @@ mod tests {
         let BindingError::DuplicateLine { line, .. } = err;
         let canon = std::fs::canonicalize(&real).unwrap();
         assert_eq!(line, format!("{} line 1", canon.display()));
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

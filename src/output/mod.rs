@@ -58,4 +58,4 @@ pub use bindings::{check_unique, BindingError, LineAddr};
 pub use gpio::{GpioError, GpioLine, GpioOutput};
 pub use safety::{install_panic_hook, EmergencyRegistry, PANIC_EXIT_CODE};
 pub use sim::{SimOutput, SimProbe};
-pub use trace::{EdgeRecord, TraceError, TraceSpec};
+pub use trace::{read_csv, CsvReadError, CsvRow, EdgeRecord, TraceError, TraceSpec};

@@ -313,8 +313,8 @@ mod tests {
 
     #[test]
     fn panic_in_a_thread_exits_101_with_outputs_inactive() {
-        let dir = std::env::temp_dir().join(format!("pwm_actuator-panic-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let exe = std::env::current_exe().unwrap();
         let child = std::process::Command::new(exe)
             .args([
@@ -324,7 +324,7 @@ mod tests {
                 "--nocapture",
                 "--test-threads=1",
             ])
-            .env(CHILD_ENV, &dir)
+            .env(CHILD_ENV, dir)
             .stdout(std::process::Stdio::piped())
             .stderr(std::process::Stdio::piped())
             .spawn()
@@ -337,24 +337,23 @@ mod tests {
             "the usual panic message is printed: {stderr}"
         );
         let text = std::fs::read_to_string(dir.join("panic.csv")).unwrap();
-        let rows: Vec<Vec<&str>> = text
-            .lines()
-            .skip(1)
-            .map(|l| l.split(',').collect())
-            .collect();
         // Initial 0 rows, the two 1 edges, then both driven to 0 by the hook.
-        let levels: Vec<(&str, &str)> = rows.iter().map(|r| (r[1], r[2])).collect();
+        let levels: Vec<(String, Level)> = crate::output::read_csv(&text)
+            .unwrap()
+            .into_iter()
+            .map(|r| (r.channel, r.level))
+            .collect();
+        let (p1, p2) = (String::from("pw01"), String::from("pw02"));
         assert_eq!(
             levels,
             [
-                ("pw01", "0"),
-                ("pw02", "0"),
-                ("pw01", "1"),
-                ("pw02", "1"),
-                ("pw01", "0"),
-                ("pw02", "0")
+                (p1.clone(), Level::Low),
+                (p2.clone(), Level::Low),
+                (p1.clone(), Level::High),
+                (p2.clone(), Level::High),
+                (p1, Level::Low),
+                (p2, Level::Low)
             ]
         );
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -466,27 +466,22 @@ mod tests {
         }
     }
 
-    fn tmp_dir(tag: &str) -> PathBuf {
-        let dir =
-            std::env::temp_dir().join(format!("pwm_actuator-sim-{tag}-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        dir
+    fn tmp_dir() -> tempfile::TempDir {
+        tempfile::tempdir().unwrap()
     }
 
     /// CSV rows after the header as (t_ns, channel, level, scheduled_ns).
     fn csv_rows(path: &std::path::Path) -> Vec<(u64, String, u8, u64)> {
         let text = std::fs::read_to_string(path).unwrap();
-        let mut lines = text.lines();
-        assert_eq!(lines.next(), Some("t_ns,channel,level,scheduled_ns"));
-        lines
-            .map(|l| {
-                let f: Vec<&str> = l.split(',').collect();
-                assert_eq!(f.len(), 4, "{l}");
+        crate::output::read_csv(&text)
+            .unwrap()
+            .into_iter()
+            .map(|r| {
                 (
-                    f[0].parse().unwrap(),
-                    f[1].to_string(),
-                    f[2].parse().unwrap(),
-                    f[3].parse().unwrap(),
+                    r.t_ns,
+                    r.channel,
+                    u8::from(r.level.is_high()),
+                    r.scheduled_ns,
                 )
             })
             .collect()
@@ -565,9 +560,9 @@ mod tests {
 
     #[test]
     fn traces_to_csv_and_vcd_and_flushes_on_demand() {
-        let dir = tmp_dir("trace");
-        let csv = dir.join("t.csv");
-        let vcd = dir.join("t.vcd");
+        let dir = tmp_dir();
+        let csv = dir.path().join("t.csv");
+        let vcd = dir.path().join("t.vcd");
         let spec = TraceSpec::from_paths(&[csv.clone(), vcd.clone()]).unwrap();
         let mut out = SimOutput::new(names(), Some(spec)).unwrap();
         out.set_levels(&[change(0, true, 10)]).unwrap();
@@ -604,13 +599,12 @@ mod tests {
         let vcd_text = std::fs::read_to_string(&vcd).unwrap();
         let tail: Vec<&str> = vcd_text.lines().rev().take(2).collect();
         assert!(tail[0].starts_with('#'), "final time marker: {vcd_text}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
     fn background_writer_writes_without_flush() {
-        let dir = tmp_dir("bg");
-        let csv = dir.join("bg.csv");
+        let dir = tmp_dir();
+        let csv = dir.path().join("bg.csv");
         let spec = TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap();
         let mut out = SimOutput::new(names(), Some(spec)).unwrap();
         out.set_levels(&[change(1, true, 42)]).unwrap();
@@ -628,13 +622,12 @@ mod tests {
         }
         assert_eq!(csv_rows(&csv)[2].3, 42);
         drop(out);
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
     fn emergency_off_drives_inactive_records_flushes_and_latches() {
-        let dir = tmp_dir("emergency");
-        let csv = dir.join("e.csv");
+        let dir = tmp_dir();
+        let csv = dir.path().join("e.csv");
         let spec = TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap();
         let mut out = SimOutput::new(names(), Some(spec)).unwrap();
         let probe = out.probe();
@@ -658,7 +651,6 @@ mod tests {
         assert_eq!(probe.edge_count(), 4);
         drop(out);
         assert_eq!(csv_rows(&csv).len(), 6);
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

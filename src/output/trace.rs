@@ -164,6 +164,66 @@ pub struct EdgeRecord {
     pub scheduled_ns: Nanos,
 }
 
+/// One row of a CSV trace as read back.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CsvRow {
+    /// When the level was actually written, monotonic ns.
+    pub t_ns: Nanos,
+    /// Channel name, e.g. `pw01`.
+    pub channel: String,
+    /// The new logical level.
+    pub level: Level,
+    /// When the core scheduled the edge, monotonic ns.
+    pub scheduled_ns: Nanos,
+}
+
+/// Why a CSV trace could not be read back.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CsvReadError {
+    /// The first line is not [`CSV_HEADER`].
+    #[error("not a pwm_actuator CSV trace: the header is not `{CSV_HEADER}`")]
+    Header,
+    /// A row that is not `t_ns,channel,level,scheduled_ns`.
+    #[error("line {line}: not a trace row")]
+    Row {
+        /// 1-based line number.
+        line: usize,
+    },
+}
+
+/// Reads a CSV trace back: every complete row after the header. A last line without its
+/// newline (a trace still being written) is left out.
+pub fn read_csv(text: &str) -> Result<Vec<CsvRow>, CsvReadError> {
+    let mut lines: Vec<&str> = text.split('\n').collect();
+    // The element after the last newline is empty, or an incomplete row.
+    lines.pop();
+    let mut it = lines.into_iter().enumerate();
+    match it.next() {
+        Some((_, h)) if h == CSV_HEADER => {}
+        _ => return Err(CsvReadError::Header),
+    }
+    it.map(|(i, l)| {
+        let f: Vec<&str> = l.split(',').collect();
+        let row = || -> Option<CsvRow> {
+            if f.len() != 4 {
+                return None;
+            }
+            Some(CsvRow {
+                t_ns: f[0].parse().ok()?,
+                channel: f[1].to_string(),
+                level: match f[2] {
+                    "0" => Level::Low,
+                    "1" => Level::High,
+                    _ => return None,
+                },
+                scheduled_ns: f[3].parse().ok()?,
+            })
+        };
+        row().ok_or(CsvReadError::Row { line: i + 1 })
+    })
+    .collect()
+}
+
 /// Checks that channel names can be written to CSV and VCD unquoted and are unique.
 pub fn validate_channel_names(names: &[String]) -> Result<(), TraceError> {
     let mut seen = HashSet::with_capacity(names.len());
@@ -580,14 +640,41 @@ mod tests {
             .unwrap();
         assert!(t.record(&rec(start, 2, true, start)).is_err());
         let text = String::from_utf8(t.into_inner()).unwrap();
-        let rows: Vec<Vec<&str>> = text.lines().map(|l| l.split(',').collect()).collect();
-        assert_eq!(rows[0], ["t_ns", "channel", "level", "scheduled_ns"]);
-        assert_eq!(rows[1], ["5000000000", "pw01", "0", "5000000000"]);
-        assert_eq!(rows[2], ["5000000000", "pw02", "0", "5000000000"]);
-        assert_eq!(rows[3], ["5001000100", "pw01", "1", "5001000000"]);
-        assert_eq!(rows[4], ["5002000050", "pw02", "1", "5002000000"]);
-        assert_eq!(rows[5], ["5003000000", "pw01", "0", "5003000000"]);
-        assert_eq!(rows.len(), 6);
+        assert!(text.starts_with("t_ns,channel,level,scheduled_ns\n"));
+        let rows: Vec<(Nanos, &str, Level, Nanos)> = read_csv(&text)
+            .unwrap()
+            .iter()
+            .map(|r| {
+                (
+                    r.t_ns,
+                    if r.channel == "pw01" { "pw01" } else { "pw02" },
+                    r.level,
+                    r.scheduled_ns,
+                )
+            })
+            .collect();
+        assert_eq!(
+            rows,
+            [
+                (5_000_000_000, "pw01", Level::Low, 5_000_000_000),
+                (5_000_000_000, "pw02", Level::Low, 5_000_000_000),
+                (5_001_000_100, "pw01", Level::High, 5_001_000_000),
+                (5_002_000_050, "pw02", Level::High, 5_002_000_000),
+                (5_003_000_000, "pw01", Level::Low, 5_003_000_000),
+            ]
+        );
+        assert_eq!(read_csv("x\n"), Err(CsvReadError::Header));
+        assert_eq!(
+            read_csv("t_ns,channel,level,scheduled_ns\n1,pw01,2,1\n"),
+            Err(CsvReadError::Row { line: 2 })
+        );
+        assert_eq!(
+            read_csv("t_ns,channel,level,scheduled_ns\n1,pw01,1,1\n2,pw0")
+                .unwrap()
+                .len(),
+            1,
+            "an incomplete last row is left out"
+        );
     }
 
     #[test]
@@ -735,8 +822,8 @@ mod tests {
 
     #[test]
     fn writer_writes_every_file_of_the_spec() {
-        let dir = std::env::temp_dir().join(format!("pwm_actuator-trace-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let paths = [dir.join("a.csv"), dir.join("b.vcd"), dir.join("c.csv")];
         let spec = TraceSpec::from_paths(&paths).unwrap();
         let mut w = TraceWriter::create(&spec, &names(&["pw01", "pw02"]), 100).unwrap();
@@ -757,7 +844,6 @@ mod tests {
             [(50, "\"".to_string(), '1'), (70, "\"".to_string(), '0')]
         );
         assert_eq!(p.times, [0, 50, 70, 100]);
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

@@ -1194,8 +1194,8 @@ other_node:
         let e = parse_params_yaml(&deep).unwrap_err();
         assert!(e.contains("nested deeper than 64"), "{e}");
         // Size, checked before the file is parsed.
-        let dir = std::env::temp_dir().join(format!("pwm_actuator_big_{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let file = dir.join("big.yaml");
         let mut text = String::from("/**:\n  ros__parameters:\n    a: 1\n");
         while text.len() <= 1 << 20 {
@@ -1205,13 +1205,12 @@ other_node:
         let e = load_params_file(&file).unwrap_err();
         assert!(matches!(e, ArgsError::BadParamsFile { .. }), "{e}");
         assert!(e.to_string().contains("larger than 1 MiB"), "{e}");
-        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
     fn overrides_keep_command_line_order_and_filter_by_node() {
-        let dir = std::env::temp_dir().join(format!("pwm_actuator_args_{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let file = dir.join("p.yaml");
         std::fs::write(&file, FILE).unwrap();
         let f = file.to_string_lossy().to_string();
@@ -1250,6 +1249,5 @@ other_node:
             .unwrap_err();
         assert!(matches!(e, ArgsError::ReadParamsFile { .. }), "{e}");
         assert!(e.to_string().contains("/nonexistent/p.yaml"));
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

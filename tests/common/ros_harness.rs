@@ -18,6 +18,66 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+/// One channel's topics, as a ROS user sees them: its inputs to publish on and its outputs.
+pub struct ChannelTopics {
+    /// `~/<ch>/duty`.
+    pub duty: Publisher<pwm_actuator::ros::msg::Float64>,
+    /// `~/<ch>/sv`.
+    pub sv: Publisher<pwm_actuator::ros::msg::UInt16>,
+    /// `~/<ch>/enable`.
+    pub enable: Publisher<pwm_actuator::ros::msg::Bool>,
+    /// `~/<ch>/edges`.
+    pub edges: Subscription<pwm_actuator::ros::msg::OutputEdge>,
+    /// `~/<ch>/status`.
+    pub status: Subscription<pwm_actuator::ros::msg::ChannelStatus>,
+    /// `~/<ch>/e1` (transient local).
+    pub e1: Subscription<pwm_actuator::ros::msg::Bool>,
+}
+
+/// A message type with its ROS type name, for typed subscriptions and publishers.
+pub trait TopicType {
+    /// ROS package, e.g. `std_msgs`.
+    const PKG: &'static str;
+    /// Type name inside the package, e.g. `Float64`.
+    const NAME: &'static str;
+
+    /// The ros2-client type name.
+    fn type_name() -> MessageTypeName {
+        MessageTypeName::new(Self::PKG, Self::NAME)
+    }
+}
+
+/// The node's own message types take their names from `RosMessage`.
+macro_rules! node_topic_types {
+    ($($ty:ident),+) => {
+        $(impl TopicType for pwm_actuator::ros::msg::$ty {
+            const PKG: &'static str =
+                <pwm_actuator::ros::msg::$ty as pwm_actuator::ros::msg::RosMessage>::PACKAGE;
+            const NAME: &'static str =
+                <pwm_actuator::ros::msg::$ty as pwm_actuator::ros::msg::RosMessage>::NAME;
+        })+
+    };
+}
+node_topic_types!(
+    Float64,
+    UInt16,
+    Bool,
+    DiagnosticArray,
+    OutputEdge,
+    ChannelStatus,
+    ChannelParams
+);
+
+impl TopicType for raw::ParameterEvent {
+    const PKG: &'static str = "rcl_interfaces";
+    const NAME: &'static str = "ParameterEvent";
+}
+
+impl TopicType for ros2_client::Log {
+    const PKG: &'static str = "rcl_interfaces";
+    const NAME: &'static str = "Log";
+}
+
 /// Generous upper bound for anything that involves DDS discovery on a loaded machine.
 pub const LONG: Duration = Duration::from_secs(15);
 
@@ -263,33 +323,45 @@ impl Ros {
         }
     }
 
-    /// Subscribes `topic` (absolute) of type `pkg/Name`.
-    pub fn sub<M: DeserializeOwned + 'static>(
+    /// Subscribes `topic` (absolute), typed by `M`.
+    pub fn sub<M: TopicType + DeserializeOwned + 'static>(
         &mut self,
         topic: &str,
-        pkg: &str,
-        ty: &str,
         qos: QosProfile,
     ) -> Subscription<M> {
         let t = self
             .node
-            .create_topic(&name(topic), MessageTypeName::new(pkg, ty), &qos)
+            .create_topic(&name(topic), M::type_name(), &qos)
             .expect("topic");
         self.node
             .create_subscription(&t, Some(qos))
             .expect("subscription")
     }
 
-    /// Publishes on `topic` (absolute) of type `pkg/Name`.
-    pub fn publisher<M: Serialize>(&mut self, topic: &str, pkg: &str, ty: &str) -> Publisher<M> {
+    /// Publishes on `topic` (absolute), typed by `M`.
+    pub fn publisher<M: TopicType + Serialize>(&mut self, topic: &str) -> Publisher<M> {
         let qos = default_qos();
         let t = self
             .node
-            .create_topic(&name(topic), MessageTypeName::new(pkg, ty), &qos)
+            .create_topic(&name(topic), M::type_name(), &qos)
             .expect("topic");
         self.node
             .create_publisher(&t, Some(qos))
             .expect("publisher")
+    }
+
+    /// The topics of one channel of the node `/pwm_actuator` (`pw01`, ...).
+    pub fn channel(&mut self, ch: &str) -> ChannelTopics {
+        use pwm_actuator::ros::msg::{Bool, ChannelStatus, Float64, OutputEdge, UInt16};
+        let base = format!("/pwm_actuator/{ch}");
+        ChannelTopics {
+            duty: self.publisher::<Float64>(&format!("{base}/duty")),
+            sv: self.publisher::<UInt16>(&format!("{base}/sv")),
+            enable: self.publisher::<Bool>(&format!("{base}/enable")),
+            edges: self.sub::<OutputEdge>(&format!("{base}/edges"), default_qos()),
+            status: self.sub::<ChannelStatus>(&format!("{base}/status"), default_qos()),
+            e1: self.sub::<Bool>(&format!("{base}/e1"), latched_qos()),
+        }
     }
 
     /// Waits until `p` has a matched subscriber, then a little more so the other side has
