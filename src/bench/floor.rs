@@ -6,16 +6,12 @@
 //!
 //! Benchmark only.
 
-use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
-use nix::sys::time::TimeSpec;
-use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
+use nix::sys::timerfd::{ClockId, TimerFd, TimerFlags};
 use pwm_actuator::clock;
 use pwm_actuator::core::{ChannelConfig, Nanos};
 use pwm_actuator::engine::{self, EngineError, EngineHandle, EngineOptions, OutputThread};
 use pwm_actuator::output::Output;
-use std::os::fd::AsFd;
 use std::sync::mpsc;
-use std::time::Duration;
 
 /// A running floor loop.
 pub struct Floor {
@@ -57,8 +53,9 @@ pub fn spawn<O: Output>(
     })
 }
 
-/// The loop: the same syscalls per wake-up as the output thread's loop (arm the timer with an
-/// absolute deadline, poll it beside the request eventfd, read the timer), then one clock read.
+/// The loop: the same syscalls per wake-up as the output thread's loop (its
+/// [`OutputThread::sleep_on`]: arm the timer with an absolute deadline, poll it beside the
+/// request eventfd, read what fired), then one clock read.
 /// A deadline not yet due when the timer is armed cannot be taken early: the timer is
 /// absolute.
 /// After the last deadline it only waits for the stop.
@@ -68,30 +65,9 @@ fn sleep_until_each<O: Output>(
     deadlines: &[Nanos],
     lateness: &mut Vec<i64>,
 ) -> Result<(), EngineError> {
-    let sys = |what| move |source| EngineError::Sys { what, source };
     let mut next = 0;
     while !thread.stop_requested() {
-        match deadlines.get(next) {
-            Some(&t) => timer
-                .set(
-                    Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(t))),
-                    TimerSetTimeFlags::TFD_TIMER_ABSTIME,
-                )
-                .map_err(sys("timerfd_settime"))?,
-            None => timer.unset().map_err(sys("timerfd_settime"))?,
-        }
-        let mut fds = [
-            PollFd::new(timer.as_fd(), PollFlags::POLLIN),
-            PollFd::new(thread.request_wake_fd(), PollFlags::POLLIN),
-        ];
-        match poll(&mut fds, PollTimeout::NONE) {
-            Ok(_) | Err(nix::errno::Errno::EINTR) => {}
-            Err(e) => return Err(sys("poll")(e)),
-        }
-        let fired = |fd: &PollFd| fd.revents().is_some_and(|r| r.contains(PollFlags::POLLIN));
-        let (timer_fired, request_fired) = (fired(&fds[0]), fired(&fds[1]));
-        if timer_fired {
-            let _ = timer.wait();
+        if thread.sleep_on(timer, deadlines.get(next).copied())? {
             let now = clock::monotonic_ns();
             // Every deadline that is due is taken at this wake-up, as the output thread writes
             // every due edge in one go; re-arming for a deadline already past would cost the
@@ -100,9 +76,6 @@ fn sleep_until_each<O: Output>(
                 lateness.push(now as i64 - t as i64);
                 next += 1;
             }
-        }
-        if request_fired {
-            thread.clear_request_wake();
         }
     }
     Ok(())

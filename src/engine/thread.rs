@@ -451,6 +451,41 @@ impl<O: Output> OutputThread<O> {
         let _ = self.req_wake.read();
     }
 
+    /// Sleeps on `timer` armed with the absolute CLOCK_MONOTONIC `deadline` (none: until a
+    /// request), or on the request eventfd, whichever fires first, and reads what fired. A late
+    /// wake-up does not push later deadlines back: they are absolute. Returns whether the
+    /// timer fired.
+    pub fn sleep_on(&self, timer: &TimerFd, deadline: Option<Nanos>) -> Result<bool, EngineError> {
+        let sys = |what| move |source| EngineError::Sys { what, source };
+        match deadline {
+            Some(t) => timer
+                .set(
+                    Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(t))),
+                    TimerSetTimeFlags::TFD_TIMER_ABSTIME,
+                )
+                .map_err(sys("timerfd_settime"))?,
+            None => timer.unset().map_err(sys("timerfd_settime"))?,
+        }
+        let mut fds = [
+            PollFd::new(timer.as_fd(), PollFlags::POLLIN),
+            PollFd::new(self.request_wake_fd(), PollFlags::POLLIN),
+        ];
+        match poll(&mut fds, PollTimeout::NONE) {
+            Ok(_) | Err(nix::errno::Errno::EINTR) => {}
+            Err(e) => return Err(sys("poll")(e)),
+        }
+        let fired = |fd: &PollFd| fd.revents().is_some_and(|r| r.contains(PollFlags::POLLIN));
+        let (timer_fired, request_fired) = (fired(&fds[0]), fired(&fds[1]));
+        // Read only what fired: every saved syscall is saved thousands of times a second.
+        if timer_fired {
+            let _ = timer.wait();
+        }
+        if request_fired {
+            self.clear_request_wake();
+        }
+        Ok(timer_fired)
+    }
+
     /// Drives every line inactive, drops the output (flushing traces) and wakes the reader.
     fn finish(self) -> Result<(), EngineError> {
         let (output, result) = self.worker.shut_down();
@@ -469,37 +504,11 @@ fn sleep_on_timerfd<O: Output>(
     thread: &mut OutputThread<O>,
     timer: &TimerFd,
 ) -> Result<(), EngineError> {
-    let sys = |what| move |source| EngineError::Sys { what, source };
     while thread.work()? {
         // A deferred reader wake-up always falls after the next deadline (see `work`), so the
         // channels' deadlines are the only ones.
-        match thread.next_deadline() {
-            // Absolute deadline: a late wake-up does not push later deadlines back.
-            Some(t) => timer
-                .set(
-                    Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(t))),
-                    TimerSetTimeFlags::TFD_TIMER_ABSTIME,
-                )
-                .map_err(sys("timerfd_settime"))?,
-            None => timer.unset().map_err(sys("timerfd_settime"))?,
-        }
-        let mut fds = [
-            PollFd::new(timer.as_fd(), PollFlags::POLLIN),
-            PollFd::new(thread.request_wake_fd(), PollFlags::POLLIN),
-        ];
-        match poll(&mut fds, PollTimeout::NONE) {
-            Ok(_) | Err(nix::errno::Errno::EINTR) => {}
-            Err(e) => return Err(sys("poll")(e)),
-        }
-        let fired = |fd: &PollFd| fd.revents().is_some_and(|r| r.contains(PollFlags::POLLIN));
-        let (timer_fired, request_fired) = (fired(&fds[0]), fired(&fds[1]));
-        // Read only what fired: every saved syscall is saved thousands of times a second.
-        if timer_fired {
-            let _ = timer.wait();
-        }
-        if request_fired {
-            thread.clear_request_wake();
-        }
+        let deadline = thread.next_deadline();
+        thread.sleep_on(timer, deadline)?;
     }
     Ok(())
 }
