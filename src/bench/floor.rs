@@ -6,7 +6,7 @@
 //!
 //! Benchmark only.
 
-use nix::sys::timerfd::{ClockId, TimerFd, TimerFlags};
+use nix::sys::timerfd::TimerFd;
 use pwm_actuator::clock;
 use pwm_actuator::core::{ChannelConfig, Nanos};
 use pwm_actuator::engine::{self, EngineError, EngineHandle, EngineOptions, OutputThread};
@@ -31,14 +31,7 @@ pub fn spawn<O: Output>(
     opts: EngineOptions,
     deadlines: Vec<Nanos>,
 ) -> Result<Floor, EngineError> {
-    let timer = TimerFd::new(
-        ClockId::CLOCK_MONOTONIC,
-        TimerFlags::TFD_CLOEXEC | TimerFlags::TFD_NONBLOCK,
-    )
-    .map_err(|source| EngineError::Sys {
-        what: "timerfd_create",
-        source,
-    })?;
+    let timer = engine::monotonic_timer()?;
     let (tx, rx) = mpsc::channel();
     let engine = engine::spawn_with(configs, output, opts, move |thread| {
         // Allocated before the first deadline, as the output thread's buffers are.

@@ -255,6 +255,19 @@ pub struct Engine {
     pub handle: EngineHandle,
 }
 
+/// A non-blocking timerfd on CLOCK_MONOTONIC, for a loop that sleeps with
+/// [`OutputThread::sleep_on`].
+pub fn monotonic_timer() -> Result<TimerFd, EngineError> {
+    TimerFd::new(
+        ClockId::CLOCK_MONOTONIC,
+        TimerFlags::TFD_CLOEXEC | TimerFlags::TFD_NONBLOCK,
+    )
+    .map_err(|source| EngineError::Sys {
+        what: "timerfd_create",
+        source,
+    })
+}
+
 /// Starts the output thread with one channel per config (channel `i` drives output line `i`).
 /// Every channel starts disabled with its output low. The thread sleeps on a timerfd armed
 /// with absolute CLOCK_MONOTONIC deadlines.
@@ -264,14 +277,7 @@ pub fn spawn<O: Output>(
     opts: EngineOptions,
 ) -> Result<Engine, EngineError> {
     check_lines(&configs, &output)?;
-    let timer = TimerFd::new(
-        ClockId::CLOCK_MONOTONIC,
-        TimerFlags::TFD_CLOEXEC | TimerFlags::TFD_NONBLOCK,
-    )
-    .map_err(|source| EngineError::Sys {
-        what: "timerfd_create",
-        source,
-    })?;
+    let timer = monotonic_timer()?;
     spawn_with(configs, output, opts, move |thread| {
         sleep_on_timerfd(thread, &timer)
     })
