@@ -301,8 +301,10 @@ impl<C: Context> Writable<C> for DataFrag {
     writer.write_value(&self.fragments_in_submessage)?;
     writer.write_value(&self.fragment_size)?;
     writer.write_value(&self.data_size)?;
-    if self.inline_qos.is_some() && !self.inline_qos.as_ref().unwrap().parameters.is_empty() {
-      writer.write_value(&self.inline_qos)?;
+    // The ParameterList itself, not the Option: speedy would write a one-byte
+    // Some tag before it (pwm_actuator patch, see README.pwm_actuator.md).
+    if let Some(inline_qos) = self.inline_qos.as_ref().filter(|q| !q.parameters.is_empty()) {
+      writer.write_value(inline_qos)?;
     }
     writer.write_bytes(&self.serialized_payload)?;
     Ok(())
@@ -325,7 +327,10 @@ mod tests {
   use speedy::{Endianness, Writable};
 
   use super::*;
-  use crate::messages::submessages::submessages::DATAFRAG_Flags;
+  use crate::{
+    messages::submessages::{elements::parameter::Parameter, submessages::DATAFRAG_Flags},
+    structure::parameter_id::ParameterId,
+  };
 
   fn serialize_body(df: &DataFrag) -> Bytes {
     let mut buf = Vec::new();
@@ -381,6 +386,48 @@ mod tests {
     };
     let bytes = serialize_body(&df);
     assert!(DataFrag::deserialize(&bytes, BitFlags::<DATAFRAG_Flags>::empty()).is_err());
+  }
+
+  // A DATA_FRAG carrying inline QoS (e.g. the related sample identity of a
+  // service reply) must put the ParameterList right after sampleSize, where
+  // octetsToInlineQos = 28 says it is, and be exactly len_serialized() long.
+  fn with_inline_qos() -> DataFrag {
+    let mut qos = ParameterList::new();
+    qos.push(Parameter::new(
+      ParameterId::PID_RELATED_SAMPLE_IDENTITY,
+      (1..=24).collect(),
+    ));
+    DataFrag {
+      writer_sn: SequenceNumber::new(1),
+      fragment_starting_num: FragmentNumber::new(1),
+      fragments_in_submessage: 2,
+      fragment_size: 256,
+      data_size: 600,
+      inline_qos: Some(qos),
+      serialized_payload: Bytes::from(vec![0xAB; 512]),
+      ..Default::default()
+    }
+  }
+
+  #[test]
+  fn inline_qos_follows_the_fixed_fields_with_nothing_between() {
+    let df = with_inline_qos();
+    let bytes = serialize_body(&df);
+    assert_eq!(bytes.len(), df.len_serialized());
+    // 4 bytes extraFlags + octetsToInlineQos, then 28 bytes of fixed fields.
+    assert_eq!(&bytes[2..4], &28u16.to_le_bytes());
+    // PID_RELATED_SAMPLE_IDENTITY (0x0083), length 24, little-endian.
+    assert_eq!(&bytes[32..36], &[0x83, 0x00, 24, 0x00]);
+  }
+
+  #[test]
+  fn inline_qos_round_trips() {
+    let df = with_inline_qos();
+    let bytes = serialize_body(&df);
+    let flags = BitFlags::<DATAFRAG_Flags>::from_endianness(Endianness::LittleEndian)
+      | DATAFRAG_Flags::InlineQos;
+    let back = DataFrag::deserialize(&bytes, flags).expect("deserialize DataFrag with inline QoS");
+    assert_eq!(back, df);
   }
 
   #[test]
