@@ -37,8 +37,18 @@ from rcl_interfaces.msg import (
     ParameterValue,
     SetParametersResult,
 )
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.srv import (
+    DescribeParameters,
+    GetParameters,
+    GetParameterTypes,
+    ListParameters,
+    SetParameters,
+    SetParametersAtomically,
+)
 from rclpy.parameter import parameter_value_to_python
 from rclpy.qos import qos_profile_parameter_events
+from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64
 
 NODE = "/pwm_actuator"
@@ -583,6 +593,111 @@ def test_descriptors_ranges_and_listing(ros, node_process, svc):
 
     only = svc.list_parameters(["pw02"])
     assert set(only.names) == {f"pw02.{p}" for p in CHANNEL_PARAMS}, sorted(only.names)
+
+
+#: A reply this large is sent in fragments (rustdds fragments a sample above about 1,400 bytes;
+#: 1,440 bytes arrived in one piece, 1,728 did not before its DATA_FRAG fix).
+FRAGMENTED_REPLY_BYTES = 2048
+#: Channels of the node in the large-reply test: 15 parameters each, so that even the list of
+#: names (about 20 bytes a name) is larger than FRAGMENTED_REPLY_BYTES.
+MANY_CHANNELS = 8
+
+
+def test_every_parameter_service_answers_for_all_parameters_at_once(ros, node_process):
+    # README: the parameter services answer requests of any size, e.g. for every parameter at
+    # once as `ros2 param dump` asks. Replies above one datagram are fragmented; each must reach
+    # the rclpy client, and the same client's later calls must still be answered.
+    proc = node_process(["--channels", str(MANY_CHANNELS)])
+    proc.wait_for_output("running:")
+    sizes: dict[str, int] = {}
+
+    def call(service: str, srv_type: Any, request: Any, what: str) -> Any:
+        response = ros.call(srv_type, f"{NODE}/{service}", request)
+        sizes[what] = len(serialize_message(response))
+        return response
+
+    def small_calls_still_answered(duty: ParameterValue) -> None:
+        # One small request to each service, on the same clients as the large ones; the set
+        # requests give pw01.duty the value `duty` it has.
+        req = GetParameters.Request(names=["pw01.period_ms"])
+        [value] = call("get_parameters", GetParameters, req, "small get").values
+        assert (value.type, value.integer_value) == (ParameterType.PARAMETER_INTEGER, 1000)
+        req = GetParameterTypes.Request(names=["pw01.duty"])
+        types = call("get_parameter_types", GetParameterTypes, req, "small types").types
+        assert list(types) == [ParameterType.PARAMETER_DOUBLE]
+        req = DescribeParameters.Request(names=["pw02.edge_band"])
+        [d] = call("describe_parameters", DescribeParameters, req, "small describe").descriptors
+        assert d.name == "pw02.edge_band"
+        req = ListParameters.Request(prefixes=["pw03"], depth=0)
+        listed = call("list_parameters", ListParameters, req, "small list").result
+        assert set(listed.names) == {f"pw03.{p}" for p in CHANNEL_PARAMS}
+        req = SetParameters.Request(parameters=[ParameterMsg(name="pw01.duty", value=duty)])
+        [result] = call("set_parameters", SetParameters, req, "small set").results
+        assert result.successful, result.reason
+        req = SetParametersAtomically.Request(parameters=list(req.parameters))
+        result = call("set_parameters_atomically", SetParametersAtomically, req, "small atomic")
+        assert result.result.successful, result.result.reason
+
+    # Every name at once.
+    listed = call("list_parameters", ListParameters, ListParameters.Request(), "list all").result
+    names = list(listed.names)
+    expected = {f"pw{c:02}.{p}" for c in range(1, MANY_CHANNELS + 1) for p in CHANNEL_PARAMS}
+    assert not expected - set(names), sorted(expected - set(names))
+
+    req = GetParameters.Request(names=names)
+    values = list(call("get_parameters", GetParameters, req, "get all").values)
+    assert len(values) == len(names)
+    unset = [n for n, v in zip(names, values) if v.type == ParameterType.PARAMETER_NOT_SET]
+    assert not unset, f"no value for {unset}"
+
+    req = GetParameterTypes.Request(names=names)
+    # One byte a name: this reply stays small whatever the node.
+    types = list(call("get_parameter_types", GetParameterTypes, req, "types all").types)
+    assert types == [v.type for v in values]
+
+    req = DescribeParameters.Request(names=names)
+    descriptors = call("describe_parameters", DescribeParameters, req, "describe all").descriptors
+    assert [d.name for d in descriptors] == names
+    assert [d.type for d in descriptors] == types
+
+    # Every parameter set to the value it has: all accepted, in one request either way.
+    same = [ParameterMsg(name=n, value=v) for n, v in zip(names, values)]
+    req = SetParameters.Request(parameters=same)
+    results = call("set_parameters", SetParameters, req, "set all, same values").results
+    refused = {n: r.reason for n, r in zip(names, results) if not r.successful}
+    assert len(results) == len(names) and not refused, refused
+    req = SetParametersAtomically.Request(parameters=same)
+    result = call("set_parameters_atomically", SetParametersAtomically, req, "atomic all").result
+    assert result.successful, result.reason
+    small_calls_still_answered(values[names.index("pw01.duty")])
+
+    # Every parameter refused, each with a reason naming it: a large set_parameters reply.
+    wrong = ParameterValue(type=ParameterType.PARAMETER_BYTE_ARRAY, byte_array_value=[b"\x01"])
+    req = SetParameters.Request(parameters=[ParameterMsg(name=n, value=wrong) for n in names])
+    results = call("set_parameters", SetParameters, req, "set all refused").results
+    assert len(results) == len(names)
+    not_named = [n for n, r in zip(names, results) if r.successful or n not in r.reason]
+    assert not not_named, f"accepted, or refused without naming the parameter: {not_named}"
+
+    # A refusal echoing a long name, alone and after every parameter of an atomic request.
+    long_name = "pw01." + "x" * 3000
+    unknown = ParameterMsg(
+        name=long_name, value=ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=1)
+    )
+    req = SetParameters.Request(parameters=[unknown])
+    [result] = call("set_parameters", SetParameters, req, "set long name").results
+    assert not result.successful and "pw01.xxxx" in result.reason, result.reason[:200]
+    req = SetParametersAtomically.Request(parameters=[*same, unknown])
+    result = call("set_parameters_atomically", SetParametersAtomically, req, "atomic long").result
+    assert not result.successful and "pw01.xxxx" in result.reason, result.reason[:200]
+
+    small_calls_still_answered(values[names.index("pw01.duty")])
+    assert ros.get_parameter_values(NODE, names) == values, "values changed"
+    # The test is about replies sent in fragments: check that the large ones were.
+    large = ("list all", "get all", "describe all", "set all refused")
+    small = {what: sizes[what] for what in large if sizes[what] <= FRAGMENTED_REPLY_BYTES}
+    assert not small, f"replies expected above {FRAGMENTED_REPLY_BYTES} bytes: {small}"
+    print("reply sizes (bytes):", sizes)
 
 
 def test_whole_doubles_are_taken_for_integers_and_fractions_refused(ros, node_process, svc):
