@@ -116,6 +116,8 @@ pub struct Status {
     pub limited: bool,
     /// Watchdog tripped: no command for `command_timeout_ms`.
     pub watchdog_tripped: bool,
+    /// The watchdog's fault value (`fault_duty_pct`) is running.
+    pub fault_active: bool,
     /// The rule that shaped the plan in force.
     pub rule: Rule,
 }
@@ -152,6 +154,8 @@ pub struct Channel {
     period_start: Nanos,
     last_command_at: Nanos,
     watchdog_tripped: bool,
+    /// While the watchdog's fault value runs: when it ends (`Nanos::MAX`: until a command).
+    fault_until: Option<Nanos>,
     flags: (bool, bool),
 }
 
@@ -181,6 +185,7 @@ impl Channel {
             period_start: now,
             last_command_at: now,
             watchdog_tripped: false,
+            fault_until: None,
             flags: (false, false),
         }
     }
@@ -230,6 +235,7 @@ impl Channel {
         [
             self.step.map(|s| s.end),
             self.watchdog_deadline(),
+            self.fault_until.filter(|t| *t != Nanos::MAX),
             self.line
                 .held
                 .filter(|(level, _)| !(self.line.locked && *level == Level::High))
@@ -326,6 +332,7 @@ impl Channel {
         self.last_command_at = now;
         if self.watchdog_tripped {
             self.watchdog_tripped = false;
+            self.fault_until = None;
             emit(Event::Watchdog { tripped: false });
         }
         if !self.enabled {
@@ -385,6 +392,11 @@ impl Channel {
     pub fn set_config(&mut self, now: Nanos, cfg: ChannelConfig, emit: &mut dyn FnMut(Event)) {
         self.cfg.command_timeout = cfg.command_timeout;
         self.cfg.params.command_timeout_ms = cfg.params.command_timeout_ms;
+        // The fault value guards safety too: in force at once.
+        self.cfg.fault_duty = cfg.fault_duty;
+        self.cfg.fault_hold = cfg.fault_hold;
+        self.cfg.params.fault_duty_pct = cfg.params.fault_duty_pct;
+        self.cfg.params.fault_hold_ms = cfg.params.fault_hold_ms;
         self.cfg.params.active_low = cfg.params.active_low;
         self.trip_if_stale(now, emit);
         if !self.enabled {
@@ -431,15 +443,16 @@ impl Channel {
             e1: self.plan.e1,
             limited: self.plan.limited,
             watchdog_tripped: self.watchdog_tripped,
+            fault_active: self.fault_until.is_some(),
             rule: self.plan.rule,
         }
     }
 
     fn effective_duty(&self) -> f64 {
-        if self.watchdog_tripped {
-            0.0
-        } else {
-            self.duty.fraction
+        match (self.watchdog_tripped, self.fault_until) {
+            (false, _) => self.duty.fraction,
+            (true, Some(_)) => self.cfg.fault_duty,
+            (true, None) => 0.0,
         }
     }
 
@@ -549,6 +562,12 @@ impl Channel {
     fn advance(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         if self.watchdog_deadline() == Some(t) {
             self.trip(t, emit);
+            return;
+        }
+        if self.fault_until == Some(t) {
+            // The fault value has run its hold time: off, as a trip without one.
+            self.fault_until = None;
+            self.trip_off(t, false, emit);
             return;
         }
         if let Some((level, at)) = self.line.held {
@@ -674,10 +693,27 @@ impl Channel {
         }
     }
 
-    /// The watchdog fired at `t`: output off at once, duty 0 until a command arrives.
+    /// The watchdog fired at `t`. With a fault value (and the channel enabled) the channel
+    /// runs at it from now, re-timing the running step as TCONT_CP does a new command, so the
+    /// minimum times hold; without one the output goes off at once, duty 0 until a command.
     fn trip(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         self.watchdog_tripped = true;
         emit(Event::Watchdog { tripped: true });
+        if self.cfg.fault_duty > 0.0 && self.enabled && self.cfg.period > 0 {
+            self.fault_until = Some(match self.cfg.fault_hold {
+                0 => Nanos::MAX,
+                hold => t.saturating_add(hold),
+            });
+            self.reevaluate(t, emit);
+            return;
+        }
+        self.trip_off(t, true, emit);
+    }
+
+    /// Output off at `t` after a trip, keeping the period grid: duty 0 until a command.
+    /// `forced`: the trip itself, a safety off at once; otherwise the end of the fault value's
+    /// hold time, which leaves a running fault pulse its minimum on time.
+    fn trip_off(&mut self, t: Nanos, forced: bool, emit: &mut dyn FnMut(Event)) {
         self.latch(Plan::new(0.0, &self.cfg), emit);
         if let Some(step) = self.step {
             // Keep the period grid: stay off for the rest of this period.
@@ -695,6 +731,10 @@ impl Channel {
                 end,
             });
         }
-        self.force_low(t, emit);
+        if forced {
+            self.force_low(t, emit);
+        } else {
+            self.set_level(Level::Low, t, emit);
+        }
     }
 }

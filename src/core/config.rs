@@ -337,6 +337,13 @@ pub struct ChannelParams {
     /// Watchdog in ms: no command for this long puts the channel in its safe state (off);
     /// 0 disables. 0..=86 400 000.
     pub command_timeout_ms: u64,
+    /// Fault value: the duty, percent 0..=100, the channel runs at when the watchdog trips,
+    /// through the same minimum-time rules (fault mode of PLC output modules; frost
+    /// protection for a heater, a safe position for a valve). 0: off at once, as before.
+    pub fault_duty_pct: f64,
+    /// How long the fault value runs before the output goes off, ms; 0 = until the next
+    /// command. 0..=86 400 000.
+    pub fault_hold_ms: u64,
     /// Invert the electrical level of the output line (applied by the output backend).
     pub active_low: bool,
 }
@@ -354,6 +361,8 @@ impl Default for ChannelParams {
             apply_at: None,
             on_disable: None,
             command_timeout_ms: 0,
+            fault_duty_pct: 0.0,
+            fault_hold_ms: 0,
             active_low: false,
         }
     }
@@ -434,6 +443,20 @@ pub enum ConfigError {
         /// The maximum, ms.
         max_ms: u64,
     },
+    /// A fault value outside 0..=100 % or not a number.
+    #[error("fault_duty_pct {value} is outside 0..100")]
+    FaultDutyOutOfRange {
+        /// The refused value.
+        value: f64,
+    },
+    /// A fault hold time above one day.
+    #[error("fault_hold_ms {value_ms} is above the maximum of {max_ms} ms")]
+    FaultHoldTooLong {
+        /// The refused value, ms.
+        value_ms: u64,
+        /// The maximum, ms.
+        max_ms: u64,
+    },
 }
 
 /// Validated channel settings in nanoseconds, with every profile default resolved.
@@ -455,6 +478,10 @@ pub struct ChannelConfig {
     pub on_disable: OnDisable,
     /// Watchdog timeout, ns; 0 = disabled.
     pub command_timeout: Nanos,
+    /// The fault value run after a watchdog trip, duty fraction 0..=1; 0 = off at once.
+    pub fault_duty: f64,
+    /// How long the fault value runs, ns; 0 = until the next command.
+    pub fault_hold: Nanos,
     /// The parameters this was made from (for status and round trips).
     pub params: ChannelParams,
 }
@@ -543,6 +570,17 @@ impl ChannelParams {
                 max_ms: MAX_TIMEOUT_MS,
             });
         }
+        if !(0.0..=100.0).contains(&self.fault_duty_pct) {
+            return Err(ConfigError::FaultDutyOutOfRange {
+                value: self.fault_duty_pct,
+            });
+        }
+        if self.fault_hold_ms > MAX_TIMEOUT_MS {
+            return Err(ConfigError::FaultHoldTooLong {
+                value_ms: self.fault_hold_ms,
+                max_ms: MAX_TIMEOUT_MS,
+            });
+        }
         Ok(ChannelConfig {
             period,
             min_on,
@@ -552,6 +590,8 @@ impl ChannelParams {
             apply_at: self.effective_apply_at(),
             on_disable: self.effective_on_disable(),
             command_timeout: self.command_timeout_ms * NS_PER_MS,
+            fault_duty: self.fault_duty_pct / 100.0,
+            fault_hold: self.fault_hold_ms * NS_PER_MS,
             params: *self,
         })
     }

@@ -98,6 +98,7 @@ pub fn status_changed(a: &Status, b: &Status) -> bool {
         || a.e1 != b.e1
         || a.limited != b.limited
         || a.watchdog_tripped != b.watchdog_tripped
+        || a.fault_active != b.fault_active
         || a.rule != b.rule
 }
 
@@ -180,6 +181,13 @@ impl ChannelHealth {
         let Some(s) = self.status.as_ref() else {
             return "starting".into();
         };
+        if self.watchdog_tripped() && s.fault_active {
+            return format!(
+                "watchdog: no duty command within command_timeout_ms; running the fault value \
+                 {:.1} % until the next command or fault_hold_ms",
+                percent(s.duty_applied)
+            );
+        }
         if self.watchdog_tripped() {
             return "watchdog: no duty command within command_timeout_ms; output forced off \
                     until the next command"
@@ -276,6 +284,10 @@ impl ChannelHealth {
         }
         kv.extend([
             ("watchdog_tripped", self.watchdog_tripped().to_string()),
+            (
+                "fault_value_active",
+                self.status.is_some_and(|s| s.fault_active).to_string(),
+            ),
             ("output_fault", self.output_fault.to_string()),
             ("edges", self.edges.to_string()),
             (
@@ -349,6 +361,7 @@ mod tests {
             e1: false,
             limited: false,
             watchdog_tripped: false,
+            fault_active: false,
             rule: Rule::Exact,
         }
     }

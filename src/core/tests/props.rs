@@ -49,9 +49,13 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
         ])),
         prop::option::of(prop::sample::select(vec![OnDisable::Off, OnDisable::Hold])),
         prop_oneof![2 => Just(0u64), 1 => 20u64..600],
+        (
+            prop_oneof![2 => Just(0.0f64), 1 => 0.0..=100.0f64],
+            prop_oneof![1 => Just(0u64), 1 => 1u64..2000],
+        ),
     )
         .prop_map(
-            |(period_ms, min_on_ms, min_off_ms, kind, profile, sp, e, aa, od, to)| ChannelParams {
+            |(period_ms, min_on_ms, min_off_ms, kind, profile, sp, e, aa, od, to, (fd, fh))| ChannelParams {
                 period_ms,
                 min_on_ms,
                 min_off_ms,
@@ -63,6 +67,8 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
                 on_disable: od,
                 command_timeout_ms: to,
                 active_low: false,
+                fault_duty_pct: fd,
+                fault_hold_ms: fh,
             },
         )
         .prop_filter("valid parameters", |p| p.validate().is_ok())
@@ -242,7 +248,8 @@ proptest! {
         gaps in prop::collection::vec((0u64..1_500_000).prop_map(|us| us * 1000), 1..20),
         pct in 1.0..100.0f64,
     ) {
-        let params = ChannelParams { command_timeout_ms: timeout_ms, ..start };
+        // Without a fault value: the output stays off after a trip.
+        let params = ChannelParams { command_timeout_ms: timeout_ms, fault_duty_pct: 0.0, ..start };
         let timeout = timeout_ms * MS;
         let mut b = Bench::new(params);
         b.duty(pct).enable();
@@ -362,6 +369,7 @@ proptest! {
     ) {
         let guarded = |p: ChannelParams| ChannelParams {
             command_timeout_ms: timeout_ms,
+            fault_duty_pct: 0.0,
             on_disable: Some(OnDisable::Hold),
             ..p
         };

@@ -756,6 +756,67 @@ fn a_held_line_goes_off_when_the_configuration_no_longer_holds_it() {
     assert_eq!(b.wave(), "H@0 L@100");
 }
 
+#[test]
+fn the_watchdog_runs_the_fault_value_then_off_after_the_hold_time() {
+    // Fault mode of PLC output modules: no command for 500 ms runs the channel at the fault
+    // value (20 % of 1 s: frost protection) for fault_hold_ms 2.5 s, then off. The running
+    // 80 % pulse is re-timed for 20 % at the trip as TCONT_CP re-times a new command: it has
+    // been on for 500 ms, so it ends at once, and the break is the fault value's 800 ms.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.command_timeout_ms = 500;
+        p.fault_duty_pct = 20.0;
+        p.fault_hold_ms = 2500;
+    }));
+    b.duty(80.0).enable().at(5000.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@1300 L@1500 H@2300 L@2500");
+    assert!(b
+        .notes()
+        .contains(&(500 * MS, Event::Watchdog { tripped: true })));
+    assert!(!b.status().fault_active, "off after the hold time");
+    assert_eq!(b.status().duty_applied, 0.0);
+    // Nothing after the hold time; a command recovers, from the next period (next_period),
+    // and 500 ms later, with no command again, the fault value cuts that pulse to its 200 ms.
+    b.duty(50.0).at(5900.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@500 H@1300 L@1500 H@2300 L@2500 H@5300 L@5500"
+    );
+}
+
+#[test]
+fn the_fault_value_keeps_the_minimum_times_and_runs_until_a_command() {
+    // Fault hold 0: until the next command. 3 % of 1 s is below the 100 ms minimum: suppressed,
+    // with E1, as any command would be.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.command_timeout_ms = 300;
+        p.fault_duty_pct = 3.0;
+    }));
+    b.duty(50.0).enable().at(10_000.0);
+    assert_eq!(b.wave(), "H@0 L@300");
+    let s = b.status();
+    assert!(s.fault_active && s.watchdog_tripped && s.e1, "{s:?}");
+    assert_eq!(s.rule, Rule::SuppressedPulse);
+    b.duty(50.0);
+    assert!(!b.status().fault_active && !b.status().watchdog_tripped);
+}
+
+#[test]
+fn a_pulse_running_at_the_trip_keeps_its_minimum_under_the_fault_value() {
+    // The trip at 50 ms falls inside a pulse that has lasted 50 ms of its 100 ms minimum: the
+    // fault value (10 % = 100 ms) ends it at its minimum, never below.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.command_timeout_ms = 50;
+        p.fault_duty_pct = 10.0;
+    }));
+    b.duty(60.0).enable().at(1500.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@1000 L@1100");
+}
+
 // ---- late polling ------------------------------------------------------------------------------
 
 #[test]

@@ -338,6 +338,38 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
+            description: "Fault value, percent 0..100: the duty the channel runs at when the \
+                          watchdog trips, through the same minimum-time rules (frost \
+                          protection, a safe valve position). 0: off at once.",
+            constraints: "in force at once",
+            range: Range::Double(0.0, 100.0),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.fault_duty_pct = match v {
+                    V::Double(x) => *x,
+                    _ => 0.0,
+                };
+                Ok(())
+            }),
+            ..Decl::new("fault_duty_pct", Double, || {
+                V::Double(core_defaults().fault_duty_pct)
+            })
+        },
+        Decl {
+            description: "How long the fault value runs before the output goes off, ms. 0: \
+                          until the next command.",
+            constraints: "in force at once",
+            range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.fault_hold_ms = ms(v);
+                Ok(())
+            }),
+            ..Decl::new("fault_hold_ms", Integer, || {
+                V::Integer(core_defaults().fault_hold_ms as i64)
+            })
+        },
+        Decl {
             description: "Invert the electrical level of the output line.",
             constraints: "start-up only",
             read_only: Some(
