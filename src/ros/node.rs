@@ -121,7 +121,10 @@ impl NodeError {
             | NodeError::Binding(_)
             | NodeError::Fault(_)
             | NodeError::Split(_)
-            | NodeError::Trace(_) => EXIT_USAGE,
+            | NodeError::Trace(_)
+            // Opening the lines fails only on configuration: a missing chip, a busy line, an
+            // offset the chip lacks, no permission. Write faults come later, as `Engine`.
+            | NodeError::Gpio(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
     }
@@ -264,6 +267,8 @@ enum Opened {
     /// The sim output with injected write failures (`PWM_ACTUATOR_FAULT`, exit-path tests).
     FailingSim(FailingOutput<SimOutput>),
     Gpio(GpioOutput),
+    /// The gpio output with injected write failures (exit-path tests on gpio-sim lines).
+    FailingGpio(FailingOutput<GpioOutput>),
 }
 
 /// Opens the output (refusing duplicate GPIO lines before any chip is opened) and installs
@@ -317,7 +322,13 @@ fn open_output(cfg: &StartupConfig) -> Result<(Opened, Vec<String>), NodeError> 
                 .iter()
                 .map(|l| format!("{}:{}", l.chip, l.offset))
                 .collect();
-            Ok((Opened::Gpio(out), ids))
+            match Fault::from_env().map_err(NodeError::Fault)? {
+                Some(Fault::FailWriteAfter(n)) => {
+                    warn!("{FAULT_ENV}: output writes fail after {n}");
+                    Ok((Opened::FailingGpio(FailingOutput::new(out, n)), ids))
+                }
+                _ => Ok((Opened::Gpio(out), ids)),
+            }
         }
     }
 }
@@ -333,6 +344,7 @@ fn start_engine(cfg: &StartupConfig, output: Opened) -> Result<Engine, NodeError
         Opened::Sim(out) => engine::spawn(configs, out, opts),
         Opened::FailingSim(out) => engine::spawn(configs, out, opts),
         Opened::Gpio(out) => engine::spawn(configs, out, opts),
+        Opened::FailingGpio(out) => engine::spawn(configs, out, opts),
     }
     .map_err(NodeError::Engine)
 }
