@@ -25,7 +25,7 @@ use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::output::fault::{FailingOutput, Fault, FAULT_ENV};
 use crate::output::{
     check_unique, install_panic_hook, BindingError, GpioError, GpioLine, GpioOutput, LineAddr,
-    Output, SimOutput, TraceError, TraceSpec,
+    Output, SimOutput, TraceError, TraceSpec, Traced,
 };
 use futures::StreamExt;
 use log::{debug, error, info, warn};
@@ -266,9 +266,10 @@ enum Opened {
     Sim(SimOutput),
     /// The sim output with injected write failures (`PWM_ACTUATOR_FAULT`, exit-path tests).
     FailingSim(FailingOutput<SimOutput>),
-    Gpio(GpioOutput),
-    /// The gpio output with injected write failures (exit-path tests on gpio-sim lines).
-    FailingGpio(FailingOutput<GpioOutput>),
+    /// The gpio output, its writes traced when trace files are asked for.
+    Gpio(Traced<GpioOutput>),
+    /// The same with injected write failures (exit-path tests on gpio-sim lines).
+    FailingGpio(FailingOutput<Traced<GpioOutput>>),
 }
 
 /// Opens the output (refusing duplicate GPIO lines before any chip is opened) and installs
@@ -292,7 +293,10 @@ fn open_output(cfg: &StartupConfig) -> Result<(Opened, Vec<String>), NodeError> 
                 _ => Ok((Opened::Sim(out), ids)),
             }
         }
-        OutputChoice::Gpio { lines } => {
+        OutputChoice::Gpio { lines, trace } => {
+            // Trace file names are checked before anything else; the files are created after
+            // the binding check and before any chip is opened.
+            let spec = TraceSpec::from_paths(trace).map_err(NodeError::Trace)?;
             // 000: no double output assignments, checked before any chip is opened.
             let bindings: Vec<(String, LineAddr)> = lines
                 .iter()
@@ -316,7 +320,18 @@ fn open_output(cfg: &StartupConfig) -> Result<(Opened, Vec<String>), NodeError> 
                     active_low: l.active_low,
                 })
                 .collect();
-            let out = GpioOutput::open(&gpio).map_err(NodeError::Gpio)?;
+            let recorder = if spec.is_empty() {
+                None
+            } else {
+                for f in spec.files() {
+                    info!(
+                        "tracing what is written to the lines to {}",
+                        f.path.display()
+                    );
+                }
+                Some(SimOutput::new(names.clone(), Some(spec)).map_err(NodeError::Trace)?)
+            };
+            let out = Traced::new(GpioOutput::open(&gpio).map_err(NodeError::Gpio)?, recorder);
             install_panic_hook(out.emergency_off());
             let ids = lines
                 .iter()
@@ -647,7 +662,10 @@ async fn serve(
         match &cfg.output {
             OutputChoice::Sim { trace } if trace.is_empty() => "sim output".to_string(),
             OutputChoice::Sim { trace } => format!("sim output, {} trace file(s)", trace.len()),
-            OutputChoice::Gpio { .. } => "gpio output".to_string(),
+            OutputChoice::Gpio { trace, .. } if trace.is_empty() => "gpio output".to_string(),
+            OutputChoice::Gpio { trace, .. } => {
+                format!("gpio output, {} trace file(s)", trace.len())
+            }
         }
     );
 

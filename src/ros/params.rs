@@ -245,9 +245,6 @@ pub enum ParamError {
         /// Channel name.
         channel: String,
     },
-    /// A trace asked for with output `gpio`.
-    #[error("trace files are written by the sim output only; with output gpio leave trace empty")]
-    TraceNeedsSim,
 }
 
 fn describe_value(v: &ParameterValue) -> String {
@@ -1145,6 +1142,8 @@ pub enum OutputChoice {
     Gpio {
         /// The lines, in channel order.
         lines: Vec<LineSpec>,
+        /// Trace files of what was written to the lines (possibly none).
+        trace: Vec<PathBuf>,
     },
 }
 
@@ -1198,9 +1197,6 @@ impl StartupConfig {
             .map(PathBuf::from)
             .collect();
         let output = if store.string("output") == Some("gpio") {
-            if !trace.is_empty() {
-                return Err(ParamError::TraceNeedsSim);
-            }
             let mut lines = Vec::new();
             for c in &channels {
                 let offset = store.int(&format!("{}.gpio_line", c.name)).unwrap_or(-1);
@@ -1219,7 +1215,7 @@ impl StartupConfig {
                     active_low: c.config.params.active_low,
                 });
             }
-            OutputChoice::Gpio { lines }
+            OutputChoice::Gpio { lines, trace }
         } else {
             OutputChoice::Sim { trace }
         };
@@ -1572,7 +1568,7 @@ mod tests {
     }
 
     #[test]
-    fn gpio_needs_lines_and_no_trace() {
+    fn gpio_needs_lines_and_takes_a_trace() {
         let su = start_up(&[
             sv("channels", V::Integer(1)),
             sv("output", V::String("gpio".into())),
@@ -1600,18 +1596,23 @@ mod tests {
                     chip: "/dev/gpiochip0".into(),
                     offset: 17,
                     active_low: true
-                }]
+                }],
+                trace: vec![],
             }
         );
         let su = start_up(&[
+            sv("channels", V::Integer(1)),
             sv("output", V::String("gpio".into())),
+            sv("pw01.gpio_line", V::Integer(17)),
             sv("trace", V::String("a.vcd".into())),
         ])
         .unwrap();
-        assert_eq!(
-            StartupConfig::from_store(&su.store),
-            Err(ParamError::TraceNeedsSim)
-        );
+        // Any output can be traced: with gpio the trace records what was written to the lines.
+        let OutputChoice::Gpio { trace, .. } = StartupConfig::from_store(&su.store).unwrap().output
+        else {
+            panic!("output gpio not chosen");
+        };
+        assert_eq!(trace, [PathBuf::from("a.vcd")]);
         let su = start_up(&[sv("trace", V::String("a.vcd, b.csv".into()))]).unwrap();
         assert_eq!(
             StartupConfig::from_store(&su.store).unwrap().output,

@@ -351,6 +351,54 @@ def write_fault_ends_inactive():
     return "exit 1, other lines inactive until released"
 
 
+def trace_records_the_line():
+    """--trace with --output gpio: every rise seen on the line is in the CSV trace, at the time
+    its write returned; the trace ends inactive; the VCD file is complete."""
+    l0 = Line(0)
+    l0.set_pull(False)
+    base = f"/tmp/gpio-vm-trace-{os.getpid()}"
+    csv_path, vcd_path = base + ".csv", base + ".vcd"
+    p = node([("pw01", 0)], ["pw01.period_ms:=200", "pw01.duty:=30.0", "pw01.enable:=true",
+                             f"trace:={csv_path},{vcd_path}"])
+    try:
+        wait_level(p, l0, True)
+        # Each rise seen on the line, as the interval between the last low and the first high
+        # sample: a stalled sampler (a vCPU descheduled by the host) widens it.
+        seen = []
+        prev, prev_t = True, 0.0
+        for t, v, _h in levels_for(l0, 2.0):
+            if v and not prev:
+                seen.append((prev_t, t))
+            prev, prev_t = v, t
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    with open(csv_path) as f:
+        rows = [r.split(",") for r in f.read().split()[1:]]
+    with open(vcd_path) as f:
+        vcd = f.read()
+    os.unlink(csv_path)
+    os.unlink(vcd_path)
+    edges = [(int(t) / 1e9, lvl == "1") for t, ch, lvl, _ in rows if ch == "pw01"]
+    require(len(edges) > 10, f"only {len(edges)} edges in the trace")
+    require(edges[-1][1] is False, "the trace does not end inactive")
+    rises = [t for t, high in edges if high]
+    require(len(seen) >= 5, f"only {len(seen)} rises seen on the line")
+    for lo, hi in seen:
+        # The trace time is read after the write returned: the sampler may see the level
+        # before that (by up to 6 ms seen under TCG on a loaded host).
+        require(any(lo <= r <= hi + 0.020 for r in rises),
+                f"a rise seen on the line between {lo:.4f} and {hi:.4f} s is not in the "
+                f"trace; nearest traced rise {min(rises, key=lambda r: abs(hi - r)):.4f} s")
+    ons = [b[0] - a[0] for a, b in zip(edges, edges[1:]) if a[1] and not b[1]]
+    mo = median(ons) * 1e3
+    require(abs(mo - 60) <= 3, f"median traced on time {mo:.2f} ms")
+    require("$enddefinitions" in vcd and "pw01" in vcd, "VCD trace incomplete")
+    return (f"{len(seen)} rises on the line, all in the trace ({len(edges)} edges), "
+            f"median traced on time {mo:.2f} ms")
+
+
 def busy_line_is_a_configuration_error():
     l7 = Line(7)
     holder = node([("pw01", 7)], [])
@@ -397,6 +445,7 @@ CHECKS = [
     sigint_ends_inactive,
     panic_ends_inactive,
     write_fault_ends_inactive,
+    trace_records_the_line,
     busy_line_is_a_configuration_error,
     missing_chip_is_a_configuration_error,
     two_channels_on_one_line_refused,
