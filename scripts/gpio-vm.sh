@@ -76,7 +76,9 @@ command -v cpio >/dev/null || missing+=(cpio)
 command -v depmod >/dev/null || missing+=(kmod)
 command -v xz >/dev/null || missing+=(xz-utils)
 ((${#missing[@]} == 0)) || apt_install "${missing[@]}"
-busybox --list | grep -qx ip || die "/bin/busybox has no 'ip' applet: needs busybox-static"
+# (Not `busybox --list | grep -q`: with pipefail, grep's early exit fails the pipeline.)
+[[ $'\n'"$(/bin/busybox --list)"$'\n' == *$'\nip\n'* ]] \
+    || die "/bin/busybox has no 'ip' applet: needs busybox-static"
 
 # The kernel: the ABI Debian's linux-image-amd64 points at (bookworm: 6.1.0-NN-amd64).
 KVER="$(ls -d /usr/src/linux-headers-6.1.0-*-amd64 2>/dev/null | sort -V | tail -n1 | sed 's|.*/linux-headers-||')"
