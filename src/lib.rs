@@ -11,3 +11,4 @@ pub mod core;
 pub mod engine;
 pub mod output;
 pub mod ros;
+pub mod safe_off;

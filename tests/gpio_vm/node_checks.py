@@ -399,6 +399,66 @@ def trace_records_the_line():
             f"median traced on time {mo:.2f} ms")
 
 
+def safe_off(*args):
+    p = subprocess.Popen([NODE, "safe-off", *args], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    out, err = p.communicate(timeout=30)
+    return p.returncode, out, err
+
+
+def sigkill_then_safe_off():
+    """SIGKILL the node while it drives two lines at 100 %: it cannot switch them off. With
+    each line pulled to its active level, gpio-sim then shows them active, as a SoC driver that
+    keeps the last level would: the heater stays on. safe-off requests both, drives them
+    inactive (read back from the kernel) and exits 0."""
+    hi, lo = Line(4), Line(5)
+    hi.set_pull(True)
+    lo.set_pull(False)
+    p = node([("pw01", 4), ("pw02", 5)], ["pw01.duty:=100.0", "pw01.enable:=true",
+                                           "pw02.duty:=100.0", "pw02.enable:=true",
+                                           "pw02.active_low:=true"])
+    try:
+        wait_level(p, hi, True)
+        wait_level(p, lo, False)
+    finally:
+        p.send_signal(signal.SIGKILL)
+        p.communicate()
+    require(p.returncode == -signal.SIGKILL, f"node ended with {p.returncode}")
+    end = time.monotonic() + 5
+    while (hi.held() or lo.held()) and time.monotonic() < end:
+        time.sleep(0.01)
+    require(not hi.held() and not lo.held(), "lines still held after SIGKILL")
+    require(hi.level() and not lo.level(), "lines not left active by the kill")
+    code, out, err = safe_off("--line", f"pw01={CHIP}:4", "--line", f"pw02={CHIP}:5",
+                              "--active-low", "pw02")
+    require(code == 0, f"safe-off exit {code}: {err}")
+    for want in (f"{CHIP} line 4 (pw01) inactive (read back)",
+                 f"{CHIP} line 5 (pw02) inactive (read back) (active-low"):
+        require(want in out, f"{want!r} not in safe-off's output: {out!r}")
+    require(not hi.held() and not lo.held(), "safe-off did not release the lines")
+    return "exit 0: " + "; ".join(out.strip().splitlines())
+
+
+def safe_off_refuses_a_held_line():
+    """safe-off while the node holds the line: refused, naming the holder, exit 1; the node's
+    line is left as the node drives it."""
+    hi = Line(4)
+    hi.set_pull(False)
+    p = node([("pw01", 4)], ["pw01.duty:=100.0", "pw01.enable:=true"])
+    try:
+        wait_level(p, hi, True)
+        code, out, err = safe_off("--line", f"pw01={CHIP}:4")
+        require(code == 1, f"safe-off exit {code}, expected 1: {out} {err}")
+        for want in (CHIP, "line 4", "busy", "`pwm_actuator`"):
+            require(want in err, f"{want!r} not in safe-off's error: {err!r}")
+        require(hi.held() and hi.level(), "the node's line was disturbed")
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err2 = stop(p)
+    require(code == 0, f"node exit {code}: {err2[-1000:]}")
+    return "exit 1: " + err.strip()
+
+
 def busy_line_is_a_configuration_error():
     l7 = Line(7)
     holder = node([("pw01", 7)], [])
@@ -446,6 +506,8 @@ CHECKS = [
     panic_ends_inactive,
     write_fault_ends_inactive,
     trace_records_the_line,
+    sigkill_then_safe_off,
+    safe_off_refuses_a_held_line,
     busy_line_is_a_configuration_error,
     missing_chip_is_a_configuration_error,
     two_channels_on_one_line_refused,
