@@ -120,9 +120,11 @@ elif ! command -v qemu-system-x86_64 >/dev/null && ((EUID != 0)); then
     vm_why="no qemu-system-x86_64 and not root to install it"
 else
     banner "gpio-vm prepare"
+    vm_start=$SECONDS
     if ! scripts/gpio-vm.sh --prepare; then
         vm_why="scripts/gpio-vm.sh --prepare failed (see above)"
     fi
+    printf -- '---- gpio-vm prepare: %s (%d s)\n' "${vm_why:-ok}" $((SECONDS - vm_start))
 fi
 if [[ -z "$vm_why" ]]; then
     rm -f "$LOG_DIR/gpio-vm.log"
