@@ -73,7 +73,6 @@ missing=()
 command -v qemu-system-x86_64 >/dev/null || missing+=(qemu-system-x86)
 [[ -x /bin/busybox ]] || missing+=(busybox-static)
 command -v cpio >/dev/null || missing+=(cpio)
-command -v depmod >/dev/null || missing+=(kmod)
 command -v xz >/dev/null || missing+=(xz-utils)
 ((${#missing[@]} == 0)) || apt_install "${missing[@]}"
 # (Not `busybox --list | grep -q`: with pipefail, grep's early exit fails the pipeline.)
@@ -190,12 +189,13 @@ inputs_hash() {
         declare -f patch_irq_sim
     } | sha256sum | cut -d' ' -f1
 }
-# Hashing the 140 MB source tarball costs a second: remember it by its size and mtime.
+# Hashing the 140 MB source tarball costs a second on every run, so the hash is reused while
+# the files keep their size and mtime (line 1 of .gpio-vm/inputs) and this script's own build
+# inputs are unchanged (line 3); otherwise it is computed again in full.
 src_stamp="$(stat -c '%s %Y' "$SRC_TAR" /bin/busybox "$IMAGE/boot/vmlinuz-$KVER" | tr '\n' ' ')"
 HASH=""
 if [[ -f "$CACHE/inputs" ]] && [[ "$(sed -n 1p "$CACHE/inputs")" == "$src_stamp" ]]; then
     HASH="$(sed -n 2p "$CACHE/inputs")"
-    # The script's own parts may have changed: recompute cheaply without the tarball.
 fi
 self_hash="$({ printf '%s\n' "${GUEST_MODULES[@]}" "$GUEST_INIT" "$KBUILD"; declare -f patch_irq_sim; } | sha256sum | cut -d' ' -f1)"
 if [[ -z "$HASH" || "$(sed -n 3p "$CACHE/inputs" 2>/dev/null)" != "$self_hash" ]]; then
