@@ -12,3 +12,4 @@ pub mod engine;
 pub mod output;
 pub mod ros;
 pub mod safe_off;
+pub mod service;

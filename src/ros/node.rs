@@ -669,8 +669,12 @@ async fn serve(
         }
     );
 
+    // Lines requested, output thread running, ROS side up: systemd's Type=notify start ends.
+    crate::service::ready();
+
     let reason = signals.wait(&bridge).await;
     info!("{reason}: stopping");
+    crate::service::stopping();
     for t in &tasks {
         t.abort();
     }
