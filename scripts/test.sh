@@ -4,6 +4,10 @@
 # tests/rclpy against the release binary. Exits non-zero if any step fails; the last line is a
 # summary of all tests run ("total: N passed, N failed, N skipped").
 #
+# The GPIO tests run on real kernel GPIO lines in a QEMU guest (scripts/gpio-vm.sh, which
+# installs QEMU and builds a gpio-sim module on first use); where the guest cannot run they are
+# reported as skipped with the reason.
+#
 # Usage: scripts/test.sh [--quick] [-- PYTEST_ARGS...]
 #   --quick   skip `cargo fmt --check` and `cargo clippy`
 #   PYTEST_ARGS are passed to pytest (e.g. `-- -k edges -x`).
@@ -19,7 +23,7 @@ while (($#)); do
     case "$1" in
         --quick) quick=1 ;;
         --) shift; pytest_extra=("$@"); break ;;
-        -h | --help) sed -n '2,10p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h | --help) sed -n '2,14p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
         *) echo "test: unknown argument '$1' (try --help)" >&2; exit 2 ;;
     esac
     shift
@@ -92,17 +96,65 @@ printf 'cargo test: %d passed, %d failed, %d ignored in %d test binaries\n' \
 grep '^test result: ' "$LOG_DIR/cargo-test.log" | sed 's/^/  /'
 passed=$((passed + c_pass)) failed=$((failed + c_fail)) skipped=$((skipped + c_skip))
 
-# 4b. The GPIO backend against a real gpio-sim chip. The test is ignored by default (counted as
-# skipped above) because it needs the gpio-sim kernel module; run it where a chip exists or
-# can be made through configfs.
-if [[ -w /sys/kernel/config/gpio-sim ]] || compgen -G '/sys/bus/platform/devices/gpio-sim*' >/dev/null; then
-    if run_step "gpio-sim test" cargo test --locked --test output_gpio_sim -- --ignored; then
-        passed=$((passed + 1)) skipped=$((skipped - 1))
-    else
-        failed=$((failed + 1)) skipped=$((skipped - 1))
+# 4b. Real kernel GPIO lines: in a QEMU guest with a gpio-sim chip (scripts/gpio-vm.sh), the
+# GPIO backend's integration test (ignored by `cargo test` above, counted as skipped there) and
+# the node-level checks of the release binary in tests/gpio_vm/. Counted as passed only when they
+# ran and passed; where the guest cannot run, the reason is printed and they count as skipped.
+vm_checks=$(python3 tests/gpio_vm/node_checks.py --list | wc -l)
+gpio_vm_tests() {
+    local test_bin
+    test_bin="$(cargo test --locked --no-run --test output_gpio_sim --message-format=json 2>/dev/null \
+        | sed -n 's/.*"executable":"\([^"]*output_gpio_sim[^"]*\)".*/\1/p' | tail -n1)"
+    if [[ -z "$test_bin" ]]; then
+        echo "gpio-vm: cannot find the output_gpio_sim test binary" >&2
+        return 1
     fi
+    scripts/gpio-vm.sh --timeout 900 -- tests/gpio_vm/guest.sh "$test_bin" \
+        "$REPO/target/release/pwm_actuator_node" 2>&1 | tee "$LOG_DIR/gpio-vm.log"
+    return "${PIPESTATUS[0]}"
+}
+vm_why=""
+if ((!release_ok)); then
+    vm_why="no release build"
+elif ! command -v qemu-system-x86_64 >/dev/null && ((EUID != 0)); then
+    vm_why="no qemu-system-x86_64 and not root to install it"
 else
-    echo "gpio-sim test: SKIPPED (no gpio-sim chip: needs the gpio-sim kernel module)"
+    banner "gpio-vm prepare"
+    vm_start=$SECONDS
+    if ! scripts/gpio-vm.sh --prepare; then
+        vm_why="scripts/gpio-vm.sh --prepare failed (see above)"
+    fi
+    printf -- '---- gpio-vm prepare: %s (%d s)\n' "${vm_why:-ok}" $((SECONDS - vm_start))
+fi
+if [[ -z "$vm_why" ]]; then
+    rm -f "$LOG_DIR/gpio-vm.log"
+    banner "gpio-vm tests"
+    vm_start=$SECONDS
+    gpio_vm_tests
+    vm_rc=$?
+    printf -- '---- gpio-vm tests: exit %d (%d s)\n' "$vm_rc" $((SECONDS - vm_start))
+    # The Rust test: its libtest summary; the node checks: their own summary line.
+    read -r g_pass g_fail < <(awk '/^test result: /{for(i=1;i<=NF;i++){if($(i+1)~/^passed;?$/)p+=$i; if($(i+1)~/^failed;?$/)f+=$i}} END{print p+0, f+0}' "$LOG_DIR/gpio-vm.log")
+    read -r n_pass n_fail < <(sed -n 's/^gpio-vm checks: \([0-9]*\) passed, \([0-9]*\) failed.*/\1 \2/p' "$LOG_DIR/gpio-vm.log" | tail -n1 | grep . || echo "0 0")
+    if ((vm_rc == 125 && g_pass + g_fail + n_pass + n_fail == 0)); then
+        vm_why="the guest did not run (scripts/gpio-vm.sh exit 125, see above)"
+    else
+        ((vm_rc == 0)) || failed_steps+=("gpio-vm tests")
+        # What did not report a result counts as failed: the guest stopped under it.
+        g_missing=$((1 - g_pass - g_fail)) n_missing=$((vm_checks - n_pass - n_fail))
+        ((g_missing < 0)) && g_missing=0
+        ((n_missing < 0)) && n_missing=0
+        printf 'gpio-vm: output_gpio_sim %d passed, %d failed; node checks %d passed, %d failed, %d without a result\n' \
+            "$g_pass" "$g_fail" "$n_pass" "$n_fail" "$n_missing"
+        passed=$((passed + g_pass + n_pass))
+        failed=$((failed + g_fail + g_missing + n_fail + n_missing))
+        skipped=$((skipped - 1)) # the ignored output_gpio_sim test, counted above
+    fi
+fi
+if [[ -n "$vm_why" ]]; then
+    echo "gpio-vm tests: SKIPPED ($vm_why): output_gpio_sim and $vm_checks node checks"
+    skipped=$((skipped + vm_checks))
+    skipped_steps+=("gpio-vm tests ($vm_why)")
 fi
 
 # 5. The rclpy suite, with the venv's python and the built messages.

@@ -11,3 +11,5 @@ pub mod core;
 pub mod engine;
 pub mod output;
 pub mod ros;
+pub mod safe_off;
+pub mod service;

@@ -1,11 +1,13 @@
-//! `pwm_actuator_node`: the ROS 2 node (see `pwm_actuator::ros`), or `pwm_actuator_node bench
-//! ...` for the timing benchmark.
+//! `pwm_actuator_node`: the ROS 2 node (see `pwm_actuator::ros`), `pwm_actuator_node bench ...`
+//! for the timing benchmark, or `pwm_actuator_node safe-off ...` to drive the node's lines
+//! inactive after it ended (see `pwm_actuator::safe_off`).
 //!
 //! One command line, parsed by clap: the node's options ([`cli::Flags`]) and a subcommand per
 //! other job, each with its own generated `--help`. The `--ros-args` blocks are split off
 //! first, by hand, because they follow rcl's rules rather than clap's.
 
 mod bench;
+mod safe_off_cmd;
 
 use clap::error::ErrorKind;
 use clap::FromArgMatches;
@@ -18,6 +20,8 @@ enum Invocation {
     Node,
     /// Run the benchmark.
     Bench(bench::BenchOptions),
+    /// Drive the lines inactive; the node command line equivalent to the options.
+    SafeOff(Vec<String>),
     /// Already answered (help, or a subcommand's usage error): exit with this code.
     Exit(u8),
 }
@@ -30,6 +34,7 @@ fn command() -> clap::Command {
             cli::NODE_USAGE
         ))
         .subcommand(bench::command())
+        .subcommand(safe_off_cmd::command())
         .args_conflicts_with_subcommands(true)
         .disable_help_subcommand(true)
 }
@@ -56,6 +61,19 @@ fn invocation(args: &[String]) -> Invocation {
                     }
                 }
             }
+            Some(("safe-off", sub)) => match safe_off_cmd::options(sub) {
+                Ok(o) => {
+                    let ros_blocks = args
+                        .iter()
+                        .position(|a| a == "--ros-args")
+                        .map_or(&[][..], |i| &args[i..]);
+                    Invocation::SafeOff(safe_off_cmd::node_args(&o, ros_blocks))
+                }
+                Err(e) => {
+                    let _ = e.print();
+                    Invocation::Exit(2)
+                }
+            },
             _ if m.get_flag("help") => {
                 println!("{}", cmd.render_help().to_string().trim_end());
                 Invocation::Exit(0)
@@ -67,7 +85,12 @@ fn invocation(args: &[String]) -> Invocation {
             let _ = e.print();
             Invocation::Exit(0)
         }
-        Err(e) if split.app.first().is_some_and(|a| a == "bench") => {
+        Err(e)
+            if split
+                .app
+                .first()
+                .is_some_and(|a| a == "bench" || a == "safe-off") =>
+        {
             let _ = e.print();
             Invocation::Exit(2)
         }
@@ -90,6 +113,7 @@ fn main() -> ExitCode {
     let code = match invocation(&args) {
         Invocation::Node => ros::run(&args),
         Invocation::Bench(opts) => bench::run(opts),
+        Invocation::SafeOff(node_args) => pwm_actuator::safe_off::run(&node_args),
         Invocation::Exit(code) => return ExitCode::from(code),
     };
     ExitCode::from(u8::try_from(code).unwrap_or(1))
@@ -103,5 +127,6 @@ mod tests {
     fn the_command_line_passes_clap_checks() {
         super::command().debug_assert();
         super::bench::command().debug_assert();
+        super::safe_off_cmd::command().debug_assert();
     }
 }

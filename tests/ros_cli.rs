@@ -159,10 +159,11 @@ fn bad_command_lines_exit_2_with_a_reason() {
         ),
         (
             &[
-                "--output", "gpio", "--line", "pw01=1", "--line", "pw02=2", "--trace", "x.vcd",
+                "--output", "gpio", "--line", "pw01=1", "--line", "pw02=2", "--trace", "x.txt",
             ],
             None,
-            "sim output only",
+            // Checked before any chip is opened (there is none here).
+            "unknown extension",
         ),
         (&["--trace", "x.txt"], None, "unknown extension"),
         (
@@ -184,7 +185,7 @@ fn bad_command_lines_exit_2_with_a_reason() {
 }
 
 #[test]
-fn a_missing_gpio_chip_is_a_runtime_error_that_names_it() {
+fn a_missing_gpio_chip_is_a_configuration_error_that_names_it() {
     let (code, _, err) = run(
         &[
             "--output",
@@ -196,8 +197,9 @@ fn a_missing_gpio_chip_is_a_runtime_error_that_names_it() {
         ],
         None,
     );
-    // No GPIO hardware here: opening fails before any output is driven.
-    assert_eq!(code, Some(1), "{err}");
+    // No GPIO hardware here: opening fails before any output is driven, and it is the
+    // configuration that is wrong (exit 2), not a fault while running (exit 1).
+    assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("gpiochip_none"), "{err}");
 }
 

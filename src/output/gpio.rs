@@ -88,6 +88,23 @@ pub enum GpioError {
         #[source]
         source: gpiocdev::Error,
     },
+    /// A line is already requested by another process (or another request): a configuration
+    /// error, found at start-up before anything is driven.
+    #[error(
+        "{} line {offset} (channel {name}) is busy: held by consumer `{holder}`",
+        chip.display()
+    )]
+    LineBusy {
+        /// The chip.
+        chip: PathBuf,
+        /// The busy line's offset.
+        offset: u32,
+        /// The channel bound to it.
+        name: String,
+        /// The holder's consumer label as the kernel reports it (`gpioinfo`); empty when the
+        /// holder gave none.
+        holder: String,
+    },
     /// Setting line values failed.
     #[error("cannot set lines {offsets:?} of {}", chip.display())]
     Write {
@@ -284,14 +301,7 @@ impl GpioOutput {
                 });
             }
             let offsets = plan.offsets();
-            let request = Request::from_config(plan.request_config())
-                .with_consumer(CONSUMER)
-                .request()
-                .map_err(|source| GpioError::Request {
-                    chip: plan.chip.clone(),
-                    offsets: offsets.clone(),
-                    source,
-                })?;
+            let request = request_plan(plan)?;
             for line in &plan.lines {
                 map[line.index] = (ci, line.offset);
             }
@@ -328,6 +338,41 @@ impl GpioOutput {
             }
         }
     }
+}
+
+/// Requests the lines of one chip as [`GpioOutput::open`] does; a refusal because a line is
+/// held elsewhere is reported as [`GpioError::LineBusy`] naming the holder.
+pub fn request_plan(plan: &ChipPlan) -> Result<Request, GpioError> {
+    Request::from_config(plan.request_config())
+        .with_consumer(CONSUMER)
+        .request()
+        .map_err(|source| {
+            for line in &plan.lines {
+                if let Some(holder) = line_holder(&plan.chip, line.offset) {
+                    return GpioError::LineBusy {
+                        chip: plan.chip.clone(),
+                        offset: line.offset,
+                        name: line.name.clone(),
+                        holder,
+                    };
+                }
+            }
+            GpioError::Request {
+                chip: plan.chip.clone(),
+                offsets: plan.offsets(),
+                source,
+            }
+        })
+}
+
+/// The consumer label of whoever holds line `offset` of `chip`, or `None` when the line is
+/// free (or its state cannot be read).
+pub fn line_holder(chip: &std::path::Path, offset: u32) -> Option<String> {
+    let info = gpiocdev::Chip::from_path(chip)
+        .ok()?
+        .line_info(offset)
+        .ok()?;
+    info.used.then_some(info.consumer)
 }
 
 /// An empty value set that can hold `offsets` without allocating.

@@ -53,9 +53,11 @@ pub mod gpio;
 pub mod safety;
 pub mod sim;
 pub mod trace;
+pub mod traced;
 
 pub use bindings::{check_unique, BindingError, LineAddr};
 pub use gpio::{GpioError, GpioLine, GpioOutput};
 pub use safety::{install_panic_hook, EmergencyRegistry, PANIC_EXIT_CODE};
 pub use sim::{SimOutput, SimProbe};
 pub use trace::{read_csv, CsvReadError, CsvRow, EdgeRecord, TraceError, TraceSpec};
+pub use traced::Traced;

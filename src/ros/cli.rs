@@ -70,9 +70,9 @@ pub struct Flags {
     #[arg(help = "Output backend (default sim) [output]")]
     #[arg(long, value_name = "sim|gpio", value_parser = parse_output, allow_hyphen_values = true)]
     pub output: Option<String>,
-    /// Trace of the sim output, FILE.vcd or FILE.csv; repeatable; sets the start-up value of
-    /// `trace`.
-    #[arg(help = "Trace of the sim output, FILE.vcd or FILE.csv; repeatable [trace]")]
+    /// Trace of every edge written (sim or gpio output), FILE.vcd or FILE.csv; repeatable; sets
+    /// the start-up value of `trace`.
+    #[arg(help = "Trace of every edge written, FILE.vcd or FILE.csv; repeatable [trace]")]
     #[arg(long, value_name = "FILE", action = ArgAction::Append, allow_hyphen_values = true)]
     pub trace: Vec<String>,
     /// GPIO line of a channel, e.g. pw01=17 or pw02=/dev/gpiochip1:4; repeatable; sets the start-up

@@ -27,7 +27,7 @@ use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::output::fault::{FailingOutput, Fault, FAULT_ENV};
 use crate::output::{
     check_unique, install_panic_hook, BindingError, GpioError, GpioLine, GpioOutput, LineAddr,
-    Output, SimOutput, TraceError, TraceSpec,
+    Output, SimOutput, TraceError, TraceSpec, Traced,
 };
 use futures::StreamExt;
 use log::{debug, error, info, warn};
@@ -123,7 +123,10 @@ impl NodeError {
             | NodeError::Binding(_)
             | NodeError::Fault(_)
             | NodeError::Split(_)
-            | NodeError::Trace(_) => EXIT_USAGE,
+            | NodeError::Trace(_)
+            // Opening the lines fails only on configuration: a missing chip, a busy line, an
+            // offset the chip lacks, no permission. Write faults come later, as `Engine`.
+            | NodeError::Gpio(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
     }
@@ -291,7 +294,10 @@ enum Opened {
     Sim(SimOutput),
     /// The sim output with injected write failures (`PWM_ACTUATOR_FAULT`, exit-path tests).
     FailingSim(FailingOutput<SimOutput>),
-    Gpio(GpioOutput),
+    /// The gpio output, its writes traced when trace files are asked for.
+    Gpio(Traced<GpioOutput>),
+    /// The same with injected write failures (exit-path tests on gpio-sim lines).
+    FailingGpio(FailingOutput<Traced<GpioOutput>>),
 }
 
 /// Opens the output (refusing duplicate GPIO lines before any chip is opened) and installs
@@ -315,7 +321,10 @@ fn open_output(cfg: &StartupConfig) -> Result<(Opened, Vec<String>), NodeError> 
                 _ => Ok((Opened::Sim(out), ids)),
             }
         }
-        OutputChoice::Gpio { lines } => {
+        OutputChoice::Gpio { lines, trace } => {
+            // Trace file names are checked before anything else; the files are created after
+            // the binding check and before any chip is opened.
+            let spec = TraceSpec::from_paths(trace).map_err(NodeError::Trace)?;
             // 000: no double output assignments, checked before any chip is opened.
             let bindings: Vec<(String, LineAddr)> = lines
                 .iter()
@@ -339,13 +348,30 @@ fn open_output(cfg: &StartupConfig) -> Result<(Opened, Vec<String>), NodeError> 
                     active_low: l.active_low,
                 })
                 .collect();
-            let out = GpioOutput::open(&gpio).map_err(NodeError::Gpio)?;
+            let recorder = if spec.is_empty() {
+                None
+            } else {
+                for f in spec.files() {
+                    info!(
+                        "tracing what is written to the lines to {}",
+                        f.path.display()
+                    );
+                }
+                Some(SimOutput::new(names.clone(), Some(spec)).map_err(NodeError::Trace)?)
+            };
+            let out = Traced::new(GpioOutput::open(&gpio).map_err(NodeError::Gpio)?, recorder);
             install_panic_hook(out.emergency_off());
             let ids = lines
                 .iter()
                 .map(|l| format!("{}:{}", l.chip, l.offset))
                 .collect();
-            Ok((Opened::Gpio(out), ids))
+            match Fault::from_env().map_err(NodeError::Fault)? {
+                Some(Fault::FailWriteAfter(n)) => {
+                    warn!("{FAULT_ENV}: output writes fail after {n}");
+                    Ok((Opened::FailingGpio(FailingOutput::new(out, n)), ids))
+                }
+                _ => Ok((Opened::Gpio(out), ids)),
+            }
         }
     }
 }
@@ -361,6 +387,7 @@ fn start_engine(cfg: &StartupConfig, output: Opened) -> Result<Engine, NodeError
         Opened::Sim(out) => engine::spawn(configs, out, opts),
         Opened::FailingSim(out) => engine::spawn(configs, out, opts),
         Opened::Gpio(out) => engine::spawn(configs, out, opts),
+        Opened::FailingGpio(out) => engine::spawn(configs, out, opts),
     }
     .map_err(NodeError::Engine)
 }
@@ -661,13 +688,20 @@ async fn serve(
         match &cfg.output {
             OutputChoice::Sim { trace } if trace.is_empty() => "sim output".to_string(),
             OutputChoice::Sim { trace } => format!("sim output, {} trace file(s)", trace.len()),
-            OutputChoice::Gpio { .. } => "gpio output".to_string(),
+            OutputChoice::Gpio { trace, .. } if trace.is_empty() => "gpio output".to_string(),
+            OutputChoice::Gpio { trace, .. } => {
+                format!("gpio output, {} trace file(s)", trace.len())
+            }
         }
     );
+
+    // Lines requested, output thread running, ROS side up: systemd's Type=notify start ends.
+    crate::service::ready();
 
     let reason = signals.wait(&stop_signal).await;
     info!("{reason}: stopping");
     logging::shutting_down();
+    crate::service::stopping();
     for t in &tasks {
         t.abort();
     }

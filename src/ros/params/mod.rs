@@ -252,9 +252,6 @@ pub enum ParamError {
         /// Channel name.
         channel: String,
     },
-    /// A trace asked for with output `gpio`.
-    #[error("trace files are written by the sim output only; with output gpio leave trace empty")]
-    TraceNeedsSim,
 }
 
 fn describe_value(v: &ParameterValue) -> String {

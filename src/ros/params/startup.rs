@@ -109,6 +109,8 @@ pub enum OutputChoice {
     Gpio {
         /// The lines, in channel order.
         lines: Vec<LineSpec>,
+        /// Trace files of what was written to the lines (possibly none).
+        trace: Vec<PathBuf>,
     },
 }
 
@@ -162,9 +164,6 @@ impl StartupConfig {
             .map(PathBuf::from)
             .collect();
         let output = if store.string("output") == Some("gpio") {
-            if !trace.is_empty() {
-                return Err(ParamError::TraceNeedsSim);
-            }
             let mut lines = Vec::new();
             for c in &channels {
                 let offset = store.int(&format!("{}.gpio_line", c.name)).unwrap_or(-1);
@@ -183,7 +182,7 @@ impl StartupConfig {
                     active_low: c.config.params.active_low,
                 });
             }
-            OutputChoice::Gpio { lines }
+            OutputChoice::Gpio { lines, trace }
         } else {
             OutputChoice::Sim { trace }
         };

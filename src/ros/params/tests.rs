@@ -425,7 +425,7 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
 }
 
 #[test]
-fn gpio_needs_lines_and_no_trace() {
+fn gpio_needs_lines_and_takes_a_trace() {
     let su = start_up(&[
         sv("channels", V::Integer(1)),
         sv("output", V::String("gpio".into())),
@@ -453,18 +453,23 @@ fn gpio_needs_lines_and_no_trace() {
                 chip: "/dev/gpiochip0".into(),
                 offset: 17,
                 active_low: true
-            }]
+            }],
+            trace: vec![],
         }
     );
     let su = start_up(&[
+        sv("channels", V::Integer(1)),
         sv("output", V::String("gpio".into())),
+        sv("pw01.gpio_line", V::Integer(17)),
         sv("trace", V::String("a.vcd".into())),
     ])
     .unwrap();
-    assert_eq!(
-        StartupConfig::from_store(&su.store),
-        Err(ParamError::TraceNeedsSim)
-    );
+    // Any output can be traced: with gpio the trace records what was written to the lines.
+    let OutputChoice::Gpio { trace, .. } = StartupConfig::from_store(&su.store).unwrap().output
+    else {
+        panic!("output gpio not chosen");
+    };
+    assert_eq!(trace, [std::path::PathBuf::from("a.vcd")]);
     let su = start_up(&[sv("trace", V::String("a.vcd, b.csv".into()))]).unwrap();
     assert_eq!(
         StartupConfig::from_store(&su.store).unwrap().output,

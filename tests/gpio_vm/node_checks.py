@@ -1,0 +1,544 @@
+#!/usr/bin/env python3
+"""Node-level checks of the release binary on real kernel GPIO lines (a gpio-sim chip).
+
+Runs inside the guest of scripts/gpio-vm.sh, which sets GPIO_SIM_CHIP (/dev/gpiochipN) and
+GPIO_SIM_SYSFS (the chip's sysfs directory). Every check starts the node as a process with
+`--output gpio` and watches the electrical level the kernel drives, from
+`sim_gpioN/value`, together with whether the line is held (the chip's line info ioctl), so that
+a level is attributed to the node only while the node holds the line: gpio-sim shows the line's
+pull once it is released, whatever was driven last.
+
+Usage: node_checks.py NODE_BINARY [CHECK_NAME...]
+       node_checks.py --list     names of the checks, one a line (runs nothing)
+Prints `PASS name` or `FAIL name: why` per check, then `gpio-vm checks: N passed, M failed`.
+Exit status 0 when every check passed. Standard library only: the guest runs the host's
+/usr/bin/python3.
+"""
+
+import fcntl
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+
+CHIP = os.environ.get("GPIO_SIM_CHIP", "")
+SYSFS = os.environ.get("GPIO_SIM_SYSFS", "")
+NODE = sys.argv[1] if len(sys.argv) > 1 else ""
+
+# struct gpio_v2_line_info (linux/gpio.h): name[32], consumer[32], offset, num_attrs, flags,
+# attrs[10] (16 bytes each), padding[4]: 256 bytes.
+LINEINFO_SIZE = 256
+GPIO_V2_GET_LINEINFO_IOCTL = (3 << 30) | (LINEINFO_SIZE << 16) | (0xB4 << 8) | 0x05
+GPIO_V2_LINE_FLAG_USED = 1
+
+
+class CheckFailed(Exception):
+    pass
+
+
+def require(cond, why):
+    if not cond:
+        raise CheckFailed(why)
+
+
+class Line:
+    """One gpio-sim line: its electrical level and whether someone holds it."""
+
+    def __init__(self, offset):
+        self.offset = offset
+        self.value_fd = os.open(f"{SYSFS}/sim_gpio{offset}/value", os.O_RDONLY)
+        self.chip_fd = os.open(CHIP, os.O_RDONLY)
+
+    def set_pull(self, up):
+        with open(f"{SYSFS}/sim_gpio{self.offset}/pull", "w") as f:
+            f.write("pull-up" if up else "pull-down")
+
+    def level(self):
+        return os.pread(self.value_fd, 4, 0)[:1] == b"1"
+
+    def info(self):
+        buf = bytearray(LINEINFO_SIZE)
+        struct.pack_into("I", buf, 64, self.offset)
+        fcntl.ioctl(self.chip_fd, GPIO_V2_GET_LINEINFO_IOCTL, buf)
+        consumer = bytes(buf[32:64]).split(b"\0")[0].decode()
+        (flags,) = struct.unpack_from("Q", buf, 72)
+        return bool(flags & GPIO_V2_LINE_FLAG_USED), consumer
+
+    def held(self):
+        return self.info()[0]
+
+    def sample(self):
+        """(time, level, held): held only if the line was held before and after the read."""
+        before = self.held()
+        t = time.monotonic()
+        v = self.level()
+        return t, v, before and self.held()
+
+
+def node(lines, params=(), env=None, channels=None):
+    """Starts the node on `lines` [(channel, offset)] with `-p` parameters."""
+    args = [NODE, "--output", "gpio"]
+    for ch, off in lines:
+        args += ["--line", f"{ch}={CHIP}:{off}"]
+    args += ["--channels", str(channels or len(lines)), "--ros-args"]
+    for p in params:
+        args += ["-p", p]
+    e = dict(os.environ, ROS_DOMAIN_ID="77")
+    e.update(env or {})
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=e, text=True)
+
+
+def wait_held(proc, lines, timeout=20.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if all(l.held() for l in lines):
+            return
+        if proc.poll() is not None:
+            raise CheckFailed(f"node exited {proc.returncode} before holding the lines: "
+                              f"{proc.stderr.read()[-2000:]}")
+        time.sleep(0.005)
+    raise CheckFailed(f"lines {[l.offset for l in lines]} not held within {timeout} s")
+
+
+def wait_level(proc, line, level, timeout=30.0):
+    """Waits until the node drives `line` to electrical `level` while holding it: the output
+    thread starts only after the ROS set-up, seconds after the lines are requested under TCG."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        _, v, h = line.sample()
+        if h and v == level:
+            return
+        if proc.poll() is not None:
+            raise CheckFailed(f"node exited {proc.returncode} before driving line "
+                              f"{line.offset}: {proc.stderr.read()[-2000:]}")
+    raise CheckFailed(f"line {line.offset} not driven {int(level)} within {timeout} s")
+
+
+def kill(proc):
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+def stop(proc, timeout=20.0):
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        raise CheckFailed(f"node did not exit within {timeout} s: {err[-2000:]}")
+    return proc.returncode, err
+
+
+def levels_for(line, seconds):
+    """Samples only the level (fast); the line must be held before and after the window."""
+    require(line.held(), f"line {line.offset} not held before sampling")
+    end = time.monotonic() + seconds
+    out = []
+    while (t := time.monotonic()) < end:
+        out.append((t, line.level(), True))
+    require(line.held(), f"line {line.offset} released while sampling")
+    return out
+
+
+def sample_for(lines, seconds):
+    end = time.monotonic() + seconds
+    out = {l.offset: [] for l in lines}
+    while time.monotonic() < end:
+        for l in lines:
+            out[l.offset].append(l.sample())
+    return out
+
+
+def phases(samples, active):
+    """Periods (rise to rise) and on times (rise to fall) in ms, from held samples; `active`
+    is the electrical level of the on state."""
+    rises, falls, prev = [], [], None
+    for t, v, held in samples:
+        if not held:
+            prev = None
+            continue
+        on = v == active
+        if prev is not None and on != prev:
+            (rises if on else falls).append(t)
+        prev = on
+    periods = [(b - a) * 1e3 for a, b in zip(rises, rises[1:])]
+    ons = []
+    for r in rises:
+        f = next((f for f in falls if f > r), None)
+        if f is not None:
+            ons.append((f - r) * 1e3)
+    return periods, ons
+
+
+def median(xs):
+    s = sorted(xs)
+    return s[len(s) // 2]
+
+
+def check_timing(samples, active, period_ms, on_ms, tol_ms=3.0):
+    periods, ons = phases(samples, active)
+    held = [v for _, v, h in samples if h]
+    require(len(periods) >= 5, f"only {len(periods)} periods seen in {len(samples)} samples, "
+            f"{len(held)} while held, {sum(held)} of those high")
+    mp, mo = median(periods), median(ons)
+    require(abs(mp - period_ms) <= tol_ms, f"median period {mp:.2f} ms, expected {period_ms}")
+    require(abs(mo - on_ms) <= tol_ms, f"median on time {mo:.2f} ms, expected {on_ms}")
+    # Time in the guest is emulated (TCG) on a shared host, and the sampler competes with the
+    # node for the two virtual CPUs: under load a single edge is now and then seen tens of ms
+    # late (the next period is then as much shorter: the grid holds). So the medians are held
+    # to `tol_ms`, the delivered duty to 2 points, and the pulse count exactly: one pulse per
+    # period, none missed or added (every period within half a period of its nominal length).
+    ratio = sum(ons[: len(periods)]) / sum(periods[: len(ons)]) * 100
+    want = on_ms / period_ms * 100
+    require(abs(ratio - want) <= 2, f"delivered duty {ratio:.2f} %, expected {want:.1f} %")
+    require(all(abs(p - period_ms) < period_ms / 2 for p in periods),
+            f"a pulse missed or added: periods {periods}")
+    require(all(0 < o < period_ms for o in ons), f"on times {ons}")
+    near_p = sum(abs(p - period_ms) <= 5 for p in periods) / len(periods)
+    near_o = sum(abs(o - on_ms) <= 5 for o in ons) / len(ons)
+    worst_p = max(abs(p - period_ms) for p in periods)
+    worst_o = max(abs(o - on_ms) for o in ons)
+    return (f"median period {mp:.2f} ms, on {mo:.2f} ms, duty {ratio:.2f} % over "
+            f"{len(periods)} periods; {near_p:.0%} / {near_o:.0%} within 5 ms, "
+            f"worst {worst_p:.1f} / {worst_o:.1f} ms")
+
+
+# ---- the checks ---------------------------------------------------------------------------------
+
+
+def duty_is_followed():
+    """30 % of 200 ms on an active-high line: 200 ms periods, 60 ms on times."""
+    l0 = Line(0)
+    l0.set_pull(False)
+    p = node([("pw01", 0)], ["pw01.period_ms:=200", "pw01.duty:=30.0", "pw01.enable:=true"])
+    try:
+        wait_level(p, l0, True)
+        time.sleep(0.5)  # past the start-up burst of the ROS side
+        what = check_timing(levels_for(l0, 3.0), True, 200, 60)
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    return what
+
+
+def active_low_inverts():
+    """The same on an active-low line: the electrical low phase is the 60 ms on time."""
+    l1 = Line(1)
+    l1.set_pull(False)
+    p = node([("pw01", 1)], ["pw01.period_ms:=200", "pw01.duty:=30.0", "pw01.enable:=true",
+                             "pw01.active_low:=true"])
+    try:
+        wait_level(p, l1, False)
+        time.sleep(0.5)
+        what = check_timing(levels_for(l1, 3.0), False, 200, 60)
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    return what
+
+
+def lines_start_inactive():
+    """Requested while disabled: both polarities held inactive from the request on, with each
+    line's pull set to its active level so that the request is what makes it inactive."""
+    hi, lo = Line(2), Line(3)
+    hi.set_pull(True)
+    lo.set_pull(False)
+    require(hi.level() and not lo.level(), "pulls not applied before the start")
+    p = node([("pw01", 2), ("pw02", 3)], ["pw01.duty:=100.0", "pw02.duty:=100.0",
+                                           "pw02.active_low:=true"])
+    try:
+        wait_held(p, [hi, lo])
+        s = sample_for([hi, lo], 1.0)
+        held_hi = [v for _, v, h in s[2] if h]
+        held_lo = [v for _, v, h in s[3] if h]
+        require(len(held_hi) > 100 and len(held_lo) > 100, "too few samples while held")
+        require(not any(held_hi), "active-high line seen high while disabled")
+        require(all(held_lo), "active-low line seen low while disabled")
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    return f"{len(held_hi)} + {len(held_lo)} samples, all inactive"
+
+
+def ends_inactive(trigger, expect_code, env=None, params=(), what=""):
+    """pw01 (active-high, pull-up) and pw02 (active-low, pull-down) at 100 %: each pull is the
+    line's active level, so a line let go without being driven inactive would still read
+    active. After `trigger`, the last level seen while the node still held each line must be
+    inactive, and the node must exit with `expect_code`."""
+    hi, lo = Line(4), Line(5)
+    hi.set_pull(True)
+    lo.set_pull(False)
+    lines = [("pw01", 4), ("pw02", 5)]
+    base = ["pw01.duty:=100.0", "pw01.enable:=true", "pw02.duty:=100.0", "pw02.enable:=true",
+            "pw02.active_low:=true", *params]
+    p = node(lines, base, env=env)
+    try:
+        wait_level(p, hi, True)
+        wait_level(p, lo, False)
+    except BaseException:
+        kill(p)
+        raise
+    trigger(p)
+    last = {4: None, 5: None}
+    end = time.monotonic() + 20.0
+    while time.monotonic() < end and (hi.held() or lo.held()):
+        for l in (hi, lo):
+            _, v, h = l.sample()
+            if h:
+                last[l.offset] = v
+    if hi.held() or lo.held():
+        kill(p)
+        raise CheckFailed("lines still held 20 s after the trigger")
+    code, err = stop(p)
+    require(last[4] is not None and last[5] is not None, "no sample while the lines were held")
+    require(last[4] is False, "active-high line was released while still high")
+    require(last[5] is True, "active-low line was released while still low (active)")
+    require(code == expect_code, f"exit {code}, expected {expect_code}: {err[-1500:]}")
+    return what or f"exit {code}, both lines inactive until released"
+
+
+def sigterm_ends_inactive():
+    return ends_inactive(lambda p: p.send_signal(signal.SIGTERM), 0)
+
+
+def sigint_ends_inactive():
+    return ends_inactive(lambda p: p.send_signal(signal.SIGINT), 0)
+
+
+def panic_ends_inactive():
+    return ends_inactive(lambda p: None, 101, env={"PWM_ACTUATOR_FAULT": "panic-after-ms=1500"})
+
+
+def write_fault_ends_inactive():
+    # The faulting writes come from a third channel pulsing at 50 % of 100 ms.
+    hi6 = Line(6)
+    hi6.set_pull(False)
+    lines_extra = ["pw03.duty:=50.0", "pw03.enable:=true", "pw03.period_ms:=100"]
+    hi, lo = Line(4), Line(5)
+    hi.set_pull(True)
+    lo.set_pull(False)
+    base = ["pw01.duty:=100.0", "pw01.enable:=true", "pw02.duty:=100.0", "pw02.enable:=true",
+            "pw02.active_low:=true", *lines_extra]
+    p = node([("pw01", 4), ("pw02", 5), ("pw03", 6)], base,
+             env={"PWM_ACTUATOR_FAULT": "fail-write-after=10"})
+    try:
+        wait_level(p, hi, True)
+        wait_level(p, lo, False)
+    except BaseException:
+        kill(p)
+        raise
+    last = {4: None, 5: None}
+    end = time.monotonic() + 30.0
+    while time.monotonic() < end and (hi.held() or lo.held()):
+        for l in (hi, lo):
+            _, v, h = l.sample()
+            if h:
+                last[l.offset] = v
+    if hi.held() or lo.held():
+        kill(p)
+        raise CheckFailed("lines still held 30 s after start")
+    code, err = stop(p)
+    require(last[4] is False, f"active-high line released while high ({last[4]})")
+    require(last[5] is True, f"active-low line released while low ({last[5]})")
+    require(code == 1, f"exit {code}, expected 1: {err[-1500:]}")
+    require("injected output write failure" in err, f"no fault reported: {err[-1500:]}")
+    return "exit 1, other lines inactive until released"
+
+
+def trace_records_the_line():
+    """--trace with --output gpio: every rise seen on the line is in the CSV trace, at the time
+    its write returned; the trace ends inactive; the VCD file is complete."""
+    l0 = Line(0)
+    l0.set_pull(False)
+    base = f"/tmp/gpio-vm-trace-{os.getpid()}"
+    csv_path, vcd_path = base + ".csv", base + ".vcd"
+    p = node([("pw01", 0)], ["pw01.period_ms:=200", "pw01.duty:=30.0", "pw01.enable:=true",
+                             f"trace:={csv_path},{vcd_path}"])
+    try:
+        wait_level(p, l0, True)
+        # Each rise seen on the line, as the interval between the last low and the first high
+        # sample: a stalled sampler (a vCPU descheduled by the host) widens it.
+        seen = []
+        prev, prev_t = True, 0.0
+        for t, v, _h in levels_for(l0, 2.0):
+            if v and not prev:
+                seen.append((prev_t, t))
+            prev, prev_t = v, t
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    with open(csv_path) as f:
+        rows = [r.split(",") for r in f.read().split()[1:]]
+    with open(vcd_path) as f:
+        vcd = f.read()
+    os.unlink(csv_path)
+    os.unlink(vcd_path)
+    edges = [(int(t) / 1e9, lvl == "1") for t, ch, lvl, _ in rows if ch == "pw01"]
+    require(len(edges) > 10, f"only {len(edges)} edges in the trace")
+    require(edges[-1][1] is False, "the trace does not end inactive")
+    rises = [t for t, high in edges if high]
+    require(len(seen) >= 5, f"only {len(seen)} rises seen on the line")
+    for lo, hi in seen:
+        # The trace time is read after the write returned: the sampler may see the level
+        # before that (by up to 6 ms seen under TCG on a loaded host).
+        require(any(lo <= r <= hi + 0.020 for r in rises),
+                f"a rise seen on the line between {lo:.4f} and {hi:.4f} s is not in the "
+                f"trace; nearest traced rise {min(rises, key=lambda r: abs(hi - r)):.4f} s")
+    ons = [b[0] - a[0] for a, b in zip(edges, edges[1:]) if a[1] and not b[1]]
+    mo = median(ons) * 1e3
+    require(abs(mo - 60) <= 3, f"median traced on time {mo:.2f} ms")
+    require("$enddefinitions" in vcd and "pw01" in vcd, "VCD trace incomplete")
+    return (f"{len(seen)} rises on the line, all in the trace ({len(edges)} edges), "
+            f"median traced on time {mo:.2f} ms")
+
+
+def safe_off(*args):
+    p = subprocess.Popen([NODE, "safe-off", *args], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    out, err = p.communicate(timeout=30)
+    return p.returncode, out, err
+
+
+def sigkill_then_safe_off():
+    """SIGKILL the node while it drives two lines at 100 %: it cannot switch them off. With
+    each line pulled to its active level, gpio-sim then shows them active, as a SoC driver that
+    keeps the last level would: the heater stays on. safe-off requests both, drives them
+    inactive (read back from the kernel) and exits 0."""
+    hi, lo = Line(4), Line(5)
+    hi.set_pull(True)
+    lo.set_pull(False)
+    p = node([("pw01", 4), ("pw02", 5)], ["pw01.duty:=100.0", "pw01.enable:=true",
+                                           "pw02.duty:=100.0", "pw02.enable:=true",
+                                           "pw02.active_low:=true"])
+    try:
+        wait_level(p, hi, True)
+        wait_level(p, lo, False)
+    finally:
+        p.send_signal(signal.SIGKILL)
+        p.communicate()
+    require(p.returncode == -signal.SIGKILL, f"node ended with {p.returncode}")
+    end = time.monotonic() + 5
+    while (hi.held() or lo.held()) and time.monotonic() < end:
+        time.sleep(0.01)
+    require(not hi.held() and not lo.held(), "lines still held after SIGKILL")
+    require(hi.level() and not lo.level(), "lines not left active by the kill")
+    code, out, err = safe_off("--line", f"pw01={CHIP}:4", "--line", f"pw02={CHIP}:5",
+                              "--active-low", "pw02")
+    require(code == 0, f"safe-off exit {code}: {err}")
+    for want in (f"{CHIP} line 4 (pw01) inactive (read back)",
+                 f"{CHIP} line 5 (pw02) inactive (read back) (active-low"):
+        require(want in out, f"{want!r} not in safe-off's output: {out!r}")
+    require(not hi.held() and not lo.held(), "safe-off did not release the lines")
+    return "exit 0: " + "; ".join(out.strip().splitlines())
+
+
+def safe_off_refuses_a_held_line():
+    """safe-off while the node holds the line: refused, naming the holder, exit 1; the node's
+    line is left as the node drives it."""
+    hi = Line(4)
+    hi.set_pull(False)
+    p = node([("pw01", 4)], ["pw01.duty:=100.0", "pw01.enable:=true"])
+    try:
+        wait_level(p, hi, True)
+        code, out, err = safe_off("--line", f"pw01={CHIP}:4")
+        require(code == 1, f"safe-off exit {code}, expected 1: {out} {err}")
+        for want in (CHIP, "line 4", "busy", "`pwm_actuator`"):
+            require(want in err, f"{want!r} not in safe-off's error: {err!r}")
+        require(hi.held() and hi.level(), "the node's line was disturbed")
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err2 = stop(p)
+    require(code == 0, f"node exit {code}: {err2[-1000:]}")
+    return "exit 1: " + err.strip()
+
+
+def busy_line_is_a_configuration_error():
+    l7 = Line(7)
+    holder = node([("pw01", 7)], [])
+    try:
+        wait_held(holder, [l7])
+        q = node([("pw01", 7)], [])
+        code, q_err = stop(q)
+        require(code == 2, f"exit {code}, expected 2: {q_err[-1500:]}")
+        for want in (CHIP, "line 7", "busy", "pwm_actuator"):
+            require(want in q_err, f"{want!r} not in the error: {q_err[-1500:]}")
+        require(l7.held(), "the first node lost the line")
+    finally:
+        holder.send_signal(signal.SIGTERM)
+    code, err = stop(holder)
+    require(code == 0, f"holder exit {code}: {err[-1000:]}")
+    return "exit 2: " + next((x for x in q_err.splitlines() if "busy" in x), "")[-160:]
+
+
+def missing_chip_is_a_configuration_error():
+    p = subprocess.Popen([NODE, "--output", "gpio", "--line", "pw01=/dev/gpiochip97:0",
+                          "--channels", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    code, err = stop(p)
+    require(code == 2, f"exit {code}, expected 2: {err[-1500:]}")
+    require("/dev/gpiochip97" in err, f"chip not named: {err[-1500:]}")
+    return "exit 2"
+
+
+def two_channels_on_one_line_refused():
+    l0 = Line(0)
+    p = node([("pw01", 0), ("pw02", 0)], [])
+    code, err = stop(p)
+    require(code == 2, f"exit {code}, expected 2: {err[-1500:]}")
+    require("pw01" in err and "pw02" in err, f"channels not named: {err[-1500:]}")
+    require(not l0.held(), "line held after the refusal")
+    return "exit 2, both channels named, line never requested"
+
+
+CHECKS = [
+    duty_is_followed,
+    active_low_inverts,
+    lines_start_inactive,
+    sigterm_ends_inactive,
+    sigint_ends_inactive,
+    panic_ends_inactive,
+    write_fault_ends_inactive,
+    trace_records_the_line,
+    sigkill_then_safe_off,
+    safe_off_refuses_a_held_line,
+    busy_line_is_a_configuration_error,
+    missing_chip_is_a_configuration_error,
+    two_channels_on_one_line_refused,
+]
+
+
+def main():
+    if NODE == "--list":
+        for check in CHECKS:
+            print(check.__name__)
+        return 0
+    if not (NODE and CHIP and SYSFS):
+        print("usage: node_checks.py NODE_BINARY (inside scripts/gpio-vm.sh)", file=sys.stderr)
+        return 2
+    wanted = sys.argv[2:]
+    passed = failed = 0
+    for check in CHECKS:
+        if wanted and check.__name__ not in wanted:
+            continue
+        t = time.monotonic()
+        try:
+            what = check()
+            passed += 1
+            print(f"PASS {check.__name__} ({time.monotonic() - t:.1f} s): {what}", flush=True)
+        except Exception as e:  # noqa: BLE001 - every failure is reported, then counted
+            failed += 1
+            print(f"FAIL {check.__name__} ({time.monotonic() - t:.1f} s): "
+                  f"{type(e).__name__}: {e}", flush=True)
+    print(f"gpio-vm checks: {passed} passed, {failed} failed", flush=True)
+    return 0 if failed == 0 and passed > 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
