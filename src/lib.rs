@@ -9,6 +9,7 @@
 pub mod clock;
 pub mod core;
 pub mod engine;
+pub mod error;
 pub mod output;
 pub mod ros;
 pub mod safe_off;

@@ -199,14 +199,7 @@ pub fn run(args: &[String]) -> i32 {
             EXIT_OK
         }
         Err(e) => {
-            let mut msg = e.to_string();
-            let mut src = std::error::Error::source(&e);
-            while let Some(s) = src {
-                msg.push_str(": ");
-                msg.push_str(&s.to_string());
-                src = s.source();
-            }
-            eprintln!("safe-off: {msg}");
+            eprintln!("safe-off: {}", crate::error::chain(&e));
             e.exit_code()
         }
     }

@@ -348,21 +348,10 @@ impl Drop for SimOutput {
                 }
             }
             if let Some(e) = io.error.take() {
-                warn(format_args!("sim output: {}", error_chain(&e)));
+                warn(format_args!("sim output: {}", crate::error::chain(&e)));
             }
         }
     }
-}
-
-fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut s = e.to_string();
-    let mut src = e.source();
-    while let Some(inner) = src {
-        s.push_str(": ");
-        s.push_str(&inner.to_string());
-        src = inner.source();
-    }
-    s
 }
 
 /// The emergency handle of a [`SimOutput`].
@@ -397,7 +386,7 @@ impl EmergencyOff for SimEmergencyOff {
                 if let Some(e) = io.error.take() {
                     warn(format_args!(
                         "sim output: emergency off: {}",
-                        error_chain(&e)
+                        crate::error::chain(&e)
                     ));
                 }
             }

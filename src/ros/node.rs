@@ -24,6 +24,7 @@ use super::split::{self, SplitError};
 use crate::clock;
 use crate::core::{split_command, ChannelConfig, Command};
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
+use crate::error::chain;
 use crate::output::fault::{FailingOutput, Fault, FAULT_ENV};
 use crate::output::{
     check_unique, install_panic_hook, BindingError, GpioError, GpioLine, GpioOutput, LineAddr,
@@ -138,21 +139,6 @@ fn ros_err(what: impl Into<String>) -> impl FnOnce(ros2_client::CreateError) -> 
         what,
         source: Box::new(e),
     }
-}
-
-/// The error and its causes, `: `-separated.
-fn chain(e: &dyn std::error::Error) -> String {
-    let mut s = e.to_string();
-    let mut src = e.source();
-    while let Some(c) = src {
-        let t = c.to_string();
-        if !s.contains(&t) {
-            s.push_str(": ");
-            s.push_str(&t);
-        }
-        src = c.source();
-    }
-    s
 }
 
 /// Reads `ROS_DOMAIN_ID` (unset or empty: 0).
