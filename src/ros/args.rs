@@ -241,7 +241,7 @@ pub struct RosArgs {
     pub params: Vec<ParamSource>,
     /// Log levels, in order (a later one wins).
     pub log_levels: Vec<LogLevelArg>,
-    /// `-e/--enclave` (accepted for launch files; security is not enabled).
+    /// `-e/--enclave`: the SROS2 enclave; see [`super::security`] for what is done with it.
     pub enclave: Option<String>,
     /// `--log-config-file` (accepted; this node configures logging from `--log-level` only).
     pub log_config_file: Option<PathBuf>,

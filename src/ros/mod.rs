@@ -10,6 +10,7 @@
 //! - [`params`]: parameter declarations and the one store both parameter doors write through.
 //! - [`msg`]: the messages; [`qos`]: their QoS.
 //! - [`bridge`]: ROS <-> output thread; [`services`]: the parameter services.
+//! - [`security`]: the SROS2 environment, refused or warned about.
 //! - [`split`]: split-range pairs (one signed command for a hot and a cold channel).
 //! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself.
 //! - [`node`]: start-up, wiring, shutdown ([`run`]).
@@ -25,6 +26,7 @@ pub mod names;
 pub mod node;
 pub mod params;
 pub mod qos;
+pub mod security;
 pub mod services;
 pub mod split;
 

@@ -18,6 +18,7 @@ use super::params::{
     self, show_value, OutputChoice, ParamError, ParamStore, StartValue, StartupConfig,
 };
 use super::qos;
+use super::security::{self, SecurityDecision, SecurityError, SecurityRequest};
 use super::services::{self, ServiceError};
 use super::split::{self, SplitError};
 use crate::core::{split_command, ChannelConfig, Command};
@@ -104,6 +105,9 @@ pub enum NodeError {
     /// The async runtime cannot start.
     #[error("cannot start the async runtime: {0}")]
     Runtime(#[source] std::io::Error),
+    /// Security is enforced and cannot be provided.
+    #[error(transparent)]
+    Security(#[from] SecurityError),
     /// `PWM_ACTUATOR_FAULT` is malformed.
     #[error("{0}")]
     Fault(String),
@@ -121,6 +125,7 @@ impl NodeError {
             | NodeError::Binding(_)
             | NodeError::Fault(_)
             | NodeError::Split(_)
+            | NodeError::Security(_)
             | NodeError::Trace(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
@@ -199,6 +204,10 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         warn!("--log-config-file is not supported; use --log-level");
     }
     let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())?;
+    let sec = SecurityRequest::read(|k| std::env::var(k).ok(), parsed.ros.enclave.as_deref());
+    if let SecurityDecision::Warn(w) = security::decide(&sec)? {
+        warn!("{w}");
+    }
     let fqn = id.fully_qualified();
     let start = start_values(&flags, &parsed.ros, &id, &fqn)?;
     let su = params::start_up(&start)?;
