@@ -6,9 +6,10 @@
 #[path = "common/ros_harness.rs"]
 mod ros_harness;
 
+use pwm_actuator::ros::msg::DiagnosticArray;
 use ros_harness::*;
-use std::process::Command;
-use std::time::Duration;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
 
 /// Every variable these tests set, removed from the child's environment first so the
 /// caller's shell cannot change a result.
@@ -124,4 +125,176 @@ fn permissive_security_and_a_bare_enclave_start_with_one_warning() {
     std::thread::sleep(Duration::from_millis(200));
     let (_, log) = n.stop();
     assert!(!log.contains("secur"), "{log}");
+}
+
+/// The node started directly (the harness keeps its pid to itself), stderr to a file.
+struct Spawned {
+    child: Child,
+    log: std::path::PathBuf,
+}
+
+impl Spawned {
+    fn start(dom: &Domain, env: &[(&str, &str)]) -> Spawned {
+        let log = std::env::temp_dir().join(format!(
+            "pwm_actuator_trust_{}_{}.log",
+            std::process::id(),
+            dom.id
+        ));
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_pwm_actuator_node"));
+        for v in TRUST_VARS {
+            cmd.env_remove(v);
+        }
+        let child = cmd
+            .envs(env.iter().copied())
+            .env("ROS_DOMAIN_ID", dom.id.to_string())
+            .env_remove("ROS_DISTRO")
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .expect("the node binary starts");
+        let s = Spawned { child, log };
+        let end = Instant::now() + LONG;
+        while !s.log().contains(" running: ") {
+            assert!(Instant::now() < end, "node did not start:\n{}", s.log());
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        s
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// The local addresses of the node's UDP sockets, as `ss` shows them (`0.0.0.0%lo:7400`).
+    fn udp_sockets(&self) -> Option<Vec<String>> {
+        let out = Command::new("ss").args(["-H", "-uanp"]).output().ok()?;
+        let pid = format!("pid={},", self.child.id());
+        Some(
+            String::from_utf8_lossy(&out.stdout)
+                .lines()
+                .filter(|l| l.contains(&pid))
+                .filter_map(|l| l.split_whitespace().nth(3).map(str::to_string))
+                .collect(),
+        )
+    }
+}
+
+impl Drop for Spawned {
+    fn drop(&mut self) {
+        let _ = nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(self.child.id() as i32),
+            nix::sys::signal::Signal::SIGINT,
+        );
+        let end = Instant::now() + LONG;
+        while Instant::now() < end {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Whether a test participant with RustDDS's defaults on `dom` hears the node's
+/// `/diagnostics` (1 Hz) within `within`.
+fn heard_from(dom: &Domain, within: Duration) -> bool {
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let mut ros = Ros::new(dom.id);
+        let diag = ros.sub::<DiagnosticArray>(
+            "/diagnostics",
+            "diagnostic_msgs",
+            "DiagnosticArray",
+            default_qos(),
+        );
+        next(&diag, within).await.is_some()
+    })
+}
+
+#[test]
+fn localhost_binds_every_socket_to_loopback_and_still_talks_on_this_machine() {
+    for env in [
+        vec![("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")],
+        vec![("ROS_LOCALHOST_ONLY", "1")],
+    ] {
+        let dom = Domain::acquire();
+        let node = Spawned::start(&dom, &env);
+        let Some(socks) = node.udp_sockets() else {
+            eprintln!("skipped: `ss` is not available");
+            return;
+        };
+        assert!(socks.len() >= 4, "{env:?}: {socks:?}\n{}", node.log());
+        for s in &socks {
+            assert!(
+                s.contains("%lo:") || s.starts_with("127."),
+                "{env:?}: socket {s} is reachable from other interfaces: {socks:?}"
+            );
+        }
+        assert!(
+            node.log().contains("discovery range LOCALHOST"),
+            "{}",
+            node.log()
+        );
+        // A participant on this machine still discovers it and hears it.
+        assert!(heard_from(&dom, LONG), "{env:?}: {}", node.log());
+    }
+    // ROS_LOCALHOST_ONLY says it is deprecated.
+    let dom = Domain::acquire();
+    let node = Spawned::start(&dom, &[("ROS_LOCALHOST_ONLY", "1")]);
+    assert!(
+        node.log().contains("ROS_LOCALHOST_ONLY is deprecated"),
+        "{}",
+        node.log()
+    );
+}
+
+#[test]
+fn subnet_is_unchanged_and_off_discovers_no_one() {
+    let dom = Domain::acquire();
+    let node = Spawned::start(&dom, &[("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET")]);
+    if let Some(socks) = node.udp_sockets() {
+        assert!(socks.iter().any(|s| s.starts_with("0.0.0.0:")), "{socks:?}");
+    }
+    assert!(heard_from(&dom, LONG), "{}", node.log());
+    drop(node);
+
+    let dom = Domain::acquire();
+    let node = Spawned::start(&dom, &[("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")]);
+    if let Some(socks) = node.udp_sockets() {
+        assert!(socks.iter().all(|s| s.contains("%lo:")), "{socks:?}");
+    }
+    assert!(node.log().contains("discovery range OFF"), "{}", node.log());
+    assert!(
+        !heard_from(&dom, Duration::from_secs(4)),
+        "OFF, yet heard: {}",
+        node.log()
+    );
+}
+
+#[test]
+fn static_peers_are_refused_clearly() {
+    let (code, err, traced) = run_to_exit(&[("ROS_STATIC_PEERS", "192.0.2.1;peer.example")], &[]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(
+        err.contains("ROS_STATIC_PEERS asks for static peers (192.0.2.1;peer.example)"),
+        "{err}"
+    );
+    assert!(!traced, "the output was opened before the refusal");
+    // Under OFF, rcl does not use them either: a warning, and the node starts.
+    let dom = Domain::acquire();
+    let node = Spawned::start(
+        &dom,
+        &[
+            ("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF"),
+            ("ROS_STATIC_PEERS", "192.0.2.1"),
+        ],
+    );
+    assert!(
+        node.log().contains("ROS_STATIC_PEERS is ignored"),
+        "{}",
+        node.log()
+    );
 }

@@ -10,6 +10,7 @@
 //! - [`params`]: parameter declarations and the one store both parameter doors write through.
 //! - [`msg`]: the messages; [`qos`]: their QoS.
 //! - [`bridge`]: ROS <-> output thread; [`services`]: the parameter services.
+//! - [`discovery`]: the discovery range and static peers, applied or refused.
 //! - [`security`]: the SROS2 environment, refused or warned about.
 //! - [`split`]: split-range pairs (one signed command for a hot and a cold channel).
 //! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself.
@@ -20,6 +21,7 @@ pub mod bridge;
 pub mod cli;
 pub mod console;
 pub mod diagnostics;
+pub mod discovery;
 pub mod logging;
 pub mod msg;
 pub mod names;

@@ -11,6 +11,7 @@ use super::args::{self, ArgsError, Remap, RosArgs};
 use super::bridge::{Bridge, ChannelPubs};
 use super::cli::{self, CliError, Flags, DEMO_ORIGIN};
 use super::diagnostics::CommandUnit;
+use super::discovery::{self, Discovery, DiscoveryError};
 use super::logging::{self, LogConfig};
 use super::msg::{self, RosMessage};
 use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
@@ -31,8 +32,7 @@ use crate::output::{
 use futures::StreamExt;
 use log::{debug, error, info, warn};
 use ros2_client::{
-    Context, ContextOptions, Message, Node, NodeName, NodeOptions, Publisher, QosProfile,
-    Subscription,
+    Context, Message, Node, NodeName, NodeOptions, Publisher, QosProfile, Subscription,
 };
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -105,6 +105,9 @@ pub enum NodeError {
     /// The async runtime cannot start.
     #[error("cannot start the async runtime: {0}")]
     Runtime(#[source] std::io::Error),
+    /// A discovery setting that cannot be honoured.
+    #[error(transparent)]
+    Discovery(#[from] DiscoveryError),
     /// Security is enforced and cannot be provided.
     #[error(transparent)]
     Security(#[from] SecurityError),
@@ -126,6 +129,7 @@ impl NodeError {
             | NodeError::Fault(_)
             | NodeError::Split(_)
             | NodeError::Security(_)
+            | NodeError::Discovery(_)
             | NodeError::Trace(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
@@ -208,6 +212,7 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
     if let SecurityDecision::Warn(w) = security::decide(&sec)? {
         warn!("{w}");
     }
+    let disc = discovery::read(|k| std::env::var(k).ok())?;
     let fqn = id.fully_qualified();
     let start = start_values(&flags, &parsed.ros, &id, &fqn)?;
     let su = params::start_up(&start)?;
@@ -234,7 +239,7 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         .enable_all()
         .build()
         .map_err(NodeError::Runtime)?;
-    rt.block_on(serve(id, parsed.ros, su.store, cfg, splits, domain))
+    rt.block_on(serve(id, parsed.ros, su.store, cfg, splits, (domain, disc)))
 }
 
 /// Most "no such parameter" warnings written at start-up; the rest are counted in one line.
@@ -511,7 +516,7 @@ async fn serve(
     store: ParamStore,
     cfg: StartupConfig,
     splits: Vec<split::SplitPair>,
-    domain: u16,
+    (domain, disc): (u16, Discovery),
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
     let fqn = id.fully_qualified();
@@ -521,8 +526,12 @@ async fn serve(
     // The output first: configuration and hardware errors stop the node before it joins ROS.
     let (output, hardware_ids) = open_output(&cfg)?;
 
-    let context = Context::with_options(ContextOptions::new().domain_id(domain))
-        .map_err(ros_err("the DDS participant"))?;
+    let participant = disc
+        .participant(domain)
+        .map_err(|e| ros_err("the DDS participant")(e.into()))?;
+    let context =
+        Context::from_domain_participant(participant).map_err(ros_err("the DDS participant"))?;
+    disc.log(disc.confine()?);
     let node_name = NodeName::new(&id.namespace, &id.name).map_err(|e| NodeError::Ros {
         what: format!("node {fqn}"),
         source: Box::new(e),
