@@ -298,3 +298,38 @@ fn static_peers_are_refused_clearly() {
         node.log()
     );
 }
+
+#[test]
+fn a_second_node_with_the_same_name_is_warned_about() {
+    let dom = Domain::acquire();
+    let first = Spawned::start(&dom, &[]);
+    let second = Spawned::start(&dom, &[]);
+    let needle = "there are 2 nodes with the name /pwm_actuator on this ROS domain";
+    let end = Instant::now() + LONG;
+    while !(first.log().contains(needle) && second.log().contains(needle)) {
+        assert!(
+            Instant::now() < end,
+            "no warning\nfirst:\n{}\nsecond:\n{}",
+            first.log(),
+            second.log()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // Once each, however often the other announces itself.
+    std::thread::sleep(Duration::from_secs(1));
+    assert_eq!(first.log().matches(needle).count(), 1, "{}", first.log());
+    assert_eq!(second.log().matches(needle).count(), 1, "{}", second.log());
+}
+
+#[test]
+fn a_node_alone_on_its_domain_says_nothing_about_names() {
+    let dom = Domain::acquire();
+    let node = Spawned::start(&dom, &[]);
+    // Its own announcement comes back to it: that is not a second node.
+    assert!(heard_from(&dom, LONG), "{}", node.log());
+    assert!(
+        !node.log().contains("nodes with the name"),
+        "{}",
+        node.log()
+    );
+}

@@ -6,6 +6,7 @@
 //! never writes an output (the engine does).
 //!
 //! - [`args`]: `--ros-args` and parameter files; [`cli`]: the node's own options.
+//! - [`name_clash`]: a warning when another node on the domain has this node's name.
 //! - [`names`]: node identity, `~` expansion and remapping.
 //! - [`params`]: parameter declarations and the one store both parameter doors write through.
 //! - [`msg`]: the messages; [`qos`]: their QoS.
@@ -24,6 +25,7 @@ pub mod diagnostics;
 pub mod discovery;
 pub mod logging;
 pub mod msg;
+pub mod name_clash;
 pub mod names;
 pub mod node;
 pub mod params;

@@ -14,6 +14,7 @@ use super::diagnostics::CommandUnit;
 use super::discovery::{self, Discovery, DiscoveryError};
 use super::logging::{self, LogConfig};
 use super::msg::{self, RosMessage};
+use super::name_clash::{self, NameClash};
 use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
 use super::params::{
     self, show_value, OutputChoice, ParamError, ParamStore, StartValue, StartupConfig,
@@ -555,6 +556,10 @@ async fn serve(
         }
     });
     let mut tasks: Vec<JoinHandle<()>> = Vec::new();
+    if let Some(events) = node.status_receiver() {
+        let clash = NameClash::new(&context.domain_participant(), fqn.clone());
+        tasks.push(tokio::spawn(name_clash::watch(events, clash)));
+    }
 
     let n = cfg.channels.len();
     let mut pubs = Vec::with_capacity(n);
