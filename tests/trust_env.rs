@@ -254,6 +254,14 @@ fn localhost_binds_every_socket_to_loopback_and_still_talks_on_this_machine() {
         );
         // A participant on this machine still discovers it and hears it.
         assert!(heard_from(&dom, LONG), "{env:?}: {}", node.log());
+        // Having matched a peer opened no socket outside loopback.
+        let after = node.udp_sockets().unwrap_or_default();
+        assert!(
+            after
+                .iter()
+                .all(|s| s.contains("%lo:") || s.starts_with("127.")),
+            "{env:?}: after matching a peer: {after:?}"
+        );
         // A clean stop is quiet: no rustdds error about multicast groups it never joined.
         let log = node.stop();
         assert!(log.contains("all outputs off"), "{log}");
