@@ -182,11 +182,12 @@ PARAM_NAMES = [
 # ---------------------------------------------------------------------------------------------
 
 
-def check_trace(path: Path, since_ns: int) -> dict[str, int]:
+def check_trace(path: Path, since_ns: int, until_ns: int) -> dict[str, int]:
     """Edges, early edges, split overlaps over the whole run; phases below the minimum for the
-    phases that start at or after `since_ns` (CLOCK_MONOTONIC, as the trace): before it, fuzz
-    bytes that decode as a valid `Bool false` disable channels, and a falling enable switches
-    off at once by design (a safety off), so a pulse cut short there is not a violation."""
+    phases that start at or after `since_ns` and end before `until_ns` (CLOCK_MONOTONIC, as the
+    trace). Before `since_ns`, fuzz bytes that decode as a valid `Bool false` disable channels,
+    and a falling enable switches off at once by design (a safety off); from `until_ns` on, the
+    node is stopping and drives every line off at once, also by design."""
     rows: dict[str, list[tuple[int, int, int]]] = {}
     with path.open() as f:
         for r in csv.DictReader(f):
@@ -203,7 +204,7 @@ def check_trace(path: Path, since_ns: int) -> dict[str, int]:
         if ch in MINIMA_MS:
             min_on, min_off = MINIMA_MS[ch]
             for (t0, lvl, _), (t1, _, _) in zip(rs[1:], rs[2:]):
-                if t0 < since_ns:
+                if t0 < since_ns or t1 >= until_ns:
                     continue
                 need = (min_on if lvl else min_off) * 1_000_000
                 if t1 - t0 < need:
@@ -365,6 +366,7 @@ def main() -> int:
     time.sleep(3)
     cpu1, t1 = cpu_seconds(node.pid), time.monotonic()
     st = proc_status(node.pid) if alive() else {"VmRSS": -1, "VmHWM": -1}
+    stop_ns = time.monotonic_ns()
     node.send_signal(signal.SIGINT)
     try:
         code = node.wait(timeout=20)
@@ -377,7 +379,7 @@ def main() -> int:
     rclpy.shutdown()
     os.close(lock)
 
-    tr = check_trace(trace, flood_start_ns)
+    tr = check_trace(trace, flood_start_ns, stop_ns)
     figures = {
         "inputs_sent": sent,
         "inputs_total": sum(sent.values()),
