@@ -23,6 +23,7 @@ Fixed seed (--seed), fixed counts and a fixed flood duration (--flood-seconds) m
 from __future__ import annotations
 
 import argparse
+import atexit
 import csv
 import fcntl
 import json
@@ -257,6 +258,8 @@ def main() -> int:
     node = subprocess.Popen(
         [a.node, "--trace", str(trace), *NODE_ARGS], env=env, stdout=log, stderr=subprocess.STDOUT
     )
+    # Never leave the node running on a domain whose lock this process releases when it exits.
+    atexit.register(lambda: node.poll() is None and node.kill())
     print(f"stress: node pid {node.pid}, domain {domain}, work dir {work}", flush=True)
     crashes = 0
 
@@ -396,12 +399,20 @@ def main() -> int:
         "seconds": round(t1 - t0, 1),
         **tr,
         "log_lines": sum(1 for _ in (work / "node.log").open()),
+        # Another node with this name on the domain would share the flood: the run is void.
+        "other_nodes_with_the_same_name": (work / "node.log").read_text().count("nodes with the name"),
     }
     for k, v in figures.items():
         print(f"{k}: {v}")
     if a.json:
         print(json.dumps(figures))
-    bad = crashes or tr["early_edges"] or tr["phases_below_minimum"] or tr["split_overlaps"]
+    bad = (
+        crashes
+        or tr["early_edges"]
+        or tr["phases_below_minimum"]
+        or tr["split_overlaps"]
+        or figures["other_nodes_with_the_same_name"]
+    )
     print("stress: FAIL" if bad else "stress: ok")
     return 1 if bad else 0
 
