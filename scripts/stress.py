@@ -285,9 +285,11 @@ def main() -> int:
     # 1. Malformed CDR on every input topic.
     types = {"duty": Float64, "sv": UInt16, "enable": Bool, "params": ChannelParams}
     pubs = []
+    by_topic = {}
     for ch in ("pw01", "pw02", "pw03", "pw04"):
         for name, ty in types.items():
-            pubs.append((name, n.create_publisher(ty, f"{NODE}/{ch}/{name}", 10)))
+            by_topic[(ch, name)] = n.create_publisher(ty, f"{NODE}/{ch}/{name}", 10)
+            pubs.append((name, by_topic[(ch, name)]))
     pubs.append(("command", n.create_publisher(Float64, f"{NODE}/split/z/command", 10)))
     deadline = time.monotonic() + 20
     while any(p.get_subscription_count() == 0 for _, p in pubs) and time.monotonic() < deadline:
@@ -335,7 +337,8 @@ def main() -> int:
         env=env, stdout=subprocess.PIPE, text=True,
     )
     # Undo what fuzz bytes decoded as valid commands did (enable false on pw01, say).
-    reenable = [n.create_publisher(Bool, f"{NODE}/{ch}/enable", 10) for ch in ("pw01", "pw03", "pw04")]
+    # (With the publishers matched during phase 1: a new one's first messages could be lost.)
+    reenable = [by_topic[(ch, "enable")] for ch in ("pw01", "pw03", "pw04")]
     for _ in range(10):
         for p in reenable:
             p.publish(Bool(data=True))
@@ -343,9 +346,9 @@ def main() -> int:
     rss_phase["after_parameters"] = proc_status(node.pid)["VmRSS"]
     time.sleep(2)
     flood_start_ns = time.monotonic_ns()
-    duty = {ch: n.create_publisher(Float64, f"{NODE}/{ch}/duty", 10) for ch in ("pw01", "pw02")}
-    sv = n.create_publisher(UInt16, f"{NODE}/pw01/sv", 10)
-    en2 = n.create_publisher(Bool, f"{NODE}/pw02/enable", 10)
+    duty = {ch: by_topic[(ch, "duty")] for ch in ("pw01", "pw02")}
+    sv = by_topic[("pw01", "sv")]
+    en2 = by_topic[("pw02", "enable")]
     split = pubs[-1][1]
     flood_end = time.monotonic() + a.flood_seconds
     extremes_f = [float("nan"), float("inf"), -float("inf"), 1e308, -1e308, -0.0, 100.0, 0.0]
