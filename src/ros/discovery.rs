@@ -153,9 +153,28 @@ pub fn read(var: impl Fn(&str) -> Option<String>) -> Result<Discovery, Discovery
 }
 
 impl Discovery {
-    /// Builds the DDS participant for `domain` with this range.
-    pub fn participant(&self, domain: u16) -> CreateResult<DomainParticipant> {
+    /// Builds the DDS participant for `domain` with this range, secured with the enclave in
+    /// `secure` (see [`super::security`]; only with the cargo feature `dds-security`, else
+    /// `secure` is never `Some`).
+    pub fn participant(
+        &self,
+        domain: u16,
+        secure: Option<&std::path::Path>,
+    ) -> CreateResult<DomainParticipant> {
         let b = DomainParticipantBuilder::new(domain);
+        #[cfg(feature = "dds-security")]
+        let b = match secure {
+            // ROS keystores hold unencrypted keys: no pass phrase.
+            Some(dir) => b.builtin_security(
+                rustdds::DomainParticipantSecurityConfigFiles::with_ros_default_names(
+                    dir,
+                    String::new(),
+                ),
+            ),
+            None => b,
+        };
+        #[cfg(not(feature = "dds-security"))]
+        let _ = secure;
         match self.range {
             Range::Subnet | Range::SystemDefault => b,
             Range::Localhost => b

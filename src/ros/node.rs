@@ -20,7 +20,7 @@ use super::params::{
     self, show_value, OutputChoice, ParamError, ParamStore, StartValue, StartupConfig,
 };
 use super::qos;
-use super::security::{self, SecurityDecision, SecurityError, SecurityRequest};
+use super::security::{self, SecurityError, SecurityRequest};
 use super::services::{self, ServiceError};
 use super::split::{self, SplitError};
 use crate::core::{split_command, ChannelConfig, Command};
@@ -210,9 +210,7 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
     }
     let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())?;
     let sec = SecurityRequest::read(|k| std::env::var(k).ok(), parsed.ros.enclave.as_deref());
-    if let SecurityDecision::Warn(w) = security::decide(&sec)? {
-        warn!("{w}");
-    }
+    let secure = security::decide(&sec)?.log();
     let disc = discovery::read(|k| std::env::var(k).ok())?;
     let fqn = id.fully_qualified();
     let start = start_values(&flags, &parsed.ros, &id, &fqn)?;
@@ -240,7 +238,14 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         .enable_all()
         .build()
         .map_err(NodeError::Runtime)?;
-    rt.block_on(serve(id, parsed.ros, su.store, cfg, splits, (domain, disc)))
+    rt.block_on(serve(
+        id,
+        parsed.ros,
+        su.store,
+        cfg,
+        splits,
+        (domain, disc, secure),
+    ))
 }
 
 /// Most "no such parameter" warnings written at start-up; the rest are counted in one line.
@@ -517,7 +522,7 @@ async fn serve(
     store: ParamStore,
     cfg: StartupConfig,
     splits: Vec<split::SplitPair>,
-    (domain, disc): (u16, Discovery),
+    (domain, disc, secure): (u16, Discovery, Option<PathBuf>),
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
     let fqn = id.fully_qualified();
@@ -528,7 +533,7 @@ async fn serve(
     let (output, hardware_ids) = open_output(&cfg)?;
 
     let participant = disc
-        .participant(domain)
+        .participant(domain, secure.as_deref())
         .map_err(|e| ros_err("the DDS participant")(e.into()))?;
     let context =
         Context::from_domain_participant(participant).map_err(ros_err("the DDS participant"))?;
