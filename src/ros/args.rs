@@ -8,10 +8,10 @@
 //! Supported inside a `--ros-args` block: `-r/--remap [node:]from:=to` (including `__node`,
 //! `__name`, `__ns` and the `rostopic://` / `rosservice://` prefixes), `-p/--param
 //! [node:]name:=value` (value in YAML), `--params-file FILE`, `--log-level [logger:=]LEVEL`,
-//! `-e/--enclave`, `--log-config-file` (accepted, not used) and the `--enable-*` /
-//! `--disable-*` switches for rosout, stdout and external-library logs. A block ends at `--` or
-//! at the end of the command line; several blocks may be given. Anything else inside a block is
-//! an error, as in rcl.
+//! `-e/--enclave` (see `ros::security`), `--log-config-file` (accepted, not used) and the
+//! `--enable-*` / `--disable-*` switches for rosout, stdout and external-library logs. A block
+//! ends at `--` or at the end of the command line; several blocks may be given. Anything else
+//! inside a block is an error, as in rcl.
 
 use ros2_client::ParameterValue;
 use std::collections::HashMap;
@@ -241,7 +241,7 @@ pub struct RosArgs {
     pub params: Vec<ParamSource>,
     /// Log levels, in order (a later one wins).
     pub log_levels: Vec<LogLevelArg>,
-    /// `-e/--enclave` (accepted for launch files; security is not enabled).
+    /// `-e/--enclave`: the SROS2 enclave; see [`super::security`] for what is done with it.
     pub enclave: Option<String>,
     /// `--log-config-file` (accepted; this node configures logging from `--log-level` only).
     pub log_config_file: Option<PathBuf>,

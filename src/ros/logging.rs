@@ -121,15 +121,18 @@ pub fn shutting_down() {
 /// (`remove_reader` in its `dds/pubsub.rs`). That happens when the node drops all its entities
 /// at once on a loaded machine, and it does not matter then: the participant, with everything
 /// in it, is dropped right after. During shutdown only, that message is taken as debug
-/// (`--log-level rustdds:=debug` still shows it).
+/// (`--log-level rustdds:=debug` still shows it). The same for `leave_multicast_group: ...
+/// AddrNotAvailable`: a listener that joined no multicast group (the discovery range
+/// `LOCALHOST` or `OFF` leaves it none) still tries to leave one when it is dropped.
 pub fn effective_level(
     level: log::Level,
     target: &str,
     text: &str,
     shutting_down: bool,
 ) -> log::Level {
-    let removal =
-        text.starts_with("Cannot remove Reader ") || text.starts_with("Cannot remove Writer ");
+    let removal = text.starts_with("Cannot remove Reader ")
+        || text.starts_with("Cannot remove Writer ")
+        || (text.starts_with("leave_multicast_group: ") && text.contains("AddrNotAvailable"));
     if shutting_down && level == log::Level::Error && target.starts_with("rustdds") && removal {
         log::Level::Debug
     } else {
@@ -587,6 +590,11 @@ mod tests {
             effective_level(Error, t, "Cannot remove Writer GUID {..} : Full", true),
             Debug
         );
+        let leave = "leave_multicast_group: Os { code: 99, kind: AddrNotAvailable, message: \
+                     \"Cannot assign requested address\" }";
+        let l = "rustdds::network::udp_listener";
+        assert_eq!(effective_level(Error, l, leave, true), Debug);
+        assert_eq!(effective_level(Error, l, leave, false), Error);
         // While running it is an error like any other, and nothing else is touched.
         assert_eq!(effective_level(Error, t, full, false), Error);
         assert_eq!(effective_level(Error, t, "some other failure", true), Error);

@@ -6,6 +6,7 @@
 //! never writes an output (the engine does).
 //!
 //! - [`args`]: `--ros-args` and parameter files; [`cli`]: the node's own options.
+//! - [`name_clash`]: a warning when another node on the domain has this node's name.
 //! - [`names`]: node identity, `~` expansion and remapping.
 //! - [`params`]: parameter declarations and the one store both parameter doors write through.
 //! - [`msg`]: the messages; [`qos`]: their QoS.
@@ -13,6 +14,8 @@
 //!   [`services`]: the parameter services.
 //! - [`reporter`]: output thread -> ROS (edges, E1, status, `/diagnostics`), owned by the report
 //!   thread.
+//! - [`discovery`]: the discovery range and static peers, applied or refused.
+//! - [`security`]: the SROS2 environment, refused or warned about.
 //! - [`split`]: split-range pairs (one signed command for a hot and a cold channel).
 //! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself.
 //! - [`node`]: start-up, wiring, shutdown ([`run`]).
@@ -21,14 +24,17 @@ pub mod args;
 pub mod cli;
 pub mod console;
 pub mod diagnostics;
+pub mod discovery;
 pub mod inputs;
 pub mod logging;
 pub mod msg;
+pub mod name_clash;
 pub mod names;
 pub mod node;
 pub mod params;
 pub mod qos;
 pub mod reporter;
+pub mod security;
 pub mod services;
 pub mod split;
 

@@ -10,15 +10,18 @@
 use super::args::{self, ArgsError, Remap, RosArgs};
 use super::cli::{self, CliError, Flags, DEMO_ORIGIN};
 use super::diagnostics::ChannelHealth;
+use super::discovery::{self, Discovery, DiscoveryError};
 use super::inputs::{Inputs, NOTE_QUEUE};
 use super::logging::{self, LogConfig};
 use super::msg::{self, RosMessage};
+use super::name_clash::{self, NameClash};
 use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
 use super::params::{
     self, show_value, OutputChoice, ParamError, ParamStore, StartValue, StartupConfig,
 };
 use super::qos;
 use super::reporter::{ChannelPubs, Reporter, StopSignal};
+use super::security::{self, SecurityError, SecurityRequest};
 use super::services::{self, ServiceError};
 use super::split::{self, SplitError};
 use crate::clock;
@@ -33,8 +36,7 @@ use crate::output::{
 use futures::StreamExt;
 use log::{debug, error, info, warn};
 use ros2_client::{
-    Context, ContextOptions, Message, Node, NodeName, NodeOptions, Publisher, QosProfile,
-    Subscription,
+    Context, Message, Node, NodeName, NodeOptions, Publisher, QosProfile, Subscription,
 };
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -107,6 +109,12 @@ pub enum NodeError {
     /// The async runtime cannot start.
     #[error("cannot start the async runtime: {0}")]
     Runtime(#[source] std::io::Error),
+    /// A discovery setting that cannot be honoured.
+    #[error(transparent)]
+    Discovery(#[from] DiscoveryError),
+    /// Security is enforced and cannot be provided.
+    #[error(transparent)]
+    Security(#[from] SecurityError),
     /// `PWM_ACTUATOR_FAULT` is malformed.
     #[error("{0}")]
     Fault(String),
@@ -124,6 +132,8 @@ impl NodeError {
             | NodeError::Binding(_)
             | NodeError::Fault(_)
             | NodeError::Split(_)
+            | NodeError::Security(_)
+            | NodeError::Discovery(_)
             | NodeError::Trace(_)
             // Opening the lines fails only on configuration: a missing chip, a busy line, an
             // offset the chip lacks, no permission. Write faults come later, as `Engine`.
@@ -190,6 +200,9 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         warn!("--log-config-file is not supported; use --log-level");
     }
     let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())?;
+    let sec = SecurityRequest::read(|k| std::env::var(k).ok(), parsed.ros.enclave.as_deref());
+    let secure = security::decide(&sec)?.log();
+    let disc = discovery::read(|k| std::env::var(k).ok())?;
     let fqn = id.fully_qualified();
     let start = start_values(&flags, &parsed.ros, &id, &fqn)?;
     let su = params::start_up(&start)?;
@@ -216,7 +229,14 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         .enable_all()
         .build()
         .map_err(NodeError::Runtime)?;
-    rt.block_on(serve(id, parsed.ros, su.store, cfg, splits, domain))
+    rt.block_on(serve(
+        id,
+        parsed.ros,
+        su.store,
+        cfg,
+        splits,
+        (domain, disc, secure),
+    ))
 }
 
 /// Most "no such parameter" warnings written at start-up; the rest are counted in one line.
@@ -463,7 +483,7 @@ async fn serve(
     store: ParamStore,
     cfg: StartupConfig,
     splits: Vec<split::SplitPair>,
-    domain: u16,
+    (domain, disc, secure): (u16, Discovery, Option<PathBuf>),
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
     let fqn = id.fully_qualified();
@@ -473,8 +493,12 @@ async fn serve(
     // The output first: configuration and hardware errors stop the node before it joins ROS.
     let (output, hardware_ids) = open_output(&cfg)?;
 
-    let context = Context::with_options(ContextOptions::new().domain_id(domain))
-        .map_err(ros_err("the DDS participant"))?;
+    let participant = disc
+        .participant(domain, secure.as_deref())
+        .map_err(|e| ros_err("the DDS participant")(e.into()))?;
+    let context =
+        Context::from_domain_participant(participant).map_err(ros_err("the DDS participant"))?;
+    disc.log(disc.confine()?);
     let node_name = NodeName::new(&id.namespace, &id.name).map_err(|e| NodeError::Ros {
         what: format!("node {fqn}"),
         source: Box::new(e),
@@ -498,6 +522,10 @@ async fn serve(
         }
     });
     let mut tasks: Vec<JoinHandle<()>> = Vec::new();
+    if let Some(events) = node.status_receiver() {
+        let clash = NameClash::new(&context.domain_participant(), fqn.clone());
+        tasks.push(tokio::spawn(name_clash::watch(events, clash)));
+    }
 
     let n = cfg.channels.len();
     let mut pubs = Vec::with_capacity(n);
