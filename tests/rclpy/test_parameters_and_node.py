@@ -67,6 +67,8 @@ CHANNEL_PARAMS = (
     "apply_at",
     "on_disable",
     "command_timeout_ms",
+    "fault_duty_pct",
+    "fault_hold_ms",
     "active_low",
     "enable",
     "duty",
