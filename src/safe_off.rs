@@ -20,14 +20,15 @@ use gpiocdev::line::Values;
 use std::path::PathBuf;
 
 /// The node name whose `--params-file` sections apply (the node's default name).
-pub const NODE_NAME: &str = "pwm_actuator";
+pub use crate::ros::node::NODE_NAME;
 
 /// Exit status: every line driven inactive.
 pub const EXIT_OK: i32 = 0;
 /// Exit status: a line is held by another process (refused) or could not be written.
 pub const EXIT_REFUSED: i32 = 1;
-/// Exit status: the arguments or the configuration are wrong (nothing was touched).
-pub const EXIT_USAGE: i32 = 2;
+/// Exit status: the arguments or the configuration are wrong (nothing was touched), as for the
+/// node.
+pub use crate::ros::node::EXIT_USAGE;
 
 /// Why safe-off did not drive every line inactive.
 #[derive(Debug, thiserror::Error)]
