@@ -19,6 +19,7 @@ from helpers_rules import (
     WRITE_TOL_NS,
     Edge,
     after,
+    diag_values,
     mono_ns,
     pulses,
     t_on_ns,
@@ -356,3 +357,34 @@ def test_stalls_of_the_process_never_shorten_a_phase_below_its_minimum(node_proc
         assert length >= 50 * MS, (
             f"a {length / MS:.3f} ms {'pulse' if level else 'break'} on the line at {t0}"
         )
+
+
+# ---------------------------------------------------------------------------------------------
+# Fault value after a watchdog trip (fault mode of PLC output modules)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_the_watchdog_runs_the_fault_value_then_off(node_process, ros):
+    """No command for command_timeout_ms (500) trips the watchdog; with fault_duty_pct 25 the
+    channel then runs 25 % of its 200 ms period (50 ms pulses) for fault_hold_ms (1000), then
+    switches off until the next command. Status and /diagnostics say the fault value runs."""
+    proc, ch = start(node_process, ros, pw01__period_ms=200, pw01__command_timeout_ms=500,
+                     pw01__fault_duty_pct=25.0, pw01__fault_hold_ms=1000)
+    ch.duty(80.0)
+    ch.enable(True)
+    last = ch.duty(79.0)
+    trip_lo = last.first_publish_ns + 500 * MS
+    trip_hi = last.confirmed_ns + 500 * MS
+    st = ch.wait_status(lambda s: s.watchdog_tripped, "watchdog tripped", start=last.index)
+    ch.wait_diag(lambda d: diag_values(d).get("fault_value_active") == "true",
+                 "fault value running")
+    observe_until(ch, trip_hi + 2500 * MS)
+    edges = close_trace(proc)
+    during = [p for p in pulses(edges)
+              if trip_hi + 200 * MS <= p[0].scheduled_ns <= trip_lo + 800 * MS]
+    assert len(during) >= 2, (st, edges)
+    for rise, fall in during:
+        assert fall.scheduled_ns - rise.scheduled_ns == 50 * MS, (rise, fall)
+    late_rises = [e for e in edges if e.level == 1 and e.scheduled_ns > trip_hi + 1000 * MS]
+    assert not late_rises, f"pulses after the hold time: {late_rises}"
+    assert edges[-1].level == 0
