@@ -132,15 +132,6 @@ pub fn drive_inactive(lines: &[GpioLine]) -> Result<Vec<GpioLine>, SafeOffError>
     let plans = plan_requests(lines)?;
     let mut requests = Vec::with_capacity(plans.len());
     for plan in &plans {
-        if !plan.chip.exists() {
-            let first = &plan.lines[0];
-            return Err(GpioError::ChipNotFound {
-                chip: plan.chip.clone(),
-                name: first.name.clone(),
-                offset: first.offset,
-            }
-            .into());
-        }
         // Requested as outputs, inactive: the kernel drives them inactive here already.
         requests.push(request_plan(plan)?);
     }

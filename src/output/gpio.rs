@@ -292,14 +292,6 @@ impl GpioOutput {
         let mut map = vec![(0usize, 0u32); lines.len()];
         let mut scratch = Vec::with_capacity(plans.len());
         for (ci, plan) in plans.iter().enumerate() {
-            if !plan.chip.exists() {
-                let first = &plan.lines[0];
-                return Err(GpioError::ChipNotFound {
-                    chip: plan.chip.clone(),
-                    name: first.name.clone(),
-                    offset: first.offset,
-                });
-            }
             let offsets = plan.offsets();
             let request = request_plan(plan)?;
             for line in &plan.lines {
@@ -340,9 +332,18 @@ impl GpioOutput {
     }
 }
 
-/// Requests the lines of one chip as [`GpioOutput::open`] does; a refusal because a line is
-/// held elsewhere is reported as [`GpioError::LineBusy`] naming the holder.
+/// Requests the lines of one chip as [`GpioOutput::open`] does: a missing chip is
+/// [`GpioError::ChipNotFound`], and a refusal because a line is held elsewhere is reported as
+/// [`GpioError::LineBusy`] naming the holder.
 pub fn request_plan(plan: &ChipPlan) -> Result<Request, GpioError> {
+    if !plan.chip.exists() {
+        let first = &plan.lines[0];
+        return Err(GpioError::ChipNotFound {
+            chip: plan.chip.clone(),
+            name: first.name.clone(),
+            offset: first.offset,
+        });
+    }
     Request::from_config(plan.request_config())
         .with_consumer(CONSUMER)
         .request()
