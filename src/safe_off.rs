@@ -11,11 +11,11 @@
 //! one line is never safe. This module must not drive anything active.
 
 use crate::output::gpio::{plan_requests, request_plan, to_value, GpioError, GpioLine};
-use crate::output::{check_unique, BindingError, Level, LineAddr};
+use crate::output::{Backend, Level};
 use crate::ros::args::{self, ArgsError};
 use crate::ros::cli::{self, CliError};
 use crate::ros::names::{NameError, NodeIdentity};
-use crate::ros::params::{self, OutputChoice, ParamError, StartValue, StartupConfig};
+use crate::ros::params::{self, ParamError, StartValue, StartupConfig};
 use gpiocdev::line::Values;
 use std::path::PathBuf;
 
@@ -45,9 +45,6 @@ pub enum SafeOffError {
     /// A parameter value refused, or a channel without a line.
     #[error(transparent)]
     Param(#[from] ParamError),
-    /// Two channels bound to one line.
-    #[error(transparent)]
-    Binding(#[from] BindingError),
     /// A line cannot be requested (busy: names the holder) or written.
     #[error(transparent)]
     Gpio(#[from] GpioError),
@@ -95,31 +92,10 @@ pub fn lines_from_node_args(args: &[String]) -> Result<Vec<GpioLine>, SafeOffErr
     });
     let su = params::start_up(&values)?;
     let cfg = StartupConfig::from_store(&su.store)?;
-    let OutputChoice::Gpio { lines, .. } = cfg.output else {
+    let Backend::Gpio { lines } = cfg.output.backend else {
         unreachable!("output gpio was set last");
     };
-    let bindings: Vec<(String, LineAddr)> = lines
-        .iter()
-        .map(|l| {
-            (
-                l.channel.clone(),
-                LineAddr::Gpio {
-                    chip: PathBuf::from(&l.chip),
-                    offset: l.offset,
-                },
-            )
-        })
-        .collect();
-    check_unique(&bindings)?;
-    Ok(lines
-        .into_iter()
-        .map(|l| GpioLine {
-            name: l.channel,
-            chip: PathBuf::from(l.chip),
-            offset: l.offset,
-            active_low: l.active_low,
-        })
-        .collect())
+    Ok(lines)
 }
 
 /// Requests every line (all chips first, so that nothing is written unless every line is
@@ -145,6 +121,7 @@ pub fn drive_inactive(lines: &[GpioLine]) -> Result<Vec<GpioLine>, SafeOffError>
             .map_err(|source| GpioError::Write {
                 chip: plan.chip.clone(),
                 offsets: plan.offsets(),
+                line: plan.lines[0].index,
                 source,
             })?;
         // Read back what the kernel drives now (the driver's value for an output line).
@@ -154,6 +131,7 @@ pub fn drive_inactive(lines: &[GpioLine]) -> Result<Vec<GpioLine>, SafeOffError>
                 .map_err(|source| GpioError::Write {
                     chip: plan.chip.clone(),
                     offsets: vec![line.offset],
+                    line: line.index,
                     source,
                 })?;
             if v != to_value(Level::Low) {
@@ -261,15 +239,21 @@ mod tests {
 
     #[test]
     fn configuration_errors_touch_nothing_and_exit_2() {
-        // A channel without a line, a line bound twice, a bad option.
+        // A channel without a line, a bad option.
         for a in [
             &["--channels", "2", "--line", "pw01=3"][..],
-            &["--line", "pw01=3", "--line", "pw02=gpiochip0:3"][..],
             &["--frobnicate"][..],
         ] {
             let e = lines_from_node_args(&args(a)).unwrap_err();
             assert_eq!(e.exit_code(), EXIT_USAGE, "{a:?}: {e}");
         }
+        // A line bound twice: refused by the one binding check before any chip is opened.
+        let lines =
+            lines_from_node_args(&args(&["--line", "pw01=3", "--line", "pw02=gpiochip0:3"]))
+                .unwrap();
+        let e = drive_inactive(&lines).unwrap_err();
+        assert_eq!(e.exit_code(), EXIT_USAGE);
+        assert!(e.to_string().contains("both bound to"), "{e}");
         let e = drive_inactive(&[GpioLine {
             name: "pw01".into(),
             chip: "/dev/gpiochip-safe-off-none".into(),

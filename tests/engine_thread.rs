@@ -5,7 +5,9 @@
 use pwm_actuator::core::{Channel, ChannelParams, Command, Event, Level, Nanos};
 use pwm_actuator::engine::{self, EngineError, EngineOptions, Input, Report, Request};
 use pwm_actuator::output::fault::FailingOutput;
-use pwm_actuator::output::{SimOutput, TraceSpec};
+use pwm_actuator::output::{
+    EmergencyOff, ErrorKind, LineChange, Output, OutputError, SimOutput, TraceSpec,
+};
 use std::time::{Duration, Instant};
 
 fn params(period_ms: u64) -> ChannelParams {
@@ -299,11 +301,78 @@ fn a_failing_write_drives_the_other_outputs_inactive_and_stops() {
     match e.handle.shutdown() {
         Err(EngineError::OutputFault {
             channel: 1,
-            message,
+            kind: ErrorKind::Injected,
+            source,
         }) => {
-            assert!(message.contains("injected"))
+            assert!(source.to_string().contains("injected"))
         }
         other => panic!("shutdown after a fault: {other:?}"),
+    }
+}
+
+/// Fails to switch off the line of one channel, as a backend whose driver broke might.
+struct OffFails {
+    sim: SimOutput,
+    line: usize,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("line {0} cannot be driven inactive")]
+struct OffFailed(usize);
+
+impl OutputError for OffFailed {
+    fn kind(&self) -> ErrorKind {
+        ErrorKind::Write
+    }
+    fn line(&self) -> Option<usize> {
+        Some(self.0)
+    }
+}
+
+impl Output for OffFails {
+    type Error = OffFailed;
+    fn line_count(&self) -> usize {
+        self.sim.line_count()
+    }
+    fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), OffFailed> {
+        let Ok(()) = self.sim.set_levels(changes);
+        Ok(())
+    }
+    fn set_all_inactive(&mut self) -> Result<(), OffFailed> {
+        let Ok(()) = self.sim.set_all_inactive();
+        Err(OffFailed(self.line))
+    }
+    fn emergency_off(&self) -> std::sync::Arc<dyn EmergencyOff> {
+        self.sim.emergency_off()
+    }
+}
+
+#[test]
+fn a_shutdown_failure_names_the_channel_whose_line_failed() {
+    let sim = SimOutput::new(names(3), None).unwrap();
+    let out = OffFails { sim, line: 2 };
+    let cfgs = vec![params(10).validate().unwrap(); 3];
+    let e = engine::spawn(cfgs, out, EngineOptions::default()).unwrap();
+    match e.handle.shutdown() {
+        Err(err @ EngineError::ShutdownFault { .. }) => {
+            assert_eq!(err.channel(), Some(2));
+            assert!(
+                matches!(
+                    err,
+                    EngineError::ShutdownFault {
+                        kind: ErrorKind::Write,
+                        ..
+                    }
+                ),
+                "{err:?}"
+            );
+            let text = pwm_actuator::error::chain(&err);
+            assert!(
+                text.contains("at channel index 2") && text.contains("line 2 cannot"),
+                "{text}"
+            );
+        }
+        other => panic!("shutdown with a failing switch-off: {other:?}"),
     }
 }
 

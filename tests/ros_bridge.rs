@@ -8,7 +8,7 @@ mod ros_harness;
 
 use pwm_actuator::core::Command;
 use pwm_actuator::engine::{self, EngineError, EngineOptions};
-use pwm_actuator::output::{EmergencyOff, LineChange, Output};
+use pwm_actuator::output::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
 use pwm_actuator::ros::diagnostics::ChannelHealth;
 use pwm_actuator::ros::inputs::{ChangeError, Inputs, NOTE_QUEUE};
 use pwm_actuator::ros::msg::{DiagnosticArray, DiagnosticStatus, RosMessage};
@@ -24,6 +24,12 @@ use std::time::Duration;
 #[derive(Debug, thiserror::Error)]
 #[error("simulated write failure")]
 struct WriteFailed;
+
+impl OutputError for WriteFailed {
+    fn kind(&self) -> ErrorKind {
+        ErrorKind::Write
+    }
+}
 
 /// Accepts `ok_writes` writes, then fails every one.
 struct FailingOutput {

@@ -397,7 +397,6 @@ impl Channel {
         self.cfg.fault_hold = cfg.fault_hold;
         self.cfg.params.fault_duty_pct = cfg.params.fault_duty_pct;
         self.cfg.params.fault_hold_ms = cfg.params.fault_hold_ms;
-        self.cfg.params.active_low = cfg.params.active_low;
         self.trip_if_stale(now, emit);
         if !self.enabled {
             self.pending = None;

@@ -344,8 +344,6 @@ pub struct ChannelParams {
     /// How long the fault value runs before the output goes off, ms; 0 = until the next
     /// command. 0..=86 400 000.
     pub fault_hold_ms: u64,
-    /// Invert the electrical level of the output line (applied by the output backend).
-    pub active_low: bool,
 }
 
 impl Default for ChannelParams {
@@ -363,7 +361,6 @@ impl Default for ChannelParams {
             command_timeout_ms: 0,
             fault_duty_pct: 0.0,
             fault_hold_ms: 0,
-            active_low: false,
         }
     }
 }

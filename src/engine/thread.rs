@@ -9,7 +9,7 @@ use super::worker::{Stop, Worker};
 use super::{Report, Request};
 use crate::clock;
 use crate::core::{ChannelConfig, Nanos};
-use crate::output::{EmergencyOff, Output};
+use crate::output::{EmergencyOff, ErrorKind, Output, OutputError};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::eventfd::{EfdFlags, EventFd};
 use nix::sys::time::TimeSpec;
@@ -78,16 +78,44 @@ pub enum EngineError {
     #[error("could not start the output thread")]
     Spawn(#[source] std::io::Error),
     /// Writing an output failed; every line was driven inactive and the thread stopped.
-    #[error("writing the output of channel {channel} failed: {message}")]
+    #[error("writing the line of channel index {channel} failed ({kind})")]
     OutputFault {
-        /// Channel whose write failed.
+        /// Channel whose write failed (the first of the write when the backend cannot tell).
         channel: usize,
-        /// The backend's error, as text.
-        message: String,
+        /// What kind of failure the backend reported.
+        kind: ErrorKind,
+        /// The backend's error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// Driving the lines inactive when the thread stopped failed.
+    #[error(
+        "driving the lines inactive failed{} ({kind})",
+        channel.map(|c| format!(" at channel index {c}")).unwrap_or_default()
+    )]
+    ShutdownFault {
+        /// The channel whose line could not be written, when the backend can tell.
+        channel: Option<usize>,
+        /// What kind of failure the backend reported.
+        kind: ErrorKind,
+        /// The backend's error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
     },
     /// The output thread panicked.
     #[error("the output thread panicked")]
     Panicked,
+}
+
+impl EngineError {
+    /// The channel (index) an output or shutdown fault concerns, when known.
+    pub fn channel(&self) -> Option<usize> {
+        match self {
+            EngineError::OutputFault { channel, .. } => Some(*channel),
+            EngineError::ShutdownFault { channel, .. } => *channel,
+            _ => None,
+        }
+    }
 }
 
 /// The ROS side's end of the request queue.
@@ -412,12 +440,15 @@ impl<O: Output> OutputThread<O> {
             return Ok(false);
         }
         if let Err(Stop::Fault { channel, error }) = self.worker.run(&mut self.requests) {
-            let message = error.to_string();
             if let Ok(mut f) = self.fault.lock() {
-                *f = Some(message.clone());
+                *f = Some(error.to_string());
             }
             let _ = self.rep_wake.write(1);
-            return Err(EngineError::OutputFault { channel, message });
+            return Err(EngineError::OutputFault {
+                channel,
+                kind: error.kind(),
+                source: Box::new(error),
+            });
         }
         self.wake_pending |= self.worker.take_pushed();
         if self.wake_pending {
@@ -497,9 +528,10 @@ impl<O: Output> OutputThread<O> {
         let (output, result) = self.worker.shut_down();
         drop(output);
         let _ = self.rep_wake.write(1);
-        result.map_err(|e| EngineError::OutputFault {
-            channel: 0,
-            message: e.to_string(),
+        result.map_err(|e| EngineError::ShutdownFault {
+            channel: e.line(),
+            kind: e.kind(),
+            source: Box::new(e),
         })
     }
 }

@@ -7,7 +7,7 @@
 use super::{EdgeReport, Input, Report, Request};
 use crate::clock;
 use crate::core::{Channel, ChannelConfig, Event, Interlocks, Level, Nanos};
-use crate::output::{LineChange, Output};
+use crate::output::{LineChange, Output, OutputError};
 use rtrb::{Consumer, Producer};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -136,7 +136,7 @@ impl<O: Output> Worker<O> {
     fn flush(&mut self, now: Nanos) -> Result<(), Stop<O::Error>> {
         if !self.changes.is_empty() {
             if let Err(error) = self.output.set_levels(&self.changes) {
-                let channel = self.changes[0].line;
+                let channel = error.line().unwrap_or(self.changes[0].line);
                 self.changes.clear();
                 // The write failed: leave nothing on, whatever state the other lines are in.
                 let _ = self.output.set_all_inactive();

@@ -7,7 +7,7 @@
 //! Both exist so that "every output ends inactive" can be shown on the real binary, not only
 //! argued. Nothing here is active unless the variable is set.
 
-use super::{EmergencyOff, LineChange, Output};
+use super::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
 use std::sync::Arc;
 
 /// The environment variable that selects a fault.
@@ -128,6 +128,22 @@ pub enum FaultError<E: std::error::Error + 'static> {
     /// The wrapped output failed by itself.
     #[error(transparent)]
     Output(E),
+}
+
+impl<E: OutputError> OutputError for FaultError<E> {
+    fn kind(&self) -> ErrorKind {
+        match self {
+            FaultError::Injected(_) => ErrorKind::Injected,
+            FaultError::Output(e) => e.kind(),
+        }
+    }
+
+    fn line(&self) -> Option<usize> {
+        match self {
+            FaultError::Injected(i) => i.line,
+            FaultError::Output(e) => e.line(),
+        }
+    }
 }
 
 #[cfg(test)]

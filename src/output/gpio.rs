@@ -13,9 +13,9 @@
 //! requests through an `Arc` and writes them from any thread. This module must not decide
 //! timing, and must never release a line before driving it inactive.
 
-use super::bindings::normalize_chip_path;
+use super::bindings::{check_unique, normalize_chip_path, BindingError, LineAddr};
 use super::safety::{lock_bounded, lock_ignore_poison, warn, EMERGENCY_LOCK_BUDGET};
-use super::{EmergencyOff, LineChange, Output};
+use super::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
 use crate::core::Level;
 use gpiocdev::line::{Value, Values};
 use gpiocdev::request::Config;
@@ -47,6 +47,16 @@ pub struct GpioLine {
     pub active_low: bool,
 }
 
+impl GpioLine {
+    /// The line's address, for the duplicate check.
+    pub fn addr(&self) -> LineAddr {
+        LineAddr::Gpio {
+            chip: self.chip.clone(),
+            offset: self.offset,
+        }
+    }
+}
+
 /// Errors of the GPIO backend.
 #[derive(Debug, thiserror::Error)]
 pub enum GpioError {
@@ -63,19 +73,9 @@ pub enum GpioError {
         /// Its line offset.
         offset: u32,
     },
-    /// Two channels are bound to one line (normally caught earlier by
-    /// [`super::bindings::check_unique`]).
-    #[error("{first} and {second} are both bound to {} line {offset} (000: no double output assignments)", chip.display())]
-    DuplicateLine {
-        /// The chip.
-        chip: PathBuf,
-        /// The line offset.
-        offset: u32,
-        /// Channel bound first.
-        first: String,
-        /// Channel bound second.
-        second: String,
-    },
+    /// Two channels are bound to one line.
+    #[error(transparent)]
+    Binding(#[from] BindingError),
     /// The kernel refused the request (not a GPIO chip, offset out of range, line busy,
     /// permission denied, ...).
     #[error("cannot request lines {offsets:?} of {} as outputs", chip.display())]
@@ -112,6 +112,8 @@ pub enum GpioError {
         chip: PathBuf,
         /// The offsets being written.
         offsets: Vec<u32>,
+        /// The backend's index of the first line being written.
+        line: usize,
         /// What gpiocdev reported.
         #[source]
         source: gpiocdev::Error,
@@ -127,6 +129,23 @@ pub enum GpioError {
     /// The emergency handle has driven every line inactive; further writes are refused.
     #[error("outputs were switched off by the emergency handle; writes are refused")]
     Tripped,
+}
+
+impl OutputError for GpioError {
+    fn kind(&self) -> ErrorKind {
+        match self {
+            GpioError::Tripped => ErrorKind::Tripped,
+            GpioError::UnknownLine { .. } => ErrorKind::UnknownLine,
+            _ => ErrorKind::Write,
+        }
+    }
+
+    fn line(&self) -> Option<usize> {
+        match self {
+            GpioError::Write { line, .. } => Some(*line),
+            _ => None,
+        }
+    }
 }
 
 /// One line as planned for a request.
@@ -175,11 +194,15 @@ impl ChipPlan {
 }
 
 /// Groups lines per chip (chip paths normalised, chips in order of first appearance) and
-/// rejects an empty list and a line given twice.
+/// rejects an empty list and a line bound to two channels ([`check_unique`], the one
+/// duplicate check). Opens nothing.
 pub fn plan_requests(lines: &[GpioLine]) -> Result<Vec<ChipPlan>, GpioError> {
     if lines.is_empty() {
         return Err(GpioError::NoLines);
     }
+    let bindings: Vec<(String, LineAddr)> =
+        lines.iter().map(|l| (l.name.clone(), l.addr())).collect();
+    check_unique(&bindings)?;
     let mut plans: Vec<ChipPlan> = Vec::new();
     for (index, line) in lines.iter().enumerate() {
         let chip = normalize_chip_path(&line.chip);
@@ -193,16 +216,7 @@ pub fn plan_requests(lines: &[GpioLine]) -> Result<Vec<ChipPlan>, GpioError> {
                 plans.len() - 1
             }
         };
-        let plan = &mut plans[pos];
-        if let Some(first) = plan.lines.iter().find(|l| l.offset == line.offset) {
-            return Err(GpioError::DuplicateLine {
-                chip: plan.chip.clone(),
-                offset: line.offset,
-                first: first.name.clone(),
-                second: line.name.clone(),
-            });
-        }
-        plan.lines.push(PlannedLine {
+        plans[pos].lines.push(PlannedLine {
             index,
             name: line.name.clone(),
             offset: line.offset,
@@ -230,6 +244,8 @@ pub const fn electrical_high(level: Level, active_low: bool) -> bool {
 struct ChipRequest {
     chip: PathBuf,
     offsets: Vec<u32>,
+    /// The backend's index of the chip's first line (named by a failed write).
+    first_line: usize,
     request: Request,
     /// Every line of the request inactive, prebuilt for the emergency path.
     all_inactive: Values,
@@ -242,6 +258,7 @@ impl ChipRequest {
             .map_err(|source| GpioError::Write {
                 chip: self.chip.clone(),
                 offsets: self.offsets.clone(),
+                line: self.first_line,
                 source,
             })
     }
@@ -287,9 +304,14 @@ impl GpioOutput {
     /// Requests every line (one request per chip, consumer [`CONSUMER`], outputs, inactive,
     /// polarity from `active_low`). Line index = position in `lines`.
     pub fn open(lines: &[GpioLine]) -> Result<GpioOutput, GpioError> {
-        let plans = plan_requests(lines)?;
+        GpioOutput::open_planned(&plan_requests(lines)?, lines.len())
+    }
+
+    /// Requests the lines of `plans` (from [`plan_requests`] over `count` lines), as
+    /// [`GpioOutput::open`] does.
+    pub fn open_planned(plans: &[ChipPlan], count: usize) -> Result<GpioOutput, GpioError> {
         let mut chips = Vec::with_capacity(plans.len());
-        let mut map = vec![(0usize, 0u32); lines.len()];
+        let mut map = vec![(0usize, 0u32); count];
         let mut scratch = Vec::with_capacity(plans.len());
         for (ci, plan) in plans.iter().enumerate() {
             let offsets = plan.offsets();
@@ -300,6 +322,7 @@ impl GpioOutput {
             scratch.push(empty_with_capacity(&offsets));
             chips.push(ChipRequest {
                 chip: plan.chip.clone(),
+                first_line: plan.lines[0].index,
                 all_inactive: Values::from_offsets(&offsets),
                 offsets,
                 request,
@@ -412,16 +435,22 @@ impl Output for GpioOutput {
             if self.shared.tripped.load(Ordering::SeqCst) {
                 result = Err(GpioError::Tripped);
             } else {
-                for (chip, values) in self.shared.chips.iter().zip(&self.scratch) {
+                for (ci, (chip, values)) in self.shared.chips.iter().zip(&self.scratch).enumerate()
+                {
                     // An empty set would mean "every line" to the uAPI v2 encoding.
                     if values.is_empty() {
                         continue;
                     }
                     if let Err(source) = chip.request.set_values(values) {
                         if result.is_ok() {
+                            let line = changes
+                                .iter()
+                                .find(|c| self.lines[c.line].0 == ci)
+                                .map_or(chip.first_line, |c| c.line);
                             result = Err(GpioError::Write {
                                 chip: chip.chip.clone(),
                                 offsets: values.iter().map(|lv| lv.offset).collect(),
+                                line,
                                 source,
                             });
                         }

@@ -23,8 +23,8 @@ pub struct LineChange {
 /// Implementations must leave every line inactive when dropped, and must make
 /// [`Output::set_all_inactive`] work even after a failed write.
 pub trait Output: Send + 'static {
-    /// The backend's error.
-    type Error: std::error::Error + Send + Sync + 'static;
+    /// The backend's error: its own type, with a [`ErrorKind`] the engine can act on.
+    type Error: OutputError;
 
     /// Number of lines this backend drives.
     fn line_count(&self) -> usize;
@@ -40,6 +40,51 @@ pub trait Output: Send + 'static {
     fn emergency_off(&self) -> std::sync::Arc<dyn EmergencyOff>;
 }
 
+/// What went wrong in a backend, as a small comparable value (embedded-hal's `ErrorKind`
+/// style): the engine and the node act on the kind and keep the backend's own error as the
+/// source for the message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[non_exhaustive]
+pub enum ErrorKind {
+    /// The hardware or the kernel refused a write.
+    Write,
+    /// The emergency handle switched every line off; writes are refused from then on.
+    Tripped,
+    /// A change named a line the backend does not have.
+    UnknownLine,
+    /// A failure injected for a test (`PWM_ACTUATOR_FAULT`).
+    Injected,
+}
+
+impl std::fmt::Display for ErrorKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ErrorKind::Write => "write refused",
+            ErrorKind::Tripped => "outputs switched off by the emergency handle",
+            ErrorKind::UnknownLine => "no such line",
+            ErrorKind::Injected => "injected failure",
+        })
+    }
+}
+
+/// The error of an [`Output`]: any error type that says its [`ErrorKind`] and, where it
+/// concerns one line, which.
+pub trait OutputError: std::error::Error + Send + Sync + 'static {
+    /// What kind of failure this is.
+    fn kind(&self) -> ErrorKind;
+    /// The line (index among the output's lines) the failure concerns, when it concerns one.
+    fn line(&self) -> Option<usize> {
+        None
+    }
+}
+
+/// A backend that cannot fail (the simulated sink).
+impl OutputError for std::convert::Infallible {
+    fn kind(&self) -> ErrorKind {
+        match *self {}
+    }
+}
+
 /// Drives every line of a backend inactive from any thread. Must not block for long and must
 /// not panic: it runs inside the panic hook.
 pub trait EmergencyOff: Send + Sync {
@@ -50,6 +95,7 @@ pub trait EmergencyOff: Send + Sync {
 pub mod bindings;
 pub mod fault;
 pub mod gpio;
+pub mod open;
 pub mod safety;
 pub mod sim;
 pub mod trace;
@@ -57,6 +103,7 @@ pub mod traced;
 
 pub use bindings::{check_unique, BindingError, LineAddr};
 pub use gpio::{GpioError, GpioLine, GpioOutput};
+pub use open::{open, AnyError, AnyOutput, Backend, OpenError, OutputSpec};
 pub use safety::{install_panic_hook, EmergencyRegistry, PANIC_EXIT_CODE};
 pub use sim::{SimOutput, SimProbe};
 pub use trace::{read_csv, CsvReadError, CsvRow, EdgeRecord, TraceError, TraceSpec};

@@ -16,9 +16,7 @@ use super::logging::{self, LogConfig};
 use super::msg::{self, RosMessage};
 use super::name_clash::{self, NameClash};
 use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
-use super::params::{
-    self, show_value, OutputChoice, ParamError, ParamStore, StartValue, StartupConfig,
-};
+use super::params::{self, show_value, ParamError, ParamStore, StartValue, StartupConfig};
 use super::qos;
 use super::reporter::{ChannelPubs, Reporter, StopSignal};
 use super::security::{self, SecurityError, SecurityRequest};
@@ -28,11 +26,8 @@ use crate::clock;
 use crate::core::{split_command, ChannelConfig, Command};
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::error::chain;
-use crate::output::fault::{FailingOutput, Fault, FAULT_ENV};
-use crate::output::{
-    check_unique, install_panic_hook, BindingError, GpioError, GpioLine, GpioOutput, LineAddr,
-    Output, SimOutput, TraceError, TraceSpec, Traced,
-};
+use crate::output::fault::{Fault, FAULT_ENV};
+use crate::output::{self, install_panic_hook, AnyOutput, Backend, OpenError, Output};
 use futures::StreamExt;
 use log::{debug, error, info, warn};
 use ros2_client::{
@@ -79,18 +74,12 @@ pub enum NodeError {
     /// A start-up parameter value refused.
     #[error(transparent)]
     Param(#[from] ParamError),
-    /// Two channels bound to one line.
-    #[error(transparent)]
-    Binding(#[from] BindingError),
-    /// The trace files cannot be written.
-    #[error("trace: {0}")]
-    Trace(#[source] TraceError),
     /// The `split` parameter is refused.
     #[error(transparent)]
     Split(#[from] SplitError),
-    /// The GPIO lines cannot be opened.
-    #[error("cannot open the GPIO output: {0}")]
-    Gpio(#[source] GpioError),
+    /// The output cannot be built (trace files, line bindings, chips, busy lines).
+    #[error(transparent)]
+    Output(#[from] OpenError),
     /// The output thread cannot start or failed.
     #[error("output thread: {0}")]
     Engine(#[source] EngineError),
@@ -129,15 +118,14 @@ impl NodeError {
             | NodeError::Name(_)
             | NodeError::DomainId { .. }
             | NodeError::Param(_)
-            | NodeError::Binding(_)
             | NodeError::Fault(_)
             | NodeError::Split(_)
             | NodeError::Security(_)
             | NodeError::Discovery(_)
-            | NodeError::Trace(_)
-            // Opening the lines fails only on configuration: a missing chip, a busy line, an
-            // offset the chip lacks, no permission. Write faults come later, as `Engine`.
-            | NodeError::Gpio(_) => EXIT_USAGE,
+            // Opening the output fails only on configuration: a trace path, a line bound
+            // twice, a missing chip, a busy line, an offset the chip lacks, no permission.
+            // Write faults come later, as `Engine`.
+            | NodeError::Output(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
     }
@@ -295,107 +283,26 @@ fn start_values(
     Ok(v)
 }
 
-/// An opened output backend.
-enum Opened {
-    Sim(SimOutput),
-    /// The sim output with injected write failures (`PWM_ACTUATOR_FAULT`, exit-path tests).
-    FailingSim(FailingOutput<SimOutput>),
-    /// The gpio output, its writes traced when trace files are asked for.
-    Gpio(Traced<GpioOutput>),
-    /// The same with injected write failures (exit-path tests on gpio-sim lines).
-    FailingGpio(FailingOutput<Traced<GpioOutput>>),
-}
-
-/// Opens the output (refusing duplicate GPIO lines before any chip is opened) and installs
-/// the panic hook with its emergency handle. Returns it with each channel's hardware id.
-fn open_output(cfg: &StartupConfig) -> Result<(Opened, Vec<String>), NodeError> {
-    let names: Vec<String> = cfg.channels.iter().map(|c| c.name.clone()).collect();
-    match &cfg.output {
-        OutputChoice::Sim { trace } => {
-            let spec = TraceSpec::from_paths(trace).map_err(NodeError::Trace)?;
-            for f in spec.files() {
-                info!("tracing edges to {}", f.path.display());
-            }
-            let out = SimOutput::new(names.clone(), Some(spec)).map_err(NodeError::Trace)?;
-            install_panic_hook(out.emergency_off());
-            let ids = vec!["sim".to_string(); names.len()];
-            match Fault::from_env().map_err(NodeError::Fault)? {
-                Some(Fault::FailWriteAfter(n)) => {
-                    warn!("{FAULT_ENV}: output writes fail after {n}");
-                    Ok((Opened::FailingSim(FailingOutput::new(out, n)), ids))
-                }
-                _ => Ok((Opened::Sim(out), ids)),
-            }
-        }
-        OutputChoice::Gpio { lines, trace } => {
-            // Trace file names are checked before anything else; the files are created after
-            // the binding check and before any chip is opened.
-            let spec = TraceSpec::from_paths(trace).map_err(NodeError::Trace)?;
-            // 000: no double output assignments, checked before any chip is opened.
-            let bindings: Vec<(String, LineAddr)> = lines
-                .iter()
-                .map(|l| {
-                    (
-                        l.channel.clone(),
-                        LineAddr::Gpio {
-                            chip: PathBuf::from(&l.chip),
-                            offset: l.offset,
-                        },
-                    )
-                })
-                .collect();
-            check_unique(&bindings)?;
-            let gpio: Vec<GpioLine> = lines
-                .iter()
-                .map(|l| GpioLine {
-                    name: l.channel.clone(),
-                    chip: PathBuf::from(&l.chip),
-                    offset: l.offset,
-                    active_low: l.active_low,
-                })
-                .collect();
-            let recorder = if spec.is_empty() {
-                None
-            } else {
-                for f in spec.files() {
-                    info!(
-                        "tracing what is written to the lines to {}",
-                        f.path.display()
-                    );
-                }
-                Some(SimOutput::new(names.clone(), Some(spec)).map_err(NodeError::Trace)?)
-            };
-            let out = Traced::new(GpioOutput::open(&gpio).map_err(NodeError::Gpio)?, recorder);
-            install_panic_hook(out.emergency_off());
-            let ids = lines
-                .iter()
-                .map(|l| format!("{}:{}", l.chip, l.offset))
-                .collect();
-            match Fault::from_env().map_err(NodeError::Fault)? {
-                Some(Fault::FailWriteAfter(n)) => {
-                    warn!("{FAULT_ENV}: output writes fail after {n}");
-                    Ok((Opened::FailingGpio(FailingOutput::new(out, n)), ids))
-                }
-                _ => Ok((Opened::Gpio(out), ids)),
-            }
-        }
+/// Opens the output (`PWM_ACTUATOR_FAULT=fail-write-after=N` makes its writes fail, for the
+/// exit-path tests) and installs the panic hook with its emergency handle.
+fn open_output(cfg: &StartupConfig) -> Result<AnyOutput, NodeError> {
+    let mut spec = cfg.output.clone();
+    if let Some(Fault::FailWriteAfter(n)) = Fault::from_env().map_err(NodeError::Fault)? {
+        spec.fail_writes_after = Some(n);
     }
+    let out = output::open(&spec)?;
+    install_panic_hook(out.emergency_off());
+    Ok(out)
 }
 
 /// Starts the output thread on the opened output.
-fn start_engine(cfg: &StartupConfig, output: Opened) -> Result<Engine, NodeError> {
+fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeError> {
     let configs: Vec<ChannelConfig> = cfg.channels.iter().map(|c| c.config).collect();
     let opts = EngineOptions {
         rt_priority: cfg.rt_priority,
         ..EngineOptions::default()
     };
-    match output {
-        Opened::Sim(out) => engine::spawn(configs, out, opts),
-        Opened::FailingSim(out) => engine::spawn(configs, out, opts),
-        Opened::Gpio(out) => engine::spawn(configs, out, opts),
-        Opened::FailingGpio(out) => engine::spawn(configs, out, opts),
-    }
-    .map_err(NodeError::Engine)
+    engine::spawn(configs, output, opts).map_err(NodeError::Engine)
 }
 
 /// Resolves a topic name of this node.
@@ -491,7 +398,8 @@ async fn serve(
     // process with a line left on.
     let mut signals = StopSignals::catch();
     // The output first: configuration and hardware errors stop the node before it joins ROS.
-    let (output, hardware_ids) = open_output(&cfg)?;
+    let output = open_output(&cfg)?;
+    let hardware_ids = cfg.output.hardware_ids();
 
     let participant = disc
         .participant(domain, secure.as_deref())
@@ -699,13 +607,11 @@ async fn serve(
     info!(
         "{fqn} running: {n} channel{} ({}), ROS domain {domain}",
         if n == 1 { "" } else { "s" },
-        match &cfg.output {
-            OutputChoice::Sim { trace } if trace.is_empty() => "sim output".to_string(),
-            OutputChoice::Sim { trace } => format!("sim output, {} trace file(s)", trace.len()),
-            OutputChoice::Gpio { trace, .. } if trace.is_empty() => "gpio output".to_string(),
-            OutputChoice::Gpio { trace, .. } => {
-                format!("gpio output, {} trace file(s)", trace.len())
-            }
+        match (&cfg.output.backend, cfg.output.trace.len()) {
+            (Backend::Sim { .. }, 0) => "sim output".to_string(),
+            (Backend::Sim { .. }, n) => format!("sim output, {n} trace file(s)"),
+            (Backend::Gpio { .. }, 0) => "gpio output".to_string(),
+            (Backend::Gpio { .. }, n) => format!("gpio output, {n} trace file(s)"),
         }
     );
 
@@ -742,7 +648,11 @@ async fn serve(
         }
         Ok(()) => Ok(EXIT_FAILURE),
         Err(e) => {
-            error!("output thread: {}", chain(&e));
+            let name = e.channel().and_then(|i| cfg.channels.get(i));
+            match name {
+                Some(c) => error!("output thread: {}: {}", c.name, chain(&e)),
+                None => error!("output thread: {}", chain(&e)),
+            }
             Ok(EXIT_FAILURE)
         }
     }
@@ -813,6 +723,7 @@ impl StopSignals {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::output::TraceError;
 
     #[test]
     fn domain_ids() {
@@ -850,9 +761,9 @@ mod tests {
 
     #[test]
     fn error_chains_are_joined_once() {
-        let e = NodeError::Trace(TraceError::UnknownExtension {
+        let e = NodeError::Output(OpenError::Trace(TraceError::UnknownExtension {
             path: "x.txt".into(),
-        });
+        }));
         assert_eq!(
             chain(&e),
             "trace: trace file x.txt: unknown extension, expected .vcd or .csv"

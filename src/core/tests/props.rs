@@ -66,7 +66,6 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
                 apply_at: aa,
                 on_disable: od,
                 command_timeout_ms: to,
-                active_low: false,
                 fault_duty_pct: fd,
                 fault_hold_ms: fh,
             },

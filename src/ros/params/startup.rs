@@ -5,6 +5,7 @@ use super::table::node_decls;
 use super::DEFAULT_CHANNELS;
 use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Phase};
 use crate::core::ChannelConfig;
+use crate::output::{Backend, GpioLine, OutputSpec};
 use ros2_client::ParameterValue;
 use std::path::PathBuf;
 
@@ -84,36 +85,6 @@ pub fn start_up(values: &[StartValue]) -> Result<StartUp, ParamError> {
     })
 }
 
-/// One channel's GPIO line.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct LineSpec {
-    /// Channel name.
-    pub channel: String,
-    /// Chip path or name.
-    pub chip: String,
-    /// Line offset.
-    pub offset: u32,
-    /// Inverted polarity.
-    pub active_low: bool,
-}
-
-/// Where the edges go.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum OutputChoice {
-    /// The simulated sink, with trace files (possibly none).
-    Sim {
-        /// Trace files.
-        trace: Vec<PathBuf>,
-    },
-    /// GPIO lines, one per channel.
-    Gpio {
-        /// The lines, in channel order.
-        lines: Vec<LineSpec>,
-        /// Trace files of what was written to the lines (possibly none).
-        trace: Vec<PathBuf>,
-    },
-}
-
 /// One channel at start-up.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ChannelStart {
@@ -132,8 +103,8 @@ pub struct ChannelStart {
 pub struct StartupConfig {
     /// Channels in order.
     pub channels: Vec<ChannelStart>,
-    /// Output backend.
-    pub output: OutputChoice,
+    /// The output: backend, lines (with their polarity), trace files.
+    pub output: OutputSpec,
     /// Periodic status rate, Hz (0 = on change only).
     pub status_rate_hz: f64,
     /// Edge lines per second and channel (0 = none).
@@ -163,7 +134,7 @@ impl StartupConfig {
             .filter(|s| !s.is_empty())
             .map(PathBuf::from)
             .collect();
-        let output = if store.string("output") == Some("gpio") {
+        let backend = if store.string("output") == Some("gpio") {
             let mut lines = Vec::new();
             for c in &channels {
                 let offset = store.int(&format!("{}.gpio_line", c.name)).unwrap_or(-1);
@@ -172,19 +143,29 @@ impl StartupConfig {
                         channel: c.name.clone(),
                     });
                 }
-                lines.push(LineSpec {
-                    channel: c.name.clone(),
-                    chip: store
-                        .string(&format!("{}.gpio_chip", c.name))
-                        .unwrap_or("/dev/gpiochip0")
-                        .to_string(),
+                lines.push(GpioLine {
+                    name: c.name.clone(),
+                    chip: PathBuf::from(
+                        store
+                            .string(&format!("{}.gpio_chip", c.name))
+                            .unwrap_or("/dev/gpiochip0"),
+                    ),
                     offset: offset.min(u32::MAX as i64) as u32,
-                    active_low: c.config.params.active_low,
+                    active_low: store
+                        .bool(&format!("{}.active_low", c.name))
+                        .unwrap_or(false),
                 });
             }
-            OutputChoice::Gpio { lines, trace }
+            Backend::Gpio { lines }
         } else {
-            OutputChoice::Sim { trace }
+            Backend::Sim {
+                names: channels.iter().map(|c| c.name.clone()).collect(),
+            }
+        };
+        let output = OutputSpec {
+            backend,
+            trace,
+            fail_writes_after: None,
         };
         let rt = store.int("rt_priority").unwrap_or(0);
         Ok(StartupConfig {

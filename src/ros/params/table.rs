@@ -375,14 +375,8 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             read_only: Some(
                 "changing the polarity of a live line could glitch it; restart the node",
             ),
-            core: Some(|c, v| {
-                c.active_low = matches!(v, V::Boolean(true));
-                Ok(())
-            }),
             msg: Some(|m| V::Boolean(m.active_low)),
-            ..Decl::new("active_low", Bool, || {
-                V::Boolean(core_defaults().active_low)
-            })
+            ..Decl::new("active_low", Bool, || V::Boolean(false))
         },
         Decl {
             description: "Enable the channel at start-up. While running, use ~/<ch>/enable.",

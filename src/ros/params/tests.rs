@@ -1,5 +1,6 @@
 use super::*;
 use crate::core::{ChannelConfig, MinTime, OutputKind};
+use crate::output::{Backend, GpioLine, OutputSpec};
 use crate::ros::msg;
 use ParameterValue as V;
 
@@ -414,7 +415,16 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
     assert_eq!(cfg.channels.len(), 3);
     assert!(cfg.channels[0].enable);
     assert_eq!(cfg.channels[0].duty_percent, 37.0);
-    assert_eq!(cfg.output, OutputChoice::Sim { trace: vec![] });
+    assert_eq!(
+        cfg.output,
+        OutputSpec {
+            backend: Backend::Sim {
+                names: vec!["pw01".into(), "pw02".into(), "pw03".into()]
+            },
+            trace: vec![],
+            fail_writes_after: None,
+        }
+    );
     assert_eq!(cfg.rt_priority, None);
     assert!(start_up(&[sv("channels", V::Integer(0))]).is_err());
     assert!(start_up(&[sv("channels", V::Integer(100))]).is_err());
@@ -447,14 +457,17 @@ fn gpio_needs_lines_and_takes_a_trace() {
     let cfg = StartupConfig::from_store(&su.store).unwrap();
     assert_eq!(
         cfg.output,
-        OutputChoice::Gpio {
-            lines: vec![LineSpec {
-                channel: "pw01".into(),
-                chip: "/dev/gpiochip0".into(),
-                offset: 17,
-                active_low: true
-            }],
+        OutputSpec {
+            backend: Backend::Gpio {
+                lines: vec![GpioLine {
+                    name: "pw01".into(),
+                    chip: "/dev/gpiochip0".into(),
+                    offset: 17,
+                    active_low: true
+                }],
+            },
             trace: vec![],
+            fail_writes_after: None,
         }
     );
     let su = start_up(&[
@@ -465,17 +478,13 @@ fn gpio_needs_lines_and_takes_a_trace() {
     ])
     .unwrap();
     // Any output can be traced: with gpio the trace records what was written to the lines.
-    let OutputChoice::Gpio { trace, .. } = StartupConfig::from_store(&su.store).unwrap().output
-    else {
-        panic!("output gpio not chosen");
-    };
-    assert_eq!(trace, [std::path::PathBuf::from("a.vcd")]);
+    let output = StartupConfig::from_store(&su.store).unwrap().output;
+    assert!(matches!(output.backend, Backend::Gpio { .. }));
+    assert_eq!(output.trace, [std::path::PathBuf::from("a.vcd")]);
     let su = start_up(&[sv("trace", V::String("a.vcd, b.csv".into()))]).unwrap();
     assert_eq!(
-        StartupConfig::from_store(&su.store).unwrap().output,
-        OutputChoice::Sim {
-            trace: vec!["a.vcd".into(), "b.csv".into()]
-        }
+        StartupConfig::from_store(&su.store).unwrap().output.trace,
+        [std::path::PathBuf::from("a.vcd"), "b.csv".into()]
     );
 }
 
