@@ -12,10 +12,11 @@
 
 use crate::output::gpio::{plan_requests, request_plan, to_value, GpioError, GpioLine};
 use crate::output::{Backend, Level};
-use crate::ros::args::{self, ArgsError};
-use crate::ros::cli::{self, CliError};
-use crate::ros::names::{NameError, NodeIdentity};
-use crate::ros::params::{self, ParamError, StartValue, StartupConfig};
+use crate::ros::args;
+use crate::ros::cli;
+use crate::ros::names::NodeIdentity;
+use crate::ros::node::{start_values, NodeError};
+use crate::ros::params::{self, StartValue, StartupConfig};
 use gpiocdev::line::Values;
 use std::path::PathBuf;
 
@@ -33,18 +34,9 @@ pub use crate::ros::node::EXIT_USAGE;
 /// Why safe-off did not drive every line inactive.
 #[derive(Debug, thiserror::Error)]
 pub enum SafeOffError {
-    /// Bad `--ros-args` or parameter file.
+    /// The node's command line or configuration is refused, as the node would refuse it.
     #[error(transparent)]
-    Args(#[from] ArgsError),
-    /// Bad option.
-    #[error(transparent)]
-    Cli(#[from] CliError),
-    /// A node name (`-r __node:=`) that does not resolve.
-    #[error(transparent)]
-    Name(#[from] NameError),
-    /// A parameter value refused, or a channel without a line.
-    #[error(transparent)]
-    Param(#[from] ParamError),
+    Config(#[from] NodeError),
     /// A line cannot be requested (busy: names the holder) or written.
     #[error(transparent)]
     Gpio(#[from] GpioError),
@@ -66,7 +58,8 @@ impl SafeOffError {
         match self {
             SafeOffError::Gpio(GpioError::LineBusy { .. } | GpioError::Write { .. })
             | SafeOffError::StillActive { .. } => EXIT_REFUSED,
-            _ => EXIT_USAGE,
+            SafeOffError::Config(e) => e.exit_code(),
+            SafeOffError::Gpio(_) => EXIT_USAGE,
         }
     }
 }
@@ -74,24 +67,18 @@ impl SafeOffError {
 /// The GPIO lines the node would drive with the command line `args` (node syntax, without the
 /// program name); `--output gpio` is implied.
 pub fn lines_from_node_args(args: &[String]) -> Result<Vec<GpioLine>, SafeOffError> {
-    let parsed = args::parse(args)?;
-    let flags = cli::parse_flags(&parsed.app)?;
-    let id = NodeIdentity::from_remaps(NODE_NAME, "/", &parsed.ros.remaps)?;
-    let mut values = flags.start_values();
-    for o in parsed.ros.overrides(&id.name, &id.fully_qualified())? {
-        values.push(StartValue {
-            name: o.name,
-            value: o.value,
-            origin: o.origin,
-        });
-    }
+    let parsed = args::parse(args).map_err(NodeError::from)?;
+    let flags = cli::parse_flags(&parsed.app).map_err(NodeError::from)?;
+    let id =
+        NodeIdentity::from_remaps(NODE_NAME, "/", &parsed.ros.remaps).map_err(NodeError::from)?;
+    let mut values = start_values(&flags, &parsed.ros, &id, &id.fully_qualified())?;
     values.push(StartValue {
         name: "output".into(),
         value: ros2_client::ParameterValue::String("gpio".into()),
         origin: "safe-off".into(),
     });
-    let su = params::start_up(&values)?;
-    let cfg = StartupConfig::from_store(&su.store)?;
+    let su = params::start_up(&values).map_err(NodeError::from)?;
+    let cfg = StartupConfig::from_store(&su.store).map_err(NodeError::from)?;
     let Backend::Gpio { lines } = cfg.output.backend else {
         unreachable!("output gpio was set last");
     };

@@ -843,19 +843,31 @@ mod tests {
     }
 
     #[test]
-    fn bad_remaps_say_why() {
-        for (rule, why) in [
-            ("foo", "expected FROM:=TO"),
-            (":=bar", "nothing to match"),
-            ("foo:=", "no replacement"),
-            ("__node:=9lives", "not a valid node name"),
-            ("__ns:=plant", "must be absolute"),
-            ("bad-node:x:=y", "not a node name"),
+    fn bad_remaps_and_params_say_why() {
+        for (flag, rule, why) in [
+            ("-r", "foo", "expected FROM:=TO"),
+            ("-r", ":=bar", "nothing to match"),
+            ("-r", "foo:=", "no replacement"),
+            ("-r", "__node:=9lives", "not a valid node name"),
+            ("-r", "__ns:=plant", "must be absolute"),
+            ("-r", "bad-node:x:=y", "not a node name"),
+            ("-p", "x", "expected NAME:=VALUE"),
+            ("-p", "x:=", "no value"),
+            ("-p", "x:=[]", "empty array"),
+            ("-p", "x:=[1, a]", "one type"),
+            ("-p", "x:={a: 1}", "mapping"),
+            ("-p", "a..b:=1", "not a parameter name"),
+            ("-p", "x:=[1, 2", "not valid YAML"),
         ] {
-            let e = parse(&args(&["--ros-args", "-r", rule])).unwrap_err();
+            let e = parse(&args(&["--ros-args", flag, rule])).unwrap_err();
+            let kind = match e {
+                ArgsError::BadRemap { .. } => "-r",
+                ArgsError::BadParam { .. } => "-p",
+                _ => "other",
+            };
             assert!(
-                matches!(e, ArgsError::BadRemap { .. }) && e.to_string().contains(why),
-                "{rule}: {e}"
+                kind == flag && e.to_string().contains(why),
+                "{flag} {rule}: {e}"
             );
         }
     }
@@ -916,25 +928,6 @@ mod tests {
             Ok(ParameterValue::Double(f64::NEG_INFINITY))
         );
         assert_eq!(parse_yaml_value("1e3"), Ok(ParameterValue::Double(1000.0)));
-    }
-
-    #[test]
-    fn bad_params_say_why() {
-        for (a, why) in [
-            ("x", "expected NAME:=VALUE"),
-            ("x:=", "no value"),
-            ("x:=[]", "empty array"),
-            ("x:=[1, a]", "one type"),
-            ("x:={a: 1}", "mapping"),
-            ("a..b:=1", "not a parameter name"),
-            ("x:=[1, 2", "not valid YAML"),
-        ] {
-            let e = parse(&args(&["--ros-args", "-p", a])).unwrap_err();
-            assert!(
-                matches!(e, ArgsError::BadParam { .. }) && e.to_string().contains(why),
-                "{a}: {e}"
-            );
-        }
     }
 
     #[test]
@@ -1070,45 +1063,24 @@ other_node:
     #[test]
     fn params_for_node_applies_wildcards_first_then_the_node() {
         let s = parse_params_yaml(FILE).unwrap();
-        let p = params_for_node(&s, "/pwm_actuator");
-        let names: Vec<&str> = p.iter().map(|(n, _)| n.as_str()).collect();
-        assert_eq!(
-            names,
-            [
-                "status_rate_hz",
-                "pw01.period_ms",
-                "pw01.profile",
-                "pw01.period_ms",
-                "pw02.edge_band"
-            ]
-        );
+        let names_for = |node: &str| -> Vec<String> {
+            params_for_node(&s, node)
+                .into_iter()
+                .map(|(n, _)| n)
+                .collect()
+        };
+        let common = ["status_rate_hz", "pw01.period_ms", "pw01.profile"];
+        for (node, own) in [
+            ("/pwm_actuator", &["pw01.period_ms", "pw02.edge_band"][..]),
+            ("/plant/pwm_actuator", &["channels"][..]),
+            ("/plant/heater", &["rt_priority", "trace"][..]),
+        ] {
+            let expected: Vec<&str> = common.iter().chain(own).copied().collect();
+            assert_eq!(names_for(node), expected, "{node}");
+        }
         // The node's own section comes last, so its 500 wins over /**'s 2000.
+        let p = params_for_node(&s, "/pwm_actuator");
         assert_eq!(p[3].1, ParameterValue::Integer(500));
-
-        let p = params_for_node(&s, "/plant/pwm_actuator");
-        let names: Vec<&str> = p.iter().map(|(n, _)| n.as_str()).collect();
-        assert_eq!(
-            names,
-            [
-                "status_rate_hz",
-                "pw01.period_ms",
-                "pw01.profile",
-                "channels"
-            ]
-        );
-
-        let p = params_for_node(&s, "/plant/heater");
-        let names: Vec<&str> = p.iter().map(|(n, _)| n.as_str()).collect();
-        assert_eq!(
-            names,
-            [
-                "status_rate_hz",
-                "pw01.period_ms",
-                "pw01.profile",
-                "rt_priority",
-                "trace"
-            ]
-        );
     }
 
     #[test]

@@ -86,20 +86,16 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
 /// Whether two snapshots differ in anything but the running step's remaining time (what
 /// "on change" means for `~/<ch>/status`).
 pub fn status_changed(a: &Status, b: &Status) -> bool {
-    a.enabled != b.enabled
-        || a.active != b.active
-        || a.level != b.level
-        || a.duty_commanded != b.duty_commanded
-        || a.command_clamped != b.command_clamped
-        || a.duty_applied != b.duty_applied
-        || a.period != b.period
-        || a.t_on != b.t_on
-        || a.t_off != b.t_off
-        || a.e1 != b.e1
-        || a.limited != b.limited
-        || a.watchdog_tripped != b.watchdog_tripped
-        || a.fault_active != b.fault_active
-        || a.rule != b.rule
+    // The running step's remaining time and end move on their own; the requested command is
+    // shown through `duty_commanded` (NaN never reaches a status: the core refuses it).
+    let b_steady = Status {
+        remaining_on: a.remaining_on,
+        remaining_off: a.remaining_off,
+        step_end: a.step_end,
+        duty_requested: a.duty_requested,
+        ..*b
+    };
+    *a != b_steady
 }
 
 /// Everything the diagnostics say about one channel.

@@ -254,7 +254,7 @@ fn ignored_warnings(ignored: &[String]) -> (Vec<String>, Option<String>) {
 
 /// The start-up values: options first, then the ROS arguments in order. Logs where a ROS
 /// argument overrides an option.
-fn start_values(
+pub(crate) fn start_values(
     flags: &Flags,
     ros: &RosArgs,
     id: &NodeIdentity,

@@ -140,50 +140,62 @@ fn set_atomically(b: &Inputs, req: SetParametersRequest) -> SetParametersAtomica
     }
 }
 
-fn spawn_server<Req, Resp>(
-    node: &mut Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
-    inputs: &Arc<Inputs>,
-    base: &'static str,
-    type_name: &'static str,
-    handler: fn(&Inputs, Req) -> Resp,
-) -> Result<JoinHandle<()>, ServiceError>
-where
-    Req: Message + Clone + Send + Sync + 'static,
-    Resp: Message + Send + Sync + 'static,
-{
-    let full = id.resolve(&format!("~/{base}"), NameKind::Service, remaps)?;
-    let qos = super::qos::services();
-    let server: Server<Req, Resp> = node
-        .create_server(
-            ServiceMapping::Enhanced,
-            &to_ros_name(&full)?,
-            &ServiceTypeName::new("rcl_interfaces", type_name),
-            qos.clone(),
-            qos,
-        )
-        .map_err(|source| ServiceError::Create {
-            name: full.clone(),
-            source,
-        })?;
-    let inputs = Arc::clone(inputs);
-    Ok(tokio::spawn(async move {
-        let stream = server.receive_request_stream();
-        futures::pin_mut!(stream);
-        while let Some(r) = stream.next().await {
-            match r {
-                Ok((id, req)) => {
-                    debug!("{full}: request");
-                    let resp = handler(&inputs, req);
-                    if let Err(e) = server.async_send_response(id, resp).await {
-                        warn!("{full}: cannot send the response: {e}");
+/// What every parameter service of the node is created with.
+struct Servers<'a> {
+    node: &'a mut Node,
+    id: &'a NodeIdentity,
+    remaps: &'a [Remap],
+    inputs: &'a Arc<Inputs>,
+}
+
+impl Servers<'_> {
+    /// Creates the service `~/<base>` of `rcl_interfaces/<type_name>` and the task that
+    /// answers each request with `handler`.
+    fn spawn<Req, Resp>(
+        &mut self,
+        base: &'static str,
+        type_name: &'static str,
+        handler: fn(&Inputs, Req) -> Resp,
+    ) -> Result<JoinHandle<()>, ServiceError>
+    where
+        Req: Message + Clone + Send + Sync + 'static,
+        Resp: Message + Send + Sync + 'static,
+    {
+        let full = self
+            .id
+            .resolve(&format!("~/{base}"), NameKind::Service, self.remaps)?;
+        let qos = super::qos::services();
+        let server: Server<Req, Resp> = self
+            .node
+            .create_server(
+                ServiceMapping::Enhanced,
+                &to_ros_name(&full)?,
+                &ServiceTypeName::new("rcl_interfaces", type_name),
+                qos.clone(),
+                qos,
+            )
+            .map_err(|source| ServiceError::Create {
+                name: full.clone(),
+                source,
+            })?;
+        let inputs = Arc::clone(self.inputs);
+        Ok(tokio::spawn(async move {
+            let stream = server.receive_request_stream();
+            futures::pin_mut!(stream);
+            while let Some(r) = stream.next().await {
+                match r {
+                    Ok((id, req)) => {
+                        debug!("{full}: request");
+                        let resp = handler(&inputs, req);
+                        if let Err(e) = server.async_send_response(id, resp).await {
+                            warn!("{full}: cannot send the response: {e}");
+                        }
                     }
+                    Err(e) => warn!("{full}: unreadable request: {e}"),
                 }
-                Err(e) => warn!("{full}: unreadable request: {e}"),
             }
-        }
-    }))
+        }))
+    }
 }
 
 /// Creates the six parameter services and the tasks serving them.
@@ -193,60 +205,22 @@ pub fn spawn(
     remaps: &[Remap],
     inputs: &Arc<Inputs>,
 ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
+    let mut s = Servers {
+        node,
+        id,
+        remaps,
+        inputs,
+    };
     Ok(vec![
-        spawn_server(
-            node,
-            id,
-            remaps,
-            inputs,
-            "get_parameters",
-            "GetParameters",
-            get,
-        )?,
-        spawn_server(
-            node,
-            id,
-            remaps,
-            inputs,
-            "get_parameter_types",
-            "GetParameterTypes",
-            get_types,
-        )?,
-        spawn_server(
-            node,
-            id,
-            remaps,
-            inputs,
-            "set_parameters",
-            "SetParameters",
-            set,
-        )?,
-        spawn_server(
-            node,
-            id,
-            remaps,
-            inputs,
+        s.spawn("get_parameters", "GetParameters", get)?,
+        s.spawn("get_parameter_types", "GetParameterTypes", get_types)?,
+        s.spawn("set_parameters", "SetParameters", set)?,
+        s.spawn(
             "set_parameters_atomically",
             "SetParametersAtomically",
             set_atomically,
         )?,
-        spawn_server(
-            node,
-            id,
-            remaps,
-            inputs,
-            "list_parameters",
-            "ListParameters",
-            list,
-        )?,
-        spawn_server(
-            node,
-            id,
-            remaps,
-            inputs,
-            "describe_parameters",
-            "DescribeParameters",
-            describe,
-        )?,
+        s.spawn("list_parameters", "ListParameters", list)?,
+        s.spawn("describe_parameters", "DescribeParameters", describe)?,
     ])
 }
