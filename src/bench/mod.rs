@@ -442,6 +442,7 @@ fn engine_options(opts: &BenchOptions) -> EngineOptions {
     EngineOptions {
         rt_priority: opts.rt_priority,
         queue_capacity: 16_384,
+        ..EngineOptions::default()
     }
 }
 

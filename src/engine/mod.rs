@@ -87,6 +87,6 @@ mod thread;
 pub(crate) mod worker;
 
 pub use thread::{
-    monotonic_timer, spawn, spawn_with, Engine, EngineError, EngineHandle, EngineOptions,
-    OutputThread, Reports, Requests,
+    monotonic_timer, spawn, spawn_with, Engine, EngineError, EngineHandle, EngineOptions, Liveness,
+    OutputThread, Reports, Requests, LIVENESS_TICK_NS, SHUTDOWN_WAIT,
 };

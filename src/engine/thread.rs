@@ -28,6 +28,11 @@ pub struct EngineOptions {
     pub rt_priority: Option<i32>,
     /// Capacity of each ring buffer (requests in, reports out), entries.
     pub queue_capacity: usize,
+    /// The heartbeat line's half period, ns: the thread toggles the output line after the
+    /// channels' lines (index = number of channels) every half period while it runs, so an
+    /// external watchdog relay sees a square wave at 1 / (2 x half period). `None`: no
+    /// heartbeat line.
+    pub heartbeat_half_period_ns: Option<Nanos>,
 }
 
 impl Default for EngineOptions {
@@ -35,6 +40,7 @@ impl Default for EngineOptions {
         EngineOptions {
             rt_priority: None,
             queue_capacity: 4096,
+            heartbeat_half_period_ns: None,
         }
     }
 }
@@ -101,6 +107,13 @@ pub enum EngineError {
         /// The backend's error.
         #[source]
         source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// The output thread did not end when asked (hung, e.g. in a write); the outputs were
+    /// driven inactive through the emergency handle and the thread was left behind.
+    #[error("the output thread did not stop within {waited_ms} ms; outputs switched off by the emergency handle")]
+    Hung {
+        /// How long the stop waited, ms.
+        waited_ms: u64,
     },
     /// The output thread panicked.
     #[error("the output thread panicked")]
@@ -223,6 +236,50 @@ impl Reports {
     }
 }
 
+/// How long [`EngineHandle::shutdown`] waits for the output thread to end before it switches
+/// the outputs off through the emergency handle and leaves the thread behind.
+pub const SHUTDOWN_WAIT: Duration = Duration::from_secs(2);
+
+/// The output thread wakes at least this often, even with nothing to do, so that its liveness
+/// can be seen from outside ([`Liveness`]), ns.
+pub const LIVENESS_TICK_NS: Nanos = 100_000_000;
+
+/// Whether the output thread keeps its schedule, readable from any thread (the systemd
+/// watchdog's pinger reads it). Before each sleep the thread publishes the deadline it will
+/// wake at (never more than [`LIVENESS_TICK_NS`] ahead); a thread that is hung, stuck in a
+/// write, or starved of CPU falls behind that promise.
+#[derive(Clone)]
+pub struct Liveness(Arc<LivenessState>);
+
+struct LivenessState {
+    /// The deadline the thread promised to wake at, monotonic ns.
+    due_by: AtomicU64,
+    /// The thread has left its loop.
+    stopped: AtomicBool,
+}
+
+impl Liveness {
+    fn new(now: Nanos) -> Liveness {
+        Liveness(Arc::new(LivenessState {
+            due_by: AtomicU64::new(now.saturating_add(LIVENESS_TICK_NS)),
+            stopped: AtomicBool::new(false),
+        }))
+    }
+
+    fn promise(&self, deadline: Nanos) {
+        self.0.due_by.store(deadline, Ordering::Release);
+    }
+
+    /// How far the output thread is behind the wake-up it promised, at `now` (monotonic ns):
+    /// 0 when on time; `None` once it has stopped (after a fault or a shutdown).
+    pub fn lag_ns(&self, now: Nanos) -> Option<Nanos> {
+        if self.0.stopped.load(Ordering::Acquire) {
+            return None;
+        }
+        Some(now.saturating_sub(self.0.due_by.load(Ordering::Acquire)))
+    }
+}
+
 /// Controls the output thread's life.
 pub struct EngineHandle {
     thread: Option<JoinHandle<Result<(), EngineError>>>,
@@ -230,14 +287,36 @@ pub struct EngineHandle {
     wake: Arc<EventFd>,
     emergency: Arc<dyn EmergencyOff>,
     fault: Arc<Mutex<Option<String>>>,
+    liveness: Liveness,
 }
 
 impl EngineHandle {
+    /// The thread's liveness, for a watchdog.
+    pub fn liveness(&self) -> Liveness {
+        self.liveness.clone()
+    }
+
     /// Stops the thread: every output is driven inactive, then the output is dropped (which
     /// flushes traces) and the thread joined. Returns the thread's own error, if it had one.
+    ///
+    /// A thread that has not ended after [`SHUTDOWN_WAIT`] (hung in a write) is left behind:
+    /// every output is driven inactive through the emergency handle instead, and the result
+    /// is [`EngineError::Hung`].
     pub fn shutdown(mut self) -> Result<(), EngineError> {
         self.stop.store(true, Ordering::SeqCst);
         let _ = self.wake.write(1);
+        let start = std::time::Instant::now();
+        while !self.is_finished() {
+            if start.elapsed() >= SHUTDOWN_WAIT {
+                self.emergency.all_inactive();
+                // Dropping the handle detaches the hung thread.
+                self.thread = None;
+                return Err(EngineError::Hung {
+                    waited_ms: start.elapsed().as_millis() as u64,
+                });
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
         match self.thread.take().map(JoinHandle::join) {
             Some(Ok(r)) => r,
             Some(Err(_)) => Err(EngineError::Panicked),
@@ -264,11 +343,15 @@ impl EngineHandle {
 impl Drop for EngineHandle {
     fn drop(&mut self) {
         if self.thread.is_some() {
-            self.stop.store(true, Ordering::SeqCst);
-            let _ = self.wake.write(1);
-            if let Some(t) = self.thread.take() {
-                let _ = t.join();
+            let _ = EngineHandle {
+                thread: self.thread.take(),
+                stop: self.stop.clone(),
+                wake: self.wake.clone(),
+                emergency: self.emergency.clone(),
+                fault: self.fault.clone(),
+                liveness: self.liveness.clone(),
             }
+            .shutdown();
         }
     }
 }
@@ -304,7 +387,7 @@ pub fn spawn<O: Output>(
     output: O,
     opts: EngineOptions,
 ) -> Result<Engine, EngineError> {
-    check_lines(&configs, &output)?;
+    check_lines(&configs, &output, opts.heartbeat_half_period_ns.is_some())?;
     let timer = monotonic_timer()?;
     spawn_with(configs, output, opts, move |thread| {
         sleep_on_timerfd(thread, &timer)
@@ -329,7 +412,7 @@ where
     O: Output,
     R: FnOnce(&mut OutputThread<O>) -> Result<(), EngineError> + Send + 'static,
 {
-    check_lines(&configs, &output)?;
+    check_lines(&configs, &output, opts.heartbeat_half_period_ns.is_some())?;
     let sys = |what| move |source| EngineError::Sys { what, source };
     let flags = EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK;
     let req_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
@@ -341,21 +424,30 @@ where
     let fault = Arc::new(Mutex::new(None));
     let emergency = output.emergency_off();
     let channels = configs.len();
+    let liveness = Liveness::new(clock::monotonic_ns());
 
     let thread = {
-        let (req_wake, rep_wake, stop, fault, dropped) = (
+        let (req_wake, rep_wake, stop, fault, dropped, liveness) = (
             req_wake.clone(),
             rep_wake.clone(),
             stop.clone(),
             fault.clone(),
             dropped.clone(),
+            liveness.clone(),
         );
         std::thread::Builder::new()
             .name("pwm-output".into())
             .spawn(move || {
                 real_time_setup(opts.rt_priority);
+                let now = clock::monotonic_ns();
+                let mut worker = Worker::new(&configs, output, rep_tx, dropped, now);
+                if let Some(half) = opts.heartbeat_half_period_ns {
+                    worker.start_heartbeat(configs.len(), half, now);
+                }
                 let mut thread = OutputThread {
-                    worker: Worker::new(&configs, output, rep_tx, dropped, clock::monotonic_ns()),
+                    worker,
+                    liveness,
+                    last_work: now,
                     requests: req_rx,
                     req_wake,
                     rep_wake,
@@ -390,19 +482,25 @@ where
             wake: req_wake,
             emergency,
             fault,
+            liveness,
         },
     })
 }
 
-/// Refuses an empty channel list and an output with too few lines.
-fn check_lines<O: Output>(configs: &[ChannelConfig], output: &O) -> Result<(), EngineError> {
+/// Refuses an empty channel list; checks that the output has a line per channel, and one more for the heartbeat.
+fn check_lines<O: Output>(
+    configs: &[ChannelConfig],
+    output: &O,
+    heartbeat: bool,
+) -> Result<(), EngineError> {
     if configs.is_empty() {
         return Err(EngineError::NoChannels);
     }
-    if output.line_count() < configs.len() {
+    let needed = configs.len() + usize::from(heartbeat);
+    if output.line_count() < needed {
         return Err(EngineError::LineCount {
             lines: output.line_count(),
-            channels: configs.len(),
+            channels: needed,
         });
     }
     Ok(())
@@ -413,6 +511,9 @@ fn check_lines<O: Output>(configs: &[ChannelConfig], output: &O) -> Result<(), E
 /// bookkeeping of reader wake-ups. Lives on the output thread only.
 pub struct OutputThread<O: Output> {
     worker: Worker<O>,
+    liveness: Liveness,
+    /// When [`OutputThread::work`] last ran, monotonic ns.
+    last_work: Nanos,
     requests: rtrb::Consumer<Request>,
     req_wake: Arc<EventFd>,
     rep_wake: Arc<EventFd>,
@@ -439,6 +540,7 @@ impl<O: Output> OutputThread<O> {
         if self.stop_requested() {
             return Ok(false);
         }
+        self.last_work = clock::monotonic_ns();
         if let Err(Stop::Fault { channel, error }) = self.worker.run(&mut self.requests) {
             if let Ok(mut f) = self.fault.lock() {
                 *f = Some(error.to_string());
@@ -465,10 +567,11 @@ impl<O: Output> OutputThread<O> {
         Ok(true)
     }
 
-    /// The earliest deadline of any channel, monotonic ns; `None` when no channel has one
-    /// (sleep until a request arrives).
+    /// The earliest deadline of any channel or of the heartbeat line, and at the latest
+    /// [`LIVENESS_TICK_NS`] after the last wake-up, monotonic ns.
     pub fn next_deadline(&self) -> Option<Nanos> {
-        self.worker.next_deadline()
+        let tick = self.last_work.saturating_add(LIVENESS_TICK_NS);
+        Some(self.worker.next_deadline().map_or(tick, |d| d.min(tick)))
     }
 
     /// Whether [`EngineHandle::shutdown`] (or dropping the handle) asked the thread to stop.
@@ -494,6 +597,7 @@ impl<O: Output> OutputThread<O> {
     /// timer fired.
     pub fn sleep_on(&self, timer: &TimerFd, deadline: Option<Nanos>) -> Result<bool, EngineError> {
         let sys = |what| move |source| EngineError::Sys { what, source };
+        self.liveness.promise(deadline.unwrap_or(Nanos::MAX));
         match deadline {
             Some(t) => timer
                 .set(
@@ -525,6 +629,7 @@ impl<O: Output> OutputThread<O> {
 
     /// Drives every line inactive, drops the output (flushing traces) and wakes the reader.
     fn finish(self) -> Result<(), EngineError> {
+        self.liveness.0.stopped.store(true, Ordering::Release);
         let (output, result) = self.worker.shut_down();
         drop(output);
         let _ = self.rep_wake.write(1);

@@ -30,6 +30,15 @@ pub(crate) struct Worker<O: Output> {
     dropped: Arc<AtomicU64>,
     /// Set when at least one report was pushed since the last `take_pushed`.
     pushed: bool,
+    heartbeat: Option<Heartbeat>,
+}
+
+/// The heartbeat line: toggled every half period on an absolute grid while the thread runs.
+struct Heartbeat {
+    line: usize,
+    half: Nanos,
+    next: Nanos,
+    level: Level,
 }
 
 impl<O: Output> Worker<O> {
@@ -53,12 +62,30 @@ impl<O: Output> Worker<O> {
             reports,
             dropped,
             pushed: false,
+            heartbeat: None,
         }
     }
 
-    /// The earliest deadline of any channel, monotonic ns.
+    /// Toggles output line `line` every `half` ns from `now + half` on (a half period of at
+    /// least 1 ms is used).
+    pub(crate) fn start_heartbeat(&mut self, line: usize, half: Nanos, now: Nanos) {
+        let half = half.max(1_000_000);
+        self.heartbeat = Some(Heartbeat {
+            line,
+            half,
+            next: now + half,
+            level: Level::Low,
+        });
+    }
+
+    /// The earliest deadline of any channel or of the heartbeat, monotonic ns.
     pub(crate) fn next_deadline(&self) -> Option<Nanos> {
-        self.channels.iter().filter_map(Channel::poll_at).min()
+        let channels = self.channels.iter().filter_map(Channel::poll_at).min();
+        match (&self.heartbeat, channels) {
+            (Some(hb), Some(c)) => Some(hb.next.min(c)),
+            (Some(hb), None) => Some(hb.next),
+            (None, c) => c,
+        }
     }
 
     /// Whether a report was pushed since the last call (the caller then wakes the reader once).
@@ -81,6 +108,23 @@ impl<O: Output> Worker<O> {
                 self.pushed |= sink.pushed;
                 self.touched[i] = true;
                 self.sync_pair(i, now);
+            }
+        }
+        if let Some(hb) = self.heartbeat.as_mut().filter(|hb| hb.next <= now) {
+            hb.level = if hb.level.is_high() {
+                Level::Low
+            } else {
+                Level::High
+            };
+            self.changes.push(LineChange {
+                line: hb.line,
+                level: hb.level,
+                scheduled_ns: hb.next,
+            });
+            // On the grid; after a stall, from now (no burst of catch-up toggles).
+            hb.next += hb.half;
+            if hb.next <= now {
+                hb.next = now + hb.half;
             }
         }
         self.flush(now)
@@ -148,6 +192,10 @@ impl<O: Output> Worker<O> {
             self.report_status(now);
             for k in 0..self.changes.len() {
                 let c = self.changes[k];
+                if c.line >= self.channels.len() {
+                    // The heartbeat line: not a channel, nothing to report.
+                    continue;
+                }
                 // The minimum of the phase this edge begins counts from when it reached the line.
                 self.channels[c.line].edge_written(actual_ns);
                 self.seq[c.line] += 1;
@@ -193,6 +241,13 @@ impl<O: Output> Worker<O> {
                     scheduled_ns: now,
                 });
             }
+        }
+        if let Some(hb) = self.heartbeat.as_ref().filter(|hb| hb.level == Level::High) {
+            self.changes.push(LineChange {
+                line: hb.line,
+                level: Level::Low,
+                scheduled_ns: now,
+            });
         }
         let r = if self.changes.is_empty() {
             Ok(())

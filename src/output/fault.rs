@@ -2,7 +2,9 @@
 //! environment variable:
 //!
 //! - `panic-after-ms=N`: a thread of the node panics N ms after start-up;
-//! - `fail-write-after=N`: the output's writes fail after N successful ones.
+//! - `fail-write-after=N`: the output's writes fail after N successful ones;
+//! - `hang-write-after-ms=N`: the first write N ms after start-up never returns (a driver stuck
+//!   in the kernel), so the output thread hangs while the rest of the process runs.
 //!
 //! Both exist so that "every output ends inactive" can be shown on the real binary, not only
 //! argued. Nothing here is active unless the variable is set.
@@ -20,6 +22,8 @@ pub enum Fault {
     PanicAfterMs(u64),
     /// Fail every output write after this many successful writes.
     FailWriteAfter(u64),
+    /// The first output write this many ms after start-up never returns.
+    HangWriteAfterMs(u64),
 }
 
 impl Fault {
@@ -31,14 +35,20 @@ impl Fault {
         }
     }
 
-    /// Parses `panic-after-ms=N` or `fail-write-after=N`.
+    /// Parses `panic-after-ms=N`, `fail-write-after=N` or `hang-write-after-ms=N`.
     pub fn parse(s: &str) -> Result<Fault, String> {
-        let bad = || format!("{FAULT_ENV}=`{s}`: expected panic-after-ms=N or fail-write-after=N");
+        let bad = || {
+            format!(
+                "{FAULT_ENV}=`{s}`: expected panic-after-ms=N, fail-write-after=N or \
+                 hang-write-after-ms=N"
+            )
+        };
         let (kind, n) = s.split_once('=').ok_or_else(bad)?;
         let n: u64 = n.trim().parse().map_err(|_| bad())?;
         match kind.trim() {
             "panic-after-ms" => Ok(Fault::PanicAfterMs(n)),
             "fail-write-after" => Ok(Fault::FailWriteAfter(n)),
+            "hang-write-after-ms" => Ok(Fault::HangWriteAfterMs(n)),
             _ => Err(bad()),
         }
     }
@@ -119,6 +129,48 @@ impl<O: Output> Output for FailingOutput<O> {
     }
 }
 
+/// Wraps an output so that its first write after a time never returns: the thread that
+/// writes hangs, as on a driver stuck in the kernel. Switching off from another thread (the
+/// emergency handle) still works.
+pub struct HangingOutput<O: Output> {
+    inner: O,
+    hang_at: crate::core::Nanos,
+}
+
+impl<O: Output> HangingOutput<O> {
+    /// Wraps `inner`; writes hang from `after_ms` ms from now on.
+    pub fn new(inner: O, after_ms: u64) -> Self {
+        let after = after_ms.saturating_mul(1_000_000);
+        HangingOutput {
+            inner,
+            hang_at: crate::clock::monotonic_ns().saturating_add(after),
+        }
+    }
+}
+
+impl<O: Output> Output for HangingOutput<O> {
+    type Error = O::Error;
+
+    fn line_count(&self) -> usize {
+        self.inner.line_count()
+    }
+
+    fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), Self::Error> {
+        while crate::clock::monotonic_ns() >= self.hang_at {
+            std::thread::sleep(std::time::Duration::from_secs(3600));
+        }
+        self.inner.set_levels(changes)
+    }
+
+    fn set_all_inactive(&mut self) -> Result<(), Self::Error> {
+        self.inner.set_all_inactive()
+    }
+
+    fn emergency_off(&self) -> Arc<dyn EmergencyOff> {
+        self.inner.emergency_off()
+    }
+}
+
 /// An injected failure or the wrapped output's own error.
 #[derive(Debug, thiserror::Error)]
 pub enum FaultError<E: std::error::Error + 'static> {
@@ -166,6 +218,10 @@ mod tests {
             .unwrap_err()
             .contains("panic-after-ms=N"));
         assert!(Fault::parse("fail-write-after=x").is_err());
+        assert_eq!(
+            Fault::parse("hang-write-after-ms=500"),
+            Ok(Fault::HangWriteAfterMs(500))
+        );
         assert!(Fault::parse("explode=1").is_err());
     }
 

@@ -57,6 +57,16 @@ impl GpioLine {
     }
 }
 
+/// Parses a line address `[CHIP:]OFFSET` (`17`, `gpiochip1:4`, `/dev/gpiochip1:4`): the chip
+/// (`None`: the default chip) and the offset. `None` when it is not one.
+pub fn parse_line_addr(s: &str) -> Option<(Option<&str>, u32)> {
+    let (chip, offset) = match s.rsplit_once(':') {
+        Some((chip, off)) if !chip.is_empty() => (Some(chip), off),
+        _ => (None, s),
+    };
+    Some((chip, offset.parse().ok()?))
+}
+
 /// Errors of the GPIO backend.
 #[derive(Debug, thiserror::Error)]
 pub enum GpioError {

@@ -7,7 +7,7 @@
 //! then the line bindings (no line bound to two channels), then the trace files are created,
 //! then the chips are opened.
 
-use super::fault::{FailingOutput, FAULT_ENV};
+use super::fault::{FailingOutput, Fault, HangingOutput, FAULT_ENV};
 use super::gpio::{plan_requests, GpioError, GpioLine, GpioOutput};
 use super::trace::{TraceError, TraceSpec};
 use super::{EmergencyOff, ErrorKind, LineChange, Output, OutputError, SimOutput, Traced};
@@ -36,9 +36,10 @@ pub struct OutputSpec {
     pub backend: Backend,
     /// Trace files (`.vcd`, `.csv`) of what is written to the lines; may be empty.
     pub trace: Vec<PathBuf>,
-    /// Writes fail after this many successful ones (`PWM_ACTUATOR_FAULT`, exit-path tests);
-    /// `None` in normal operation.
-    pub fail_writes_after: Option<u64>,
+    /// A write fault to inject (`PWM_ACTUATOR_FAULT`, exit-path tests): writes that fail after
+    /// a count, or that hang after a time. `None` in normal operation; other faults are not
+    /// the output's and are ignored here.
+    pub fault: Option<Fault>,
 }
 
 impl OutputSpec {
@@ -184,12 +185,16 @@ pub fn open(spec: &OutputSpec) -> Result<AnyOutput, OpenError> {
             AnyOutput::new(Traced::new(gpio, recorder))
         }
     };
-    Ok(match spec.fail_writes_after {
-        Some(n) => {
+    Ok(match spec.fault {
+        Some(Fault::FailWriteAfter(n)) => {
             log::warn!("{FAULT_ENV}: output writes fail after {n}");
             AnyOutput::new(FailingOutput::new(output, n))
         }
-        None => output,
+        Some(Fault::HangWriteAfterMs(ms)) => {
+            log::warn!("{FAULT_ENV}: output writes hang after {ms} ms");
+            AnyOutput::new(HangingOutput::new(output, ms))
+        }
+        Some(Fault::PanicAfterMs(_)) | None => output,
     })
 }
 
@@ -205,7 +210,7 @@ mod tests {
                 names: names.iter().map(|n| n.to_string()).collect(),
             },
             trace: vec![],
-            fail_writes_after: None,
+            fault: None,
         }
     }
 
@@ -230,7 +235,7 @@ mod tests {
     #[test]
     fn an_injected_failure_keeps_its_kind_line_and_text() {
         let mut spec = sim(&["pw01"]);
-        spec.fail_writes_after = Some(1);
+        spec.fault = Some(Fault::FailWriteAfter(1));
         let mut out = open(&spec).unwrap();
         out.set_levels(&on(0)).unwrap();
         let e = out.set_levels(&on(0)).unwrap_err();
@@ -260,7 +265,7 @@ mod tests {
                 lines: vec![line("pw01"), line("pw02")],
             },
             trace: vec![vcd.clone()],
-            fail_writes_after: None,
+            fault: None,
         };
         let e = open(&spec).err().unwrap();
         assert!(matches!(e, OpenError::Gpio(GpioError::Binding(_))), "{e:?}");
@@ -280,7 +285,7 @@ mod tests {
                 }],
             },
             trace: vec![],
-            fail_writes_after: None,
+            fault: None,
         };
         let e = open(&spec).err().unwrap();
         assert!(

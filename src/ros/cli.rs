@@ -9,6 +9,7 @@
 //! anything.
 
 use super::params::{channel_of, StartValue};
+use crate::output::gpio::parse_line_addr;
 use clap::error::{ContextKind, ContextValue, ErrorKind};
 use clap::{ArgAction, Args, FromArgMatches};
 use ros2_client::ParameterValue;
@@ -201,16 +202,9 @@ fn parse_line(v: &str) -> Result<(String, Option<String>, i64), String> {
     if channel_of(&format!("{ch}.x")).is_none() {
         return Err(format!("`{ch}` is not a channel name (pw01, pw02, ...)"));
     }
-    let (chip, offset) = match rest.rsplit_once(':') {
-        Some((chip, off)) if !chip.is_empty() => (Some(chip.to_string()), off),
-        _ => (None, rest),
-    };
-    let offset: i64 = offset
-        .parse()
-        .ok()
-        .filter(|o| (0..=u32::MAX as i64).contains(o))
-        .ok_or_else(|| format!("`{offset}` is not a line offset"))?;
-    Ok((ch.to_string(), chip, offset))
+    let (chip, offset) = parse_line_addr(rest)
+        .ok_or_else(|| format!("`{rest}` is not a line: expected [CHIP:]OFFSET, e.g. 17"))?;
+    Ok((ch.to_string(), chip.map(str::to_string), i64::from(offset)))
 }
 
 impl Flags {
@@ -359,7 +353,7 @@ mod tests {
             (&["--channels", "two"][..], "not an integer"),
             (&["--line", "pw01"][..], "expected CH="),
             (&["--line", "q1=3"][..], "not a channel"),
-            (&["--line", "pw01=-3"][..], "not a line offset"),
+            (&["--line", "pw01=-3"][..], "not a line: expected [CHIP:]OFFSET"),
             (&["--status-rate", "fast"][..], "not a number"),
         ] {
             let e = flags(a).unwrap_err();

@@ -28,6 +28,7 @@ use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
 use crate::output::{self, install_panic_hook, AnyOutput, Backend, OpenError, Output};
+use crate::service::WatchdogPinger;
 use futures::StreamExt;
 use log::{debug, error, info, warn};
 use ros2_client::{
@@ -104,6 +105,9 @@ pub enum NodeError {
     /// Security is enforced and cannot be provided.
     #[error(transparent)]
     Security(#[from] SecurityError),
+    /// The systemd watchdog thread cannot start.
+    #[error("cannot start the systemd watchdog thread: {0}")]
+    Watchdog(#[source] std::io::Error),
     /// `PWM_ACTUATOR_FAULT` is malformed.
     #[error("{0}")]
     Fault(String),
@@ -283,13 +287,11 @@ pub(crate) fn start_values(
     Ok(v)
 }
 
-/// Opens the output (`PWM_ACTUATOR_FAULT=fail-write-after=N` makes its writes fail, for the
-/// exit-path tests) and installs the panic hook with its emergency handle.
+/// Opens the output (`PWM_ACTUATOR_FAULT=fail-write-after=N` or `hang-write-after-ms=N`
+/// makes its writes fail or hang, for the exit-path tests) and installs the panic hook with its emergency handle.
 fn open_output(cfg: &StartupConfig) -> Result<AnyOutput, NodeError> {
     let mut spec = cfg.output.clone();
-    if let Some(Fault::FailWriteAfter(n)) = Fault::from_env().map_err(NodeError::Fault)? {
-        spec.fail_writes_after = Some(n);
-    }
+    spec.fault = Fault::from_env().map_err(NodeError::Fault)?;
     let out = output::open(&spec)?;
     install_panic_hook(out.emergency_off());
     Ok(out)
@@ -300,6 +302,7 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
     let configs: Vec<ChannelConfig> = cfg.channels.iter().map(|c| c.config).collect();
     let opts = EngineOptions {
         rt_priority: cfg.rt_priority,
+        heartbeat_half_period_ns: cfg.heartbeat_hz.map(|hz| (5e8 / hz).round() as u64),
         ..EngineOptions::default()
     };
     engine::spawn(configs, output, opts).map_err(NodeError::Engine)
@@ -617,11 +620,19 @@ async fn serve(
 
     // Lines requested, output thread running, ROS side up: systemd's Type=notify start ends.
     crate::service::ready();
+    let pinger = match crate::service::watchdog_interval() {
+        Some(interval) => match WatchdogPinger::start(handle.liveness(), interval) {
+            Ok(p) => Some(p),
+            Err(e) => return Err(NodeError::Watchdog(e)),
+        },
+        None => None,
+    };
 
     let reason = signals.wait(&stop_signal).await;
     info!("{reason}: stopping");
     logging::shutting_down();
     crate::service::stopping();
+    drop(pinger);
     for t in &tasks {
         t.abort();
     }

@@ -36,6 +36,12 @@ pub const MIN_STATUS_RATE_HZ: f64 = 0.01;
 /// Fastest periodic status rate, Hz.
 pub const MAX_STATUS_RATE_HZ: f64 = 1000.0;
 
+/// Lowest `heartbeat_hz`, Hz (a toggle every second).
+pub const MIN_HEARTBEAT_HZ: f64 = 0.5;
+
+/// Highest `heartbeat_hz`, Hz (a toggle every 2 ms).
+pub const MAX_HEARTBEAT_HZ: f64 = 250.0;
+
 /// Channels when nothing says otherwise (000: PW01, PW02).
 pub const DEFAULT_CHANNELS: usize = 2;
 

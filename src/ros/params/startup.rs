@@ -6,6 +6,9 @@ use super::DEFAULT_CHANNELS;
 use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Phase};
 use crate::core::ChannelConfig;
 use crate::output::{Backend, GpioLine, OutputSpec};
+
+/// The name of the heartbeat line (in traces and safe-off's report).
+pub const HEARTBEAT_LINE: &str = "heartbeat";
 use ros2_client::ParameterValue;
 use std::path::PathBuf;
 
@@ -103,8 +106,11 @@ pub struct ChannelStart {
 pub struct StartupConfig {
     /// Channels in order.
     pub channels: Vec<ChannelStart>,
-    /// The output: backend, lines (with their polarity), trace files.
+    /// The output: backend, lines (with their polarity; the heartbeat line last, after the
+    /// channels' lines), trace files.
     pub output: OutputSpec,
+    /// The heartbeat line's frequency, Hz, when there is a heartbeat line.
+    pub heartbeat_hz: Option<f64>,
     /// Periodic status rate, Hz (0 = on change only).
     pub status_rate_hz: f64,
     /// Edge lines per second and channel (0 = none).
@@ -134,6 +140,7 @@ impl StartupConfig {
             .filter(|s| !s.is_empty())
             .map(PathBuf::from)
             .collect();
+        let heartbeat = u32::try_from(store.int("heartbeat_line").unwrap_or(-1)).ok();
         let backend = if store.string("output") == Some("gpio") {
             let mut lines = Vec::new();
             for c in &channels {
@@ -156,21 +163,32 @@ impl StartupConfig {
                         .unwrap_or(false),
                 });
             }
+            if let Some(offset) = heartbeat {
+                lines.push(GpioLine {
+                    name: HEARTBEAT_LINE.into(),
+                    chip: PathBuf::from(store.string("heartbeat_chip").unwrap_or("/dev/gpiochip0")),
+                    offset,
+                    active_low: false,
+                });
+            }
             Backend::Gpio { lines }
         } else {
-            Backend::Sim {
-                names: channels.iter().map(|c| c.name.clone()).collect(),
+            let mut names: Vec<String> = channels.iter().map(|c| c.name.clone()).collect();
+            if heartbeat.is_some() {
+                names.push(HEARTBEAT_LINE.into());
             }
+            Backend::Sim { names }
         };
         let output = OutputSpec {
             backend,
             trace,
-            fail_writes_after: None,
+            fault: None,
         };
         let rt = store.int("rt_priority").unwrap_or(0);
         Ok(StartupConfig {
             channels,
             output,
+            heartbeat_hz: heartbeat.map(|_| store.double("heartbeat_hz").unwrap_or(10.0)),
             status_rate_hz: store.double("status_rate_hz").unwrap_or(10.0),
             edge_log_rate: store.int("edge_log_rate").unwrap_or(10).clamp(0, 1000) as u32,
             rt_priority: (rt > 0).then_some(rt.min(99) as i32),

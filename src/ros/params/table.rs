@@ -10,6 +10,7 @@
 
 use super::{ParamType, Range, DEFAULT_CHANNELS, MAX_CHANNELS, MAX_STATUS_RATE_HZ};
 use super::{ParameterValue as V, MIN_STATUS_RATE_HZ};
+use super::{MAX_HEARTBEAT_HZ, MIN_HEARTBEAT_HZ};
 use crate::core::config::{ShortStr, UnknownName, MAX_PERIOD_MS, MAX_TIMEOUT_MS};
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Profile, ShortPulse};
 use crate::ros::msg;
@@ -146,9 +147,9 @@ pub(super) fn node_decls() -> Vec<Decl> {
             ..Decl::new("output", String, || V::String("sim".into()))
         },
         Decl {
-            description: "Trace file(s) of the sim output, comma-separated; .vcd and/or .csv. \
-                          Empty: no trace.",
-            constraints: "sim output only",
+            description: "Trace file(s) of what is written to the lines (any output), \
+                          comma-separated; .vcd and/or .csv. Empty: no trace.",
+            constraints: "start-up only",
             read_only: Some(START_UP),
             ..Decl::new("trace", String, || V::String(std::string::String::new()))
         },
@@ -175,6 +176,33 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "each channel in one pair at most",
             read_only: Some(START_UP),
             ..Decl::new("split", String, || V::String(std::string::String::new()))
+        },
+        Decl {
+            description: "Heartbeat line: offset on heartbeat_chip (with output sim, a simulated \
+                          line named heartbeat). The output thread toggles it at heartbeat_hz \
+                          while it runs and stops on an output fault, a stop or a hang (the line \
+                          then rests inactive, or where it was on a kill), for an external \
+                          charge pump or watchdog relay that cuts actuator power when the \
+                          toggling stops. -1: none.",
+            constraints: "start-up only; driven inactive by safe-off too",
+            read_only: Some(START_UP),
+            range: Range::Integer(-1, u32::MAX as i64),
+            ..Decl::new("heartbeat_line", Integer, || V::Integer(-1))
+        },
+        Decl {
+            description: "Chip of the heartbeat line (output gpio).",
+            constraints: "start-up only",
+            read_only: Some(START_UP),
+            ..Decl::new("heartbeat_chip", String, || {
+                V::String("/dev/gpiochip0".into())
+            })
+        },
+        Decl {
+            description: "Frequency of the heartbeat line's square wave, Hz (two toggles per \
+                          period).",
+            read_only: Some(START_UP),
+            range: Range::Double(MIN_HEARTBEAT_HZ, MAX_HEARTBEAT_HZ),
+            ..Decl::new("heartbeat_hz", Double, || V::Double(10.0))
         },
         Decl {
             description: "SCHED_FIFO priority of the output thread (with mlockall). 0: normal \

@@ -422,7 +422,7 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
                 names: vec!["pw01".into(), "pw02".into(), "pw03".into()]
             },
             trace: vec![],
-            fail_writes_after: None,
+            fault: None,
         }
     );
     assert_eq!(cfg.rt_priority, None);
@@ -467,7 +467,7 @@ fn gpio_needs_lines_and_takes_a_trace() {
                 }],
             },
             trace: vec![],
-            fail_writes_after: None,
+            fault: None,
         }
     );
     let su = start_up(&[
