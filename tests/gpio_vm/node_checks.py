@@ -497,6 +497,57 @@ def two_channels_on_one_line_refused():
     return "exit 2, both channels named, line never requested"
 
 
+def toggles(samples):
+    """Times at which the level changed, from held samples."""
+    out, prev = [], None
+    for t, v, _ in samples:
+        if prev is not None and v != prev:
+            out.append(t)
+        prev = v
+    return out
+
+
+def heartbeat_toggles_and_stops_on_sigstop():
+    """heartbeat_line at 10 Hz: a toggle every 50 ms while the node runs, none while SIGSTOP
+    holds the process, toggling again after SIGCONT, and inactive (low) when the node lets go
+    after SIGTERM, although the line is pulled up."""
+    hb = Line(6)
+    hb.set_pull(True)
+    p = node([("pw01", 4)], ["heartbeat_line:=6", f"heartbeat_chip:={CHIP}",
+                             "heartbeat_hz:=10.0"])
+    try:
+        wait_level(p, hb, True)
+        running = toggles(levels_for(hb, 1.0))
+        require(15 <= len(running) <= 25, f"{len(running)} toggles in 1 s at 10 Hz, expected 20")
+        gaps = sorted(b - a for a, b in zip(running, running[1:]))
+        med = gaps[len(gaps) // 2] * 1000
+        require(45.0 <= med <= 55.0, f"median toggle interval {med:.1f} ms, expected 50")
+        p.send_signal(signal.SIGSTOP)
+        time.sleep(0.2)
+        stopped = toggles(levels_for(hb, 1.0))
+        require(not stopped, f"{len(stopped)} toggles while the node was stopped")
+        p.send_signal(signal.SIGCONT)
+        time.sleep(0.2)
+        resumed = toggles(levels_for(hb, 1.0))
+        require(len(resumed) >= 15, f"{len(resumed)} toggles in 1 s after SIGCONT")
+    except BaseException:
+        p.send_signal(signal.SIGCONT)
+        kill(p)
+        raise
+    p.send_signal(signal.SIGTERM)
+    last = None
+    end = time.monotonic() + 20.0
+    while time.monotonic() < end and hb.held():
+        _, v, h = hb.sample()
+        if h:
+            last = v
+    code, err = stop(p)
+    require(code == 0, f"node exit {code}: {err[-1000:]}")
+    require(last is False, f"heartbeat line released at level {last}, expected inactive")
+    return (f"{len(running)} toggles/s (median {med:.1f} ms), 0 while stopped, "
+            f"{len(resumed)} after SIGCONT, inactive at the end")
+
+
 CHECKS = [
     duty_is_followed,
     active_low_inverts,
@@ -511,6 +562,7 @@ CHECKS = [
     busy_line_is_a_configuration_error,
     missing_chip_is_a_configuration_error,
     two_channels_on_one_line_refused,
+    heartbeat_toggles_and_stops_on_sigstop,
 ]
 
 
