@@ -157,6 +157,36 @@ if [[ -n "$vm_why" ]]; then
     skipped_steps+=("gpio-vm tests ($vm_why)")
 fi
 
+# 4c. The systemd unit in launch-notes/: `systemd-analyze verify` with the binary paths pointed
+# at the release build (/usr/local/bin is not installed here). One check; skipped, with the
+# reason, where systemd-analyze is missing.
+verify_unit() {
+    local dir rc
+    dir="$(mktemp -d)"
+    sed "s#/usr/local/bin/pwm_actuator_node#$REPO/target/release/pwm_actuator_node#g" \
+        launch-notes/pwm_actuator.service >"$dir/pwm_actuator.service"
+    systemd-analyze verify "$dir/pwm_actuator.service" 2>&1 | tee "$LOG_DIR/unit-verify.log"
+    rc=${PIPESTATUS[0]}
+    # verify prints warnings without failing; any output is a finding.
+    if ((rc == 0)) && [[ -s "$LOG_DIR/unit-verify.log" ]]; then
+        rc=1
+    fi
+    rm -rf "$dir"
+    return "$rc"
+}
+if ! command -v systemd-analyze >/dev/null; then
+    echo "unit verify: SKIPPED (no systemd-analyze)"
+    skipped=$((skipped + 1))
+    skipped_steps+=("unit verify (no systemd-analyze)")
+elif ((!release_ok)); then
+    skipped=$((skipped + 1))
+    skipped_steps+=("unit verify (no release build)")
+elif run_step "unit verify" verify_unit; then
+    passed=$((passed + 1))
+else
+    failed=$((failed + 1))
+fi
+
 # 5. The rclpy suite, with the venv's python and the built messages.
 # shellcheck disable=SC2317  # called through run_step
 rclpy_suite() {
