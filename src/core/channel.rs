@@ -118,6 +118,8 @@ pub struct Status {
     pub watchdog_tripped: bool,
     /// The watchdog's fault value (`fault_duty_pct`) is running.
     pub fault_active: bool,
+    /// The emergency stop is latched: the line is held low.
+    pub estopped: bool,
     /// The rule that shaped the plan in force.
     pub rule: Rule,
 }
@@ -157,6 +159,8 @@ pub struct Channel {
     /// While the watchdog's fault value runs: when it ends (`Nanos::MAX`: until a command).
     fault_until: Option<Nanos>,
     flags: (bool, bool),
+    /// The emergency stop is latched: the line never goes high.
+    estop: bool,
 }
 
 impl Channel {
@@ -187,6 +191,7 @@ impl Channel {
             watchdog_tripped: false,
             fault_until: None,
             flags: (false, false),
+            estop: false,
         }
     }
 
@@ -238,7 +243,7 @@ impl Channel {
             self.fault_until.filter(|t| *t != Nanos::MAX),
             self.line
                 .held
-                .filter(|(level, _)| !(self.line.locked && *level == Level::High))
+                .filter(|(level, _)| !(self.no_rise() && *level == Level::High))
                 .map(|(_, at)| at),
         ]
         .into_iter()
@@ -261,13 +266,49 @@ impl Channel {
             return;
         }
         self.line.locked = on;
-        if !on {
+        if !self.no_rise() {
             if let Some((Level::High, at)) = self.line.held {
                 if at <= now {
                     self.write_line(Level::High, now, emit);
                 }
             }
         }
+    }
+
+    /// Whether the emergency stop is latched (see [`Channel::set_estop`]).
+    pub fn estopped(&self) -> bool {
+        self.estop
+    }
+
+    /// Latches or releases the emergency stop at `now`.
+    ///
+    /// Latching drives the line low at once, whatever its minimum on time or `on_disable`
+    /// (the fault value included: the e-stop overrides it), and disables the channel. While
+    /// latched the line never goes high: commands, enables and configurations are taken and
+    /// reported as usual, but every rise is held back. Releasing disables the channel once
+    /// more and drops every held rise, so nothing switches on by itself: the channel runs
+    /// again on its next enable, and then only after the minimum break since the line's last
+    /// real fall.
+    pub fn set_estop(&mut self, now: Nanos, latched: bool, emit: &mut dyn FnMut(Event)) {
+        if latched == self.estop {
+            return;
+        }
+        if latched {
+            self.estop = true;
+            self.fault_until = None;
+            self.set_enable(now, false, emit);
+            self.force_low(now, emit);
+        } else {
+            self.set_enable(now, false, emit);
+            self.line.held = None;
+            self.level = self.line.level;
+            self.estop = false;
+        }
+    }
+
+    /// No rise may reach the line: the interlock is engaged or the e-stop latched.
+    fn no_rise(&self) -> bool {
+        self.line.locked || self.estop
     }
 
     /// Processes every deadline at or before `now`. When several edges fall due together (the
@@ -427,7 +468,7 @@ impl Channel {
         };
         Status {
             enabled: self.enabled,
-            active: self.enabled && self.cfg.period > 0 && !self.watchdog_tripped,
+            active: self.enabled && self.cfg.period > 0 && !self.watchdog_tripped && !self.estop,
             level: self.line.level,
             duty_commanded: self.duty.fraction,
             duty_requested: self.duty.requested,
@@ -443,6 +484,7 @@ impl Channel {
             limited: self.plan.limited,
             watchdog_tripped: self.watchdog_tripped,
             fault_active: self.fault_until.is_some(),
+            estopped: self.estop,
             rule: self.plan.rule,
         }
     }
@@ -503,6 +545,10 @@ impl Channel {
     /// line has cancels a change held back (that pulse or break never reaches the line).
     fn set_level(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
         self.level = level;
+        if self.estop && level == Level::High {
+            // Latched: the line stays low and nothing is held back for later.
+            return;
+        }
         if level == self.line.level {
             if self.line.held.take().is_some() {
                 emit(Event::Missed { edges: 2 });
@@ -513,7 +559,7 @@ impl Channel {
             .line
             .since
             .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)));
-        if at >= earliest && !(self.line.locked && level == Level::High) {
+        if at >= earliest && !(self.no_rise() && level == Level::High) {
             self.write_line(level, at, emit);
         } else {
             self.line.held = Some((level, earliest.max(at)));
@@ -570,7 +616,7 @@ impl Channel {
             return;
         }
         if let Some((level, at)) = self.line.held {
-            if at == t && !(self.line.locked && level == Level::High) {
+            if at == t && !(self.no_rise() && level == Level::High) {
                 self.write_line(level, t, emit);
                 return;
             }

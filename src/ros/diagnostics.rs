@@ -358,6 +358,7 @@ mod tests {
             limited: false,
             watchdog_tripped: false,
             fault_active: false,
+            estopped: false,
             rule: Rule::Exact,
         }
     }

@@ -20,6 +20,8 @@ pub enum Cause {
     Disable,
     /// A configuration change.
     Config,
+    /// The emergency stop latched or released.
+    EStop,
 }
 
 /// An event with when and why it happened.
@@ -90,6 +92,13 @@ impl Bench {
     pub fn disable(&mut self) -> &mut Self {
         self.record(Cause::Disable, |ch, now, emit| {
             ch.set_enable(now, false, emit)
+        });
+        self
+    }
+
+    pub fn estop(&mut self, latched: bool) -> &mut Self {
+        self.record(Cause::EStop, |ch, now, emit| {
+            ch.set_estop(now, latched, emit)
         });
         self
     }

@@ -14,6 +14,7 @@ enum Op {
     Sv(u16),
     Enable(bool),
     Params(ChannelParams),
+    EStop(bool),
 }
 
 fn arb_percent() -> impl Strategy<Value = f64> {
@@ -79,6 +80,7 @@ fn arb_op() -> impl Strategy<Value = Op> {
         1 => (0u16..=5000).prop_map(Op::Sv),
         2 => any::<bool>().prop_map(Op::Enable),
         2 => arb_params().prop_map(Op::Params),
+        1 => any::<bool>().prop_map(Op::EStop),
     ]
 }
 
@@ -114,6 +116,7 @@ fn play(start: ChannelParams, ops: &[(Nanos, Op)]) -> (Bench, Vec<(Nanos, Channe
             Op::Enable(on) if *on => b.enable(),
             Op::Enable(_) => b.disable(),
             Op::Params(p) => b.params(*p),
+            Op::EStop(on) => b.estop(*on),
         };
         note(&b, &mut history);
     }
@@ -126,7 +129,8 @@ fn play(start: ChannelParams, ops: &[(Nanos, Op)]) -> (Bench, Vec<(Nanos, Channe
 }
 
 /// Edges with whether their timing is governed by the minimum-time rules: only the safety offs
-/// act at once, as the seeds say (000 EN, 002 bEn: a falling enable; and a watchdog trip).
+/// act at once, as the seeds say (000 EN, 002 bEn: a falling enable; and a watchdog trip), and
+/// the emergency stop.
 /// Rising enables are governed: toggling EN never shortens a break.
 fn timed_edges(b: &Bench) -> Vec<(Nanos, Level, bool)> {
     let mut out = Vec::new();
@@ -135,8 +139,9 @@ fn timed_edges(b: &Bench) -> Vec<(Nanos, Level, bool)> {
         match l.event {
             Event::Watchdog { tripped: true } => tripped_at = Some(l.now),
             Event::Edge { at, level } => {
-                let forced =
-                    level == Level::Low && (l.cause == Cause::Disable || tripped_at == Some(l.now));
+                let forced = level == Level::Low
+                    && (matches!(l.cause, Cause::Disable | Cause::EStop)
+                        || tripped_at == Some(l.now));
                 out.push((at, level, !forced));
             }
             _ => {}
@@ -338,6 +343,10 @@ proptest! {
                     ch.set_enable(t, *on, &mut |e| ev.push(e))
                 }
                 Op::Params(p) => ch.set_config(t, p.validate().unwrap(), &mut |e| ev.push(e)),
+                Op::EStop(on) => {
+                    disable = *on;
+                    ch.set_estop(t, *on, &mut |e| ev.push(e))
+                }
             }
             if trace { dbg_log.push(format!("op t={} {:?} {:?}", t/1000, op, ev)); }
             now = write(&mut ch, t, &ev, disable, &mut line, &mut k);
@@ -419,6 +428,49 @@ proptest! {
             for c in commands.iter().copied().filter(|c| *c > s && *c <= e) {
                 prop_assert!(!stale(c, true), "high at {} us, no command for over {} ms", c / 1000, timeout_ms);
             }
+        }
+    }
+
+    /// While the e-stop is latched the line is low: it goes low at the instant of the latch and
+    /// no rise reaches it until the release; after the release nothing rises before a fresh
+    /// enable. Whatever commands, enables, parameters and fault values come in between.
+    #[test]
+    fn no_line_is_high_while_the_estop_is_latched(start in arb_params(), ops in arb_ops()) {
+        let (b, _) = play(start, &ops);
+        // (latch, release, first enable after the release), in the times `play` used.
+        let mut spans: Vec<(Nanos, Nanos, Nanos)> = Vec::new();
+        let (mut t, mut latched_at) = (0, None);
+        for (dt, op) in &ops {
+            t += dt;
+            match (op, latched_at) {
+                (Op::EStop(true), None) => latched_at = Some(t),
+                (Op::EStop(false), Some(s)) => {
+                    spans.push((s, t, Nanos::MAX));
+                    latched_at = None;
+                }
+                (Op::Enable(true), None) => {
+                    for span in spans.iter_mut().filter(|s| s.2 == Nanos::MAX) {
+                        span.2 = t;
+                    }
+                }
+                _ => {}
+            }
+        }
+        if let Some(s) = latched_at {
+            spans.push((s, Nanos::MAX, Nanos::MAX));
+        }
+        let edges = b.edges();
+        let level_after = |x: Nanos| {
+            edges.iter().rev().find(|(at, _)| *at <= x).map_or(Level::Low, |e| e.1)
+        };
+        for (s, _, enabled_again) in spans {
+            prop_assert_eq!(level_after(s), Level::Low, "high after the latch at {} us", s / 1000);
+            let rise = edges.iter().find(|(at, l)| *at > s && *at < enabled_again && l.is_high());
+            prop_assert!(
+                rise.is_none(),
+                "rise at {:?} us after the latch at {} us, before a fresh enable",
+                rise.map(|r| r.0 / 1000), s / 1000
+            );
         }
     }
 

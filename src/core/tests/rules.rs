@@ -933,3 +933,61 @@ fn restarting_pulses_from_period_zero_keeps_the_minimum_break() {
     b.params(p100).at(300.0);
     assert_eq!(b.wave(), "H@0 L@100 H@120");
 }
+
+#[test]
+fn the_estop_cuts_a_pulse_at_once_and_holds_the_line_low_while_latched() {
+    // A 300 ms minimum on time does not hold the e-stop back: the line goes low at once (a
+    // safety off, as a falling EN). While latched, commands, enables and the fault value are
+    // taken and reported, but no rise reaches the line.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 300;
+        p.min_off_ms = Some(200);
+        p.command_timeout_ms = 1500;
+        p.fault_duty_pct = 50.0;
+    }));
+    b.duty(50.0).enable().at(100.0);
+    b.estop(true);
+    assert_eq!(b.wave(), "H@0 L@100");
+    assert!(b.ch.estopped() && !b.status().enabled);
+    b.enable().duty(80.0).at(5000.0);
+    let s = b.status();
+    assert!(s.enabled && s.estopped && !s.active, "{s:?}");
+    assert!(
+        s.watchdog_tripped,
+        "the watchdog ran (its fault value held back)"
+    );
+    assert_eq!(
+        b.wave(),
+        "H@0 L@100",
+        "nothing reached the line while latched"
+    );
+}
+
+#[test]
+fn after_an_estop_release_nothing_switches_on_until_a_fresh_enable() {
+    let params = with(|p| {
+        p.period_ms = 1000;
+        p.min_off_ms = Some(400);
+    });
+    let mut b = Bench::new(params);
+    b.duty(50.0).enable().at(100.0);
+    b.estop(true).at(150.0); // latched at 100 ms
+    b.enable().at(200.0); // an enable while latched is taken
+    b.estop(false).at(3000.0); // released at 200 ms
+    assert!(
+        !b.status().enabled,
+        "the release leaves the channel disabled"
+    );
+    assert_eq!(b.wave(), "H@0 L@100");
+    b.enable().at(3600.0); // a fresh enable at 3000 ms runs it
+    assert_eq!(b.wave(), "H@0 L@100 H@3000 L@3500");
+
+    // Released and enabled at once: the first pulse waits out the 400 ms minimum break since
+    // the line's real fall at 100 ms, whatever the e-stop did in between.
+    let mut b = Bench::new(params);
+    b.duty(50.0).enable().at(100.0);
+    b.estop(true).at(150.0);
+    b.estop(false).enable().at(1000.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@500 L@1000");
+}
