@@ -493,6 +493,8 @@ async fn serve(
     // The output first: configuration and hardware errors stop the node before it joins ROS.
     let (output, hardware_ids) = open_output(&cfg)?;
 
+    // Before any reader exists: what the node keeps of an input is bounded by its size.
+    rustdds::set_max_received_sample_size(qos::MAX_SAMPLE_BYTES);
     let participant = disc
         .participant(domain, secure.as_deref())
         .map_err(|e| ros_err("the DDS participant")(e.into()))?;

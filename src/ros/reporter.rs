@@ -12,10 +12,11 @@
 //! is counted.
 
 use super::console::EdgeLines;
-use super::diagnostics::{clamp_text, status_changed, status_msg, ChannelHealth};
+use super::diagnostics::{clamp_text, status_changed, status_msg, ChannelHealth, NodeCounters};
 use super::logging;
 use super::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
 use super::params::{MAX_STATUS_RATE_HZ, MIN_STATUS_RATE_HZ};
+use super::qos::MAX_SAMPLE_BYTES;
 use crate::clock;
 use crate::core::{Event, Nanos, Status};
 use crate::engine::{EdgeReport, Report};
@@ -141,8 +142,9 @@ pub struct Reporter {
     lines: EdgeLines,
     e1_published: Vec<Option<bool>>,
     levels_published: Vec<u8>,
-    dropped: u64,
+    counters: NodeCounters,
     dropped_seen: u64,
+    too_large_seen: u64,
     notes: Receiver<Note>,
     status: StatusClock,
     last_diagnostics: Nanos,
@@ -176,8 +178,9 @@ impl Reporter {
             lines: EdgeLines::new(n, edge_log_rate),
             e1_published: vec![None; n],
             levels_published: vec![u8::MAX; n],
-            dropped: 0,
+            counters: NodeCounters::default(),
             dropped_seen: 0,
+            too_large_seen: 0,
             notes,
             status: StatusClock::new(status_rate_hz, now),
             last_diagnostics: 0,
@@ -346,7 +349,10 @@ impl Reporter {
     pub fn after_batch(&mut self, dropped_total: u64) -> Duration {
         let now = clock::monotonic_ns();
         self.take_notes(now);
-        self.dropped = dropped_total;
+        self.counters = NodeCounters {
+            reports_dropped: dropped_total,
+            samples_too_large: rustdds::received_samples_too_large(),
+        };
         for s in self.lines.flush(&self.names, now) {
             info!("{s}");
         }
@@ -356,6 +362,16 @@ impl Reporter {
                 dropped_total - self.dropped_seen
             );
             self.dropped_seen = dropped_total;
+        }
+        let too_large = self.counters.samples_too_large;
+        if too_large > self.too_large_seen {
+            warn!(
+                "{} input samples larger than {} KiB were dropped before decoding ({too_large} \
+                 since start)",
+                too_large - self.too_large_seen,
+                MAX_SAMPLE_BYTES / 1024
+            );
+            self.too_large_seen = too_large;
         }
         if self.status.take_due(now) {
             for ch in 0..self.health.len() {
@@ -389,7 +405,7 @@ impl Reporter {
             .health
             .iter()
             .map(|h| {
-                let d = h.to_status(&self.node_name, now, self.dropped);
+                let d = h.to_status(&self.node_name, now, self.counters);
                 let l = d.level;
                 (d, l)
             })
