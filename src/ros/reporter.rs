@@ -389,6 +389,7 @@ impl Reporter {
         {
             if since >= DIAGNOSTICS_PERIOD_NS {
                 logging::flush_suppressed();
+                release_free_memory();
             }
             self.publish_diagnostics(now);
         }
@@ -422,6 +423,20 @@ impl Reporter {
         }
         self.levels_published = levels;
         self.last_diagnostics = now;
+    }
+}
+
+/// Hands the heap's free pages back to the kernel (glibc's `malloc_trim`), once a second from
+/// this thread. A burst of input that logs a line per message (an enable flood: 270 000 toggles
+/// in 10 s) leaves tens of MiB freed but scattered among live allocations; glibc returns only
+/// the free memory at the top of a heap by itself, so RSS stayed 70 MiB above its steady state
+/// until this call (measured: 88 MiB, then 18.6 MiB). It runs on the report thread; the output
+/// thread does not allocate, so it never waits for the allocator's locks.
+fn release_free_memory() {
+    #[cfg(target_env = "gnu")]
+    // SAFETY: malloc_trim only takes the allocator's own locks and touches no Rust state.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 
