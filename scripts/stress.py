@@ -8,7 +8,7 @@ of the test suites, so it never shares one), LOCALHOST discovery, sim output tra
 1. malformed CDR on every input topic (raw serialized bytes published with the topic's real
    type: empty, header only, truncated, wrong encapsulation, huge length prefixes, random);
 2. semantic extremes on parameters (NaN, +-inf, 1e308, 5e-324, -0.0, int64 limits, negative,
-   1 MiB and control-character strings, wrong types) through the standard set_parameters service;
+   128 KiB and control-character strings, wrong types) through the standard set_parameters service;
 3. a command flood (duty, SV, split command, enable toggles) while a separate, slow subscriber
    (sleeping in its callback) listens to edges, status and diagnostics.
 
@@ -145,7 +145,8 @@ def malformed(rng: random.Random, kind: str) -> list[bytes]:
 # Parameter extremes
 # ---------------------------------------------------------------------------------------------
 
-HUGE = "A" * (1 << 20)
+# Under the node's 256 KiB input bound, so that it is decoded and refused, not dropped unseen.
+HUGE = "A" * (128 << 10)
 NASTY = "pw02\n[ERROR] [0.0] [pwm_actuator]: forged\x1b[2J\u202e"
 
 

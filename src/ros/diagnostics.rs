@@ -98,6 +98,16 @@ pub fn status_changed(a: &Status, b: &Status) -> bool {
     *a != b_steady
 }
 
+/// Node-wide counters, shown in every channel's status.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct NodeCounters {
+    /// Reports the output thread could not queue for the ROS side (the report thread fell
+    /// behind): edges written to the line but never published.
+    pub reports_dropped: u64,
+    /// Input samples larger than [`super::qos::MAX_SAMPLE_BYTES`], dropped before decoding.
+    pub samples_too_large: u64,
+}
+
 /// Everything the diagnostics say about one channel.
 #[derive(Debug, Clone, Default)]
 pub struct ChannelHealth {
@@ -252,9 +262,14 @@ impl ChannelHealth {
         }
     }
 
-    /// The diagnostic status at `now`, named `<node_name>: <ch>`. `dropped` is the number of
-    /// engine reports lost so far (node-wide).
-    pub fn to_status(&self, node_name: &str, now: Nanos, dropped: u64) -> DiagnosticStatus {
+    /// The diagnostic status at `now`, named `<node_name>: <ch>`, with the node-wide
+    /// `counters`.
+    pub fn to_status(
+        &self,
+        node_name: &str,
+        now: Nanos,
+        counters: NodeCounters,
+    ) -> DiagnosticStatus {
         let mut kv: Vec<(&str, String)> = Vec::new();
         if let Some(s) = &self.status {
             kv.extend([
@@ -315,7 +330,8 @@ impl ChannelHealth {
                     .unwrap_or_default(),
             ),
             ("publish_failures", self.publish_failures.to_string()),
-            ("reports_dropped", dropped.to_string()),
+            ("reports_dropped", counters.reports_dropped.to_string()),
+            ("samples_too_large", counters.samples_too_large.to_string()),
         ]);
         DiagnosticStatus {
             level: self.level(now),
@@ -375,7 +391,7 @@ mod tests {
     fn ok_warn_error() {
         let mut h = ChannelHealth::new("pw01", "sim");
         h.status = Some(status());
-        let d = h.to_status("pwm_actuator", 0, 0);
+        let d = h.to_status("pwm_actuator", 0, NodeCounters::default());
         assert_eq!(d.level, DiagnosticStatus::OK);
         assert_eq!(d.name, "pwm_actuator: pw01");
         assert_eq!(d.hardware_id, "sim");
@@ -388,7 +404,7 @@ mod tests {
             duty_applied: 0.0,
             ..status()
         });
-        let d = h.to_status("n", 0, 0);
+        let d = h.to_status("n", 0, NodeCounters::default());
         assert_eq!(d.level, DiagnosticStatus::WARN);
         assert!(d.message.starts_with("E1:"), "{}", d.message);
         assert!(d.message.contains("suppressed_pulse"));
@@ -415,13 +431,21 @@ mod tests {
         );
         let later = 1_000 + REFUSAL_WARN_NS;
         assert_eq!(h.level(later), DiagnosticStatus::OK);
-        let d = h.to_status("n", later, 3);
+        let d = h.to_status(
+            "n",
+            later,
+            NodeCounters {
+                reports_dropped: 3,
+                samples_too_large: 5,
+            },
+        );
         assert_eq!(
             kv(&d, "last_rejection"),
             "duty command is NaN; last valid command kept"
         );
         assert_eq!(kv(&d, "rejected_commands"), "1");
         assert_eq!(kv(&d, "reports_dropped"), "3");
+        assert_eq!(kv(&d, "samples_too_large"), "5");
     }
 
     #[test]
@@ -437,7 +461,13 @@ mod tests {
         );
         let later = 1_000 + REFUSAL_WARN_NS;
         assert_eq!(h.level(later), DiagnosticStatus::OK);
-        assert_eq!(kv(&h.to_status("n", later, 0), "last_refusal"), reason);
+        assert_eq!(
+            kv(
+                &h.to_status("n", later, NodeCounters::default()),
+                "last_refusal"
+            ),
+            reason
+        );
         // A command refused after the parameter is the newer news.
         h.last_rejection = Some(("duty command is NaN; last valid command kept".into(), 3_000));
         assert!(h.message(4_000).starts_with("last duty command refused"));
@@ -502,7 +532,7 @@ mod tests {
         assert!(m.duty_applied.is_sign_positive(), "{:?}", m.duty_applied);
         let mut h = ChannelHealth::new("pw01", "sim");
         h.status = Some(s);
-        let d = h.to_status("n", 0, 0);
+        let d = h.to_status("n", 0, NodeCounters::default());
         assert_eq!(kv(&d, "duty_commanded_pct"), "0.000");
         assert_eq!(kv(&d, "duty_applied_pct"), "0.000");
     }

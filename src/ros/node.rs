@@ -404,6 +404,8 @@ async fn serve(
     let output = open_output(&cfg)?;
     let hardware_ids = cfg.output.hardware_ids();
 
+    // Before any reader exists: what the node keeps of an input is bounded by its size.
+    rustdds::set_max_received_sample_size(qos::MAX_SAMPLE_BYTES);
     let participant = disc
         .participant(domain, secure.as_deref())
         .map_err(|e| ros_err("the DDS participant")(e.into()))?;

@@ -11,11 +11,19 @@
 //! | `/parameter_events` (out) | reliable | transient local | keep last 1 | ros2-client's topic QoS; rclpy's volatile subscribers match |
 //! | `/rosout` (out) | reliable | transient local | keep last 1 | ros2-client's topic QoS |
 //!
-//! Only QoS values here; no entities are created.
+//! Only QoS values and the input size bound here; no entities are created.
 
 use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::QosProfile;
 use std::time::Duration;
+
+/// The largest sample the node accepts on any input (its topics and its parameter services),
+/// in bytes of serialized payload. Anything larger is dropped by the DDS layer before it is
+/// reassembled from fragments, cached or decoded, and counted (`samples_too_large` on
+/// `/diagnostics`). The largest legitimate input is a `set_parameters` request naming every
+/// parameter of 99 channels: 1 691 parameters, 141 600 bytes; a `ChannelParams` naming every
+/// field is under 400 bytes.
+pub const MAX_SAMPLE_BYTES: usize = 256 * 1024;
 
 /// Subscriptions to commands: rclpy's default profile (reliable, volatile, keep last 10).
 pub fn commands() -> QosProfile {

@@ -12,10 +12,11 @@
 //! is counted.
 
 use super::console::EdgeLines;
-use super::diagnostics::{clamp_text, status_changed, status_msg, ChannelHealth};
+use super::diagnostics::{clamp_text, status_changed, status_msg, ChannelHealth, NodeCounters};
 use super::logging;
 use super::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
 use super::params::{MAX_STATUS_RATE_HZ, MIN_STATUS_RATE_HZ};
+use super::qos::MAX_SAMPLE_BYTES;
 use crate::clock;
 use crate::core::{Event, Nanos, Status};
 use crate::engine::{EdgeReport, Report};
@@ -141,8 +142,9 @@ pub struct Reporter {
     lines: EdgeLines,
     e1_published: Vec<Option<bool>>,
     levels_published: Vec<u8>,
-    dropped: u64,
+    counters: NodeCounters,
     dropped_seen: u64,
+    too_large_seen: u64,
     notes: Receiver<Note>,
     status: StatusClock,
     last_diagnostics: Nanos,
@@ -176,8 +178,9 @@ impl Reporter {
             lines: EdgeLines::new(n, edge_log_rate),
             e1_published: vec![None; n],
             levels_published: vec![u8::MAX; n],
-            dropped: 0,
+            counters: NodeCounters::default(),
             dropped_seen: 0,
+            too_large_seen: 0,
             notes,
             status: StatusClock::new(status_rate_hz, now),
             last_diagnostics: 0,
@@ -346,7 +349,10 @@ impl Reporter {
     pub fn after_batch(&mut self, dropped_total: u64) -> Duration {
         let now = clock::monotonic_ns();
         self.take_notes(now);
-        self.dropped = dropped_total;
+        self.counters = NodeCounters {
+            reports_dropped: dropped_total,
+            samples_too_large: rustdds::received_samples_too_large(),
+        };
         for s in self.lines.flush(&self.names, now) {
             info!("{s}");
         }
@@ -356,6 +362,16 @@ impl Reporter {
                 dropped_total - self.dropped_seen
             );
             self.dropped_seen = dropped_total;
+        }
+        let too_large = self.counters.samples_too_large;
+        if too_large > self.too_large_seen {
+            warn!(
+                "{} input samples larger than {} KiB were dropped before decoding ({too_large} \
+                 since start)",
+                too_large - self.too_large_seen,
+                MAX_SAMPLE_BYTES / 1024
+            );
+            self.too_large_seen = too_large;
         }
         if self.status.take_due(now) {
             for ch in 0..self.health.len() {
@@ -373,6 +389,7 @@ impl Reporter {
         {
             if since >= DIAGNOSTICS_PERIOD_NS {
                 logging::flush_suppressed();
+                release_free_memory();
             }
             self.publish_diagnostics(now);
         }
@@ -389,7 +406,7 @@ impl Reporter {
             .health
             .iter()
             .map(|h| {
-                let d = h.to_status(&self.node_name, now, self.dropped);
+                let d = h.to_status(&self.node_name, now, self.counters);
                 let l = d.level;
                 (d, l)
             })
@@ -406,6 +423,20 @@ impl Reporter {
         }
         self.levels_published = levels;
         self.last_diagnostics = now;
+    }
+}
+
+/// Hands the heap's free pages back to the kernel (glibc's `malloc_trim`), once a second from
+/// this thread. A burst of input that logs a line per message (an enable flood: 270 000 toggles
+/// in 10 s) leaves tens of MiB freed but scattered among live allocations; glibc returns only
+/// the free memory at the top of a heap by itself, so RSS stayed 70 MiB above its steady state
+/// until this call (measured: 88 MiB, then 18.6 MiB). It runs on the report thread; the output
+/// thread does not allocate, so it never waits for the allocator's locks.
+fn release_free_memory() {
+    #[cfg(target_env = "gnu")]
+    // SAFETY: malloc_trim only takes the allocator's own locks and touches no Rust state.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 

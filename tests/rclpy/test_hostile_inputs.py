@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from conftest import ManagedProcess, RosClient
+from diagnostic_msgs.msg import DiagnosticArray
 from pwm_actuator_msgs.msg import ChannelParams, ChannelStatus
 from rcl_interfaces.msg import Log
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -103,9 +104,10 @@ def test_refusals_do_not_forge_or_flood_the_log(ros, node_process):
     assert "x\\n[ERROR] [0] [pwm_actuator]: forged\\u{1b}[2J" in result.reason, result.reason
     assert "\n" not in result.reason and "\x1b" not in result.reason, repr(result.reason)
 
-    # The same with 1 MiB more through the parameter topic: echoed as 64 characters and a size.
+    # The same with 128 KiB more through the parameter topic (the node decodes input up to
+    # 256 KiB): echoed as 64 characters and a size.
     pub = matched_publisher(ros, ChannelParams, f"{NODE}/pw01/params")
-    huge = FORGED + "A" * (1 << 20)
+    huge = FORGED + "A" * (128 << 10)
     ros.publish_until(
         pub,
         ChannelParams(set=[huge]),
@@ -143,3 +145,72 @@ def test_refusals_do_not_forge_or_flood_the_log(ros, node_process):
     for text in refusals:
         assert "\n" not in text and "\x1b" not in text, repr(text[:200])
         assert len(text.encode()) < 4096, len(text.encode())
+
+
+# ---------------------------------------------------------------------------------------------
+# Memory: what the node keeps of large input
+# ---------------------------------------------------------------------------------------------
+
+#: How far above its steady state the node's RSS may stay after large input, MiB. The bound is
+#: generous: the node's own growth while it runs (buffers, rate windows) is a few MiB.
+RSS_SLACK_MIB = 32
+
+
+def rss_mib(pid: int) -> float:
+    """Resident set size of process `pid`, MiB (VmRSS in /proc/PID/status)."""
+    with open(f"/proc/{pid}/status", encoding="ascii") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS in /proc/{pid}/status")
+
+
+def test_large_channel_params_do_not_stay_in_memory(ros, node_process):
+    """Valid ChannelParams with a 16 and 32 MiB string field (issue 9: 12 x 16 MiB left the
+    node at 556 MB): after them RSS comes back to within RSS_SLACK_MIB of its steady state, a
+    small message from the same publisher is still applied, and /diagnostics counts what was
+    dropped."""
+    proc = start_node(node_process)
+    pub = matched_publisher(ros, ChannelParams, f"{NODE}/pw01/params")
+    assert ros.get_parameters(NODE, ["pw01.period_ms"]) == {"pw01.period_ms": 1000}
+    ros.spin_for(1.0)
+    steady = rss_mib(proc.pid)
+
+    sizes_mib = (16, 16, 16, 16, 32, 32, 32, 32)
+    for size_mib in sizes_mib:
+        pub.publish(ChannelParams(set=["output_kind"], output_kind="A" * (size_mib << 20)))
+        ros.spin_once(0.01)
+    # Reliable and in order: this one is taken only after the node is done with those above.
+    pub.publish(ChannelParams(set=["period_ms"], period_ms=1500))
+    ros.spin_until(
+        lambda: ros.get_parameters(NODE, ["pw01.period_ms"]) == {"pw01.period_ms": 1500},
+        "the small ChannelParams after the large ones applied",
+        timeout=30,
+    )
+    assert proc.is_running(), proc.output()
+
+    # The node may free what it held a little later (its DDS caches clean up on a timer).
+    readings = []
+
+    def back_to_steady() -> bool:
+        readings.append(rss_mib(proc.pid))
+        return readings[-1] < steady + RSS_SLACK_MIB
+
+    try:
+        ros.spin_until(back_to_steady, "RSS back to its steady state", timeout=8)
+    except AssertionError as exc:
+        raise AssertionError(
+            f"RSS {steady:.1f} MiB before the large messages, {readings[0]:.1f} MiB after, "
+            f"still {readings[-1]:.1f} MiB {len(readings)} readings later"
+        ) from exc
+
+    def too_large(array: DiagnosticArray) -> bool:
+        return all(
+            kv.value == str(len(sizes_mib))
+            for status in array.status
+            for kv in status.values
+            if kv.key == "samples_too_large"
+        ) and any(kv.key == "samples_too_large" for s in array.status for kv in s.values)
+
+    ros.wait_for_message(DiagnosticArray, "/diagnostics", too_large)
+    assert "input samples larger than 256 KiB were dropped before decoding" in proc.stderr()

@@ -233,6 +233,8 @@ pub use serialization::{
 };
 /// Part of RTPS DATA submessage: 4-byte header + serialized data
 pub use messages::submessages::elements::serialized_payload::SerializedPayload;
+// pwm_actuator: the bound on received sample size (see README.pwm_actuator.md).
+pub use rtps::reader::{received_samples_too_large, set_max_received_sample_size};
 pub use structure::{
   duration::Duration, entity::RTPSEntity, guid::GUID, rpc::SampleIdentity,
   sequence_number::SequenceNumber, time::Timestamp,

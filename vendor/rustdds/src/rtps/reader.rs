@@ -2,7 +2,10 @@ use std::{
   collections::BTreeMap,
   fmt, iter,
   rc::Rc,
-  sync::{Arc, Mutex, MutexGuard},
+  sync::{
+    atomic::{AtomicU64, AtomicUsize, Ordering},
+    Arc, Mutex, MutexGuard,
+  },
   task::Waker,
   time::Duration as StdDuration,
 };
@@ -158,6 +161,26 @@ pub(crate) struct Reader {
 const FRAGMENT_ASSEMBLY_TIMEOUT: Duration = Duration::from_secs(10);
 // minimum interval (max frequency) of AssemblyBuffer GC
 const MIN_FRAGMENT_GC_INTERVAL: Duration = Duration::from_secs(2);
+
+// pwm_actuator: the largest sample the Readers of this process accept, and how many larger ones
+// they dropped (see README.pwm_actuator.md). `usize::MAX` keeps the published behaviour.
+static MAX_RECEIVED_SAMPLE_SIZE: AtomicUsize = AtomicUsize::new(usize::MAX);
+static RECEIVED_SAMPLES_TOO_LARGE: AtomicU64 = AtomicU64::new(0);
+
+/// Sets the largest sample, in bytes of serialized payload, that any Reader of this process
+/// accepts. A larger DATA, or a DATA_FRAG announcing a larger sample, is dropped before anything
+/// is allocated for it (no fragment reassembly, no topic cache entry, nothing to deserialize),
+/// and its sequence number is marked not available, as a GAP would, so that a reliable writer
+/// stops repairing it and the samples after it are delivered. Process-wide; default: no bound.
+pub fn set_max_received_sample_size(bytes: usize) {
+  MAX_RECEIVED_SAMPLE_SIZE.store(bytes, Ordering::Relaxed);
+}
+
+/// How many samples the bound of [`set_max_received_sample_size`] has dropped in this process,
+/// each counted once.
+pub fn received_samples_too_large() -> u64 {
+  RECEIVED_SAMPLES_TOO_LARGE.load(Ordering::Relaxed)
+}
 
 impl Reader {
   pub(crate) fn new(
@@ -570,6 +593,11 @@ impl Reader {
     let writer_guid = GUID::new_with_prefix_and_id(mr_state.source_guid_prefix, data.writer_id);
     let writer_seq_num = data.writer_sn; // for borrow checker
 
+    let size = data.serialized_payload.as_ref().map_or(0, |p| p.len());
+    if self.refuse_too_large(writer_guid, writer_seq_num, size, true) {
+      return;
+    }
+
     match self.data_to_dds_data(data, data_flags) {
       Ok(dds_data) => self.process_received_data(
         dds_data,
@@ -592,6 +620,12 @@ impl Reader {
     let seq_num = datafrag.writer_sn;
     let receive_timestamp = Timestamp::now();
     //trace!("DATAFRAG received topic={:?}", self.topic_name);
+
+    let size = usize::try_from(datafrag.data_size).unwrap_or(usize::MAX);
+    let first = u32::from(datafrag.fragment_starting_num) == 1;
+    if self.refuse_too_large(writer_guid, seq_num, size, first) {
+      return;
+    }
 
     // check if this submessage is expired already
     // TODO: Maybe this check is in the wrong place altogether? It should be
@@ -653,6 +687,48 @@ impl Reader {
     } else {
       self.garbage_collect_fragments();
     }
+  }
+
+  // pwm_actuator: see `set_max_received_sample_size`. Returns true if the sample (`size` bytes,
+  // sequence number `sn`) is dropped. Counted once per sample: through the writer proxy, or for
+  // a Reader without one (which processes only discovery data from unknown writers), at its
+  // DATA or first fragment.
+  fn refuse_too_large(
+    &mut self,
+    writer_guid: GUID,
+    sn: SequenceNumber,
+    size: usize,
+    first: bool,
+  ) -> bool {
+    let max = MAX_RECEIVED_SAMPLE_SIZE.load(Ordering::Relaxed);
+    if size <= max {
+      return false;
+    }
+    let ackable = match self.matched_writer_mut(writer_guid) {
+      Some(writer_proxy) if writer_proxy.should_ignore_change(sn) => return true,
+      Some(writer_proxy) => {
+        writer_proxy.set_irrelevant_change(sn);
+        Some(writer_proxy.all_ackable_before())
+      }
+      None if first => None,
+      None => return true,
+    };
+    RECEIVED_SAMPLES_TOO_LARGE.fetch_add(1, Ordering::Relaxed);
+    warn!(
+      "Dropped a sample of {size} bytes (more than {max}) from {writer_guid:?} seq={sn:?} \
+       topic={:?}",
+      self.topic_name
+    );
+    if let Some(ackable) = ackable {
+      let marker_moved = self.reliability != policy::Reliability::BestEffort
+        && self
+          .acquire_the_topic_cache_guard()
+          .mark_reliably_received_before(writer_guid, ackable);
+      if marker_moved {
+        self.notify_cache_change();
+      }
+    }
+    true
   }
 
   fn fragment_assembler_mutable(
