@@ -353,7 +353,10 @@ mod tests {
             (&["--channels", "two"][..], "not an integer"),
             (&["--line", "pw01"][..], "expected CH="),
             (&["--line", "q1=3"][..], "not a channel"),
-            (&["--line", "pw01=-3"][..], "not a line: expected [CHIP:]OFFSET"),
+            (
+                &["--line", "pw01=-3"][..],
+                "not a line: expected [CHIP:]OFFSET",
+            ),
             (&["--status-rate", "fast"][..], "not a number"),
         ] {
             let e = flags(a).unwrap_err();
