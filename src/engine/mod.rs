@@ -19,6 +19,10 @@ pub enum Input {
     /// Pairs the channel with another for split range (001): from then on the two lines are
     /// never high together. Sent once at start-up; a channel already paired ignores it.
     Pair(usize),
+    /// Latches (`true`) or releases (`false`) the emergency stop of every channel at once
+    /// (see [`Channel::set_estop`](crate::core::Channel::set_estop)); the request's channel is
+    /// ignored. While latched the heartbeat line stops toggling and rests inactive.
+    EStop(bool),
 }
 
 /// An input addressed to a channel.

@@ -31,6 +31,8 @@ pub(crate) struct Worker<O: Output> {
     /// Set when at least one report was pushed since the last `take_pushed`.
     pushed: bool,
     heartbeat: Option<Heartbeat>,
+    /// The e-stop is latched: the heartbeat does not toggle.
+    estopped: bool,
 }
 
 /// The heartbeat line: toggled every half period on an absolute grid while the thread runs.
@@ -63,6 +65,7 @@ impl<O: Output> Worker<O> {
             dropped,
             pushed: false,
             heartbeat: None,
+            estopped: false,
         }
     }
 
@@ -81,7 +84,8 @@ impl<O: Output> Worker<O> {
     /// The earliest deadline of any channel or of the heartbeat, monotonic ns.
     pub(crate) fn next_deadline(&self) -> Option<Nanos> {
         let channels = self.channels.iter().filter_map(Channel::poll_at).min();
-        match (&self.heartbeat, channels) {
+        let heartbeat = self.heartbeat.as_ref().filter(|_| !self.estopped);
+        match (heartbeat, channels) {
             (Some(hb), Some(c)) => Some(hb.next.min(c)),
             (Some(hb), None) => Some(hb.next),
             (None, c) => c,
@@ -110,7 +114,12 @@ impl<O: Output> Worker<O> {
                 self.sync_pair(i, now);
             }
         }
-        if let Some(hb) = self.heartbeat.as_mut().filter(|hb| hb.next <= now) {
+        let toggling = !self.estopped;
+        if let Some(hb) = self
+            .heartbeat
+            .as_mut()
+            .filter(|hb| toggling && hb.next <= now)
+        {
             hb.level = if hb.level.is_high() {
                 Level::Low
             } else {
@@ -148,8 +157,38 @@ impl<O: Output> Worker<O> {
         self.touched[p] = true;
     }
 
+    /// Latches or releases the e-stop of every channel at `now`.
+    fn estop(&mut self, now: Nanos, latched: bool) {
+        for i in 0..self.channels.len() {
+            let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
+            self.channels[i].set_estop(now, latched, &mut |e| sink.event(e));
+            self.pushed |= sink.pushed;
+            self.touched[i] = true;
+        }
+        for i in 0..self.channels.len() {
+            self.sync_pair(i, now);
+        }
+        self.estopped = latched;
+        if let Some(hb) = self.heartbeat.as_mut() {
+            if latched && hb.level == Level::High {
+                hb.level = Level::Low;
+                self.changes.push(LineChange {
+                    line: hb.line,
+                    level: Level::Low,
+                    scheduled_ns: now,
+                });
+            }
+            // Toggling resumes on a fresh grid after the release.
+            hb.next = now + hb.half;
+        }
+    }
+
     /// Handles one request at `now`.
     fn apply(&mut self, now: Nanos, req: Request) {
+        if let Input::EStop(latched) = req.input {
+            self.estop(now, latched);
+            return;
+        }
         let Some(ch) = self.channels.get_mut(req.channel) else {
             return;
         };
@@ -169,6 +208,7 @@ impl<O: Output> Worker<O> {
                 // start-up; here they are ignored rather than stop the thread.
                 let _ = self.interlocks.pair(req.channel, partner);
             }
+            Input::EStop(_) => {}
         }
         self.pushed |= sink.pushed;
         self.touched[req.channel] = true;

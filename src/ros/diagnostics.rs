@@ -2,7 +2,7 @@
 //! `diagnostic_msgs/DiagnosticStatus` (one per channel, named `<node name>: <ch>`, hardware id
 //! the line or `sim`), following the ROS diagnostics conventions: OK; WARN when E1 or the
 //! minimum-time limit acts, when the command in force was clamped, or for a while after a
-//! command was refused; ERROR on a tripped watchdog or an output fault.
+//! command was refused; ERROR on a tripped watchdog, a latched e-stop or an output fault.
 //!
 //! Pure bookkeeping fed by engine reports; it does not publish and does not read clocks (times
 //! are passed in).
@@ -166,7 +166,7 @@ impl ChannelHealth {
     /// The diagnostic level at monotonic time `now`.
     pub fn level(&self, now: Nanos) -> u8 {
         let s = self.status.as_ref();
-        if self.output_fault || self.watchdog_tripped() {
+        if self.output_fault || self.watchdog_tripped() || s.is_some_and(|s| s.estopped) {
             DiagnosticStatus::ERROR
         } else if self.recent_rejection(now).is_some()
             || self.recent_refusal(now).is_some()
@@ -187,6 +187,9 @@ impl ChannelHealth {
         let Some(s) = self.status.as_ref() else {
             return "starting".into();
         };
+        if s.estopped {
+            return "e-stop latched: output held off until ~/reset_estop and a fresh enable".into();
+        }
         if self.watchdog_tripped() && s.fault_active {
             return format!(
                 "watchdog: no duty command within command_timeout_ms; running the fault value \
@@ -300,6 +303,10 @@ impl ChannelHealth {
                 self.status.is_some_and(|s| s.fault_active).to_string(),
             ),
             ("output_fault", self.output_fault.to_string()),
+            (
+                "estop_latched",
+                self.status.is_some_and(|s| s.estopped).to_string(),
+            ),
             ("edges", self.edges.to_string()),
             (
                 "max_lateness_us",

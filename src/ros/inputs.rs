@@ -125,6 +125,14 @@ impl Inputs {
         let _ = self.send(channel, Input::Command(command));
     }
 
+    /// Records that the channel is disabled without a request (an e-stop reset disables every
+    /// channel in the output thread), so its next `enable=true` is logged as a change.
+    pub fn note_disabled(&self, channel: usize) {
+        if let Some(e) = lock(&self.enables).get_mut(channel) {
+            *e = Some(false);
+        }
+    }
+
     /// EN from `~/<ch>/enable` (or from the start-up value). Logged when it changes.
     pub fn enable(&self, channel: usize, on: bool) {
         let was = lock(&self.enables)

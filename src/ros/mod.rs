@@ -17,6 +17,7 @@
 //! - [`discovery`]: the discovery range and static peers, applied or refused.
 //! - [`security`]: the SROS2 environment, refused or warned about.
 //! - [`split`]: split-range pairs (one signed command for a hot and a cold channel).
+//! - [`estop`]: the latched emergency stop (`~/estop`, `~/reset_estop`, `estop_timeout_ms`).
 //! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself.
 //! - [`node`]: start-up, wiring, shutdown ([`run`]).
 
@@ -25,6 +26,7 @@ pub mod cli;
 pub mod console;
 pub mod diagnostics;
 pub mod discovery;
+pub mod estop;
 pub mod inputs;
 pub mod logging;
 pub mod msg;

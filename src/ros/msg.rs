@@ -59,6 +59,24 @@ pub struct Bool {
 }
 ros_message!(Bool, "std_msgs", "Bool");
 
+/// `std_srvs/Trigger` request: no field. rosidl gives an empty structure one placeholder byte
+/// on the wire; so does this type.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct TriggerRequest {
+    structure_needs_at_least_one_member: u8,
+}
+impl Message for TriggerRequest {}
+
+/// `std_srvs/Trigger` response.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct TriggerResponse {
+    /// Whether the trigger did what it is for.
+    pub success: bool,
+    /// Why not, or what it did.
+    pub message: String,
+}
+impl Message for TriggerResponse {}
+
 /// `std_msgs/Header`.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Header {

@@ -11,6 +11,7 @@ use super::args::{self, ArgsError, Remap, RosArgs};
 use super::cli::{self, CliError, Flags, DEMO_ORIGIN};
 use super::diagnostics::ChannelHealth;
 use super::discovery::{self, Discovery, DiscoveryError};
+use super::estop::EStop;
 use super::inputs::{Inputs, NOTE_QUEUE};
 use super::logging::{self, LogConfig};
 use super::msg::{self, RosMessage};
@@ -308,6 +309,42 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
     engine::spawn(configs, output, opts).map_err(NodeError::Engine)
 }
 
+/// `~/estop` (reliable, volatile: any publisher matches), `~/reset_estop` (std_srvs/Trigger)
+/// and, with `estop_timeout_ms`, the task that latches when no `false` comes in time.
+fn estop_inputs(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    inputs: &Arc<Inputs>,
+    estop: &Arc<EStop>,
+) -> Result<Vec<JoinHandle<()>>, NodeError> {
+    let mut tasks = Vec::new();
+    let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
+    let (full, s) = subscription::<msg::Bool>(node, id, remaps, "~/estop")?;
+    tasks.push(listen(full, s, move |m| e.input(&b, m.data)));
+    let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
+    tasks.push(services::serve(
+        node,
+        id,
+        remaps,
+        "~/reset_estop",
+        &ros2_client::ServiceTypeName::new("std_srvs", "Trigger"),
+        move |_: msg::TriggerRequest| e.reset(&b),
+    )?);
+    if let Some(period) = estop.timeout_check_period() {
+        let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
+        tasks.push(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(period);
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tick.tick().await;
+                e.check_timeout(&b, clock::monotonic_ns());
+            }
+        }));
+    }
+    Ok(tasks)
+}
+
 /// Resolves a topic name of this node.
 fn topic(
     node: &Node,
@@ -515,6 +552,7 @@ async fn serve(
         cfg.edge_log_rate,
         Arc::clone(&stop_signal),
     );
+    let estop = Arc::new(EStop::new(cfg.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
         fqn.clone(),
         store,
@@ -586,6 +624,7 @@ async fn serve(
         }));
     }
     tasks.extend(services::spawn(&mut node, &id, remaps, &inputs)?);
+    tasks.extend(estop_inputs(&mut node, &id, remaps, &inputs, &estop)?);
     let quit = Arc::new(AtomicBool::new(false));
     let pump_thread = {
         let (q, sig) = (Arc::clone(&quit), Arc::clone(&stop_signal));

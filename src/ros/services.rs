@@ -161,41 +161,62 @@ impl Servers<'_> {
         Req: Message + Clone + Send + Sync + 'static,
         Resp: Message + Send + Sync + 'static,
     {
-        let full = self
-            .id
-            .resolve(&format!("~/{base}"), NameKind::Service, self.remaps)?;
-        let qos = super::qos::services();
-        let server: Server<Req, Resp> = self
-            .node
-            .create_server(
-                ServiceMapping::Enhanced,
-                &to_ros_name(&full)?,
-                &ServiceTypeName::new("rcl_interfaces", type_name),
-                qos.clone(),
-                qos,
-            )
-            .map_err(|source| ServiceError::Create {
-                name: full.clone(),
-                source,
-            })?;
         let inputs = Arc::clone(self.inputs);
-        Ok(tokio::spawn(async move {
-            let stream = server.receive_request_stream();
-            futures::pin_mut!(stream);
-            while let Some(r) = stream.next().await {
-                match r {
-                    Ok((id, req)) => {
-                        debug!("{full}: request");
-                        let resp = handler(&inputs, req);
-                        if let Err(e) = server.async_send_response(id, resp).await {
-                            warn!("{full}: cannot send the response: {e}");
-                        }
-                    }
-                    Err(e) => warn!("{full}: unreadable request: {e}"),
-                }
-            }
-        }))
+        serve(
+            self.node,
+            self.id,
+            self.remaps,
+            &format!("~/{base}"),
+            &ServiceTypeName::new("rcl_interfaces", type_name),
+            move |req| handler(&inputs, req),
+        )
     }
+}
+
+/// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`) of
+/// type `ty` and the task that answers each request with `handler`.
+pub fn serve<Req, Resp>(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    name: &str,
+    ty: &ServiceTypeName,
+    handler: impl Fn(Req) -> Resp + Send + 'static,
+) -> Result<JoinHandle<()>, ServiceError>
+where
+    Req: Message + Clone + Send + Sync + 'static,
+    Resp: Message + Send + Sync + 'static,
+{
+    let full = id.resolve(name, NameKind::Service, remaps)?;
+    let qos = super::qos::services();
+    let server: Server<Req, Resp> = node
+        .create_server(
+            ServiceMapping::Enhanced,
+            &to_ros_name(&full)?,
+            ty,
+            qos.clone(),
+            qos,
+        )
+        .map_err(|source| ServiceError::Create {
+            name: full.clone(),
+            source,
+        })?;
+    Ok(tokio::spawn(async move {
+        let stream = server.receive_request_stream();
+        futures::pin_mut!(stream);
+        while let Some(r) = stream.next().await {
+            match r {
+                Ok((id, req)) => {
+                    debug!("{full}: request");
+                    let resp = handler(req);
+                    if let Err(e) = server.async_send_response(id, resp).await {
+                        warn!("{full}: cannot send the response: {e}");
+                    }
+                }
+                Err(e) => warn!("{full}: unreadable request: {e}"),
+            }
+        }
+    }))
 }
 
 /// Creates the six parameter services and the tasks serving them.

@@ -111,6 +111,8 @@ pub struct StartupConfig {
     pub output: OutputSpec,
     /// The heartbeat line's frequency, Hz, when there is a heartbeat line.
     pub heartbeat_hz: Option<f64>,
+    /// The heartbeat e-stop's timeout, ms; 0 = off.
+    pub estop_timeout_ms: u64,
     /// Periodic status rate, Hz (0 = on change only).
     pub status_rate_hz: f64,
     /// Edge lines per second and channel (0 = none).
@@ -189,6 +191,8 @@ impl StartupConfig {
             channels,
             output,
             heartbeat_hz: heartbeat.map(|_| store.double("heartbeat_hz").unwrap_or(10.0)),
+            estop_timeout_ms: u64::try_from(store.int("estop_timeout_ms").unwrap_or(0))
+                .unwrap_or(0),
             status_rate_hz: store.double("status_rate_hz").unwrap_or(10.0),
             edge_log_rate: store.int("edge_log_rate").unwrap_or(10).clamp(0, 1000) as u32,
             rt_priority: (rt > 0).then_some(rt.min(99) as i32),

@@ -205,6 +205,15 @@ pub(super) fn node_decls() -> Vec<Decl> {
             ..Decl::new("heartbeat_hz", Double, || V::Double(10.0))
         },
         Decl {
+            description: "Heartbeat e-stop, ms: when no false arrives on ~/estop within this \
+                          time (from start-up, then from the last false) the e-stop latches, \
+                          as for a wireless stop whose silence must stop the machine. 0: off.",
+            constraints: "start-up only",
+            read_only: Some(START_UP),
+            range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
+            ..Decl::new("estop_timeout_ms", Integer, || V::Integer(0))
+        },
+        Decl {
             description: "SCHED_FIFO priority of the output thread (with mlockall). 0: normal \
                           scheduling.",
             constraints: "needs CAP_SYS_NICE or an rtprio limit; refused cleanly otherwise",

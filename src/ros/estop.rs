@@ -1,0 +1,169 @@
+//! The latched emergency stop of the whole node: `~/estop` (std_msgs/Bool) latches it on
+//! `true`, `~/reset_estop` (std_srvs/Trigger) clears it only while the last input is `false`,
+//! and with `estop_timeout_ms` a missing `false` latches it too (a heartbeat e-stop, for a
+//! wireless stop button whose silence must stop the machine).
+//!
+//! Latching drives every line inactive at once through the output thread; while latched,
+//! commands, enables and parameters are taken and reported but the lines stay inactive; after
+//! a reset every channel is disabled and runs again only on its next `enable=true` (the core's
+//! [`Channel::set_estop`](crate::core::Channel::set_estop)).
+
+use super::inputs::Inputs;
+use super::msg::TriggerResponse;
+use crate::clock;
+use crate::core::Nanos;
+use crate::engine::Input;
+use crate::output::safety::lock_ignore_poison as lock;
+use log::{info, warn};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Mutex;
+
+/// Why the e-stop was latched.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Cause {
+    /// `true` on `~/estop`.
+    Input,
+    /// No `false` on `~/estop` within `estop_timeout_ms`.
+    Timeout,
+}
+
+/// The e-stop's state, shared by the `~/estop` callback, the reset service and the timeout
+/// check. One lock orders the three, so a reset and an input never cross.
+pub struct EStop {
+    state: Mutex<State>,
+    latched: AtomicBool,
+    /// `estop_timeout_ms` in ns; 0 = no timeout.
+    timeout_ns: Nanos,
+    /// Latches so far.
+    latches: AtomicU64,
+}
+
+#[derive(Debug)]
+struct State {
+    latched: bool,
+    /// The last value received on `~/estop` (`false` before any).
+    asserted: bool,
+    /// When the last `false` arrived (or when the node started), monotonic ns.
+    last_release: Nanos,
+    cause: Option<Cause>,
+}
+
+impl EStop {
+    /// Not latched; with a `timeout_ms` of 0 no timeout, else the first `false` is due within
+    /// it from now.
+    pub fn new(timeout_ms: u64) -> EStop {
+        EStop {
+            state: Mutex::new(State {
+                latched: false,
+                asserted: false,
+                last_release: clock::monotonic_ns(),
+                cause: None,
+            }),
+            latched: AtomicBool::new(false),
+            timeout_ns: timeout_ms.saturating_mul(1_000_000),
+            latches: AtomicU64::new(0),
+        }
+    }
+
+    /// How often the timeout should be checked (a tenth of it, 5..100 ms); `None` without one.
+    pub fn timeout_check_period(&self) -> Option<std::time::Duration> {
+        (self.timeout_ns > 0).then(|| {
+            std::time::Duration::from_nanos((self.timeout_ns / 10).clamp(5_000_000, 100_000_000))
+        })
+    }
+
+    /// Whether the e-stop is latched.
+    pub fn latched(&self) -> bool {
+        self.latched.load(Ordering::Acquire)
+    }
+
+    /// How many times it latched since start-up.
+    pub fn latches(&self) -> u64 {
+        self.latches.load(Ordering::Relaxed)
+    }
+
+    /// Why it is latched, if it is.
+    pub fn cause(&self) -> Option<Cause> {
+        lock(&self.state).cause
+    }
+
+    /// A value on `~/estop`: `true` latches (once; repeats change nothing), `false` is
+    /// remembered (it allows a reset and feeds the timeout) and never releases by itself.
+    pub fn input(&self, inputs: &Inputs, asserted: bool) {
+        let mut s = lock(&self.state);
+        s.asserted = asserted;
+        if asserted {
+            self.latch(&mut s, inputs, Cause::Input);
+        } else {
+            s.last_release = clock::monotonic_ns();
+        }
+    }
+
+    /// Latches when the timeout is set and no `false` came within it; returns whether it did.
+    pub fn check_timeout(&self, inputs: &Inputs, now: Nanos) -> bool {
+        if self.timeout_ns == 0 {
+            return false;
+        }
+        let mut s = lock(&self.state);
+        if s.latched || now.saturating_sub(s.last_release) < self.timeout_ns {
+            return false;
+        }
+        self.latch(&mut s, inputs, Cause::Timeout);
+        true
+    }
+
+    /// `~/reset_estop`: clears the latch only while the last input is `false` (and, with a
+    /// timeout, a `false` is recent); every channel is then disabled.
+    pub fn reset(&self, inputs: &Inputs) -> TriggerResponse {
+        let mut s = lock(&self.state);
+        let refuse = |message: &str| TriggerResponse {
+            success: false,
+            message: message.to_string(),
+        };
+        if !s.latched {
+            return TriggerResponse {
+                success: true,
+                message: "the e-stop is not latched".into(),
+            };
+        }
+        if s.asserted {
+            return refuse("the e-stop input is still asserted (last ~/estop was true)");
+        }
+        let now = clock::monotonic_ns();
+        if self.timeout_ns > 0 && now.saturating_sub(s.last_release) >= self.timeout_ns {
+            return refuse("no false on ~/estop within estop_timeout_ms: the stop is still open");
+        }
+        if inputs.send(0, Input::EStop(false)).is_err() {
+            return refuse("the output thread did not take the reset");
+        }
+        s.latched = false;
+        s.cause = None;
+        self.latched.store(false, Ordering::Release);
+        for ch in 0..inputs.channels() {
+            inputs.note_disabled(ch);
+        }
+        info!("e-stop reset: every channel is disabled; enable each channel to run it again");
+        TriggerResponse {
+            success: true,
+            message: "e-stop reset; every channel is disabled until its next enable".into(),
+        }
+    }
+
+    fn latch(&self, s: &mut State, inputs: &Inputs, cause: Cause) {
+        if s.latched {
+            return;
+        }
+        s.latched = true;
+        s.cause = Some(cause);
+        self.latched.store(true, Ordering::Release);
+        self.latches.fetch_add(1, Ordering::Relaxed);
+        let _ = inputs.send(0, Input::EStop(true));
+        match cause {
+            Cause::Input => warn!("e-stop latched (~/estop true): every output driven inactive"),
+            Cause::Timeout => warn!(
+                "e-stop latched: no false on ~/estop within {} ms; every output driven inactive",
+                self.timeout_ns / 1_000_000
+            ),
+        }
+    }
+}
