@@ -161,6 +161,9 @@ pub struct Channel {
     flags: (bool, bool),
     /// The emergency stop is latched: the line never goes high.
     estop: bool,
+    /// The line may follow the schedule (a managed node's ACTIVE state); when not, it is held
+    /// inactive and a rise the schedule asks for waits for the release.
+    live: bool,
 }
 
 impl Channel {
@@ -192,6 +195,7 @@ impl Channel {
             fault_until: None,
             flags: (false, false),
             estop: false,
+            live: true,
         }
     }
 
@@ -306,9 +310,56 @@ impl Channel {
         }
     }
 
-    /// No rise may reach the line: the interlock is engaged or the e-stop latched.
+    /// Whether the line may follow the schedule (see [`Channel::set_live`]).
+    pub fn live(&self) -> bool {
+        self.live
+    }
+
+    /// Lets the line follow the schedule (`true`) or holds it inactive (`false`), at `now`: a
+    /// managed node's lines are live only while it is ACTIVE.
+    ///
+    /// Holding drives the line low at once (a safety off, whatever its minimum on time) and
+    /// keeps it low; the schedule goes on (commands, enables and configurations are taken and
+    /// reported) and a rise it asks for is held back. Releasing writes a held rise at once if
+    /// its time has come — never before the minimum break since the line's last real fall —
+    /// and otherwise the line follows from the next edge the schedule asks for.
+    pub fn set_live(&mut self, now: Nanos, live: bool, emit: &mut dyn FnMut(Event)) {
+        if live == self.live {
+            return;
+        }
+        self.live = live;
+        if !live {
+            self.force_low(now, emit);
+            // The schedule stays where it is; only the line is held.
+            self.level = match self.step {
+                Some(s) if self.enabled => s.level,
+                _ => self.level,
+            };
+            if self.level == Level::High {
+                self.line.held = Some((Level::High, self.earliest(Level::High, now)));
+            }
+        } else if !self.no_rise() {
+            if let Some((Level::High, at)) = self.line.held {
+                if at <= now {
+                    self.write_line(Level::High, now, emit);
+                }
+            }
+        }
+    }
+
+    /// The earliest instant at or after `at` the line may change to `level`.
+    fn earliest(&self, level: Level, at: Nanos) -> Nanos {
+        debug_assert_ne!(level, self.line.level);
+        self.line
+            .since
+            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
+            .max(at)
+    }
+
+    /// No rise may reach the line: the interlock is engaged, the e-stop latched, or the line
+    /// is held inactive.
     fn no_rise(&self) -> bool {
-        self.line.locked || self.estop
+        self.line.locked || self.estop || !self.live
     }
 
     /// Processes every deadline at or before `now`. When several edges fall due together (the
@@ -468,7 +519,11 @@ impl Channel {
         };
         Status {
             enabled: self.enabled,
-            active: self.enabled && self.cfg.period > 0 && !self.watchdog_tripped && !self.estop,
+            active: self.enabled
+                && self.cfg.period > 0
+                && !self.watchdog_tripped
+                && !self.estop
+                && self.live,
             level: self.line.level,
             duty_commanded: self.duty.fraction,
             duty_requested: self.duty.requested,
@@ -550,7 +605,9 @@ impl Channel {
             return;
         }
         if level == self.line.level {
-            if self.line.held.take().is_some() {
+            // A change held back by the interlock never reached the line: two edges missed.
+            // One held while the line is held inactive was never meant to reach it.
+            if self.line.held.take().is_some() && self.live {
                 emit(Event::Missed { edges: 2 });
             }
             return;

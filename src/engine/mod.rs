@@ -23,6 +23,11 @@ pub enum Input {
     /// (see [`Channel::set_estop`](crate::core::Channel::set_estop)); the request's channel is
     /// ignored. While latched the heartbeat line stops toggling and rests inactive.
     EStop(bool),
+    /// Lets every line follow its channel (`true`) or holds every line inactive (`false`), as
+    /// a managed node's ACTIVE state and the others (see
+    /// [`Channel::set_live`](crate::core::Channel::set_live)); the request's channel is
+    /// ignored. While held the heartbeat line rests inactive.
+    Live(bool),
 }
 
 /// An input addressed to a channel.

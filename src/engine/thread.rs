@@ -33,6 +33,9 @@ pub struct EngineOptions {
     /// external watchdog relay sees a square wave at 1 / (2 x half period). `None`: no
     /// heartbeat line.
     pub heartbeat_half_period_ns: Option<Nanos>,
+    /// Start with every line held inactive until an [`Input::Live`](super::Input::Live)`(true)` (a managed node
+    /// starts unconfigured).
+    pub start_held: bool,
 }
 
 impl Default for EngineOptions {
@@ -41,6 +44,7 @@ impl Default for EngineOptions {
             rt_priority: None,
             queue_capacity: 4096,
             heartbeat_half_period_ns: None,
+            start_held: false,
         }
     }
 }
@@ -443,6 +447,9 @@ where
                 let mut worker = Worker::new(&configs, output, rep_tx, dropped, now);
                 if let Some(half) = opts.heartbeat_half_period_ns {
                     worker.start_heartbeat(configs.len(), half, now);
+                }
+                if opts.start_held {
+                    worker.set_live(now, false);
                 }
                 let mut thread = OutputThread {
                     worker,

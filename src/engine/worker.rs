@@ -33,6 +33,8 @@ pub(crate) struct Worker<O: Output> {
     heartbeat: Option<Heartbeat>,
     /// The e-stop is latched: the heartbeat does not toggle.
     estopped: bool,
+    /// The lines are held inactive: the heartbeat does not toggle.
+    held: bool,
 }
 
 /// The heartbeat line: toggled every half period on an absolute grid while the thread runs.
@@ -66,6 +68,7 @@ impl<O: Output> Worker<O> {
             pushed: false,
             heartbeat: None,
             estopped: false,
+            held: false,
         }
     }
 
@@ -84,7 +87,10 @@ impl<O: Output> Worker<O> {
     /// The earliest deadline of any channel or of the heartbeat, monotonic ns.
     pub(crate) fn next_deadline(&self) -> Option<Nanos> {
         let channels = self.channels.iter().filter_map(Channel::poll_at).min();
-        let heartbeat = self.heartbeat.as_ref().filter(|_| !self.estopped);
+        let heartbeat = self
+            .heartbeat
+            .as_ref()
+            .filter(|_| !self.estopped && !self.held);
         match (heartbeat, channels) {
             (Some(hb), Some(c)) => Some(hb.next.min(c)),
             (Some(hb), None) => Some(hb.next),
@@ -114,7 +120,7 @@ impl<O: Output> Worker<O> {
                 self.sync_pair(i, now);
             }
         }
-        let toggling = !self.estopped;
+        let toggling = !self.estopped && !self.held;
         if let Some(hb) = self
             .heartbeat
             .as_mut()
@@ -159,18 +165,37 @@ impl<O: Output> Worker<O> {
 
     /// Latches or releases the e-stop of every channel at `now`.
     fn estop(&mut self, now: Nanos, latched: bool) {
+        self.each_channel(now, |ch, now, emit| ch.set_estop(now, latched, emit));
+        self.estopped = latched;
+        self.heartbeat_gate(now);
+    }
+
+    /// Lets every line follow its channel, or holds every line inactive, at `now`.
+    pub(crate) fn set_live(&mut self, now: Nanos, live: bool) {
+        self.each_channel(now, |ch, now, emit| ch.set_live(now, live, emit));
+        self.held = !live;
+        self.heartbeat_gate(now);
+    }
+
+    /// Runs `f` on every channel at `now`, then keeps every split-range pair apart.
+    fn each_channel(&mut self, now: Nanos, f: impl Fn(&mut Channel, Nanos, &mut dyn FnMut(Event))) {
         for i in 0..self.channels.len() {
             let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
-            self.channels[i].set_estop(now, latched, &mut |e| sink.event(e));
+            f(&mut self.channels[i], now, &mut |e| sink.event(e));
             self.pushed |= sink.pushed;
             self.touched[i] = true;
         }
         for i in 0..self.channels.len() {
             self.sync_pair(i, now);
         }
-        self.estopped = latched;
+    }
+
+    /// The heartbeat toggles only while the lines are live and the e-stop is not latched;
+    /// when it stops it rests inactive, and it resumes on a fresh grid.
+    fn heartbeat_gate(&mut self, now: Nanos) {
+        let stopped = self.estopped || self.held;
         if let Some(hb) = self.heartbeat.as_mut() {
-            if latched && hb.level == Level::High {
+            if stopped && hb.level == Level::High {
                 hb.level = Level::Low;
                 self.changes.push(LineChange {
                     line: hb.line,
@@ -185,9 +210,10 @@ impl<O: Output> Worker<O> {
 
     /// Handles one request at `now`.
     fn apply(&mut self, now: Nanos, req: Request) {
-        if let Input::EStop(latched) = req.input {
-            self.estop(now, latched);
-            return;
+        match req.input {
+            Input::EStop(latched) => return self.estop(now, latched),
+            Input::Live(live) => return self.set_live(now, live),
+            _ => {}
         }
         let Some(ch) = self.channels.get_mut(req.channel) else {
             return;
@@ -208,7 +234,7 @@ impl<O: Output> Worker<O> {
                 // start-up; here they are ignored rather than stop the thread.
                 let _ = self.interlocks.pair(req.channel, partner);
             }
-            Input::EStop(_) => {}
+            Input::EStop(_) | Input::Live(_) => {}
         }
         self.pushed |= sink.pushed;
         self.touched[req.channel] = true;

@@ -22,6 +22,8 @@ pub enum Cause {
     Config,
     /// The emergency stop latched or released.
     EStop,
+    /// The line held inactive or let live.
+    Live,
 }
 
 /// An event with when and why it happened.
@@ -100,6 +102,11 @@ impl Bench {
         self.record(Cause::EStop, |ch, now, emit| {
             ch.set_estop(now, latched, emit)
         });
+        self
+    }
+
+    pub fn live(&mut self, live: bool) -> &mut Self {
+        self.record(Cause::Live, |ch, now, emit| ch.set_live(now, live, emit));
         self
     }
 

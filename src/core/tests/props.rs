@@ -15,6 +15,7 @@ enum Op {
     Enable(bool),
     Params(ChannelParams),
     EStop(bool),
+    Live(bool),
 }
 
 fn arb_percent() -> impl Strategy<Value = f64> {
@@ -81,6 +82,7 @@ fn arb_op() -> impl Strategy<Value = Op> {
         2 => any::<bool>().prop_map(Op::Enable),
         2 => arb_params().prop_map(Op::Params),
         1 => any::<bool>().prop_map(Op::EStop),
+        1 => any::<bool>().prop_map(Op::Live),
     ]
 }
 
@@ -117,6 +119,7 @@ fn play(start: ChannelParams, ops: &[(Nanos, Op)]) -> (Bench, Vec<(Nanos, Channe
             Op::Enable(_) => b.disable(),
             Op::Params(p) => b.params(*p),
             Op::EStop(on) => b.estop(*on),
+            Op::Live(on) => b.live(*on),
         };
         note(&b, &mut history);
     }
@@ -140,7 +143,7 @@ fn timed_edges(b: &Bench) -> Vec<(Nanos, Level, bool)> {
             Event::Watchdog { tripped: true } => tripped_at = Some(l.now),
             Event::Edge { at, level } => {
                 let forced = level == Level::Low
-                    && (matches!(l.cause, Cause::Disable | Cause::EStop)
+                    && (matches!(l.cause, Cause::Disable | Cause::EStop | Cause::Live)
                         || tripped_at == Some(l.now));
                 out.push((at, level, !forced));
             }
@@ -347,6 +350,10 @@ proptest! {
                     disable = *on;
                     ch.set_estop(t, *on, &mut |e| ev.push(e))
                 }
+                Op::Live(on) => {
+                    disable = !*on;
+                    ch.set_live(t, *on, &mut |e| ev.push(e))
+                }
             }
             if trace { dbg_log.push(format!("op t={} {:?} {:?}", t/1000, op, ev)); }
             now = write(&mut ch, t, &ev, disable, &mut line, &mut k);
@@ -428,6 +435,39 @@ proptest! {
             for c in commands.iter().copied().filter(|c| *c > s && *c <= e) {
                 prop_assert!(!stale(c, true), "high at {} us, no command for over {} ms", c / 1000, timeout_ms);
             }
+        }
+    }
+
+    /// While the line is held inactive (a managed node not ACTIVE) it is low: it goes low at
+    /// the instant of the hold and no rise reaches it until the release.
+    #[test]
+    fn no_line_is_high_while_held_inactive(start in arb_params(), ops in arb_ops()) {
+        let (b, _) = play(start, &ops);
+        let mut spans: Vec<(Nanos, Nanos)> = Vec::new();
+        let (mut t, mut held_at) = (0, None);
+        for (dt, op) in &ops {
+            t += dt;
+            match (op, held_at) {
+                (Op::Live(false), None) => held_at = Some(t),
+                (Op::Live(true), Some(s)) => {
+                    spans.push((s, t));
+                    held_at = None;
+                }
+                _ => {}
+            }
+        }
+        if let Some(s) = held_at {
+            spans.push((s, Nanos::MAX));
+        }
+        let edges = b.edges();
+        let level_after = |x: Nanos| {
+            edges.iter().rev().find(|(at, _)| *at <= x).map_or(Level::Low, |e| e.1)
+        };
+        for (s, e) in spans {
+            prop_assert_eq!(level_after(s), Level::Low, "high after the hold at {} us", s / 1000);
+            let rise = edges.iter().find(|(at, l)| *at > s && *at < e && l.is_high());
+            prop_assert!(rise.is_none(), "rise at {:?} us while held from {} us",
+                rise.map(|r| r.0 / 1000), s / 1000);
         }
     }
 

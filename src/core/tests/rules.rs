@@ -991,3 +991,25 @@ fn after_an_estop_release_nothing_switches_on_until_a_fresh_enable() {
     b.estop(false).enable().at(1000.0);
     assert_eq!(b.wave(), "H@0 L@100 H@500 L@1000");
 }
+
+#[test]
+fn a_held_line_stays_low_while_the_schedule_runs_and_follows_it_when_live() {
+    // A managed node's INACTIVE state: the channel is enabled and commanded, its schedule runs
+    // and is reported, but the line stays low. Activated at 1250 ms, inside an on step that
+    // ends at 1500 ms: the held rise goes out at once (the minimum break since the line's
+    // last fall has long passed), and from then on the line follows the grid.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 1000;
+        p.min_off_ms = Some(100);
+    }));
+    b.live(false).duty(50.0).enable().at(1250.0);
+    assert_eq!(b.wave(), "");
+    let s = b.status();
+    assert!(s.enabled && !s.active, "{s:?}");
+    b.live(true).at(2600.0);
+    assert_eq!(b.wave(), "H@1250 L@1500 H@2000 L@2500");
+    // Deactivated inside a pulse: off at once, whatever its minimum on time.
+    b.duty(90.0).at(3100.0);
+    b.live(false).at(4000.0);
+    assert_eq!(b.wave(), "H@1250 L@1500 H@2000 L@2500 H@3000 L@3100");
+}
