@@ -98,13 +98,15 @@ pub mod gpio;
 pub mod open;
 pub mod safety;
 pub mod sim;
+pub mod slot;
 pub mod trace;
 pub mod traced;
 
 pub use bindings::{check_unique, BindingError, LineAddr};
 pub use gpio::{GpioError, GpioLine, GpioOutput};
-pub use open::{open, AnyError, AnyOutput, Backend, OpenError, OutputSpec};
+pub use open::{open, open_deferred, AnyError, AnyOutput, Backend, OpenError, OutputSpec};
 pub use safety::{install_panic_hook, EmergencyRegistry, PANIC_EXIT_CODE};
 pub use sim::{SimOutput, SimProbe};
+pub use slot::LineSlot;
 pub use trace::{read_csv, CsvReadError, CsvRow, EdgeRecord, TraceError, TraceSpec};
 pub use traced::Traced;

@@ -9,6 +9,7 @@
 
 use super::fault::{FailingOutput, Fault, HangingOutput, FAULT_ENV};
 use super::gpio::{plan_requests, GpioError, GpioLine, GpioOutput};
+use super::slot::{slot, LineSlot};
 use super::trace::{TraceError, TraceSpec};
 use super::{EmergencyOff, ErrorKind, LineChange, Output, OutputError, SimOutput, Traced};
 use std::path::PathBuf;
@@ -163,6 +164,18 @@ impl Output for AnyOutput {
 /// Builds the output `spec` describes (see the module documentation for the order of the
 /// checks). The lines start inactive.
 pub fn open(spec: &OutputSpec) -> Result<AnyOutput, OpenError> {
+    Ok(build(spec, false)?.0)
+}
+
+/// Builds the output as [`open`] does, except that GPIO lines are not requested yet: they are
+/// requested and released through the returned [`LineSlot`] (a managed node's `configure` and
+/// `cleanup`). The checks that need no hardware (trace files, line bindings) are made now. The
+/// sim output has nothing to request: no slot.
+pub fn open_deferred(spec: &OutputSpec) -> Result<(AnyOutput, Option<LineSlot>), OpenError> {
+    build(spec, true)
+}
+
+fn build(spec: &OutputSpec, deferred: bool) -> Result<(AnyOutput, Option<LineSlot>), OpenError> {
     let trace = TraceSpec::from_paths(&spec.trace).map_err(OpenError::Trace)?;
     let recorder = |names: Vec<String>| {
         for f in trace.files() {
@@ -173,8 +186,18 @@ pub fn open(spec: &OutputSpec) -> Result<AnyOutput, OpenError> {
         }
         SimOutput::new(names, Some(trace.clone())).map_err(OpenError::Trace)
     };
+    let mut line_slot = None;
     let output = match &spec.backend {
         Backend::Sim { names } => AnyOutput::new(recorder(names.clone())?),
+        Backend::Gpio { lines } if deferred => {
+            let (out, lines) = slot(lines).map_err(OpenError::Gpio)?;
+            let recorder = match trace.is_empty() {
+                true => None,
+                false => Some(recorder(spec.names())?),
+            };
+            line_slot = Some(lines);
+            AnyOutput::new(Traced::new(out, recorder))
+        }
         Backend::Gpio { lines } => {
             let plans = plan_requests(lines).map_err(OpenError::Gpio)?;
             let recorder = match trace.is_empty() {
@@ -185,7 +208,7 @@ pub fn open(spec: &OutputSpec) -> Result<AnyOutput, OpenError> {
             AnyOutput::new(Traced::new(gpio, recorder))
         }
     };
-    Ok(match spec.fault {
+    let output = match spec.fault {
         Some(Fault::FailWriteAfter(n)) => {
             log::warn!("{FAULT_ENV}: output writes fail after {n}");
             AnyOutput::new(FailingOutput::new(output, n))
@@ -195,7 +218,8 @@ pub fn open(spec: &OutputSpec) -> Result<AnyOutput, OpenError> {
             AnyOutput::new(HangingOutput::new(output, ms))
         }
         Some(Fault::PanicAfterMs(_)) | None => output,
-    })
+    };
+    Ok((output, line_slot))
 }
 
 #[cfg(test)]

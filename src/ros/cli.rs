@@ -67,6 +67,11 @@ pub struct Flags {
     #[arg(help = "Enable pw01 at 37 % and pw02 at 5 % [pwNN.enable, pwNN.duty]")]
     #[arg(long)]
     pub demo: bool,
+    /// Run as a managed (lifecycle) node: lines requested on configure and live only while
+    /// active; sets the start-up value of `managed`.
+    #[arg(help = "Run as a managed (lifecycle) node: lines live only while ACTIVE [managed]")]
+    #[arg(long)]
+    pub managed: bool,
     /// Output backend (default sim); sets the start-up value of `output`.
     #[arg(help = "Output backend (default sim) [output]")]
     #[arg(long, value_name = "sim|gpio", value_parser = parse_output, allow_hyphen_values = true)]
@@ -262,6 +267,9 @@ impl Flags {
                 ParameterValue::Integer(p),
                 "--rt-priority",
             );
+        }
+        if self.managed {
+            push("managed".into(), ParameterValue::Boolean(true), "--managed");
         }
         if self.demo {
             for (ch, duty) in [("pw01", 37.0), ("pw02", 5.0)] {

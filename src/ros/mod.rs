@@ -18,6 +18,7 @@
 //! - [`security`]: the SROS2 environment, refused or warned about.
 //! - [`split`]: split-range pairs (one signed command for a hot and a cold channel).
 //! - [`estop`]: the latched emergency stop (`~/estop`, `~/reset_estop`, `estop_timeout_ms`).
+//! - [`lifecycle`]: the managed node (`--managed`): states, transitions, services.
 //! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself.
 //! - [`node`]: start-up, wiring, shutdown ([`run`]).
 
@@ -28,6 +29,7 @@ pub mod diagnostics;
 pub mod discovery;
 pub mod estop;
 pub mod inputs;
+pub mod lifecycle;
 pub mod logging;
 pub mod msg;
 pub mod name_clash;

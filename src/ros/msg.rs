@@ -59,14 +59,6 @@ pub struct Bool {
 }
 ros_message!(Bool, "std_msgs", "Bool");
 
-/// `std_srvs/Trigger` request: no field. rosidl gives an empty structure one placeholder byte
-/// on the wire; so does this type.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-pub struct TriggerRequest {
-    structure_needs_at_least_one_member: u8,
-}
-impl Message for TriggerRequest {}
-
 /// `std_srvs/Trigger` response.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct TriggerResponse {
@@ -76,6 +68,98 @@ pub struct TriggerResponse {
     pub message: String,
 }
 impl Message for TriggerResponse {}
+
+/// `lifecycle_msgs/State`.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct LifecycleState {
+    /// The state's id (`lifecycle_msgs/State` constants).
+    pub id: u8,
+    /// Its label (`unconfigured`, `inactive`, ...).
+    pub label: String,
+}
+
+/// `lifecycle_msgs/Transition`.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct LifecycleTransition {
+    /// The transition's id (`lifecycle_msgs/Transition` constants).
+    pub id: u8,
+    /// Its label (`configure`, `activate`, ...).
+    pub label: String,
+}
+
+/// `lifecycle_msgs/TransitionDescription`.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct TransitionDescription {
+    /// The transition.
+    pub transition: LifecycleTransition,
+    /// The state it starts from.
+    pub start_state: LifecycleState,
+    /// The state it leads to.
+    pub goal_state: LifecycleState,
+}
+
+/// `lifecycle_msgs/TransitionEvent`, published on `~/transition_event`.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct TransitionEvent {
+    /// When, ns since the epoch.
+    pub timestamp: u64,
+    /// The transition taken.
+    pub transition: LifecycleTransition,
+    /// The state before.
+    pub start_state: LifecycleState,
+    /// The state after.
+    pub goal_state: LifecycleState,
+}
+ros_message!(TransitionEvent, "lifecycle_msgs", "TransitionEvent");
+
+/// `lifecycle_msgs/ChangeState` request.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct ChangeStateRequest {
+    /// The transition asked for, by id, or by label when the id is 0.
+    pub transition: LifecycleTransition,
+}
+impl Message for ChangeStateRequest {}
+
+/// `lifecycle_msgs/ChangeState` response.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct ChangeStateResponse {
+    /// Whether the transition succeeded.
+    pub success: bool,
+}
+impl Message for ChangeStateResponse {}
+
+/// A request with no field: `std_srvs/Trigger`, `lifecycle_msgs/GetState`,
+/// `GetAvailableStates` and `GetAvailableTransitions`. rosidl gives an empty structure one
+/// placeholder byte on the wire; so does this type.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct EmptyRequest {
+    structure_needs_at_least_one_member: u8,
+}
+impl Message for EmptyRequest {}
+
+/// `lifecycle_msgs/GetState` response.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct GetStateResponse {
+    /// The state now.
+    pub current_state: LifecycleState,
+}
+impl Message for GetStateResponse {}
+
+/// `lifecycle_msgs/GetAvailableStates` response.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct GetAvailableStatesResponse {
+    /// Every state of the machine.
+    pub available_states: Vec<LifecycleState>,
+}
+impl Message for GetAvailableStatesResponse {}
+
+/// `lifecycle_msgs/GetAvailableTransitions` response (also `~/get_transition_graph`).
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct GetAvailableTransitionsResponse {
+    /// The transitions.
+    pub available_transitions: Vec<TransitionDescription>,
+}
+impl Message for GetAvailableTransitionsResponse {}
 
 /// `std_msgs/Header`.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]

@@ -13,6 +13,7 @@ use super::diagnostics::ChannelHealth;
 use super::discovery::{self, Discovery, DiscoveryError};
 use super::estop::EStop;
 use super::inputs::{Inputs, NOTE_QUEUE};
+use super::lifecycle::{self, Lifecycle};
 use super::logging::{self, LogConfig};
 use super::msg::{self, RosMessage};
 use super::name_clash::{self, NameClash};
@@ -28,7 +29,7 @@ use crate::core::{split_command, ChannelConfig, Command};
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
-use crate::output::{self, install_panic_hook, AnyOutput, Backend, OpenError, Output};
+use crate::output::{self, install_panic_hook, AnyOutput, Backend, LineSlot, OpenError, Output};
 use crate::service::WatchdogPinger;
 use futures::StreamExt;
 use log::{debug, error, info, warn};
@@ -290,12 +291,18 @@ pub(crate) fn start_values(
 
 /// Opens the output (`PWM_ACTUATOR_FAULT=fail-write-after=N` or `hang-write-after-ms=N`
 /// makes its writes fail or hang, for the exit-path tests) and installs the panic hook with its emergency handle.
-fn open_output(cfg: &StartupConfig) -> Result<AnyOutput, NodeError> {
+///
+/// A managed node's GPIO lines are not requested here but on `configure`, through the
+/// returned slot.
+fn open_output(cfg: &StartupConfig) -> Result<(AnyOutput, Option<LineSlot>), NodeError> {
     let mut spec = cfg.output.clone();
     spec.fault = Fault::from_env().map_err(NodeError::Fault)?;
-    let out = output::open(&spec)?;
+    let (out, lines) = match cfg.managed {
+        true => output::open_deferred(&spec)?,
+        false => (output::open(&spec)?, None),
+    };
     install_panic_hook(out.emergency_off());
-    Ok(out)
+    Ok((out, lines))
 }
 
 /// Starts the output thread on the opened output.
@@ -304,9 +311,60 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
     let opts = EngineOptions {
         rt_priority: cfg.rt_priority,
         heartbeat_half_period_ns: cfg.heartbeat_hz.map(|hz| (5e8 / hz).round() as u64),
+        // A managed node starts unconfigured: every line held inactive.
+        start_held: cfg.managed,
         ..EngineOptions::default()
     };
     engine::spawn(configs, output, opts).map_err(NodeError::Engine)
+}
+
+/// What a managed node's transitions do (see [`lifecycle::Actions`]).
+struct NodeActions {
+    inputs: Arc<Inputs>,
+    /// The GPIO lines, requested on configure; `None` for the sim output.
+    lines: Option<LineSlot>,
+}
+
+impl lifecycle::Actions for NodeActions {
+    fn configure(&self) -> Result<(), String> {
+        // The parameters in force must still give a valid configuration for every channel.
+        self.inputs
+            .with_params(|s| (0..s.channels()).try_for_each(|ch| s.channel_config(ch).map(drop)))
+            .map_err(|e| e.to_string())?;
+        if let Some(lines) = &self.lines {
+            lines
+                .attach()
+                .map_err(|e| format!("cannot open the GPIO output: {}", chain(&e)))?;
+        }
+        Ok(())
+    }
+
+    fn activate(&self) -> Result<(), String> {
+        self.inputs
+            .send(0, Input::Live(true))
+            .map_err(|e| e.to_string())
+    }
+
+    fn deactivate(&self) -> Result<(), String> {
+        self.inputs
+            .send(0, Input::Live(false))
+            .map_err(|e| e.to_string())
+    }
+
+    fn cleanup(&self) -> Result<(), String> {
+        if let Some(lines) = &self.lines {
+            lines.detach();
+        }
+        Ok(())
+    }
+
+    fn shutdown(&self) -> Result<(), String> {
+        let held = self.inputs.send(0, Input::Live(false));
+        if let Some(lines) = &self.lines {
+            lines.detach();
+        }
+        held.map_err(|e| e.to_string())
+    }
 }
 
 /// `~/estop` (reliable, volatile: any publisher matches), `~/reset_estop` (std_srvs/Trigger)
@@ -329,7 +387,7 @@ fn estop_inputs(
         remaps,
         "~/reset_estop",
         &ros2_client::ServiceTypeName::new("std_srvs", "Trigger"),
-        move |_: msg::TriggerRequest| e.reset(&b),
+        move |_: msg::EmptyRequest| e.reset(&b),
     )?);
     if let Some(period) = estop.timeout_check_period() {
         let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
@@ -438,7 +496,7 @@ async fn serve(
     // process with a line left on.
     let mut signals = StopSignals::catch();
     // The output first: configuration and hardware errors stop the node before it joins ROS.
-    let output = open_output(&cfg)?;
+    let (output, line_slot) = open_output(&cfg)?;
     let hardware_ids = cfg.output.hardware_ids();
 
     // Before any reader exists: what the node keeps of an input is bounded by its size.
@@ -553,6 +611,7 @@ async fn serve(
         Arc::clone(&stop_signal),
     );
     let estop = Arc::new(EStop::new(cfg.estop_timeout_ms));
+    let lifecycle_state = Arc::new(std::sync::atomic::AtomicU8::new(lifecycle::state::ACTIVE));
     let inputs = Arc::new(Inputs::new(
         fqn.clone(),
         store,
@@ -625,6 +684,26 @@ async fn serve(
     }
     tasks.extend(services::spawn(&mut node, &id, remaps, &inputs)?);
     tasks.extend(estop_inputs(&mut node, &id, remaps, &inputs, &estop)?);
+    if cfg.managed {
+        let events = publisher(
+            &mut node,
+            &id,
+            remaps,
+            "~/transition_event",
+            qos::commands(),
+        )?;
+        let actions = NodeActions {
+            inputs: Arc::clone(&inputs),
+            lines: line_slot,
+        };
+        let lifecycle = Arc::new(Lifecycle::new(
+            Box::new(actions),
+            events,
+            Arc::clone(&lifecycle_state),
+        ));
+        tasks.extend(lifecycle::spawn(&mut node, &id, remaps, &lifecycle)?);
+        info!("managed node: unconfigured; every line held inactive until configure and activate");
+    }
     let quit = Arc::new(AtomicBool::new(false));
     let pump_thread = {
         let (q, sig) = (Arc::clone(&quit), Arc::clone(&stop_signal));

@@ -113,6 +113,8 @@ pub struct StartupConfig {
     pub heartbeat_hz: Option<f64>,
     /// The heartbeat e-stop's timeout, ms; 0 = off.
     pub estop_timeout_ms: u64,
+    /// A managed (lifecycle) node.
+    pub managed: bool,
     /// Periodic status rate, Hz (0 = on change only).
     pub status_rate_hz: f64,
     /// Edge lines per second and channel (0 = none).
@@ -193,6 +195,7 @@ impl StartupConfig {
             heartbeat_hz: heartbeat.map(|_| store.double("heartbeat_hz").unwrap_or(10.0)),
             estop_timeout_ms: u64::try_from(store.int("estop_timeout_ms").unwrap_or(0))
                 .unwrap_or(0),
+            managed: store.bool("managed").unwrap_or(false),
             status_rate_hz: store.double("status_rate_hz").unwrap_or(10.0),
             edge_log_rate: store.int("edge_log_rate").unwrap_or(10).clamp(0, 1000) as u32,
             rt_priority: (rt > 0).then_some(rt.min(99) as i32),

@@ -147,6 +147,14 @@ pub(super) fn node_decls() -> Vec<Decl> {
             ..Decl::new("output", String, || V::String("sim".into()))
         },
         Decl {
+            description: "A managed (lifecycle) node: the lines are requested on configure, \
+                          follow their channels only while ACTIVE, and are released on cleanup \
+                          and shutdown; ~/change_state and the other lifecycle services.",
+            constraints: "start-up only (--managed)",
+            read_only: Some(START_UP),
+            ..Decl::new("managed", Bool, || V::Boolean(false))
+        },
+        Decl {
             description: "Trace file(s) of what is written to the lines (any output), \
                           comma-separated; .vcd and/or .csv. Empty: no trace.",
             constraints: "start-up only",

@@ -1,0 +1,468 @@
+//! A managed (lifecycle) node, as the ROS 2 node lifecycle design defines it, with the state
+//! machine rcl_lifecycle implements: the same states, transitions, ids and labels, so that
+//! `ros2 lifecycle`, launch_ros' `LifecycleNode` and rclpy's lifecycle clients drive it.
+//!
+//! [`Machine`] is the state machine alone (sans-IO): a request for a transition runs the
+//! node's [`Actions`] and yields the transition events. [`Lifecycle`] puts it on ROS:
+//! `~/change_state`, `~/get_state`, `~/get_available_states`, `~/get_available_transitions`,
+//! `~/get_transition_graph` and `~/transition_event`.
+//!
+//! What each state means for the lines is the node's business ([`Actions`]): unconfigured,
+//! no line requested; inactive, lines requested and held inactive; active, lines follow their
+//! channels; finalized, lines released.
+
+use super::args::Remap;
+use super::msg::{
+    ChangeStateRequest, ChangeStateResponse, EmptyRequest, GetAvailableStatesResponse,
+    GetAvailableTransitionsResponse, GetStateResponse, LifecycleState, LifecycleTransition,
+    TransitionDescription, TransitionEvent,
+};
+use super::names::NodeIdentity;
+use super::services::{self, ServiceError};
+use crate::output::safety::lock_ignore_poison as lock;
+use log::{info, warn};
+use ros2_client::{Node, Publisher, ServiceTypeName};
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::{Arc, Mutex};
+use tokio::task::JoinHandle;
+
+/// State ids (`lifecycle_msgs/State`).
+pub mod state {
+    /// Unknown.
+    pub const UNKNOWN: u8 = 0;
+    /// Unconfigured: no line requested.
+    pub const UNCONFIGURED: u8 = 1;
+    /// Inactive: lines requested, held inactive.
+    pub const INACTIVE: u8 = 2;
+    /// Active: lines follow their channels.
+    pub const ACTIVE: u8 = 3;
+    /// Finalized: lines released.
+    pub const FINALIZED: u8 = 4;
+    /// Transition state: configuring.
+    pub const CONFIGURING: u8 = 10;
+    /// Transition state: cleaning up.
+    pub const CLEANINGUP: u8 = 11;
+    /// Transition state: shutting down.
+    pub const SHUTTINGDOWN: u8 = 12;
+    /// Transition state: activating.
+    pub const ACTIVATING: u8 = 13;
+    /// Transition state: deactivating.
+    pub const DEACTIVATING: u8 = 14;
+    /// Transition state: processing an error.
+    pub const ERRORPROCESSING: u8 = 15;
+}
+
+/// Every state, with its label, in rcl_lifecycle's order.
+pub const STATES: [(u8, &str); 11] = [
+    (state::UNKNOWN, "unknown"),
+    (state::UNCONFIGURED, "unconfigured"),
+    (state::INACTIVE, "inactive"),
+    (state::ACTIVE, "active"),
+    (state::FINALIZED, "finalized"),
+    (state::CONFIGURING, "configuring"),
+    (state::CLEANINGUP, "cleaningup"),
+    (state::SHUTTINGDOWN, "shuttingdown"),
+    (state::ACTIVATING, "activating"),
+    (state::DEACTIVATING, "deactivating"),
+    (state::ERRORPROCESSING, "errorprocessing"),
+];
+
+/// The label of state `id`.
+pub fn state_label(id: u8) -> &'static str {
+    STATES
+        .iter()
+        .find(|(s, _)| *s == id)
+        .map_or("unknown", |(_, l)| l)
+}
+
+/// One edge of the graph: transition id, label, start state, goal state.
+type Edge = (u8, &'static str, u8, u8);
+
+/// rcl_lifecycle's default graph: the five requestable transitions from the primary states
+/// and, from each transition state, where success, failure and error lead.
+pub const GRAPH: [Edge; 25] = {
+    use state::*;
+    [
+        (1, "configure", UNCONFIGURED, CONFIGURING),
+        (10, "transition_success", CONFIGURING, INACTIVE),
+        (11, "transition_failure", CONFIGURING, UNCONFIGURED),
+        (12, "transition_error", CONFIGURING, ERRORPROCESSING),
+        (2, "cleanup", INACTIVE, CLEANINGUP),
+        (20, "transition_success", CLEANINGUP, UNCONFIGURED),
+        (21, "transition_failure", CLEANINGUP, INACTIVE),
+        (22, "transition_error", CLEANINGUP, ERRORPROCESSING),
+        (3, "activate", INACTIVE, ACTIVATING),
+        (30, "transition_success", ACTIVATING, ACTIVE),
+        (31, "transition_failure", ACTIVATING, INACTIVE),
+        (32, "transition_error", ACTIVATING, ERRORPROCESSING),
+        (4, "deactivate", ACTIVE, DEACTIVATING),
+        (40, "transition_success", DEACTIVATING, INACTIVE),
+        (41, "transition_failure", DEACTIVATING, ACTIVE),
+        (42, "transition_error", DEACTIVATING, ERRORPROCESSING),
+        (5, "shutdown", UNCONFIGURED, SHUTTINGDOWN),
+        (6, "shutdown", INACTIVE, SHUTTINGDOWN),
+        (7, "shutdown", ACTIVE, SHUTTINGDOWN),
+        (50, "transition_success", SHUTTINGDOWN, FINALIZED),
+        (51, "transition_failure", SHUTTINGDOWN, FINALIZED),
+        (52, "transition_error", SHUTTINGDOWN, ERRORPROCESSING),
+        (60, "transition_success", ERRORPROCESSING, UNCONFIGURED),
+        (61, "transition_failure", ERRORPROCESSING, FINALIZED),
+        (62, "transition_error", ERRORPROCESSING, FINALIZED),
+    ]
+};
+
+/// What the node does in each transition. An `Err` is a failure: the machine takes the
+/// transition's failure edge (configure: back to unconfigured) and the reason is logged.
+pub trait Actions: Send + Sync {
+    /// unconfigured → inactive: check the parameters, request the lines (held inactive).
+    fn configure(&self) -> Result<(), String>;
+    /// inactive → active: the lines follow their channels.
+    fn activate(&self) -> Result<(), String>;
+    /// active → inactive: every line inactive at once.
+    fn deactivate(&self) -> Result<(), String>;
+    /// inactive → unconfigured: release the lines (driven inactive first).
+    fn cleanup(&self) -> Result<(), String>;
+    /// any primary state → finalized: every line inactive and released.
+    fn shutdown(&self) -> Result<(), String>;
+}
+
+/// A transition that took place: (transition id, label, start state, goal state).
+pub type Step = Edge;
+
+/// The state machine (sans-IO).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Machine {
+    state: u8,
+}
+
+impl Default for Machine {
+    fn default() -> Self {
+        Machine {
+            state: state::UNCONFIGURED,
+        }
+    }
+}
+
+impl Machine {
+    /// The current state's id.
+    pub fn state(&self) -> u8 {
+        self.state
+    }
+
+    /// The transitions that can be requested now.
+    pub fn available(&self) -> Vec<Step> {
+        GRAPH
+            .iter()
+            .copied()
+            .filter(|(id, _, start, _)| *id < 10 && *start == self.state)
+            .collect()
+    }
+
+    /// Runs the transition `id` (or, when `id` is 0, the one labelled `label`) from the current
+    /// state with `actions`. Returns whether it succeeded and the steps taken (none when it
+    /// cannot start from here: then the reason).
+    pub fn change(
+        &mut self,
+        id: u8,
+        label: &str,
+        actions: &dyn Actions,
+    ) -> Result<(bool, Vec<Step>), String> {
+        let requested = self.available().into_iter().find(|(tid, tlabel, _, _)| {
+            if id != 0 {
+                *tid == id
+            } else {
+                *tlabel == label
+            }
+        });
+        let Some(first) = requested else {
+            return Err(format!(
+                "transition {} is not available from state {}",
+                if id != 0 {
+                    id.to_string()
+                } else {
+                    format!("`{}`", super::logging::shown(label))
+                },
+                state_label(self.state)
+            ));
+        };
+        let mut steps = vec![first];
+        let result = match first.1 {
+            "configure" => actions.configure(),
+            "activate" => actions.activate(),
+            "deactivate" => actions.deactivate(),
+            "cleanup" => actions.cleanup(),
+            _ => actions.shutdown(),
+        };
+        let through = first.3;
+        let outcome = if result.is_ok() {
+            "transition_success"
+        } else {
+            "transition_failure"
+        };
+        if let Err(why) = &result {
+            warn!("lifecycle: {} failed: {why}", first.1);
+        }
+        let second = GRAPH
+            .iter()
+            .copied()
+            .find(|(_, l, start, _)| *start == through && *l == outcome)
+            .expect("every transition state has a success and a failure edge");
+        steps.push(second);
+        self.state = second.3;
+        Ok((result.is_ok(), steps))
+    }
+}
+
+fn state_msg(id: u8) -> LifecycleState {
+    LifecycleState {
+        id,
+        label: state_label(id).into(),
+    }
+}
+
+fn description((id, label, start, goal): Step) -> TransitionDescription {
+    TransitionDescription {
+        transition: LifecycleTransition {
+            id,
+            label: label.into(),
+        },
+        start_state: state_msg(start),
+        goal_state: state_msg(goal),
+    }
+}
+
+/// The managed node on ROS: the machine, the node's actions and the transition events.
+pub struct Lifecycle {
+    machine: Mutex<Machine>,
+    actions: Box<dyn Actions>,
+    events: Publisher<TransitionEvent>,
+    /// The current state's id, for readers that must not wait (diagnostics).
+    current: Arc<AtomicU8>,
+}
+
+impl Lifecycle {
+    /// Unconfigured, with `actions`; events go to `events` (`~/transition_event`); `current`
+    /// follows the state.
+    pub fn new(
+        actions: Box<dyn Actions>,
+        events: Publisher<TransitionEvent>,
+        current: Arc<AtomicU8>,
+    ) -> Lifecycle {
+        current.store(state::UNCONFIGURED, Ordering::Release);
+        Lifecycle {
+            machine: Mutex::new(Machine::default()),
+            actions,
+            events,
+            current,
+        }
+    }
+
+    /// `~/change_state`.
+    pub fn change_state(&self, req: ChangeStateRequest) -> ChangeStateResponse {
+        let mut m = lock(&self.machine);
+        let t = req.transition;
+        match m.change(t.id, &t.label, self.actions.as_ref()) {
+            Err(why) => {
+                warn!("lifecycle: {why}");
+                ChangeStateResponse { success: false }
+            }
+            Ok((success, steps)) => {
+                self.current.store(m.state(), Ordering::Release);
+                for step in steps {
+                    let d = description(step);
+                    let event = TransitionEvent {
+                        timestamp: crate::clock::wall_ns().max(0) as u64,
+                        transition: d.transition,
+                        start_state: d.start_state,
+                        goal_state: d.goal_state,
+                    };
+                    if let Err(e) = self.events.publish(event) {
+                        warn!("lifecycle: cannot publish the transition event: {e}");
+                    }
+                }
+                info!("lifecycle: {}", state_label(m.state()));
+                ChangeStateResponse { success }
+            }
+        }
+    }
+
+    /// `~/get_state`.
+    pub fn get_state(&self) -> GetStateResponse {
+        GetStateResponse {
+            current_state: state_msg(lock(&self.machine).state()),
+        }
+    }
+
+    /// `~/get_available_states`.
+    pub fn available_states(&self) -> GetAvailableStatesResponse {
+        GetAvailableStatesResponse {
+            available_states: STATES.iter().map(|(id, _)| state_msg(*id)).collect(),
+        }
+    }
+
+    /// `~/get_available_transitions`.
+    pub fn available_transitions(&self) -> GetAvailableTransitionsResponse {
+        GetAvailableTransitionsResponse {
+            available_transitions: lock(&self.machine)
+                .available()
+                .into_iter()
+                .map(description)
+                .collect(),
+        }
+    }
+
+    /// `~/get_transition_graph`.
+    pub fn transition_graph(&self) -> GetAvailableTransitionsResponse {
+        GetAvailableTransitionsResponse {
+            available_transitions: GRAPH.iter().copied().map(description).collect(),
+        }
+    }
+}
+
+/// Creates the five lifecycle services of `lifecycle` and the tasks serving them.
+pub fn spawn(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    lifecycle: &Arc<Lifecycle>,
+) -> Result<Vec<JoinHandle<()>>, ServiceError> {
+    let ty = |name| ServiceTypeName::new("lifecycle_msgs", name);
+    let l = Arc::clone(lifecycle);
+    let mut tasks = vec![services::serve(
+        node,
+        id,
+        remaps,
+        "~/change_state",
+        &ty("ChangeState"),
+        move |req: ChangeStateRequest| l.change_state(req),
+    )?];
+    let l = Arc::clone(lifecycle);
+    tasks.push(services::serve(
+        node,
+        id,
+        remaps,
+        "~/get_state",
+        &ty("GetState"),
+        move |_: EmptyRequest| l.get_state(),
+    )?);
+    let l = Arc::clone(lifecycle);
+    tasks.push(services::serve(
+        node,
+        id,
+        remaps,
+        "~/get_available_states",
+        &ty("GetAvailableStates"),
+        move |_: EmptyRequest| l.available_states(),
+    )?);
+    let l = Arc::clone(lifecycle);
+    tasks.push(services::serve(
+        node,
+        id,
+        remaps,
+        "~/get_available_transitions",
+        &ty("GetAvailableTransitions"),
+        move |_: EmptyRequest| l.available_transitions(),
+    )?);
+    let l = Arc::clone(lifecycle);
+    tasks.push(services::serve(
+        node,
+        id,
+        remaps,
+        "~/get_transition_graph",
+        &ty("GetAvailableTransitions"),
+        move |_: EmptyRequest| l.transition_graph(),
+    )?);
+    Ok(tasks)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicBool;
+
+    #[derive(Default)]
+    struct Recorder {
+        calls: Mutex<Vec<&'static str>>,
+        fail_configure: AtomicBool,
+    }
+
+    impl Actions for Recorder {
+        fn configure(&self) -> Result<(), String> {
+            lock(&self.calls).push("configure");
+            match self.fail_configure.load(Ordering::SeqCst) {
+                true => Err("line busy".into()),
+                false => Ok(()),
+            }
+        }
+        fn activate(&self) -> Result<(), String> {
+            lock(&self.calls).push("activate");
+            Ok(())
+        }
+        fn deactivate(&self) -> Result<(), String> {
+            lock(&self.calls).push("deactivate");
+            Ok(())
+        }
+        fn cleanup(&self) -> Result<(), String> {
+            lock(&self.calls).push("cleanup");
+            Ok(())
+        }
+        fn shutdown(&self) -> Result<(), String> {
+            lock(&self.calls).push("shutdown");
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn the_whole_walk_takes_the_designs_edges() {
+        let a = Recorder::default();
+        let mut m = Machine::default();
+        assert_eq!(
+            m.available(),
+            [(1, "configure", 1, 10), (5, "shutdown", 1, 12)]
+        );
+        let walk = [
+            (1, state::INACTIVE, (1, 10)),
+            (3, state::ACTIVE, (3, 30)),
+            (4, state::INACTIVE, (4, 40)),
+            (2, state::UNCONFIGURED, (2, 20)),
+            (1, state::INACTIVE, (1, 10)),
+            (6, state::FINALIZED, (6, 50)),
+        ];
+        for (id, goal, (t1, t2)) in walk {
+            let (ok, steps) = m.change(id, "", &a).unwrap();
+            assert!(ok);
+            assert_eq!(m.state(), goal);
+            assert_eq!((steps[0].0, steps[1].0), (t1, t2));
+        }
+        assert_eq!(
+            *lock(&a.calls),
+            [
+                "configure",
+                "activate",
+                "deactivate",
+                "cleanup",
+                "configure",
+                "shutdown"
+            ]
+        );
+        assert!(m.available().is_empty(), "nothing leaves finalized");
+    }
+
+    #[test]
+    fn a_failing_configure_lands_in_unconfigured_and_labels_work() {
+        let a = Recorder::default();
+        a.fail_configure.store(true, Ordering::SeqCst);
+        let mut m = Machine::default();
+        let (ok, steps) = m.change(0, "configure", &a).unwrap();
+        assert!(!ok);
+        assert_eq!(steps[1], (11, "transition_failure", 10, 1));
+        assert_eq!(m.state(), state::UNCONFIGURED);
+        // Not available from unconfigured: refused, nothing runs.
+        assert!(m.change(3, "", &a).unwrap_err().contains("not available"));
+        assert!(m.change(0, "activate", &a).is_err());
+        assert_eq!(*lock(&a.calls), ["configure"]);
+        // Shutdown by label from unconfigured takes transition 5.
+        let (ok, steps) = m.change(0, "shutdown", &a).unwrap();
+        assert!(ok && steps[0].0 == 5 && m.state() == state::FINALIZED);
+    }
+}
