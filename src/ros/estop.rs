@@ -8,15 +8,23 @@
 //! a reset every channel is disabled and runs again only on its next `enable=true` (the core's
 //! [`Channel::set_estop`](crate::core::Channel::set_estop)).
 
+use super::args::Remap;
+use super::endpoints::{listen, subscription};
 use super::inputs::Inputs;
-use super::msg::TriggerResponse;
+use super::msg::{self, TriggerResponse};
+use super::names::NodeIdentity;
+use super::node::NodeError;
+use super::services;
 use crate::clock;
 use crate::core::Nanos;
 use crate::engine::Input;
 use crate::output::safety::lock_ignore_poison as lock;
 use log::{info, warn};
+use ros2_client::Node;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
 use std::sync::Mutex;
+use tokio::task::JoinHandle;
 
 /// Why the e-stop was latched.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -166,4 +174,40 @@ impl EStop {
             ),
         }
     }
+}
+
+/// `~/estop` (reliable, volatile: any publisher matches), `~/reset_estop` (std_srvs/Trigger)
+/// and, with `estop_timeout_ms`, the task that latches when no `false` comes in time.
+pub(crate) fn spawn(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    inputs: &Arc<Inputs>,
+    estop: &Arc<EStop>,
+) -> Result<Vec<JoinHandle<()>>, NodeError> {
+    let mut tasks = Vec::new();
+    let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
+    let (full, s) = subscription::<msg::Bool>(node, id, remaps, "~/estop")?;
+    tasks.push(listen(full, s, move |m| e.input(&b, m.data)));
+    let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
+    tasks.push(services::serve(
+        node,
+        id,
+        remaps,
+        "~/reset_estop",
+        &ros2_client::ServiceTypeName::new("std_srvs", "Trigger"),
+        move |_: msg::EmptyRequest| e.reset(&b),
+    )?);
+    if let Some(period) = estop.timeout_check_period() {
+        let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
+        tasks.push(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(period);
+            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tick.tick().await;
+                e.check_timeout(&b, clock::monotonic_ns());
+            }
+        }));
+    }
+    Ok(tasks)
 }

@@ -12,6 +12,7 @@
 //! channels; finalized, lines released.
 
 use super::args::Remap;
+use super::inputs::Inputs;
 use super::msg::{
     ChangeStateRequest, ChangeStateResponse, EmptyRequest, GetAvailableStatesResponse,
     GetAvailableTransitionsResponse, GetStateResponse, LifecycleState, LifecycleTransition,
@@ -19,7 +20,10 @@ use super::msg::{
 };
 use super::names::NodeIdentity;
 use super::services::{self, ServiceError};
+use crate::engine::Input;
+use crate::error::chain;
 use crate::output::safety::lock_ignore_poison as lock;
+use crate::output::LineSlot;
 use log::{info, warn};
 use ros2_client::{Node, Publisher, ServiceTypeName};
 use std::sync::atomic::{AtomicU8, Ordering};
@@ -124,6 +128,56 @@ pub trait Actions: Send + Sync {
     fn cleanup(&self) -> Result<(), String>;
     /// any primary state → finalized: every line inactive and released.
     fn shutdown(&self) -> Result<(), String>;
+}
+
+/// What this node's transitions do to its lines (see [`Actions`]).
+pub struct LineActions {
+    /// The node's inputs, to the output thread.
+    pub inputs: Arc<Inputs>,
+    /// The GPIO lines, requested on configure; `None` for the sim output.
+    pub lines: Option<LineSlot>,
+}
+
+impl Actions for LineActions {
+    fn configure(&self) -> Result<(), String> {
+        // The parameters in force must still give a valid configuration for every channel.
+        self.inputs
+            .with_params(|s| (0..s.channels()).try_for_each(|ch| s.channel_config(ch).map(drop)))
+            .map_err(|e| e.to_string())?;
+        if let Some(lines) = &self.lines {
+            lines
+                .attach()
+                .map_err(|e| format!("cannot open the GPIO output: {}", chain(&e)))?;
+        }
+        Ok(())
+    }
+
+    fn activate(&self) -> Result<(), String> {
+        self.inputs
+            .send(0, Input::Live(true))
+            .map_err(|e| e.to_string())
+    }
+
+    fn deactivate(&self) -> Result<(), String> {
+        self.inputs
+            .send(0, Input::Live(false))
+            .map_err(|e| e.to_string())
+    }
+
+    fn cleanup(&self) -> Result<(), String> {
+        if let Some(lines) = &self.lines {
+            lines.detach();
+        }
+        Ok(())
+    }
+
+    fn shutdown(&self) -> Result<(), String> {
+        let held = self.inputs.send(0, Input::Live(false));
+        if let Some(lines) = &self.lines {
+            lines.detach();
+        }
+        held.map_err(|e| e.to_string())
+    }
 }
 
 /// A transition that took place: (transition id, label, start state, goal state).

@@ -27,6 +27,7 @@ pub mod cli;
 pub mod console;
 pub mod diagnostics;
 pub mod discovery;
+pub mod endpoints;
 pub mod estop;
 pub mod inputs;
 pub mod lifecycle;

@@ -7,17 +7,18 @@
 //! the way out the output thread drives every output inactive and the trace files are flushed
 //! before the process exits.
 
-use super::args::{self, ArgsError, Remap, RosArgs};
+use super::args::{self, ArgsError, RosArgs};
 use super::cli::{self, CliError, Flags, DEMO_ORIGIN};
 use super::diagnostics::ChannelHealth;
 use super::discovery::{self, Discovery, DiscoveryError};
-use super::estop::EStop;
+use super::endpoints::{listen, publisher, ros_err, subscription};
+use super::estop::{self, EStop};
 use super::inputs::{Inputs, NOTE_QUEUE};
-use super::lifecycle::{self, Lifecycle};
+use super::lifecycle::{self, Lifecycle, LineActions};
 use super::logging::{self, LogConfig};
-use super::msg::{self, RosMessage};
+use super::msg;
 use super::name_clash::{self, NameClash};
-use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
+use super::names::{NameError, NodeIdentity};
 use super::params::{self, show_value, ParamError, ParamStore, StartValue, StartupConfig};
 use super::qos;
 use super::reporter::{ChannelPubs, Reporter, StopSignal};
@@ -31,11 +32,8 @@ use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
 use crate::output::{self, install_panic_hook, AnyOutput, Backend, LineSlot, OpenError, Output};
 use crate::service::WatchdogPinger;
-use futures::StreamExt;
-use log::{debug, error, info, warn};
-use ros2_client::{
-    Context, Message, Node, NodeName, NodeOptions, Publisher, QosProfile, Subscription,
-};
+use log::{error, info, warn};
+use ros2_client::{Context, NodeName, NodeOptions};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -134,14 +132,6 @@ impl NodeError {
             | NodeError::Output(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
-    }
-}
-
-fn ros_err(what: impl Into<String>) -> impl FnOnce(ros2_client::CreateError) -> NodeError {
-    let what = what.into();
-    move |e| NodeError::Ros {
-        what,
-        source: Box::new(e),
     }
 }
 
@@ -316,153 +306,6 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
         ..EngineOptions::default()
     };
     engine::spawn(configs, output, opts).map_err(NodeError::Engine)
-}
-
-/// What a managed node's transitions do (see [`lifecycle::Actions`]).
-struct NodeActions {
-    inputs: Arc<Inputs>,
-    /// The GPIO lines, requested on configure; `None` for the sim output.
-    lines: Option<LineSlot>,
-}
-
-impl lifecycle::Actions for NodeActions {
-    fn configure(&self) -> Result<(), String> {
-        // The parameters in force must still give a valid configuration for every channel.
-        self.inputs
-            .with_params(|s| (0..s.channels()).try_for_each(|ch| s.channel_config(ch).map(drop)))
-            .map_err(|e| e.to_string())?;
-        if let Some(lines) = &self.lines {
-            lines
-                .attach()
-                .map_err(|e| format!("cannot open the GPIO output: {}", chain(&e)))?;
-        }
-        Ok(())
-    }
-
-    fn activate(&self) -> Result<(), String> {
-        self.inputs
-            .send(0, Input::Live(true))
-            .map_err(|e| e.to_string())
-    }
-
-    fn deactivate(&self) -> Result<(), String> {
-        self.inputs
-            .send(0, Input::Live(false))
-            .map_err(|e| e.to_string())
-    }
-
-    fn cleanup(&self) -> Result<(), String> {
-        if let Some(lines) = &self.lines {
-            lines.detach();
-        }
-        Ok(())
-    }
-
-    fn shutdown(&self) -> Result<(), String> {
-        let held = self.inputs.send(0, Input::Live(false));
-        if let Some(lines) = &self.lines {
-            lines.detach();
-        }
-        held.map_err(|e| e.to_string())
-    }
-}
-
-/// `~/estop` (reliable, volatile: any publisher matches), `~/reset_estop` (std_srvs/Trigger)
-/// and, with `estop_timeout_ms`, the task that latches when no `false` comes in time.
-fn estop_inputs(
-    node: &mut Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
-    inputs: &Arc<Inputs>,
-    estop: &Arc<EStop>,
-) -> Result<Vec<JoinHandle<()>>, NodeError> {
-    let mut tasks = Vec::new();
-    let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
-    let (full, s) = subscription::<msg::Bool>(node, id, remaps, "~/estop")?;
-    tasks.push(listen(full, s, move |m| e.input(&b, m.data)));
-    let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
-    tasks.push(services::serve(
-        node,
-        id,
-        remaps,
-        "~/reset_estop",
-        &ros2_client::ServiceTypeName::new("std_srvs", "Trigger"),
-        move |_: msg::EmptyRequest| e.reset(&b),
-    )?);
-    if let Some(period) = estop.timeout_check_period() {
-        let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
-        tasks.push(tokio::spawn(async move {
-            let mut tick = tokio::time::interval(period);
-            tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-            loop {
-                tick.tick().await;
-                e.check_timeout(&b, clock::monotonic_ns());
-            }
-        }));
-    }
-    Ok(tasks)
-}
-
-/// Resolves a topic name of this node.
-fn topic(
-    node: &Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
-    name: &str,
-    type_name: ros2_client::MessageTypeName,
-    qos: &QosProfile,
-) -> Result<(String, rustdds::Topic), NodeError> {
-    let full = id.resolve(name, NameKind::Topic, remaps)?;
-    let t = node
-        .create_topic(&to_ros_name(&full)?, type_name, qos)
-        .map_err(ros_err(format!("topic {full}")))?;
-    Ok((full, t))
-}
-
-fn publisher<M: RosMessage>(
-    node: &mut Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
-    name: &str,
-    qos: QosProfile,
-) -> Result<Publisher<M>, NodeError> {
-    let (full, t) = topic(node, id, remaps, name, M::type_name(), &qos)?;
-    debug!("publishing {full}");
-    node.create_publisher(&t, Some(qos))
-        .map_err(ros_err(format!("publisher {full}")))
-}
-
-fn subscription<M: RosMessage + 'static>(
-    node: &mut Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
-    name: &str,
-) -> Result<(String, Subscription<M>), NodeError> {
-    let qos = qos::commands();
-    let (full, t) = topic(node, id, remaps, name, M::type_name(), &qos)?;
-    debug!("subscribing {full}");
-    let s = node
-        .create_subscription(&t, Some(qos))
-        .map_err(ros_err(format!("subscription {full}")))?;
-    Ok((full, s))
-}
-
-/// Runs `on_msg` for every message of `sub`, until the task is aborted.
-fn listen<M, F>(full: String, sub: Subscription<M>, mut on_msg: F) -> JoinHandle<()>
-where
-    M: Message + Send + Sync + 'static,
-    F: FnMut(M) + Send + 'static,
-{
-    tokio::spawn(async move {
-        let stream = sub.async_stream();
-        futures::pin_mut!(stream);
-        while let Some(r) = stream.next().await {
-            match r {
-                Ok((m, _info)) => on_msg(m),
-                Err(e) => warn!("{full}: unreadable message: {e}"),
-            }
-        }
-    })
 }
 
 /// Moves reports from the output thread to ROS until `quit` is set or the output thread ends.
@@ -683,7 +526,7 @@ async fn serve(
         }));
     }
     tasks.extend(services::spawn(&mut node, &id, remaps, &inputs)?);
-    tasks.extend(estop_inputs(&mut node, &id, remaps, &inputs, &estop)?);
+    tasks.extend(estop::spawn(&mut node, &id, remaps, &inputs, &estop)?);
     if cfg.managed {
         let events = publisher(
             &mut node,
@@ -692,7 +535,7 @@ async fn serve(
             "~/transition_event",
             qos::commands(),
         )?;
-        let actions = NodeActions {
+        let actions = LineActions {
             inputs: Arc::clone(&inputs),
             lines: line_slot,
         };
