@@ -1,0 +1,208 @@
+"""What /diagnostics says beyond each channel's own status, read by an rclpy client as an
+aggregator or an operator would (README: "Diagnostics"):
+
+- `<node>: <ch> command frequency`: diagnostic_updater's FrequencyStatus on the channel's duty
+  commands; with commands at 10 Hz and `expected_command_hz_min` 5 it is OK, and when they stop
+  it goes WARN "Frequency too low." and then ERROR "No events recorded.", in that order, within
+  the window; its settings change while running;
+- `<node>: node`: the lifecycle state, the e-stop, the output thread's lateness and the lost
+  reports.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, Optional
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from std_msgs.msg import Bool, Float64
+from std_srvs.srv import Trigger
+
+from helpers_rules import NODE, ChannelClient, diag_level, diag_values
+from test_channel_rules import start
+
+OK, WARN, ERROR = 0, 1, 2
+NODE_NAME = NODE.rsplit("/", 1)[-1]
+
+
+def freq_name(channel: str) -> str:
+    return f"{NODE_NAME}: {channel} command frequency"
+
+
+NODE_STATUS = f"{NODE_NAME}: node"
+
+
+def find(array: DiagnosticArray, name: str) -> Optional[DiagnosticStatus]:
+    return next((s for s in array.status if s.name == name), None)
+
+
+def wait_status(
+    ch: ChannelClient,
+    name: str,
+    predicate: Callable[[DiagnosticStatus], bool],
+    what: str,
+    start: int = 0,
+    timeout: Optional[float] = None,
+    spin: Optional[Callable[[], None]] = None,
+) -> tuple[int, DiagnosticArray, DiagnosticStatus]:
+    """The first /diagnostics array (from message `start` on) whose status `name` satisfies
+    `predicate`: (its index, the array, the status). `spin` runs between looks."""
+    log = ch.diagnostics
+
+    def look() -> Any:
+        if spin is not None:
+            spin()
+        for i in range(start, len(log.messages)):
+            s = find(log.messages[i], name)
+            if s is not None and predicate(s):
+                return (i, log.messages[i], s)
+        return None
+
+    return ch.ros.spin_until(look, f"/diagnostics {name!r}: {what}", timeout)
+
+
+class Commander:
+    """Publishes duty commands on one channel at a fixed rate while the test waits."""
+
+    def __init__(self, ch: ChannelClient, hz: float) -> None:
+        self.ch = ch
+        self.period = 1.0 / hz
+        self.next = time.monotonic()
+        self.sent = 0
+
+    def __call__(self) -> None:
+        now = time.monotonic()
+        if now >= self.next:
+            self.ch.duty_pub.publish(Float64(data=20.0))
+            self.sent += 1
+            # After a stall, carry on at the rate rather than in a burst.
+            self.next = max(self.next + self.period, now)
+
+
+def test_the_command_frequency_goes_warn_then_error_when_commands_stop(node_process, ros):
+    proc, ch = start(node_process, ros, pw01__expected_command_hz_min=5.0)
+    commander = Commander(ch, 10.0)
+
+    # Commands at 10 Hz: the rate is met over a whole window (5 runs, one a second).
+    _, _, met = wait_status(
+        ch,
+        freq_name("pw01"),
+        lambda s: s.message == "Desired frequency met"
+        and float(diag_values(s)["Duration of window (s)"]) >= 4.5,
+        "met at 10 Hz over a whole window",
+        spin=commander,
+    )
+    assert diag_level(met) == OK, met
+    kv = diag_values(met)
+    assert kv["Minimum acceptable frequency (Hz)"] == "4.500000", kv
+    assert "Maximum acceptable frequency (Hz)" not in kv, kv
+    # What the test sent, give or take the commands at the window's ends.
+    assert 5.0 <= float(kv["Actual frequency (Hz)"]) <= 12.0, kv
+    assert int(kv["Events in window"]) > 0 and int(kv["Events since startup"]) > 0, kv
+    assert kv["Window (diagnostics runs)"] == "5" and kv["Tolerance"] == "0.1", kv
+    assert met.hardware_id == "sim"
+    # pw02 has no expected rate: measured, not judged.
+    array = ch.diagnostics.messages[-1]
+    other = find(array, freq_name("pw02"))
+    assert other is not None and diag_level(other) == OK, other
+    assert other.message.startswith("Not checked"), other.message
+
+    # Stop. The window (5 one-second runs) empties: WARN "Frequency too low." first, then
+    # ERROR "No events recorded.", within the window and a generous margin.
+    stopped = time.monotonic()
+    start_index = len(ch.diagnostics.messages)
+    low_index, _, low = wait_status(
+        ch,
+        freq_name("pw01"),
+        lambda s: diag_level(s) != OK,
+        "not OK after the commands stopped",
+        start=start_index,
+        timeout=15,
+    )
+    assert (diag_level(low), low.message) == (WARN, "Frequency too low."), low
+    kv = diag_values(low)
+    assert 0 < float(kv["Actual frequency (Hz)"]) < 4.5, kv
+    err_index, err_array, err = wait_status(
+        ch,
+        freq_name("pw01"),
+        lambda s: diag_level(s) == ERROR,
+        "ERROR once no command is left in the window",
+        start=low_index,
+        timeout=15,
+    )
+    assert err.message == "No events recorded.", err
+    assert diag_values(err)["Events in window"] == "0"
+    assert err_index > low_index
+    took = ch.diagnostics.arrivals[err_index] - stopped
+    assert 3.0 <= took <= 12.0, f"ERROR {took:.1f} s after the last command"
+    # The channel's own status is unaffected: a slow controller is not an output problem.
+    own = find(err_array, f"{NODE_NAME}: pw01")
+    assert own is not None and diag_level(own) == OK, own
+
+    # The bounds change while running: a maximum below the minimum is refused, a minimum of 0
+    # turns the check off.
+    result = ros.set_parameters(NODE, {"pw01.expected_command_hz_max": 2.0})
+    bad = result["pw01.expected_command_hz_max"]
+    assert not bad.successful and "expected_command_hz_min 5" in bad.reason, bad.reason
+    result = ros.set_parameters(NODE, {"pw01.expected_command_hz_min": 0.0})
+    assert result["pw01.expected_command_hz_min"].successful
+    _, _, off = wait_status(
+        ch,
+        freq_name("pw01"),
+        lambda s: s.message.startswith("Not checked"),
+        "not checked after the minimum went to 0",
+        start=len(ch.diagnostics.messages),
+    )
+    assert diag_level(off) == OK, off
+    assert "Minimum acceptable frequency (Hz)" not in diag_values(off)
+
+
+def test_the_node_status_shows_lateness_lifecycle_and_the_estop(node_process, ros):
+    # pw01 pulses at 50 % of 100 ms: 20 edges a second for the lateness window.
+    proc, ch = start(
+        node_process, ros, pw01__period_ms=100, pw01__duty=50.0, pw01__enable=True
+    )
+    _, _, node = wait_status(
+        ch,
+        NODE_STATUS,
+        lambda s: int(diag_values(s).get("lateness_window_edges", "0")) >= 5,
+        "a lateness window with edges",
+    )
+    assert diag_level(node) == OK, node
+    assert node.hardware_id == NODE_NAME
+    assert node.message.startswith("lifecycle unmanaged, e-stop released"), node.message
+    kv = diag_values(node)
+    assert kv["lifecycle_state"] == "unmanaged", kv
+    assert (kv["estop_latched"], kv["estop_latches"]) == ("false", "0"), kv
+    assert (kv["reports_dropped"], kv["samples_too_large"]) == ("0", "0"), kv
+    p99, worst = float(kv["lateness_p99_us"]), float(kv["lateness_max_us"])
+    # Lateness is the business of the benchmark; here only its shape: the p99 is at most the
+    # maximum, and on a loaded 2-core machine still far below a period.
+    assert 0 <= p99 <= worst < 100_000, kv
+    assert 0.5 <= float(kv["lateness_window_s"]) <= 3.0, kv
+    # 20 edges a second over a window of about one second.
+    assert 5 <= int(kv["lateness_window_edges"]) <= 60, kv
+
+    estop = ros.publisher(Bool, f"{NODE}/estop")
+    ros.wait_for_subscribers(estop, 1)
+    estop.publish(Bool(data=True))
+    _, _, latched = wait_status(
+        ch, NODE_STATUS, lambda s: diag_values(s)["estop_latched"] == "true", "e-stop latched"
+    )
+    assert diag_level(latched) == ERROR, latched
+    assert latched.message.startswith("e-stop latched"), latched.message
+    assert diag_values(latched)["estop_latches"] == "1"
+
+    estop.publish(Bool(data=False))
+    ros.spin_for(0.3)
+    response = ros.call(Trigger, f"{NODE}/reset_estop", Trigger.Request())
+    assert response.success, response
+    _, _, released = wait_status(
+        ch,
+        NODE_STATUS,
+        lambda s: diag_values(s)["estop_latched"] == "false",
+        "e-stop released",
+        start=len(ch.diagnostics.messages),
+    )
+    assert diag_level(released) == OK, released
+    assert diag_values(released)["estop_latches"] == "1"
