@@ -845,6 +845,38 @@ mod tests {
         assert_eq!(kv(&d, "lifecycle_state"), "inactive");
     }
 
+    /// launch-notes/diagnostic_analyzers.yaml takes the statuses by the prefix the node's
+    /// names start with (tests/rclpy/test_diagnostics.py checks it against a running node).
+    #[test]
+    fn the_analyzers_file_names_the_node_s_prefix() {
+        use yaml_rust2::YamlLoader;
+        let text = include_str!("../../launch-notes/diagnostic_analyzers.yaml");
+        let docs = YamlLoader::load_from_str(text).expect("valid YAML");
+        let a = &docs[0]["analyzers"]["ros__parameters"]["pwm_actuator"];
+        assert_eq!(
+            a["type"].as_str(),
+            Some("diagnostic_aggregator/GenericAnalyzer")
+        );
+        let node = crate::ros::node::NODE_NAME;
+        let prefix = format!("{node}:");
+        let prefixes: Vec<&str> = a["find_and_remove_prefix"]
+            .as_vec()
+            .expect("a list")
+            .iter()
+            .filter_map(|y| y.as_str())
+            .collect();
+        assert_eq!(prefixes, [prefix.as_str()]);
+        for name in [
+            channel_status_name(node, "pw01"),
+            frequency_status_name(node, "pw01"),
+            node_status_name(node),
+        ] {
+            assert!(name.starts_with(&prefix), "{name}");
+        }
+        let expected = a["expected"].as_vec().expect("a list");
+        assert_eq!(expected[0].as_str(), Some(node_status_name(node).as_str()));
+    }
+
     #[test]
     fn status_message_and_change_detection() {
         let s = status();

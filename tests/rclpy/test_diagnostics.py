@@ -6,23 +6,29 @@ aggregator or an operator would (README: "Diagnostics"):
   it goes WARN "Frequency too low." and then ERROR "No events recorded.", in that order, within
   the window; its settings change while running;
 - `<node>: node`: the lifecycle state, the e-stop, the output thread's lateness and the lost
-  reports.
+  reports;
+- `launch-notes/diagnostic_analyzers.yaml`: its analyzer takes exactly the statuses the node
+  publishes, and names them as the README says.
 """
 
 from __future__ import annotations
 
+import re
 import time
+from pathlib import Path
 from typing import Any, Callable, Optional
 
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from std_msgs.msg import Bool, Float64
 from std_srvs.srv import Trigger
 
-from helpers_rules import NODE, ChannelClient, diag_level, diag_values
+from helpers_rules import NODE, ChannelClient, diag_level, diag_values, node_args
 from test_channel_rules import start
 
 OK, WARN, ERROR = 0, 1, 2
 NODE_NAME = NODE.rsplit("/", 1)[-1]
+ANALYZERS = Path(__file__).resolve().parents[2] / "launch-notes" / "diagnostic_analyzers.yaml"
 
 
 def freq_name(channel: str) -> str:
@@ -206,3 +212,91 @@ def test_the_node_status_shows_lateness_lifecycle_and_the_estop(node_process, ro
     )
     assert diag_level(released) == OK, released
     assert diag_values(released)["estop_latches"] == "1"
+
+
+# ---------------------------------------------------------------------------------------------
+# diagnostic_aggregator's GenericAnalyzer (Jazzy), as far as its matching and naming go
+# ---------------------------------------------------------------------------------------------
+
+
+def as_list(value: Any) -> list[str]:
+    """A string or a list of strings, as the analyzer's parameters accept them."""
+    if value is None:
+        return []
+    return [value] if isinstance(value, str) else list(value)
+
+
+def analyzer_matches(cfg: dict[str, Any], name: str) -> bool:
+    """GenericAnalyzer::match: a regex (whole name), a name start or a name part."""
+    starts = as_list(cfg.get("startswith")) + as_list(cfg.get("find_and_remove_prefix"))
+    return (
+        any(re.fullmatch(r, name) for r in as_list(cfg.get("regex")))
+        or any(name.startswith(p) for p in starts)
+        or any(c in name for c in as_list(cfg.get("contains")))
+    )
+
+
+def remove_leading_chaff(name: str, chaff: str) -> str:
+    """diagnostic_aggregator's removeLeadingNameChaff: the chaff after the last '/', then a
+    ':' and the spaces that follow it."""
+    last = name.rfind("/")
+    head, tail = name[: last + 1], name[last + 1 :]
+    if tail.startswith(chaff):
+        tail = tail[len(chaff) :]
+    if tail.startswith(":"):
+        tail = tail[1:]
+    return head + tail.lstrip(" ")
+
+
+def aggregated_name(cfg: dict[str, Any], name: str) -> str:
+    """The item's name on /diagnostics_agg: the analyzer's path, '/', the name with '/' made
+    ' ', each chaff removed."""
+    out = f"/{cfg['path']}/{name.replace('/', ' ')}"
+    chaff = as_list(cfg.get("find_and_remove_prefix")) + as_list(cfg.get("remove_prefix"))
+    for c in chaff:
+        out = remove_leading_chaff(out, c.replace("/", " "))
+    return out
+
+
+def test_the_aggregator_analyzers_take_every_status_the_node_publishes(node_process, ros):
+    doc = yaml.safe_load(ANALYZERS.read_text())
+    params = doc["analyzers"]["ros__parameters"]
+    cfg = params["pwm_actuator"]
+    assert cfg["type"] == "diagnostic_aggregator/GenericAnalyzer", cfg
+    assert isinstance(cfg["path"], str) and cfg["path"], cfg
+    # The analyzer reads these as a double and as string arrays (rclcpp parameters: a wrong
+    # type is an exception, not a conversion).
+    assert isinstance(cfg.get("timeout", 5.0), float), cfg
+    for key in ("find_and_remove_prefix", "expected"):
+        assert isinstance(cfg.get(key, []), list), (key, cfg)
+
+    node_process(node_args(channels=3))
+    ch = ChannelClient(ros, "pw01")
+    ch.wait_connected()
+    array = ch.diagnostics.wait_for(
+        lambda a: any(s.name == NODE_STATUS for s in a.status), what="a full /diagnostics"
+    )
+    names = [s.name for s in array.status]
+    channels = ("pw01", "pw02", "pw03")
+    assert names == [
+        *(f"{NODE_NAME}: {c}" for c in channels),
+        *(freq_name(c) for c in channels),
+        NODE_STATUS,
+    ], names
+
+    # Every status the node publishes is taken, each under the path with the prefix gone;
+    # a status of another node is not.
+    for n in names:
+        assert analyzer_matches(cfg, n), f"{n!r} not taken by the analyzer"
+    short = [aggregated_name(cfg, n) for n in names]
+    base = f"/{cfg['path']}/"
+    assert short == [
+        *(base + c for c in channels),
+        *(f"{base}{c} command frequency" for c in channels),
+        base + "node",
+    ], short
+    for other in ("pwm_actuator_2: pw01", "camera: pwm_actuator: x", "heater: pw01"):
+        assert not analyzer_matches(cfg, other), other
+    # What it expects is what the node publishes.
+    for n in as_list(cfg.get("expected")):
+        assert n in names, f"expected {n!r} is not published: {names}"
