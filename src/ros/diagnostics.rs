@@ -205,8 +205,8 @@ impl LatenessHistogram {
 /// The node's state as `/diagnostics` shows it in `<node name>: node`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct NodeHealth {
-    /// Lifecycle state label (`unmanaged`, `unconfigured`, `inactive`, `active`,
-    /// `finalized`).
+    /// Lifecycle state: a managed node's `lifecycle_msgs/State` label (`unconfigured`,
+    /// `inactive`, `active`, `finalized`), `unmanaged` for a node that is not managed.
     pub lifecycle: &'static str,
     /// The e-stop is latched.
     pub estop_latched: bool,

@@ -457,14 +457,13 @@ async fn serve(
         Arc::clone(&node_state),
     );
     let estop = Arc::new(EStop::new(cfg.estop_timeout_ms));
-    let lifecycle_state = Arc::new(std::sync::atomic::AtomicU8::new(lifecycle::state::ACTIVE));
     let inputs = Arc::new(Inputs::new(
         fqn.clone(),
         store,
         requests,
         param_events,
         notes_tx,
-        node_state,
+        Arc::clone(&node_state),
     ));
     // rclcpp announces declared parameters as new on /parameter_events; so does this node.
     let declared = inputs.with_params(|s| {
@@ -546,7 +545,7 @@ async fn serve(
         let lifecycle = Arc::new(Lifecycle::new(
             Box::new(actions),
             events,
-            Arc::clone(&lifecycle_state),
+            node_state.lifecycle_cell(),
         ));
         tasks.extend(lifecycle::spawn(&mut node, &id, remaps, &lifecycle)?);
         info!("managed node: unconfigured; every line held inactive until configure and activate");

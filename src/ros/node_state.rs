@@ -1,5 +1,5 @@
 //! What the ROS callbacks share with the report thread without a lock: the node's lifecycle
-//! state, the e-stop, the number of duty commands each channel received, and the settings of
+//! state (the cell the lifecycle itself keeps it in), the e-stop, the number of duty commands each channel received, and the settings of
 //! the command-rate check (`expected_command_hz_min/max`, `command_hz_window`,
 //! `command_hz_tolerance`).
 //!
@@ -7,8 +7,10 @@
 //! for the report thread, and the report thread never waits for a callback. Nothing here
 //! publishes or reads a clock.
 
+use super::lifecycle::{state, state_label};
 use super::params::{channel_name, ParamStore};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
+use std::sync::Arc;
 
 /// Default `command_hz_window`: diagnostics runs (one a second) in the window, as
 /// diagnostic_updater's `FrequencyStatusParam` (`window_size = 5`).
@@ -22,47 +24,6 @@ pub const DEFAULT_COMMAND_HZ_TOLERANCE: f64 = 0.1;
 
 /// Highest `expected_command_hz_min` / `_max`, Hz.
 pub const MAX_EXPECTED_COMMAND_HZ: f64 = 10_000.0;
-
-/// The node's lifecycle state, as the `lifecycle_msgs/State` labels name the primary states;
-/// `Unmanaged` for a node that is not a managed (lifecycle) node.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-#[repr(u8)]
-pub enum Lifecycle {
-    /// Not a managed node: it runs from start-up to exit.
-    #[default]
-    Unmanaged = 0,
-    /// Managed, `unconfigured`.
-    Unconfigured = 1,
-    /// Managed, `inactive`.
-    Inactive = 2,
-    /// Managed, `active`.
-    Active = 3,
-    /// Managed, `finalized`.
-    Finalized = 4,
-}
-
-impl Lifecycle {
-    /// The label shown on `/diagnostics` (`lifecycle_msgs/State` labels, and `unmanaged`).
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Lifecycle::Unmanaged => "unmanaged",
-            Lifecycle::Unconfigured => "unconfigured",
-            Lifecycle::Inactive => "inactive",
-            Lifecycle::Active => "active",
-            Lifecycle::Finalized => "finalized",
-        }
-    }
-
-    fn from_u8(v: u8) -> Lifecycle {
-        match v {
-            1 => Lifecycle::Unconfigured,
-            2 => Lifecycle::Inactive,
-            3 => Lifecycle::Active,
-            4 => Lifecycle::Finalized,
-            _ => Lifecycle::Unmanaged,
-        }
-    }
-}
 
 /// The bounds of one channel's command-rate check, Hz, with the node's window and tolerance.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -108,7 +69,10 @@ struct CommandStream {
 /// The shared state (see the module documentation).
 #[derive(Debug)]
 pub struct NodeState {
-    lifecycle: AtomicU8,
+    /// A managed (lifecycle) node.
+    managed: bool,
+    /// The lifecycle state's id (`lifecycle_msgs/State`), kept by the lifecycle itself.
+    lifecycle: Arc<AtomicU8>,
     estop_latched: AtomicBool,
     estop_latches: AtomicU64,
     channels: Box<[CommandStream]>,
@@ -118,11 +82,13 @@ pub struct NodeState {
 }
 
 impl NodeState {
-    /// The state of a node with `channels` channels: unmanaged, e-stop released, no command
-    /// yet, the rate check off with the default window and tolerance.
+    /// The state of a node with `channels` channels: unmanaged (and so always `active`),
+    /// e-stop released, no command yet, the rate check off with the default window and
+    /// tolerance.
     pub fn new(channels: usize) -> NodeState {
         NodeState {
-            lifecycle: AtomicU8::new(Lifecycle::Unmanaged as u8),
+            managed: false,
+            lifecycle: Arc::new(AtomicU8::new(state::ACTIVE)),
             estop_latched: AtomicBool::new(false),
             estop_latches: AtomicU64::new(0),
             channels: (0..channels).map(|_| CommandStream::default()).collect(),
@@ -131,9 +97,11 @@ impl NodeState {
         }
     }
 
-    /// The state of a node with the store's channels, the rate check set as the store says.
+    /// The state of a node with the store's channels, managed if `managed` says so, the rate
+    /// check set as the store says.
     pub fn from_store(store: &ParamStore) -> NodeState {
-        let s = NodeState::new(store.channels());
+        let mut s = NodeState::new(store.channels());
+        s.managed = store.bool("managed").unwrap_or(false);
         s.apply_params(store);
         s
     }
@@ -143,14 +111,21 @@ impl NodeState {
         self.channels.len()
     }
 
-    /// The lifecycle state.
-    pub fn lifecycle(&self) -> Lifecycle {
-        Lifecycle::from_u8(self.lifecycle.load(Ordering::Acquire))
+    /// The cell the lifecycle keeps its current state id in (`lifecycle_msgs/State`), for
+    /// [`Lifecycle::new`](super::lifecycle::Lifecycle::new).
+    pub fn lifecycle_cell(&self) -> Arc<AtomicU8> {
+        Arc::clone(&self.lifecycle)
     }
 
-    /// Sets the lifecycle state (by whoever runs the transitions).
-    pub fn set_lifecycle(&self, state: Lifecycle) {
-        self.lifecycle.store(state as u8, Ordering::Release);
+    /// The lifecycle state as shown on `/diagnostics`: its `lifecycle_msgs/State` label
+    /// (`unconfigured`, `inactive`, `active`, `configuring`, ...) for a managed node,
+    /// `unmanaged` otherwise.
+    pub fn lifecycle_label(&self) -> &'static str {
+        if self.managed {
+            state_label(self.lifecycle.load(Ordering::Acquire))
+        } else {
+            "unmanaged"
+        }
     }
 
     /// Whether the e-stop is latched.
@@ -234,9 +209,7 @@ mod tests {
     #[test]
     fn counts_and_settings_are_shared() {
         let s = NodeState::new(2);
-        assert_eq!(s.lifecycle().as_str(), "unmanaged");
-        s.set_lifecycle(Lifecycle::Inactive);
-        assert_eq!(s.lifecycle(), Lifecycle::Inactive);
+        assert_eq!(s.lifecycle_label(), "unmanaged");
         s.count_command(1);
         s.count_command(1);
         s.count_command(7);
@@ -262,7 +235,17 @@ mod tests {
             )
             .unwrap();
         store.commit(&a);
-        s.apply_params(&store);
+        let a = store
+            .check(&[("managed".into(), V::Boolean(true))], Phase::StartUp)
+            .unwrap();
+        store.commit(&a);
+        let s = NodeState::from_store(&store);
+        // A managed node shows the state its lifecycle keeps in the shared cell.
+        s.lifecycle_cell().store(state::INACTIVE, Ordering::Release);
+        assert_eq!(s.lifecycle_label(), "inactive");
+        s.lifecycle_cell()
+            .store(state::CONFIGURING, Ordering::Release);
+        assert_eq!(s.lifecycle_label(), "configuring");
         let r = s.rate_settings(1);
         assert_eq!(
             r,

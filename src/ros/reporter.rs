@@ -471,7 +471,7 @@ impl Reporter {
 
     /// Reads the node state the callbacks keep (lifecycle, e-stop) into the node's health.
     fn node_from_state(&mut self) {
-        self.node.lifecycle = self.state.lifecycle().as_str();
+        self.node.lifecycle = self.state.lifecycle_label();
         self.node.estop_latched = self.state.estop_latched();
         self.node.estop_latches = self.state.estop_latches();
         self.node.counters = self.counters;

@@ -5,8 +5,8 @@ aggregator or an operator would (README: "Diagnostics"):
   commands; with commands at 10 Hz and `expected_command_hz_min` 5 it is OK, and when they stop
   it goes WARN "Frequency too low." and then ERROR "No events recorded.", in that order, within
   the window; its settings change while running;
-- `<node>: node`: the lifecycle state, the e-stop, the output thread's lateness and the lost
-  reports;
+- `<node>: node`: the lifecycle state (`unmanaged`, or a managed node's state as it moves),
+  the e-stop, the output thread's lateness and the lost reports;
 - `launch-notes/diagnostic_analyzers.yaml`: its analyzer takes exactly the statuses the node
   publishes, and names them as the README says.
 """
@@ -20,6 +20,8 @@ from typing import Any, Callable, Optional
 
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 from std_msgs.msg import Bool, Float64
 from std_srvs.srv import Trigger
 
@@ -212,6 +214,31 @@ def test_the_node_status_shows_lateness_lifecycle_and_the_estop(node_process, ro
     )
     assert diag_level(released) == OK, released
     assert diag_values(released)["estop_latches"] == "1"
+
+
+def test_the_node_status_follows_a_managed_node_s_lifecycle(node_process, ros):
+    node_process(["--managed"])
+    ch = ChannelClient(ros, "pw01")
+    ch.wait_connected()
+    _, _, node = wait_status(
+        ch, NODE_STATUS, lambda s: "lifecycle_state" in diag_values(s), "a node status"
+    )
+    assert diag_values(node)["lifecycle_state"] == "unconfigured", diag_values(node)
+    assert node.message.startswith("lifecycle unconfigured"), node.message
+    for transition, label in (
+        (Transition.TRANSITION_CONFIGURE, "inactive"),
+        (Transition.TRANSITION_ACTIVATE, "active"),
+    ):
+        req = ChangeState.Request(transition=Transition(id=transition))
+        assert ros.call(ChangeState, f"{NODE}/change_state", req).success
+        _, _, node = wait_status(
+            ch,
+            NODE_STATUS,
+            lambda s: diag_values(s)["lifecycle_state"] == label,
+            f"lifecycle_state {label}",
+            start=len(ch.diagnostics.messages),
+        )
+        assert diag_level(node) == OK, node
 
 
 # ---------------------------------------------------------------------------------------------
