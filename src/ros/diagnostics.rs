@@ -307,15 +307,19 @@ impl NodeHealth {
             name: node_status_name(node_name),
             message: self.message(now),
             hardware_id: node_name.to_string(),
-            values: kv
-                .into_iter()
-                .map(|(k, v)| KeyValue {
-                    key: k.to_string(),
-                    value: v,
-                })
-                .collect(),
+            values: key_values(kv),
         }
     }
+}
+
+/// Key-value pairs as a `DiagnosticStatus` carries them.
+pub fn key_values(kv: Vec<(&str, String)>) -> Vec<KeyValue> {
+    kv.into_iter()
+        .map(|(k, v)| KeyValue {
+            key: k.to_string(),
+            value: v,
+        })
+        .collect()
 }
 
 /// The name of a channel's status: `<node name>: <ch>`.
@@ -570,13 +574,7 @@ impl ChannelHealth {
             name: channel_status_name(node_name, &self.name),
             message: self.message(now),
             hardware_id: self.hardware_id.clone(),
-            values: kv
-                .into_iter()
-                .map(|(k, v)| KeyValue {
-                    key: k.to_string(),
-                    value: v,
-                })
-                .collect(),
+            values: key_values(kv),
         }
     }
 }

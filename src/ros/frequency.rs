@@ -14,7 +14,8 @@
 //!
 //! Pure: counts and times (monotonic ns) are passed in; nothing here reads a clock.
 
-use super::msg::{DiagnosticStatus, KeyValue};
+use super::diagnostics::key_values;
+use super::msg::DiagnosticStatus;
 use super::node_state::RateSettings;
 use crate::core::Nanos;
 
@@ -164,13 +165,7 @@ impl FrequencyReport {
             name,
             message: self.message.to_string(),
             hardware_id: hardware_id.to_string(),
-            values: kv
-                .into_iter()
-                .map(|(k, v)| KeyValue {
-                    key: k.to_string(),
-                    value: v,
-                })
-                .collect(),
+            values: key_values(kv),
         }
     }
 }
