@@ -13,6 +13,7 @@ use pwm_actuator::ros::diagnostics::ChannelHealth;
 use pwm_actuator::ros::inputs::{ChangeError, Inputs, NOTE_QUEUE};
 use pwm_actuator::ros::msg::{DiagnosticArray, DiagnosticStatus, RosMessage};
 use pwm_actuator::ros::names::to_ros_name;
+use pwm_actuator::ros::node_state::NodeState;
 use pwm_actuator::ros::params::{ParamStore, Phase};
 use pwm_actuator::ros::reporter::{ChannelPubs, Reporter, StopSignal};
 use ros2_client::{Context, ContextOptions, Node, NodeName, NodeOptions, ParameterValue};
@@ -115,6 +116,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         .unwrap();
     let (notes_tx, notes_rx) = std::sync::mpsc::sync_channel(NOTE_QUEUE);
     let signal = Arc::new(StopSignal::default());
+    let state = Arc::new(NodeState::from_store(&store));
     let reporter = Reporter::new(
         "bridge_test".into(),
         vec![ChannelHealth::new("pw01", "test:0")],
@@ -124,6 +126,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         10.0,
         10,
         Arc::clone(&signal),
+        Arc::clone(&state),
     );
     let bridge = Arc::new(Inputs::new(
         "/bridge_test".into(),
@@ -131,6 +134,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         engine.requests,
         events,
         notes_tx,
+        state,
     ));
 
     let mut ros = Ros::new(dom.id);

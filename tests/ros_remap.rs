@@ -53,7 +53,16 @@ async fn node_name_namespace_and_topic_remaps() {
         .await
         .expect("diagnostics");
     let names: Vec<&str> = a.status.iter().map(|s| s.name.as_str()).collect();
-    assert_eq!(names, ["heater: pw01", "heater: pw02"]);
+    assert_eq!(
+        names,
+        [
+            "heater: pw01",
+            "heater: pw02",
+            "heater: pw01 command frequency",
+            "heater: pw02 command frequency",
+            "heater: node"
+        ]
+    );
 
     let p = ros.params("/plant/heater");
     p.ready(&ros).await;

@@ -4,6 +4,9 @@
 //! minimum-time limit acts, when the command in force was clamped, or for a while after a
 //! command was refused; ERROR on a tripped watchdog, a latched e-stop or an output fault.
 //!
+//! The node itself has one more status, `<node name>: node` ([`NodeHealth`]): the output
+//! thread's lateness over the last second, lost reports, the lifecycle state and the e-stop.
+//!
 //! Pure bookkeeping fed by engine reports; it does not publish and does not read clocks (times
 //! are passed in).
 
@@ -106,6 +109,232 @@ pub struct NodeCounters {
     pub reports_dropped: u64,
     /// Input samples larger than [`super::qos::MAX_SAMPLE_BYTES`], dropped before decoding.
     pub samples_too_large: u64,
+}
+
+/// How long lost reports or dropped input samples keep the node status at WARN, ns.
+pub const LOSS_WARN_NS: Nanos = 5_000_000_000;
+
+/// Sub-buckets per power of two in [`LatenessHistogram`]: a bucket spans at most 1/16 of its
+/// lower bound (6.25 %).
+const SUB_BUCKETS: u64 = 16;
+
+/// Buckets of [`LatenessHistogram`]: exact below 16 ns, then 16 per power of two up to 2^64.
+const BUCKETS: usize = (SUB_BUCKETS + (64 - 4) * SUB_BUCKETS) as usize;
+
+/// The distribution of edge lateness (actual - scheduled write time) over a window, in a fixed
+/// number of log-scaled buckets: constant memory and O(1) per edge however many edges a
+/// second the channels write, percentiles within 6.25 % (rounded up: the bucket's upper end).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LatenessHistogram {
+    counts: Vec<u32>,
+    edges: u64,
+    max_ns: u64,
+}
+
+impl Default for LatenessHistogram {
+    fn default() -> LatenessHistogram {
+        LatenessHistogram {
+            counts: vec![0; BUCKETS],
+            edges: 0,
+            max_ns: 0,
+        }
+    }
+}
+
+impl LatenessHistogram {
+    fn bucket(ns: u64) -> usize {
+        if ns < SUB_BUCKETS {
+            return ns as usize;
+        }
+        let octave = 63 - u64::from(ns.leading_zeros()); // >= 4
+        let sub = (ns >> (octave - 4)) & (SUB_BUCKETS - 1);
+        (SUB_BUCKETS + (octave - 4) * SUB_BUCKETS + sub) as usize
+    }
+
+    /// The largest lateness that falls in `bucket`, ns.
+    fn upper(bucket: usize) -> u64 {
+        let b = bucket as u64;
+        if b < SUB_BUCKETS {
+            return b;
+        }
+        let octave = (b - SUB_BUCKETS) / SUB_BUCKETS + 4;
+        let sub = (b - SUB_BUCKETS) % SUB_BUCKETS;
+        let width = 1u64 << (octave - 4);
+        ((SUB_BUCKETS + sub) << (octave - 4)).saturating_add(width - 1)
+    }
+
+    /// Records one edge's lateness, ns; an early write counts as 0.
+    pub fn record(&mut self, lateness_ns: i64) {
+        let ns = lateness_ns.max(0) as u64;
+        let c = &mut self.counts[Self::bucket(ns)];
+        *c = c.saturating_add(1);
+        self.edges += 1;
+        self.max_ns = self.max_ns.max(ns);
+    }
+
+    /// Edges recorded.
+    pub fn edges(&self) -> u64 {
+        self.edges
+    }
+
+    /// The largest lateness recorded, ns (0 with no edge).
+    pub fn max_ns(&self) -> u64 {
+        self.max_ns
+    }
+
+    /// The `q` quantile (0..1) of the lateness, ns, rounded up to its bucket's end and never
+    /// above the maximum; 0 with no edge.
+    pub fn quantile_ns(&self, q: f64) -> u64 {
+        if self.edges == 0 {
+            return 0;
+        }
+        // The rank of the q-quantile, 1-based: the smallest value with at least q of the
+        // edges at or below it.
+        let rank = ((q.clamp(0.0, 1.0) * self.edges as f64).ceil() as u64).max(1);
+        let mut seen = 0u64;
+        for (b, c) in self.counts.iter().enumerate() {
+            seen += u64::from(*c);
+            if seen >= rank {
+                return Self::upper(b).min(self.max_ns);
+            }
+        }
+        self.max_ns
+    }
+}
+
+/// The node's state as `/diagnostics` shows it in `<node name>: node`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeHealth {
+    /// Lifecycle state: a managed node's `lifecycle_msgs/State` label (`unconfigured`,
+    /// `inactive`, `active`, `finalized`), `unmanaged` for a node that is not managed.
+    pub lifecycle: &'static str,
+    /// The e-stop is latched.
+    pub estop_latched: bool,
+    /// Times the e-stop latched since start-up.
+    pub estop_latches: u64,
+    /// Lateness of the edges written in the last whole window.
+    pub lateness: LatenessHistogram,
+    /// Length of that window, s.
+    pub lateness_window_s: f64,
+    /// The node-wide counters.
+    pub counters: NodeCounters,
+    /// When `reports_dropped` last rose, monotonic ns.
+    pub last_drop: Option<Nanos>,
+    /// When `samples_too_large` last rose, monotonic ns.
+    pub last_too_large: Option<Nanos>,
+}
+
+impl Default for NodeHealth {
+    fn default() -> NodeHealth {
+        NodeHealth {
+            lifecycle: "unmanaged",
+            estop_latched: false,
+            estop_latches: 0,
+            lateness: LatenessHistogram::default(),
+            lateness_window_s: 0.0,
+            counters: NodeCounters::default(),
+            last_drop: None,
+            last_too_large: None,
+        }
+    }
+}
+
+impl NodeHealth {
+    fn recent(at: Option<Nanos>, now: Nanos) -> bool {
+        at.is_some_and(|at| now.saturating_sub(at) < LOSS_WARN_NS)
+    }
+
+    /// The diagnostic level at monotonic time `now`: ERROR while the e-stop is latched, WARN
+    /// for [`LOSS_WARN_NS`] after reports were lost or input samples dropped, else OK.
+    pub fn level(&self, now: Nanos) -> u8 {
+        if self.estop_latched {
+            DiagnosticStatus::ERROR
+        } else if Self::recent(self.last_drop, now) || Self::recent(self.last_too_large, now) {
+            DiagnosticStatus::WARN
+        } else {
+            DiagnosticStatus::OK
+        }
+    }
+
+    /// The one-line summary at `now`.
+    pub fn message(&self, now: Nanos) -> String {
+        if self.estop_latched {
+            return "e-stop latched: every line held inactive until ~/reset_estop".into();
+        }
+        if Self::recent(self.last_drop, now) {
+            return format!(
+                "reports from the output thread lost (the ROS side did not keep up): {} since \
+                 start-up",
+                self.counters.reports_dropped
+            );
+        }
+        if Self::recent(self.last_too_large, now) {
+            return format!(
+                "input samples larger than {} KiB dropped: {} since start-up",
+                super::qos::MAX_SAMPLE_BYTES / 1024,
+                self.counters.samples_too_large
+            );
+        }
+        format!(
+            "lifecycle {}, e-stop released, lateness p99 {:.1} us",
+            self.lifecycle,
+            self.lateness.quantile_ns(0.99) as f64 / 1000.0
+        )
+    }
+
+    /// The diagnostic status at `now`, named `<node_name>: node`, hardware id the node name.
+    pub fn to_status(&self, node_name: &str, now: Nanos) -> DiagnosticStatus {
+        let us = |ns: u64| format!("{:.1}", ns as f64 / 1000.0);
+        let kv: Vec<(&str, String)> = vec![
+            ("lifecycle_state", self.lifecycle.to_string()),
+            ("estop_latched", self.estop_latched.to_string()),
+            ("estop_latches", self.estop_latches.to_string()),
+            ("lateness_p99_us", us(self.lateness.quantile_ns(0.99))),
+            ("lateness_max_us", us(self.lateness.max_ns())),
+            ("lateness_window_edges", self.lateness.edges().to_string()),
+            (
+                "lateness_window_s",
+                format!("{:.3}", self.lateness_window_s),
+            ),
+            ("reports_dropped", self.counters.reports_dropped.to_string()),
+            (
+                "samples_too_large",
+                self.counters.samples_too_large.to_string(),
+            ),
+        ];
+        DiagnosticStatus {
+            level: self.level(now),
+            name: node_status_name(node_name),
+            message: self.message(now),
+            hardware_id: node_name.to_string(),
+            values: key_values(kv),
+        }
+    }
+}
+
+/// Key-value pairs as a `DiagnosticStatus` carries them.
+pub fn key_values(kv: Vec<(&str, String)>) -> Vec<KeyValue> {
+    kv.into_iter()
+        .map(|(k, v)| KeyValue {
+            key: k.to_string(),
+            value: v,
+        })
+        .collect()
+}
+
+/// The name of a channel's status: `<node name>: <ch>`.
+pub fn channel_status_name(node_name: &str, channel: &str) -> String {
+    format!("{node_name}: {channel}")
+}
+
+/// The name of a channel's command-rate status: `<node name>: <ch> command frequency`.
+pub fn frequency_status_name(node_name: &str, channel: &str) -> String {
+    format!("{node_name}: {channel} command frequency")
+}
+
+/// The name of the node's own status: `<node name>: node`.
+pub fn node_status_name(node_name: &str) -> String {
+    format!("{node_name}: node")
 }
 
 /// Everything the diagnostics say about one channel.
@@ -342,16 +571,10 @@ impl ChannelHealth {
         ]);
         DiagnosticStatus {
             level: self.level(now),
-            name: format!("{node_name}: {}", self.name),
+            name: channel_status_name(node_name, &self.name),
             message: self.message(now),
             hardware_id: self.hardware_id.clone(),
-            values: kv
-                .into_iter()
-                .map(|(k, v)| KeyValue {
-                    key: k.to_string(),
-                    value: v,
-                })
-                .collect(),
+            values: key_values(kv),
         }
     }
 }
@@ -542,6 +765,114 @@ mod tests {
         let d = h.to_status("n", 0, NodeCounters::default());
         assert_eq!(kv(&d, "duty_commanded_pct"), "0.000");
         assert_eq!(kv(&d, "duty_applied_pct"), "0.000");
+    }
+
+    #[test]
+    fn lateness_percentiles_within_a_bucket() {
+        let mut h = LatenessHistogram::default();
+        assert_eq!((h.quantile_ns(0.99), h.edges(), h.max_ns()), (0, 0, 0));
+        // 990 edges 10 us late, 10 edges 500 us late: p99 is 10 us (rounded up to the end
+        // of its bucket, within 6.25 %), p99.9 is 500 us, never above the maximum.
+        for _ in 0..990 {
+            h.record(10_000);
+        }
+        for _ in 0..10 {
+            h.record(500_000);
+        }
+        let p99 = h.quantile_ns(0.99);
+        assert!((10_000..=10_625).contains(&p99), "{p99}");
+        assert_eq!(h.quantile_ns(0.999), 500_000);
+        assert_eq!((h.edges(), h.max_ns()), (1000, 500_000));
+        // Early writes count as on time; tiny values are exact.
+        let mut h = LatenessHistogram::default();
+        h.record(-5);
+        h.record(7);
+        assert_eq!((h.quantile_ns(0.5), h.quantile_ns(1.0)), (0, 7));
+        // Every bucket's end is in the bucket, and the next value starts the next one.
+        for ns in [15u64, 16, 17, 31, 32, 33, 1_000_000, u64::MAX / 3, u64::MAX] {
+            let b = LatenessHistogram::bucket(ns);
+            let end = LatenessHistogram::upper(b);
+            assert!(end >= ns, "{ns}");
+            assert_eq!(LatenessHistogram::bucket(end), b, "{ns}");
+            if end < u64::MAX {
+                assert_eq!(LatenessHistogram::bucket(end + 1), b + 1, "{ns}");
+            }
+            assert!((end - ns) as f64 <= ns as f64 / 16.0, "{ns}");
+        }
+    }
+
+    #[test]
+    fn the_node_status_says_estop_losses_and_lifecycle() {
+        let mut n = NodeHealth::default();
+        for _ in 0..100 {
+            n.lateness.record(42_000);
+        }
+        n.lateness_window_s = 1.0;
+        let d = n.to_status("pwm_actuator", 0);
+        assert_eq!(d.name, "pwm_actuator: node");
+        assert_eq!(d.level, DiagnosticStatus::OK);
+        assert!(
+            d.message
+                .starts_with("lifecycle unmanaged, e-stop released"),
+            "{}",
+            d.message
+        );
+        let p99: f64 = kv(&d, "lateness_p99_us").parse().unwrap();
+        assert!((42.0..=44.7).contains(&p99), "{p99}");
+        assert_eq!(kv(&d, "lateness_max_us"), "42.0");
+        assert_eq!(kv(&d, "lateness_window_edges"), "100");
+        assert_eq!(kv(&d, "lateness_window_s"), "1.000");
+        assert_eq!(kv(&d, "lifecycle_state"), "unmanaged");
+        assert_eq!(kv(&d, "estop_latched"), "false");
+        assert_eq!(kv(&d, "reports_dropped"), "0");
+
+        n.counters.reports_dropped = 12;
+        n.last_drop = Some(1_000);
+        assert_eq!(n.level(2_000), DiagnosticStatus::WARN);
+        assert!(n.message(2_000).contains("12 since start-up"));
+        assert_eq!(n.level(1_000 + LOSS_WARN_NS), DiagnosticStatus::OK);
+
+        n.estop_latched = true;
+        n.estop_latches = 1;
+        n.lifecycle = "inactive";
+        let d = n.to_status("pwm_actuator", 2_000);
+        assert_eq!(d.level, DiagnosticStatus::ERROR);
+        assert!(d.message.starts_with("e-stop latched"), "{}", d.message);
+        assert_eq!(kv(&d, "estop_latched"), "true");
+        assert_eq!(kv(&d, "estop_latches"), "1");
+        assert_eq!(kv(&d, "lifecycle_state"), "inactive");
+    }
+
+    /// launch-notes/diagnostic_analyzers.yaml takes the statuses by the prefix the node's
+    /// names start with (tests/rclpy/test_diagnostics.py checks it against a running node).
+    #[test]
+    fn the_analyzers_file_names_the_node_s_prefix() {
+        use yaml_rust2::YamlLoader;
+        let text = include_str!("../../launch-notes/diagnostic_analyzers.yaml");
+        let docs = YamlLoader::load_from_str(text).expect("valid YAML");
+        let a = &docs[0]["analyzers"]["ros__parameters"]["pwm_actuator"];
+        assert_eq!(
+            a["type"].as_str(),
+            Some("diagnostic_aggregator/GenericAnalyzer")
+        );
+        let node = crate::ros::node::NODE_NAME;
+        let prefix = format!("{node}:");
+        let prefixes: Vec<&str> = a["find_and_remove_prefix"]
+            .as_vec()
+            .expect("a list")
+            .iter()
+            .filter_map(|y| y.as_str())
+            .collect();
+        assert_eq!(prefixes, [prefix.as_str()]);
+        for name in [
+            channel_status_name(node, "pw01"),
+            frequency_status_name(node, "pw01"),
+            node_status_name(node),
+        ] {
+            assert!(name.starts_with(&prefix), "{name}");
+        }
+        let expected = a["expected"].as_vec().expect("a list");
+        assert_eq!(expected[0].as_str(), Some(node_status_name(node).as_str()));
     }
 
     #[test]

@@ -147,6 +147,7 @@ impl EStop {
         s.latched = false;
         s.cause = None;
         self.latched.store(false, Ordering::Release);
+        inputs.state().set_estop(false);
         for ch in 0..inputs.channels() {
             inputs.note_disabled(ch);
         }
@@ -165,6 +166,7 @@ impl EStop {
         s.cause = Some(cause);
         self.latched.store(true, Ordering::Release);
         self.latches.fetch_add(1, Ordering::Relaxed);
+        inputs.state().set_estop(true);
         let _ = inputs.send(0, Input::EStop(true));
         match cause {
             Cause::Input => warn!("e-stop latched (~/estop true): every output driven inactive"),

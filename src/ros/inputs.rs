@@ -10,7 +10,10 @@
 //!
 //! The locks here (the parameter store, the request queue's producer, the last enables) are
 //! shared by the callbacks only, never with the report thread, and are held for bounded work.
+//! What the report thread reads of this side without a note (command counts, the command-rate
+//! check's settings, the e-stop) is in the atomics of [`NodeState`].
 
+use super::node_state::NodeState;
 use super::params::{self, show_value, ParamError, ParamStore, Phase};
 use super::reporter::Note;
 use crate::clock;
@@ -23,7 +26,7 @@ use ros2_client::parameters::raw;
 use ros2_client::{ParameterValue, Publisher};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::SyncSender;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 /// Notes that may wait for the reporter at once; more are dropped and counted.
 pub const NOTE_QUEUE: usize = 64;
@@ -55,19 +58,23 @@ pub struct Inputs {
     param_events: Publisher<raw::ParameterEvent>,
     notes: SyncSender<Note>,
     notes_lost: AtomicU64,
+    state: Arc<NodeState>,
 }
 
 impl Inputs {
     /// The input side over `store` and the output thread's `requests`; `notes` goes to the
-    /// reporter (a bounded queue, see [`NOTE_QUEUE`]).
+    /// reporter (a bounded queue, see [`NOTE_QUEUE`]), and `state` is shared with it (the
+    /// store's command-rate settings are applied to it now and after every change).
     pub fn new(
         fqn: String,
         store: ParamStore,
         requests: Requests,
         param_events: Publisher<raw::ParameterEvent>,
         notes: SyncSender<Note>,
+        state: Arc<NodeState>,
     ) -> Inputs {
         let names: Vec<String> = (0..store.channels()).map(params::channel_name).collect();
+        state.apply_params(&store);
         Inputs {
             fqn,
             enables: Mutex::new(vec![None; names.len()]),
@@ -77,7 +84,13 @@ impl Inputs {
             param_events,
             notes,
             notes_lost: AtomicU64::new(0),
+            state,
         }
+    }
+
+    /// The state shared with the report thread.
+    pub fn state(&self) -> &NodeState {
+        &self.state
     }
 
     /// Number of channels.
@@ -117,11 +130,12 @@ impl Inputs {
         r
     }
 
-    /// A duty command from `~/<ch>/duty`, `~/<ch>/sv` or a split-range pair. The core refuses
-    /// NaN and infinities and clamps out-of-range values; its verdict, with the command and its
-    /// unit, comes back as a report.
+    /// A duty command from `~/<ch>/duty`, `~/<ch>/sv` or a split-range pair, counted for the
+    /// channel's command-rate check. The core refuses NaN and infinities and clamps
+    /// out-of-range values; its verdict, with the command and its unit, comes back as a report.
     pub fn command(&self, channel: usize, command: Command) {
         debug!("{}: command {command:?}", self.name(channel));
+        self.state.count_command(channel);
         let _ = self.send(channel, Input::Command(command));
     }
 
@@ -186,6 +200,7 @@ impl Inputs {
             sent.push(*ch);
         }
         let changed = store.commit(&accepted);
+        self.state.apply_params(&store);
         drop(store);
         for note in &accepted.notes {
             info!("{note}");

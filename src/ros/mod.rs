@@ -19,7 +19,9 @@
 //! - [`split`]: split-range pairs (one signed command for a hot and a cold channel).
 //! - [`estop`]: the latched emergency stop (`~/estop`, `~/reset_estop`, `estop_timeout_ms`).
 //! - [`lifecycle`]: the managed node (`--managed`): states, transitions, services.
-//! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself.
+//! - [`diagnostics`], [`console`], [`logging`]: what the node says about itself;
+//!   [`frequency`]: the command-rate check of each channel; [`node_state`]: what the callbacks
+//!   share with the report thread without a lock (command counts, lifecycle state, e-stop).
 //! - [`node`]: start-up, wiring, shutdown ([`run`]).
 
 pub mod args;
@@ -29,6 +31,7 @@ pub mod diagnostics;
 pub mod discovery;
 pub mod endpoints;
 pub mod estop;
+pub mod frequency;
 pub mod inputs;
 pub mod lifecycle;
 pub mod logging;
@@ -36,6 +39,7 @@ pub mod msg;
 pub mod name_clash;
 pub mod names;
 pub mod node;
+pub mod node_state;
 pub mod params;
 pub mod qos;
 pub mod reporter;

@@ -19,6 +19,7 @@ use super::logging::{self, LogConfig};
 use super::msg;
 use super::name_clash::{self, NameClash};
 use super::names::{NameError, NodeIdentity};
+use super::node_state::NodeState;
 use super::params::{self, show_value, ParamError, ParamStore, StartValue, StartupConfig};
 use super::qos;
 use super::reporter::{ChannelPubs, Reporter, StopSignal};
@@ -443,6 +444,7 @@ async fn serve(
         })
         .collect();
     let stop_signal = Arc::new(StopSignal::default());
+    let node_state = Arc::new(NodeState::from_store(&store));
     let reporter = Reporter::new(
         id.name.clone(),
         health,
@@ -452,15 +454,16 @@ async fn serve(
         cfg.status_rate_hz,
         cfg.edge_log_rate,
         Arc::clone(&stop_signal),
+        Arc::clone(&node_state),
     );
     let estop = Arc::new(EStop::new(cfg.estop_timeout_ms));
-    let lifecycle_state = Arc::new(std::sync::atomic::AtomicU8::new(lifecycle::state::ACTIVE));
     let inputs = Arc::new(Inputs::new(
         fqn.clone(),
         store,
         requests,
         param_events,
         notes_tx,
+        Arc::clone(&node_state),
     ));
     // rclcpp announces declared parameters as new on /parameter_events; so does this node.
     let declared = inputs.with_params(|s| {
@@ -542,7 +545,7 @@ async fn serve(
         let lifecycle = Arc::new(Lifecycle::new(
             Box::new(actions),
             events,
-            Arc::clone(&lifecycle_state),
+            node_state.lifecycle_cell(),
         ));
         tasks.extend(lifecycle::spawn(&mut node, &id, remaps, &lifecycle)?);
         info!("managed node: unconfigured; every line held inactive until configure and activate");

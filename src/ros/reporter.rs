@@ -3,18 +3,24 @@
 //! Reports from the output thread (edges, flags, status snapshots, faults) become ROS messages
 //! (`~/<ch>/edges`, `~/<ch>/e1`, `~/<ch>/status`), `/diagnostics` and console lines. The
 //! reporter also keeps the clocks of what is published periodically: the status messages at
-//! `status_rate_hz` and `/diagnostics` once a second and at once when a level changes. It is
-//! owned by one thread and works through `&mut self`: no lock is shared with the ROS callbacks,
-//! which reach it only through a small queue of [`Note`]s (parameter refusals and the changes
-//! of the rates it keeps).
+//! `status_rate_hz`, `/diagnostics` once a second and at once when a level changes, and the
+//! diagnostics run once a second that measures each channel's command rate
+//! ([`FrequencyStatus`]) and closes the window of the output thread's lateness. It is owned by
+//! one thread and works through `&mut self`: no lock is shared with the ROS callbacks, which
+//! reach it through a small queue of [`Note`]s (parameter refusals and the changes of the rates
+//! it keeps) and the atomics of [`NodeState`] (command counts, the rate check's settings, the
+//! lifecycle state, the e-stop).
 //!
 //! Publishing never waits for a slow subscriber (see [`super::qos`]); what cannot be published
 //! is counted.
 
 use super::console::EdgeLines;
 use super::diagnostics::{clamp_text, status_changed, status_msg, ChannelHealth, NodeCounters};
+use super::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
+use super::frequency::{FrequencyReport, FrequencyStatus};
 use super::logging;
 use super::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
+use super::node_state::NodeState;
 use super::params::{MAX_STATUS_RATE_HZ, MIN_STATUS_RATE_HZ};
 use super::qos::MAX_SAMPLE_BYTES;
 use crate::clock;
@@ -30,6 +36,10 @@ use std::time::Duration;
 
 /// `/diagnostics` is published at least this often, ns (the diagnostic_updater's 1 Hz).
 const DIAGNOSTICS_PERIOD_NS: Nanos = 1_000_000_000;
+
+/// The diagnostics run (command rates, the lateness window) comes this often, ns: one
+/// diagnostic_updater run a second, so `command_hz_window` counts seconds.
+const DIAGNOSTICS_RUN_NS: Nanos = 1_000_000_000;
 
 /// At most one extra `/diagnostics` message per this interval when levels change, ns.
 const DIAGNOSTICS_COALESCE_NS: Nanos = 50_000_000;
@@ -149,12 +159,22 @@ pub struct Reporter {
     status: StatusClock,
     last_diagnostics: Nanos,
     signal: Arc<StopSignal>,
+    state: Arc<NodeState>,
+    /// Per channel: the rate check and its latest result as a status.
+    rates: Vec<FrequencyStatus>,
+    rate_statuses: Vec<DiagnosticStatus>,
+    /// The lateness of the edges written since the last diagnostics run.
+    lateness: LatenessHistogram,
+    node: NodeHealth,
+    next_run: Nanos,
+    last_run: Nanos,
 }
 
 impl Reporter {
     /// A reporter for the channels of `health` (in order), publishing on `pubs` and
-    /// `diagnostics`, reading `notes`, at `status_rate_hz` and `edge_log_rate` to begin with.
-    /// Publishes E1 = false for every channel (latched), so a late subscriber gets a state.
+    /// `diagnostics`, reading `notes` and `state`, at `status_rate_hz` and `edge_log_rate` to
+    /// begin with. Publishes E1 = false for every channel (latched), so a late subscriber gets
+    /// a state.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         node_name: String,
@@ -165,9 +185,22 @@ impl Reporter {
         status_rate_hz: f64,
         edge_log_rate: u32,
         signal: Arc<StopSignal>,
+        state: Arc<NodeState>,
     ) -> Reporter {
         let n = health.len();
         let now = clock::monotonic_ns();
+        let rates: Vec<FrequencyStatus> = (0..n)
+            .map(|ch| FrequencyStatus::new(state.rate_settings(ch).window, state.commands(ch), now))
+            .collect();
+        // Until the first run, a second from now, there is nothing to judge.
+        let rate_statuses = health
+            .iter()
+            .enumerate()
+            .map(|(ch, h)| {
+                FrequencyReport::starting(state.commands(ch), state.rate_settings(ch))
+                    .to_status(frequency_status_name(&node_name, &h.name), &h.hardware_id)
+            })
+            .collect();
         let mut r = Reporter {
             node_name,
             names: health.iter().map(|h| h.name.clone()).collect(),
@@ -185,6 +218,13 @@ impl Reporter {
             status: StatusClock::new(status_rate_hz, now),
             last_diagnostics: 0,
             signal,
+            state,
+            rates,
+            rate_statuses,
+            lateness: LatenessHistogram::default(),
+            node: NodeHealth::default(),
+            next_run: now + DIAGNOSTICS_RUN_NS,
+            last_run: now,
         };
         for ch in 0..n {
             r.publish_e1(ch, false);
@@ -243,6 +283,7 @@ impl Reporter {
         let h = &mut self.health[ch];
         h.edges += 1;
         h.max_late_ns = h.max_late_ns.max(e.lateness_ns());
+        self.lateness.record(e.lateness_ns());
         let m = msg::OutputEdge {
             stamp: Time::from_nanos(e.wall_ns),
             channel: (ch + 1).min(u8::MAX as usize) as u8,
@@ -353,6 +394,9 @@ impl Reporter {
             reports_dropped: dropped_total,
             samples_too_large: rustdds::received_samples_too_large(),
         };
+        if now >= self.next_run {
+            self.run_diagnostics(now);
+        }
         for s in self.lines.flush(&self.names, now) {
             info!("{s}");
         }
@@ -362,6 +406,7 @@ impl Reporter {
                 dropped_total - self.dropped_seen
             );
             self.dropped_seen = dropped_total;
+            self.node.last_drop = Some(now);
         }
         let too_large = self.counters.samples_too_large;
         if too_large > self.too_large_seen {
@@ -372,6 +417,7 @@ impl Reporter {
                 MAX_SAMPLE_BYTES / 1024
             );
             self.too_large_seen = too_large;
+            self.node.last_too_large = Some(now);
         }
         if self.status.take_due(now) {
             for ch in 0..self.health.len() {
@@ -380,11 +426,9 @@ impl Reporter {
                 }
             }
         }
+        self.node_from_state();
         let since = now.saturating_sub(self.last_diagnostics);
-        let levels_changed = || {
-            let levels: Vec<u8> = self.health.iter().map(|h| h.level(now)).collect();
-            levels != self.levels_published
-        };
+        let levels_changed = || self.levels(now) != self.levels_published;
         if since >= DIAGNOSTICS_PERIOD_NS || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed())
         {
             if since >= DIAGNOSTICS_PERIOD_NS {
@@ -393,24 +437,68 @@ impl Reporter {
             }
             self.publish_diagnostics(now);
         }
-        let mut next = self.last_diagnostics + DIAGNOSTICS_PERIOD_NS;
+        let mut next = (self.last_diagnostics + DIAGNOSTICS_PERIOD_NS).min(self.next_run);
         if let Some(t) = self.status.next() {
             next = next.min(t);
         }
         Duration::from_nanos(next.saturating_sub(now)).min(MAX_WAIT)
     }
 
-    /// Publishes `/diagnostics` now.
+    /// The diagnostics run, once a second: each channel's command rate against its expected
+    /// rate (a new window when `command_hz_window` changed), and the lateness window closes.
+    fn run_diagnostics(&mut self, now: Nanos) {
+        for ch in 0..self.rates.len() {
+            let settings = self.state.rate_settings(ch);
+            let count = self.state.commands(ch);
+            if self.rates[ch].window() != settings.window {
+                self.rates[ch] = self.rates[ch].resized(settings.window);
+            }
+            let h = &self.health[ch];
+            self.rate_statuses[ch] = self.rates[ch].run(count, now, settings).to_status(
+                frequency_status_name(&self.node_name, &h.name),
+                &h.hardware_id,
+            );
+        }
+        self.node.lateness = std::mem::take(&mut self.lateness);
+        self.node.lateness_window_s = now.saturating_sub(self.last_run) as f64 / 1e9;
+        self.last_run = now;
+        // A second after this one; a second from now when the thread was held up.
+        self.next_run += DIAGNOSTICS_RUN_NS;
+        if self.next_run <= now {
+            self.next_run = now + DIAGNOSTICS_RUN_NS;
+        }
+    }
+
+    /// Reads the node state the callbacks keep (lifecycle, e-stop) into the node's health.
+    fn node_from_state(&mut self) {
+        self.node.lifecycle = self.state.lifecycle_label();
+        self.node.estop_latched = self.state.estop_latched();
+        self.node.estop_latches = self.state.estop_latches();
+        self.node.counters = self.counters;
+    }
+
+    /// The levels of every status `/diagnostics` carries, in its order.
+    fn levels(&self, now: Nanos) -> Vec<u8> {
+        self.health
+            .iter()
+            .map(|h| h.level(now))
+            .chain(self.rate_statuses.iter().map(|d| d.level))
+            .chain(std::iter::once(self.node.level(now)))
+            .collect()
+    }
+
+    /// Publishes `/diagnostics` now: each channel's status, then each channel's command rate,
+    /// then the node's status.
     pub fn publish_diagnostics(&mut self, now: Nanos) {
-        let (status, levels): (Vec<DiagnosticStatus>, Vec<u8>) = self
+        self.node_from_state();
+        let status: Vec<DiagnosticStatus> = self
             .health
             .iter()
-            .map(|h| {
-                let d = h.to_status(&self.node_name, now, self.counters);
-                let l = d.level;
-                (d, l)
-            })
-            .unzip();
+            .map(|h| h.to_status(&self.node_name, now, self.counters))
+            .chain(self.rate_statuses.iter().cloned())
+            .chain(std::iter::once(self.node.to_status(&self.node_name, now)))
+            .collect();
+        let levels = status.iter().map(|d| d.level).collect();
         let arr = DiagnosticArray {
             header: Header {
                 stamp: Time::from_nanos(clock::wall_ns()),

@@ -69,6 +69,8 @@ CHANNEL_PARAMS = (
     "command_timeout_ms",
     "fault_duty_pct",
     "fault_hold_ms",
+    "expected_command_hz_min",
+    "expected_command_hz_max",
     "active_low",
     "enable",
     "duty",
@@ -600,7 +602,7 @@ def test_descriptors_ranges_and_listing(ros, node_process, svc):
 #: A reply this large is sent in fragments (rustdds fragments a sample above about 1,400 bytes;
 #: 1,440 bytes arrived in one piece, 1,728 did not before its DATA_FRAG fix).
 FRAGMENTED_REPLY_BYTES = 2048
-#: Channels of the node in the large-reply test: 15 parameters each, so that even the list of
+#: Channels of the node in the large-reply test: 19 parameters each, so that even the list of
 #: names (about 20 bytes a name) is larger than FRAGMENTED_REPLY_BYTES.
 MANY_CHANNELS = 8
 
@@ -762,10 +764,16 @@ def test_diagnostics_ok_for_a_normal_channel(ros, node_process):
     assert float(kv["on_time_ms"]) == 100.0 and float(kv["off_time_ms"]) == 100.0, kv
     assert kv["e1"] == "false" and kv["rule"] == "exact", kv
     assert kv["enabled"] == "true", kv
-    # One status per channel.
+    # One status per channel, one per channel's command rate, one for the node.
     [array] = [a for a in diagnostics.messages if any(s is status for s in a.status)]
-    names = sorted(s.name for s in array.status)
-    assert names == ["pwm_actuator: pw01", "pwm_actuator: pw02"], names
+    names = [s.name for s in array.status]
+    assert names == [
+        "pwm_actuator: pw01",
+        "pwm_actuator: pw02",
+        "pwm_actuator: pw01 command frequency",
+        "pwm_actuator: pw02 command frequency",
+        "pwm_actuator: node",
+    ], names
 
 
 def test_diagnostics_warn_while_e1_acts(ros, node_process):

@@ -247,6 +247,19 @@ pub enum ParamError {
         /// The fields there are.
         fields: String,
     },
+    /// An expected command rate whose minimum is above its maximum.
+    #[error(
+        "{channel}: expected_command_hz_min {min} is above expected_command_hz_max {max}; set \
+         the maximum to 0 (no upper bound) or at least the minimum"
+    )]
+    RateBounds {
+        /// Channel name.
+        channel: String,
+        /// `expected_command_hz_min`, Hz.
+        min: f64,
+        /// `expected_command_hz_max`, Hz.
+        max: f64,
+    },
     /// Output `gpio` without a line for a channel.
     #[error(
         "output gpio needs a line for every channel: set {channel}.gpio_line (and \

@@ -233,6 +233,23 @@ impl ParamStore {
             .collect();
         touched.sort_unstable();
         touched.dedup();
+        for &ch in &touched {
+            let rate = |suffix: &str| match working.get(&format!("{}.{suffix}", channel_name(ch))) {
+                Some(ParameterValue::Double(x)) => *x,
+                _ => 0.0,
+            };
+            let (min, max) = (
+                rate("expected_command_hz_min"),
+                rate("expected_command_hz_max"),
+            );
+            if max > 0.0 && min > max {
+                return Err(ParamError::RateBounds {
+                    channel: channel_name(ch),
+                    min,
+                    max,
+                });
+            }
+        }
         let mut configs = Vec::new();
         for ch in touched {
             let new = Self::channel_params_in(&working, ch)?;

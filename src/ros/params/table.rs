@@ -14,6 +14,8 @@ use super::{MAX_HEARTBEAT_HZ, MIN_HEARTBEAT_HZ};
 use crate::core::config::{ShortStr, UnknownName, MAX_PERIOD_MS, MAX_TIMEOUT_MS};
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Profile, ShortPulse};
 use crate::ros::msg;
+use crate::ros::node_state::{DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW};
+use crate::ros::node_state::{MAX_COMMAND_HZ_WINDOW, MAX_EXPECTED_COMMAND_HZ};
 use std::str::FromStr;
 
 /// Who decides about a value's range.
@@ -175,6 +177,27 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           edges beyond are summarised once a second. 0: no edge lines.",
             range: Range::Integer(0, 1000),
             ..Decl::new("edge_log_rate", Integer, || V::Integer(10))
+        },
+        Decl {
+            description: "Window of the command-rate check on /diagnostics (`<node>: <ch> \
+                          command frequency`), in diagnostics runs, one a second: the rate is \
+                          the commands of the last this-many seconds over their duration \
+                          (diagnostic_updater's FrequencyStatus window_size).",
+            constraints: "a change starts a new, empty window",
+            range: Range::Integer(1, MAX_COMMAND_HZ_WINDOW as i64),
+            ..Decl::new("command_hz_window", Integer, || {
+                V::Integer(DEFAULT_COMMAND_HZ_WINDOW as i64)
+            })
+        },
+        Decl {
+            description: "Tolerance of the command-rate check, a fraction: rates from \
+                          expected_command_hz_min * (1 - tolerance) to expected_command_hz_max \
+                          * (1 + tolerance) are met (diagnostic_updater's FrequencyStatus \
+                          tolerance).",
+            range: Range::Double(0.0, 1.0),
+            ..Decl::new("command_hz_tolerance", Double, || {
+                V::Double(DEFAULT_COMMAND_HZ_TOLERANCE)
+            })
         },
         Decl {
             description: "Split-range pairs (001), comma-separated NAME:HOT:COLD[:DEADBAND_PCT]: \
@@ -413,6 +436,28 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             ..Decl::new("fault_hold_ms", Integer, || {
                 V::Integer(core_defaults().fault_hold_ms as i64)
             })
+        },
+        Decl {
+            description: "Lowest expected rate of duty commands (~/<ch>/duty, ~/<ch>/sv, a \
+                          split-range command), Hz. Below it, less command_hz_tolerance, the \
+                          channel's `command frequency` status on /diagnostics is WARN \
+                          (Frequency too low.), and ERROR (No events recorded.) when none came \
+                          within command_hz_window. 0: no lower bound; with \
+                          expected_command_hz_max also 0 the rate is shown, not checked.",
+            constraints: "0, or up to expected_command_hz_max when that is set; reporting \
+                          only: commands are never refused for their rate",
+            range: Range::Double(0.0, MAX_EXPECTED_COMMAND_HZ),
+            note: " (0 = no lower bound)",
+            ..Decl::new("expected_command_hz_min", Double, || V::Double(0.0))
+        },
+        Decl {
+            description: "Highest expected rate of duty commands, Hz. Above it, plus \
+                          command_hz_tolerance, the channel's `command frequency` status on \
+                          /diagnostics is WARN (Frequency too high.). 0: no upper bound.",
+            constraints: "0, or at least expected_command_hz_min; reporting only",
+            range: Range::Double(0.0, MAX_EXPECTED_COMMAND_HZ),
+            note: " (0 = no upper bound)",
+            ..Decl::new("expected_command_hz_max", Double, || V::Double(0.0))
         },
         Decl {
             description: "Invert the electrical level of the output line.",

@@ -1,0 +1,262 @@
+//! What the ROS callbacks share with the report thread without a lock: the node's lifecycle
+//! state (the cell the lifecycle itself keeps it in), the e-stop, the number of duty commands each channel received, and the settings of
+//! the command-rate check (`expected_command_hz_min/max`, `command_hz_window`,
+//! `command_hz_tolerance`).
+//!
+//! Every field is an atomic written by one side and read by the other: a callback never waits
+//! for the report thread, and the report thread never waits for a callback. Nothing here
+//! publishes or reads a clock.
+
+use super::lifecycle::{state, state_label};
+use super::params::{channel_name, ParamStore};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
+use std::sync::Arc;
+
+/// Default `command_hz_window`: diagnostics runs (one a second) in the window, as
+/// diagnostic_updater's `FrequencyStatusParam` (`window_size = 5`).
+pub const DEFAULT_COMMAND_HZ_WINDOW: usize = 5;
+
+/// Largest `command_hz_window`, runs (10 minutes at one a second).
+pub const MAX_COMMAND_HZ_WINDOW: usize = 600;
+
+/// Default `command_hz_tolerance`, a fraction, as diagnostic_updater's `FrequencyStatusParam`.
+pub const DEFAULT_COMMAND_HZ_TOLERANCE: f64 = 0.1;
+
+/// Highest `expected_command_hz_min` / `_max`, Hz.
+pub const MAX_EXPECTED_COMMAND_HZ: f64 = 10_000.0;
+
+/// The bounds of one channel's command-rate check, Hz, with the node's window and tolerance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RateSettings {
+    /// `expected_command_hz_min`, Hz; 0 = no lower bound.
+    pub min_hz: f64,
+    /// `expected_command_hz_max`, Hz; 0 = no upper bound.
+    pub max_hz: f64,
+    /// `command_hz_tolerance`: the bounds are widened to `min * (1 - t)` and `max * (1 + t)`.
+    pub tolerance: f64,
+    /// `command_hz_window`, diagnostics runs (seconds), at least 1.
+    pub window: usize,
+}
+
+impl RateSettings {
+    /// Whether the rate is checked at all (either bound set).
+    pub fn checked(&self) -> bool {
+        self.min_hz > 0.0 || self.max_hz > 0.0
+    }
+}
+
+impl Default for RateSettings {
+    fn default() -> RateSettings {
+        RateSettings {
+            min_hz: 0.0,
+            max_hz: 0.0,
+            tolerance: DEFAULT_COMMAND_HZ_TOLERANCE,
+            window: DEFAULT_COMMAND_HZ_WINDOW,
+        }
+    }
+}
+
+/// One channel's command stream: how many commands arrived, and its expected rate.
+#[derive(Debug, Default)]
+struct CommandStream {
+    commands: AtomicU64,
+    /// f64 bits, Hz.
+    min_hz: AtomicU64,
+    /// f64 bits, Hz.
+    max_hz: AtomicU64,
+}
+
+/// The shared state (see the module documentation).
+#[derive(Debug)]
+pub struct NodeState {
+    /// A managed (lifecycle) node.
+    managed: bool,
+    /// The lifecycle state's id (`lifecycle_msgs/State`), kept by the lifecycle itself.
+    lifecycle: Arc<AtomicU8>,
+    estop_latched: AtomicBool,
+    estop_latches: AtomicU64,
+    channels: Box<[CommandStream]>,
+    window: AtomicUsize,
+    /// f64 bits.
+    tolerance: AtomicU64,
+}
+
+impl NodeState {
+    /// The state of a node with `channels` channels: unmanaged (and so always `active`),
+    /// e-stop released, no command yet, the rate check off with the default window and
+    /// tolerance.
+    pub fn new(channels: usize) -> NodeState {
+        NodeState {
+            managed: false,
+            lifecycle: Arc::new(AtomicU8::new(state::ACTIVE)),
+            estop_latched: AtomicBool::new(false),
+            estop_latches: AtomicU64::new(0),
+            channels: (0..channels).map(|_| CommandStream::default()).collect(),
+            window: AtomicUsize::new(DEFAULT_COMMAND_HZ_WINDOW),
+            tolerance: AtomicU64::new(DEFAULT_COMMAND_HZ_TOLERANCE.to_bits()),
+        }
+    }
+
+    /// The state of a node with the store's channels, managed if `managed` says so, the rate
+    /// check set as the store says.
+    pub fn from_store(store: &ParamStore) -> NodeState {
+        let mut s = NodeState::new(store.channels());
+        s.managed = store.bool("managed").unwrap_or(false);
+        s.apply_params(store);
+        s
+    }
+
+    /// Number of channels.
+    pub fn channels(&self) -> usize {
+        self.channels.len()
+    }
+
+    /// The cell the lifecycle keeps its current state id in (`lifecycle_msgs/State`), for
+    /// [`Lifecycle::new`](super::lifecycle::Lifecycle::new).
+    pub fn lifecycle_cell(&self) -> Arc<AtomicU8> {
+        Arc::clone(&self.lifecycle)
+    }
+
+    /// The lifecycle state as shown on `/diagnostics`: its `lifecycle_msgs/State` label
+    /// (`unconfigured`, `inactive`, `active`, `configuring`, ...) for a managed node,
+    /// `unmanaged` otherwise.
+    pub fn lifecycle_label(&self) -> &'static str {
+        if self.managed {
+            state_label(self.lifecycle.load(Ordering::Acquire))
+        } else {
+            "unmanaged"
+        }
+    }
+
+    /// Whether the e-stop is latched.
+    pub fn estop_latched(&self) -> bool {
+        self.estop_latched.load(Ordering::Acquire)
+    }
+
+    /// How many times the e-stop latched since start-up.
+    pub fn estop_latches(&self) -> u64 {
+        self.estop_latches.load(Ordering::Relaxed)
+    }
+
+    /// The e-stop latched (`true`, counted) or was reset (`false`).
+    pub fn set_estop(&self, latched: bool) {
+        if latched {
+            self.estop_latches.fetch_add(1, Ordering::Relaxed);
+        }
+        self.estop_latched.store(latched, Ordering::Release);
+    }
+
+    /// Counts a duty command for `channel` (any of `~/<ch>/duty`, `~/<ch>/sv`, a split-range
+    /// command), whatever the core then makes of it.
+    pub fn count_command(&self, channel: usize) {
+        if let Some(c) = self.channels.get(channel) {
+            c.commands.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Commands `channel` received since start-up (0 for a channel that does not exist).
+    pub fn commands(&self, channel: usize) -> u64 {
+        self.channels
+            .get(channel)
+            .map_or(0, |c| c.commands.load(Ordering::Relaxed))
+    }
+
+    /// The rate check's settings for `channel`.
+    pub fn rate_settings(&self, channel: usize) -> RateSettings {
+        let load = |a: &AtomicU64| f64::from_bits(a.load(Ordering::Relaxed));
+        let (min_hz, max_hz) = self
+            .channels
+            .get(channel)
+            .map_or((0.0, 0.0), |c| (load(&c.min_hz), load(&c.max_hz)));
+        RateSettings {
+            min_hz,
+            max_hz,
+            tolerance: load(&self.tolerance),
+            window: self.window.load(Ordering::Relaxed).max(1),
+        }
+    }
+
+    /// Takes the rate check's settings from the parameter store (at start-up and after every
+    /// accepted change); values the store does not hold keep their defaults.
+    pub fn apply_params(&self, store: &ParamStore) {
+        for (ch, c) in self.channels.iter().enumerate() {
+            let name = channel_name(ch);
+            let get = |suffix: &str| store.double(&format!("{name}.{suffix}")).unwrap_or(0.0);
+            c.min_hz
+                .store(get("expected_command_hz_min").to_bits(), Ordering::Relaxed);
+            c.max_hz
+                .store(get("expected_command_hz_max").to_bits(), Ordering::Relaxed);
+        }
+        let window = store
+            .int("command_hz_window")
+            .map_or(DEFAULT_COMMAND_HZ_WINDOW, |w| {
+                w.clamp(1, MAX_COMMAND_HZ_WINDOW as i64) as usize
+            });
+        self.window.store(window, Ordering::Relaxed);
+        let tolerance = store
+            .double("command_hz_tolerance")
+            .unwrap_or(DEFAULT_COMMAND_HZ_TOLERANCE);
+        self.tolerance.store(tolerance.to_bits(), Ordering::Relaxed);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ros::params::Phase;
+    use ros2_client::ParameterValue as V;
+
+    #[test]
+    fn counts_and_settings_are_shared() {
+        let s = NodeState::new(2);
+        assert_eq!(s.lifecycle_label(), "unmanaged");
+        s.count_command(1);
+        s.count_command(1);
+        s.count_command(7);
+        assert_eq!((s.commands(0), s.commands(1), s.commands(7)), (0, 2, 0));
+        s.set_estop(true);
+        s.set_estop(false);
+        s.set_estop(true);
+        assert!(s.estop_latched());
+        assert_eq!(s.estop_latches(), 2);
+
+        assert_eq!(s.rate_settings(0), RateSettings::default());
+        assert!(!s.rate_settings(0).checked());
+        let mut store = ParamStore::new(2);
+        let a = store
+            .check(
+                &[
+                    ("pw02.expected_command_hz_min".into(), V::Double(5.0)),
+                    ("pw02.expected_command_hz_max".into(), V::Double(20.0)),
+                    ("command_hz_window".into(), V::Integer(10)),
+                    ("command_hz_tolerance".into(), V::Double(0.25)),
+                ],
+                Phase::Live,
+            )
+            .unwrap();
+        store.commit(&a);
+        let a = store
+            .check(&[("managed".into(), V::Boolean(true))], Phase::StartUp)
+            .unwrap();
+        store.commit(&a);
+        let s = NodeState::from_store(&store);
+        // A managed node shows the state its lifecycle keeps in the shared cell.
+        s.lifecycle_cell().store(state::INACTIVE, Ordering::Release);
+        assert_eq!(s.lifecycle_label(), "inactive");
+        s.lifecycle_cell()
+            .store(state::CONFIGURING, Ordering::Release);
+        assert_eq!(s.lifecycle_label(), "configuring");
+        let r = s.rate_settings(1);
+        assert_eq!(
+            r,
+            RateSettings {
+                min_hz: 5.0,
+                max_hz: 20.0,
+                tolerance: 0.25,
+                window: 10
+            }
+        );
+        assert!(r.checked());
+        assert!(!s.rate_settings(0).checked());
+    }
+}
