@@ -360,7 +360,7 @@ impl ChannelHealth {
 mod tests {
     use super::*;
     use crate::core::Level;
-    use crate::core::Rule;
+    use crate::core::{Protections, Rule};
 
     fn status() -> Status {
         Status {
@@ -370,6 +370,7 @@ mod tests {
             duty_commanded: 0.37,
             duty_requested: Command::Percent(37.0),
             command_clamped: false,
+            duty_target: 0.37,
             duty_applied: 0.37,
             period: 1000 * NS_PER_MS,
             t_on: 370 * NS_PER_MS,
@@ -383,6 +384,8 @@ mod tests {
             fault_active: false,
             estopped: false,
             rule: Rule::Exact,
+            protections: Protections::default(),
+            ignored_commands: 0,
         }
     }
 
