@@ -91,6 +91,8 @@ fn own_messages_match_their_msg_files() {
             min_time_limited: false,
             watchdog_tripped: false,
             rule: String::new(),
+            duty_target: 0.0,
+            protections: vec!["max_on".into()],
         }),
     );
     check_file(

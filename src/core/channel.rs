@@ -11,11 +11,19 @@
 //! is a promise about the line: every change of level the schedule asks for passes a guard that
 //! holds it back until the line has kept its level for its minimum, counted from the time the
 //! last edge really happened (a late poll, or [`Channel::edge_written`], moves that time). Only
-//! the safety offs act at once: a falling enable and a watchdog trip.
+//! the safety offs act at once: a falling enable and a watchdog trip. The maximum on time is a
+//! promise about the line too: a high phase is cut once it has lasted `max_on_ms` from its real
+//! rise, and the schedule's next rise waits out the minimum break after the cut.
+//!
+//! Between a command and the plan lie the load's protections (issue 12), each off by default:
+//! the power limits (`max_duty_pct`, `min_duty_pct`, `zero_means_zero`) after clamping, the
+//! dead band that ignores small changes, and the slew limit that moves the duty applied toward
+//! the command at most at its rate, advanced at every decision point (a period or step start,
+//! a re-evaluation) by the virtual time since the last one.
 
 use super::command::{Command, CommandError, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
-use super::plan::{Plan, Rule};
+use super::plan::{definitely_less, Plan, Rule};
 use super::{Level, Nanos};
 
 /// Something the channel did or noticed, in the order it happened.
@@ -30,9 +38,11 @@ pub enum Event {
     },
     /// E1 (000) or the limit flag (002) changed.
     Flags {
-        /// E1: the commanded duty could not be reproduced because of a minimum time.
+        /// E1: the commanded duty could not be reproduced because of a minimum time, or
+        /// because the maximum on time cuts the line.
         e1: bool,
-        /// The minimum-time limit flag (bLmtSwiTi).
+        /// The limit flag (bLmtSwiTi): a time was raised to its minimum, or the maximum on
+        /// time cuts the line.
         limited: bool,
     },
     /// A new plan (applied duty, on and off times) is in force.
@@ -78,6 +88,49 @@ struct Line {
     /// An interlock forbids the line to go high (its partner of a split-range pair is high); a
     /// rise asked for meanwhile is held back until it is released.
     locked: bool,
+    /// When `max_on_ms` cuts the line's high phase, if it is high and a maximum is set.
+    cut: Option<Nanos>,
+    /// The change held back is the schedule's rise resuming after a cut: if the schedule drops
+    /// it, nothing was lost.
+    resumes: bool,
+}
+
+/// Which of the load's protections act on a channel (issue 12); each is off by default.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Protections {
+    /// `max_on_ms` cuts the line: the plan keeps it high longer (a constant 1, or an on time
+    /// above it), or a cut happened in this period or the one before. Sets E1 and the limit
+    /// flag.
+    pub max_on: bool,
+    /// `max_duty_pct` lowers the command in force.
+    pub max_duty: bool,
+    /// `min_duty_pct` raises the command in force.
+    pub min_duty: bool,
+    /// The slew limit holds the duty applied short of the command in force.
+    pub slew: bool,
+    /// The dead band ignored the last valid command: an older one stays in force.
+    pub deadband: bool,
+}
+
+impl Protections {
+    /// The names of the protections acting, as reported on `~/<ch>/status` and
+    /// `/diagnostics`: `max_on`, `max_duty`, `min_duty`, `slew`, `deadband`.
+    pub fn names(&self) -> impl Iterator<Item = &'static str> {
+        [
+            (self.max_on, "max_on"),
+            (self.max_duty, "max_duty"),
+            (self.min_duty, "min_duty"),
+            (self.slew, "slew"),
+            (self.deadband, "deadband"),
+        ]
+        .into_iter()
+        .filter_map(|(on, name)| on.then_some(name))
+    }
+
+    /// Whether any protection acts.
+    pub fn any(&self) -> bool {
+        self.names().next().is_some()
+    }
 }
 
 /// What a channel reports about itself (002's information outputs, 004's active flag).
@@ -95,6 +148,9 @@ pub struct Status {
     pub duty_requested: Command,
     /// The last valid command was out of range and clamped.
     pub command_clamped: bool,
+    /// The command in force after the power limits and the dead band, 0..=1: what the slew
+    /// limit moves the duty applied toward.
+    pub duty_target: f64,
     /// The duty delivered by the plan in force, 0..=1.
     pub duty_applied: f64,
     /// Period in force, ns.
@@ -110,9 +166,9 @@ pub struct Status {
     /// End of the running step, ns, if a step is running (lets a reader recompute the remaining
     /// times for a later instant).
     pub step_end: Option<Nanos>,
-    /// E1 (000).
+    /// E1 (000); also set while the maximum on time acts.
     pub e1: bool,
-    /// Minimum-time limit flag (002's bLmtSwiTi).
+    /// Limit flag (002's bLmtSwiTi); also set while the maximum on time acts.
     pub limited: bool,
     /// Watchdog tripped: no command for `command_timeout_ms`.
     pub watchdog_tripped: bool,
@@ -122,6 +178,10 @@ pub struct Status {
     pub estopped: bool,
     /// The rule that shaped the plan in force.
     pub rule: Rule,
+    /// The protections of the load acting now.
+    pub protections: Protections,
+    /// Valid commands the dead band ignored since the channel was created.
+    pub ignored_commands: u64,
 }
 
 impl Status {
@@ -164,6 +224,21 @@ pub struct Channel {
     /// The line may follow the schedule (a managed node's ACTIVE state); when not, it is held
     /// inactive and a rise the schedule asks for waits for the release.
     live: bool,
+    /// The fraction of the command in force: the last valid command the dead band let
+    /// through, before the power limits.
+    accepted: f64,
+    /// Valid commands the dead band ignored.
+    ignored: u64,
+    /// The last valid command was ignored by the dead band.
+    last_ignored: bool,
+    /// The duty the slew limit has reached, fraction, and the decision instant it was
+    /// advanced to (ns); `None` while no pulses run (disabled, period 0): the ramp starts at
+    /// the next decision.
+    slewed: f64,
+    slewed_at: Option<Nanos>,
+    /// `max_on_ms` cut the line in the running period, and in the period before.
+    cut_now: bool,
+    cut_before: bool,
 }
 
 impl Channel {
@@ -186,6 +261,8 @@ impl Channel {
                 since: None,
                 held: None,
                 locked: false,
+                cut: None,
+                resumes: false,
             },
             step: None,
             plan: Plan::new(0.0, &cfg),
@@ -196,6 +273,13 @@ impl Channel {
             flags: (false, false),
             estop: false,
             live: true,
+            accepted: 0.0,
+            ignored: 0,
+            last_ignored: false,
+            slewed: 0.0,
+            slewed_at: None,
+            cut_now: false,
+            cut_before: false,
         }
     }
 
@@ -216,6 +300,7 @@ impl Channel {
         if self.line.since.is_some_and(|s| at > s) {
             self.line.since = Some(at);
             self.retime_held();
+            self.retime_cut(at);
         }
     }
 
@@ -245,6 +330,7 @@ impl Channel {
             self.step.map(|s| s.end),
             self.watchdog_deadline(),
             self.fault_until.filter(|t| *t != Nanos::MAX),
+            self.line.cut,
             self.line
                 .held
                 .filter(|(level, _)| !(self.no_rise() && *level == Level::High))
@@ -394,13 +480,20 @@ impl Channel {
                 level: self.line.level,
             });
             self.retime_held();
+            self.retime_cut(now);
         } else if edges > 0 {
             // Edges that cancelled out never reached the line.
             self.line.since = before.since;
+            // A high line has been high since its real rise: the maximum on time counts from
+            // there, and may have run out by now.
+            self.retime_cut(now);
         }
         let missed = edges - u32::from(changed);
         if missed > 0 {
             emit(Event::Missed { edges: missed });
+        }
+        if self.line.cut.is_some_and(|t| t <= now) {
+            self.cut(now, emit);
         }
     }
 
@@ -422,6 +515,21 @@ impl Channel {
         }
         self.duty = duty;
         self.last_command_at = now;
+        // The dead band (relay wear): a change of the limited duty smaller than the band is
+        // ignored; the command still counts for the watchdog. The ends always pass, so the
+        // load can always be switched fully off or to its maximum.
+        let candidate = self.cfg.limit_duty(duty.fraction);
+        let in_force = self.cfg.limit_duty(self.accepted);
+        let end = candidate <= self.cfg.min_duty || candidate >= self.cfg.max_duty;
+        self.last_ignored = self.cfg.deadband > 0.0
+            && candidate != in_force
+            && !end
+            && definitely_less((candidate - in_force).abs(), self.cfg.deadband);
+        if self.last_ignored {
+            self.ignored += 1;
+        } else {
+            self.accepted = duty.fraction;
+        }
         if self.watchdog_tripped {
             self.watchdog_tripped = false;
             self.fault_until = None;
@@ -442,6 +550,9 @@ impl Channel {
         }
         self.enabled = enable;
         if enable {
+            // Soft start: the slew limit ramps the duty applied from 0 at each enable.
+            self.slewed = 0.0;
+            self.slewed_at = None;
             // A stale command does not get a fresh lease: the watchdog counts from the last
             // command, not from the enable.
             self.trip_if_stale(now, emit);
@@ -462,8 +573,10 @@ impl Channel {
             }
         } else {
             self.step = None;
+            self.cut_now = false;
+            self.cut_before = false;
             if let Some(p) = self.pending.take() {
-                self.put_config(p);
+                self.put_config(p, now);
             }
             match self.cfg.on_disable {
                 // 000, 002: a falling EN sets the output to 0 at once, a safety off.
@@ -492,7 +605,7 @@ impl Channel {
         self.trip_if_stale(now, emit);
         if !self.enabled {
             self.pending = None;
-            self.put_config(cfg);
+            self.put_config(cfg, now);
             self.latch(Plan::new(self.effective_duty(), &self.cfg), emit);
             // A line held on (004's hold) stays on only while the configuration still holds
             // it: `off` or period 0 switch it off now (after its minimum on time).
@@ -503,7 +616,7 @@ impl Channel {
             }
         } else if self.step.is_none() || self.cfg.apply_at == ApplyAt::Immediate {
             self.pending = None;
-            self.put_config(cfg);
+            self.put_config(cfg, now);
             self.reevaluate(now, emit);
         } else {
             self.pending = Some(cfg);
@@ -528,6 +641,7 @@ impl Channel {
             duty_commanded: self.duty.fraction,
             duty_requested: self.duty.requested,
             command_clamped: self.duty.clamped,
+            duty_target: self.target(),
             duty_applied: self.plan.applied_duty(),
             period: self.cfg.period,
             t_on: self.plan.t_on,
@@ -535,21 +649,73 @@ impl Channel {
             remaining_on,
             remaining_off,
             step_end: self.step.map(|s| s.end),
-            e1: self.plan.e1,
-            limited: self.plan.limited,
+            e1: self.flags.0,
+            limited: self.flags.1,
             watchdog_tripped: self.watchdog_tripped,
             fault_active: self.fault_until.is_some(),
             estopped: self.estop,
             rule: self.plan.rule,
+            protections: Protections {
+                max_on: self.max_on_acts(),
+                max_duty: self.target() < self.accepted,
+                min_duty: self.target() > self.accepted,
+                slew: self.slewing() && !self.watchdog_tripped && self.slewed != self.target(),
+                deadband: self.last_ignored,
+            },
+            ignored_commands: self.ignored,
         }
     }
 
+    /// The command in force after the power limits: what the slew limit moves toward.
+    fn target(&self) -> f64 {
+        self.cfg.limit_duty(self.accepted)
+    }
+
+    /// Whether the slew limit shapes the duty applied: set, and the channel pulsing.
+    fn slewing(&self) -> bool {
+        self.cfg.slew_per_s > 0.0 && self.enabled && self.cfg.period > 0
+    }
+
+    /// The duty the plans are made for: the command in force (as far as the slew limit has
+    /// brought it), or the watchdog's fault value (limited to `max_duty_pct`) or 0. A disabled
+    /// channel computes for the command in force (002), which it ramps toward once enabled.
     fn effective_duty(&self) -> f64 {
         match (self.watchdog_tripped, self.fault_until) {
-            (false, _) => self.duty.fraction,
-            (true, Some(_)) => self.cfg.fault_duty,
+            (false, _) if self.slewing() => self.slewed,
+            (false, _) => self.target(),
+            (true, Some(_)) => self.cfg.fault_duty.min(self.cfg.max_duty),
             (true, None) => 0.0,
         }
+    }
+
+    /// A decision point at `t` (a period or step start, a re-evaluation): the slew limit moves
+    /// the duty applied toward the target by at most its rate times the time since the last
+    /// decision, so it is exact in virtual time. Returns the duty to plan for. Where nothing
+    /// ramps, the duty applied is what runs (0 with no pulses), and a later ramp starts there.
+    fn decide(&mut self, t: Nanos) -> f64 {
+        let elapsed = self.slewed_at.map_or(0, |at| t.saturating_sub(at));
+        self.slewed_at = Some(self.slewed_at.map_or(t, |at| at.max(t)));
+        if self.slewing() && !self.watchdog_tripped {
+            let step = self.cfg.slew_per_s * elapsed as f64 / 1e9;
+            let target = self.target();
+            self.slewed = if self.slewed < target {
+                (self.slewed + step).min(target)
+            } else {
+                (self.slewed - step).max(target)
+            };
+        } else if !self.enabled || self.cfg.period == 0 {
+            self.slewed = 0.0;
+            self.slewed_at = None;
+        } else {
+            self.slewed = self.effective_duty();
+        }
+        self.effective_duty()
+    }
+
+    /// Whether the maximum on time acts: the plan in force keeps the line high longer, or it
+    /// cut the line in this period or the one before.
+    fn max_on_acts(&self) -> bool {
+        self.plan.max_on || self.cut_now || self.cut_before
     }
 
     /// The watchdog guards every state in which the line is or will be high: enabled, or
@@ -562,11 +728,24 @@ impl Channel {
         })
     }
 
-    /// Makes `cfg` the configuration in force. A change held back for the line is re-timed
-    /// for the new minima.
-    fn put_config(&mut self, cfg: ChannelConfig) {
+    /// Makes `cfg` the configuration in force at `now`. A change held back for the line is
+    /// re-timed for the new minima, and a cut of the high line for the new maximum on time
+    /// (at `now` if the line has already been high that long).
+    fn put_config(&mut self, cfg: ChannelConfig, now: Nanos) {
         self.cfg = cfg;
         self.retime_held();
+        self.retime_cut(now);
+    }
+
+    /// Times the cut of a high line at `max_on_ms` after its last real rise, but not before
+    /// `floor`; none when the line is low or no maximum is set.
+    fn retime_cut(&mut self, floor: Nanos) {
+        self.line.cut = match (self.line.level, self.line.since) {
+            (Level::High, Some(since)) if self.cfg.max_on > 0 => {
+                Some(since.saturating_add(self.cfg.max_on).max(floor))
+            }
+            _ => None,
+        };
     }
 
     /// Moves a change held back for the line to no earlier than the end of the minimum of the
@@ -607,7 +786,7 @@ impl Channel {
         if level == self.line.level {
             // A change held back by the interlock never reached the line: two edges missed.
             // One held while the line is held inactive was never meant to reach it.
-            if self.line.held.take().is_some() && self.live {
+            if self.line.held.take().is_some() && self.live && !self.line.resumes {
                 emit(Event::Missed { edges: 2 });
             }
             return;
@@ -619,7 +798,10 @@ impl Channel {
         if at >= earliest && !(self.no_rise() && level == Level::High) {
             self.write_line(level, at, emit);
         } else {
-            self.line.held = Some((level, earliest.max(at)));
+            // Asking again for the rise that resumes after a cut keeps it one.
+            let held = Some((level, earliest.max(at)));
+            self.line.resumes &= self.line.held == held;
+            self.line.held = held;
         }
     }
 
@@ -639,8 +821,27 @@ impl Channel {
             since: Some(at),
             held: None,
             locked: self.line.locked,
+            cut: None,
+            resumes: false,
         };
+        self.retime_cut(at);
         emit(Event::Edge { at, level });
+    }
+
+    /// `max_on_ms` has run out on the high line at `t`: it goes low now (its minimum on time
+    /// has passed, as `max_on_ms` is never below it) and the schedule's rise, if it still asks
+    /// for one, is held back for the minimum break. A line held on by 004's hold stays off.
+    fn cut(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
+        let resume = self.enabled && self.level == Level::High;
+        self.write_line(Level::Low, t, emit);
+        if resume {
+            self.line.held = Some((Level::High, t.saturating_add(self.cfg.min_off)));
+            self.line.resumes = true;
+        } else {
+            self.level = Level::Low;
+        }
+        self.cut_now = true;
+        self.report_flags(emit);
     }
 
     /// Makes `plan` the plan in force and reports what changed.
@@ -649,7 +850,14 @@ impl Channel {
             self.plan = plan;
             emit(Event::Plan(plan));
         }
-        let flags = (plan.e1, plan.limited);
+        self.report_flags(emit);
+    }
+
+    /// Reports E1 and the limit flag when they changed: the plan's, or a cut by the maximum
+    /// on time.
+    fn report_flags(&mut self, emit: &mut dyn FnMut(Event)) {
+        let cut = self.cut_now || self.cut_before;
+        let flags = (self.plan.e1 || cut, self.plan.limited || cut);
         if flags != self.flags {
             self.flags = flags;
             emit(Event::Flags {
@@ -678,20 +886,28 @@ impl Channel {
                 return;
             }
         }
-        let Some(step) = self.step else { return };
-        debug_assert_eq!(step.end, t);
-        match step.level {
-            Level::High => self.end_on_step(t, emit),
-            Level::Low => self.start_period(t, emit),
+        // A step ending with the cut goes first: its fall is the schedule's, not a cut.
+        if let Some(step) = self.step.filter(|s| s.end == t) {
+            match step.level {
+                Level::High => self.end_on_step(t, emit),
+                Level::Low => self.start_period(t, emit),
+            }
+            return;
+        }
+        debug_assert_eq!(self.line.cut, Some(t), "a deadline at {t} with nothing due");
+        if self.line.cut == Some(t) {
+            self.cut(t, emit);
         }
     }
 
     /// The decision step before an on step: a new period begins at `t`.
     fn start_period(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         if let Some(p) = self.pending.take() {
-            self.put_config(p);
+            self.put_config(p, t);
         }
-        let plan = Plan::new(self.effective_duty(), &self.cfg);
+        self.cut_before = std::mem::take(&mut self.cut_now);
+        let duty = self.decide(t);
+        let plan = Plan::new(duty, &self.cfg);
         self.latch(plan, emit);
         self.period_start = t;
         if self.cfg.period == 0 {
@@ -725,7 +941,8 @@ impl Channel {
             ApplyAt::NextPeriod => self.plan.t_off,
             // 002: each step's time comes from the command current when it starts; 003 likewise.
             ApplyAt::NextStep | ApplyAt::Immediate => {
-                let plan = Plan::new(self.effective_duty(), &self.cfg);
+                let duty = self.decide(t);
+                let plan = Plan::new(duty, &self.cfg);
                 self.latch(plan, emit);
                 plan.t_off
             }
@@ -746,7 +963,8 @@ impl Channel {
     /// 003: re-times the running step for the current command and configuration. A step whose
     /// new length has already passed ends now, but never before its minimum.
     fn reevaluate(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
-        let plan = Plan::new(self.effective_duty(), &self.cfg);
+        let duty = self.decide(now);
+        let plan = Plan::new(duty, &self.cfg);
         self.latch(plan, emit);
         let Some(step) = self.step else {
             if self.enabled && self.cfg.period > 0 {

@@ -18,6 +18,12 @@ pub const MAX_PERIOD_MS: u64 = 3_600_000;
 /// Longest watchdog timeout accepted, in ms (one day).
 pub const MAX_TIMEOUT_MS: u64 = 86_400_000;
 
+/// Longest maximum on time accepted, in ms (one day).
+pub const MAX_ON_MS: u64 = 86_400_000;
+
+/// Fastest duty slew limit accepted, percent per second (100 % in 1 ms).
+pub const MAX_SLEW_PCT_PER_S: f64 = 100_000.0;
+
 /// The electrical kind of output, which sets the limits of 000's table.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum OutputKind {
@@ -344,6 +350,27 @@ pub struct ChannelParams {
     /// How long the fault value runs before the output goes off, ms; 0 = until the next
     /// command. 0..=86 400 000.
     pub fault_hold_ms: u64,
+    /// Maximum continuous on time of the line, ms; 0 = off. The line never stays high longer:
+    /// it is switched off for at least its minimum off time, then follows the schedule again,
+    /// with E1 and the limit flag (a guard against a controller stuck at 100 %). 0, or the
+    /// effective minimum on time ..= 86 400 000.
+    pub max_on_ms: u64,
+    /// Highest duty applied, percent 0..=100: a command above it is limited to it, after
+    /// clamping and before the minimum-time rules (a heater's maximum power). 100 = off.
+    pub max_duty_pct: f64,
+    /// Lowest duty applied, percent 0..=`max_duty_pct`: a command below it is raised to it,
+    /// 0 included unless `zero_means_zero`. 0 = off.
+    pub min_duty_pct: f64,
+    /// A command of 0 % stays 0 % whatever `min_duty_pct`.
+    pub zero_means_zero: bool,
+    /// Slew limit, percent per second: the duty applied moves toward the command in force at
+    /// most this fast, both ways, from 0 at each enable (soft start). 0 = off.
+    /// 0..=100 000.
+    pub duty_slew_pct_per_s: f64,
+    /// Dead band, percent 0..=100: a command whose duty (after the power limits) differs from
+    /// the one in force by less is ignored (relay wear); 0 %, `min_duty_pct` and
+    /// `max_duty_pct` always pass. 0 = off.
+    pub duty_deadband_pct: f64,
 }
 
 impl Default for ChannelParams {
@@ -361,6 +388,12 @@ impl Default for ChannelParams {
             command_timeout_ms: 0,
             fault_duty_pct: 0.0,
             fault_hold_ms: 0,
+            max_on_ms: 0,
+            max_duty_pct: 100.0,
+            min_duty_pct: 0.0,
+            zero_means_zero: false,
+            duty_slew_pct_per_s: 0.0,
+            duty_deadband_pct: 0.0,
         }
     }
 }
@@ -379,6 +412,27 @@ impl fmt::Display for MinTime {
         f.write_str(match self {
             MinTime::On => "min_on_ms",
             MinTime::Off => "min_off_ms",
+        })
+    }
+}
+
+/// Which percentage parameter an error speaks of.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PercentParam {
+    /// `max_duty_pct`.
+    MaxDuty,
+    /// `min_duty_pct`.
+    MinDuty,
+    /// `duty_deadband_pct`.
+    Deadband,
+}
+
+impl fmt::Display for PercentParam {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            PercentParam::MaxDuty => "max_duty_pct",
+            PercentParam::MinDuty => "min_duty_pct",
+            PercentParam::Deadband => "duty_deadband_pct",
         })
     }
 }
@@ -454,6 +508,50 @@ pub enum ConfigError {
         /// The maximum, ms.
         max_ms: u64,
     },
+    /// A maximum on time above one day.
+    #[error("max_on_ms {value_ms} is above the maximum of {max_ms} ms")]
+    MaxOnTooLong {
+        /// The refused value, ms.
+        value_ms: u64,
+        /// The maximum, ms.
+        max_ms: u64,
+    },
+    /// A maximum on time below the minimum on time in force: cutting the line there would
+    /// emit a pulse below its minimum.
+    #[error(
+        "max_on_ms {max_on_ms} is below the minimum on time of {min_on_ms} ms (0 turns the \
+         maximum off)"
+    )]
+    MaxOnBelowMinOn {
+        /// The refused value, ms.
+        max_on_ms: u64,
+        /// The effective minimum on time, ms (the hardware floor included).
+        min_on_ms: f64,
+    },
+    /// A duty limit or the dead band outside 0..=100 % or not a number.
+    #[error("{which} {value} is outside 0..100")]
+    PercentOutOfRange {
+        /// Which parameter.
+        which: PercentParam,
+        /// The refused value, percent.
+        value: f64,
+    },
+    /// `min_duty_pct` above `max_duty_pct`.
+    #[error("min_duty_pct {min_pct} is above max_duty_pct {max_pct}")]
+    MinDutyAboveMaxDuty {
+        /// `min_duty_pct`.
+        min_pct: f64,
+        /// `max_duty_pct`.
+        max_pct: f64,
+    },
+    /// A slew limit outside 0..=100 000 %/s or not a number.
+    #[error("duty_slew_pct_per_s {value} is outside 0..{max}")]
+    SlewOutOfRange {
+        /// The refused value, percent per second.
+        value: f64,
+        /// The maximum, percent per second.
+        max: f64,
+    },
 }
 
 /// Validated channel settings in nanoseconds, with every profile default resolved.
@@ -479,8 +577,32 @@ pub struct ChannelConfig {
     pub fault_duty: f64,
     /// How long the fault value runs, ns; 0 = until the next command.
     pub fault_hold: Nanos,
+    /// Maximum continuous on time of the line, ns; 0 = off. Never below `min_on`.
+    pub max_on: Nanos,
+    /// Highest duty applied, fraction 0..=1 (1 = off).
+    pub max_duty: f64,
+    /// Lowest duty applied, fraction 0..=`max_duty` (0 = off).
+    pub min_duty: f64,
+    /// A command of 0 stays 0 whatever `min_duty`.
+    pub zero_means_zero: bool,
+    /// Slew limit of the duty applied, fraction per second; 0 = off.
+    pub slew_per_s: f64,
+    /// Dead band of commands, fraction 0..=1; 0 = off.
+    pub deadband: f64,
     /// The parameters this was made from (for status and round trips).
     pub params: ChannelParams,
+}
+
+impl ChannelConfig {
+    /// The duty fraction the power limits make of a command's fraction `duty` (0..=1): limited
+    /// to `min_duty..=max_duty`, except that 0 stays 0 with `zero_means_zero`.
+    pub fn limit_duty(&self, duty: f64) -> f64 {
+        if self.zero_means_zero && duty <= 0.0 {
+            duty
+        } else {
+            duty.clamp(self.min_duty, self.max_duty)
+        }
+    }
 }
 
 impl ChannelParams {
@@ -502,7 +624,7 @@ impl ChannelParams {
     /// Checks every limit of SPEC §1 and 000's table and resolves the profile.
     ///
     /// The checks run in a fixed order so the reason given is deterministic: period, minimum
-    /// times, their sum, edge band, watchdog.
+    /// times, edge band, watchdog, fault value, maximum on time, power limits, slew limit.
     pub fn validate(&self) -> Result<ChannelConfig, ConfigError> {
         let kind = self.output_kind;
         if self.period_ms != 0 && self.period_ms < kind.min_period_ms() {
@@ -578,6 +700,40 @@ impl ChannelParams {
                 max_ms: MAX_TIMEOUT_MS,
             });
         }
+        if self.max_on_ms > MAX_ON_MS {
+            return Err(ConfigError::MaxOnTooLong {
+                value_ms: self.max_on_ms,
+                max_ms: MAX_ON_MS,
+            });
+        }
+        let max_on = self.max_on_ms * NS_PER_MS;
+        if max_on != 0 && max_on < min_on {
+            return Err(ConfigError::MaxOnBelowMinOn {
+                max_on_ms: self.max_on_ms,
+                min_on_ms: min_on as f64 / NS_PER_MS as f64,
+            });
+        }
+        for (which, value) in [
+            (PercentParam::MaxDuty, self.max_duty_pct),
+            (PercentParam::MinDuty, self.min_duty_pct),
+            (PercentParam::Deadband, self.duty_deadband_pct),
+        ] {
+            if !(0.0..=100.0).contains(&value) {
+                return Err(ConfigError::PercentOutOfRange { which, value });
+            }
+        }
+        if self.min_duty_pct > self.max_duty_pct {
+            return Err(ConfigError::MinDutyAboveMaxDuty {
+                min_pct: self.min_duty_pct,
+                max_pct: self.max_duty_pct,
+            });
+        }
+        if !(0.0..=MAX_SLEW_PCT_PER_S).contains(&self.duty_slew_pct_per_s) {
+            return Err(ConfigError::SlewOutOfRange {
+                value: self.duty_slew_pct_per_s,
+                max: MAX_SLEW_PCT_PER_S,
+            });
+        }
         Ok(ChannelConfig {
             period,
             min_on,
@@ -589,6 +745,12 @@ impl ChannelParams {
             command_timeout: self.command_timeout_ms * NS_PER_MS,
             fault_duty: self.fault_duty_pct / 100.0,
             fault_hold: self.fault_hold_ms * NS_PER_MS,
+            max_on,
+            max_duty: self.max_duty_pct / 100.0,
+            min_duty: self.min_duty_pct / 100.0,
+            zero_means_zero: self.zero_means_zero,
+            slew_per_s: self.duty_slew_pct_per_s / 100.0,
+            deadband: self.duty_deadband_pct / 100.0,
             params: *self,
         })
     }
@@ -895,6 +1057,136 @@ mod tests {
                 (ShortPulse::Stretch, ApplyAt::Immediate, OnDisable::Hold)
             );
         }
+    }
+
+    #[test]
+    fn the_protections_are_off_by_default() {
+        let c = ChannelConfig::default();
+        assert_eq!(c.max_on, 0);
+        assert_eq!(
+            (c.max_duty, c.min_duty, c.zero_means_zero),
+            (1.0, 0.0, false)
+        );
+        assert_eq!((c.slew_per_s, c.deadband), (0.0, 0.0));
+        for d in [0.0, 0.37, 1.0] {
+            assert_eq!(c.limit_duty(d), d);
+        }
+    }
+
+    #[test]
+    fn max_on_is_never_below_the_minimum_on_time_in_force() {
+        let max_on = |min_on_ms, max_on_ms, output_kind| {
+            ChannelParams {
+                min_on_ms,
+                max_on_ms,
+                output_kind,
+                ..params()
+            }
+            .validate()
+        };
+        assert!(max_on(100, 100, OutputKind::Transistor).is_ok());
+        assert_eq!(
+            max_on(100, 99, OutputKind::Transistor)
+                .unwrap_err()
+                .to_string(),
+            "max_on_ms 99 is below the minimum on time of 100 ms (0 turns the maximum off)"
+        );
+        assert_eq!(
+            max_on(100, 99, OutputKind::Transistor),
+            Err(ConfigError::MaxOnBelowMinOn {
+                max_on_ms: 99,
+                min_on_ms: 100.0
+            })
+        );
+        // The relay floor of 50 ms is the minimum when min_on_ms is 0.
+        assert!(matches!(
+            max_on(0, 49, OutputKind::Relay),
+            Err(ConfigError::MaxOnBelowMinOn { min_on_ms, .. }) if min_on_ms == 50.0
+        ));
+        // A minimum above the period acts as the period, so does the check.
+        assert!(ChannelParams {
+            period_ms: 200,
+            min_on_ms: 5000,
+            max_on_ms: 200,
+            ..params()
+        }
+        .validate()
+        .is_ok());
+        assert!(max_on(0, 1, OutputKind::Transistor).is_ok(), "0.1 ms floor");
+        assert!(max_on(0, MAX_ON_MS, OutputKind::Transistor).is_ok());
+        assert_eq!(
+            max_on(0, MAX_ON_MS + 1, OutputKind::Transistor),
+            Err(ConfigError::MaxOnTooLong {
+                value_ms: MAX_ON_MS + 1,
+                max_ms: MAX_ON_MS
+            })
+        );
+    }
+
+    #[test]
+    fn duty_limits_dead_band_and_slew_are_checked() {
+        let with = |f: fn(&mut ChannelParams)| {
+            let mut p = params();
+            f(&mut p);
+            p.validate()
+        };
+        assert!(matches!(
+            with(|p| p.max_duty_pct = 100.5),
+            Err(ConfigError::PercentOutOfRange {
+                which: PercentParam::MaxDuty,
+                ..
+            })
+        ));
+        assert!(matches!(
+            with(|p| p.min_duty_pct = -1.0),
+            Err(ConfigError::PercentOutOfRange {
+                which: PercentParam::MinDuty,
+                ..
+            })
+        ));
+        assert!(matches!(
+            with(|p| p.duty_deadband_pct = f64::NAN),
+            Err(ConfigError::PercentOutOfRange {
+                which: PercentParam::Deadband,
+                ..
+            })
+        ));
+        assert_eq!(
+            with(|p| {
+                p.min_duty_pct = 30.0;
+                p.max_duty_pct = 20.0;
+            }),
+            Err(ConfigError::MinDutyAboveMaxDuty {
+                min_pct: 30.0,
+                max_pct: 20.0
+            })
+        );
+        assert!(with(|p| {
+            p.min_duty_pct = 20.0;
+            p.max_duty_pct = 20.0;
+        })
+        .is_ok());
+        for v in [-0.1, MAX_SLEW_PCT_PER_S + 1.0, f64::INFINITY, f64::NAN] {
+            let r = ChannelParams {
+                duty_slew_pct_per_s: v,
+                ..params()
+            }
+            .validate();
+            assert!(matches!(r, Err(ConfigError::SlewOutOfRange { .. })), "{v}");
+        }
+        let c = with(|p| {
+            p.min_duty_pct = 10.0;
+            p.max_duty_pct = 60.0;
+        })
+        .unwrap();
+        assert_eq!((c.limit_duty(0.0), c.limit_duty(0.05)), (0.1, 0.1));
+        assert_eq!((c.limit_duty(0.3), c.limit_duty(1.0)), (0.3, 0.6));
+        let c = with(|p| {
+            p.min_duty_pct = 10.0;
+            p.zero_means_zero = true;
+        })
+        .unwrap();
+        assert_eq!((c.limit_duty(0.0), c.limit_duty(0.05)), (0.0, 0.1));
     }
 
     #[test]

@@ -10,11 +10,11 @@ pub mod config;
 pub mod interlock;
 pub mod plan;
 
-pub use channel::{Channel, Event, Status};
+pub use channel::{Channel, Event, Protections, Status};
 pub use command::{Command, CommandError, Duty, SV_FULL_SCALE};
 pub use config::{
-    ApplyAt, ChannelConfig, ChannelParams, ConfigError, MinTime, OnDisable, OutputKind, Profile,
-    ShortPulse, NS_PER_MS,
+    ApplyAt, ChannelConfig, ChannelParams, ConfigError, MinTime, OnDisable, OutputKind,
+    PercentParam, Profile, ShortPulse, NS_PER_MS,
 };
 pub use interlock::{split_command, Interlocks, PairError};
 pub use plan::{Plan, Rule};

@@ -59,12 +59,17 @@ pub struct Plan {
     pub t_on: Nanos,
     /// Off time, ns; `t_on + t_off` is the period.
     pub t_off: Nanos,
-    /// E1 (000): the commanded duty could not be reproduced because of a minimum time.
+    /// E1 (000): the commanded duty could not be reproduced because of a minimum time (or
+    /// `max_on`).
     pub e1: bool,
-    /// The minimum-time limit flag (002's bLmtSwiTi): a time was raised to its minimum.
+    /// The minimum-time limit flag (002's bLmtSwiTi): a time was raised to its minimum (or
+    /// `max_on`).
     pub limited: bool,
     /// The rule that shaped this plan.
     pub rule: Rule,
+    /// The plan keeps the line high longer than `max_on_ms` (a constant 1, or an on time above
+    /// it): the line guard will cut it, so E1 and the limit flag are set too.
+    pub max_on: bool,
 }
 
 impl Plan {
@@ -78,8 +83,27 @@ impl Plan {
         }
     }
 
-    /// Makes the plan for duty fraction `duty` (0..=1) under `cfg`.
+    /// Makes the plan for duty fraction `duty` (0..=1) under `cfg`: the minimum-time rules,
+    /// then whether the maximum on time will cut what they give.
     pub fn new(duty: f64, cfg: &ChannelConfig) -> Plan {
+        let plan = Plan::shape(duty, cfg);
+        // The on phase runs into the next period (a constant 1) or is longer than max_on by
+        // itself: the line cannot deliver it. Even 100 % sets E1 here, unlike the minimum-time
+        // rules: the output is not the constant 1 the command asks for.
+        if cfg.max_on > 0 && plan.t_on > 0 && (plan.t_off == 0 || plan.t_on > cfg.max_on) {
+            Plan {
+                max_on: true,
+                e1: true,
+                limited: true,
+                ..plan
+            }
+        } else {
+            plan
+        }
+    }
+
+    /// The minimum-time rules of SPEC §1.2 for duty fraction `duty` under `cfg`.
+    fn shape(duty: f64, cfg: &ChannelConfig) -> Plan {
         let period = cfg.period;
         let base = Plan {
             duty,
@@ -183,7 +207,7 @@ impl Plan {
 const DUTY_EPSILON: f64 = 1e-12;
 
 /// `a < b` by more than float rounding: `0.67 < 1 - 0.33` is false here, as the user meant.
-fn definitely_less(a: f64, b: f64) -> bool {
+pub(crate) fn definitely_less(a: f64, b: f64) -> bool {
     a < b - DUTY_EPSILON
 }
 
@@ -386,6 +410,25 @@ mod tests {
             );
             assert!(p.limited, "{pct} %");
         }
+    }
+
+    #[test]
+    fn max_on_flags_plans_that_keep_the_line_on_longer() {
+        let c = ChannelParams {
+            period_ms: 1000,
+            max_on_ms: 600,
+            ..ChannelParams::default()
+        }
+        .validate()
+        .unwrap();
+        let p = Plan::new(0.6, &c);
+        assert!(!p.max_on && !p.e1, "600 ms fits: {p:?}");
+        let p = Plan::new(0.61, &c);
+        assert!(p.max_on && p.e1 && p.limited, "{p:?}");
+        assert_eq!((p.t_on, p.rule), (610 * MS, Rule::Exact), "the times stay");
+        // 100 % runs into the next period: cut, even at 100 %.
+        assert!(Plan::new(1.0, &c).max_on && Plan::new(1.0, &c).e1);
+        assert!(!Plan::new(0.0, &c).max_on);
     }
 
     #[test]

@@ -1,8 +1,11 @@
 //! What the node knows about each channel's health, and how it reads as a
 //! `diagnostic_msgs/DiagnosticStatus` (one per channel, named `<node name>: <ch>`, hardware id
 //! the line or `sim`), following the ROS diagnostics conventions: OK; WARN when E1 or the
-//! minimum-time limit acts, when the command in force was clamped, or for a while after a
-//! command was refused; ERROR on a tripped watchdog, a latched e-stop or an output fault.
+//! minimum-time limit acts (the maximum on time included), when the command in force was
+//! clamped, or for a while after a command was refused; ERROR on a tripped watchdog, a latched
+//! e-stop or an output fault. The other protections of the load (power limits, slew, dead
+//! band) are named in the message and the `protections` key while they act, at level OK: they
+//! do what they were set for.
 //!
 //! The node itself has one more status, `<node name>: node` ([`NodeHealth`]): the output
 //! thread's lateness over the last second, lost reports, the lifecycle state and the e-stop.
@@ -83,6 +86,8 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         min_time_limited: s.limited,
         watchdog_tripped: s.watchdog_tripped,
         rule: s.rule.as_str().to_string(),
+        duty_target: percent(s.duty_target),
+        protections: s.protections.names().map(str::to_string).collect(),
     }
 }
 
@@ -463,6 +468,13 @@ impl ChannelHealth {
             }
             (None, None) => {}
         }
+        if s.e1 && s.protections.max_on {
+            return format!(
+                "E1: max_on_ms cuts the line: {:.1} % cannot be held on that long; it goes off \
+                 for its minimum off time",
+                pct(s.duty_applied)
+            );
+        }
         if s.e1 {
             return format!(
                 "E1: {:.1} % cannot be reproduced because of a minimum time ({}); {:.1} % \
@@ -480,7 +492,7 @@ impl ChannelHealth {
                 pct(s.duty_commanded)
             );
         }
-        if !s.enabled {
+        let state = if !s.enabled {
             "disabled".into()
         } else if s.period == 0 {
             "enabled, no pulses (period 0)".into()
@@ -491,6 +503,17 @@ impl ChannelHealth {
                 ms(s.t_on),
                 ms(s.t_off)
             )
+        };
+        if s.protections.any() {
+            let acting: Vec<&str> = s.protections.names().collect();
+            format!(
+                "{state}; {:.1} % commanded, {:.1} % in force; protections acting: {}",
+                pct(s.duty_commanded),
+                pct(s.duty_target),
+                acting.join(", ")
+            )
+        } else {
+            state
         }
     }
 
@@ -517,12 +540,18 @@ impl ChannelHealth {
                     format!("{:.3}", percent(s.duty_applied)),
                 ),
                 ("command_clamped", s.command_clamped.to_string()),
+                ("duty_target_pct", format!("{:.3}", percent(s.duty_target))),
                 ("period_ms", format!("{:.3}", ms(s.period))),
                 ("on_time_ms", format!("{:.3}", ms(s.t_on))),
                 ("off_time_ms", format!("{:.3}", ms(s.t_off))),
                 ("e1", s.e1.to_string()),
                 ("min_time_limited", s.limited.to_string()),
                 ("rule", s.rule.as_str().to_string()),
+                (
+                    "protections",
+                    s.protections.names().collect::<Vec<_>>().join(","),
+                ),
+                ("ignored_commands", s.ignored_commands.to_string()),
             ]);
         }
         kv.extend([
@@ -583,7 +612,7 @@ impl ChannelHealth {
 mod tests {
     use super::*;
     use crate::core::Level;
-    use crate::core::Rule;
+    use crate::core::{Protections, Rule};
 
     fn status() -> Status {
         Status {
@@ -593,6 +622,7 @@ mod tests {
             duty_commanded: 0.37,
             duty_requested: Command::Percent(37.0),
             command_clamped: false,
+            duty_target: 0.37,
             duty_applied: 0.37,
             period: 1000 * NS_PER_MS,
             t_on: 370 * NS_PER_MS,
@@ -606,6 +636,8 @@ mod tests {
             fault_active: false,
             estopped: false,
             rule: Rule::Exact,
+            protections: Protections::default(),
+            ignored_commands: 0,
         }
     }
 
@@ -701,6 +733,60 @@ mod tests {
         // A command refused after the parameter is the newer news.
         h.last_rejection = Some(("duty command is NaN; last valid command kept".into(), 3_000));
         assert!(h.message(4_000).starts_with("last duty command refused"));
+    }
+
+    #[test]
+    fn the_protections_acting_are_named() {
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(Status {
+            duty_commanded: 1.0,
+            duty_target: 0.6,
+            duty_applied: 0.6,
+            t_on: 600 * NS_PER_MS,
+            t_off: 400 * NS_PER_MS,
+            protections: Protections {
+                max_duty: true,
+                slew: true,
+                ..Protections::default()
+            },
+            ignored_commands: 3,
+            ..status()
+        });
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(
+            d.level,
+            DiagnosticStatus::OK,
+            "they do what they were set for"
+        );
+        assert_eq!(
+            d.message,
+            "enabled, 60.0 % (600.0 ms on / 400.0 ms off); 100.0 % commanded, 60.0 % in \
+             force; protections acting: max_duty, slew"
+        );
+        assert_eq!(kv(&d, "protections"), "max_duty,slew");
+        assert_eq!(kv(&d, "duty_target_pct"), "60.000");
+        assert_eq!(kv(&d, "ignored_commands"), "3");
+        let m = status_msg(0, h.status.as_ref().unwrap(), 0, 0);
+        assert_eq!(m.protections, ["max_duty", "slew"]);
+        assert_eq!(m.duty_target, 60.0);
+        // The maximum on time sets E1: WARN, and the message says why.
+        h.status = Some(Status {
+            e1: true,
+            limited: true,
+            protections: Protections {
+                max_on: true,
+                ..Protections::default()
+            },
+            ..status()
+        });
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(d.level, DiagnosticStatus::WARN);
+        assert!(
+            d.message.starts_with("E1: max_on_ms cuts the line"),
+            "{}",
+            d.message
+        );
+        assert_eq!(kv(&d, "protections"), "max_on");
     }
 
     #[test]

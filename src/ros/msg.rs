@@ -262,15 +262,21 @@ pub struct ChannelStatus {
     pub remaining_on_ms: f64,
     /// Remaining time of the running off step, ms (002's nRemTiOff).
     pub remaining_off_ms: f64,
-    /// E1 (000): the commanded duty could not be reproduced because of a minimum time.
+    /// E1 (000): the commanded duty could not be reproduced because of a minimum time, or
+    /// max_on_ms cuts the line.
     pub e1: bool,
-    /// A pulse or break was raised to its minimum (002's bLmtSwiTi).
+    /// A pulse or break was raised to its minimum (002's bLmtSwiTi), or max_on_ms cuts the
+    /// line.
     pub min_time_limited: bool,
     /// No command for command_timeout_ms: output forced off until the next command.
     pub watchdog_tripped: bool,
     /// The rule that shaped the plan: exact, no_period, suppressed_pulse, suppressed_break,
     /// stretched_pulse, stretched_break, band_low, band_high.
     pub rule: String,
+    /// The command in force after the power limits and the dead band, percent 0..100.
+    pub duty_target: f64,
+    /// The protections of the load acting now: max_on, max_duty, min_duty, slew, deadband.
+    pub protections: Vec<String>,
 }
 ros_message!(ChannelStatus, "pwm_actuator_msgs", "ChannelStatus");
 

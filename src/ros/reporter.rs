@@ -316,7 +316,10 @@ impl Reporter {
                 if self.e1_published[ch] != Some(e1) {
                     self.publish_e1(ch, e1);
                     if e1 {
-                        info!("{name}: E1 set: the duty cannot be reproduced because of a minimum time");
+                        info!(
+                            "{name}: E1 set: the duty cannot be reproduced because of a \
+                             minimum time or max_on_ms"
+                        );
                     } else {
                         info!("{name}: E1 cleared");
                     }

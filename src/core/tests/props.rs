@@ -55,9 +55,10 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
             prop_oneof![2 => Just(0.0f64), 1 => 0.0..=100.0f64],
             prop_oneof![1 => Just(0u64), 1 => 1u64..2000],
         ),
+        arb_protections(),
     )
         .prop_map(
-            |(period_ms, min_on_ms, min_off_ms, kind, profile, sp, e, aa, od, to, (fd, fh))| ChannelParams {
+            |(period_ms, min_on_ms, min_off_ms, kind, profile, sp, e, aa, od, to, (fd, fh), pr)| ChannelParams {
                 period_ms,
                 min_on_ms,
                 min_off_ms,
@@ -70,9 +71,31 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
                 command_timeout_ms: to,
                 fault_duty_pct: fd,
                 fault_hold_ms: fh,
+                // Never below the minimum on time it must respect (the relay floor included).
+                max_on_ms: if pr.0 == 0 { 0 } else { pr.0.max(min_on_ms).max(50) },
+                max_duty_pct: pr.1.0,
+                min_duty_pct: pr.1.1,
+                zero_means_zero: pr.2,
+                duty_slew_pct_per_s: pr.3,
+                duty_deadband_pct: pr.4,
             },
         )
         .prop_filter("valid parameters", |p| p.validate().is_ok())
+}
+
+/// The load's protections: max on time (ms), (max, min) duty (%), zero means zero, slew (%/s),
+/// dead band (%); each off half of the time or more.
+fn arb_protections() -> impl Strategy<Value = (u64, (f64, f64), bool, f64, f64)> {
+    (
+        prop_oneof![2 => Just(0u64), 1 => 1u64..3000],
+        prop_oneof![
+            2 => Just((100.0, 0.0)),
+            1 => (0.0..=100.0f64, 0.0..=100.0f64).prop_map(|(a, b)| (a.max(b), a.min(b))),
+        ],
+        any::<bool>(),
+        prop_oneof![2 => Just(0.0f64), 1 => 0.0..500.0f64],
+        prop_oneof![2 => Just(0.0f64), 1 => 0.0..20.0f64],
+    )
 }
 
 fn arb_op() -> impl Strategy<Value = Op> {
@@ -153,6 +176,18 @@ fn timed_edges(b: &Bench) -> Vec<(Nanos, Level, bool)> {
     out
 }
 
+/// The maximum on time in force during [a, b], if one and the same non-zero maximum was in
+/// force throughout.
+fn max_on_during(history: &[(Nanos, ChannelConfig)], a: Nanos, b: Nanos) -> Option<Nanos> {
+    let first = history.iter().rposition(|(t, _)| *t <= a).unwrap_or(0);
+    let mut values = history[first..]
+        .iter()
+        .take_while(|(t, _)| *t <= b)
+        .map(|(_, c)| c.max_on);
+    let v = values.next()?;
+    (v > 0 && values.all(|x| x == v)).then_some(v)
+}
+
 /// The smallest minimum (on or off) of any configuration in force during [a, b].
 fn min_during(history: &[(Nanos, ChannelConfig)], a: Nanos, b: Nanos, on: bool) -> Nanos {
     let first = history.iter().rposition(|(t, _)| *t <= a).unwrap_or(0);
@@ -199,9 +234,11 @@ proptest! {
         ops in prop::collection::vec(
             ((0u64..1_500_000).prop_map(|us| us * 1000), arb_percent()), 1..40),
     ) {
+        // The maximum on time cuts the line off the grid; the rest keeps it.
         let params = ChannelParams {
             apply_at: Some(ApplyAt::NextPeriod),
             command_timeout_ms: 0,
+            max_on_ms: 0,
             ..start
         };
         let period = params.period_ms * MS;
@@ -222,19 +259,28 @@ proptest! {
     }
 
     /// Over N periods of a constant command the delivered on time is exactly N times the
-    /// reproducible on time (integer ns), under every policy; and E1 is set exactly when the
-    /// delivered on time differs from the commanded one for a minimum-time reason.
+    /// reproducible on time (integer ns) of the command after the power limits, under every
+    /// policy; and E1 is set exactly when the delivered on time differs from the limited one
+    /// for a minimum-time reason.
     #[test]
     fn delivered_on_time_is_exact_and_e1_means_not_reproduced(
         start in arb_params().prop_filter("pulsing", |p| p.period_ms > 0),
         pct in arb_percent().prop_filter("finite", |v| v.is_finite()),
         n in 1u64..20,
     ) {
-        let params = ChannelParams { command_timeout_ms: 0, ..start };
+        // The power limits stay; the maximum on time, slew and dead band act over time.
+        let params = ChannelParams {
+            command_timeout_ms: 0,
+            max_on_ms: 0,
+            duty_slew_pct_per_s: 0.0,
+            duty_deadband_pct: 0.0,
+            ..start
+        };
         let cfg = params.validate().unwrap();
         let mut b = Bench::new(params);
         b.duty(pct).enable();
-        let duty = b.status().duty_commanded;
+        let duty = cfg.limit_duty(b.status().duty_commanded);
+        prop_assert_eq!(b.status().duty_target, duty);
         let plan = Plan::new(duty, &cfg);
         b.run_to(n * cfg.period);
         prop_assert_eq!(b.on_time(0, n * cfg.period), n * plan.t_on);
@@ -303,21 +349,28 @@ proptest! {
         let mut k = 0usize;
         // (written at, level, governed)
         let mut line: Vec<(Nanos, Level, bool)> = Vec::new();
+        // Falls: (written at, scheduled at, merged with other edges by a late poll).
+        let mut falls: Vec<(Nanos, Nanos, bool)> = Vec::new();
         let mut history = vec![(0, *ch.config())];
         // PWM_TRACE=1 puts the whole run in the failure message.
         let trace = std::env::var_os("PWM_TRACE").is_some();
         let mut dbg_log: Vec<String> = Vec::new();
         let write = |ch: &mut Channel, at: Nanos, events: &[Event], forced_cause: bool,
-                         line: &mut Vec<(Nanos, Level, bool)>, k: &mut usize| -> Nanos {
+                         line: &mut Vec<(Nanos, Level, bool)>,
+                         falls: &mut Vec<(Nanos, Nanos, bool)>, k: &mut usize| -> Nanos {
             let tripped = events.contains(&Event::Watchdog { tripped: true });
+            let merged = events.iter().any(|e| matches!(e, Event::Missed { .. }));
             let mut written = at;
             for e in events {
-                if let Event::Edge { level, .. } = e {
+                if let Event::Edge { level, at: scheduled } = e {
                     written = at + delays[*k % delays.len()].1;
                     *k += 1;
                     ch.edge_written(written);
                     let forced = *level == Level::Low && (forced_cause || tripped);
                     line.push((written, *level, !forced));
+                    if *level == Level::Low {
+                        falls.push((written, *scheduled, merged));
+                    }
                 }
             }
             written
@@ -332,7 +385,7 @@ proptest! {
                 let mut ev = Vec::new();
                 ch.poll(wake, &mut |e| ev.push(e));
                 if trace { dbg_log.push(format!("poll d={} wake={} {:?} since={:?}", d/1000, wake/1000, ev, ch.line_since())); }
-                now = write(&mut ch, wake, &ev, false, &mut line, &mut k);
+                now = write(&mut ch, wake, &ev, false, &mut line, &mut falls, &mut k);
                 history.push((now, *ch.config()));
             }
             let t = target.max(now);
@@ -356,7 +409,7 @@ proptest! {
                 }
             }
             if trace { dbg_log.push(format!("op t={} {:?} {:?}", t/1000, op, ev)); }
-            now = write(&mut ch, t, &ev, disable, &mut line, &mut k);
+            now = write(&mut ch, t, &ev, disable, &mut line, &mut falls, &mut k);
             history.push((now, *ch.config()));
         }
         for w in line.windows(2) {
@@ -369,6 +422,51 @@ proptest! {
                     "{} of {} us written at {} us is below the minimum {} us\n{}",
                     if la.is_high() { "pulse" } else { "break" },
                     (z - a) / 1000, a / 1000, min / 1000, dbg_log.join("\n")
+                );
+            }
+            // The maximum on time counts from the real rise: the cut is scheduled no later
+            // than max_on_ms after the instant the rise was written (unless a late poll
+            // merged it with later edges), while one maximum stays in force.
+            if la == Level::High {
+                let fall = falls.iter().find(|f| f.0 == z).copied();
+                let max_on = max_on_during(&history, a, z);
+                if let (Some((_, scheduled, false)), Some(max_on)) = (fall, max_on) {
+                    prop_assert!(
+                        scheduled <= a + max_on,
+                        "high written at {} us, its fall scheduled at {} us: beyond max_on {} us\n{}",
+                        a / 1000, scheduled / 1000, max_on / 1000, dbg_log.join("\n")
+                    );
+                }
+            }
+        }
+    }
+
+    /// The maximum on time (issue 12): no high run on the line lasts longer than `max_on_ms`
+    /// from its rise, whatever commands (100 % included), enables, parameters and policies come
+    /// in between. A maximum set or shortened during a run cuts it when it comes into force at
+    /// the latest.
+    #[test]
+    fn no_high_run_longer_than_max_on(start in arb_params(), ops in arb_ops()) {
+        let (b, history) = play(start, &ops);
+        let mut runs = Vec::new();
+        let mut rise = None;
+        for (t, level) in b.edges() {
+            match level {
+                Level::High => rise = Some(t),
+                Level::Low => runs.extend(rise.take().map(|a| (a, t))),
+            }
+        }
+        runs.extend(rise.map(|a| (a, b.now)));
+        for (a, z) in runs {
+            // The configuration in force at the end of the run, and since when.
+            let i = history.iter().rposition(|(t, _)| *t < z).unwrap_or(0);
+            let (since, cfg) = history[i];
+            if cfg.max_on > 0 {
+                let bound = (a + cfg.max_on).max(since);
+                prop_assert!(
+                    z <= bound,
+                    "high from {} us to {} us: beyond max_on {} us (in force since {} us)",
+                    a / 1000, z / 1000, cfg.max_on / 1000, since / 1000
                 );
             }
         }

@@ -1013,3 +1013,269 @@ fn a_held_line_stays_low_while_the_schedule_runs_and_follows_it_when_live() {
     b.live(false).at(4000.0);
     assert_eq!(b.wave(), "H@1250 L@1500 H@2000 L@2500 H@3000 L@3100");
 }
+
+// ---- issue 12: protections of the load ---------------------------------------------------------
+
+#[test]
+fn max_on_cuts_a_line_stuck_at_100_percent_and_keeps_it_off_for_min_off() {
+    // A controller stuck at 100 %: the line goes off after max_on_ms 2.5 s for its 100 ms
+    // minimum break, then on again, and so on. E1 and the limit flag say so from the start
+    // (100 % cannot be delivered), unlike a plain 100 %.
+    let mut b = Bench::new(with(|p| {
+        p.min_on_ms = 100;
+        p.max_on_ms = 2500;
+    }));
+    b.duty(100.0).enable().at(5500.0);
+    assert_eq!(b.wave(), "H@0 L@2500 H@2600 L@5100 H@5200");
+    assert!(b.notes().contains(&(
+        0,
+        Event::Flags {
+            e1: true,
+            limited: true
+        }
+    )));
+    let s = b.status();
+    assert!(s.e1 && s.limited && s.protections.max_on, "{s:?}");
+    assert_eq!(s.protections.names().collect::<Vec<_>>(), ["max_on"]);
+    // 50 % from the next period: the pulses fit, but E1 stays for the period after the last
+    // cut (at 5100 ms, in the period from 5000 ms) and clears at 7000 ms.
+    b.duty(50.0).at(7900.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@2500 H@2600 L@5100 H@5200 L@6500 H@7000 L@7500"
+    );
+    assert!(b.notes().contains(&(
+        7000 * MS,
+        Event::Flags {
+            e1: false,
+            limited: false
+        }
+    )));
+    assert!(!b.status().protections.max_on);
+}
+
+#[test]
+fn max_on_cuts_a_pulse_longer_than_itself_inside_the_period() {
+    // 90 % of 10 s is a 9 s pulse; max_on_ms 3 s cuts it, the 500 ms minimum break follows,
+    // and the schedule's own fall at 9 s ends the last piece.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 10_000;
+        p.min_on_ms = 500;
+        p.max_on_ms = 3000;
+    }));
+    b.duty(90.0).enable().at(10_500.0);
+    assert_eq!(b.wave(), "H@0 L@3000 H@3500 L@6500 H@7000 L@9000 H@10000");
+    assert!(b.status().e1);
+    assert!(
+        !b.notes()
+            .iter()
+            .any(|(_, e)| matches!(e, Event::Missed { .. })),
+        "a cut is not a missed edge"
+    );
+}
+
+#[test]
+fn max_on_leaves_pulses_within_it_alone() {
+    let mut b = Bench::new(with(|p| p.max_on_ms = 600));
+    b.duty(50.0).enable().at(1500.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@1000 L@1500");
+    let s = b.status();
+    assert!(!s.e1 && !s.limited && !s.protections.any(), "{s:?}");
+}
+
+#[test]
+fn max_on_counts_from_the_real_rise() {
+    // The rise reached the line 30 ms late: the cut comes 2.5 s after that, not after the
+    // scheduled rise.
+    let mut b = Bench::new(with(|p| p.max_on_ms = 2500));
+    b.duty(100.0).enable();
+    b.ch.edge_written(30 * MS);
+    b.at(2600.0);
+    assert_eq!(b.wave(), "H@0 L@2530 H@2530.1");
+}
+
+#[test]
+fn max_on_switches_off_a_line_held_on_for_good_004() {
+    // 004's hold keeps the line on after a disable; max_on_ms still cuts it, and with the
+    // channel disabled nothing switches it on again.
+    let mut b = Bench::new(with(|p| {
+        p.profile = Profile::FrequencyOutput;
+        p.max_on_ms = 2500;
+    }));
+    b.duty(100.0).enable().at(500.0).disable().at(10_000.0);
+    assert_eq!(b.wave(), "H@0 L@2500");
+}
+
+#[test]
+fn a_shorter_max_on_cuts_a_long_run_when_it_comes_into_force() {
+    // Set while the line has been on for 3.2 s: it takes effect at the next period boundary
+    // (next_period), and the line has been on longer than 1 s by then: it goes off there.
+    let mut b = Bench::new(p());
+    b.duty(100.0).enable().at(3200.0);
+    b.params(with(|p| p.max_on_ms = 1000)).at(4500.0);
+    assert_eq!(b.wave(), "H@0 L@4000 H@4000.1");
+}
+
+#[test]
+fn max_duty_limits_the_command_before_the_minimum_time_rules() {
+    // A heater's maximum power: 100 % commanded, 60 % applied; no E1, the plan is exact.
+    let mut b = Bench::new(with(|p| p.max_duty_pct = 60.0));
+    b.duty(100.0).enable().at(1700.0);
+    assert_eq!(b.wave(), "H@0 L@600 H@1000 L@1600");
+    let s = b.status();
+    assert_eq!(
+        (s.duty_commanded, s.duty_target, s.duty_applied),
+        (1.0, 0.6, 0.6)
+    );
+    assert!(s.protections.max_duty && !s.e1, "{s:?}");
+    // The minimum-time rules act on the limited duty: 95 % leaves a 50 ms break, below the
+    // 100 ms minimum, so suppress keeps the line on for the period, with E1.
+    let mut b = Bench::new(with(|p| {
+        p.min_on_ms = 100;
+        p.max_duty_pct = 95.0;
+    }));
+    b.duty(100.0).enable().at(1500.0);
+    assert_eq!(b.wave(), "H@0");
+    assert_eq!(b.status().rule, Rule::SuppressedBreak);
+}
+
+#[test]
+fn min_duty_raises_small_commands_and_zero_unless_zero_means_zero() {
+    let mut b = Bench::new(with(|p| p.min_duty_pct = 20.0));
+    b.duty(5.0).enable().at(1500.0);
+    assert_eq!(b.wave(), "H@0 L@200 H@1000 L@1200");
+    assert!(b.status().protections.min_duty);
+    // 0 % is raised too (the load keeps its minimum while enabled)...
+    b.duty(0.0).at(2500.0);
+    assert_eq!(b.wave(), "H@0 L@200 H@1000 L@1200 H@2000 L@2200");
+    // ...unless zero_means_zero: then 0 % is off, and 5 % is still 20 %.
+    let mut b = Bench::new(with(|p| {
+        p.min_duty_pct = 20.0;
+        p.zero_means_zero = true;
+    }));
+    b.duty(0.0).enable().at(1500.0);
+    assert_eq!(b.wave(), "");
+    assert!(!b.status().protections.any());
+    b.duty(5.0).at(2500.0);
+    assert_eq!(b.wave(), "H@2000 L@2200");
+    // The minimum-time rules act on the raised duty: 20 % of 100 ms is 20 ms < 30 ms.
+    let mut b = Bench::new(with(|p| {
+        p.period_ms = 100;
+        p.min_on_ms = 30;
+        p.min_duty_pct = 20.0;
+    }));
+    b.duty(1.0).enable().at(250.0);
+    assert_eq!(b.wave(), "");
+    assert_eq!(b.status().rule, Rule::SuppressedPulse);
+}
+
+#[test]
+fn the_fault_value_is_limited_by_max_duty_too() {
+    let mut b = Bench::new(with(|p| {
+        p.command_timeout_ms = 1500;
+        p.fault_duty_pct = 80.0;
+        p.max_duty_pct = 50.0;
+    }));
+    b.duty(30.0).enable().at(1600.0);
+    let s = b.status();
+    assert!(s.fault_active, "{s:?}");
+    assert_eq!((s.duty_applied, s.t_on), (0.5, 500 * MS));
+}
+
+#[test]
+fn slew_ramps_the_duty_from_each_enable_soft_start() {
+    // 10 %/s at T = 1 s: the duty applied rises 10 % a period toward 35 %, from 0 at the
+    // enable, and falls the same way; exact in virtual time.
+    let mut b = Bench::new(with(|p| p.duty_slew_pct_per_s = 10.0));
+    b.duty(35.0).enable().at(2500.0);
+    let s = b.status();
+    assert!(s.protections.slew, "{s:?}");
+    assert_eq!((s.duty_target, s.duty_applied), (0.35, 0.2));
+    b.at(5500.0);
+    assert_eq!(
+        b.wave(),
+        "H@1000 L@1100 H@2000 L@2200 H@3000 L@3300 H@4000 L@4350 H@5000 L@5350"
+    );
+    assert!(!b.status().protections.slew);
+    b.duty(5.0).at(8500.0);
+    assert_eq!(
+        &b.wave()[b.wave().find("H@6000").unwrap()..],
+        "H@6000 L@6250 H@7000 L@7150 H@8000 L@8050"
+    );
+    // A disable is a safety off, at once; the next enable ramps from 0 again.
+    b.at(9020.0)
+        .duty(35.0)
+        .disable()
+        .at(10_000.0)
+        .enable()
+        .at(12_500.0);
+    assert_eq!(
+        &b.wave()[b.wave().find("H@9000").unwrap()..],
+        "H@9000 L@9020 H@11000 L@11100 H@12000 L@12200"
+    );
+}
+
+#[test]
+fn a_change_inside_the_dead_band_is_ignored() {
+    // Relay wear: with a 5 % band, 53 % after 50 % changes nothing; 56 % does. A change of
+    // exactly the band passes, as do 0 % and the maximum.
+    let mut b = Bench::new(with(|p| p.duty_deadband_pct = 5.0));
+    b.duty(50.0).enable().at(500.0);
+    b.duty(53.0).at(1600.0);
+    assert_eq!(b.wave(), "H@0 L@500 H@1000 L@1500");
+    let s = b.status();
+    assert_eq!((s.duty_commanded, s.duty_target), (0.53, 0.5));
+    assert!(s.protections.deadband && s.ignored_commands == 1, "{s:?}");
+    b.duty(56.0).at(2600.0);
+    assert!(!b.status().protections.deadband);
+    // 52 % is 4 % away: ignored; 51 % is exactly the band: taken.
+    b.duty(52.0).duty(51.0).at(3600.0);
+    assert_eq!(b.status().ignored_commands, 2);
+    // 47 % is ignored; 0 % always passes.
+    b.duty(47.0).duty(0.0).at(4600.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@500 H@1000 L@1500 H@2000 L@2560 H@3000 L@3510"
+    );
+    assert_eq!(b.status().ignored_commands, 3);
+    // 2 % is ignored; 100 % (the maximum) always passes.
+    b.duty(2.0).duty(100.0).at(5500.0);
+    assert_eq!(b.status().ignored_commands, 4);
+    assert!(b.wave().ends_with("L@3510 H@5000"), "{}", b.wave());
+}
+
+#[test]
+fn an_ignored_command_still_feeds_the_watchdog() {
+    let mut b = Bench::new(with(|p| {
+        p.duty_deadband_pct = 5.0;
+        p.command_timeout_ms = 1000;
+    }));
+    b.duty(50.0).enable().at(800.0).duty(51.0).at(2000.0);
+    let trips: Vec<_> = b
+        .notes()
+        .into_iter()
+        .filter(|(_, e)| *e == Event::Watchdog { tripped: true })
+        .map(|(t, _)| t)
+        .collect();
+    assert_eq!(trips, [1800 * MS]);
+}
+
+#[test]
+fn slew_ramps_again_when_pulses_restart_from_period_zero() {
+    // Period 0 holds the line off; when a period is set again the ramp starts there, not
+    // from the time the pulses stopped.
+    let mut b = Bench::new(with(|p| p.duty_slew_pct_per_s = 50.0));
+    b.duty(100.0).enable().at(3500.0);
+    assert_eq!(b.wave(), "H@1000 L@1500 H@2000");
+    b.params(with(|p| {
+        p.period_ms = 0;
+        p.duty_slew_pct_per_s = 50.0;
+    }))
+    .at(10_000.0);
+    b.params(with(|p| p.duty_slew_pct_per_s = 50.0))
+        .at(12_600.0);
+    assert_eq!(
+        b.wave(),
+        "H@1000 L@1500 H@2000 L@4000 H@11000 L@11500 H@12000"
+    );
+}

@@ -11,7 +11,9 @@
 use super::{ParamType, Range, DEFAULT_CHANNELS, MAX_CHANNELS, MAX_STATUS_RATE_HZ};
 use super::{ParameterValue as V, MIN_STATUS_RATE_HZ};
 use super::{MAX_HEARTBEAT_HZ, MIN_HEARTBEAT_HZ};
-use crate::core::config::{ShortStr, UnknownName, MAX_PERIOD_MS, MAX_TIMEOUT_MS};
+use crate::core::config::{
+    ShortStr, UnknownName, MAX_ON_MS, MAX_PERIOD_MS, MAX_SLEW_PCT_PER_S, MAX_TIMEOUT_MS,
+};
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Profile, ShortPulse};
 use crate::ros::msg;
 use crate::ros::node_state::{DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW};
@@ -117,6 +119,13 @@ fn policy<T: FromStr<Err = UnknownName>>(v: &V) -> Result<Option<T>, UnknownName
     match text(v) {
         "" => Ok(None),
         s => s.parse().map(Some),
+    }
+}
+
+fn double(v: &V) -> f64 {
+    match v {
+        V::Double(x) => *x,
+        _ => 0.0,
     }
 }
 
@@ -357,10 +366,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             range: Range::Double(0.0, 1.0),
             checked: Checked::Core,
             core: Some(|c, v| {
-                c.edge_band = match v {
-                    V::Double(x) => *x,
-                    _ => 0.0,
-                };
+                c.edge_band = double(v);
                 Ok(())
             }),
             msg: Some(|m| V::Double(m.edge_band)),
@@ -413,10 +419,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             range: Range::Double(0.0, 100.0),
             checked: Checked::Core,
             core: Some(|c, v| {
-                c.fault_duty_pct = match v {
-                    V::Double(x) => *x,
-                    _ => 0.0,
-                };
+                c.fault_duty_pct = double(v);
                 Ok(())
             }),
             ..Decl::new("fault_duty_pct", Double, || {
@@ -458,6 +461,95 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             range: Range::Double(0.0, MAX_EXPECTED_COMMAND_HZ),
             note: " (0 = no upper bound)",
             ..Decl::new("expected_command_hz_max", Double, || V::Double(0.0))
+        },
+        Decl {
+            description: "Maximum continuous on time of the line, ms: a line high this long \
+                          goes off for at least its minimum off time, then follows its \
+                          schedule again, with E1 and the limit flag (a guard against a \
+                          controller stuck at 100 %). 0: off.",
+            constraints: "0, or at least the minimum on time in force; takes effect at the \
+                          next period boundary",
+            range: Range::Integer(0, MAX_ON_MS as i64),
+            checked: Checked::Core,
+            note: " (0 = off)",
+            core: Some(|c, v| {
+                c.max_on_ms = ms(v);
+                Ok(())
+            }),
+            ..Decl::new("max_on_ms", Integer, || {
+                V::Integer(core_defaults().max_on_ms as i64)
+            })
+        },
+        Decl {
+            description: "Highest duty applied, percent 0..100: a command above it is limited \
+                          to it, after clamping and before the minimum-time rules; it limits \
+                          the fault value too (a heater's maximum power). 100: off.",
+            constraints: "at least min_duty_pct; takes effect at the next period boundary",
+            range: Range::Double(0.0, 100.0),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.max_duty_pct = double(v);
+                Ok(())
+            }),
+            ..Decl::new("max_duty_pct", Double, || {
+                V::Double(core_defaults().max_duty_pct)
+            })
+        },
+        Decl {
+            description: "Lowest duty applied, percent 0..100: a command below it is raised \
+                          to it, 0 % included unless zero_means_zero. 0: off.",
+            constraints: "at most max_duty_pct; takes effect at the next period boundary",
+            range: Range::Double(0.0, 100.0),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.min_duty_pct = double(v);
+                Ok(())
+            }),
+            ..Decl::new("min_duty_pct", Double, || {
+                V::Double(core_defaults().min_duty_pct)
+            })
+        },
+        Decl {
+            description: "A duty command of 0 % stays 0 %, whatever min_duty_pct.",
+            constraints: "takes effect at the next period boundary",
+            core: Some(|c, v| {
+                c.zero_means_zero = matches!(v, V::Boolean(true));
+                Ok(())
+            }),
+            ..Decl::new("zero_means_zero", Bool, || {
+                V::Boolean(core_defaults().zero_means_zero)
+            })
+        },
+        Decl {
+            description: "Slew limit, percent per second: the duty applied moves toward the \
+                          command at most this fast, both ways, from 0 at each enable (soft \
+                          start); safety offs still act at once. 0: off.",
+            constraints: "takes effect at the next period boundary",
+            range: Range::Double(0.0, MAX_SLEW_PCT_PER_S),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.duty_slew_pct_per_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("duty_slew_pct_per_s", Double, || {
+                V::Double(core_defaults().duty_slew_pct_per_s)
+            })
+        },
+        Decl {
+            description: "Dead band, percent 0..100: a duty command whose duty (after the \
+                          power limits) differs from the one in force by less is ignored \
+                          (relay wear); it still feeds the watchdog. 0 %, min_duty_pct and \
+                          max_duty_pct always pass. 0: off.",
+            constraints: "takes effect at the next period boundary",
+            range: Range::Double(0.0, 100.0),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.duty_deadband_pct = double(v);
+                Ok(())
+            }),
+            ..Decl::new("duty_deadband_pct", Double, || {
+                V::Double(core_defaults().duty_deadband_pct)
+            })
         },
         Decl {
             description: "Invert the electrical level of the output line.",

@@ -1,0 +1,218 @@
+"""The protections of the load (issue 12), proved from outside: rclpy clients command the built
+node over ROS, set the protections as parameters, and read what the node did in its CSV trace,
+on `~/<ch>/status` and on `/diagnostics`.
+
+As in test_channel_rules.py, instants the core chose are checked on the trace's `scheduled_ns`
+to the nanosecond; an instant the core counts from a real edge (the maximum on time runs from
+the real rise, the minimum break from the real cut) is checked against that edge's written time
+`t_ns`, within the few µs between the write and the clock read after it.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from helpers_rules import (
+    MS,
+    NODE,
+    Edge,
+    diag_level,
+    diag_values,
+    mono_ns,
+    pulses,
+    t_on_ns,
+    wait_trace,
+)
+from test_channel_rules import (
+    REAL_EDGE_SLACK_NS,
+    assert_constant,
+    assert_pwm,
+    close,
+    close_trace,
+    close_all_traces,
+    observe_until,
+    start,
+    window_after,
+)
+
+OK, WARN = 0, 1
+
+
+def counted_from(edge: Edge, later: Edge, length_ns: int) -> bool:
+    """Whether `later` is scheduled `length_ns` after the instant `edge` really reached the line
+    (its written time, up to the slack of the clock read after the write)."""
+    gap = later.scheduled_ns - edge.t_ns
+    return length_ns <= gap <= length_ns + REAL_EDGE_SLACK_NS
+
+
+def high_runs(edges: Sequence[Edge]) -> list[tuple[Edge, Edge]]:
+    """(rise, fall) of every complete high run, the initial row excluded."""
+    return pulses(edges[1:])
+
+
+# ---------------------------------------------------------------------------------------------
+# Maximum on time
+# ---------------------------------------------------------------------------------------------
+
+
+def test_max_on_cuts_a_line_stuck_at_100_percent(node_process, ros):
+    """A controller stuck at 100 %: with max_on_ms 500 the line goes off 500 ms after each real
+    rise, stays off for its 50 ms minimum break (counted from the real cut), and comes on again;
+    no high run on the line is longer than 500 ms. E1 and the limit flag are set, status and
+    diagnostics name `max_on`, and diagnostics WARN."""
+    proc, ch = start(node_process, ros, pw01__period_ms=200, pw01__min_on_ms=50,
+                     pw01__max_on_ms=500)
+    ch.duty(100.0)
+    on = ch.enable(True)
+    assert on.reply.e1 and on.reply.min_time_limited, on.reply
+    assert list(on.reply.protections) == ["max_on"], on.reply
+    edges = wait_trace(proc, lambda es: len(high_runs(es)) >= 3, "three cuts",
+                       spin=ch.ros.spin_once, timeout=10.0)
+    ch.wait_e1(True, "max_on_ms acts at 100 %")
+    d = ch.wait_diag(lambda d: diag_values(d).get("protections") == "max_on", "max_on acting")
+    assert diag_level(d) == WARN and d.message.startswith("E1: max_on_ms"), d
+    edges = close_trace(proc)
+    # The shutdown ends the last run, if it was high.
+    runs = [r for r in high_runs(edges) if r[1] is not edges[-1]]
+    assert len(runs) >= 3, edges
+    for rise, fall in runs:
+        assert counted_from(rise, fall, 500 * MS), (
+            f"cut {(fall.scheduled_ns - rise.t_ns) / MS:.3f} ms after the real rise, expected "
+            "500 ms"
+        )
+        assert fall.t_ns - rise.t_ns <= 500 * MS + 20 * MS, "a written high run beyond max_on"
+    for (_, fall), (rise, _) in zip(runs, runs[1:]):
+        assert counted_from(fall, rise, 50 * MS), (
+            f"break of {(rise.scheduled_ns - fall.t_ns) / MS:.3f} ms after the real cut, "
+            "expected the 50 ms minimum"
+        )
+
+
+def test_max_on_leaves_pulses_within_it_alone(node_process, ros):
+    """50 % of 200 ms is 100 ms on: max_on_ms 150 never acts, no E1, no protection named."""
+    proc, ch = start(node_process, ros, pw01__period_ms=200, pw01__max_on_ms=150,
+                     pw01__enable=True)
+    sent = ch.duty(50.0)
+    assert not sent.reply.e1 and list(sent.reply.protections) == [], sent.reply
+    window = window_after(sent, 4, 200)
+    observe_until(ch, window[1] + 200 * MS)
+    edges = close_trace(proc)
+    assert_pwm(edges, *window, 200, 100 * MS, "50 % within max_on_ms")
+
+
+# ---------------------------------------------------------------------------------------------
+# Power limits
+# ---------------------------------------------------------------------------------------------
+
+
+def test_power_limits_and_zero_means_zero(node_process, ros):
+    """pw01, max_duty_pct 60: 100 % commanded gives exactly 60 % (120 ms of 200 ms), status
+    duty_target 60 with `max_duty`, diagnostics OK naming it. pw02, min_duty_pct 20: 0 % gives
+    20 % (40 ms); zero_means_zero set over the parameter services makes 0 % off."""
+    period = 200
+    proc, a, b = start(node_process, ros, channels=("pw01", "pw02"),
+                       pw01__period_ms=period, pw01__max_duty_pct=60.0, pw01__enable=True,
+                       pw02__period_ms=period, pw02__min_duty_pct=20.0, pw02__enable=True)
+    sa = a.duty(100.0, confirm=lambda s: close(s.duty_commanded, 100.0)
+                and close(s.duty_applied, 60.0))
+    assert close(sa.reply.duty_target, 60.0) and list(sa.reply.protections) == ["max_duty"]
+    assert not sa.reply.e1, sa.reply
+    d = a.wait_diag(lambda d: diag_values(d).get("protections") == "max_duty", "max_duty")
+    assert diag_level(d) == OK and "protections acting: max_duty" in d.message, d
+    assert diag_values(d)["duty_target_pct"] == "60.000", d
+    sb = b.duty(0.0, confirm=lambda s: s.enabled and close(s.duty_applied, 20.0))
+    assert list(sb.reply.protections) == ["min_duty"], sb.reply
+    wa, wb = window_after(sa, 3, period), window_after(sb, 3, period)
+    observe_until(a, max(wa[1], wb[1]) + period * MS)
+    result = ros.set_parameters(NODE, {"pw02.zero_means_zero": True})["pw02.zero_means_zero"]
+    assert result.successful, result.reason
+    changed = mono_ns()
+    off = b.wait_status(lambda s: close(s.duty_target, 0.0) and close(s.duty_applied, 0.0),
+                        "0 % off with zero_means_zero", start=len(b.status.messages))
+    assert list(off.protections) == [], off
+    quiet = (mono_ns() + period * MS, mono_ns() + 4 * period * MS)
+    observe_until(a, quiet[1])
+    traces = close_all_traces(proc, ("pw01", "pw02"))
+    assert_pwm(traces["pw01"], *wa, period, t_on_ns(0.6, period), "max_duty_pct 60, 100 %")
+    assert_pwm(traces["pw02"], *wb, period, t_on_ns(0.2, period), "min_duty_pct 20, 0 %")
+    assert wb[1] < changed
+    assert_constant(traces["pw02"], *quiet, 0, "0 % with zero_means_zero")
+
+
+def test_out_of_range_protections_are_refused(node_process, ros):
+    """The core judges the protections: max_on_ms below the minimum on time, min_duty_pct above
+    max_duty_pct and a negative slew are refused with the reason; the old values stay."""
+    proc, ch = start(node_process, ros, pw01__min_on_ms=100)
+    r = ros.set_parameters(NODE, {"pw01.max_on_ms": 50})["pw01.max_on_ms"]
+    assert not r.successful and "below the minimum on time of 100 ms" in r.reason, r.reason
+    r = ros.set_parameters_atomically(NODE, {"pw01.min_duty_pct": 70.0,
+                                             "pw01.max_duty_pct": 60.0})
+    assert not r.successful and "min_duty_pct 70 is above max_duty_pct 60" in r.reason, r.reason
+    r = ros.set_parameters(NODE, {"pw01.duty_slew_pct_per_s": -1.0})["pw01.duty_slew_pct_per_s"]
+    assert not r.successful, r.reason
+    values = ros.get_parameters(NODE, ["pw01.max_on_ms", "pw01.min_duty_pct",
+                                       "pw01.max_duty_pct", "pw01.duty_slew_pct_per_s"])
+    assert values == {"pw01.max_on_ms": 0, "pw01.min_duty_pct": 0.0,
+                      "pw01.max_duty_pct": 100.0, "pw01.duty_slew_pct_per_s": 0.0}
+    close_trace(proc)
+
+
+# ---------------------------------------------------------------------------------------------
+# Slew limit and dead band
+# ---------------------------------------------------------------------------------------------
+
+
+def test_slew_ramps_the_duty_from_the_enable(node_process, ros):
+    """Soft start: 50 %/s at a 200 ms period is 10 % a period. After the enable the first period
+    has no pulse, then the pulses grow by exactly 20 ms a period on the grid (20, 40, 60, 80 ms)
+    up to the 45 % commanded (90 ms); status shows `slew` while it ramps."""
+    period = 200
+    proc, ch = start(node_process, ros, pw01__period_ms=period,
+                     pw01__duty_slew_pct_per_s=50.0)
+    ch.duty(45.0)
+    start_from = len(ch.status.messages)
+    on = ch.enable(True)
+    ramping = ch.wait_status(lambda s: "slew" in s.protections and s.duty_applied > 0.0,
+                             "ramping", start=start_from)
+    assert close(ramping.duty_target, 45.0) and ramping.duty_applied < 45.0, ramping
+    ch.wait_status(lambda s: close(s.duty_applied, 45.0) and list(s.protections) == [],
+                   "45 % reached", start=start_from)
+    observe_until(ch, mono_ns() + 3 * period * MS)
+    edges = close_trace(proc)
+    runs = [p for p in high_runs(edges) if p[0].scheduled_ns >= on.first_publish_ns]
+    expected, duty = [], 0.0
+    for _ in range(6):
+        duty = min(duty + 50.0 / 100.0 * (period * MS) / 1e9, 0.45)
+        expected.append(t_on_ns(duty, period))
+    got = [f.scheduled_ns - r.scheduled_ns for r, f in runs[:6]]
+    assert got == expected, f"pulses {[g / MS for g in got]} ms, expected ramp " \
+        f"{[e / MS for e in expected]} ms"
+    r0 = runs[0][0].scheduled_ns
+    assert all((r.scheduled_ns - r0) % (period * MS) == 0 for r, _ in runs), "off the grid"
+    # The first period after the enable had no pulse: the ramp starts at 0.
+    assert on.first_publish_ns + period * MS <= r0 <= on.confirmed_ns + period * MS, (
+        (r0 - on.first_publish_ns) / MS
+    )
+
+
+def test_a_change_inside_the_dead_band_is_ignored(node_process, ros):
+    """duty_deadband_pct 5: after 50 %, 53 % changes nothing (the pulses stay 100 ms of 200 ms;
+    status says `deadband`, diagnostics count one ignored command); 56 % is taken (112 ms)."""
+    period = 200
+    proc, ch = start(node_process, ros, pw01__period_ms=period, pw01__duty_deadband_pct=5.0,
+                     pw01__enable=True)
+    ch.duty(50.0)
+    ignored = ch.duty(53.0)
+    assert close(ignored.reply.duty_target, 50.0), ignored.reply
+    assert list(ignored.reply.protections) == ["deadband"], ignored.reply
+    d = ch.wait_diag(lambda d: diag_values(d).get("ignored_commands") == "1", "one ignored")
+    assert diag_level(d) == OK and diag_values(d)["protections"] == "deadband", d
+    w_ignored = window_after(ignored, 3, period)
+    observe_until(ch, w_ignored[1])
+    taken = ch.duty(56.0, confirm=lambda s: close(s.duty_target, 56.0))
+    assert list(taken.reply.protections) == [], taken.reply
+    w_taken = window_after(taken, 3, period)
+    observe_until(ch, w_taken[1] + period * MS)
+    edges = close_trace(proc)
+    assert_pwm(edges, *w_ignored, period, 100 * MS, "53 % inside the band after 50 %")
+    assert_pwm(edges, *w_taken, period, t_on_ns(0.56, period), "56 % outside the band")
