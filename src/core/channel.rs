@@ -21,53 +21,16 @@
 //! the command at most at its rate, advanced at every decision point (a period or step start,
 //! a re-evaluation) by the virtual time since the last one.
 
-use super::command::{Command, CommandError, Duty};
+use super::command::{Command, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
-use super::plan::{definitely_less, Plan, Rule};
+use super::plan::{definitely_less, Plan};
 use super::{Level, Nanos};
 
-/// Something the channel did or noticed, in the order it happened.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Event {
-    /// The output changes to `level` at scheduled time `at` (ns).
-    Edge {
-        /// Scheduled time, ns.
-        at: Nanos,
-        /// The new logical level.
-        level: Level,
-    },
-    /// E1 (000) or the limit flag (002) changed.
-    Flags {
-        /// E1: the commanded duty could not be reproduced because of a minimum time, or
-        /// because the maximum on time cuts the line.
-        e1: bool,
-        /// The limit flag (bLmtSwiTi): a time was raised to its minimum, or the maximum on
-        /// time cuts the line.
-        limited: bool,
-    },
-    /// A new plan (applied duty, on and off times) is in force.
-    Plan(Plan),
-    /// The watchdog tripped (true: output forced off) or recovered (false: a command arrived).
-    Watchdog {
-        /// Whether the watchdog is now tripped.
-        tripped: bool,
-    },
-    /// A command was refused; the last valid command stays in force.
-    Rejected(CommandError),
-    /// A command was out of range and was clamped.
-    Clamped {
-        /// The command as requested, with its unit.
-        requested: Command,
-        /// The duty fraction applied, 0..=1.
-        applied: f64,
-    },
-    /// The channel was polled so late that `edges` scheduled edges fell in the past together;
-    /// they were merged so that no zero-width pulse reaches the output.
-    Missed {
-        /// How many scheduled edges were not emitted.
-        edges: u32,
-    },
-}
+mod duty;
+mod gates;
+mod report;
+
+pub use report::{Event, Protections, Status};
 
 /// The running on or off step of the schedule.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -93,112 +56,6 @@ struct Line {
     /// The change held back is the schedule's rise resuming after a cut: if the schedule drops
     /// it, nothing was lost.
     resumes: bool,
-}
-
-/// Which of the load's protections act on a channel (issue 12); each is off by default.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Protections {
-    /// `max_on_ms` cuts the line: the plan keeps it high longer (a constant 1, or an on time
-    /// above it), or a cut happened in this period or the one before. Sets E1 and the limit
-    /// flag.
-    pub max_on: bool,
-    /// `max_duty_pct` lowers the command in force.
-    pub max_duty: bool,
-    /// `min_duty_pct` raises the command in force.
-    pub min_duty: bool,
-    /// The slew limit holds the duty applied short of the command in force.
-    pub slew: bool,
-    /// The dead band ignored the last valid command: an older one stays in force.
-    pub deadband: bool,
-}
-
-impl Protections {
-    /// The names of the protections acting, as reported on `~/<ch>/status` and
-    /// `/diagnostics`: `max_on`, `max_duty`, `min_duty`, `slew`, `deadband`.
-    pub fn names(&self) -> impl Iterator<Item = &'static str> {
-        [
-            (self.max_on, "max_on"),
-            (self.max_duty, "max_duty"),
-            (self.min_duty, "min_duty"),
-            (self.slew, "slew"),
-            (self.deadband, "deadband"),
-        ]
-        .into_iter()
-        .filter_map(|(on, name)| on.then_some(name))
-    }
-
-    /// Whether any protection acts.
-    pub fn any(&self) -> bool {
-        self.names().next().is_some()
-    }
-}
-
-/// What a channel reports about itself (002's information outputs, 004's active flag).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Status {
-    /// The channel is enabled (EN / bEn / i_xEn).
-    pub enabled: bool,
-    /// The block is producing output (004's q_xActv): enabled, a period set, watchdog not tripped.
-    pub active: bool,
-    /// The logical output level.
-    pub level: Level,
-    /// The commanded duty after clamping, 0..=1.
-    pub duty_commanded: f64,
-    /// The last valid command as requested, with its unit.
-    pub duty_requested: Command,
-    /// The last valid command was out of range and clamped.
-    pub command_clamped: bool,
-    /// The command in force after the power limits and the dead band, 0..=1: what the slew
-    /// limit moves the duty applied toward.
-    pub duty_target: f64,
-    /// The duty delivered by the plan in force, 0..=1.
-    pub duty_applied: f64,
-    /// Period in force, ns.
-    pub period: Nanos,
-    /// On time of the plan in force, ns (002's fActTiOn).
-    pub t_on: Nanos,
-    /// Off time of the plan in force, ns (002's fActTiOff).
-    pub t_off: Nanos,
-    /// Remaining time of the running on step, ns (002's nRemTiOn); 0 when not in an on step.
-    pub remaining_on: Nanos,
-    /// Remaining time of the running off step, ns (002's nRemTiOff); 0 when not in an off step.
-    pub remaining_off: Nanos,
-    /// End of the running step, ns, if a step is running (lets a reader recompute the remaining
-    /// times for a later instant).
-    pub step_end: Option<Nanos>,
-    /// E1 (000); also set while the maximum on time acts.
-    pub e1: bool,
-    /// Limit flag (002's bLmtSwiTi); also set while the maximum on time acts.
-    pub limited: bool,
-    /// Watchdog tripped: no command for `command_timeout_ms`.
-    pub watchdog_tripped: bool,
-    /// The watchdog's fault value (`fault_duty_pct`) is running.
-    pub fault_active: bool,
-    /// The emergency stop is latched: the line is held low.
-    pub estopped: bool,
-    /// The rule that shaped the plan in force.
-    pub rule: Rule,
-    /// The protections of the load acting now.
-    pub protections: Protections,
-    /// Valid commands the dead band ignored since the channel was created.
-    pub ignored_commands: u64,
-}
-
-impl Status {
-    /// The remaining on and off times at `now`, ns, from the step end recorded in this status.
-    pub fn remaining_at(&self, now: Nanos) -> (Nanos, Nanos) {
-        match self.step_end {
-            Some(end) if self.remaining_on > 0 || self.remaining_off > 0 => {
-                let left = end.saturating_sub(now);
-                if self.remaining_on > 0 {
-                    (left, 0)
-                } else {
-                    (0, left)
-                }
-            }
-            _ => (0, 0),
-        }
-    }
 }
 
 /// One PWM channel (SPEC §1).
@@ -339,113 +196,6 @@ impl Channel {
         .into_iter()
         .flatten()
         .min()
-    }
-
-    /// Whether the line is interlocked (see [`Channel::set_interlock`]).
-    pub fn interlocked(&self) -> bool {
-        self.line.locked
-    }
-
-    /// Engages or releases the interlock at `now`: while engaged the line never goes high; a
-    /// rise the schedule asks for is held back and written on release (still no earlier than
-    /// the minimum break since the last real fall). Engaging it does not switch a high line
-    /// off: the caller engages it only while the line is low (001's split range: the partner
-    /// of a pair is high).
-    pub fn set_interlock(&mut self, now: Nanos, on: bool, emit: &mut dyn FnMut(Event)) {
-        if on == self.line.locked {
-            return;
-        }
-        self.line.locked = on;
-        if !self.no_rise() {
-            if let Some((Level::High, at)) = self.line.held {
-                if at <= now {
-                    self.write_line(Level::High, now, emit);
-                }
-            }
-        }
-    }
-
-    /// Whether the emergency stop is latched (see [`Channel::set_estop`]).
-    pub fn estopped(&self) -> bool {
-        self.estop
-    }
-
-    /// Latches or releases the emergency stop at `now`.
-    ///
-    /// Latching drives the line low at once, whatever its minimum on time or `on_disable`
-    /// (the fault value included: the e-stop overrides it), and disables the channel. While
-    /// latched the line never goes high: commands, enables and configurations are taken and
-    /// reported as usual, but every rise is held back. Releasing disables the channel once
-    /// more and drops every held rise, so nothing switches on by itself: the channel runs
-    /// again on its next enable, and then only after the minimum break since the line's last
-    /// real fall.
-    pub fn set_estop(&mut self, now: Nanos, latched: bool, emit: &mut dyn FnMut(Event)) {
-        if latched == self.estop {
-            return;
-        }
-        if latched {
-            self.estop = true;
-            self.fault_until = None;
-            self.set_enable(now, false, emit);
-            self.force_low(now, emit);
-        } else {
-            self.set_enable(now, false, emit);
-            self.line.held = None;
-            self.level = self.line.level;
-            self.estop = false;
-        }
-    }
-
-    /// Whether the line may follow the schedule (see [`Channel::set_live`]).
-    pub fn live(&self) -> bool {
-        self.live
-    }
-
-    /// Lets the line follow the schedule (`true`) or holds it inactive (`false`), at `now`: a
-    /// managed node's lines are live only while it is ACTIVE.
-    ///
-    /// Holding drives the line low at once (a safety off, whatever its minimum on time) and
-    /// keeps it low; the schedule goes on (commands, enables and configurations are taken and
-    /// reported) and a rise it asks for is held back. Releasing writes a held rise at once if
-    /// its time has come — never before the minimum break since the line's last real fall —
-    /// and otherwise the line follows from the next edge the schedule asks for.
-    pub fn set_live(&mut self, now: Nanos, live: bool, emit: &mut dyn FnMut(Event)) {
-        if live == self.live {
-            return;
-        }
-        self.live = live;
-        if !live {
-            self.force_low(now, emit);
-            // The schedule stays where it is; only the line is held.
-            self.level = match self.step {
-                Some(s) if self.enabled => s.level,
-                _ => self.level,
-            };
-            if self.level == Level::High {
-                self.line.held = Some((Level::High, self.earliest(Level::High, now)));
-            }
-        } else if !self.no_rise() {
-            if let Some((Level::High, at)) = self.line.held {
-                if at <= now {
-                    self.write_line(Level::High, now, emit);
-                }
-            }
-        }
-    }
-
-    /// The earliest instant at or after `at` the line may change to `level`.
-    fn earliest(&self, level: Level, at: Nanos) -> Nanos {
-        debug_assert_ne!(level, self.line.level);
-        self.line
-            .since
-            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
-            .max(at)
-    }
-
-    /// No rise may reach the line: the interlock is engaged, the e-stop latched, or the line
-    /// is held inactive.
-    fn no_rise(&self) -> bool {
-        self.line.locked || self.estop || !self.live
     }
 
     /// Processes every deadline at or before `now`. When several edges fall due together (the
@@ -664,58 +414,6 @@ impl Channel {
             },
             ignored_commands: self.ignored,
         }
-    }
-
-    /// The command in force after the power limits: what the slew limit moves toward.
-    fn target(&self) -> f64 {
-        self.cfg.limit_duty(self.accepted)
-    }
-
-    /// Whether the slew limit shapes the duty applied: set, and the channel pulsing.
-    fn slewing(&self) -> bool {
-        self.cfg.slew_per_s > 0.0 && self.enabled && self.cfg.period > 0
-    }
-
-    /// The duty the plans are made for: the command in force (as far as the slew limit has
-    /// brought it), or the watchdog's fault value (limited to `max_duty_pct`) or 0. A disabled
-    /// channel computes for the command in force (002), which it ramps toward once enabled.
-    fn effective_duty(&self) -> f64 {
-        match (self.watchdog_tripped, self.fault_until) {
-            (false, _) if self.slewing() => self.slewed,
-            (false, _) => self.target(),
-            (true, Some(_)) => self.cfg.fault_duty.min(self.cfg.max_duty),
-            (true, None) => 0.0,
-        }
-    }
-
-    /// A decision point at `t` (a period or step start, a re-evaluation): the slew limit moves
-    /// the duty applied toward the target by at most its rate times the time since the last
-    /// decision, so it is exact in virtual time. Returns the duty to plan for. Where nothing
-    /// ramps, the duty applied is what runs (0 with no pulses), and a later ramp starts there.
-    fn decide(&mut self, t: Nanos) -> f64 {
-        let elapsed = self.slewed_at.map_or(0, |at| t.saturating_sub(at));
-        self.slewed_at = Some(self.slewed_at.map_or(t, |at| at.max(t)));
-        if self.slewing() && !self.watchdog_tripped {
-            let step = self.cfg.slew_per_s * elapsed as f64 / 1e9;
-            let target = self.target();
-            self.slewed = if self.slewed < target {
-                (self.slewed + step).min(target)
-            } else {
-                (self.slewed - step).max(target)
-            };
-        } else if !self.enabled || self.cfg.period == 0 {
-            self.slewed = 0.0;
-            self.slewed_at = None;
-        } else {
-            self.slewed = self.effective_duty();
-        }
-        self.effective_duty()
-    }
-
-    /// Whether the maximum on time acts: the plan in force keeps the line high longer, or it
-    /// cut the line in this period or the one before.
-    fn max_on_acts(&self) -> bool {
-        self.plan.max_on || self.cut_now || self.cut_before
     }
 
     /// The watchdog guards every state in which the line is or will be high: enabled, or

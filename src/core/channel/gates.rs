@@ -1,0 +1,114 @@
+//! The gates between the schedule and the line: the split-range interlock, the e-stop latch
+//! and the hold of a managed node's inactive states. Each keeps every rise off the line; only
+//! the e-stop and the hold also switch a high line off at once (safety offs).
+
+use super::{Channel, Event, Level, Nanos};
+
+impl Channel {
+    /// Whether the line is interlocked (see [`Channel::set_interlock`]).
+    pub fn interlocked(&self) -> bool {
+        self.line.locked
+    }
+
+    /// Engages or releases the interlock at `now`: while engaged the line never goes high; a
+    /// rise the schedule asks for is held back and written on release (still no earlier than
+    /// the minimum break since the last real fall). Engaging it does not switch a high line
+    /// off: the caller engages it only while the line is low (001's split range: the partner
+    /// of a pair is high).
+    pub fn set_interlock(&mut self, now: Nanos, on: bool, emit: &mut dyn FnMut(Event)) {
+        if on == self.line.locked {
+            return;
+        }
+        self.line.locked = on;
+        if !self.no_rise() {
+            if let Some((Level::High, at)) = self.line.held {
+                if at <= now {
+                    self.write_line(Level::High, now, emit);
+                }
+            }
+        }
+    }
+
+    /// Whether the emergency stop is latched (see [`Channel::set_estop`]).
+    pub fn estopped(&self) -> bool {
+        self.estop
+    }
+
+    /// Latches or releases the emergency stop at `now`.
+    ///
+    /// Latching drives the line low at once, whatever its minimum on time or `on_disable`
+    /// (the fault value included: the e-stop overrides it), and disables the channel. While
+    /// latched the line never goes high: commands, enables and configurations are taken and
+    /// reported as usual, but every rise is held back. Releasing disables the channel once
+    /// more and drops every held rise, so nothing switches on by itself: the channel runs
+    /// again on its next enable, and then only after the minimum break since the line's last
+    /// real fall.
+    pub fn set_estop(&mut self, now: Nanos, latched: bool, emit: &mut dyn FnMut(Event)) {
+        if latched == self.estop {
+            return;
+        }
+        if latched {
+            self.estop = true;
+            self.fault_until = None;
+            self.set_enable(now, false, emit);
+            self.force_low(now, emit);
+        } else {
+            self.set_enable(now, false, emit);
+            self.line.held = None;
+            self.level = self.line.level;
+            self.estop = false;
+        }
+    }
+
+    /// Whether the line may follow the schedule (see [`Channel::set_live`]).
+    pub fn live(&self) -> bool {
+        self.live
+    }
+
+    /// Lets the line follow the schedule (`true`) or holds it inactive (`false`), at `now`: a
+    /// managed node's lines are live only while it is ACTIVE.
+    ///
+    /// Holding drives the line low at once (a safety off, whatever its minimum on time) and
+    /// keeps it low; the schedule goes on (commands, enables and configurations are taken and
+    /// reported) and a rise it asks for is held back. Releasing writes a held rise at once if
+    /// its time has come — never before the minimum break since the line's last real fall —
+    /// and otherwise the line follows from the next edge the schedule asks for.
+    pub fn set_live(&mut self, now: Nanos, live: bool, emit: &mut dyn FnMut(Event)) {
+        if live == self.live {
+            return;
+        }
+        self.live = live;
+        if !live {
+            self.force_low(now, emit);
+            // The schedule stays where it is; only the line is held.
+            self.level = match self.step {
+                Some(s) if self.enabled => s.level,
+                _ => self.level,
+            };
+            if self.level == Level::High {
+                self.line.held = Some((Level::High, self.earliest(Level::High, now)));
+            }
+        } else if !self.no_rise() {
+            if let Some((Level::High, at)) = self.line.held {
+                if at <= now {
+                    self.write_line(Level::High, now, emit);
+                }
+            }
+        }
+    }
+
+    /// The earliest instant at or after `at` the line may change to `level`.
+    pub(super) fn earliest(&self, level: Level, at: Nanos) -> Nanos {
+        debug_assert_ne!(level, self.line.level);
+        self.line
+            .since
+            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
+            .max(at)
+    }
+
+    /// No rise may reach the line: the interlock is engaged, the e-stop latched, or the line
+    /// is held inactive.
+    pub(super) fn no_rise(&self) -> bool {
+        self.line.locked || self.estop || !self.live
+    }
+}

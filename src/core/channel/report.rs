@@ -1,0 +1,154 @@
+//! What a channel tells its caller: the events it emits and the status it reports.
+
+use super::super::command::{Command, CommandError};
+use super::super::plan::{Plan, Rule};
+use super::super::{Level, Nanos};
+
+/// Something the channel did or noticed, in the order it happened.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Event {
+    /// The output changes to `level` at scheduled time `at` (ns).
+    Edge {
+        /// Scheduled time, ns.
+        at: Nanos,
+        /// The new logical level.
+        level: Level,
+    },
+    /// E1 (000) or the limit flag (002) changed.
+    Flags {
+        /// E1: the commanded duty could not be reproduced because of a minimum time, or
+        /// because the maximum on time cuts the line.
+        e1: bool,
+        /// The limit flag (bLmtSwiTi): a time was raised to its minimum, or the maximum on
+        /// time cuts the line.
+        limited: bool,
+    },
+    /// A new plan (applied duty, on and off times) is in force.
+    Plan(Plan),
+    /// The watchdog tripped (true: output forced off) or recovered (false: a command arrived).
+    Watchdog {
+        /// Whether the watchdog is now tripped.
+        tripped: bool,
+    },
+    /// A command was refused; the last valid command stays in force.
+    Rejected(CommandError),
+    /// A command was out of range and was clamped.
+    Clamped {
+        /// The command as requested, with its unit.
+        requested: Command,
+        /// The duty fraction applied, 0..=1.
+        applied: f64,
+    },
+    /// The channel was polled so late that `edges` scheduled edges fell in the past together;
+    /// they were merged so that no zero-width pulse reaches the output.
+    Missed {
+        /// How many scheduled edges were not emitted.
+        edges: u32,
+    },
+}
+
+/// Which of the load's protections act on a channel (issue 12); each is off by default.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Protections {
+    /// `max_on_ms` cuts the line: the plan keeps it high longer (a constant 1, or an on time
+    /// above it), or a cut happened in this period or the one before. Sets E1 and the limit
+    /// flag.
+    pub max_on: bool,
+    /// `max_duty_pct` lowers the command in force.
+    pub max_duty: bool,
+    /// `min_duty_pct` raises the command in force.
+    pub min_duty: bool,
+    /// The slew limit holds the duty applied short of the command in force.
+    pub slew: bool,
+    /// The dead band ignored the last valid command: an older one stays in force.
+    pub deadband: bool,
+}
+
+impl Protections {
+    /// The names of the protections acting, as reported on `~/<ch>/status` and
+    /// `/diagnostics`: `max_on`, `max_duty`, `min_duty`, `slew`, `deadband`.
+    pub fn names(&self) -> impl Iterator<Item = &'static str> {
+        [
+            (self.max_on, "max_on"),
+            (self.max_duty, "max_duty"),
+            (self.min_duty, "min_duty"),
+            (self.slew, "slew"),
+            (self.deadband, "deadband"),
+        ]
+        .into_iter()
+        .filter_map(|(on, name)| on.then_some(name))
+    }
+
+    /// Whether any protection acts.
+    pub fn any(&self) -> bool {
+        self.names().next().is_some()
+    }
+}
+
+/// What a channel reports about itself (002's information outputs, 004's active flag).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Status {
+    /// The channel is enabled (EN / bEn / i_xEn).
+    pub enabled: bool,
+    /// The block is producing output (004's q_xActv): enabled, a period set, watchdog not tripped.
+    pub active: bool,
+    /// The logical output level.
+    pub level: Level,
+    /// The commanded duty after clamping, 0..=1.
+    pub duty_commanded: f64,
+    /// The last valid command as requested, with its unit.
+    pub duty_requested: Command,
+    /// The last valid command was out of range and clamped.
+    pub command_clamped: bool,
+    /// The command in force after the power limits and the dead band, 0..=1: what the slew
+    /// limit moves the duty applied toward.
+    pub duty_target: f64,
+    /// The duty delivered by the plan in force, 0..=1.
+    pub duty_applied: f64,
+    /// Period in force, ns.
+    pub period: Nanos,
+    /// On time of the plan in force, ns (002's fActTiOn).
+    pub t_on: Nanos,
+    /// Off time of the plan in force, ns (002's fActTiOff).
+    pub t_off: Nanos,
+    /// Remaining time of the running on step, ns (002's nRemTiOn); 0 when not in an on step.
+    pub remaining_on: Nanos,
+    /// Remaining time of the running off step, ns (002's nRemTiOff); 0 when not in an off step.
+    pub remaining_off: Nanos,
+    /// End of the running step, ns, if a step is running (lets a reader recompute the remaining
+    /// times for a later instant).
+    pub step_end: Option<Nanos>,
+    /// E1 (000); also set while the maximum on time acts.
+    pub e1: bool,
+    /// Limit flag (002's bLmtSwiTi); also set while the maximum on time acts.
+    pub limited: bool,
+    /// Watchdog tripped: no command for `command_timeout_ms`.
+    pub watchdog_tripped: bool,
+    /// The watchdog's fault value (`fault_duty_pct`) is running.
+    pub fault_active: bool,
+    /// The emergency stop is latched: the line is held low.
+    pub estopped: bool,
+    /// The rule that shaped the plan in force.
+    pub rule: Rule,
+    /// The protections of the load acting now.
+    pub protections: Protections,
+    /// Valid commands the dead band ignored since the channel was created.
+    pub ignored_commands: u64,
+}
+
+impl Status {
+    /// The remaining on and off times at `now`, ns, from the step end recorded in this status.
+    pub fn remaining_at(&self, now: Nanos) -> (Nanos, Nanos) {
+        match self.step_end {
+            Some(end) if self.remaining_on > 0 || self.remaining_off > 0 => {
+                let left = end.saturating_sub(now);
+                if self.remaining_on > 0 {
+                    (left, 0)
+                } else {
+                    (0, left)
+                }
+            }
+            _ => (0, 0),
+        }
+    }
+}
