@@ -15,6 +15,8 @@
 //! given. Code that echoes input in a message bounds it first with [`shown`]. Warnings and
 //! errors are rate-limited per place in the code ([`RateLimiter`]): a flood of one kind
 //! (malformed samples, refusals) gives a few lines and then one count of what was suppressed.
+//! So are the informational lines that any participant's input causes (an enable toggled,
+//! a parameter set, the e-stop; see [`rate_limited`]): an input flood cannot flood the log.
 //!
 //! Must not block for long or allocate without bound: it runs on every thread that logs, never
 //! on the output thread's hot path (the engine does not log there).
@@ -430,7 +432,7 @@ impl Log for Logger {
         if level > self.config.level_for(record.target()) {
             return;
         }
-        if level <= log::Level::Warn {
+        if rate_limited(level, record.target()) {
             let site = (
                 record.file_static().unwrap_or("?"),
                 record.line().unwrap_or(0),
@@ -451,6 +453,16 @@ impl Log for Logger {
     fn flush(&self) {
         let _ = std::io::stderr().flush();
     }
+}
+
+/// The modules whose informational lines are caused by input from the ROS graph, one per
+/// message (an enable, a parameter change, an e-stop input).
+const INPUT_TARGETS: [&str; 2] = ["pwm_actuator::ros::inputs", "pwm_actuator::ros::estop"];
+
+/// Whether records of `level` from `target` go through the rate limiter: warnings and errors
+/// from anywhere, and any record from the modules input drives ([`INPUT_TARGETS`]).
+pub fn rate_limited(level: log::Level, target: &str) -> bool {
+    level <= log::Level::Warn || INPUT_TARGETS.contains(&target)
 }
 
 /// Installs the logger for the process. Fails only if a logger is already installed.
@@ -533,6 +545,18 @@ mod tests {
         );
         assert!(!rec.chars().any(char::is_control));
         assert_eq!(for_log("short"), "short");
+    }
+
+    #[test]
+    fn input_driven_info_lines_are_limited_and_other_info_lines_are_not() {
+        use log::Level::{Debug, Error, Info, Warn};
+        assert!(rate_limited(Info, "pwm_actuator::ros::inputs"));
+        assert!(rate_limited(Debug, "pwm_actuator::ros::estop"));
+        assert!(rate_limited(Warn, "pwm_actuator::ros::node"));
+        assert!(rate_limited(Error, "rustdds::rtps"));
+        // Edge lines have a rate of their own (edge_log_rate); start-up lines are few.
+        assert!(!rate_limited(Info, "pwm_actuator::ros::console"));
+        assert!(!rate_limited(Info, "pwm_actuator::ros::node"));
     }
 
     #[test]

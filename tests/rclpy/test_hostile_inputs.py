@@ -13,6 +13,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from pwm_actuator_msgs.msg import ChannelParams, ChannelStatus
 from rcl_interfaces.msg import Log
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Bool
 
 NODE = "/pwm_actuator"
 
@@ -214,3 +215,21 @@ def test_large_channel_params_do_not_stay_in_memory(ros, node_process):
 
     ros.wait_for_message(DiagnosticArray, "/diagnostics", too_large)
     assert "input samples larger than 256 KiB were dropped before decoding" in proc.stderr()
+
+
+def test_an_enable_flood_gives_a_few_log_lines_and_a_count(node_process, ros):
+    """Each enable change is logged at INFO, but a participant toggling it 400 times gets a
+    burst of lines and then one count of the rest, not 400 lines."""
+    proc = start_node(node_process)
+    pub = matched_publisher(ros, Bool, f"{NODE}/pw01/enable")
+    for i in range(400):
+        pub.publish(Bool(data=i % 2 == 0))
+        if i % 20 == 0:
+            ros.spin_for(0.01)
+    ros.spin_until(
+        lambda: "similar messages suppressed" in proc.stderr(),
+        "the count of suppressed enable lines",
+        timeout=30,
+    )
+    lines = [l for l in proc.stderr().splitlines() if "pw01: enabled" in l or "pw01: disabled" in l]
+    assert len(lines) <= 12, f"{len(lines)} enable lines:\n" + "\n".join(lines[:40])
