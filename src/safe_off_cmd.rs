@@ -105,36 +105,31 @@ mod tests {
         options(&m).unwrap()
     }
 
-    #[test]
-    fn lines_alone_set_the_channels_they_name() {
-        let o = opts(&["--line", "pw01=3", "--line", "pw02=/dev/gpiochip1:4"]);
-        assert_eq!(
-            node_args(&o, &[]),
-            [
-                "--line",
-                "pw01=3",
-                "--line",
-                "pw02=/dev/gpiochip1:4",
-                "--channels",
-                "2"
-            ]
-        );
+    /// The words of a command line with no quoting.
+    fn words(line: &str) -> Vec<&str> {
+        line.split(' ').collect()
     }
 
     #[test]
-    fn params_file_and_polarity_become_ros_args() {
-        let o = opts(&["--params-file", "p.yaml", "--active-low", "pw01"]);
-        assert_eq!(
-            node_args(&o, &[]),
-            [
-                "--ros-args",
-                "--params-file",
-                "p.yaml",
-                "-p",
-                "pw01.active_low:=true",
-                "--"
-            ]
-        );
+    fn options_become_the_node_arguments() {
+        for (options, node) in [
+            // Lines alone set the channels they name.
+            (
+                "--line pw01=3 --line pw02=/dev/gpiochip1:4",
+                "--line pw01=3 --line pw02=/dev/gpiochip1:4 --channels 2",
+            ),
+            // A parameter file and polarity become ROS arguments.
+            (
+                "--params-file p.yaml --active-low pw01",
+                "--ros-args --params-file p.yaml -p pw01.active_low:=true --",
+            ),
+        ] {
+            assert_eq!(
+                node_args(&opts(&words(options)), &[]),
+                words(node),
+                "{options}"
+            );
+        }
     }
 
     #[test]

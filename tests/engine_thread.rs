@@ -2,12 +2,14 @@
 //! a failing write leaves every line inactive, a lagging reader never stalls the thread, and a
 //! shutdown leaves every output off.
 
-use pwm_actuator::core::{Channel, ChannelParams, Command, Event, Level, Nanos};
+use pwm_actuator::core::{Channel, ChannelConfig, ChannelParams, Command, Event, Level, Nanos};
 use pwm_actuator::engine::{self, EngineError, EngineOptions, Input, Report, Request};
 use pwm_actuator::output::fault::FailingOutput;
 use pwm_actuator::output::{
-    EmergencyOff, ErrorKind, LineChange, Output, OutputError, SimOutput, TraceSpec,
+    CsvRow, EmergencyOff, ErrorKind, LineChange, Output, OutputError, SimOutput, SimProbe,
+    TraceSpec,
 };
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 fn params(period_ms: u64) -> ChannelParams {
@@ -21,21 +23,22 @@ fn names(n: usize) -> Vec<String> {
     (1..=n).map(|i| format!("pw{i:02}")).collect()
 }
 
-/// Rows of a CSV trace: (t_ns, channel, level, scheduled_ns).
-fn read_csv(path: &std::path::Path) -> Vec<(Nanos, String, u8, Nanos)> {
+/// The rows of the CSV trace at `path`.
+fn read_csv(path: &Path) -> Vec<CsvRow> {
     let text = std::fs::read_to_string(path).expect("trace written");
-    pwm_actuator::output::read_csv(&text)
-        .expect("a CSV trace")
-        .into_iter()
-        .map(|r| {
-            (
-                r.t_ns,
-                r.channel,
-                u8::from(r.level.is_high()),
-                r.scheduled_ns,
-            )
-        })
-        .collect()
+    pwm_actuator::output::read_csv(&text).expect("a CSV trace")
+}
+
+/// Two channels with `cfgs` on a simulated output traced to `dir/<file>.csv`, running; the
+/// trace's path with it.
+fn spawn_traced(dir: &Path, file: &str, cfgs: Vec<ChannelConfig>) -> (PathBuf, engine::Engine) {
+    let csv = dir.join(format!("{file}.csv"));
+    let trace = TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap();
+    let output = SimOutput::new(names(cfgs.len()), Some(trace)).unwrap();
+    (
+        csv,
+        engine::spawn(cfgs, output, EngineOptions::default()).unwrap(),
+    )
 }
 
 /// One input or poll of a channel core, handing its events to the given sink.
@@ -48,19 +51,13 @@ fn send(requests: &mut engine::Requests, channel: usize, input: Input) {
 #[test]
 fn the_trace_matches_the_core_schedule_edge_for_edge() {
     let dir = tempdir();
-    let csv = dir.path().join("run.csv");
-    let output = SimOutput::new(
-        names(2),
-        Some(TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap()),
-    )
-    .unwrap();
     let p1 = params(20);
     let p2 = ChannelParams {
         min_on_ms: 3,
         ..params(10)
     };
     let cfgs = vec![p1.validate().unwrap(), p2.validate().unwrap()];
-    let mut e = engine::spawn(cfgs.clone(), output, EngineOptions::default()).unwrap();
+    let (csv, mut e) = spawn_traced(dir.path(), "run", cfgs.clone());
     send(&mut e.requests, 0, Input::Command(Command::Percent(40.0)));
     send(&mut e.requests, 1, Input::Command(Command::Percent(45.0)));
     send(&mut e.requests, 0, Input::Enable(true));
@@ -78,10 +75,10 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
     }
     let rows = read_csv(&csv);
     for (ch, name) in names(2).iter().enumerate() {
-        let edges: Vec<_> = rows.iter().filter(|r| &r.1 == name).skip(1).collect();
+        let edges: Vec<_> = rows.iter().filter(|r| &r.channel == name).skip(1).collect();
         assert!(edges.len() > 20, "{name}: {} edges", edges.len());
         // Replay the same inputs on a core in virtual time.
-        let enable_at = edges[0].3;
+        let enable_at = edges[0].scheduled_ns;
         let mut core = Channel::new(cfgs[ch], 0);
         let mut want: Vec<(Nanos, Level)> = Vec::new();
         // The thread tells its cores when each edge really reached the line, and a late edge
@@ -118,8 +115,16 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
         // becomes 7 ms; the engine's own status report of the 70 % command must lie in the
         // period before it.
         let change_at = (ch == 1).then(|| {
-            let rises: Vec<Nanos> = edges.iter().filter(|r| r.2 == 1).map(|r| r.3).collect();
-            let falls: Vec<Nanos> = edges.iter().filter(|r| r.2 == 0).map(|r| r.3).collect();
+            let rises: Vec<Nanos> = edges
+                .iter()
+                .filter(|r| r.level.is_high())
+                .map(|r| r.scheduled_ns)
+                .collect();
+            let falls: Vec<Nanos> = edges
+                .iter()
+                .filter(|r| !r.level.is_high())
+                .map(|r| r.scheduled_ns)
+                .collect();
             let k = rises
                 .iter()
                 .zip(&falls)
@@ -145,7 +150,7 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
             );
             rises[k]
         });
-        let last_scheduled = edges[edges.len() - 2].3;
+        let last_scheduled = edges[edges.len() - 2].scheduled_ns;
         let mut changed = false;
         while let Some(t) = core.poll_at() {
             if let Some(c) = change_at {
@@ -164,7 +169,7 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
         // All but the shutdown edge were scheduled by the core.
         let got: Vec<(Nanos, Level)> = edges[..edges.len() - 1]
             .iter()
-            .map(|r| (r.3, Level::from_bool(r.2 == 1)))
+            .map(|r| (r.scheduled_ns, r.level))
             .collect();
         // A thread stalled past two deadlines merges that pulse or break rather than write a
         // zero-width one, and reports it as Missed. Everything else matches exactly.
@@ -205,11 +210,21 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
             "{name}: merged edges are the reported ones"
         );
         for r in &edges {
-            assert!(r.0 >= r.3, "{name}: written before its schedule: {r:?}");
+            assert!(
+                r.t_ns >= r.scheduled_ns,
+                "{name}: written before its schedule: {r:?}"
+            );
             // Very generous: only a stalled machine comes near this.
-            assert!(r.0 - r.3 < 100_000_000, "{name}: 100 ms late: {r:?}");
+            assert!(
+                r.t_ns - r.scheduled_ns < 100_000_000,
+                "{name}: 100 ms late: {r:?}"
+            );
         }
-        assert_eq!(edges.last().unwrap().2, 0, "{name}: ends inactive");
+        assert_eq!(
+            edges.last().unwrap().level,
+            Level::Low,
+            "{name}: ends inactive"
+        );
     }
 }
 
@@ -218,19 +233,13 @@ fn a_split_range_pair_is_never_high_together_on_the_line() {
     // 001's split range: hot and cold change sign every 35 ms while both pulse at 10 ms
     // periods with different phases; on the trace (written times) the two lines never overlap.
     let dir = tempdir();
-    let csv = dir.path().join("pair.csv");
-    let output = SimOutput::new(
-        names(2),
-        Some(TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap()),
-    )
-    .unwrap();
     let hot = params(10);
     let cold = ChannelParams {
         apply_at: Some(pwm_actuator::core::ApplyAt::Immediate),
         ..params(7)
     };
     let cfgs = vec![hot.validate().unwrap(), cold.validate().unwrap()];
-    let mut e = engine::spawn(cfgs, output, EngineOptions::default()).unwrap();
+    let (csv, mut e) = spawn_traced(dir.path(), "pair", cfgs);
     send(&mut e.requests, 0, Input::Pair(1));
     send(&mut e.requests, 1, Input::Pair(0));
     send(&mut e.requests, 0, Input::Enable(true));
@@ -246,12 +255,12 @@ fn a_split_range_pair_is_never_high_together_on_the_line() {
     let rows = read_csv(&csv);
     let mut high = [false; 2];
     let (mut rises, mut overlaps) = ([0; 2], Vec::new());
-    for (t, ch, level, _) in &rows {
-        let i = usize::from(ch == "pw02");
-        high[i] = *level == 1;
-        rises[i] += usize::from(*level == 1);
+    for r in &rows {
+        let i = usize::from(r.channel == "pw02");
+        high[i] = r.level.is_high();
+        rises[i] += usize::from(high[i]);
         if high[0] && high[1] {
-            overlaps.push(*t);
+            overlaps.push(r.t_ns);
         }
     }
     assert!(overlaps.is_empty(), "both high at {overlaps:?}");
@@ -399,24 +408,30 @@ fn a_lagging_reader_loses_reports_but_never_stalls_the_thread() {
     e.handle.shutdown().unwrap();
 }
 
-#[test]
-fn shutdown_leaves_every_output_inactive() {
-    let sim = SimOutput::new(names(2), None).unwrap();
-    let probe = sim.probe();
-    let cfgs = vec![params(1000).validate().unwrap(); 2];
-    let mut e = engine::spawn(cfgs, sim, EngineOptions::default()).unwrap();
-    for ch in 0..2 {
-        send(&mut e.requests, ch, Input::Command(Command::Percent(90.0)));
+/// Commands every channel to `duty` % and enables it, then waits until every line is high.
+fn switch_on(e: &mut engine::Engine, probe: &SimProbe, duty: f64) {
+    let n = probe.levels().len();
+    for ch in 0..n {
+        send(&mut e.requests, ch, Input::Command(Command::Percent(duty)));
         send(&mut e.requests, ch, Input::Enable(true));
     }
     let start = Instant::now();
-    while probe.levels() != vec![Level::High; 2] {
+    while probe.levels() != vec![Level::High; n] {
         assert!(
             start.elapsed() < Duration::from_secs(10),
             "never switched on"
         );
         std::thread::sleep(Duration::from_millis(2));
     }
+}
+
+#[test]
+fn shutdown_leaves_every_output_inactive() {
+    let sim = SimOutput::new(names(2), None).unwrap();
+    let probe = sim.probe();
+    let cfgs = vec![params(1000).validate().unwrap(); 2];
+    let mut e = engine::spawn(cfgs, sim, EngineOptions::default()).unwrap();
+    switch_on(&mut e, &probe, 90.0);
     e.handle.shutdown().unwrap();
     assert_eq!(probe.levels(), vec![Level::Low; 2]);
     let last: Vec<_> = probe
@@ -456,18 +471,7 @@ fn a_loop_that_fails_still_leaves_every_output_inactive() {
         })
     })
     .unwrap();
-    for ch in 0..2 {
-        send(&mut e.requests, ch, Input::Command(Command::Percent(100.0)));
-        send(&mut e.requests, ch, Input::Enable(true));
-    }
-    let start = Instant::now();
-    while probe.levels() != vec![Level::High; 2] {
-        assert!(
-            start.elapsed() < Duration::from_secs(10),
-            "never switched on"
-        );
-        std::thread::sleep(Duration::from_millis(2));
-    }
+    switch_on(&mut e, &probe, 100.0);
     seen_high.store(true, std::sync::atomic::Ordering::SeqCst);
     let r = e.handle.shutdown();
     assert!(

@@ -134,10 +134,8 @@ fn the_node_pings_the_systemd_watchdog_only_while_its_output_thread_keeps_time()
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("notify.sock");
     let sock = UnixDatagram::bind(&path).unwrap();
-    let dom = Domain::acquire();
     let started = Instant::now();
     let node = NodeProc::start_with(
-        &dom.id.to_string(),
         &[
             "--ros-args",
             "-p",
@@ -145,7 +143,6 @@ fn the_node_pings_the_systemd_watchdog_only_while_its_output_thread_keeps_time()
             "-p",
             "heartbeat_hz:=50",
         ],
-        dom.id,
         &[
             ("NOTIFY_SOCKET", path.to_str().unwrap()),
             // WatchdogSec=400ms: a ping every 200 ms while alive.
@@ -191,19 +188,15 @@ fn the_node_pings_the_systemd_watchdog_only_while_its_output_thread_keeps_time()
 fn the_node_traces_its_heartbeat_line_at_the_rate_asked() {
     let dir = tempfile::tempdir().unwrap();
     let csv = dir.path().join("node-hb.csv");
-    let dom = Domain::acquire();
-    let node = NodeProc::start(
-        dom.id,
-        &[
-            "--trace",
-            csv.to_str().unwrap(),
-            "--ros-args",
-            "-p",
-            "heartbeat_line:=9",
-            "-p",
-            "heartbeat_hz:=20",
-        ],
-    );
+    let node = NodeProc::start(&[
+        "--trace",
+        csv.to_str().unwrap(),
+        "--ros-args",
+        "-p",
+        "heartbeat_line:=9",
+        "-p",
+        "heartbeat_hz:=20",
+    ]);
     node.wait_running();
     std::thread::sleep(Duration::from_millis(1000));
     let (status, log) = node.stop_with(Signal::SIGTERM);

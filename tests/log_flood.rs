@@ -23,10 +23,8 @@ const UNREADABLE: &str = "unreadable message";
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn malformed_samples_give_a_few_lines_and_a_count() {
-    let dom = Domain::acquire();
-    let mut node = NodeProc::start(dom.id, &[]);
-    node.wait_running();
-    let mut ros = Ros::new(dom.id);
+    let mut node = NodeProc::launch(&[]);
+    let mut ros = Ros::new(node.domain);
     let bad = ros.publisher::<Truncated>("/pwm_actuator/pw01/duty");
     ros.matched(&bad).await;
     let sent = 300;
@@ -58,6 +56,5 @@ async fn malformed_samples_give_a_few_lines_and_a_count() {
         .find(|l| l.contains("similar messages suppressed"))
         .unwrap_or_default();
     assert!(count.contains(UNREADABLE), "{count}");
-    let (status, log) = node.stop();
-    assert!(status.success(), "{log}");
+    node.stop_ok();
 }

@@ -17,28 +17,6 @@ fn trace(name: &str) -> (tempfile::TempDir, PathBuf) {
     (dir, path)
 }
 
-/// pw01 constantly on (100 %), pw02 pulsing, sim output traced to `csv`.
-fn args(csv: &Path) -> Vec<String> {
-    [
-        "--trace",
-        &csv.to_string_lossy(),
-        "--ros-args",
-        "-p",
-        "pw01.enable:=true",
-        "-p",
-        "pw01.duty:=100.0",
-        "-p",
-        "pw02.enable:=true",
-        "-p",
-        "pw02.duty:=50.0",
-        "-p",
-        "pw02.period_ms:=20",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect()
-}
-
 /// The last level written to each channel, from the CSV trace.
 fn last_levels(csv: &Path) -> Vec<(String, Level)> {
     let text = std::fs::read_to_string(csv).expect("trace written");
@@ -60,12 +38,27 @@ fn all_off() -> Vec<(String, Level)> {
     vec![("pw01".into(), Level::Low), ("pw02".into(), Level::Low)]
 }
 
-fn start(csv: &Path, env: &[(&str, &str)]) -> (NodeProc, Domain) {
-    let dom = Domain::acquire();
-    let a = args(csv);
-    let a: Vec<&str> = a.iter().map(String::as_str).collect();
-    let node = NodeProc::start_with(&dom.id.to_string(), &a, dom.id, env);
-    (node, dom)
+/// Starts the node with pw01 constantly on (100 %), pw02 pulsing, sim output traced to `csv`.
+fn start(csv: &Path, env: &[(&str, &str)]) -> NodeProc {
+    let csv = csv.to_string_lossy();
+    let params = ros_params(&[
+        "pw01.enable:=true",
+        "pw01.duty:=100.0",
+        "pw02.enable:=true",
+        "pw02.duty:=50.0",
+        "pw02.period_ms:=20",
+    ]);
+    NodeProc::start_with(&[&["--trace", &csv][..], &params].concat(), env)
+}
+
+/// Waits for the node to exit by itself; checks its exit code, that its log says `says`, and
+/// that it left every output off.
+fn exits_with_every_output_off(mut node: NodeProc, csv: &Path, code: i32, says: &str) {
+    let status = node.wait_exit(LONG);
+    let log = node.log();
+    assert_eq!(status.code(), Some(code), "{log}");
+    assert!(log.contains(says), "{says:?} is not reported:\n{log}");
+    assert_eq!(last_levels(csv), all_off(), "{log}");
 }
 
 #[test]
@@ -77,7 +70,7 @@ fn stop_signals_with_an_output_on_exit_0_with_every_output_off() {
         Signal::SIGQUIT,
     ] {
         let (_dir, csv) = trace(&format!("{sig:?}"));
-        let (node, _dom) = start(&csv, &[]);
+        let node = start(&csv, &[]);
         node.wait_running();
         assert!(
             node.wait_log("pw01 ↑", LONG),
@@ -94,35 +87,24 @@ fn stop_signals_with_an_output_on_exit_0_with_every_output_off() {
 #[test]
 fn a_panic_drives_every_output_off_and_exits_101() {
     let (_dir, csv) = trace("panic");
-    let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "panic-after-ms=1500")]);
+    let node = start(&csv, &[("PWM_ACTUATOR_FAULT", "panic-after-ms=1500")]);
     node.wait_running();
     assert!(node.wait_log("pw01 ↑", LONG), "{}", node.log());
-    let status = node.wait_exit(LONG);
-    let log = node.log();
-    assert_eq!(status.code(), Some(101), "{log}");
-    assert!(log.contains("injected panic"), "{log}");
-    assert_eq!(last_levels(&csv), all_off(), "{log}");
+    exits_with_every_output_off(node, &csv, 101, "injected panic");
 }
 
 #[test]
 fn a_failing_output_write_drives_the_others_off_and_exits_nonzero() {
     let (_dir, csv) = trace("write");
-    let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "fail-write-after=40")]);
+    let node = start(&csv, &[("PWM_ACTUATOR_FAULT", "fail-write-after=40")]);
     node.wait_running();
-    let status = node.wait_exit(LONG);
-    let log = node.log();
-    assert_eq!(status.code(), Some(1), "{log}");
-    assert!(
-        log.contains("injected output write failure"),
-        "the failure is reported:\n{log}"
-    );
-    assert_eq!(last_levels(&csv), all_off(), "{log}");
+    exits_with_every_output_off(node, &csv, 1, "injected output write failure");
 }
 
 #[test]
 fn a_malformed_fault_variable_is_refused() {
     let (_dir, csv) = trace("malformed");
-    let (mut node, _dom) = start(&csv, &[("PWM_ACTUATOR_FAULT", "explode=1")]);
+    let mut node = start(&csv, &[("PWM_ACTUATOR_FAULT", "explode=1")]);
     let status = node.wait_exit(LONG);
     assert_eq!(status.code(), Some(2), "{}", node.log());
     assert!(

@@ -26,29 +26,33 @@ fn run(args: &[&str], domain: Option<&str>) -> (Option<i32>, String, String) {
     )
 }
 
+/// Runs the node with `args` and asserts that it refuses them (exit 2) saying `why`.
+fn assert_refused(args: &[&str], domain: Option<&str>, why: &str) {
+    let (code, _, err) = run(args, domain);
+    assert_eq!(code, Some(2), "{args:?}: {err}");
+    assert!(err.contains(why), "{args:?}: expected {why:?} in:\n{err}");
+}
+
 #[test]
 fn help_prints_the_synopsis() {
     let (code, out, _) = run(&["--help"], None);
     assert_eq!(code, Some(0));
-    for s in [
-        "--demo",
-        "--ros-args",
-        "__node",
-        "--params-file",
-        "ROS_DOMAIN_ID",
-        "~/<ch>/duty",
-    ] {
-        assert!(out.contains(s), "{s} missing from:\n{out}");
-    }
-    // Generated from the options, so every option is listed, and the subcommands too.
-    for s in [
-        "--output <sim|gpio>",
-        "--status-rate <HZ>",
-        "-V, --version",
-        "bench",
-    ] {
-        assert!(out.contains(s), "{s} missing from:\n{out}");
-    }
+    assert_mentions(
+        &out,
+        &[
+            "--demo",
+            "--ros-args",
+            "__node",
+            "--params-file",
+            "ROS_DOMAIN_ID",
+            "~/<ch>/duty",
+            // Generated from the options, so every option is listed, and the subcommands too.
+            "--output <sim|gpio>",
+            "--status-rate <HZ>",
+            "-V, --version",
+            "bench",
+        ],
+    );
     let (code, out, _) = run(&["--version"], None);
     assert_eq!(code, Some(0));
     assert!(out.starts_with("pwm_actuator_node "));
@@ -59,92 +63,42 @@ fn bench_has_its_own_help_and_usage_errors() {
     for help in ["--help", "-h"] {
         let (code, out, err) = run(&["bench", help], None);
         assert_eq!(code, Some(0), "{err}");
-        assert!(out.contains("pwm_actuator_node bench"), "{out}");
-        for s in [
-            "--channels <N>",
-            "--period-ms <MS>",
-            "--duty <PCT>",
-            "--offset-ms <MS>",
-            "--seconds <S>",
-            "--rt-priority <P>",
-            "--json",
-            "[default: 37]",
-        ] {
-            assert!(out.contains(s), "{s} missing from:\n{out}");
-        }
+        assert_mentions(
+            &out,
+            &[
+                "pwm_actuator_node bench",
+                "--channels <N>",
+                "--period-ms <MS>",
+                "--duty <PCT>",
+                "--offset-ms <MS>",
+                "--seconds <S>",
+                "--rt-priority <P>",
+                "--json",
+                "[default: 37]",
+            ],
+        );
         // The node's options are not the bench's.
         assert!(!out.contains("--demo"), "{out}");
     }
-    let cases: &[(&[&str], &str)] = &[
-        (&["bench", "--bogus"], "--bogus"),
-        (&["bench", "--channels", "x"], "`x` is not a valid number"),
-        (
-            &["bench", "--channels", "0"],
-            "--channels 0 is outside 1..256",
-        ),
-        (&["bench", "--seconds"], "a value is required"),
-        (
-            &["bench", "--ros-args", "-p", "x:=1"],
-            "takes no ROS arguments",
-        ),
-        // Subcommands come first; after the node's options a word is an unknown option.
-        (&["--demo", "bench"], "unknown option `bench`"),
-    ];
-    for (args, why) in cases {
-        let (code, _, err) = run(args, None);
-        assert_eq!(code, Some(2), "{args:?}: {err}");
-        assert!(err.contains(why), "{args:?}: expected {why:?} in:\n{err}");
+    for (args, why) in [
+        (&["--bogus"][..], "--bogus"),
+        (&["--channels", "x"], "`x` is not a valid number"),
+        (&["--channels", "0"], "--channels 0 is outside 1..256"),
+        (&["--seconds"], "a value is required"),
+        (&["--ros-args", "-p", "x:=1"], "takes no ROS arguments"),
+    ] {
+        assert_refused(&[&["bench"], args].concat(), None, why);
     }
+    // Subcommands come first; after the node's options a word is an unknown option.
+    assert_refused(&["--demo", "bench"], None, "unknown option `bench`");
 }
 
 #[test]
 fn bad_command_lines_exit_2_with_a_reason() {
-    let cases: &[(&[&str], Option<&str>, &str)] = &[
-        (&["--fast"], None, "unknown option `--fast`"),
-        (
-            &["--ros-args", "--fast"],
-            None,
-            "unknown ROS argument `--fast`",
-        ),
-        (
-            &["--ros-args", "-p", "pw01.period_ms"],
-            None,
-            "expected NAME:=VALUE",
-        ),
-        (
-            &["--ros-args", "-r", "__ns:=plant"],
-            None,
-            "must be absolute",
-        ),
-        (
-            &["--ros-args", "--params-file", "/nonexistent.yaml"],
-            None,
-            "cannot read parameter file /nonexistent.yaml",
-        ),
-        (&[], Some("999"), "ROS_DOMAIN_ID `999` is not a domain id"),
-        (&[], Some("abc"), "ROS_DOMAIN_ID `abc`"),
-        (
-            &["--ros-args", "-p", "pw01.period_ms:=4"],
-            None,
-            "pw01: period_ms 4 is below the transistor minimum",
-        ),
-        (
-            &["--ros-args", "-p", "pw01.period_ms:=500.5"],
-            None,
-            "not a whole number",
-        ),
-        (
-            &["--ros-args", "-p", "pw01.duty:=150"],
-            None,
-            "150.0 is outside 0.0..100.0",
-        ),
-        (
-            &["--ros-args", "-p", "pw01.profile:=pico"],
-            None,
-            "`pico` is not one of",
-        ),
-        (&["--channels", "0"], None, "0 is outside 1..99"),
-        (&["--output", "gpio"], None, "set pw01.gpio_line"),
+    for (args, why) in [
+        (&["--fast"][..], "unknown option `--fast`"),
+        (&["--channels", "0"], "0 is outside 1..99"),
+        (&["--output", "gpio"], "set pw01.gpio_line"),
         (
             &[
                 "--output",
@@ -154,33 +108,52 @@ fn bad_command_lines_exit_2_with_a_reason() {
                 "--line",
                 "pw02=gpiochip0:3",
             ],
-            None,
             "pw01 and pw02 are both bound to",
         ),
         (
             &[
                 "--output", "gpio", "--line", "pw01=1", "--line", "pw02=2", "--trace", "x.txt",
             ],
-            None,
             // Checked before any chip is opened (there is none here).
             "unknown extension",
         ),
-        (&["--trace", "x.txt"], None, "unknown extension"),
+        (&["--trace", "x.txt"], "unknown extension"),
+    ] {
+        assert_refused(args, None, why);
+    }
+    for (domain, why) in [
+        ("999", "ROS_DOMAIN_ID `999` is not a domain id"),
+        ("abc", "ROS_DOMAIN_ID `abc`"),
+    ] {
+        assert_refused(&[], Some(domain), why);
+    }
+    for (ros_args, why) in [
+        (&["--fast"][..], "unknown ROS argument `--fast`"),
+        (&["-r", "__ns:=plant"], "must be absolute"),
         (
-            &["--ros-args", "-p", "split:=zone:pw01:pw09"],
-            None,
+            &["--params-file", "/nonexistent.yaml"],
+            "cannot read parameter file /nonexistent.yaml",
+        ),
+    ] {
+        assert_refused(&[&["--ros-args"], ros_args].concat(), None, why);
+    }
+    // Parameters (`-p NAME:=VALUE`): refused with the reason.
+    for (param, why) in [
+        ("pw01.period_ms", "expected NAME:=VALUE"),
+        (
+            "pw01.period_ms:=4",
+            "pw01: period_ms 4 is below the transistor minimum",
+        ),
+        ("pw01.period_ms:=500.5", "not a whole number"),
+        ("pw01.duty:=150", "150.0 is outside 0.0..100.0"),
+        ("pw01.profile:=pico", "`pico` is not one of"),
+        (
+            "split:=zone:pw01:pw09",
             "split: `pw09` is not a channel of this node (pw01..pw02)",
         ),
-        (
-            &["--ros-args", "-p", "split:=zone:pw01:pw01"],
-            None,
-            "used twice",
-        ),
-    ];
-    for (args, domain, why) in cases {
-        let (code, _, err) = run(args, *domain);
-        assert_eq!(code, Some(2), "{args:?}: {err}");
-        assert!(err.contains(why), "{args:?}: expected {why:?} in:\n{err}");
+        ("split:=zone:pw01:pw01", "used twice"),
+    ] {
+        assert_refused(&ros_params(&[param]), None, why);
     }
 }
 
@@ -214,23 +187,9 @@ fn sigterm_and_sigint_stop_cleanly_and_flush_the_trace() {
             vcd.to_string_lossy().to_string(),
             csv.to_string_lossy().to_string(),
         );
-        let dom = Domain::acquire();
-        let node = NodeProc::start(
-            dom.id,
-            &[
-                "--demo",
-                "--trace",
-                &v,
-                "--trace",
-                &c,
-                "--ros-args",
-                "-p",
-                "pw01.period_ms:=50",
-                "-p",
-                "pw02.period_ms:=50",
-            ],
-        );
-        node.wait_running();
+        let params = ros_params(&["pw01.period_ms:=50", "pw02.period_ms:=50"]);
+        let node =
+            NodeProc::launch(&[&["--demo", "--trace", &v, "--trace", &c][..], &params].concat());
         assert!(node.wait_log("pw02 ↓", LONG), "{}", node.log());
         let (status, log) = node.stop_with(sig);
         assert_eq!(status.code(), Some(0), "{log}");

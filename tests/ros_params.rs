@@ -19,24 +19,19 @@ fn event_has(e: &raw::ParameterEvent, name: &str, int: i64) -> bool {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn parameter_services_set_refuse_describe_and_announce() {
-    let dom = Domain::acquire();
-    let node = NodeProc::start(dom.id, &[]);
-    node.wait_running();
-    let mut ros = Ros::new(dom.id);
+    let node = NodeProc::launch(&[]);
+    let mut ros = Ros::new(node.domain);
     let events = ros.sub::<raw::ParameterEvent>("/parameter_events", default_qos());
     let p = ros.params("/pwm_actuator");
     p.ready(&ros).await;
 
-    assert_eq!(
-        p.get(&["pw01.period_ms", "pw02.profile", "channels", "nope"])
-            .await,
-        vec![
-            V::Integer(1000),
-            V::String("pico_gfx".into()),
-            V::Integer(2),
-            V::NotSet
-        ]
-    );
+    p.assert_values(&[
+        ("pw01.period_ms", V::Integer(1000)),
+        ("pw02.profile", V::String("pico_gfx".into())),
+        ("channels", V::Integer(2)),
+        ("nope", V::NotSet),
+    ])
+    .await;
 
     // Accepted, announced on /parameter_events.
     assert_eq!(
@@ -66,22 +61,20 @@ async fn parameter_services_set_refuse_describe_and_announce() {
         reason.contains("min_on_ms 30 is below the relay minimum of 50 ms"),
         "{reason}"
     );
-    assert_eq!(
-        p.get(&["pw01.period_ms", "pw01.min_on_ms", "pw01.output_kind"])
-            .await,
-        vec![
-            V::Integer(500),
-            V::Integer(0),
-            V::String("transistor".into())
-        ]
-    );
+    p.assert_values(&[
+        ("pw01.period_ms", V::Integer(500)),
+        ("pw01.min_on_ms", V::Integer(0)),
+        ("pw01.output_kind", V::String("transistor".into())),
+    ])
+    .await;
     // A minimum above the period is a valid vendor setting (000: ME up to 65 535 ms).
     assert!(p.set(&[("pw01.min_on_ms", V::Integer(600))]).await[0].0);
     assert!(p.set(&[("pw01.min_on_ms", V::Integer(0))]).await[0].0);
 
     // A whole double is taken as the integer; a fraction is refused.
     assert!(p.set(&[("pw01.period_ms", V::Double(800.0))]).await[0].0);
-    assert_eq!(p.get(&["pw01.period_ms"]).await, vec![V::Integer(800)]);
+    p.assert_values(&[("pw01.period_ms", V::Integer(800))])
+        .await;
     let r = p.set(&[("pw01.period_ms", V::Double(800.5))]).await;
     assert!(!r[0].0 && r[0].1.contains("not a whole number"), "{r:?}");
 
@@ -93,10 +86,11 @@ async fn parameter_services_set_refuse_describe_and_announce() {
         ])
         .await;
     assert!(ok, "{why}");
-    assert_eq!(
-        p.get(&["pw02.min_on_ms", "pw02.period_ms"]).await,
-        vec![V::Integer(1500), V::Integer(4000)]
-    );
+    p.assert_values(&[
+        ("pw02.min_on_ms", V::Integer(1500)),
+        ("pw02.period_ms", V::Integer(4000)),
+    ])
+    .await;
     let (ok, why) = p
         .set_atomically(&[
             ("pw02.period_ms", V::Integer(4)),
@@ -105,10 +99,11 @@ async fn parameter_services_set_refuse_describe_and_announce() {
         .await;
     assert!(!ok);
     assert!(why.contains("pw02:"), "{why}");
-    assert_eq!(
-        p.get(&["pw02.period_ms", "pw02.profile"]).await,
-        vec![V::Integer(4000), V::String("pico_gfx".into())]
-    );
+    p.assert_values(&[
+        ("pw02.period_ms", V::Integer(4000)),
+        ("pw02.profile", V::String("pico_gfx".into())),
+    ])
+    .await;
 
     // set_parameters takes each parameter on its own.
     let r = p
@@ -173,24 +168,19 @@ async fn parameter_services_set_refuse_describe_and_announce() {
 
     let mut node = node;
     assert!(node.running());
-    let (status, log) = node.stop();
-    assert!(status.success(), "{log}");
-    assert!(
-        log.contains("parameter change refused (via set_parameters)"),
-        "{log}"
-    );
-    assert!(
-        log.contains("pw01.period_ms: double 800.0 taken as integer 800"),
-        "{log}"
+    assert_mentions(
+        &node.stop_ok(),
+        &[
+            "parameter change refused (via set_parameters)",
+            "pw01.period_ms: double 800.0 taken as integer 800",
+        ],
     );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn params_topic_applies_whole_or_refuses_whole() {
-    let dom = Domain::acquire();
-    let node = NodeProc::start(dom.id, &[]);
-    node.wait_running();
-    let mut ros = Ros::new(dom.id);
+    let node = NodeProc::launch(&[]);
+    let mut ros = Ros::new(node.domain);
     let events = ros.sub::<raw::ParameterEvent>("/parameter_events", default_qos());
     let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
     let topic = ros.publisher::<ChannelParams>("/pwm_actuator/pw01/params");
@@ -216,21 +206,13 @@ async fn params_topic_applies_whole_or_refuses_whole() {
         event_has(&ev, "pw01.min_on_ms", 50),
         "one event for the whole message: {ev:?}"
     );
-    assert_eq!(
-        p.get(&[
-            "pw01.period_ms",
-            "pw01.min_on_ms",
-            "pw01.profile",
-            "pw01.edge_band"
-        ])
-        .await,
-        vec![
-            V::Integer(200),
-            V::Integer(50),
-            V::String("twincat_ba".into()),
-            V::Double(0.0)
-        ]
-    );
+    p.assert_values(&[
+        ("pw01.period_ms", V::Integer(200)),
+        ("pw01.min_on_ms", V::Integer(50)),
+        ("pw01.profile", V::String("twincat_ba".into())),
+        ("pw01.edge_band", V::Double(0.0)),
+    ])
+    .await;
 
     // One bad field refuses the whole message.
     let bad = ChannelParams {
@@ -250,10 +232,11 @@ async fn params_topic_applies_whole_or_refuses_whole() {
     .await
     .expect("the refusal and its reason on diagnostics");
     assert!(!a.status.is_empty());
-    assert_eq!(
-        p.get(&["pw01.period_ms", "pw01.min_on_ms"]).await,
-        vec![V::Integer(200), V::Integer(50)]
-    );
+    p.assert_values(&[
+        ("pw01.period_ms", V::Integer(200)),
+        ("pw01.min_on_ms", V::Integer(50)),
+    ])
+    .await;
 
     let _ = topic.publish(ChannelParams::default());
     assert!(node.wait_log("`set` is empty", LONG), "{}", node.log());
@@ -274,12 +257,12 @@ async fn params_topic_applies_whole_or_refuses_whole() {
         "{}",
         node.log()
     );
-    assert_eq!(p.get(&["pw01.active_low"]).await, vec![V::Boolean(false)]);
+    p.assert_values(&[("pw01.active_low", V::Boolean(false))])
+        .await;
 
     let mut node = node;
     assert!(node.running());
-    let (status, log) = node.stop();
-    assert!(status.success(), "{log}");
+    node.stop_ok();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -297,56 +280,37 @@ async fn start_up_values_from_params_file_and_p() {
     )
     .unwrap();
     let f = file.to_string_lossy().to_string();
-    let dom = Domain::acquire();
-    let node = NodeProc::start(
-        dom.id,
-        &[
-            "--status-rate",
-            "2",
-            "--ros-args",
-            "--params-file",
-            &f,
-            "-p",
-            "pw01.period_ms:=500.0",
-            "-p",
-            "other:pw02.period_ms:=9",
-        ],
-    );
-    node.wait_running();
-    let mut ros = Ros::new(dom.id);
+    let node = NodeProc::launch(&[
+        "--status-rate",
+        "2",
+        "--ros-args",
+        "--params-file",
+        &f,
+        "-p",
+        "pw01.period_ms:=500.0",
+        "-p",
+        "other:pw02.period_ms:=9",
+    ]);
+    let mut ros = Ros::new(node.domain);
     let p = ros.params("/pwm_actuator");
     p.ready(&ros).await;
-    assert_eq!(
-        p.get(&[
-            "channels",
-            "status_rate_hz",
-            "pw01.period_ms",
-            "pw01.profile",
-            "pw01.edge_band",
-            "pw02.period_ms",
-            "pw03.period_ms"
-        ])
-        .await,
-        vec![
-            V::Integer(3),
-            V::Double(5.0),
-            V::Integer(500),
-            V::String("tcont_cp".into()),
-            V::Double(1.0),
-            V::Integer(1000),
-            V::Integer(300)
-        ]
+    p.assert_values(&[
+        ("channels", V::Integer(3)),
+        ("status_rate_hz", V::Double(5.0)),
+        ("pw01.period_ms", V::Integer(500)),
+        ("pw01.profile", V::String("tcont_cp".into())),
+        ("pw01.edge_band", V::Double(1.0)),
+        ("pw02.period_ms", V::Integer(1000)),
+        ("pw03.period_ms", V::Integer(300)),
+    ])
+    .await;
+    assert_mentions(
+        &node.stop_ok(),
+        &[
+            "pw01.period_ms: double 500.0 taken as integer 500",
+            "pw01.edge_band: integer 1 taken as double 1.0",
+            "overrides --status-rate",
+        ],
     );
-    let (status, log) = node.stop();
-    assert!(status.success(), "{log}");
-    assert!(
-        log.contains("pw01.period_ms: double 500.0 taken as integer 500"),
-        "{log}"
-    );
-    assert!(
-        log.contains("pw01.edge_band: integer 1 taken as double 1.0"),
-        "{log}"
-    );
-    assert!(log.contains("overrides --status-rate"), "{log}");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -11,32 +11,27 @@ use ros_harness::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn node_name_namespace_and_topic_remaps() {
-    let dom = Domain::acquire();
-    let node = NodeProc::start(
-        dom.id,
-        &[
-            "--ros-args",
-            "-r",
-            "__node:=heater",
-            "-r",
-            "__ns:=/plant",
-            "-r",
-            "heater:~/pw01/duty:=/heater_duty",
-            "-r",
-            "other_node:~/pw01/status:=/never",
-            "-p",
-            "pw01.enable:=true",
-            "-p",
-            "pw01.period_ms:=100",
-        ],
-    );
-    node.wait_running();
+    let node = NodeProc::launch(&[
+        "--ros-args",
+        "-r",
+        "__node:=heater",
+        "-r",
+        "__ns:=/plant",
+        "-r",
+        "heater:~/pw01/duty:=/heater_duty",
+        "-r",
+        "other_node:~/pw01/status:=/never",
+        "-p",
+        "pw01.enable:=true",
+        "-p",
+        "pw01.period_ms:=100",
+    ]);
     assert!(
         node.log().contains("/plant/heater running"),
         "{}",
         node.log()
     );
-    let mut ros = Ros::new(dom.id);
+    let mut ros = Ros::new(node.domain);
     let status = ros.sub::<ChannelStatus>("/plant/heater/pw01/status", default_qos());
     let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
     let events = ros.sub::<raw::ParameterEvent>("/parameter_events", default_qos());
@@ -74,8 +69,7 @@ async fn node_name_namespace_and_topic_remaps() {
     .expect("parameter event");
     assert_eq!(ev.node, "/plant/heater");
 
-    let (status, log) = node.stop();
-    assert!(status.success(), "{log}");
+    let log = node.stop_ok();
     assert!(
         log.contains("[heater]: "),
         "the logger is named after the node: {log}"

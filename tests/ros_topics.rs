@@ -8,7 +8,7 @@ mod ros_harness;
 use pwm_actuator::ros::msg::{
     Bool, ChannelStatus, DiagnosticArray, DiagnosticStatus, Float64, OutputEdge, UInt16,
 };
-use ros2_client::Log;
+use ros2_client::{Log, Subscription};
 use ros_harness::*;
 use std::time::Duration;
 
@@ -16,12 +16,23 @@ fn pw01_diag(a: &DiagnosticArray) -> Option<&DiagnosticStatus> {
     a.status.iter().find(|s| s.name == "pwm_actuator: pw01")
 }
 
+/// The first /diagnostics message in which pw01's status satisfies `pred`.
+async fn pw01_until(
+    diag: &Subscription<DiagnosticArray>,
+    what: &str,
+    pred: impl Fn(&DiagnosticStatus) -> bool,
+) -> DiagnosticArray {
+    wait_for(diag, LONG, |a: &DiagnosticArray| {
+        pw01_diag(a).is_some_and(&pred)
+    })
+    .await
+    .unwrap_or_else(|| panic!("pw01 on /diagnostics: {what}"))
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn commands_in_edges_and_status_out() {
-    let dom = Domain::acquire();
-    let node = NodeProc::start(dom.id, &["--ros-args", "-p", "pw01.period_ms:=100"]);
-    node.wait_running();
-    let mut ros = Ros::new(dom.id);
+    let node = NodeProc::launch(&ros_params(&["pw01.period_ms:=100"]));
+    let mut ros = Ros::new(node.domain);
     let ChannelTopics {
         edges,
         status,
@@ -94,33 +105,22 @@ async fn commands_in_edges_and_status_out() {
         .expect("a /rosout message from the node");
     assert!(!log.msg.is_empty());
 
-    let (status, log) = node.stop();
-    assert!(status.success(), "{status:?}\n{log}");
+    let log = node.stop_ok();
     assert!(log.contains("pw01 ↑ t="), "console edge lines:\n{log}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn e1_is_latched_and_diagnostics_warn() {
     // 5 % of 100 ms is a 5 ms pulse, below min_on_ms 20: suppressed, E1 (000).
-    let dom = Domain::acquire();
-    let node = NodeProc::start(
-        dom.id,
-        &[
-            "--ros-args",
-            "-p",
-            "pw01.period_ms:=100",
-            "-p",
-            "pw01.min_on_ms:=20",
-            "-p",
-            "pw01.duty:=5.0",
-            "-p",
-            "pw01.enable:=true",
-        ],
-    );
-    node.wait_running();
+    let node = NodeProc::launch(&ros_params(&[
+        "pw01.period_ms:=100",
+        "pw01.min_on_ms:=20",
+        "pw01.duty:=5.0",
+        "pw01.enable:=true",
+    ]));
     // Subscribed after the node set E1: transient local delivers the current value.
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let mut ros = Ros::new(dom.id);
+    let mut ros = Ros::new(node.domain);
     let ChannelTopics { e1, .. } = ros.channel("pw01");
     let ChannelTopics { e1: e1_pw02, .. } = ros.channel("pw02");
     let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
@@ -129,11 +129,7 @@ async fn e1_is_latched_and_diagnostics_warn() {
     let v = next(&e1_pw02, LONG).await.expect("latched E1 for pw02");
     assert!(!v.data);
 
-    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
-        pw01_diag(a).is_some_and(|d| d.level == DiagnosticStatus::WARN)
-    })
-    .await
-    .expect("pw01 at WARN");
+    let a = pw01_until(&diag, "at WARN", |d| d.level == DiagnosticStatus::WARN).await;
     let d = pw01_diag(&a).unwrap();
     assert!(d.message.starts_with("E1:"), "{}", d.message);
     assert_eq!(d.hardware_id, "sim");
@@ -146,25 +142,13 @@ async fn e1_is_latched_and_diagnostics_warn() {
         .expect("pw02 listed");
     assert_eq!(pw02.level, DiagnosticStatus::OK);
     assert_eq!(pw02.message, "disabled");
-    let (status, log) = node.stop();
-    assert!(status.success(), "{log}");
+    node.stop_ok();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
-    let dom = Domain::acquire();
-    let node = NodeProc::start(
-        dom.id,
-        &[
-            "--ros-args",
-            "-p",
-            "pw01.period_ms:=100",
-            "-p",
-            "pw01.enable:=true",
-        ],
-    );
-    node.wait_running();
-    let mut ros = Ros::new(dom.id);
+    let node = NodeProc::launch(&ros_params(&["pw01.period_ms:=100", "pw01.enable:=true"]));
+    let mut ros = Ros::new(node.domain);
     let ChannelTopics {
         status, duty, sv, ..
     } = ros.channel("pw01");
@@ -180,11 +164,10 @@ async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
     for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
         let _ = duty.publish(Float64 { data: bad });
     }
-    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
-        pw01_diag(a).is_some_and(|d| kv(d, "rejected_commands") == "3")
+    let a = pw01_until(&diag, "three refusals reported", |d| {
+        kv(d, "rejected_commands") == "3"
     })
-    .await
-    .expect("three refusals reported");
+    .await;
     let d = pw01_diag(&a).unwrap();
     assert_eq!(d.level, DiagnosticStatus::WARN);
     assert!(
@@ -210,11 +193,7 @@ async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
     .await
     .expect("150 % clamped");
     assert_eq!(s.duty_commanded, 100.0);
-    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
-        pw01_diag(a).is_some_and(|d| d.message.contains("clamped"))
-    })
-    .await
-    .expect("clamping on diagnostics");
+    let a = pw01_until(&diag, "clamping", |d| d.message.contains("clamped")).await;
     assert_eq!(pw01_diag(&a).unwrap().level, DiagnosticStatus::WARN);
     let s = command_until(&duty, Float64 { data: -5.0 }, &status, |s| {
         s.command_clamped && s.duty_commanded == 0.0
@@ -249,25 +228,16 @@ async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
     .expect("back to a good command");
     let mut node = node;
     assert!(node.running());
-    let (status, log) = node.stop();
-    assert!(status.success(), "{log}");
+    node.stop_ok();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_watchdog_trips_to_error() {
-    let dom = Domain::acquire();
-    let node = NodeProc::start(
-        dom.id,
-        &[
-            "--ros-args",
-            "-p",
-            "pw01.period_ms:=100",
-            "-p",
-            "pw01.command_timeout_ms:=300",
-        ],
-    );
-    node.wait_running();
-    let mut ros = Ros::new(dom.id);
+    let node = NodeProc::launch(&ros_params(&[
+        "pw01.period_ms:=100",
+        "pw01.command_timeout_ms:=300",
+    ]));
+    let mut ros = Ros::new(node.domain);
     let ChannelTopics {
         status,
         duty,
@@ -286,13 +256,8 @@ async fn the_watchdog_trips_to_error() {
         .await
         .expect("watchdog trips");
     assert!(!s.active);
-    let a = wait_for(&diag, LONG, |a: &DiagnosticArray| {
-        pw01_diag(a).is_some_and(|d| d.level == DiagnosticStatus::ERROR)
-    })
-    .await
-    .expect("ERROR on diagnostics");
+    let a = pw01_until(&diag, "ERROR", |d| d.level == DiagnosticStatus::ERROR).await;
     assert!(pw01_diag(&a).unwrap().message.starts_with("watchdog"));
     assert!(node.wait_log("watchdog tripped", LONG));
-    let (status, log) = node.stop();
-    assert!(status.success(), "{log}");
+    node.stop_ok();
 }

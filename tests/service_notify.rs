@@ -25,13 +25,7 @@ fn ready_once_running_and_stopping_on_sigterm() {
     sock.set_read_timeout(Some(Duration::from_secs(30)))
         .unwrap();
 
-    let dom = Domain::acquire();
-    let node = NodeProc::start_with(
-        &dom.id.to_string(),
-        &[],
-        dom.id,
-        &[("NOTIFY_SOCKET", path.to_str().unwrap())],
-    );
+    let node = NodeProc::start_with(&[], &[("NOTIFY_SOCKET", path.to_str().unwrap())]);
     let ready = recv(&sock);
     assert_eq!(ready.as_deref(), Some("READY=1\n"), "{}", node.log());
     // Sent after the start-up line that says the node runs (read by another thread, so it

@@ -53,14 +53,14 @@ fn run_to_exit(env: &[(&str, &str)], args: &[&str]) -> (Option<i32>, String, boo
 
 /// Starts the node with `env` (and nothing else of [`TRUST_VARS`] from the caller) and waits
 /// until it runs.
-fn start(dom: &Domain, env: &[(&str, &str)], args: &[&str]) -> NodeProc {
+fn start(env: &[(&str, &str)], args: &[&str]) -> NodeProc {
     let mut full: Vec<(&str, &str)> = TRUST_VARS
         .iter()
         .filter(|v| !env.iter().any(|(k, _)| k == *v))
         .map(|v| (*v, ""))
         .collect();
     full.extend_from_slice(env);
-    let n = NodeProc::start_with(&dom.id.to_string(), args, dom.id, &full);
+    let n = NodeProc::start_with(args, &full);
     n.wait_running();
     n
 }
@@ -112,16 +112,12 @@ fn permissive_security_and_a_bare_enclave_start_with_one_warning() {
             "enclave `/pwm_actuator` given but ROS_SECURITY_ENABLE is not `true`",
         ),
     ] {
-        let dom = Domain::acquire();
-        let n = start(&dom, &env, &args);
-        let (status, log) = n.stop();
-        assert_eq!(status.code(), Some(0), "{log}");
+        let log = start(&env, &args).stop_ok();
         assert_eq!(log.matches(needle).count(), 1, "{needle}: {log}");
         assert!(log.contains("[WARN]"), "{log}");
     }
     // Nothing asked: nothing said.
-    let dom = Domain::acquire();
-    let n = start(&dom, &[], &[]);
+    let n = start(&[], &[]);
     std::thread::sleep(Duration::from_millis(200));
     let (_, log) = n.stop();
     assert!(!log.contains("secur"), "{log}");
@@ -164,6 +160,12 @@ impl Spawned {
 
     fn log(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Asserts that the node's log so far contains `needle`.
+    fn assert_logged(&self, needle: &str) {
+        let log = self.log();
+        assert!(log.contains(needle), "{needle:?} not in:\n{log}");
     }
 
     /// The local addresses of the node's UDP sockets, as `ss` shows them (`0.0.0.0%lo:7400`).
@@ -242,11 +244,7 @@ fn localhost_binds_every_socket_to_loopback_and_still_talks_on_this_machine() {
                 "{env:?}: socket {s} is reachable from other interfaces: {socks:?}"
             );
         }
-        assert!(
-            node.log().contains("discovery range LOCALHOST"),
-            "{}",
-            node.log()
-        );
+        node.assert_logged("discovery range LOCALHOST");
         // A participant on this machine still discovers it and hears it.
         assert!(heard_from(&dom, LONG), "{env:?}: {}", node.log());
         // Having matched a peer opened no socket outside loopback.
@@ -265,11 +263,7 @@ fn localhost_binds_every_socket_to_loopback_and_still_talks_on_this_machine() {
     // ROS_LOCALHOST_ONLY says it is deprecated.
     let dom = Domain::acquire();
     let node = Spawned::start(&dom, &[("ROS_LOCALHOST_ONLY", "1")]);
-    assert!(
-        node.log().contains("ROS_LOCALHOST_ONLY is deprecated"),
-        "{}",
-        node.log()
-    );
+    node.assert_logged("ROS_LOCALHOST_ONLY is deprecated");
 }
 
 #[test]
@@ -287,7 +281,7 @@ fn subnet_is_unchanged_and_off_discovers_no_one() {
     if let Some(socks) = node.udp_sockets() {
         assert!(socks.iter().all(|s| s.contains("%lo:")), "{socks:?}");
     }
-    assert!(node.log().contains("discovery range OFF"), "{}", node.log());
+    node.assert_logged("discovery range OFF");
     assert!(
         !heard_from(&dom, Duration::from_secs(4)),
         "OFF, yet heard: {}",
@@ -313,11 +307,7 @@ fn static_peers_are_refused_clearly() {
             ("ROS_STATIC_PEERS", "192.0.2.1"),
         ],
     );
-    assert!(
-        node.log().contains("ROS_STATIC_PEERS is ignored"),
-        "{}",
-        node.log()
-    );
+    node.assert_logged("ROS_STATIC_PEERS is ignored");
 }
 
 #[test]

@@ -11,7 +11,7 @@
 mod ros_harness;
 
 use pwm_actuator::ros::msg::DiagnosticArray;
-use ros2_client::{Context, NodeName, NodeOptions};
+use ros2_client::Context;
 use ros_harness::*;
 use rustdds::{DomainParticipantBuilder, DomainParticipantSecurityConfigFiles};
 use std::path::{Path, PathBuf};
@@ -42,32 +42,9 @@ fn hears(domain: u16, enclave: Option<&Path>, within: Duration) -> bool {
             );
         }
         let ctx = Context::from_domain_participant(b.build().expect("participant")).unwrap();
-        let mut node = ctx
-            .new_node(
-                NodeName::new("/", &format!("sec_probe_{}", std::process::id())).unwrap(),
-                NodeOptions::new()
-                    .enable_rosout(false)
-                    .start_parameter_services(false),
-            )
-            .unwrap();
-        let spinner = node.spinner().unwrap();
-        let spin = tokio::spawn(async move {
-            let _ = spinner.spin().await;
-        });
-        let qos = default_qos();
-        let t = node
-            .create_topic(
-                &ros2_client::Name::new("/", "diagnostics").unwrap(),
-                ros2_client::MessageTypeName::new("diagnostic_msgs", "DiagnosticArray"),
-                &qos,
-            )
-            .unwrap();
-        let sub = node
-            .create_subscription::<DiagnosticArray>(&t, Some(qos))
-            .unwrap();
-        let heard = next(&sub, within).await.is_some();
-        spin.abort();
-        heard
+        let mut ros = Ros::on(ctx);
+        let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
+        next(&diag, within).await.is_some()
     })
 }
 
@@ -83,15 +60,9 @@ fn secured_env(ks: &Path) -> Vec<(&'static str, String)> {
 #[test]
 fn an_enforced_enclave_secures_the_node_and_refuses_the_unauthenticated() {
     let (ks, enclave) = keystore("ok");
-    let dom = Domain::acquire();
     let env = secured_env(&ks);
     let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
-    let node = NodeProc::start_with(
-        &dom.id.to_string(),
-        &["--ros-args", "--enclave", "/pwm"],
-        dom.id,
-        &env,
-    );
+    let node = NodeProc::start_with(&["--ros-args", "--enclave", "/pwm"], &env);
     node.wait_running();
     assert!(
         node.log().contains("DDS security on: enclave"),
@@ -99,14 +70,13 @@ fn an_enforced_enclave_secures_the_node_and_refuses_the_unauthenticated() {
         node.log()
     );
     // Authenticated with the same CAs and permitted: it hears the node.
-    assert!(hears(dom.id, Some(&enclave), LONG), "{}", node.log());
+    assert!(hears(node.domain, Some(&enclave), LONG), "{}", node.log());
     // Unauthenticated: nothing, though it is on the same machine and domain.
     assert!(
-        !hears(dom.id, None, Duration::from_secs(5)),
+        !hears(node.domain, None, Duration::from_secs(5)),
         "an unauthenticated participant heard the node"
     );
-    let (status, log) = node.stop();
-    assert_eq!(status.code(), Some(0), "{log}");
+    node.stop_ok();
 }
 
 #[test]

@@ -621,6 +621,19 @@ impl ChannelParams {
         self.on_disable.unwrap_or(self.profile.on_disable())
     }
 
+    /// The watchdog's limits: its timeout, and the fault value it runs and for how long.
+    fn check_watchdog(&self) -> Result<(), ConfigError> {
+        at_most_a_day(self.command_timeout_ms, |value_ms, max_ms| {
+            ConfigError::TimeoutTooLong { value_ms, max_ms }
+        })?;
+        within(self.fault_duty_pct, 0.0..=100.0, |value| {
+            ConfigError::FaultDutyOutOfRange { value }
+        })?;
+        at_most_a_day(self.fault_hold_ms, |value_ms, max_ms| {
+            ConfigError::FaultHoldTooLong { value_ms, max_ms }
+        })
+    }
+
     /// Checks every limit of SPEC §1 and 000's table and resolves the profile.
     ///
     /// The checks run in a fixed order so the reason given is deterministic: period, minimum
@@ -678,28 +691,10 @@ impl ChannelParams {
         let min_on = effective(self.min_on_ms);
         let min_off = effective(min_off_ms);
         let period = self.period_ms * NS_PER_MS;
-        if !(0.0..=1.0).contains(&self.edge_band) {
-            return Err(ConfigError::EdgeBandOutOfRange {
-                value: self.edge_band,
-            });
-        }
-        if self.command_timeout_ms > MAX_TIMEOUT_MS {
-            return Err(ConfigError::TimeoutTooLong {
-                value_ms: self.command_timeout_ms,
-                max_ms: MAX_TIMEOUT_MS,
-            });
-        }
-        if !(0.0..=100.0).contains(&self.fault_duty_pct) {
-            return Err(ConfigError::FaultDutyOutOfRange {
-                value: self.fault_duty_pct,
-            });
-        }
-        if self.fault_hold_ms > MAX_TIMEOUT_MS {
-            return Err(ConfigError::FaultHoldTooLong {
-                value_ms: self.fault_hold_ms,
-                max_ms: MAX_TIMEOUT_MS,
-            });
-        }
+        within(self.edge_band, 0.0..=1.0, |value| {
+            ConfigError::EdgeBandOutOfRange { value }
+        })?;
+        self.check_watchdog()?;
         if self.max_on_ms > MAX_ON_MS {
             return Err(ConfigError::MaxOnTooLong {
                 value_ms: self.max_on_ms,
@@ -756,6 +751,32 @@ impl ChannelParams {
     }
 }
 
+/// Ok if `value` lies in `range` (NaN never does), else the error `outside` makes of it.
+fn within(
+    value: f64,
+    range: std::ops::RangeInclusive<f64>,
+    outside: impl FnOnce(f64) -> ConfigError,
+) -> Result<(), ConfigError> {
+    if range.contains(&value) {
+        Ok(())
+    } else {
+        Err(outside(value))
+    }
+}
+
+/// Ok for a time of at most [`MAX_TIMEOUT_MS`], else the error `too_long` makes of it and that
+/// maximum.
+fn at_most_a_day(
+    value_ms: u64,
+    too_long: impl FnOnce(u64, u64) -> ConfigError,
+) -> Result<(), ConfigError> {
+    if value_ms <= MAX_TIMEOUT_MS {
+        Ok(())
+    } else {
+        Err(too_long(value_ms, MAX_TIMEOUT_MS))
+    }
+}
+
 impl Default for ChannelConfig {
     fn default() -> Self {
         // The defaults of SPEC §1 are valid by construction.
@@ -772,6 +793,13 @@ mod tests {
 
     fn params() -> ChannelParams {
         ChannelParams::default()
+    }
+
+    /// The default parameters with the changes `set` makes, validated.
+    fn validated(set: impl FnOnce(&mut ChannelParams)) -> Result<ChannelConfig, ConfigError> {
+        let mut p = params();
+        set(&mut p);
+        p.validate()
     }
 
     #[test]
@@ -796,19 +824,11 @@ mod tests {
             (65_535, true),
             (3_600_000, true),
         ] {
-            let r = ChannelParams {
-                period_ms: p,
-                ..params()
-            }
-            .validate();
+            let r = validated(|c| c.period_ms = p);
             assert_eq!(r.is_ok(), ok, "period {p}: {r:?}");
         }
         assert_eq!(
-            ChannelParams {
-                period_ms: 3_600_001,
-                ..params()
-            }
-            .validate(),
+            validated(|p| p.period_ms = 3_600_001),
             Err(ConfigError::PeriodTooLong {
                 period_ms: 3_600_001,
                 max_ms: MAX_PERIOD_MS
@@ -818,16 +838,14 @@ mod tests {
 
     #[test]
     fn relay_limits_000() {
-        let relay = ChannelParams {
-            output_kind: OutputKind::Relay,
-            ..params()
+        let relay = |set: fn(&mut ChannelParams)| {
+            validated(|p| {
+                p.output_kind = OutputKind::Relay;
+                set(p);
+            })
         };
         assert_eq!(
-            ChannelParams {
-                period_ms: 99,
-                ..relay
-            }
-            .validate(),
+            relay(|p| p.period_ms = 99),
             Err(ConfigError::PeriodTooShort {
                 period_ms: 99,
                 min_ms: 100,
@@ -835,11 +853,7 @@ mod tests {
             })
         );
         assert_eq!(
-            ChannelParams {
-                min_on_ms: 49,
-                ..relay
-            }
-            .validate(),
+            relay(|p| p.min_on_ms = 49),
             Err(ConfigError::RelayMinTimeTooShort {
                 which: MinTime::On,
                 value_ms: 49,
@@ -847,38 +861,24 @@ mod tests {
             })
         );
         // 0 means the relay floor of 50 ms, for on and off alike.
-        let c = ChannelParams {
-            period_ms: 100,
-            ..relay
-        }
-        .validate()
-        .unwrap();
+        let c = relay(|p| p.period_ms = 100).unwrap();
         assert_eq!((c.min_on, c.min_off), (50 * NS_PER_MS, 50 * NS_PER_MS));
     }
 
     #[test]
     fn min_off_follows_min_on_unless_profile_says_otherwise() {
-        let c = ChannelParams {
-            min_on_ms: 30,
-            ..params()
-        }
-        .validate()
-        .unwrap();
+        let c = validated(|p| p.min_on_ms = 30).unwrap();
         assert_eq!(c.min_off, 30 * NS_PER_MS, "000: min off = min on");
-        let c = ChannelParams {
-            min_on_ms: 30,
-            profile: Profile::TwincatBa,
-            ..params()
-        }
-        .validate()
+        let c = validated(|p| {
+            p.min_on_ms = 30;
+            p.profile = Profile::TwincatBa;
+        })
         .unwrap();
         assert_eq!(c.min_off, 100_000, "002: nMinSwiTi limits the on time only");
-        let c = ChannelParams {
-            min_on_ms: 30,
-            min_off_ms: Some(10),
-            ..params()
-        }
-        .validate()
+        let c = validated(|p| {
+            p.min_on_ms = 30;
+            p.min_off_ms = Some(10);
+        })
         .unwrap();
         assert_eq!(c.min_off, 10 * NS_PER_MS);
     }
@@ -887,44 +887,36 @@ mod tests {
     fn minima_above_half_the_period_are_valid_000_002() {
         // 000: ME is 0..65 535 ms whatever PD, and "minimum off duration = minimum on
         // duration", so ME above PD/2 is a valid Pico GFX setting.
-        let c = ChannelParams {
-            period_ms: 100,
-            min_on_ms: 60,
-            ..params()
-        }
-        .validate()
+        let c = validated(|p| {
+            p.period_ms = 100;
+            p.min_on_ms = 60;
+        })
         .unwrap();
         assert_eq!((c.min_on, c.min_off), (60 * NS_PER_MS, 60 * NS_PER_MS));
         // 002: nMinSwiTi "limited to values between 0 and nPrd": equal is valid, above is
         // limited to the period rather than refused.
         for min_on_ms in [1000, 1500, 65_535] {
-            let c = ChannelParams {
-                period_ms: 1000,
-                min_on_ms,
-                profile: Profile::TwincatBa,
-                ..params()
-            }
-            .validate()
+            let c = validated(|p| {
+                p.period_ms = 1000;
+                p.min_on_ms = min_on_ms;
+                p.profile = Profile::TwincatBa;
+            })
             .unwrap();
             assert_eq!(c.min_on, 1000 * NS_PER_MS, "{min_on_ms}");
         }
         // 000's relay table: PD 150 with ME 100.
-        let c = ChannelParams {
-            period_ms: 150,
-            min_on_ms: 100,
-            output_kind: OutputKind::Relay,
-            ..params()
-        }
-        .validate()
+        let c = validated(|p| {
+            p.period_ms = 150;
+            p.min_on_ms = 100;
+            p.output_kind = OutputKind::Relay;
+        })
         .unwrap();
         assert_eq!((c.min_on, c.min_off), (100 * NS_PER_MS, 100 * NS_PER_MS));
         // Period 0 keeps the minima as given, for later.
-        let c = ChannelParams {
-            period_ms: 0,
-            min_on_ms: 500,
-            ..params()
-        }
-        .validate()
+        let c = validated(|p| {
+            p.period_ms = 0;
+            p.min_on_ms = 500;
+        })
         .unwrap();
         assert_eq!(c.min_on, 500 * NS_PER_MS);
     }
@@ -959,41 +951,22 @@ mod tests {
                 );
             }
         }
-        let e = ChannelParams {
-            command_timeout_ms: u64::MAX,
-            ..params()
-        }
-        .validate()
-        .unwrap_err();
+        let e = validated(|p| p.command_timeout_ms = u64::MAX).unwrap_err();
         assert!(matches!(e, ConfigError::TimeoutTooLong { .. }));
-        assert!(ChannelParams {
-            period_ms: u64::MAX,
-            ..params()
-        }
-        .validate()
-        .is_err());
+        assert!(validated(|p| p.period_ms = u64::MAX).is_err());
     }
 
     #[test]
     fn edge_band_range_004() {
         for v in [-0.1, 1.1, f64::NAN, f64::INFINITY] {
-            let r = ChannelParams {
-                edge_band: v,
-                ..params()
-            }
-            .validate();
+            let r = validated(|p| p.edge_band = v);
             assert!(
                 matches!(r, Err(ConfigError::EdgeBandOutOfRange { .. })),
                 "{v}"
             );
         }
         for v in [0.0, 0.5, 1.0] {
-            assert!(ChannelParams {
-                edge_band: v,
-                ..params()
-            }
-            .validate()
-            .is_ok());
+            assert!(validated(|p| p.edge_band = v).is_ok());
         }
     }
 
@@ -1032,25 +1005,18 @@ mod tests {
             ),
         ];
         for (profile, sp, aa, od) in expect {
-            let c = ChannelParams {
-                profile,
-                ..params()
-            }
-            .validate()
-            .unwrap();
+            let c = validated(|p| p.profile = profile).unwrap();
             assert_eq!(
                 (c.short_pulse, c.apply_at, c.on_disable),
                 (sp, aa, od),
                 "{profile}"
             );
-            let c = ChannelParams {
-                profile,
-                short_pulse: Some(ShortPulse::Stretch),
-                apply_at: Some(ApplyAt::Immediate),
-                on_disable: Some(OnDisable::Hold),
-                ..params()
-            }
-            .validate()
+            let c = validated(|p| {
+                p.profile = profile;
+                p.short_pulse = Some(ShortPulse::Stretch);
+                p.apply_at = Some(ApplyAt::Immediate);
+                p.on_disable = Some(OnDisable::Hold);
+            })
             .unwrap();
             assert_eq!(
                 (c.short_pulse, c.apply_at, c.on_disable),

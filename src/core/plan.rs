@@ -144,11 +144,12 @@ impl Plan {
         // Round to the nearest ns; the whole period stays exactly `period`.
         let t_on = ((duty * period as f64).round() as Nanos).min(period);
         let t_off = period - t_on;
-        // A stretched time that leaves no valid break or pulse beside it (the minima together
-        // exceed the period): the whole period goes to the stretched side, flagged.
-        let stretched_full = |on: bool, rule: Rule| Plan {
-            t_on: if on { period } else { 0 },
-            t_off: if on { 0 } else { period },
+        // A time stretched to its minimum: `t_on` on, the rest of the period off, flagged. One
+        // that leaves no valid break or pulse beside it (the minima together exceed the period)
+        // takes the whole period.
+        let stretched = |t_on: Nanos, rule: Rule| Plan {
+            t_on,
+            t_off: period - t_on,
             e1: true,
             limited: true,
             rule,
@@ -157,16 +158,9 @@ impl Plan {
         if t_on < cfg.min_on {
             return match cfg.short_pulse {
                 ShortPulse::Stretch if period - cfg.min_on.min(period) < cfg.min_off => {
-                    stretched_full(true, Rule::StretchedPulse)
+                    stretched(period, Rule::StretchedPulse)
                 }
-                ShortPulse::Stretch => Plan {
-                    t_on: cfg.min_on,
-                    t_off: period - cfg.min_on,
-                    e1: true,
-                    limited: true,
-                    rule: Rule::StretchedPulse,
-                    ..base
-                },
+                ShortPulse::Stretch => stretched(cfg.min_on, Rule::StretchedPulse),
                 // `band` keeps suppress as its safety net inside the PWM range.
                 ShortPulse::Suppress | ShortPulse::Band => {
                     constant(false, Rule::SuppressedPulse, true)
@@ -178,16 +172,9 @@ impl Plan {
                 // The pulse left beside a stretched break would be below min on: the duty is
                 // high, so the break goes instead (as suppress would).
                 ShortPulse::Stretch if period - cfg.min_off.min(period) < cfg.min_on => {
-                    stretched_full(true, Rule::StretchedBreak)
+                    stretched(period, Rule::StretchedBreak)
                 }
-                ShortPulse::Stretch => Plan {
-                    t_on: period - cfg.min_off,
-                    t_off: cfg.min_off,
-                    e1: true,
-                    limited: true,
-                    rule: Rule::StretchedBreak,
-                    ..base
-                },
+                ShortPulse::Stretch => stretched(period - cfg.min_off, Rule::StretchedBreak),
                 ShortPulse::Suppress | ShortPulse::Band => {
                     constant(true, Rule::SuppressedBreak, true)
                 }
@@ -238,38 +225,42 @@ mod tests {
     }
 
     #[test]
-    fn suppress_short_pulse_gives_0_and_e1_000() {
-        // 000: "If the actual value specified via SV ... is shorter than the minimum on duration,
-        // the output ... is accordingly 0"; E1 is set.
-        let c = cfg(1000, 100, ShortPulse::Suppress, 0.0);
-        let p = Plan::new(0.05, &c);
-        assert_eq!(
-            (p.t_on, p.t_off, p.e1, p.limited),
-            (0, 1000 * MS, true, false)
-        );
-        assert_eq!(p.rule, Rule::SuppressedPulse);
-    }
-
-    #[test]
-    fn suppress_short_break_gives_1_and_e1_000() {
-        // 000: "If the off duration ... is less than the minimum off duration, Q1 or Q2 are
-        // permanently on."
-        let c = cfg(1000, 100, ShortPulse::Suppress, 0.0);
-        let p = Plan::new(0.95, &c);
-        assert_eq!((p.t_on, p.t_off, p.e1), (1000 * MS, 0, true));
-        assert_eq!(p.rule, Rule::SuppressedBreak);
-    }
-
-    #[test]
-    fn stretch_raises_on_time_and_sets_limit_flag_002() {
-        let c = cfg(1000, 100, ShortPulse::Stretch, 0.0);
-        let p = Plan::new(0.05, &c);
-        assert_eq!(
-            (p.t_on, p.t_off, p.e1, p.limited),
-            (100 * MS, 900 * MS, true, true)
-        );
-        let p = Plan::new(0.95, &c);
-        assert_eq!((p.t_on, p.t_off, p.limited), (900 * MS, 100 * MS, true));
+    fn short_pulses_and_breaks_follow_the_policy_000_002() {
+        // 1000 ms period, 100 ms minimum on and off time.
+        for (sp, duty, want) in [
+            // 000: "If the actual value specified via SV ... is shorter than the minimum on
+            // duration, the output ... is accordingly 0"; E1 is set.
+            (
+                ShortPulse::Suppress,
+                0.05,
+                (0, 1000 * MS, true, false, Rule::SuppressedPulse),
+            ),
+            // 000: "If the off duration ... is less than the minimum off duration, Q1 or Q2 are
+            // permanently on."
+            (
+                ShortPulse::Suppress,
+                0.95,
+                (1000 * MS, 0, true, false, Rule::SuppressedBreak),
+            ),
+            // 002: stretch raises the on time (or the off time) and sets the limit flag.
+            (
+                ShortPulse::Stretch,
+                0.05,
+                (100 * MS, 900 * MS, true, true, Rule::StretchedPulse),
+            ),
+            (
+                ShortPulse::Stretch,
+                0.95,
+                (900 * MS, 100 * MS, true, true, Rule::StretchedBreak),
+            ),
+        ] {
+            let p = Plan::new(duty, &cfg(1000, 100, sp, 0.0));
+            assert_eq!(
+                (p.t_on, p.t_off, p.e1, p.limited, p.rule),
+                want,
+                "{sp} {duty}"
+            );
+        }
     }
 
     #[test]

@@ -620,12 +620,17 @@ mod tests {
         assert!(matches!(GpioOutput::open(&[]), Err(GpioError::NoLines)));
     }
 
+    /// Why opening pw01 on `chip` line `offset` fails (it must).
+    fn open_error(chip: &str, offset: u32) -> GpioError {
+        match GpioOutput::open(&[line("pw01", chip, offset, false)]) {
+            Err(err) => err,
+            Ok(_) => panic!("{chip} was opened as a GPIO chip"),
+        }
+    }
+
     #[test]
     fn missing_chip_names_the_path() {
-        let lines = [line("pw01", "/dev/gpiochip-does-not-exist", 17, false)];
-        let Err(err) = GpioOutput::open(&lines) else {
-            panic!("opening a missing chip succeeded");
-        };
+        let err = open_error("/dev/gpiochip-does-not-exist", 17);
         assert!(matches!(err, GpioError::ChipNotFound { .. }), "{err:?}");
         assert_eq!(
             err.to_string(),
@@ -635,10 +640,7 @@ mod tests {
 
     #[test]
     fn a_path_that_is_not_a_chip_is_a_request_error_with_its_source() {
-        let lines = [line("pw01", "/dev/null", 2, false)];
-        let Err(err) = GpioOutput::open(&lines) else {
-            panic!("/dev/null was accepted as a GPIO chip");
-        };
+        let err = open_error("/dev/null", 2);
         assert!(matches!(err, GpioError::Request { .. }), "{err:?}");
         assert!(err.to_string().contains("/dev/null"), "{err}");
         assert!(std::error::Error::source(&err).is_some());

@@ -459,6 +459,11 @@ mod tests {
         tempfile::tempdir().unwrap()
     }
 
+    /// A simulated output of [`names`] traced to `paths`.
+    fn traced(paths: &[PathBuf]) -> SimOutput {
+        SimOutput::new(names(), Some(TraceSpec::from_paths(paths).unwrap())).unwrap()
+    }
+
     /// CSV rows after the header as (t_ns, channel, level, scheduled_ns).
     fn csv_rows(path: &std::path::Path) -> Vec<(u64, String, u8, u64)> {
         let text = std::fs::read_to_string(path).unwrap();
@@ -552,8 +557,7 @@ mod tests {
         let dir = tmp_dir();
         let csv = dir.path().join("t.csv");
         let vcd = dir.path().join("t.vcd");
-        let spec = TraceSpec::from_paths(&[csv.clone(), vcd.clone()]).unwrap();
-        let mut out = SimOutput::new(names(), Some(spec)).unwrap();
+        let mut out = traced(&[csv.clone(), vcd.clone()]);
         out.set_levels(&[change(0, true, 10)]).unwrap();
         out.set_levels(&[change(0, false, 20), change(1, true, 20)])
             .unwrap();
@@ -594,8 +598,7 @@ mod tests {
     fn background_writer_writes_without_flush() {
         let dir = tmp_dir();
         let csv = dir.path().join("bg.csv");
-        let spec = TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap();
-        let mut out = SimOutput::new(names(), Some(spec)).unwrap();
+        let mut out = traced(std::slice::from_ref(&csv));
         out.set_levels(&[change(1, true, 42)]).unwrap();
         // Wide margin: the writer runs every 50 ms; allow 10 s on a loaded machine.
         let deadline = Instant::now() + Duration::from_secs(10);
@@ -617,8 +620,7 @@ mod tests {
     fn emergency_off_drives_inactive_records_flushes_and_latches() {
         let dir = tmp_dir();
         let csv = dir.path().join("e.csv");
-        let spec = TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap();
-        let mut out = SimOutput::new(names(), Some(spec)).unwrap();
+        let mut out = traced(std::slice::from_ref(&csv));
         let probe = out.probe();
         out.set_levels(&[change(0, true, 1), change(1, true, 1)])
             .unwrap();
@@ -642,12 +644,18 @@ mod tests {
         assert_eq!(csv_rows(&csv).len(), 6);
     }
 
+    /// An output of [`names`] with `line` switched on, and its probe.
+    fn with_line_on(line: usize) -> (SimOutput, SimProbe) {
+        let mut out = SimOutput::new(names(), None).unwrap();
+        out.set_levels(&[change(line, true, 1)]).unwrap();
+        let probe = out.probe();
+        (out, probe)
+    }
+
     #[test]
     fn emergency_off_does_not_deadlock_on_a_held_lock() {
-        let mut out = SimOutput::new(names(), None).unwrap();
-        out.set_levels(&[change(0, true, 1)]).unwrap();
+        let (out, probe) = with_line_on(0);
         let off = out.emergency_off();
-        let probe = out.probe();
         // As if the panicking thread held the record lock.
         let guard = lock(&probe.shared.rec);
         off.all_inactive();
@@ -657,9 +665,7 @@ mod tests {
 
     #[test]
     fn emergency_off_works_on_a_poisoned_lock() {
-        let mut out = SimOutput::new(names(), None).unwrap();
-        out.set_levels(&[change(1, true, 1)]).unwrap();
-        let probe = out.probe();
+        let (out, probe) = with_line_on(1);
         let p2 = probe.clone();
         let _ = std::thread::spawn(move || {
             let _g = p2.shared.rec.lock();

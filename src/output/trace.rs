@@ -632,12 +632,13 @@ mod tests {
     fn csv_rows_read_back() {
         let start = 5_000_000_000;
         let mut t = CsvTrace::new(Vec::new(), &names(&["pw01", "pw02"]), start).unwrap();
-        t.record(&rec(start + 1_000_100, 0, true, start + 1_000_000))
-            .unwrap();
-        t.record(&rec(start + 2_000_050, 1, true, start + 2_000_000))
-            .unwrap();
-        t.record(&rec(start + 3_000_000, 0, false, start + 3_000_000))
-            .unwrap();
+        for r in [
+            rec(start + 1_000_100, 0, true, start + 1_000_000),
+            rec(start + 2_000_050, 1, true, start + 2_000_000),
+            rec(start + 3_000_000, 0, false, start + 3_000_000),
+        ] {
+            t.record(&r).unwrap();
+        }
         assert!(t.record(&rec(start, 2, true, start)).is_err());
         let text = String::from_utf8(t.into_inner()).unwrap();
         assert!(text.starts_with("t_ns,channel,level,scheduled_ns\n"));
@@ -768,14 +769,15 @@ mod tests {
     fn vcd_structure_ids_and_relative_grouped_times() {
         let start = 7_000_000_000;
         let mut t = VcdTrace::new(Vec::new(), &names(&["pw01", "pw02", "pw03"]), start).unwrap();
-        t.record(&rec(start + 1_000, 0, true, start + 900)).unwrap();
-        t.record(&rec(start + 1_000, 1, true, start + 1_000))
-            .unwrap();
-        t.record(&rec(start + 5_000, 0, false, start + 5_000))
-            .unwrap();
-        // Older than the last written time: kept at the last time, never going back.
-        t.record(&rec(start + 4_000, 2, true, start + 4_000))
-            .unwrap();
+        for r in [
+            rec(start + 1_000, 0, true, start + 900),
+            rec(start + 1_000, 1, true, start + 1_000),
+            rec(start + 5_000, 0, false, start + 5_000),
+            // Older than the last written time: kept at the last time, never going back.
+            rec(start + 4_000, 2, true, start + 4_000),
+        ] {
+            t.record(&r).unwrap();
+        }
         t.finish(start + 9_000).unwrap();
         assert!(t.record(&rec(start + 9_500, 3, true, 0)).is_err());
         let text = String::from_utf8(t.into_inner()).unwrap();

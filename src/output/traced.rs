@@ -88,6 +88,7 @@ mod tests {
     use super::*;
     use crate::core::Level;
     use crate::output::fault::FailingOutput;
+    use crate::output::SimProbe;
 
     fn change(line: usize, level: Level, scheduled_ns: u64) -> LineChange {
         LineChange {
@@ -101,12 +102,17 @@ mod tests {
         vec!["pw01".into(), "pw02".into()]
     }
 
+    /// A simulated output of [`names`] and its probe.
+    fn sim() -> (SimOutput, SimProbe) {
+        let out = SimOutput::new(names(), None).unwrap();
+        let probe = out.probe();
+        (out, probe)
+    }
+
     #[test]
     fn records_what_the_wrapped_output_accepted() {
-        let inner = SimOutput::new(names(), None).unwrap();
-        let line = inner.probe();
-        let recorder = SimOutput::new(names(), None).unwrap();
-        let rec = recorder.probe();
+        let (inner, line) = sim();
+        let (recorder, rec) = sim();
         // The second write of the wrapped output fails: it must not appear in the record.
         let mut out = Traced::new(FailingOutput::new(inner, 1), Some(recorder));
         assert_eq!(out.line_count(), 2);
@@ -126,10 +132,8 @@ mod tests {
 
     #[test]
     fn the_emergency_handle_switches_off_the_lines_and_the_record() {
-        let inner = SimOutput::new(names(), None).unwrap();
-        let line = inner.probe();
-        let recorder = SimOutput::new(names(), None).unwrap();
-        let rec = recorder.probe();
+        let (inner, line) = sim();
+        let (recorder, rec) = sim();
         let mut out = Traced::new(inner, Some(recorder));
         out.set_levels(&[change(0, Level::High, 1), change(1, Level::High, 1)])
             .unwrap();

@@ -262,21 +262,20 @@ fn confine_udp_sockets_to_loopback() -> std::io::Result<usize> {
     Ok(n)
 }
 
+/// Reads the socket option `name` of `level` into `buf`; how many bytes it wrote, or `None` if
+/// the option cannot be read.
+fn sockopt(fd: i32, level: i32, name: i32, buf: &mut [u8]) -> Option<usize> {
+    let mut len = buf.len() as libc::socklen_t;
+    // SAFETY: getsockopt with a buffer of the size it is told.
+    let rc = unsafe { libc::getsockopt(fd, level, name, buf.as_mut_ptr().cast(), &mut len) };
+    (rc == 0).then_some(len as usize)
+}
+
 /// Reads an integer socket option.
 fn int_opt(fd: i32, level: i32, name: i32) -> Option<i32> {
-    let mut v: libc::c_int = 0;
-    let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
-    // SAFETY: getsockopt with a buffer of the size it is told.
-    let rc = unsafe {
-        libc::getsockopt(
-            fd,
-            level,
-            name,
-            (&mut v as *mut libc::c_int).cast(),
-            &mut len,
-        )
-    };
-    (rc == 0).then_some(v)
+    let mut buf = [0u8; std::mem::size_of::<libc::c_int>()];
+    sockopt(fd, level, name, &mut buf)?;
+    Some(libc::c_int::from_ne_bytes(buf))
 }
 
 /// Whether `fd` is an IPv4 or IPv6 datagram socket.
@@ -291,18 +290,8 @@ fn is_inet_udp(fd: i32) -> bool {
 /// Whether `fd` is already bound to a device (an unprivileged process cannot rebind it).
 fn bound_to_device(fd: i32) -> bool {
     let mut buf = [0u8; libc::IFNAMSIZ];
-    let mut len = buf.len() as libc::socklen_t;
-    // SAFETY: getsockopt with a buffer of the size it is told.
-    let rc = unsafe {
-        libc::getsockopt(
-            fd,
-            libc::SOL_SOCKET,
-            libc::SO_BINDTODEVICE,
-            buf.as_mut_ptr().cast(),
-            &mut len,
-        )
-    };
-    rc == 0 && len > 0 && buf[0] != 0
+    sockopt(fd, libc::SOL_SOCKET, libc::SO_BINDTODEVICE, &mut buf).is_some_and(|len| len > 0)
+        && buf[0] != 0
 }
 
 #[cfg(test)]

@@ -11,6 +11,7 @@ use ros2_client::{
     Client, Context, ContextOptions, Message, MessageTypeName, Name, Node, NodeName, NodeOptions,
     ParameterValue, Publisher, QosProfile, ServiceMapping, ServiceTypeName, Subscription,
 };
+use rustdds::Topic;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 use std::io::{BufRead, BufReader};
@@ -81,6 +82,15 @@ impl TopicType for ros2_client::Log {
 /// Generous upper bound for anything that involves DDS discovery on a loaded machine.
 pub const LONG: Duration = Duration::from_secs(15);
 
+/// `--ros-args -p P1 -p P2 ...`: the command line that sets each of `params` (`NAME:=VALUE`).
+pub fn ros_params<'a>(params: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec!["--ros-args"];
+    for p in params {
+        args.extend(["-p", p]);
+    }
+    args
+}
+
 /// ROS domain ids handed to tests, shared with the rclpy suite (tests/rclpy/conftest.py): 1..101,
 /// because above 101 the DDS ports of a domain fall into Linux's ephemeral port range.
 const DOMAIN_IDS: std::ops::RangeInclusive<u16> = 1..=101;
@@ -131,37 +141,37 @@ impl Domain {
     }
 }
 
-/// The node as a child process with its stderr captured.
+/// The node as a child process with its stderr captured, on a ROS domain of its own.
 pub struct NodeProc {
     child: Option<Child>,
     log: Arc<Mutex<String>>,
     reader: Option<std::thread::JoinHandle<()>>,
     /// The ROS domain the node runs on.
     pub domain: u16,
+    /// Held as long as the node: released after it is gone.
+    _domain_lock: Domain,
 }
 
 impl NodeProc {
-    /// Starts `pwm_actuator_node ARGS` with `ROS_DOMAIN_ID=domain`.
-    pub fn start(domain: u16, args: &[&str]) -> NodeProc {
-        Self::start_env(domain.to_string().as_str(), args, domain)
+    /// Starts `pwm_actuator_node ARGS` on a free ROS domain.
+    pub fn start(args: &[&str]) -> NodeProc {
+        Self::start_with(args, &[])
     }
 
-    /// Starts the node with `ROS_DOMAIN_ID` set to `domain_env` verbatim.
-    pub fn start_env(domain_env: &str, args: &[&str], domain: u16) -> NodeProc {
-        Self::start_with(domain_env, args, domain, &[])
+    /// Starts the node on a free ROS domain and waits until it says it is running.
+    pub fn launch(args: &[&str]) -> NodeProc {
+        let node = Self::start(args);
+        node.wait_running();
+        node
     }
 
-    /// Starts the node with extra environment variables.
-    pub fn start_with(
-        domain_env: &str,
-        args: &[&str],
-        domain: u16,
-        env: &[(&str, &str)],
-    ) -> NodeProc {
+    /// Starts the node on a free ROS domain with extra environment variables.
+    pub fn start_with(args: &[&str], env: &[(&str, &str)]) -> NodeProc {
+        let dom = Domain::acquire();
         let mut child = Command::new(env!("CARGO_BIN_EXE_pwm_actuator_node"))
             .args(args)
             .envs(env.iter().copied())
-            .env("ROS_DOMAIN_ID", domain_env)
+            .env("ROS_DOMAIN_ID", dom.id.to_string())
             .env_remove("ROS_DISTRO")
             .stdin(Stdio::null())
             .stdout(Stdio::null())
@@ -182,7 +192,8 @@ impl NodeProc {
             child: Some(child),
             log,
             reader: Some(reader),
-            domain,
+            domain: dom.id,
+            _domain_lock: dom,
         }
     }
 
@@ -259,6 +270,13 @@ impl NodeProc {
     pub fn stop(self) -> (ExitStatus, String) {
         self.stop_with(nix::sys::signal::Signal::SIGINT)
     }
+
+    /// SIGINT and wait; asserts a clean exit (0) and returns the log.
+    pub fn stop_ok(self) -> String {
+        let (status, log) = self.stop();
+        assert!(status.success(), "{status:?}\n{log}");
+        log
+    }
 }
 
 impl Drop for NodeProc {
@@ -302,8 +320,13 @@ fn name(full: &str) -> Name {
 impl Ros {
     /// A test node on `domain` (needs a tokio runtime).
     pub fn new(domain: u16) -> Ros {
-        let context =
-            Context::with_options(ContextOptions::new().domain_id(domain)).expect("DDS context");
+        Ros::on(
+            Context::with_options(ContextOptions::new().domain_id(domain)).expect("DDS context"),
+        )
+    }
+
+    /// A test node in `context` (needs a tokio runtime).
+    pub fn on(context: Context) -> Ros {
         let mut node = context
             .new_node(
                 NodeName::new("/", &format!("test_client_{}", std::process::id())).unwrap(),
@@ -323,16 +346,20 @@ impl Ros {
         }
     }
 
+    /// The topic `topic` (absolute), typed by `M`.
+    fn topic<M: TopicType>(&mut self, topic: &str, qos: &QosProfile) -> Topic {
+        self.node
+            .create_topic(&name(topic), M::type_name(), qos)
+            .expect("topic")
+    }
+
     /// Subscribes `topic` (absolute), typed by `M`.
     pub fn sub<M: TopicType + DeserializeOwned + 'static>(
         &mut self,
         topic: &str,
         qos: QosProfile,
     ) -> Subscription<M> {
-        let t = self
-            .node
-            .create_topic(&name(topic), M::type_name(), &qos)
-            .expect("topic");
+        let t = self.topic::<M>(topic, &qos);
         self.node
             .create_subscription(&t, Some(qos))
             .expect("subscription")
@@ -341,10 +368,7 @@ impl Ros {
     /// Publishes on `topic` (absolute), typed by `M`.
     pub fn publisher<M: TopicType + Serialize>(&mut self, topic: &str) -> Publisher<M> {
         let qos = default_qos();
-        let t = self
-            .node
-            .create_topic(&name(topic), M::type_name(), &qos)
-            .expect("topic");
+        let t = self.topic::<M>(topic, &qos);
         self.node
             .create_publisher(&t, Some(qos))
             .expect("publisher")
@@ -520,6 +544,13 @@ impl Params {
         r.values.into_iter().map(ParameterValue::from).collect()
     }
 
+    /// Asserts the values `get_parameters` gives for the names in `expected`.
+    pub async fn assert_values(&self, expected: &[(&str, ParameterValue)]) {
+        let names: Vec<&str> = expected.iter().map(|(n, _)| *n).collect();
+        let want: Vec<ParameterValue> = expected.iter().map(|(_, v)| v.clone()).collect();
+        assert_eq!(self.get(&names).await, want, "{names:?}");
+    }
+
     /// `set_parameters`: (successful, reason) per parameter.
     pub async fn set(&self, items: &[(&str, ParameterValue)]) -> Vec<(bool, String)> {
         call(&self.set, raw_params(items))
@@ -560,6 +591,13 @@ impl Params {
         )
         .await
         .values
+    }
+}
+
+/// Asserts that `text` (a log, a help text) mentions every one of `needles`.
+pub fn assert_mentions(text: &str, needles: &[&str]) {
+    for s in needles {
+        assert!(text.contains(s), "{s} missing from:\n{text}");
     }
 }
 

@@ -76,8 +76,8 @@ impl ser::Serializer for Recorder {
     type Ok = Shape;
     type Error = ShapeError;
     type SerializeSeq = SeqRec;
-    type SerializeTuple = SeqRec;
-    type SerializeTupleStruct = SeqRec;
+    type SerializeTuple = ser::Impossible<Shape, ShapeError>;
+    type SerializeTupleStruct = ser::Impossible<Shape, ShapeError>;
     type SerializeTupleVariant = ser::Impossible<Shape, ShapeError>;
     type SerializeMap = ser::Impossible<Shape, ShapeError>;
     type SerializeStruct = StructRec;
@@ -164,10 +164,14 @@ impl ser::Serializer for Recorder {
     fn serialize_seq(self, _: Option<usize>) -> Result<SeqRec, ShapeError> {
         Ok(SeqRec(Vec::new()))
     }
-    fn serialize_tuple(self, _: usize) -> Result<SeqRec, ShapeError> {
+    fn serialize_tuple(self, _: usize) -> Result<Self::SerializeTuple, ShapeError> {
         unsupported("a tuple")
     }
-    fn serialize_tuple_struct(self, _: &'static str, _: usize) -> Result<SeqRec, ShapeError> {
+    fn serialize_tuple_struct(
+        self,
+        _: &'static str,
+        _: usize,
+    ) -> Result<Self::SerializeTupleStruct, ShapeError> {
         unsupported("a tuple struct")
     }
     fn serialize_tuple_variant(
@@ -205,28 +209,6 @@ impl ser::SerializeSeq for SeqRec {
     }
     fn end(self) -> Result<Shape, ShapeError> {
         Ok(Shape::Seq(self.0.into_iter().next().map(Box::new)))
-    }
-}
-
-impl ser::SerializeTuple for SeqRec {
-    type Ok = Shape;
-    type Error = ShapeError;
-    fn serialize_element<T: ?Sized + Serialize>(&mut self, v: &T) -> Result<(), ShapeError> {
-        ser::SerializeSeq::serialize_element(self, v)
-    }
-    fn end(self) -> Result<Shape, ShapeError> {
-        ser::SerializeSeq::end(self)
-    }
-}
-
-impl ser::SerializeTupleStruct for SeqRec {
-    type Ok = Shape;
-    type Error = ShapeError;
-    fn serialize_field<T: ?Sized + Serialize>(&mut self, v: &T) -> Result<(), ShapeError> {
-        ser::SerializeSeq::serialize_element(self, v)
-    }
-    fn end(self) -> Result<Shape, ShapeError> {
-        ser::SerializeSeq::end(self)
     }
 }
 

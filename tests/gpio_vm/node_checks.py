@@ -152,6 +152,47 @@ def sample_for(lines, seconds):
     return out
 
 
+def pulled_pair(hi_offset, lo_offset):
+    """An active-high and an active-low line, each pulled to its active level, so that a line
+    the node does not drive inactive reads active."""
+    hi, lo = Line(hi_offset), Line(lo_offset)
+    hi.set_pull(True)
+    lo.set_pull(False)
+    return hi, lo
+
+
+def wait_pair_active(proc, hi, lo):
+    """Waits until the node drives both lines of a `pulled_pair` active; kills it if not."""
+    try:
+        wait_level(proc, hi, True)
+        wait_level(proc, lo, False)
+    except BaseException:
+        kill(proc)
+        raise
+
+
+def last_held_levels(proc, lines, seconds, after):
+    """Samples `lines` until the node has released them all: the last level seen on each while
+    it was held, by offset (None if never). Kills the node and fails if they are still held
+    after `seconds`."""
+    last = {l.offset: None for l in lines}
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and any(l.held() for l in lines):
+        for l in lines:
+            _, v, h = l.sample()
+            if h:
+                last[l.offset] = v
+    if any(l.held() for l in lines):
+        kill(proc)
+        raise CheckFailed(f"lines still held {seconds:g} s after {after}")
+    return last
+
+
+def require_exit_0_after_sigterm(proc):
+    code, err = stop(proc)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+
+
 def phases(samples, active):
     """Periods (rise to rise) and on times (rise to fall) in ms, from held samples; `active`
     is the electrical level of the on state."""
@@ -209,45 +250,37 @@ def check_timing(samples, active, period_ms, on_ms, tol_ms=3.0):
 # ---- the checks ---------------------------------------------------------------------------------
 
 
-def duty_is_followed():
-    """30 % of 200 ms on an active-high line: 200 ms periods, 60 ms on times."""
-    l0 = Line(0)
-    l0.set_pull(False)
-    p = node([("pw01", 0)], ["pw01.period_ms:=200", "pw01.duty:=30.0", "pw01.enable:=true"])
+def timing_at_30_percent(offset, active, params=()):
+    """30 % of 200 ms on line `offset`, whose on state is electrical level `active`: 200 ms
+    periods, 60 ms on times."""
+    line = Line(offset)
+    line.set_pull(False)
+    p = node([("pw01", offset)], ["pw01.period_ms:=200", "pw01.duty:=30.0", "pw01.enable:=true",
+                                  *params])
     try:
-        wait_level(p, l0, True)
+        wait_level(p, line, active)
         time.sleep(0.5)  # past the start-up burst of the ROS side
-        what = check_timing(levels_for(l0, 3.0), True, 200, 60)
+        what = check_timing(levels_for(line, 3.0), active, 200, 60)
     finally:
         p.send_signal(signal.SIGTERM)
-    code, err = stop(p)
-    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    require_exit_0_after_sigterm(p)
     return what
+
+
+def duty_is_followed():
+    """30 % of 200 ms on an active-high line: 200 ms periods, 60 ms on times."""
+    return timing_at_30_percent(0, True)
 
 
 def active_low_inverts():
     """The same on an active-low line: the electrical low phase is the 60 ms on time."""
-    l1 = Line(1)
-    l1.set_pull(False)
-    p = node([("pw01", 1)], ["pw01.period_ms:=200", "pw01.duty:=30.0", "pw01.enable:=true",
-                             "pw01.active_low:=true"])
-    try:
-        wait_level(p, l1, False)
-        time.sleep(0.5)
-        what = check_timing(levels_for(l1, 3.0), False, 200, 60)
-    finally:
-        p.send_signal(signal.SIGTERM)
-    code, err = stop(p)
-    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
-    return what
+    return timing_at_30_percent(1, False, ["pw01.active_low:=true"])
 
 
 def lines_start_inactive():
     """Requested while disabled: both polarities held inactive from the request on, with each
     line's pull set to its active level so that the request is what makes it inactive."""
-    hi, lo = Line(2), Line(3)
-    hi.set_pull(True)
-    lo.set_pull(False)
+    hi, lo = pulled_pair(2, 3)
     require(hi.level() and not lo.level(), "pulls not applied before the start")
     p = node([("pw01", 2), ("pw02", 3)], ["pw01.duty:=100.0", "pw02.duty:=100.0",
                                            "pw02.active_low:=true"])
@@ -261,8 +294,7 @@ def lines_start_inactive():
         require(all(held_lo), "active-low line seen low while disabled")
     finally:
         p.send_signal(signal.SIGTERM)
-    code, err = stop(p)
-    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    require_exit_0_after_sigterm(p)
     return f"{len(held_hi)} + {len(held_lo)} samples, all inactive"
 
 
@@ -271,30 +303,14 @@ def ends_inactive(trigger, expect_code, env=None, params=(), what=""):
     line's active level, so a line let go without being driven inactive would still read
     active. After `trigger`, the last level seen while the node still held each line must be
     inactive, and the node must exit with `expect_code`."""
-    hi, lo = Line(4), Line(5)
-    hi.set_pull(True)
-    lo.set_pull(False)
+    hi, lo = pulled_pair(4, 5)
     lines = [("pw01", 4), ("pw02", 5)]
     base = ["pw01.duty:=100.0", "pw01.enable:=true", "pw02.duty:=100.0", "pw02.enable:=true",
             "pw02.active_low:=true", *params]
     p = node(lines, base, env=env)
-    try:
-        wait_level(p, hi, True)
-        wait_level(p, lo, False)
-    except BaseException:
-        kill(p)
-        raise
+    wait_pair_active(p, hi, lo)
     trigger(p)
-    last = {4: None, 5: None}
-    end = time.monotonic() + 20.0
-    while time.monotonic() < end and (hi.held() or lo.held()):
-        for l in (hi, lo):
-            _, v, h = l.sample()
-            if h:
-                last[l.offset] = v
-    if hi.held() or lo.held():
-        kill(p)
-        raise CheckFailed("lines still held 20 s after the trigger")
+    last = last_held_levels(p, (hi, lo), 20.0, "the trigger")
     code, err = stop(p)
     require(last[4] is not None and last[5] is not None, "no sample while the lines were held")
     require(last[4] is False, "active-high line was released while still high")
@@ -320,29 +336,13 @@ def write_fault_ends_inactive():
     hi6 = Line(6)
     hi6.set_pull(False)
     lines_extra = ["pw03.duty:=50.0", "pw03.enable:=true", "pw03.period_ms:=100"]
-    hi, lo = Line(4), Line(5)
-    hi.set_pull(True)
-    lo.set_pull(False)
+    hi, lo = pulled_pair(4, 5)
     base = ["pw01.duty:=100.0", "pw01.enable:=true", "pw02.duty:=100.0", "pw02.enable:=true",
             "pw02.active_low:=true", *lines_extra]
     p = node([("pw01", 4), ("pw02", 5), ("pw03", 6)], base,
              env={"PWM_ACTUATOR_FAULT": "fail-write-after=10"})
-    try:
-        wait_level(p, hi, True)
-        wait_level(p, lo, False)
-    except BaseException:
-        kill(p)
-        raise
-    last = {4: None, 5: None}
-    end = time.monotonic() + 30.0
-    while time.monotonic() < end and (hi.held() or lo.held()):
-        for l in (hi, lo):
-            _, v, h = l.sample()
-            if h:
-                last[l.offset] = v
-    if hi.held() or lo.held():
-        kill(p)
-        raise CheckFailed("lines still held 30 s after start")
+    wait_pair_active(p, hi, lo)
+    last = last_held_levels(p, (hi, lo), 30.0, "start")
     code, err = stop(p)
     require(last[4] is False, f"active-high line released while high ({last[4]})")
     require(last[5] is True, f"active-low line released while low ({last[5]})")
@@ -372,8 +372,7 @@ def trace_records_the_line():
             prev, prev_t = v, t
     finally:
         p.send_signal(signal.SIGTERM)
-    code, err = stop(p)
-    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    require_exit_0_after_sigterm(p)
     with open(csv_path) as f:
         rows = [r.split(",") for r in f.read().split()[1:]]
     with open(vcd_path) as f:
@@ -411,9 +410,7 @@ def sigkill_then_safe_off():
     each line pulled to its active level, gpio-sim then shows them active, as a SoC driver that
     keeps the last level would: the heater stays on. safe-off requests both, drives them
     inactive (read back from the kernel) and exits 0."""
-    hi, lo = Line(4), Line(5)
-    hi.set_pull(True)
-    lo.set_pull(False)
+    hi, lo = pulled_pair(4, 5)
     p = node([("pw01", 4), ("pw02", 5)], ["pw01.duty:=100.0", "pw01.enable:=true",
                                            "pw02.duty:=100.0", "pw02.enable:=true",
                                            "pw02.active_low:=true"])

@@ -502,15 +502,10 @@ class MessageLog:
         )
 
 
-class RosClient:
-    """An rclpy node in a context of its own on the test's domain, spun by the calling thread.
-
-    Every helper spins this node's executor while it waits, so callbacks run in the test's
-    thread and need no locking.
-    """
+class _OwnNode:
+    """An rclpy node in a context of its own on a domain, with an executor of its own."""
 
     def __init__(self, domain_id: int, name: str) -> None:
-        self.domain_id = domain_id
         self.context = Context()
         rclpy.init(
             context=self.context,
@@ -520,12 +515,30 @@ class RosClient:
         self.node: Node = rclpy.create_node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self._clients: dict[tuple[Any, str], Any] = {}
 
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=5.0)
         self.node.destroy_node()
         self.context.try_shutdown()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class RosClient(_OwnNode):
+    """An rclpy node in a context of its own on the test's domain, spun by the calling thread.
+
+    Every helper spins this node's executor while it waits, so callbacks run in the test's
+    thread and need no locking.
+    """
+
+    def __init__(self, domain_id: int, name: str) -> None:
+        super().__init__(domain_id, name)
+        self.domain_id = domain_id
+        self._clients: dict[tuple[Any, str], Any] = {}
 
     # -- spinning ---------------------------------------------------------------------------
 
@@ -618,23 +631,19 @@ class RosClient:
             timeout,
         )
 
-    def wait_for_topic_publishers(
-        self, topic: str, count: int = 1, timeout: Optional[float] = None
+    def wait_for_topic(
+        self,
+        topic: str,
+        publishers: int = 0,
+        subscribers: int = 0,
+        timeout: Optional[float] = None,
     ) -> None:
-        """Waits until `count` publishers of `topic` (fully qualified) are discovered."""
+        """Waits until at least `publishers` publishers and `subscribers` subscribers of `topic`
+        (fully qualified) are discovered."""
         self.spin_until(
-            lambda: self.node.count_publishers(topic) >= count,
-            f"{count} publisher(s) of {topic}",
-            timeout,
-        )
-
-    def wait_for_topic_subscribers(
-        self, topic: str, count: int = 1, timeout: Optional[float] = None
-    ) -> None:
-        """Waits until `count` subscribers of `topic` (fully qualified) are discovered."""
-        self.spin_until(
-            lambda: self.node.count_subscribers(topic) >= count,
-            f"{count} subscriber(s) of {topic}",
+            lambda: self.node.count_publishers(topic) >= publishers
+            and self.node.count_subscribers(topic) >= subscribers,
+            f"{publishers} publisher(s) and {subscribers} subscriber(s) of {topic}",
             timeout,
         )
 
@@ -742,29 +751,18 @@ _client_names = itertools.count(1)
 @pytest.fixture
 def ros(ros_domain_id: int) -> Iterable[RosClient]:
     """An rclpy node ("pwm_test_client_N") on this test's domain; see RosClient."""
-    client = RosClient(ros_domain_id, f"pwm_test_client_{next(_client_names)}")
-    try:
+    with RosClient(ros_domain_id, f"pwm_test_client_{next(_client_names)}") as client:
         yield client
-    finally:
-        client.close()
 
 
-class RosPeer:
+class RosPeer(_OwnNode):
     """A second rclpy participant on the test's domain whose executor spins in a thread of its
     own, for tests that need a counterpart that answers by itself (a publisher, a parameter
     server). Create its publishers and subscriptions before relying on them; its callbacks
     run in the background thread."""
 
     def __init__(self, domain_id: int, name: str) -> None:
-        self.context = Context()
-        rclpy.init(
-            context=self.context,
-            domain_id=domain_id,
-            signal_handler_options=SignalHandlerOptions.NO,
-        )
-        self.node: Node = rclpy.create_node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__(domain_id, name)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._spin, name=f"spin-{name}", daemon=True)
         self._thread.start()
@@ -776,16 +774,11 @@ class RosPeer:
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5.0)
-        self.executor.shutdown(timeout_sec=5.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
+        super().close()
 
 
 @pytest.fixture
 def ros_peer(ros_domain_id: int) -> Iterable[RosPeer]:
     """A background-spun rclpy node ("pwm_test_peer_N") on this test's domain."""
-    peer = RosPeer(ros_domain_id, f"pwm_test_peer_{next(_client_names)}")
-    try:
+    with RosPeer(ros_domain_id, f"pwm_test_peer_{next(_client_names)}") as peer:
         yield peer
-    finally:
-        peer.close()

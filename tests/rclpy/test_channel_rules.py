@@ -252,37 +252,30 @@ def test_zero_and_full_percent_are_constant_without_e1(node_process, ros):
     assert ch.e1_state() is False
     observe_until(ch, mono_ns() + 5 * period * MS)
 
-    # 5 %: a 5 ms pulse, below the minimum on time: E1 (suppress, 000).
-    five = ch.duty(5.0)
-    st = ch.wait_status(lambda s: s.rule == "suppressed_pulse", "5 % suppressed", five.index)
-    assert st.e1, st
-    ch.wait_e1(True, "5 % below the minimum on time")
+    windows, suppressed = [], []
+    for below, rule, side, exact, label in [
+        # 5 %: a 5 ms pulse, below the minimum on time: E1 (suppress, 000); then 0 %: exact,
+        # constant 0, E1 false again.
+        (5.0, "suppressed_pulse", "on", 0.0, "0 %"),
+        # 97 %: a 3 ms break, below the minimum off time: E1 (suppress, 000); then 100 %: exact,
+        # constant 1, E1 false again.
+        (97.0, "suppressed_break", "off", 100.0, "100 % again"),
+    ]:
+        sent = ch.duty(below)
+        suppressed.append(sent)
+        st = ch.wait_status(lambda s, r=rule: s.rule == r, f"{below:g} % suppressed", sent.index)
+        assert st.e1, st
+        ch.wait_e1(True, f"{below:g} % below the minimum {side} time")
 
-    # 0 %: exact, constant 0, E1 false again.
-    zero = ch.duty(0.0)
-    st = ch.wait_status(lambda s: s.rule == "exact" and s.duty_commanded == 0.0, "0 % applied",
-                        zero.index)
-    assert (st.e1, st.min_time_limited, st.output, st.duty_applied) == (False, False, False, 0.0)
-    ch.wait_e1(False, "0 % is exact")
-    w = window_after(zero, 5, period)
-    observe_until(ch, w[1])
-    windows = [("0 %", *w, 0)]
-
-    # 97 %: a 3 ms break, below the minimum off time: E1 (suppress, 000).
-    sent = ch.duty(97.0)
-    st = ch.wait_status(lambda s: s.rule == "suppressed_break", "97 % suppressed", sent.index)
-    assert st.e1, st
-    ch.wait_e1(True, "97 % below the minimum off time")
-
-    # 100 %: exact, constant 1, E1 false again.
-    full = ch.duty(100.0)
-    st = ch.wait_status(lambda s: s.rule == "exact" and s.duty_commanded == 100.0, "100 % again",
-                        full.index)
-    assert (st.e1, st.min_time_limited, st.output, st.duty_applied) == (False, False, True, 100.0)
-    ch.wait_e1(False, "100 % is exact")
-    w = window_after(full, 5, period)
-    observe_until(ch, w[1])
-    windows.append(("100 % again", *w, 1))
+        sent = ch.duty(exact)
+        st = ch.wait_status(lambda s, d=exact: s.rule == "exact" and s.duty_commanded == d,
+                            f"{label} applied", sent.index)
+        on = exact == 100.0
+        assert (st.e1, st.min_time_limited, st.output, st.duty_applied) == (False, False, on, exact)
+        ch.wait_e1(False, f"{exact:g} % is exact")
+        w = window_after(sent, 5, period)
+        observe_until(ch, w[1])
+        windows.append((label, *w, int(on)))
 
     diag = ch.wait_diag(lambda d: True, "any", start=len(ch.diagnostics.messages))
     assert diag_level(diag) == OK and diag_values(diag)["e1"] == "false", diag
@@ -290,7 +283,8 @@ def test_zero_and_full_percent_are_constant_without_e1(node_process, ros):
     edges = close_trace(proc)
     # 100 % from start-up: one rising edge, then on until 5 % was sent.
     assert edges[1].level == 1, edges[:3]
-    assert_constant(edges, edges[1].scheduled_ns, five.first_publish_ns, 1, "100 % at start-up")
+    assert_constant(edges, edges[1].scheduled_ns, suppressed[0].first_publish_ns, 1,
+                    "100 % at start-up")
     for what, a, b, level in windows:
         assert_constant(edges, a, b, level, what)
 

@@ -229,7 +229,7 @@ def test_other_domain_sees_nothing(ros, ros_peer, domain_allocator):
     topic = "/env_check/isolation"
     ros_peer.node.create_publisher(Bool, topic, 10)
     # Positive control: the same domain discovers the publisher.
-    ros.wait_for_topic_publishers(topic)
+    ros.wait_for_topic(topic, publishers=1)
     other_id, fd = domain_allocator.acquire()
     try:
         other = RosClient(other_id, "pwm_test_other_domain")

@@ -270,6 +270,13 @@ def wait_diag(
         raise AssertionError(f"{exc}\nlast statuses seen: {seen}") from None
 
 
+def wait_refusal(ros: RosClient, log: MessageLog, what: str, start: int = 0) -> DiagnosticStatus:
+    """pw01's first status (in messages from index `start`) that reports a last refusal."""
+    return wait_diag(
+        ros, log, "pwm_actuator: pw01", lambda s: key_values(s).get("last_refusal", ""), what, start
+    )
+
+
 def subscribe_events(ros: RosClient) -> MessageLog:
     return ros.subscribe(ParameterEvent, "/parameter_events", qos_profile_parameter_events)
 
@@ -449,13 +456,7 @@ def test_params_topic_refuses_the_whole_message_when_one_field_is_bad(ros, node_
     values = svc.get_parameters(["pw01.period_ms", "pw01.min_on_ms", "pw01.edge_band"])
     assert values == {"pw01.period_ms": 1000, "pw01.min_on_ms": 0, "pw01.edge_band": 0.0}
 
-    status = wait_diag(
-        ros,
-        diagnostics,
-        "pwm_actuator: pw01",
-        lambda s: key_values(s).get("last_refusal", ""),
-        "a last_refusal",
-    )
+    status = wait_refusal(ros, diagnostics, "a last_refusal")
     reason = key_values(status)["last_refusal"]
     assert "edge_band" in reason and "1.5" in reason, reason
 
@@ -472,14 +473,7 @@ def test_refused_parameter_puts_the_channel_at_warn(ros, node_process, svc):
     result = svc.set_parameters({"pw01.period_ms": 4})["pw01.period_ms"]
     assert not result.successful
     start = len(diagnostics.messages)
-    status = wait_diag(
-        ros,
-        diagnostics,
-        "pwm_actuator: pw01",
-        lambda s: key_values(s).get("last_refusal", ""),
-        "the refusal",
-        start=start,
-    )
+    status = wait_refusal(ros, diagnostics, "the refusal", start=start)
     assert level_of(status) == WARN, (level_of(status), status.message, key_values(status))
 
 
@@ -932,7 +926,7 @@ def test_topic_remapping_feeds_a_channel_from_another_topic(ros, node_process):
     edges = trace_edges(proc, "pw01")
     assert {length for _, length in on_times(edges)} == {50 * MS}, on_times(edges)
     # Remapped, not duplicated: the default name is no longer subscribed.
-    ros.wait_for_topic_subscribers("/plant/heater/pw01/sv")
+    ros.wait_for_topic("/plant/heater/pw01/sv", subscribers=1)
     assert ros.node.count_subscribers("/plant/heater/pw01/duty") == 0
 
 

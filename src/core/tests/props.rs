@@ -199,6 +199,30 @@ fn min_during(history: &[(Nanos, ChannelConfig)], a: Nanos, b: Nanos, on: bool) 
         .unwrap_or(0)
 }
 
+/// No pulse or break of `edges` (time, level, governed) that ends in a governed edge is shorter
+/// than the minimum in force during it; `context` ends the failure message.
+fn minima_held(
+    edges: &[(Nanos, Level, bool)],
+    history: &[(Nanos, ChannelConfig)],
+    context: &str,
+) -> Result<(), TestCaseError> {
+    for w in edges.windows(2) {
+        let ((a, la, _), (z, _, gz)) = (w[0], w[1]);
+        if gz {
+            let min = min_during(history, a, z, la.is_high());
+            prop_assert!(
+                z - a >= min,
+                "{} of {} us at {} us is below the minimum {} us{context}",
+                if la.is_high() { "pulse" } else { "break" },
+                (z - a) / 1000,
+                a / 1000,
+                min / 1000
+            );
+        }
+    }
+    Ok(())
+}
+
 proptest! {
     /// Levels alternate, and no pulse or break ending in a governed edge is shorter than the
     /// minimum in force (000, 002, 003: "no pulse and no break shorter than its minimum"),
@@ -213,18 +237,9 @@ proptest! {
             level = *l;
         }
         for w in edges.windows(2) {
-            let ((a, la, _), (z, _, gz)) = (w[0], w[1]);
-            prop_assert!(z >= a, "edges in time order");
-            if gz {
-                let min = min_during(&history, a, z, la.is_high());
-                prop_assert!(
-                    z - a >= min,
-                    "{} of {} us at {} us is below the minimum {} us",
-                    if la.is_high() { "pulse" } else { "break" },
-                    (z - a) / 1000, a / 1000, min / 1000
-                );
-            }
+            prop_assert!(w[1].0 >= w[0].0, "edges in time order");
         }
+        minima_held(&edges, &history, "")?;
     }
 
     /// With `next_period`, every rising edge lies exactly on the period grid from the enable.
@@ -413,17 +428,8 @@ proptest! {
             history.push((now, *ch.config()));
         }
         for w in line.windows(2) {
-            let ((a, la, _), (z, lz, gz)) = (w[0], w[1]);
+            let ((a, la, _), (z, lz, _)) = (w[0], w[1]);
             prop_assert_ne!(la, lz, "levels alternate");
-            if gz {
-                let min = min_during(&history, a, z, la.is_high());
-                prop_assert!(
-                    z - a >= min,
-                    "{} of {} us written at {} us is below the minimum {} us\n{}",
-                    if la.is_high() { "pulse" } else { "break" },
-                    (z - a) / 1000, a / 1000, min / 1000, dbg_log.join("\n")
-                );
-            }
             // The maximum on time counts from the real rise: the cut is scheduled no later
             // than max_on_ms after the instant the rise was written (unless a late poll
             // merged it with later edges), while one maximum stays in force.
@@ -439,6 +445,8 @@ proptest! {
                 }
             }
         }
+        // Times here are when the edges were written.
+        minima_held(&line, &history, &format!("\n{}", dbg_log.join("\n")))?;
     }
 
     /// The maximum on time (issue 12): no high run on the line lasts longer than `max_on_ms`

@@ -16,6 +16,11 @@ fn item(name: &str, value: V) -> (String, V) {
     (name.into(), value)
 }
 
+/// Checks setting `name` to `value` while the node runs.
+fn live(s: &ParamStore, name: &str, value: V) -> Result<Accepted, ParamError> {
+    s.check(&[item(name, value)], Phase::Live)
+}
+
 #[test]
 fn declares_node_and_channel_parameters_with_defaults() {
     let s = ParamStore::new(2);
@@ -37,37 +42,26 @@ fn declares_node_and_channel_parameters_with_defaults() {
 #[test]
 fn coercion_is_lossless_or_refused() {
     let s = ParamStore::new(1);
-    let a = s
-        .check(&[item("pw01.period_ms", V::Double(500.0))], Phase::Live)
-        .unwrap();
+    let a = live(&s, "pw01.period_ms", V::Double(500.0)).unwrap();
     assert_eq!(a.changes, vec![item("pw01.period_ms", V::Integer(500))]);
     assert_eq!(
         a.notes,
         vec!["pw01.period_ms: double 500.0 taken as integer 500"]
     );
-    let a = s
-        .check(&[item("pw01.edge_band", V::Integer(1))], Phase::Live)
-        .unwrap();
+    let a = live(&s, "pw01.edge_band", V::Integer(1)).unwrap();
     assert_eq!(a.changes, vec![item("pw01.edge_band", V::Double(1.0))]);
-    let e = s
-        .check(&[item("pw01.period_ms", V::Double(500.5))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "pw01.period_ms", V::Double(500.5)).unwrap_err();
     assert_eq!(
         e.to_string(),
         "parameter `pw01.period_ms` is an integer; 500.5 is not a whole number"
     );
-    let e = s
-        .check(
-            &[item("pw01.period_ms", V::String("500".into()))],
-            Phase::Live,
-        )
-        .unwrap_err();
+    let e = live(&s, "pw01.period_ms", V::String("500".into())).unwrap_err();
     assert_eq!(
         e.to_string(),
         "parameter `pw01.period_ms` is an integer; got the string \"500\""
     );
     assert!(matches!(
-        s.check(&[item("pw01.period_ms", V::Double(f64::NAN))], Phase::Live),
+        live(&s, "pw01.period_ms", V::Double(f64::NAN)),
         Err(ParamError::WrongType { .. })
     ));
     assert!(matches!(
@@ -79,9 +73,7 @@ fn coercion_is_lossless_or_refused() {
 #[test]
 fn the_core_judges_channel_settings_and_cross_rules() {
     let s = ParamStore::new(2);
-    let e = s
-        .check(&[item("pw01.period_ms", V::Integer(4))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "pw01.period_ms", V::Integer(4)).unwrap_err();
     assert_eq!(
         e,
         ParamError::Channel {
@@ -126,20 +118,14 @@ fn the_core_judges_channel_settings_and_cross_rules() {
     assert_eq!(a.configs[0].0, 1);
     assert_eq!(a.configs[0].1.period, 5000 * crate::core::NS_PER_MS);
     // Negative times never reach the core.
-    let e = s
-        .check(&[item("pw01.period_ms", V::Integer(-5))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "pw01.period_ms", V::Integer(-5)).unwrap_err();
     assert_eq!(
         e.to_string(),
         "parameter `pw01.period_ms`: -5 is outside 0..3600000"
     );
-    let e = s
-        .check(&[item("pw01.min_off_ms", V::Integer(-2))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "pw01.min_off_ms", V::Integer(-2)).unwrap_err();
     assert!(e.to_string().contains("(-1 = as the profile says)"), "{e}");
-    let e = s
-        .check(&[item("pw01.edge_band", V::Double(f64::NAN))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "pw01.edge_band", V::Double(f64::NAN)).unwrap_err();
     assert!(
         e.to_string()
             .starts_with("pw01: edge_band NaN is outside 0..1"),
@@ -151,27 +137,19 @@ fn the_core_judges_channel_settings_and_cross_rules() {
 fn status_rate_is_off_or_a_rate_the_node_can_keep() {
     let s = ParamStore::new(1);
     for bad in [1e-20, 5e-324, 0.009, -0.5, 1000.5, f64::NAN, f64::INFINITY] {
-        let e = s
-            .check(&[item("status_rate_hz", V::Double(bad))], Phase::Live)
-            .unwrap_err();
+        let e = live(&s, "status_rate_hz", V::Double(bad)).unwrap_err();
         assert!(
             matches!(&e, ParamError::OutOfRange { name, .. } if name == "status_rate_hz"),
             "{bad:?}: {e}"
         );
     }
-    let e = s
-        .check(&[item("status_rate_hz", V::Double(1e-20))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "status_rate_hz", V::Double(1e-20)).unwrap_err();
     assert_eq!(
         e.to_string(),
         "parameter `status_rate_hz`: 1e-20 is outside 0.01..1000.0 (0 = on change only)"
     );
     for ok in [0.0, 0.01, 2.5, 1000.0] {
-        assert!(
-            s.check(&[item("status_rate_hz", V::Double(ok))], Phase::Live)
-                .is_ok(),
-            "{ok}"
-        );
+        assert!(live(&s, "status_rate_hz", V::Double(ok)).is_ok(), "{ok}");
     }
     // The same at start-up (`--status-rate 5e-324`, `-p`, a parameter file): a bad
     // configuration, exit 2.
@@ -187,29 +165,14 @@ fn status_rate_is_off_or_a_rate_the_node_can_keep() {
 #[test]
 fn choices_are_checked_with_the_accepted_spellings() {
     let s = ParamStore::new(1);
-    let e = s
-        .check(
-            &[item("pw01.profile", V::String("pico".into()))],
-            Phase::Live,
-        )
-        .unwrap_err();
+    let e = live(&s, "pw01.profile", V::String("pico".into())).unwrap_err();
     assert_eq!(
         e.to_string(),
         "parameter `pw01.profile`: `pico` is not one of: \
          pico_gfx|twincat_ba|tcont_cp|schneider_pwm|frequency_output"
     );
-    assert!(s
-        .check(
-            &[item("pw01.short_pulse", V::String(String::new()))],
-            Phase::Live
-        )
-        .is_ok());
-    assert!(s
-        .check(
-            &[item("pw01.short_pulse", V::String("band".into()))],
-            Phase::Live
-        )
-        .is_ok());
+    assert!(live(&s, "pw01.short_pulse", V::String(String::new())).is_ok());
+    assert!(live(&s, "pw01.short_pulse", V::String("band".into())).is_ok());
     assert!(s
         .check(&[item("output", V::String("spi".into()))], Phase::StartUp)
         .is_err());
@@ -218,23 +181,17 @@ fn choices_are_checked_with_the_accepted_spellings() {
 #[test]
 fn read_only_parameters_refuse_live_changes_but_accept_their_value() {
     let s = ParamStore::new(1);
-    let e = s
-        .check(&[item("pw01.active_low", V::Boolean(true))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "pw01.active_low", V::Boolean(true)).unwrap_err();
     assert!(matches!(e, ParamError::ReadOnly { .. }));
     assert!(e.to_string().contains("glitch"), "{e}");
-    let a = s
-        .check(&[item("pw01.active_low", V::Boolean(false))], Phase::Live)
-        .unwrap();
+    let a = live(&s, "pw01.active_low", V::Boolean(false)).unwrap();
     assert!(a.changes.is_empty() && a.configs.is_empty());
-    assert!(s
-        .check(&[item("channels", V::Integer(3))], Phase::Live)
-        .is_err());
+    assert!(live(&s, "channels", V::Integer(3)).is_err());
     assert!(s
         .check(&[item("pw01.active_low", V::Boolean(true))], Phase::StartUp)
         .is_ok());
     assert_eq!(
-        s.check(&[item("use_sim_time", V::Boolean(true))], Phase::Live),
+        live(&s, "use_sim_time", V::Boolean(true)),
         Err(ParamError::SimTime)
     );
 }
@@ -242,9 +199,7 @@ fn read_only_parameters_refuse_live_changes_but_accept_their_value() {
 #[test]
 fn a_refused_change_leaves_the_store_as_it_was() {
     let mut s = ParamStore::new(1);
-    let a = s
-        .check(&[item("pw01.period_ms", V::Integer(500))], Phase::Live)
-        .unwrap();
+    let a = live(&s, "pw01.period_ms", V::Integer(500)).unwrap();
     let changed = s.commit(&a);
     assert_eq!(changed.len(), 1);
     assert_eq!(changed[0].name, "pw01.period_ms");
@@ -262,16 +217,12 @@ fn a_refused_change_leaves_the_store_as_it_was() {
 #[test]
 fn undeclared_names_get_a_hint() {
     let s = ParamStore::new(2);
-    let e = s
-        .check(&[item("pw03.period_ms", V::Integer(1))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "pw03.period_ms", V::Integer(1)).unwrap_err();
     assert_eq!(
         e.to_string(),
         "parameter `pw03.period_ms` is not declared (this node has 2 channels: pw01..pw02)"
     );
-    let e = s
-        .check(&[item("speed", V::Integer(1))], Phase::Live)
-        .unwrap_err();
+    let e = live(&s, "speed", V::Integer(1)).unwrap_err();
     assert_eq!(e.to_string(), "parameter `speed` is not declared");
 }
 
@@ -281,24 +232,14 @@ fn refusals_echo_input_escaped_and_bounded() {
     let forged = "x\n[ERROR] [0] [pwm_actuator]: forged\u{1b}[2J";
     let long = "n".repeat(4 << 20);
     let reasons = [
-        s.check(&[item(forged, V::Integer(1))], Phase::Live)
+        live(&s, forged, V::Integer(1)).unwrap_err().to_string(),
+        live(&s, &long, V::Integer(1)).unwrap_err().to_string(),
+        live(&s, "pw01.period_ms", V::String(format!("{forged}{long}")))
             .unwrap_err()
             .to_string(),
-        s.check(&[item(&long, V::Integer(1))], Phase::Live)
+        live(&s, "pw01.profile", V::String(format!("{forged}{long}")))
             .unwrap_err()
             .to_string(),
-        s.check(
-            &[item("pw01.period_ms", V::String(format!("{forged}{long}")))],
-            Phase::Live,
-        )
-        .unwrap_err()
-        .to_string(),
-        s.check(
-            &[item("pw01.profile", V::String(format!("{forged}{long}")))],
-            Phase::Live,
-        )
-        .unwrap_err()
-        .to_string(),
         items_from_msg(
             0,
             &msg::ChannelParams {
@@ -331,9 +272,7 @@ fn refusals_echo_input_escaped_and_bounded() {
 #[test]
 fn unchanged_values_are_not_changes() {
     let s = ParamStore::new(1);
-    let a = s
-        .check(&[item("pw01.period_ms", V::Integer(1000))], Phase::Live)
-        .unwrap();
+    let a = live(&s, "pw01.period_ms", V::Integer(1000)).unwrap();
     assert_eq!(a, Accepted::default());
     // The last of repeated values wins.
     let a = s
