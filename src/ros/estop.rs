@@ -192,14 +192,9 @@ pub(crate) fn spawn(
     let (full, s) = subscription::<msg::Bool>(node, id, remaps, "~/estop")?;
     tasks.push(listen(full, s, move |m| e.input(&b, m.data)));
     let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
-    tasks.push(services::serve(
-        node,
-        id,
-        remaps,
-        "~/reset_estop",
-        &ros2_client::ServiceTypeName::new("std_srvs", "Trigger"),
-        move |_: msg::EmptyRequest| e.reset(&b),
-    )?);
+    let reset = move |_: msg::EmptyRequest| e.reset(&b);
+    let mut maker = services::ServiceMaker { node, id, remaps };
+    tasks.push(maker.serve("~/reset_estop", "std_srvs", "Trigger", reset)?);
     if let Some(period) = estop.timeout_check_period() {
         let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
         tasks.push(tokio::spawn(async move {

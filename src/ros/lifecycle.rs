@@ -11,21 +11,19 @@
 //! no line requested; inactive, lines requested and held inactive; active, lines follow their
 //! channels; finalized, lines released.
 
-use super::args::Remap;
 use super::inputs::Inputs;
 use super::msg::{
     ChangeStateRequest, ChangeStateResponse, EmptyRequest, GetAvailableStatesResponse,
     GetAvailableTransitionsResponse, GetStateResponse, LifecycleState, LifecycleTransition,
     TransitionDescription, TransitionEvent,
 };
-use super::names::NodeIdentity;
-use super::services::{self, ServiceError};
+use super::services::{ServiceError, ServiceMaker};
 use crate::engine::Input;
 use crate::error::chain;
 use crate::output::safety::lock_ignore_poison as lock;
 use crate::output::LineSlot;
 use log::{info, warn};
-use ros2_client::{Node, Publisher, ServiceTypeName};
+use ros2_client::Publisher;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use tokio::task::JoinHandle;
@@ -373,60 +371,52 @@ impl Lifecycle {
     }
 }
 
-/// Creates the five lifecycle services of `lifecycle` and the tasks serving them.
+/// Creates, with `m`, the five lifecycle services of `lifecycle` and the tasks serving them.
 pub fn spawn(
-    node: &mut Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
+    m: &mut ServiceMaker<'_>,
     lifecycle: &Arc<Lifecycle>,
 ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
-    let ty = |name| ServiceTypeName::new("lifecycle_msgs", name);
     let l = Arc::clone(lifecycle);
-    let mut tasks = vec![services::serve(
-        node,
-        id,
-        remaps,
-        "~/change_state",
-        &ty("ChangeState"),
-        move |req: ChangeStateRequest| l.change_state(req),
-    )?];
+    let change = move |req: ChangeStateRequest| l.change_state(req);
+    Ok(vec![
+        m.serve("~/change_state", PKG, "ChangeState", change)?,
+        m.serve(
+            "~/get_state",
+            PKG,
+            "GetState",
+            query(lifecycle, Lifecycle::get_state),
+        )?,
+        m.serve(
+            "~/get_available_states",
+            PKG,
+            "GetAvailableStates",
+            query(lifecycle, Lifecycle::available_states),
+        )?,
+        m.serve(
+            "~/get_available_transitions",
+            PKG,
+            "GetAvailableTransitions",
+            query(lifecycle, Lifecycle::available_transitions),
+        )?,
+        m.serve(
+            "~/get_transition_graph",
+            PKG,
+            "GetAvailableTransitions",
+            query(lifecycle, Lifecycle::transition_graph),
+        )?,
+    ])
+}
+
+/// The package of the lifecycle services' types.
+const PKG: &str = "lifecycle_msgs";
+
+/// A handler for a request without fields that answers with `answer`.
+fn query<R: 'static>(
+    lifecycle: &Arc<Lifecycle>,
+    answer: fn(&Lifecycle) -> R,
+) -> impl Fn(EmptyRequest) -> R + Send + 'static {
     let l = Arc::clone(lifecycle);
-    tasks.push(services::serve(
-        node,
-        id,
-        remaps,
-        "~/get_state",
-        &ty("GetState"),
-        move |_: EmptyRequest| l.get_state(),
-    )?);
-    let l = Arc::clone(lifecycle);
-    tasks.push(services::serve(
-        node,
-        id,
-        remaps,
-        "~/get_available_states",
-        &ty("GetAvailableStates"),
-        move |_: EmptyRequest| l.available_states(),
-    )?);
-    let l = Arc::clone(lifecycle);
-    tasks.push(services::serve(
-        node,
-        id,
-        remaps,
-        "~/get_available_transitions",
-        &ty("GetAvailableTransitions"),
-        move |_: EmptyRequest| l.available_transitions(),
-    )?);
-    let l = Arc::clone(lifecycle);
-    tasks.push(services::serve(
-        node,
-        id,
-        remaps,
-        "~/get_transition_graph",
-        &ty("GetAvailableTransitions"),
-        move |_: EmptyRequest| l.transition_graph(),
-    )?);
-    Ok(tasks)
+    move |_| answer(&l)
 }
 
 #[cfg(test)]
@@ -440,29 +430,33 @@ mod tests {
         fail_configure: AtomicBool,
     }
 
-    impl Actions for Recorder {
-        fn configure(&self) -> Result<(), String> {
-            lock(&self.calls).push("configure");
-            match self.fail_configure.load(Ordering::SeqCst) {
-                true => Err("line busy".into()),
-                false => Ok(()),
+    impl Recorder {
+        fn call(&self, what: &'static str) -> Result<(), String> {
+            lock(&self.calls).push(what);
+            let fail = what == "configure" && self.fail_configure.load(Ordering::SeqCst);
+            if fail {
+                Err("line busy".into())
+            } else {
+                Ok(())
             }
         }
+    }
+
+    impl Actions for Recorder {
+        fn configure(&self) -> Result<(), String> {
+            self.call("configure")
+        }
         fn activate(&self) -> Result<(), String> {
-            lock(&self.calls).push("activate");
-            Ok(())
+            self.call("activate")
         }
         fn deactivate(&self) -> Result<(), String> {
-            lock(&self.calls).push("deactivate");
-            Ok(())
+            self.call("deactivate")
         }
         fn cleanup(&self) -> Result<(), String> {
-            lock(&self.calls).push("cleanup");
-            Ok(())
+            self.call("cleanup")
         }
         fn shutdown(&self) -> Result<(), String> {
-            lock(&self.calls).push("shutdown");
-            Ok(())
+            self.call("shutdown")
         }
     }
 

@@ -547,7 +547,12 @@ async fn serve(
             events,
             node_state.lifecycle_cell(),
         ));
-        tasks.extend(lifecycle::spawn(&mut node, &id, remaps, &lifecycle)?);
+        let mut maker = services::ServiceMaker {
+            node: &mut node,
+            id: &id,
+            remaps,
+        };
+        tasks.extend(lifecycle::spawn(&mut maker, &lifecycle)?);
         info!("managed node: unconfigured; every line held inactive until configure and activate");
     }
     let quit = Arc::new(AtomicBool::new(false));

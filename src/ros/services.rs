@@ -140,11 +140,46 @@ fn set_atomically(b: &Inputs, req: SetParametersRequest) -> SetParametersAtomica
     }
 }
 
+/// A service request type: a message a server task can own.
+pub trait Request: Message + Clone + Send + Sync + 'static {}
+impl<T: Message + Clone + Send + Sync + 'static> Request for T {}
+
+/// A service response type: a message a server task can send.
+pub trait Response: Message + Send + Sync + 'static {}
+impl<T: Message + Send + Sync + 'static> Response for T {}
+
+/// What a node's services are created with: the node, its identity and remapping rules.
+pub struct ServiceMaker<'a> {
+    /// The node.
+    pub node: &'a mut Node,
+    /// Its name and namespace.
+    pub id: &'a NodeIdentity,
+    /// The remapping rules.
+    pub remaps: &'a [Remap],
+}
+
+impl ServiceMaker<'_> {
+    /// Creates the service `name` (`~/...`) of type `package/type_name` and the task that
+    /// answers each request with `handler` (see [`serve`]).
+    pub fn serve<Req, Resp>(
+        &mut self,
+        name: &str,
+        package: &str,
+        type_name: &str,
+        handler: impl Fn(Req) -> Resp + Send + 'static,
+    ) -> Result<JoinHandle<()>, ServiceError>
+    where
+        Req: Request,
+        Resp: Response,
+    {
+        let ty = ServiceTypeName::new(package, type_name);
+        serve(self.node, self.id, self.remaps, name, &ty, handler)
+    }
+}
+
 /// What every parameter service of the node is created with.
 struct Servers<'a> {
-    node: &'a mut Node,
-    id: &'a NodeIdentity,
-    remaps: &'a [Remap],
+    maker: ServiceMaker<'a>,
     inputs: &'a Arc<Inputs>,
 }
 
@@ -158,16 +193,14 @@ impl Servers<'_> {
         handler: fn(&Inputs, Req) -> Resp,
     ) -> Result<JoinHandle<()>, ServiceError>
     where
-        Req: Message + Clone + Send + Sync + 'static,
-        Resp: Message + Send + Sync + 'static,
+        Req: Request,
+        Resp: Response,
     {
         let inputs = Arc::clone(self.inputs);
-        serve(
-            self.node,
-            self.id,
-            self.remaps,
+        self.maker.serve(
             &format!("~/{base}"),
-            &ServiceTypeName::new("rcl_interfaces", type_name),
+            "rcl_interfaces",
+            type_name,
             move |req| handler(&inputs, req),
         )
     }
@@ -184,8 +217,8 @@ pub fn serve<Req, Resp>(
     handler: impl Fn(Req) -> Resp + Send + 'static,
 ) -> Result<JoinHandle<()>, ServiceError>
 where
-    Req: Message + Clone + Send + Sync + 'static,
-    Resp: Message + Send + Sync + 'static,
+    Req: Request,
+    Resp: Response,
 {
     let full = id.resolve(name, NameKind::Service, remaps)?;
     let qos = super::qos::services();
@@ -227,9 +260,7 @@ pub fn spawn(
     inputs: &Arc<Inputs>,
 ) -> Result<Vec<JoinHandle<()>>, ServiceError> {
     let mut s = Servers {
-        node,
-        id,
-        remaps,
+        maker: ServiceMaker { node, id, remaps },
         inputs,
     };
     Ok(vec![

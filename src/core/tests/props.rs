@@ -188,6 +188,71 @@ fn max_on_during(history: &[(Nanos, ChannelConfig)], a: Nanos, b: Nanos) -> Opti
     (v > 0 && values.all(|x| x == v)).then_some(v)
 }
 
+/// The spans, in the times `play` uses, from an op that `starts` one to the next that
+/// `releases` it, or, with `then`, to the first op after the release that `then` matches
+/// (`Nanos::MAX` when none comes).
+fn spans(
+    ops: &[(Nanos, Op)],
+    starts: impl Fn(&Op) -> bool,
+    releases: impl Fn(&Op) -> bool,
+    then: Option<&dyn Fn(&Op) -> bool>,
+) -> Vec<(Nanos, Nanos)> {
+    let (mut out, mut t, mut open) = (Vec::new(), 0, None);
+    // Released spans waiting for `then`.
+    let mut pending: Vec<Nanos> = Vec::new();
+    for (dt, op) in ops {
+        t += dt;
+        match open {
+            None if starts(op) => open = Some(t),
+            Some(s) if releases(op) => {
+                match then {
+                    None => out.push((s, t)),
+                    Some(_) => pending.push(s),
+                }
+                open = None;
+            }
+            None if then.is_some_and(|f| f(op)) => out.extend(pending.drain(..).map(|s| (s, t))),
+            _ => {}
+        }
+    }
+    out.extend(pending.into_iter().chain(open).map(|s| (s, Nanos::MAX)));
+    out
+}
+
+/// Checks that the line is low right after each span's start (every edge at that instant
+/// included) and that no rise reaches it before the span's end.
+fn low_throughout(
+    edges: &[(Nanos, Level)],
+    spans: &[(Nanos, Nanos)],
+    what: &str,
+) -> Result<(), TestCaseError> {
+    for &(s, e) in spans {
+        let after = edges
+            .iter()
+            .rev()
+            .find(|(at, _)| *at <= s)
+            .map_or(Level::Low, |x| x.1);
+        prop_assert_eq!(
+            after,
+            Level::Low,
+            "high after the line was {} at {} us",
+            what,
+            s / 1000
+        );
+        let rise = edges
+            .iter()
+            .find(|(at, l)| *at > s && *at < e && l.is_high());
+        prop_assert!(
+            rise.is_none(),
+            "rise at {:?} us, the line {} from {} us",
+            rise.map(|r| r.0 / 1000),
+            what,
+            s / 1000
+        );
+    }
+    Ok(())
+}
+
 /// The smallest minimum (on or off) of any configuration in force during [a, b].
 fn min_during(history: &[(Nanos, ChannelConfig)], a: Nanos, b: Nanos, on: bool) -> Nanos {
     let first = history.iter().rposition(|(t, _)| *t <= a).unwrap_or(0);
@@ -549,32 +614,8 @@ proptest! {
     #[test]
     fn no_line_is_high_while_held_inactive(start in arb_params(), ops in arb_ops()) {
         let (b, _) = play(start, &ops);
-        let mut spans: Vec<(Nanos, Nanos)> = Vec::new();
-        let (mut t, mut held_at) = (0, None);
-        for (dt, op) in &ops {
-            t += dt;
-            match (op, held_at) {
-                (Op::Live(false), None) => held_at = Some(t),
-                (Op::Live(true), Some(s)) => {
-                    spans.push((s, t));
-                    held_at = None;
-                }
-                _ => {}
-            }
-        }
-        if let Some(s) = held_at {
-            spans.push((s, Nanos::MAX));
-        }
-        let edges = b.edges();
-        let level_after = |x: Nanos| {
-            edges.iter().rev().find(|(at, _)| *at <= x).map_or(Level::Low, |e| e.1)
-        };
-        for (s, e) in spans {
-            prop_assert_eq!(level_after(s), Level::Low, "high after the hold at {} us", s / 1000);
-            let rise = edges.iter().find(|(at, l)| *at > s && *at < e && l.is_high());
-            prop_assert!(rise.is_none(), "rise at {:?} us while held from {} us",
-                rise.map(|r| r.0 / 1000), s / 1000);
-        }
+        let spans = spans(&ops, |op| matches!(op, Op::Live(false)), |op| matches!(op, Op::Live(true)), None);
+        low_throughout(&b.edges(), &spans, "held")?;
     }
 
     /// While the e-stop is latched the line is low: it goes low at the instant of the latch and
@@ -583,41 +624,9 @@ proptest! {
     #[test]
     fn no_line_is_high_while_the_estop_is_latched(start in arb_params(), ops in arb_ops()) {
         let (b, _) = play(start, &ops);
-        // (latch, release, first enable after the release), in the times `play` used.
-        let mut spans: Vec<(Nanos, Nanos, Nanos)> = Vec::new();
-        let (mut t, mut latched_at) = (0, None);
-        for (dt, op) in &ops {
-            t += dt;
-            match (op, latched_at) {
-                (Op::EStop(true), None) => latched_at = Some(t),
-                (Op::EStop(false), Some(s)) => {
-                    spans.push((s, t, Nanos::MAX));
-                    latched_at = None;
-                }
-                (Op::Enable(true), None) => {
-                    for span in spans.iter_mut().filter(|s| s.2 == Nanos::MAX) {
-                        span.2 = t;
-                    }
-                }
-                _ => {}
-            }
-        }
-        if let Some(s) = latched_at {
-            spans.push((s, Nanos::MAX, Nanos::MAX));
-        }
-        let edges = b.edges();
-        let level_after = |x: Nanos| {
-            edges.iter().rev().find(|(at, _)| *at <= x).map_or(Level::Low, |e| e.1)
-        };
-        for (s, _, enabled_again) in spans {
-            prop_assert_eq!(level_after(s), Level::Low, "high after the latch at {} us", s / 1000);
-            let rise = edges.iter().find(|(at, l)| *at > s && *at < enabled_again && l.is_high());
-            prop_assert!(
-                rise.is_none(),
-                "rise at {:?} us after the latch at {} us, before a fresh enable",
-                rise.map(|r| r.0 / 1000), s / 1000
-            );
-        }
+        let fresh_enable = |op: &Op| matches!(op, Op::Enable(true));
+        let spans = spans(&ops, |op| matches!(op, Op::EStop(true)), |op| matches!(op, Op::EStop(false)), Some(&fresh_enable));
+        low_throughout(&b.edges(), &spans, "latched")?;
     }
 
     /// 004's band is symmetric: duty d at edge e gives the mirror of 1 - d, for every pair
