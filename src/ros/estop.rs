@@ -21,7 +21,6 @@ use crate::engine::Input;
 use crate::output::safety::lock_ignore_poison as lock;
 use log::{info, warn};
 use ros2_client::Node;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::sync::Mutex;
 use tokio::task::JoinHandle;
@@ -37,13 +36,13 @@ pub enum Cause {
 
 /// The e-stop's state, shared by the `~/estop` callback, the reset service and the timeout
 /// check. One lock orders the three, so a reset and an input never cross.
+///
+/// Whether it is latched, and how often it latched, are published through the node state
+/// (`Inputs::state`), which the diagnostics read.
 pub struct EStop {
     state: Mutex<State>,
-    latched: AtomicBool,
     /// `estop_timeout_ms` in ns; 0 = no timeout.
     timeout_ns: Nanos,
-    /// Latches so far.
-    latches: AtomicU64,
 }
 
 #[derive(Debug)]
@@ -53,7 +52,6 @@ struct State {
     asserted: bool,
     /// When the last `false` arrived (or when the node started), monotonic ns.
     last_release: Nanos,
-    cause: Option<Cause>,
 }
 
 impl EStop {
@@ -65,11 +63,8 @@ impl EStop {
                 latched: false,
                 asserted: false,
                 last_release: clock::monotonic_ns(),
-                cause: None,
             }),
-            latched: AtomicBool::new(false),
             timeout_ns: timeout_ms.saturating_mul(1_000_000),
-            latches: AtomicU64::new(0),
         }
     }
 
@@ -78,21 +73,6 @@ impl EStop {
         (self.timeout_ns > 0).then(|| {
             std::time::Duration::from_nanos((self.timeout_ns / 10).clamp(5_000_000, 100_000_000))
         })
-    }
-
-    /// Whether the e-stop is latched.
-    pub fn latched(&self) -> bool {
-        self.latched.load(Ordering::Acquire)
-    }
-
-    /// How many times it latched since start-up.
-    pub fn latches(&self) -> u64 {
-        self.latches.load(Ordering::Relaxed)
-    }
-
-    /// Why it is latched, if it is.
-    pub fn cause(&self) -> Option<Cause> {
-        lock(&self.state).cause
     }
 
     /// A value on `~/estop`: `true` latches (once; repeats change nothing), `false` is
@@ -145,8 +125,6 @@ impl EStop {
             return refuse("the output thread did not take the reset");
         }
         s.latched = false;
-        s.cause = None;
-        self.latched.store(false, Ordering::Release);
         inputs.state().set_estop(false);
         for ch in 0..inputs.channels() {
             inputs.note_disabled(ch);
@@ -163,9 +141,6 @@ impl EStop {
             return;
         }
         s.latched = true;
-        s.cause = Some(cause);
-        self.latched.store(true, Ordering::Release);
-        self.latches.fetch_add(1, Ordering::Relaxed);
         inputs.state().set_estop(true);
         let _ = inputs.send(0, Input::EStop(true));
         match cause {
