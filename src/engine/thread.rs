@@ -307,6 +307,11 @@ impl EngineHandle {
     /// every output is driven inactive through the emergency handle instead, and the result
     /// is [`EngineError::Hung`].
     pub fn shutdown(mut self) -> Result<(), EngineError> {
+        self.stop_and_join()
+    }
+
+    /// [`EngineHandle::shutdown`]'s work, for it and for dropping the handle.
+    fn stop_and_join(&mut self) -> Result<(), EngineError> {
         self.stop.store(true, Ordering::SeqCst);
         let _ = self.wake.write(1);
         let start = std::time::Instant::now();
@@ -347,15 +352,7 @@ impl EngineHandle {
 impl Drop for EngineHandle {
     fn drop(&mut self) {
         if self.thread.is_some() {
-            let _ = EngineHandle {
-                thread: self.thread.take(),
-                stop: self.stop.clone(),
-                wake: self.wake.clone(),
-                emergency: self.emergency.clone(),
-                fault: self.fault.clone(),
-                liveness: self.liveness.clone(),
-            }
-            .shutdown();
+            let _ = self.stop_and_join();
         }
     }
 }
