@@ -31,10 +31,6 @@ pub(crate) struct Worker<O: Output> {
     /// Set when at least one report was pushed since the last `take_pushed`.
     pushed: bool,
     heartbeat: Option<Heartbeat>,
-    /// The e-stop is latched: the heartbeat does not toggle.
-    estopped: bool,
-    /// The lines are held inactive: the heartbeat does not toggle.
-    held: bool,
 }
 
 /// The heartbeat line: toggled every half period on an absolute grid while the thread runs.
@@ -43,6 +39,20 @@ struct Heartbeat {
     half: Nanos,
     next: Nanos,
     level: Level,
+}
+
+impl Heartbeat {
+    /// Puts the line to `level` at `at` (a change for the next write), unless it is there.
+    fn set(&mut self, level: Level, at: Nanos, changes: &mut Vec<LineChange>) {
+        if self.level != level {
+            self.level = level;
+            changes.push(LineChange {
+                line: self.line,
+                level,
+                scheduled_ns: at,
+            });
+        }
+    }
 }
 
 impl<O: Output> Worker<O> {
@@ -67,8 +77,6 @@ impl<O: Output> Worker<O> {
             dropped,
             pushed: false,
             heartbeat: None,
-            estopped: false,
-            held: false,
         }
     }
 
@@ -87,10 +95,7 @@ impl<O: Output> Worker<O> {
     /// The earliest deadline of any channel or of the heartbeat, monotonic ns.
     pub(crate) fn next_deadline(&self) -> Option<Nanos> {
         let channels = self.channels.iter().filter_map(Channel::poll_at).min();
-        let heartbeat = self
-            .heartbeat
-            .as_ref()
-            .filter(|_| !self.estopped && !self.held);
+        let heartbeat = self.heartbeat.as_ref().filter(|_| self.heartbeat_runs());
         match (heartbeat, channels) {
             (Some(hb), Some(c)) => Some(hb.next.min(c)),
             (Some(hb), None) => Some(hb.next),
@@ -120,22 +125,18 @@ impl<O: Output> Worker<O> {
                 self.sync_pair(i, now);
             }
         }
-        let toggling = !self.estopped && !self.held;
+        let toggling = self.heartbeat_runs();
         if let Some(hb) = self
             .heartbeat
             .as_mut()
             .filter(|hb| toggling && hb.next <= now)
         {
-            hb.level = if hb.level.is_high() {
+            let level = if hb.level.is_high() {
                 Level::Low
             } else {
                 Level::High
             };
-            self.changes.push(LineChange {
-                line: hb.line,
-                level: hb.level,
-                scheduled_ns: hb.next,
-            });
+            hb.set(level, hb.next, &mut self.changes);
             // On the grid; after a stall, from now (no burst of catch-up toggles).
             hb.next += hb.half;
             if hb.next <= now {
@@ -166,14 +167,12 @@ impl<O: Output> Worker<O> {
     /// Latches or releases the e-stop of every channel at `now`.
     fn estop(&mut self, now: Nanos, latched: bool) {
         self.each_channel(now, |ch, now, emit| ch.set_estop(now, latched, emit));
-        self.estopped = latched;
         self.heartbeat_gate(now);
     }
 
     /// Lets every line follow its channel, or holds every line inactive, at `now`.
     pub(crate) fn set_live(&mut self, now: Nanos, live: bool) {
         self.each_channel(now, |ch, now, emit| ch.set_live(now, live, emit));
-        self.held = !live;
         self.heartbeat_gate(now);
     }
 
@@ -190,18 +189,19 @@ impl<O: Output> Worker<O> {
         }
     }
 
-    /// The heartbeat toggles only while the lines are live and the e-stop is not latched;
-    /// when it stops it rests inactive, and it resumes on a fresh grid.
+    /// Whether the heartbeat toggles: every line live and no e-stop latched (the output
+    /// thread sets both for every channel at once).
+    fn heartbeat_runs(&self) -> bool {
+        self.channels.iter().all(|c| c.live() && !c.estopped())
+    }
+
+    /// After an e-stop or a hold changed: a heartbeat that stopped rests inactive, and it
+    /// resumes on a fresh grid.
     fn heartbeat_gate(&mut self, now: Nanos) {
-        let stopped = self.estopped || self.held;
+        let stopped = !self.heartbeat_runs();
         if let Some(hb) = self.heartbeat.as_mut() {
-            if stopped && hb.level == Level::High {
-                hb.level = Level::Low;
-                self.changes.push(LineChange {
-                    line: hb.line,
-                    level: Level::Low,
-                    scheduled_ns: now,
-                });
+            if stopped {
+                hb.set(Level::Low, now, &mut self.changes);
             }
             // Toggling resumes on a fresh grid after the release.
             hb.next = now + hb.half;
@@ -308,12 +308,8 @@ impl<O: Output> Worker<O> {
                 });
             }
         }
-        if let Some(hb) = self.heartbeat.as_ref().filter(|hb| hb.level == Level::High) {
-            self.changes.push(LineChange {
-                line: hb.line,
-                level: Level::Low,
-                scheduled_ns: now,
-            });
+        if let Some(hb) = self.heartbeat.as_mut() {
+            hb.set(Level::Low, now, &mut self.changes);
         }
         let r = if self.changes.is_empty() {
             Ok(())
