@@ -189,23 +189,22 @@ fn build(spec: &OutputSpec, deferred: bool) -> Result<(AnyOutput, Option<LineSlo
     let mut line_slot = None;
     let output = match &spec.backend {
         Backend::Sim { names } => AnyOutput::new(recorder(names.clone())?),
-        Backend::Gpio { lines } if deferred => {
-            let (out, lines) = slot(lines).map_err(OpenError::Gpio)?;
-            let recorder = match trace.is_empty() {
-                true => None,
-                false => Some(recorder(spec.names())?),
-            };
-            line_slot = Some(lines);
-            AnyOutput::new(Traced::new(out, recorder))
-        }
         Backend::Gpio { lines } => {
+            // The binding check before any trace file is created; the chips last.
             let plans = plan_requests(lines).map_err(OpenError::Gpio)?;
             let recorder = match trace.is_empty() {
                 true => None,
                 false => Some(recorder(spec.names())?),
             };
-            let gpio = GpioOutput::open_planned(&plans, lines.len()).map_err(OpenError::Gpio)?;
-            AnyOutput::new(Traced::new(gpio, recorder))
+            if deferred {
+                let (out, lines) = slot(plans, lines.len());
+                line_slot = Some(lines);
+                AnyOutput::new(Traced::new(out, recorder))
+            } else {
+                let gpio =
+                    GpioOutput::open_planned(&plans, lines.len()).map_err(OpenError::Gpio)?;
+                AnyOutput::new(Traced::new(gpio, recorder))
+            }
         }
     };
     let output = match spec.fault {
@@ -292,6 +291,10 @@ mod tests {
             fault: None,
         };
         let e = open(&spec).err().unwrap();
+        assert!(matches!(e, OpenError::Gpio(GpioError::Binding(_))), "{e:?}");
+        assert!(!vcd.exists());
+        // A managed node's deferred lines are checked the same way, before anything else.
+        let e = open_deferred(&spec).err().unwrap();
         assert!(matches!(e, OpenError::Gpio(GpioError::Binding(_))), "{e:?}");
         assert!(!vcd.exists());
         assert_eq!(spec.hardware_ids(), ["/dev/gpiochip-missing:3"; 2]);

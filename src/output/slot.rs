@@ -10,7 +10,7 @@
 //! ([`crate::core::Channel::set_live`]) whenever the lines are not requested, so no write is
 //! lost that mattered.
 
-use super::gpio::{plan_requests, ChipPlan, GpioError, GpioLine, GpioOutput};
+use super::gpio::{ChipPlan, GpioError, GpioOutput};
 use super::safety::{lock_bounded, lock_ignore_poison as lock, EMERGENCY_LOCK_BUDGET};
 use super::{EmergencyOff, LineChange, Output};
 use std::sync::{Arc, Mutex};
@@ -31,16 +31,16 @@ pub struct SlotOutput(Arc<Shared>);
 #[derive(Clone)]
 pub struct LineSlot(Arc<Shared>);
 
-/// An empty slot for `lines` (checked as [`GpioOutput::open`] checks them: no line bound
-/// twice), and its two ends. Nothing is requested yet.
-pub fn slot(lines: &[GpioLine]) -> Result<(SlotOutput, LineSlot), GpioError> {
+/// An empty slot for the `count` lines planned in `plans` ([`plan_requests`](super::gpio::plan_requests), which checks
+/// that no line is bound twice), and its two ends. Nothing is requested yet.
+pub fn slot(plans: Vec<ChipPlan>, count: usize) -> (SlotOutput, LineSlot) {
     let shared = Arc::new(Shared {
         out: Mutex::new(None),
         emergency: Mutex::new(None),
-        plans: plan_requests(lines)?,
-        count: lines.len(),
+        plans,
+        count,
     });
-    Ok((SlotOutput(Arc::clone(&shared)), LineSlot(shared)))
+    (SlotOutput(Arc::clone(&shared)), LineSlot(shared))
 }
 
 impl LineSlot {
@@ -111,6 +111,7 @@ impl EmergencyOff for SlotEmergencyOff {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::output::gpio::{plan_requests, GpioLine};
 
     #[test]
     fn an_empty_slot_writes_nowhere_and_refuses_a_missing_chip_on_attach() {
@@ -120,7 +121,7 @@ mod tests {
             offset: 2,
             active_low: false,
         }];
-        let (mut out, lines) = slot(&lines).unwrap();
+        let (mut out, lines) = slot(plan_requests(&lines).unwrap(), lines.len());
         assert_eq!(out.line_count(), 1);
         let on = [LineChange {
             line: 0,
@@ -135,19 +136,5 @@ mod tests {
         ));
         assert!(!lines.attached());
         lines.detach();
-    }
-
-    #[test]
-    fn a_line_bound_twice_is_refused_before_anything_is_requested() {
-        let line = |name: &str| GpioLine {
-            name: name.into(),
-            chip: "/dev/gpiochip-slot-none".into(),
-            offset: 2,
-            active_low: false,
-        };
-        assert!(matches!(
-            slot(&[line("pw01"), line("pw02")]),
-            Err(GpioError::Binding(_))
-        ));
     }
 }
