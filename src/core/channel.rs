@@ -449,10 +449,18 @@ impl Channel {
     /// Moves a change held back for the line to no earlier than the end of the minimum of the
     /// phase the line is in (after the phase's start or the minima changed).
     fn retime_held(&mut self) {
-        if let (Some((level, at)), Some(since)) = (self.line.held, self.line.since) {
-            let earliest = since.saturating_add(self.min_for(self.line.level));
-            self.line.held = Some((level, at.max(earliest)));
+        if let Some((level, at)) = self.line.held {
+            self.line.held = Some((level, self.earliest(level, at)));
         }
+    }
+
+    /// The earliest instant at or after `at` the line may change to `level`.
+    fn earliest(&self, level: Level, at: Nanos) -> Nanos {
+        debug_assert_ne!(level, self.line.level);
+        self.line
+            .since
+            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
+            .max(at)
     }
 
     /// The minimum time the line must keep `level` once it has it, ns.
@@ -489,15 +497,12 @@ impl Channel {
             }
             return;
         }
-        let earliest = self
-            .line
-            .since
-            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)));
-        if at >= earliest && !(self.no_rise() && level == Level::High) {
+        let when = self.earliest(level, at);
+        if when == at && !(self.no_rise() && level == Level::High) {
             self.write_line(level, at, emit);
         } else {
             // Asking again for the rise that resumes after a cut keeps it one.
-            let held = Some((level, earliest.max(at)));
+            let held = Some((level, when));
             self.line.resumes &= self.line.held == held;
             self.line.held = held;
         }

@@ -20,13 +20,7 @@ impl Channel {
             return;
         }
         self.line.locked = on;
-        if !self.no_rise() {
-            if let Some((Level::High, at)) = self.line.held {
-                if at <= now {
-                    self.write_line(Level::High, now, emit);
-                }
-            }
-        }
+        self.release_held_rise(now, emit);
     }
 
     /// Whether the emergency stop is latched (see [`Channel::set_estop`]).
@@ -88,22 +82,22 @@ impl Channel {
             if self.level == Level::High {
                 self.line.held = Some((Level::High, self.earliest(Level::High, now)));
             }
-        } else if !self.no_rise() {
-            if let Some((Level::High, at)) = self.line.held {
-                if at <= now {
-                    self.write_line(Level::High, now, emit);
-                }
-            }
+        } else {
+            self.release_held_rise(now, emit);
         }
     }
 
-    /// The earliest instant at or after `at` the line may change to `level`.
-    pub(super) fn earliest(&self, level: Level, at: Nanos) -> Nanos {
-        debug_assert_ne!(level, self.line.level);
-        self.line
-            .since
-            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
-            .max(at)
+    /// After a gate opened at `now`: a rise held back whose time has come is written, unless
+    /// another gate still keeps rises off the line.
+    fn release_held_rise(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
+        if self.no_rise() {
+            return;
+        }
+        if let Some((Level::High, at)) = self.line.held {
+            if at <= now {
+                self.write_line(Level::High, now, emit);
+            }
+        }
     }
 
     /// No rise may reach the line: the interlock is engaged, the e-stop latched, or the line
