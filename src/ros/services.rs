@@ -159,8 +159,8 @@ pub struct ServiceMaker<'a> {
 }
 
 impl ServiceMaker<'_> {
-    /// Creates the service `name` (`~/...`) of type `package/type_name` and the task that
-    /// answers each request with `handler` (see [`serve`]).
+    /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
+    /// of type `package/type_name` and the task that answers each request with `handler`.
     pub fn serve<Req, Resp>(
         &mut self,
         name: &str,
@@ -172,8 +172,37 @@ impl ServiceMaker<'_> {
         Req: Request,
         Resp: Response,
     {
-        let ty = ServiceTypeName::new(package, type_name);
-        serve(self.node, self.id, self.remaps, name, &ty, handler)
+        let full = self.id.resolve(name, NameKind::Service, self.remaps)?;
+        let qos = super::qos::services();
+        let server: Server<Req, Resp> = self
+            .node
+            .create_server(
+                ServiceMapping::Enhanced,
+                &to_ros_name(&full)?,
+                &ServiceTypeName::new(package, type_name),
+                qos.clone(),
+                qos,
+            )
+            .map_err(|source| ServiceError::Create {
+                name: full.clone(),
+                source,
+            })?;
+        Ok(tokio::spawn(async move {
+            let stream = server.receive_request_stream();
+            futures::pin_mut!(stream);
+            while let Some(r) = stream.next().await {
+                match r {
+                    Ok((id, req)) => {
+                        debug!("{full}: request");
+                        let resp = handler(req);
+                        if let Err(e) = server.async_send_response(id, resp).await {
+                            warn!("{full}: cannot send the response: {e}");
+                        }
+                    }
+                    Err(e) => warn!("{full}: unreadable request: {e}"),
+                }
+            }
+        }))
     }
 }
 
@@ -204,52 +233,6 @@ impl Servers<'_> {
             move |req| handler(&inputs, req),
         )
     }
-}
-
-/// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`) of
-/// type `ty` and the task that answers each request with `handler`.
-pub fn serve<Req, Resp>(
-    node: &mut Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
-    name: &str,
-    ty: &ServiceTypeName,
-    handler: impl Fn(Req) -> Resp + Send + 'static,
-) -> Result<JoinHandle<()>, ServiceError>
-where
-    Req: Request,
-    Resp: Response,
-{
-    let full = id.resolve(name, NameKind::Service, remaps)?;
-    let qos = super::qos::services();
-    let server: Server<Req, Resp> = node
-        .create_server(
-            ServiceMapping::Enhanced,
-            &to_ros_name(&full)?,
-            ty,
-            qos.clone(),
-            qos,
-        )
-        .map_err(|source| ServiceError::Create {
-            name: full.clone(),
-            source,
-        })?;
-    Ok(tokio::spawn(async move {
-        let stream = server.receive_request_stream();
-        futures::pin_mut!(stream);
-        while let Some(r) = stream.next().await {
-            match r {
-                Ok((id, req)) => {
-                    debug!("{full}: request");
-                    let resp = handler(req);
-                    if let Err(e) = server.async_send_response(id, resp).await {
-                        warn!("{full}: cannot send the response: {e}");
-                    }
-                }
-                Err(e) => warn!("{full}: unreadable request: {e}"),
-            }
-        }
-    }))
 }
 
 /// Creates the six parameter services and the tasks serving them.
