@@ -151,15 +151,11 @@ impl Actions for LineActions {
     }
 
     fn activate(&self) -> Result<(), String> {
-        self.inputs
-            .send(0, Input::Live(true))
-            .map_err(|e| e.to_string())
+        self.live(true)
     }
 
     fn deactivate(&self) -> Result<(), String> {
-        self.inputs
-            .send(0, Input::Live(false))
-            .map_err(|e| e.to_string())
+        self.live(false)
     }
 
     fn cleanup(&self) -> Result<(), String> {
@@ -170,11 +166,20 @@ impl Actions for LineActions {
     }
 
     fn shutdown(&self) -> Result<(), String> {
-        let held = self.inputs.send(0, Input::Live(false));
-        if let Some(lines) = &self.lines {
-            lines.detach();
-        }
-        held.map_err(|e| e.to_string())
+        // Released even when the hold could not be queued: dropping the lines drives them
+        // inactive.
+        let held = self.live(false);
+        self.cleanup()?;
+        held
+    }
+}
+
+impl LineActions {
+    /// Lets every line follow its channel, or holds every line inactive.
+    fn live(&self, live: bool) -> Result<(), String> {
+        self.inputs
+            .send(0, Input::Live(live))
+            .map_err(|e| e.to_string())
     }
 }
 
