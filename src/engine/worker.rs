@@ -125,12 +125,10 @@ impl<O: Output> Worker<O> {
                 self.sync_pair(i, now);
             }
         }
-        let toggling = self.heartbeat_runs();
-        if let Some(hb) = self
-            .heartbeat
-            .as_mut()
-            .filter(|hb| toggling && hb.next <= now)
-        {
+        // Without a heartbeat, or before its time, nothing more to look at.
+        let due = self.heartbeat.as_ref().is_some_and(|hb| hb.next <= now);
+        let toggle = due && self.heartbeat_runs();
+        if let Some(hb) = self.heartbeat.as_mut().filter(|_| toggle) {
             let level = if hb.level.is_high() {
                 Level::Low
             } else {
