@@ -28,7 +28,9 @@ use super::{Level, Nanos};
 
 mod duty;
 mod gates;
+mod placement;
 mod report;
+mod watchdog;
 
 pub use report::{Event, Protections, Status};
 
@@ -38,6 +40,34 @@ struct Step {
     level: Level,
     start: Nanos,
     end: Nanos,
+    kind: StepKind,
+}
+
+impl Step {
+    /// An off step of `kind` from `start` to `end`.
+    const fn off(kind: StepKind, start: Nanos, end: Nanos) -> Step {
+        Step {
+            level: Level::Low,
+            start,
+            end,
+            kind,
+        }
+    }
+}
+
+/// What a step is for, which decides what follows it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+enum StepKind {
+    /// An on step, or the off step that ends a period.
+    #[default]
+    Run,
+    /// Off until the next instant of the stagger grid, where the first period starts.
+    Align,
+    /// Off at the start of a staggered period, until the on phase's place in it.
+    Lead,
+    /// Off while the on phase waits for a slot under `max_simultaneous_on`; at its end (the
+    /// latest start that still fits the pulse in its period) the pulse is skipped.
+    Wait,
 }
 
 /// The output line as written, and a change of level the guard is holding back.
@@ -96,6 +126,24 @@ pub struct Channel {
     /// `max_on_ms` cut the line in the running period, and in the period before.
     cut_now: bool,
     cut_before: bool,
+    /// The stagger grid (see [`Channel::set_grid`]).
+    grid: bool,
+    /// Where the on phases other channels placed in this staggered period end, ns after the
+    /// period start, and the on time those of its group run per period, ns.
+    lead: (Nanos, Nanos),
+    /// Where the on phase of the running staggered period starts, ns after its start.
+    placed: Nanos,
+    /// A slot is free under `max_simultaneous_on` (see [`Channel::set_slot`]).
+    slot: bool,
+    /// The end of the running period, when it is fixed: by the stagger grid, or by an on phase
+    /// delayed for a slot (the break after it shrinks so the period keeps its length).
+    period_end: Option<Nanos>,
+    /// An on phase waited for a slot (or was skipped) in the running period, and in the one
+    /// before.
+    slot_now: bool,
+    slot_before: bool,
+    /// Pulses skipped because no slot was free before their latest start.
+    skipped: u64,
 }
 
 impl Channel {
@@ -137,6 +185,14 @@ impl Channel {
             slewed_at: None,
             cut_now: false,
             cut_before: false,
+            grid: false,
+            lead: (0, 0),
+            placed: 0,
+            slot: true,
+            period_end: None,
+            slot_now: false,
+            slot_before: false,
+            skipped: 0,
         }
     }
 
@@ -179,6 +235,16 @@ impl Channel {
     /// Whether the channel is enabled.
     pub fn enabled(&self) -> bool {
         self.enabled
+    }
+
+    /// When the running period started, ns.
+    pub fn period_start(&self) -> Nanos {
+        self.period_start
+    }
+
+    /// The channel runs periods: enabled, with a period, a schedule running.
+    pub fn running(&self) -> bool {
+        self.enabled && self.cfg.period > 0 && self.step.is_some()
     }
 
     /// The next instant (ns) at which [`Channel::poll`] has work, if any.
@@ -313,11 +379,7 @@ impl Channel {
             // a restart from 0 % or from period 0 does).
             match self.break_ends_at() {
                 Some(end) if end > now && self.cfg.period > 0 => {
-                    self.step = Some(Step {
-                        level: Level::Low,
-                        start: now,
-                        end,
-                    });
+                    self.step = Some(Step::off(StepKind::Run, now, end));
                 }
                 _ => self.start_period(now, emit),
             }
@@ -325,6 +387,8 @@ impl Channel {
             self.step = None;
             self.cut_now = false;
             self.cut_before = false;
+            self.slot_now = false;
+            self.slot_before = false;
             if let Some(p) = self.pending.take() {
                 self.put_config(p, now);
             }
@@ -371,59 +435,6 @@ impl Channel {
         } else {
             self.pending = Some(cfg);
         }
-    }
-
-    /// The channel's report at `now` (ns).
-    pub fn status(&self, now: Nanos) -> Status {
-        let (remaining_on, remaining_off) = match self.step {
-            Some(s) if s.level == Level::High => (s.end.saturating_sub(now), 0),
-            Some(s) => (0, s.end.saturating_sub(now)),
-            None => (0, 0),
-        };
-        Status {
-            enabled: self.enabled,
-            active: self.enabled
-                && self.cfg.period > 0
-                && !self.watchdog_tripped
-                && !self.estop
-                && self.live,
-            level: self.line.level,
-            duty_commanded: self.duty.fraction,
-            duty_requested: self.duty.requested,
-            command_clamped: self.duty.clamped,
-            duty_target: self.target(),
-            duty_applied: self.plan.applied_duty(),
-            period: self.cfg.period,
-            t_on: self.plan.t_on,
-            t_off: self.plan.t_off,
-            remaining_on,
-            remaining_off,
-            step_end: self.step.map(|s| s.end),
-            e1: self.flags.0,
-            limited: self.flags.1,
-            watchdog_tripped: self.watchdog_tripped,
-            fault_active: self.fault_until.is_some(),
-            estopped: self.estop,
-            rule: self.plan.rule,
-            protections: Protections {
-                max_on: self.max_on_acts(),
-                max_duty: self.target() < self.accepted,
-                min_duty: self.target() > self.accepted,
-                slew: self.slewing() && !self.watchdog_tripped && self.slewed != self.target(),
-                deadband: self.last_ignored,
-            },
-            ignored_commands: self.ignored,
-        }
-    }
-
-    /// The watchdog guards every state in which the line is or will be high: enabled, or
-    /// disabled with the line held on (004's hold).
-    fn watchdog_deadline(&self) -> Option<Nanos> {
-        let guarding = self.enabled || self.level == Level::High || self.line.level == Level::High;
-        (guarding && self.cfg.command_timeout > 0 && !self.watchdog_tripped).then(|| {
-            self.last_command_at
-                .saturating_add(self.cfg.command_timeout)
-        })
     }
 
     /// Makes `cfg` the configuration in force at `now`. A change held back for the line is
@@ -591,9 +602,18 @@ impl Channel {
         }
         // A step ending with the cut goes first: its fall is the schedule's, not a cut.
         if let Some(step) = self.step.filter(|s| s.end == t) {
-            match step.level {
-                Level::High => self.end_on_step(t, emit),
-                Level::Low => self.start_period(t, emit),
+            match (step.kind, step.level) {
+                (StepKind::Run, Level::High) => self.end_on_step(t, emit),
+                (StepKind::Run | StepKind::Align, _) => self.start_period(t, emit),
+                (StepKind::Lead, _) => {
+                    if self.cfg.apply_at != ApplyAt::NextPeriod {
+                        // 002/003: the on step's time comes from the command current now.
+                        let duty = self.decide(t);
+                        self.latch(Plan::new(duty, &self.cfg), emit);
+                    }
+                    self.begin_on(t, emit);
+                }
+                (StepKind::Wait, _) => self.skip(t, emit),
             }
             return;
         }
@@ -608,28 +628,48 @@ impl Channel {
         if let Some(p) = self.pending.take() {
             self.put_config(p, t);
         }
+        let period = self.cfg.period;
+        if self.grid && period > 0 && !t.is_multiple_of(period) {
+            // Staggered: periods start on the grid of whole periods the channels with this
+            // period share; off until its next instant.
+            let next = (t / period).saturating_add(1).saturating_mul(period);
+            self.step = Some(Step::off(StepKind::Align, t, next));
+            self.set_level(Level::Low, t, emit);
+            return;
+        }
         self.cut_before = std::mem::take(&mut self.cut_now);
+        self.slot_before = std::mem::take(&mut self.slot_now);
         let duty = self.decide(t);
         let plan = Plan::new(duty, &self.cfg);
         self.latch(plan, emit);
         self.period_start = t;
-        if self.cfg.period == 0 {
+        self.period_end = (self.grid && period > 0).then(|| t.saturating_add(period));
+        if period == 0 {
             // 000: period 0, no pulses; the output is held at 0.
             self.step = None;
             self.set_level(Level::Low, t, emit);
             return;
         }
-        let (level, len) = if plan.t_on > 0 {
-            (Level::High, plan.t_on)
-        } else {
-            (Level::Low, plan.t_off)
-        };
-        self.step = Some(Step {
-            level,
-            start: t,
-            end: t + len,
-        });
-        self.set_level(level, t, emit);
+        if plan.t_on == 0 {
+            self.step = Some(Step::off(StepKind::Run, t, t + plan.t_off));
+            self.set_level(Level::Low, t, emit);
+            return;
+        }
+        // Staggered: the on phase starts after those already placed, if it fits there.
+        let (after, others) = if self.grid { self.lead } else { (0, 0) };
+        if after > plan.t_off && others.saturating_add(plan.t_on) <= period {
+            self.step = Some(Step::off(StepKind::Align, t, t.saturating_add(period)));
+            self.set_level(Level::Low, t, emit);
+            return;
+        }
+        let lead = after.min(plan.t_off);
+        self.placed = lead;
+        if lead > 0 {
+            self.step = Some(Step::off(StepKind::Lead, t, t + lead));
+            self.set_level(Level::Low, t, emit);
+            return;
+        }
+        self.begin_on(t, emit);
     }
 
     /// The on step has run its time at `t`: decide the off step.
@@ -650,16 +690,15 @@ impl Channel {
                 plan.t_off
             }
         };
+        // A period with a fixed end (the stagger grid, an on phase delayed for a slot) keeps
+        // it: the break is what is left of the period.
+        let t_off = self.period_end.map_or(t_off, |end| end.saturating_sub(t));
         if t_off == 0 {
             // No break this period (100 % or a suppressed break): straight to the next period.
             self.start_period(t, emit);
             return;
         }
-        self.step = Some(Step {
-            level: Level::Low,
-            start: t,
-            end: t + t_off,
-        });
+        self.step = Some(Step::off(StepKind::Run, t, t + t_off));
         self.set_level(Level::Low, t, emit);
     }
 
@@ -675,17 +714,18 @@ impl Channel {
                 // went low must still reach the minimum off time.
                 match self.break_ends_at() {
                     Some(end) if end > now => {
-                        self.step = Some(Step {
-                            level: Level::Low,
-                            start: now,
-                            end,
-                        });
+                        self.step = Some(Step::off(StepKind::Run, now, end));
                     }
                     _ => self.start_period(now, emit),
                 }
             }
             return;
         };
+        if step.kind != StepKind::Run || (step.level == Level::Low && self.period_end.is_some()) {
+            // An off step placed by the stagger grid or a slot ends where it was placed.
+            self.poll(now, emit);
+            return;
+        }
         let (len, min) = match step.level {
             Level::High => (plan.t_on, self.cfg.min_on),
             Level::Low => (plan.t_off, self.cfg.min_off),
@@ -706,58 +746,5 @@ impl Channel {
         };
         self.step = Some(Step { end, ..step });
         self.poll(now, emit);
-    }
-
-    /// Trips at once when the watchdog deadline already lies in the past (a timeout set, or a
-    /// channel enabled, long after the last command).
-    fn trip_if_stale(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
-        if self.watchdog_deadline().is_some_and(|d| d <= now) {
-            self.trip(now, emit);
-        }
-    }
-
-    /// The watchdog fired at `t`. With a fault value (and the channel enabled) the channel
-    /// runs at it from now, re-timing the running step as TCONT_CP does a new command, so the
-    /// minimum times hold; without one the output goes off at once, duty 0 until a command.
-    fn trip(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
-        self.watchdog_tripped = true;
-        emit(Event::Watchdog { tripped: true });
-        if self.cfg.fault_duty > 0.0 && self.enabled && self.cfg.period > 0 {
-            self.fault_until = Some(match self.cfg.fault_hold {
-                0 => Nanos::MAX,
-                hold => t.saturating_add(hold),
-            });
-            self.reevaluate(t, emit);
-            return;
-        }
-        self.trip_off(t, true, emit);
-    }
-
-    /// Output off at `t` after a trip, keeping the period grid: duty 0 until a command.
-    /// `forced`: the trip itself, a safety off at once; otherwise the end of the fault value's
-    /// hold time, which leaves a running fault pulse its minimum on time.
-    fn trip_off(&mut self, t: Nanos, forced: bool, emit: &mut dyn FnMut(Event)) {
-        self.latch(Plan::new(0.0, &self.cfg), emit);
-        if let Some(step) = self.step {
-            // Keep the period grid: stay off for the rest of this period.
-            let end = match step.level {
-                Level::High => (self.period_start + self.cfg.period).max(t),
-                Level::Low => step.end,
-            };
-            self.step = Some(Step {
-                level: Level::Low,
-                start: if step.level == Level::High {
-                    t
-                } else {
-                    step.start
-                },
-                end,
-            });
-        }
-        if forced {
-            self.force_low(t, emit);
-        } else {
-            self.set_level(Level::Low, t, emit);
-        }
     }
 }

@@ -4,12 +4,14 @@
 //! caller passes `now` in nanoseconds of a monotonic clock and gets back edges with their
 //! scheduled times and the instant it should call again ([`Channel::poll_at`]).
 
+pub mod bank;
 pub mod channel;
 pub mod command;
 pub mod config;
 pub mod interlock;
 pub mod plan;
 
+pub use bank::{Bank, Phase};
 pub use channel::{Channel, Event, Protections, Status};
 pub use command::{Command, CommandError, Duty, SV_FULL_SCALE};
 pub use config::{

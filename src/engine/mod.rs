@@ -5,7 +5,7 @@
 //! channel cores, writes edges to the [`Output`](crate::output::Output) and sends reports back
 //! through a second ring buffer that never blocks it (a full buffer drops and counts).
 
-use crate::core::{ChannelConfig, Command, Event, Level, Nanos, Status};
+use crate::core::{Bank, ChannelConfig, Command, Event, Level, Nanos, Status};
 
 /// An input for one channel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -28,6 +28,10 @@ pub enum Input {
     /// [`Channel::set_live`](crate::core::Channel::set_live)); the request's channel is
     /// ignored. While held the heartbeat line rests inactive.
     Live(bool),
+    /// Sets the node-level planner: `phase` and `max_simultaneous_on` (see
+    /// [`Bank`](crate::core::Bank)); the request's channel is ignored. Takes effect at each
+    /// channel's next period start.
+    Bank(Bank),
 }
 
 /// An input addressed to a channel.

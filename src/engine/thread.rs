@@ -8,7 +8,7 @@
 use super::worker::{Stop, Worker};
 use super::{Report, Request};
 use crate::clock;
-use crate::core::{ChannelConfig, Nanos};
+use crate::core::{Bank, ChannelConfig, Nanos};
 use crate::output::{EmergencyOff, ErrorKind, Output, OutputError};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use nix::sys::eventfd::{EfdFlags, EventFd};
@@ -36,6 +36,8 @@ pub struct EngineOptions {
     /// Start with every line held inactive until an [`Input::Live`](super::Input::Live)`(true)` (a managed node
     /// starts unconfigured).
     pub start_held: bool,
+    /// The node-level planner at start-up: `phase` and `max_simultaneous_on`.
+    pub bank: Bank,
 }
 
 impl Default for EngineOptions {
@@ -45,6 +47,7 @@ impl Default for EngineOptions {
             queue_capacity: 4096,
             heartbeat_half_period_ns: None,
             start_held: false,
+            bank: Bank::default(),
         }
     }
 }
@@ -445,6 +448,7 @@ where
                 if let Some(half) = opts.heartbeat_half_period_ns {
                     worker.start_heartbeat(configs.len(), half, now);
                 }
+                worker.set_bank(opts.bank);
                 if opts.start_held {
                     worker.set_live(now, false);
                 }

@@ -6,7 +6,7 @@
 
 use super::{EdgeReport, Input, Report, Request};
 use crate::clock;
-use crate::core::{Channel, ChannelConfig, Event, Interlocks, Level, Nanos};
+use crate::core::{Bank, Channel, ChannelConfig, Event, Interlocks, Level, Nanos};
 use crate::output::{LineChange, Output, OutputError};
 use rtrb::{Consumer, Producer};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -22,6 +22,7 @@ pub(crate) enum Stop<E> {
 pub(crate) struct Worker<O: Output> {
     channels: Vec<Channel>,
     interlocks: Interlocks,
+    bank: Bank,
     seq: Vec<u64>,
     touched: Vec<bool>,
     changes: Vec<LineChange>,
@@ -67,6 +68,7 @@ impl<O: Output> Worker<O> {
         Worker {
             channels: configs.iter().map(|c| Channel::new(*c, now)).collect(),
             interlocks: Interlocks::new(n),
+            bank: Bank::default(),
             seq: vec![0; n],
             touched: vec![false; n],
             // At most two edges per channel can come out of one wake-up (a request edge and a
@@ -118,11 +120,13 @@ impl<O: Output> Worker<O> {
         let now = clock::monotonic_ns();
         for i in 0..self.channels.len() {
             if self.channels[i].poll_at().is_some_and(|t| t <= now) {
+                self.bank.before(&mut self.channels, i, now);
                 let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
                 self.channels[i].poll(now, &mut |e| sink.event(e));
                 self.pushed |= sink.pushed;
                 self.touched[i] = true;
                 self.sync_pair(i, now);
+                self.sync_bank(now);
             }
         }
         // Without a heartbeat, or before its time, nothing more to look at.
@@ -162,6 +166,29 @@ impl<O: Output> Worker<O> {
         self.touched[p] = true;
     }
 
+    /// Sets the node-level planner (`phase`, `max_simultaneous_on`); it takes effect at each
+    /// channel's next period start.
+    pub(crate) fn set_bank(&mut self, bank: Bank) {
+        self.bank = bank;
+        for i in 0..self.channels.len() {
+            self.bank.before(&mut self.channels, i, 0);
+        }
+    }
+
+    /// After any action at `now`: free slots under `max_simultaneous_on` go to the on phases
+    /// waiting for one (written in this same batch).
+    fn sync_bank(&mut self, now: Nanos) {
+        let (changes, reports, dropped) = (&mut self.changes, &mut self.reports, &self.dropped);
+        let (touched, mut pushed) = (&mut self.touched, false);
+        self.bank.after(&mut self.channels, now, &mut |c, e| {
+            let mut sink = Sink::new(c, changes, reports, dropped);
+            sink.event(e);
+            pushed |= sink.pushed;
+            touched[c] = true;
+        });
+        self.pushed |= pushed;
+    }
+
     /// Latches or releases the e-stop of every channel at `now`.
     fn estop(&mut self, now: Nanos, latched: bool) {
         self.each_channel(now, |ch, now, emit| ch.set_estop(now, latched, emit));
@@ -177,6 +204,7 @@ impl<O: Output> Worker<O> {
     /// Runs `f` on every channel at `now`, then keeps every split-range pair apart.
     fn each_channel(&mut self, now: Nanos, f: impl Fn(&mut Channel, Nanos, &mut dyn FnMut(Event))) {
         for i in 0..self.channels.len() {
+            self.bank.before(&mut self.channels, i, now);
             let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
             f(&mut self.channels[i], now, &mut |e| sink.event(e));
             self.pushed |= sink.pushed;
@@ -185,6 +213,7 @@ impl<O: Output> Worker<O> {
         for i in 0..self.channels.len() {
             self.sync_pair(i, now);
         }
+        self.sync_bank(now);
     }
 
     /// Whether the heartbeat toggles: every line live and no e-stop latched (the output
@@ -211,8 +240,10 @@ impl<O: Output> Worker<O> {
         match req.input {
             Input::EStop(latched) => return self.estop(now, latched),
             Input::Live(live) => return self.set_live(now, live),
+            Input::Bank(bank) => return self.set_bank(bank),
             _ => {}
         }
+        self.bank.before(&mut self.channels, req.channel, now);
         let Some(ch) = self.channels.get_mut(req.channel) else {
             return;
         };
@@ -232,11 +263,12 @@ impl<O: Output> Worker<O> {
                 // start-up; here they are ignored rather than stop the thread.
                 let _ = self.interlocks.pair(req.channel, partner);
             }
-            Input::EStop(_) | Input::Live(_) => {}
+            Input::EStop(_) | Input::Live(_) | Input::Bank(_) => {}
         }
         self.pushed |= sink.pushed;
         self.touched[req.channel] = true;
         self.sync_pair(req.channel, now);
+        self.sync_bank(now);
     }
 
     /// Writes the collected edges, reports them with their actual time, and sends a status

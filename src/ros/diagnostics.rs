@@ -638,6 +638,7 @@ mod tests {
             rule: Rule::Exact,
             protections: Protections::default(),
             ignored_commands: 0,
+            skipped_pulses: 0,
         }
     }
 

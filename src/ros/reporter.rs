@@ -354,6 +354,12 @@ impl Reporter {
                 self.health[ch].missed += u64::from(edges);
                 warn!("{name}: the output thread woke late; {edges} scheduled edges were merged");
             }
+            Event::Skipped => {
+                warn!(
+                    "{name}: max_simultaneous_on: no slot came free before the latest start of \
+                     this period's pulse; it was skipped"
+                );
+            }
             Event::Plan(_) | Event::Edge { .. } => {}
         }
     }

@@ -3,6 +3,7 @@
 use super::super::command::{Command, CommandError};
 use super::super::plan::{Plan, Rule};
 use super::super::{Level, Nanos};
+use super::Channel;
 
 /// Something the channel did or noticed, in the order it happened.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -39,6 +40,9 @@ pub enum Event {
         /// The duty fraction applied, 0..=1.
         applied: f64,
     },
+    /// No slot was free under `max_simultaneous_on` before the latest start that fits the on
+    /// phase in its period: the channel stays off for the rest of the period.
+    Skipped,
     /// The channel was polled so late that `edges` scheduled edges fell in the past together;
     /// they were merged so that no zero-width pulse reaches the output.
     Missed {
@@ -62,11 +66,17 @@ pub struct Protections {
     pub slew: bool,
     /// The dead band ignored the last valid command: an older one stays in force.
     pub deadband: bool,
+    /// `phase` is `stagger`: the channel's periods run on the grid it shares with the channels
+    /// of the same period, its on phase placed after theirs.
+    pub stagger: bool,
+    /// `max_simultaneous_on` delayed or skipped an on phase in this period or the one before.
+    pub simultaneous: bool,
 }
 
 impl Protections {
     /// The names of the protections acting, as reported on `~/<ch>/status` and
-    /// `/diagnostics`: `max_on`, `max_duty`, `min_duty`, `slew`, `deadband`.
+    /// `/diagnostics`: `max_on`, `max_duty`, `min_duty`, `slew`, `deadband`, `stagger`,
+    /// `max_simultaneous_on`.
     pub fn names(&self) -> impl Iterator<Item = &'static str> {
         [
             (self.max_on, "max_on"),
@@ -74,6 +84,8 @@ impl Protections {
             (self.min_duty, "min_duty"),
             (self.slew, "slew"),
             (self.deadband, "deadband"),
+            (self.stagger, "stagger"),
+            (self.simultaneous, "max_simultaneous_on"),
         ]
         .into_iter()
         .filter_map(|(on, name)| on.then_some(name))
@@ -134,6 +146,9 @@ pub struct Status {
     pub protections: Protections,
     /// Valid commands the dead band ignored since the channel was created.
     pub ignored_commands: u64,
+    /// On phases skipped since the channel was created: no slot was free under
+    /// `max_simultaneous_on` before the latest start that fits the pulse in its period.
+    pub skipped_pulses: u64,
 }
 
 impl Status {
@@ -149,6 +164,54 @@ impl Status {
                 }
             }
             _ => (0, 0),
+        }
+    }
+}
+
+impl Channel {
+    /// The channel's report at `now` (ns).
+    pub fn status(&self, now: Nanos) -> Status {
+        let (remaining_on, remaining_off) = match self.step {
+            Some(s) if s.level == Level::High => (s.end.saturating_sub(now), 0),
+            Some(s) => (0, s.end.saturating_sub(now)),
+            None => (0, 0),
+        };
+        Status {
+            enabled: self.enabled,
+            active: self.enabled
+                && self.cfg.period > 0
+                && !self.watchdog_tripped
+                && !self.estop
+                && self.live,
+            level: self.line.level,
+            duty_commanded: self.duty.fraction,
+            duty_requested: self.duty.requested,
+            command_clamped: self.duty.clamped,
+            duty_target: self.target(),
+            duty_applied: self.plan.applied_duty(),
+            period: self.cfg.period,
+            t_on: self.plan.t_on,
+            t_off: self.plan.t_off,
+            remaining_on,
+            remaining_off,
+            step_end: self.step.map(|s| s.end),
+            e1: self.flags.0,
+            limited: self.flags.1,
+            watchdog_tripped: self.watchdog_tripped,
+            fault_active: self.fault_until.is_some(),
+            estopped: self.estop,
+            rule: self.plan.rule,
+            protections: Protections {
+                max_on: self.max_on_acts(),
+                max_duty: self.target() < self.accepted,
+                min_duty: self.target() > self.accepted,
+                slew: self.slewing() && !self.watchdog_tripped && self.slewed != self.target(),
+                deadband: self.last_ignored,
+                stagger: self.grid && self.enabled && self.cfg.period > 0,
+                simultaneous: self.slot_now || self.slot_before,
+            },
+            ignored_commands: self.ignored,
+            skipped_pulses: self.skipped,
         }
     }
 }

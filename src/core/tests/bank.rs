@@ -1,0 +1,389 @@
+//! The node-level planner in virtual time: several channels driven the way the output thread
+//! drives them (in channel order, [`Bank::before`] and [`Bank::after`] around each action),
+//! every deadline processed exactly when due.
+
+use super::harness::MS;
+use crate::core::{
+    Bank, Channel, ChannelParams, Command, Event, Level, Nanos, Phase, ShortPulse, NS_PER_MS,
+};
+use proptest::prelude::*;
+
+/// Channels under one planner, with every edge and skip recorded per channel.
+struct Rack {
+    channels: Vec<Channel>,
+    bank: Bank,
+    now: Nanos,
+    edges: Vec<Vec<(Nanos, Level)>>,
+    skips: Vec<Vec<Nanos>>,
+}
+
+impl Rack {
+    fn new(params: &[ChannelParams], bank: Bank) -> Rack {
+        let n = params.len();
+        let mut r = Rack {
+            channels: params
+                .iter()
+                .map(|p| Channel::new(p.validate().expect("valid test parameters"), 0))
+                .collect(),
+            bank,
+            now: 0,
+            edges: vec![Vec::new(); n],
+            skips: vec![Vec::new(); n],
+        };
+        for i in 0..n {
+            r.bank.before(&mut r.channels, i, 0);
+        }
+        r
+    }
+
+    fn record(
+        edges: &mut [Vec<(Nanos, Level)>],
+        skips: &mut [Vec<Nanos>],
+        i: usize,
+        now: Nanos,
+        e: Event,
+    ) {
+        match e {
+            Event::Edge { at, level } => edges[i].push((at, level)),
+            Event::Skipped => skips[i].push(now),
+            _ => {}
+        }
+    }
+
+    /// One action on channel `i` at the current instant, as the output thread does it.
+    fn act(&mut self, i: usize, f: impl FnOnce(&mut Channel, Nanos, &mut dyn FnMut(Event))) {
+        let now = self.now;
+        self.bank.before(&mut self.channels, i, now);
+        let (edges, skips) = (&mut self.edges, &mut self.skips);
+        f(&mut self.channels[i], now, &mut |e| {
+            Rack::record(edges, skips, i, now, e)
+        });
+        self.bank.after(&mut self.channels, now, &mut |c, e| {
+            Rack::record(edges, skips, c, now, e)
+        });
+    }
+
+    /// Runs every deadline up to and including `t`, each at its instant, channels in order.
+    fn run_to(&mut self, t: Nanos) -> &mut Self {
+        while let Some(d) = self.channels.iter().filter_map(Channel::poll_at).min() {
+            if d > t {
+                break;
+            }
+            self.now = d;
+            for i in 0..self.channels.len() {
+                if self.channels[i].poll_at().is_some_and(|p| p <= d) {
+                    self.act(i, |ch, now, emit| ch.poll(now, emit));
+                }
+            }
+        }
+        self.now = t;
+        self
+    }
+
+    fn at(&mut self, ms: u64) -> &mut Self {
+        self.run_to(ms * MS)
+    }
+
+    fn enable(&mut self, i: usize, on: bool) -> &mut Self {
+        self.act(i, |ch, now, emit| ch.set_enable(now, on, emit));
+        self
+    }
+
+    fn duty(&mut self, i: usize, pct: f64) -> &mut Self {
+        self.act(i, |ch, now, emit| {
+            ch.command(now, Command::Percent(pct), emit)
+        });
+        self
+    }
+
+    /// Channel `i`'s high spans as (rise, fall) in ms, up to now.
+    fn spans_ms(&self, i: usize) -> Vec<(f64, f64)> {
+        high_spans(&self.edges[i], self.now)
+            .into_iter()
+            .map(|(a, b)| (a as f64 / MS as f64, b as f64 / MS as f64))
+            .collect()
+    }
+
+    /// How many lines were high at once, at most, up to now.
+    fn most_high(&self) -> usize {
+        let mut changes: Vec<(Nanos, i32)> = Vec::new();
+        for e in &self.edges {
+            for (a, b) in high_spans(e, self.now) {
+                changes.push((a, 1));
+                changes.push((b, -1));
+            }
+        }
+        // Falls before rises at the same instant: a line handing over to another is not two.
+        changes.sort_by_key(|&(t, d)| (t, d));
+        let (mut high, mut most) = (0i32, 0i32);
+        for (_, d) in changes {
+            high += d;
+            most = most.max(high);
+        }
+        most as usize
+    }
+}
+
+/// The spans [rise, fall) a line was high, from its edges; a span still open ends at `now`.
+fn high_spans(edges: &[(Nanos, Level)], now: Nanos) -> Vec<(Nanos, Nanos)> {
+    let mut spans = Vec::new();
+    let mut rise = None;
+    for &(t, l) in edges {
+        match (l, rise) {
+            (Level::High, None) => rise = Some(t),
+            (Level::Low, Some(r)) => {
+                if t > r {
+                    spans.push((r, t));
+                }
+                rise = None;
+            }
+            _ => {}
+        }
+    }
+    if let Some(r) = rise.filter(|r| *r < now) {
+        spans.push((r, now));
+    }
+    spans
+}
+
+fn period(ms: u64) -> ChannelParams {
+    ChannelParams {
+        period_ms: ms,
+        ..ChannelParams::default()
+    }
+}
+
+const STAGGER: Bank = Bank {
+    phase: Phase::Stagger,
+    max_on: 0,
+};
+
+#[test]
+fn sync_starts_every_channel_at_its_enable_together() {
+    let mut r = Rack::new(&[period(1000), period(1000)], Bank::default());
+    r.duty(0, 30.0)
+        .duty(1, 40.0)
+        .enable(0, true)
+        .enable(1, true);
+    r.at(2000);
+    assert_eq!(r.spans_ms(0), [(0.0, 300.0), (1000.0, 1300.0)]);
+    assert_eq!(r.spans_ms(1), [(0.0, 400.0), (1000.0, 1400.0)]);
+    assert_eq!(r.most_high(), 2);
+}
+
+#[test]
+fn stagger_lays_the_on_phases_end_to_end_on_a_shared_grid() {
+    let mut r = Rack::new(&[period(1000), period(1000), period(1000)], STAGGER);
+    r.duty(0, 20.0).duty(1, 30.0).duty(2, 40.0);
+    // Enabled at different instants, they all start on the grid of whole periods.
+    r.at(250)
+        .enable(0, true)
+        .at(600)
+        .enable(1, true)
+        .enable(2, true);
+    r.at(3000);
+    assert_eq!(r.spans_ms(0), [(1000.0, 1200.0), (2000.0, 2200.0)]);
+    assert_eq!(r.spans_ms(1), [(1200.0, 1500.0), (2200.0, 2500.0)]);
+    assert_eq!(r.spans_ms(2), [(1500.0, 1900.0), (2500.0, 2900.0)]);
+    assert_eq!(r.most_high(), 1);
+    let s = r.channels[1].status(r.now);
+    assert!(s.protections.stagger, "reported: {:?}", s.protections);
+}
+
+#[test]
+fn stagger_follows_duty_changes_period_by_period() {
+    let mut r = Rack::new(&[period(1000), period(1000)], STAGGER);
+    r.duty(0, 50.0)
+        .duty(1, 50.0)
+        .enable(0, true)
+        .enable(1, true);
+    // 000: a command takes effect at the next period start; the second channel moves with the
+    // first one's new on time.
+    r.at(1500).duty(0, 10.0).at(2000).duty(0, 0.0).at(3500);
+    assert_eq!(
+        r.spans_ms(0),
+        [(0.0, 500.0), (1000.0, 1500.0), (2000.0, 2100.0)]
+    );
+    assert_eq!(
+        r.spans_ms(1),
+        [
+            (500.0, 1000.0),
+            (1500.0, 2000.0),
+            (2100.0, 2600.0),
+            (3000.0, 3500.0)
+        ]
+    );
+    assert_eq!(r.most_high(), 1);
+}
+
+#[test]
+fn stagger_groups_channels_by_period() {
+    let mut r = Rack::new(&[period(1000), period(500), period(1000)], STAGGER);
+    r.duty(0, 40.0).duty(1, 40.0).duty(2, 40.0);
+    r.enable(0, true).enable(1, true).enable(2, true).at(1000);
+    // pw02 runs alone on its 500 ms grid; pw03 follows pw01.
+    assert_eq!(r.spans_ms(1), [(0.0, 200.0), (500.0, 700.0)]);
+    assert_eq!(r.spans_ms(2), [(400.0, 800.0)]);
+}
+
+#[test]
+fn with_duties_above_100_percent_the_last_phase_ends_with_the_period() {
+    let mut r = Rack::new(&[period(1000), period(1000)], STAGGER);
+    r.duty(0, 70.0)
+        .duty(1, 60.0)
+        .enable(0, true)
+        .enable(1, true)
+        .at(1000);
+    assert_eq!(r.spans_ms(0), [(0.0, 700.0)]);
+    assert_eq!(
+        r.spans_ms(1),
+        [(400.0, 1000.0)],
+        "cut to fit: lead 700 -> 400"
+    );
+}
+
+fn limit(max_on: usize) -> Bank {
+    Bank {
+        phase: Phase::Sync,
+        max_on,
+    }
+}
+
+#[test]
+fn a_pulse_without_a_slot_waits_and_keeps_its_length_and_its_period() {
+    let mut r = Rack::new(&[period(1000), period(1000)], limit(1));
+    r.duty(0, 40.0)
+        .duty(1, 40.0)
+        .enable(0, true)
+        .enable(1, true)
+        .at(3000);
+    assert_eq!(
+        r.spans_ms(0),
+        [(0.0, 400.0), (1000.0, 1400.0), (2000.0, 2400.0)]
+    );
+    assert_eq!(
+        r.spans_ms(1),
+        [(400.0, 800.0), (1400.0, 1800.0), (2400.0, 2800.0)],
+        "delayed by the other's pulse, each period still 1000 ms with 400 ms on"
+    );
+    assert_eq!(r.most_high(), 1);
+    assert!(r.skips.iter().all(Vec::is_empty));
+    let s = r.channels[1].status(r.now);
+    assert!(s.protections.simultaneous, "{:?}", s.protections);
+    assert_eq!(s.skipped_pulses, 0);
+}
+
+#[test]
+fn a_pulse_that_cannot_fit_its_period_is_skipped_and_reported() {
+    let mut r = Rack::new(&[period(1000), period(1000)], limit(1));
+    r.duty(0, 60.0)
+        .duty(1, 60.0)
+        .enable(0, true)
+        .enable(1, true)
+        .at(2000);
+    assert_eq!(r.spans_ms(0), [(0.0, 600.0), (1000.0, 1600.0)]);
+    assert!(r.spans_ms(1).is_empty(), "{:?}", r.spans_ms(1));
+    // The latest start that fits 600 ms in the period [0, 1000) is 400 ms.
+    assert_eq!(r.skips[1], [400 * MS, 1400 * MS]);
+    assert_eq!(r.channels[1].status(r.now).skipped_pulses, 2);
+}
+
+#[test]
+fn the_slot_goes_to_the_pulse_that_waited_longest() {
+    let mut r = Rack::new(&[period(1000), period(1000), period(1000)], limit(1));
+    r.duty(0, 30.0).duty(1, 30.0).duty(2, 30.0);
+    r.enable(0, true)
+        .at(100)
+        .enable(2, true)
+        .at(200)
+        .enable(1, true)
+        .at(1000);
+    assert_eq!(r.spans_ms(0), [(0.0, 300.0)]);
+    assert_eq!(r.spans_ms(2), [(300.0, 600.0)], "waited since 100 ms");
+    assert_eq!(r.spans_ms(1), [(600.0, 900.0)], "waited since 200 ms");
+}
+
+#[test]
+fn the_minimum_break_still_holds_after_a_delayed_pulse() {
+    // min off 300 ms: pw02's delayed pulse ends at 900, its next rise waits until 1200 even
+    // though its period starts at 1000 and a slot is free.
+    let p = ChannelParams {
+        period_ms: 1000,
+        min_on_ms: 100,
+        min_off_ms: Some(300),
+        short_pulse: Some(ShortPulse::Suppress),
+        ..ChannelParams::default()
+    };
+    let mut r = Rack::new(&[p, p], limit(1));
+    r.duty(0, 50.0)
+        .duty(1, 40.0)
+        .enable(0, true)
+        .enable(1, true)
+        .at(900);
+    r.duty(0, 0.0).at(2000);
+    assert_eq!(r.spans_ms(1)[..2], [(500.0, 900.0), (1200.0, 1400.0)]);
+}
+
+proptest! {
+    /// Under stagger, with the duties summing to at most 100 % at every instant, no two on
+    /// phases of channels of equal period overlap, whatever the enables and commands do.
+    #[test]
+    fn no_overlap_under_stagger_when_the_duties_sum_to_at_most_100(
+        n in 2usize..6,
+        period_ms in prop::sample::select(vec![200u64, 1000, 1500]),
+        steps in prop::collection::vec(
+            (0u64..3000, prop::collection::vec(0u32..=100, 6), prop::collection::vec(any::<bool>(), 6)),
+            1..12,
+        ),
+    ) {
+        let mut r = Rack::new(&vec![period(period_ms); n], STAGGER);
+        let mut t = 0;
+        for (dt, weights, enables) in &steps {
+            // Duties in whole ms of the period, scaled to sum to at most 100 %.
+            let total: u32 = weights[..n].iter().sum::<u32>().max(100);
+            for i in 0..n {
+                let on_ms = u64::from(weights[i]) * period_ms / u64::from(total);
+                r.duty(i, on_ms as f64 * 100.0 / period_ms as f64);
+                r.enable(i, enables[i]);
+            }
+            t += dt * NS_PER_MS / 10;
+            r.run_to(t);
+        }
+        r.run_to(t + 3 * period_ms * MS);
+        prop_assert!(r.most_high() <= 1, "{:?}", (0..n).map(|i| r.spans_ms(i)).collect::<Vec<_>>());
+    }
+
+    /// Never more than `max_simultaneous_on` lines high, whatever the periods, minima, duties,
+    /// enables and phase.
+    #[test]
+    fn never_more_lines_high_than_max_simultaneous_on(
+        max_on in 1usize..4,
+        stagger in any::<bool>(),
+        chans in prop::collection::vec((prop::sample::select(vec![100u64, 250, 1000]), 0u64..80, 0u32..=100), 2..7),
+        ops in prop::collection::vec((0u64..2000, 0usize..7, 0u32..=100, any::<bool>()), 0..30),
+    ) {
+        let params: Vec<ChannelParams> = chans
+            .iter()
+            .map(|&(period_ms, min_on_ms, _)| ChannelParams {
+                period_ms,
+                min_on_ms,
+                short_pulse: Some(ShortPulse::Stretch),
+                ..ChannelParams::default()
+            })
+            .collect();
+        let phase = if stagger { Phase::Stagger } else { Phase::Sync };
+        let mut r = Rack::new(&params, Bank { phase, max_on });
+        for (i, &(_, _, pct)) in chans.iter().enumerate() {
+            r.duty(i, f64::from(pct)).enable(i, true);
+        }
+        let mut t = 0;
+        for &(dt, i, pct, on) in &ops {
+            t += dt * MS;
+            r.run_to(t);
+            let i = i % chans.len();
+            r.duty(i, f64::from(pct)).enable(i, on);
+        }
+        r.run_to(t + 3000 * MS);
+        prop_assert!(r.most_high() <= max_on);
+    }
+}
