@@ -55,6 +55,18 @@ impl Step {
     }
 }
 
+/// What `max_simultaneous_on` did to a period's on phase, worst last.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Default)]
+enum SlotUse {
+    /// It started on time.
+    #[default]
+    None,
+    /// It waited for a slot.
+    Delayed,
+    /// It was skipped: the duty was not delivered (E1).
+    Skipped,
+}
+
 /// What a step is for, which decides what follows it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 enum StepKind {
@@ -140,8 +152,8 @@ pub struct Channel {
     period_end: Option<Nanos>,
     /// An on phase waited for a slot (or was skipped) in the running period, and in the one
     /// before.
-    slot_now: bool,
-    slot_before: bool,
+    slot_now: SlotUse,
+    slot_before: SlotUse,
     /// Pulses skipped because no slot was free before their latest start.
     skipped: u64,
 }
@@ -190,8 +202,8 @@ impl Channel {
             placed: 0,
             slot: true,
             period_end: None,
-            slot_now: false,
-            slot_before: false,
+            slot_now: SlotUse::None,
+            slot_before: SlotUse::None,
             skipped: 0,
         }
     }
@@ -387,8 +399,8 @@ impl Channel {
             self.step = None;
             self.cut_now = false;
             self.cut_before = false;
-            self.slot_now = false;
-            self.slot_before = false;
+            self.slot_now = SlotUse::None;
+            self.slot_before = SlotUse::None;
             if let Some(p) = self.pending.take() {
                 self.put_config(p, now);
             }
@@ -571,7 +583,8 @@ impl Channel {
     /// on time.
     fn report_flags(&mut self, emit: &mut dyn FnMut(Event)) {
         let cut = self.cut_now || self.cut_before;
-        let flags = (self.plan.e1 || cut, self.plan.limited || cut);
+        let skipped = self.slot_now.max(self.slot_before) == SlotUse::Skipped;
+        let flags = (self.plan.e1 || cut || skipped, self.plan.limited || cut);
         if flags != self.flags {
             self.flags = flags;
             emit(Event::Flags {

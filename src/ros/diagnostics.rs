@@ -475,6 +475,13 @@ impl ChannelHealth {
                 pct(s.duty_applied)
             );
         }
+        if s.e1 && s.protections.simultaneous && !s.limited {
+            return format!(
+                "E1: max_simultaneous_on: no slot came free in time, a pulse was skipped \
+                 ({} skipped so far)",
+                s.skipped_pulses
+            );
+        }
         if s.e1 {
             return format!(
                 "E1: {:.1} % cannot be reproduced because of a minimum time ({}); {:.1} % \
@@ -552,6 +559,7 @@ impl ChannelHealth {
                     s.protections.names().collect::<Vec<_>>().join(","),
                 ),
                 ("ignored_commands", s.ignored_commands.to_string()),
+                ("skipped_pulses", s.skipped_pulses.to_string()),
             ]);
         }
         kv.extend([
@@ -751,6 +759,7 @@ mod tests {
                 ..Protections::default()
             },
             ignored_commands: 3,
+            skipped_pulses: 2,
             ..status()
         });
         let d = h.to_status("n", 0, NodeCounters::default());
@@ -767,6 +776,7 @@ mod tests {
         assert_eq!(kv(&d, "protections"), "max_duty,slew");
         assert_eq!(kv(&d, "duty_target_pct"), "60.000");
         assert_eq!(kv(&d, "ignored_commands"), "3");
+        assert_eq!(kv(&d, "skipped_pulses"), "2");
         let m = status_msg(0, h.status.as_ref().unwrap(), 0, 0);
         assert_eq!(m.protections, ["max_duty", "slew"]);
         assert_eq!(m.duty_target, 60.0);

@@ -201,6 +201,15 @@ impl Inputs {
         }
         let changed = store.commit(&accepted);
         self.state.apply_params(&store);
+        let planner = accepted
+            .changes
+            .iter()
+            .any(|(name, _)| name == "phase" || name == "max_simultaneous_on");
+        if planner {
+            // The output thread takes it at each channel's next period start; a failed send
+            // is logged by `send`.
+            let _ = self.send(0, Input::Bank(params::bank_of(&store)));
+        }
         drop(store);
         for note in &accepted.notes {
             info!("{note}");

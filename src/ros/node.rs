@@ -304,6 +304,7 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
         heartbeat_half_period_ns: cfg.heartbeat_hz.map(|hz| (5e8 / hz).round() as u64),
         // A managed node starts unconfigured: every line held inactive.
         start_held: cfg.managed,
+        bank: cfg.bank,
         ..EngineOptions::default()
     };
     engine::spawn(configs, output, opts).map_err(NodeError::Engine)

@@ -2,7 +2,7 @@
 //! stagger grid and lead, and the slots of `max_simultaneous_on`: an on phase without a slot
 //! waits, off, keeping its whole length, and is skipped once it can no longer fit its period.
 
-use super::{Channel, Event, Level, Nanos, Step, StepKind};
+use super::{Channel, Event, Level, Nanos, SlotUse, Step, StepKind};
 
 impl Channel {
     /// Puts the channel on the stagger grid (`true`) or takes it off (node parameter `phase`):
@@ -71,7 +71,7 @@ impl Channel {
         let len = self.plan.t_on;
         if !self.slot {
             let end = self.fix_period_end();
-            self.slot_now = true;
+            self.slot_now = self.slot_now.max(SlotUse::Delayed);
             match end.checked_sub(len) {
                 Some(latest) if latest > t => {
                     self.step = Some(Step::off(StepKind::Wait, t, latest));
@@ -106,8 +106,9 @@ impl Channel {
     /// the rest of the period.
     pub(super) fn skip(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         self.skipped += 1;
-        self.slot_now = true;
+        self.slot_now = SlotUse::Skipped;
         emit(Event::Skipped);
+        self.report_flags(emit);
         let end = self.fix_period_end();
         if end > t {
             self.step = Some(Step::off(StepKind::Run, t, end));

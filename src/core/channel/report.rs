@@ -69,7 +69,8 @@ pub struct Protections {
     /// `phase` is `stagger`: the channel's periods run on the grid it shares with the channels
     /// of the same period, its on phase placed after theirs.
     pub stagger: bool,
-    /// `max_simultaneous_on` delayed or skipped an on phase in this period or the one before.
+    /// `max_simultaneous_on` delayed or skipped an on phase in this period or the one before
+    /// (a skip sets E1 for those periods: the duty was not delivered).
     pub simultaneous: bool,
 }
 
@@ -208,7 +209,7 @@ impl Channel {
                 slew: self.slewing() && !self.watchdog_tripped && self.slewed != self.target(),
                 deadband: self.last_ignored,
                 stagger: self.grid && self.enabled && self.cfg.period > 0,
-                simultaneous: self.slot_now || self.slot_before,
+                simultaneous: self.slot_now.max(self.slot_before) != super::SlotUse::None,
             },
             ignored_commands: self.ignored,
             skipped_pulses: self.skipped,

@@ -271,6 +271,7 @@ fn a_pulse_without_a_slot_waits_and_keeps_its_length_and_its_period() {
     let s = r.channels[1].status(r.now);
     assert!(s.protections.simultaneous, "{:?}", s.protections);
     assert_eq!(s.skipped_pulses, 0);
+    assert!(!s.e1, "the duty is delivered");
 }
 
 #[test]
@@ -285,7 +286,9 @@ fn a_pulse_that_cannot_fit_its_period_is_skipped_and_reported() {
     assert!(r.spans_ms(1).is_empty(), "{:?}", r.spans_ms(1));
     // The latest start that fits 600 ms in the period [0, 1000) is 400 ms.
     assert_eq!(r.skips[1], [400 * MS, 1400 * MS]);
-    assert_eq!(r.channels[1].status(r.now).skipped_pulses, 2);
+    let s = r.channels[1].status(r.now);
+    assert_eq!(s.skipped_pulses, 2);
+    assert!(s.e1 && s.protections.simultaneous, "not delivered: E1");
 }
 
 #[test]

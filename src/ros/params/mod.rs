@@ -16,7 +16,7 @@ mod startup;
 mod store;
 mod table;
 
-pub use startup::{start_up, ChannelStart, StartUp, StartValue, StartupConfig};
+pub use startup::{bank_of, start_up, ChannelStart, StartUp, StartValue, StartupConfig};
 pub use store::{items_from_msg, Accepted, ParamStore, Phase};
 pub use table::msg_fields;
 

@@ -4,7 +4,7 @@
 use super::table::node_decls;
 use super::DEFAULT_CHANNELS;
 use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Phase};
-use crate::core::ChannelConfig;
+use crate::core::{Bank, ChannelConfig};
 use crate::output::{Backend, GpioLine, OutputSpec};
 
 /// The name of the heartbeat line (in traces and safe-off's report).
@@ -121,6 +121,8 @@ pub struct StartupConfig {
     pub edge_log_rate: u32,
     /// SCHED_FIFO priority, if asked for.
     pub rt_priority: Option<i32>,
+    /// The node-level planner: `phase` and `max_simultaneous_on`.
+    pub bank: Bank,
 }
 
 impl StartupConfig {
@@ -199,6 +201,22 @@ impl StartupConfig {
             status_rate_hz: store.double("status_rate_hz").unwrap_or(10.0),
             edge_log_rate: store.int("edge_log_rate").unwrap_or(10).clamp(0, 1000) as u32,
             rt_priority: (rt > 0).then_some(rt.min(99) as i32),
+            bank: bank_of(store),
         })
+    }
+}
+
+/// The node-level planner the store's `phase` and `max_simultaneous_on` ask for (values the
+/// table refused never reach the store; anything else reads as the default).
+pub fn bank_of(store: &ParamStore) -> Bank {
+    Bank {
+        phase: store
+            .string("phase")
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_default(),
+        max_on: store
+            .int("max_simultaneous_on")
+            .and_then(|n| usize::try_from(n).ok())
+            .unwrap_or(0),
     }
 }

@@ -14,7 +14,7 @@ use super::{MAX_HEARTBEAT_HZ, MIN_HEARTBEAT_HZ};
 use crate::core::config::{
     ShortStr, UnknownName, MAX_ON_MS, MAX_PERIOD_MS, MAX_SLEW_PCT_PER_S, MAX_TIMEOUT_MS,
 };
-use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Profile, ShortPulse};
+use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::ros::msg;
 use crate::ros::node_state::{DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW};
 use crate::ros::node_state::{MAX_COMMAND_HZ_WINDOW, MAX_EXPECTED_COMMAND_HZ};
@@ -186,6 +186,28 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           edges beyond are summarised once a second. 0: no edge lines.",
             range: Range::Integer(0, 1000),
             ..Decl::new("edge_log_rate", Integer, || V::Integer(10))
+        },
+        Decl {
+            description: "How the channels' periods lie against each other. sync: each \
+                          channel's periods start at its enable. stagger: channels of equal \
+                          period share a grid of whole periods and lay their on phases end to \
+                          end in channel order, so no two switch on together and, with the \
+                          duties summing to at most 100 %, no two are on together.",
+            constraints: "sync|stagger; takes effect at each channel's next period start (a \
+                          channel joining the grid waits, off, for its next instant)",
+            choices: Some(|s| spelled::<Phase>(s, false)),
+            ..Decl::new("phase", String, || V::String(Phase::Sync.as_str().into()))
+        },
+        Decl {
+            description: "At most this many lines on at once, over all channels: an on phase \
+                          without a free slot waits, off, with its whole length and within \
+                          its period (the break after it shrinks), and is skipped and reported \
+                          when it can no longer fit. Never shortens a pulse or break below its \
+                          minimum. 0: no limit.",
+            constraints: "takes effect at the next on phase",
+            range: Range::Integer(0, MAX_CHANNELS as i64),
+            note: " (0 = no limit)",
+            ..Decl::new("max_simultaneous_on", Integer, || V::Integer(0))
         },
         Decl {
             description: "Window of the command-rate check on /diagnostics (`<node>: <ch> \
