@@ -119,14 +119,16 @@ impl<O: Output> Worker<O> {
         }
         let now = clock::monotonic_ns();
         for i in 0..self.channels.len() {
-            if self.channels[i].poll_at().is_some_and(|t| t <= now) {
+            if let Some(due) = self.channels[i].poll_at().filter(|t| *t <= now) {
                 self.bank.before(&mut self.channels, i, now);
                 let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
                 self.channels[i].poll(now, &mut |e| sink.event(e));
                 self.pushed |= sink.pushed;
                 self.touched[i] = true;
                 self.sync_pair(i, now);
-                self.sync_bank(now);
+                // A slot freed by a deadline is handed on at its scheduled instant, so the
+                // next pulse starts where the last one ended, whatever the wake-up latency.
+                self.sync_bank(due);
             }
         }
         // Without a heartbeat, or before its time, nothing more to look at.

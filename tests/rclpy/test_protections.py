@@ -15,12 +15,15 @@ from typing import Sequence
 from helpers_rules import (
     MS,
     NODE,
+    ChannelClient,
     Edge,
     diag_level,
     diag_values,
     mono_ns,
+    node_args,
     pulses,
     t_on_ns,
+    trace_edges,
     wait_trace,
 )
 from test_channel_rules import (
@@ -216,3 +219,92 @@ def test_a_change_inside_the_dead_band_is_ignored(node_process, ros):
     edges = close_trace(proc)
     assert_pwm(edges, *w_ignored, period, 100 * MS, "53 % inside the band after 50 %")
     assert_pwm(edges, *w_taken, period, t_on_ns(0.56, period), "56 % outside the band")
+
+
+# ---------------------------------------------------------------------------------------------
+# Across channels: phase staggering and the simultaneous-on limit
+# ---------------------------------------------------------------------------------------------
+
+
+def overlaps(a: Sequence[tuple[Edge, Edge]], b: Sequence[tuple[Edge, Edge]]) -> list:
+    """The pairs of pulses of `a` and `b` that were on together (scheduled instants)."""
+    return [(p, q) for p in a for q in b
+            if p[0].scheduled_ns < q[1].scheduled_ns and q[0].scheduled_ns < p[1].scheduled_ns]
+
+
+def whole_runs(edges: Sequence[Edge]) -> list[tuple[Edge, Edge]]:
+    """The high runs the schedule ended: a run the shutdown cut short is left out."""
+    return [r for r in high_runs(edges) if r[1] is not edges[-1]]
+
+
+def test_stagger_lays_the_pulses_end_to_end_on_the_grid(node_process, ros):
+    """phase stagger (set while running), three channels of 200 ms at 20, 30 and 40 %: every
+    pw01 pulse starts on the grid of whole periods of the monotonic clock, pw02's starts exactly
+    where pw01's ends, pw03's where pw02's ends; pulses keep their exact lengths and no two
+    overlap. Status names `stagger`."""
+    period, duties = 200, (20.0, 30.0, 40.0)
+    names = ("pw01", "pw02", "pw03")
+    settings = {f"{c}__period_ms": period for c in names}
+    proc = node_process(node_args(channels=3, **settings))
+    chans = [ChannelClient(ros, c) for c in names]
+    for c in chans:
+        c.wait_connected()
+    r = ros.set_parameters(NODE, {"phase": "stagger"})["phase"]
+    assert r.successful, r
+    for c, d in zip(chans, duties):
+        c.duty(d)
+    for c in chans:
+        c.enable(True)
+    s = chans[2].wait_status(lambda s: "stagger" in s.protections, "stagger reported")
+    assert close(s.duty_applied, 40.0), s
+    observe_until(chans[0], mono_ns() + 6 * period * MS)
+    edges = close_all_traces(proc, names)
+    runs = {c: whole_runs(edges[c]) for c in names}
+    assert all(len(r) >= 4 for r in runs.values()), runs
+    for c, d in zip(names, duties):
+        for rise, fall in runs[c]:
+            assert fall.scheduled_ns - rise.scheduled_ns == t_on_ns(d / 100, period), (c, rise)
+    for rise, _ in runs["pw01"]:
+        assert rise.scheduled_ns % (period * MS) == 0, f"pw01 off the grid: {rise}"
+    for first, second in (("pw01", "pw02"), ("pw02", "pw03")):
+        ends = {f.scheduled_ns for _, f in runs[first]}
+        for rise, _ in runs[second]:
+            assert rise.scheduled_ns in ends, f"{second} rise {rise} not at a {first} fall"
+    for a, b in (("pw01", "pw02"), ("pw01", "pw03"), ("pw02", "pw03")):
+        assert not overlaps(runs[a], runs[b]), (a, b)
+
+
+def test_max_simultaneous_on_delays_a_pulse_then_skips_what_cannot_fit(node_process, ros):
+    """max_simultaneous_on 1, two channels of 200 ms at 40 % enabled at start-up: one channel's
+    pulse waits for the other's to end and keeps its 80 ms, each period keeps 200 ms; never both
+    on; no E1. At 60 % each, the waiting channel's pulse can no longer fit its period: it is
+    skipped, E1 is set, diagnostics say so and count `skipped_pulses`."""
+    period = 200
+    proc, a, b = start(node_process, ros, ("pw01", "pw02"), max_simultaneous_on=1,
+                       pw01__period_ms=period, pw02__period_ms=period, pw01__duty=40.0,
+                       pw02__duty=40.0, pw01__enable=True, pw02__enable=True)
+    observe_until(a, mono_ns() + 5 * period * MS)
+    edges = trace_edges(proc, "pw01"), trace_edges(proc, "pw02")
+    ra, rb = whole_runs(edges[0]), whole_runs(edges[1])
+    assert len(ra) >= 3 and len(rb) >= 3, (ra, rb)
+    falls = [{f.scheduled_ns for _, f in r} for r in (ra, rb)]
+    # Which one waits: its rises lie at the other's falls.
+    waiting = 1 if all(r.scheduled_ns in falls[0] for r, _ in rb) else 0
+    assert all(r.scheduled_ns in falls[1 - waiting] for r, _ in (ra, rb)[waiting]), (ra, rb)
+    for rise, fall in ra + rb:
+        assert fall.scheduled_ns - rise.scheduled_ns == t_on_ns(0.4, period), (rise, fall)
+    late = (a, b)[waiting]
+    late.wait_status(lambda s: "max_simultaneous_on" in s.protections, "the slot limit acting")
+    assert not late.e1_state(), "delayed, not lost: no E1"
+    switch_ns = mono_ns()
+    a.duty(60.0)
+    b.duty(60.0)
+    late.wait_e1(True, "a skipped pulse")
+    d = late.wait_diag(lambda d: int(diag_values(d).get("skipped_pulses", "0")) > 0,
+                       "skips counted")
+    assert diag_level(d) == WARN and "max_simultaneous_on" in d.message, d
+    edges = close_all_traces(proc, ("pw01", "pw02"))
+    ra, rb = high_runs(edges["pw01"]), high_runs(edges["pw02"])
+    assert not overlaps(ra, rb), overlaps(ra, rb)[:3]
+    skipped = [p for p in (ra, rb)[waiting] if p[0].scheduled_ns > switch_ns + 2 * period * MS]
+    assert not skipped, f"the waiting channel pulsed at 60 % beside the other's 60 %: {skipped}"

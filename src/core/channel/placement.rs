@@ -55,12 +55,14 @@ impl Channel {
             .map(|s| s.start)
     }
 
-    /// A slot was given at `now` to the on phase waiting for one: it starts now, with its
-    /// whole length, and the break after it shrinks so the period keeps its end.
+    /// A slot was given at `now` (ns; the instant the slot freed, which may lie a little before
+    /// the caller's clock) to the on phase waiting for one: it starts then (not before it
+    /// began to wait), with its whole length, and the break after it shrinks so the period
+    /// keeps its end.
     pub fn grant(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
         self.slot = true;
-        if self.waiting_since().is_some() {
-            self.begin_on(now, emit);
+        if let Some(since) = self.waiting_since() {
+            self.begin_on(now.max(since), emit);
         }
     }
 
