@@ -10,13 +10,16 @@ annotated with its on time, its period and the duty they make.
 
 Usage:
   scripts/timing_diagram.py --run docs/timing-diagram.png    run the node, then render
+  scripts/timing_diagram.py --run --scenario stagger docs/timing-stagger.png
   scripts/timing_diagram.py --csv trace.csv out.png          render an existing trace
 
 `--run` starts target/release/pwm_actuator_node (build it first with
-`cargo build --release --bins`) with the sim output, a trace in a temporary directory and two
-channels enabled at start-up: pw01 at 37 % of 200 ms, and pw02 at 10 % of 200 ms with a 30 ms
-minimum on time under the twincat_ba profile, which stretches the 20 ms pulse to 30 ms and sets
-E1. `--seconds` after the first edge it sends SIGTERM (the node drives every output
+`cargo build --release --bins`) with the sim output, a trace in a temporary directory and the
+channels of a scenario (`--scenario`, see SCENARIOS) enabled at start-up. The default,
+`minimum`: pw01 at 37 % of 200 ms, and pw02 at 10 % of 200 ms with a 30 ms minimum on time
+under the twincat_ba profile, which stretches the 20 ms pulse to 30 ms and sets E1. `sync` and
+`stagger`: three channels at 15, 25 and 30 % of 200 ms with `phase` sync or stagger. `extend`:
+10 % of 100 ms with a 30 ms minimum on time, extended (pw01) and stretched (pw02). `--seconds` after the first edge it sends SIGTERM (the node drives every output
 inactive and must exit 0), then renders the trace with the command in the title.
 
 Dependency: matplotlib (pinned in scripts/requirements-docs.txt; install it into the repository's
@@ -55,18 +58,54 @@ STARTUP_TIMEOUT_S = 30
 DEFAULT_SECONDS = 1.95
 NS_PER_MS = 1_000_000
 
-# The node's start-up settings for --run. pw02's 10 % of 200 ms is 20 ms, below its 30 ms minimum
-# on time: twincat_ba stretches the pulse to the minimum (002: nMinSwiTi) and E1 is set.
-RUN_PARAMS = [
-    ("pw01.period_ms", "200"),
-    ("pw01.duty", "37.0"),
-    ("pw01.enable", "true"),
-    ("pw02.period_ms", "200"),
-    ("pw02.min_on_ms", "30"),
-    ("pw02.profile", "twincat_ba"),
-    ("pw02.duty", "10.0"),
-    ("pw02.enable", "true"),
-]
+# The node's start-up settings for --run, per scenario (--scenario): node-level settings as
+# ("name", value), channel settings as ("pwNN.name", value).
+SCENARIOS: dict[str, list[tuple[str, str]]] = {
+    # pw02's 10 % of 200 ms is 20 ms, below its 30 ms minimum on time: twincat_ba stretches the
+    # pulse to the minimum (002: nMinSwiTi) and E1 is set.
+    "minimum": [
+        ("pw01.period_ms", "200"),
+        ("pw01.duty", "37.0"),
+        ("pw01.enable", "true"),
+        ("pw02.period_ms", "200"),
+        ("pw02.min_on_ms", "30"),
+        ("pw02.profile", "twincat_ba"),
+        ("pw02.duty", "10.0"),
+        ("pw02.enable", "true"),
+    ],
+    # Three heaters on one supply, 15 + 25 + 30 % of 200 ms: in sync all switch on together at
+    # each period start; staggered, their pulses lie end to end on the grid and never overlap.
+    **{
+        phase: [
+            ("channels", "3"),
+            ("phase", phase),
+            *[
+                (f"{ch}.{name}", value)
+                for ch, duty in (("pw01", "15.0"), ("pw02", "25.0"), ("pw03", "30.0"))
+                for name, value in (("period_ms", "200"), ("duty", duty), ("enable", "true"))
+            ],
+        ]
+        for phase in ("sync", "stagger")
+    },
+    # 10 % of 100 ms is a 10 ms pulse, below the 30 ms minimum on time. extend (pw01) keeps the
+    # duty by growing the period to 30 ms / 10 % = 300 ms; stretch (pw02) raises the pulse to
+    # 30 ms in the 100 ms period, 30 % delivered, E1.
+    "extend": [
+        *[
+            (f"{ch}.{name}", value)
+            for ch, policy in (("pw01", "extend"), ("pw02", "stretch"))
+            for name, value in (
+                ("period_ms", "100"),
+                ("min_on_ms", "30"),
+                ("short_pulse", policy),
+                ("duty", "10.0"),
+                ("enable", "true"),
+            )
+        ],
+    ],
+}
+# --run's default scenario.
+DEFAULT_SCENARIO = "minimum"
 
 
 def _import_pyplot():
@@ -307,9 +346,9 @@ def _first_rise_ns(trace: Path) -> int | None:
 
 
 def run_node(
-    binary: Path, seconds: float, workdir: Path, domain: int
+    binary: Path, seconds: float, workdir: Path, domain: int, params: list[tuple[str, str]]
 ) -> tuple[Path, list[str], int, dict[str, str]]:
-    """Runs the node with RUN_PARAMS and a CSV trace, sends SIGTERM after `seconds`. Returns the
+    """Runs the node with `params` and a CSV trace, sends SIGTERM after `seconds`. Returns the
     trace path, the command, the monotonic ns at which SIGTERM was sent and per-channel notes."""
     if not binary.exists():
         sys.exit(
@@ -318,7 +357,7 @@ def run_node(
     trace = workdir / "trace.csv"
     log_path = workdir / "node.log"
     cmd = [str(binary), "--trace", str(trace), "--ros-args"]
-    for name, value in RUN_PARAMS:
+    for name, value in params:
         cmd += ["-p", f"{name}:={value}"]
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
     with open(log_path, "wb") as log:
@@ -357,9 +396,10 @@ def run_node(
         sys.stderr.write(text)
         sys.exit(f"timing_diagram: the node exited with code {code} after SIGTERM (expected 0)")
     notes = {}
-    for ch in ("pw01", "pw02"):
-        settings = [
-            _setting(n.split(".", 1)[1], v) for n, v in RUN_PARAMS if n.startswith(ch + ".")
+    node_wide = [_setting(n, v) for n, v in params if "." not in n and n != "channels"]
+    for ch in sorted({n.split(".", 1)[0] for n, _ in params if "." in n}):
+        settings = node_wide + [
+            _setting(n.split(".", 1)[1], v) for n, v in params if n.startswith(ch + ".")
         ]
         note = "\n".join(x for x in settings if x)
         if f"{ch}: E1 set" in text:
@@ -401,6 +441,12 @@ def main(argv: list[str]) -> int:
         help="--run: ROS_DOMAIN_ID for the node (default 200 + pid %% 30, away from the "
         "domain of a live system)",
     )
+    p.add_argument(
+        "--scenario",
+        choices=sorted(SCENARIOS),
+        default=DEFAULT_SCENARIO,
+        help=f"--run: the settings to run (default {DEFAULT_SCENARIO}; see SCENARIOS)",
+    )
     p.add_argument("--save-csv", type=Path, metavar="FILE", help="--run: keep a copy of the trace")
     p.add_argument("--title", help="title (default: the command, or the trace path with --csv)")
     a = p.parse_args(argv)
@@ -418,7 +464,7 @@ def main(argv: list[str]) -> int:
                 p.error(f"--domain {domain}: expected 0..232")
             with tempfile.TemporaryDirectory(prefix="pwm_timing_") as tmp:
                 trace, shown, term_ns, notes = run_node(
-                    a.binary.resolve(), a.seconds, Path(tmp), domain
+                    a.binary.resolve(), a.seconds, Path(tmp), domain, SCENARIOS[a.scenario]
                 )
                 channels = read_trace(trace)
                 if a.save_csv is not None:

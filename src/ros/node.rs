@@ -604,6 +604,9 @@ async fn serve(
     info!("{reason}: stopping");
     logging::shutting_down();
     crate::service::stopping();
+    // Every line off and held off now, not after the ROS side is torn down: no pulse starts
+    // while the node stops.
+    let _ = inputs.send(0, Input::Live(false));
     drop(pinger);
     for t in &tasks {
         t.abort();
