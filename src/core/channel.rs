@@ -176,6 +176,15 @@ impl Channel {
         &self.plan
     }
 
+    /// The period in force, ns: the plan's (longer than the configured one when `extend`
+    /// grew it), or the configured one while the plan has none.
+    pub fn period(&self) -> Nanos {
+        match self.plan.period() {
+            0 => self.cfg.period,
+            p => p,
+        }
+    }
+
     /// Whether the channel is enabled.
     pub fn enabled(&self) -> bool {
         self.enabled
@@ -393,7 +402,7 @@ impl Channel {
             command_clamped: self.duty.clamped,
             duty_target: self.target(),
             duty_applied: self.plan.applied_duty(),
-            period: self.cfg.period,
+            period: self.period(),
             t_on: self.plan.t_on,
             t_off: self.plan.t_off,
             remaining_on,
@@ -737,11 +746,13 @@ impl Channel {
     /// `forced`: the trip itself, a safety off at once; otherwise the end of the fault value's
     /// hold time, which leaves a running fault pulse its minimum on time.
     fn trip_off(&mut self, t: Nanos, forced: bool, emit: &mut dyn FnMut(Event)) {
+        // The running period's length, extended or not, before the plan for 0 % replaces it.
+        let period = self.period();
         self.latch(Plan::new(0.0, &self.cfg), emit);
         if let Some(step) = self.step {
             // Keep the period grid: stay off for the rest of this period.
             let end = match step.level {
-                Level::High => (self.period_start + self.cfg.period).max(t),
+                Level::High => (self.period_start + period).max(t),
                 Level::Low => step.end,
             };
             self.step = Some(Step {
