@@ -244,6 +244,15 @@ impl Channel {
         &self.plan
     }
 
+    /// The period in force, ns: the plan's (longer than the configured one when `extend`
+    /// grew it), or the configured one while the plan has none.
+    pub fn period(&self) -> Nanos {
+        match self.plan.period() {
+            0 => self.cfg.period,
+            p => p,
+        }
+    }
+
     /// Whether the channel is enabled.
     pub fn enabled(&self) -> bool {
         self.enabled
@@ -653,10 +662,14 @@ impl Channel {
         self.cut_before = std::mem::take(&mut self.cut_now);
         self.slot_before = std::mem::take(&mut self.slot_now);
         let duty = self.decide(t);
-        let plan = Plan::new(duty, &self.cfg);
+        let mut plan = Plan::new(duty, &self.cfg);
+        if self.grid {
+            // An extended period spans whole periods of the grid.
+            plan = plan.on_grid(period);
+        }
         self.latch(plan, emit);
         self.period_start = t;
-        self.period_end = (self.grid && period > 0).then(|| t.saturating_add(period));
+        self.period_end = (self.grid && period > 0).then(|| t.saturating_add(plan.period()));
         if period == 0 {
             // 000: period 0, no pulses; the output is held at 0.
             self.step = None;
@@ -669,13 +682,16 @@ impl Channel {
             return;
         }
         // Staggered: the on phase starts after those already placed, if it fits there.
+        // The on phase lies within the first period of the grid (an extended plan's rest of
+        // its period is off).
         let (after, others) = if self.grid { self.lead } else { (0, 0) };
-        if after > plan.t_off && others.saturating_add(plan.t_on) <= period {
+        let room = period.saturating_sub(plan.t_on).min(plan.t_off);
+        if after > room && others.saturating_add(plan.t_on) <= period {
             self.step = Some(Step::off(StepKind::Align, t, t.saturating_add(period)));
             self.set_level(Level::Low, t, emit);
             return;
         }
-        let lead = after.min(plan.t_off);
+        let lead = after.min(room);
         self.placed = lead;
         if lead > 0 {
             self.step = Some(Step::off(StepKind::Lead, t, t + lead));

@@ -24,6 +24,9 @@ pub const MAX_ON_MS: u64 = 86_400_000;
 /// Fastest duty slew limit accepted, percent per second (100 % in 1 ms).
 pub const MAX_SLEW_PCT_PER_S: f64 = 100_000.0;
 
+/// Largest cycle extension accepted, a factor of the period (`extend_max`).
+pub const MAX_EXTEND_FACTOR: f64 = 100.0;
+
 /// The electrical kind of output, which sets the limits of 000's table.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum OutputKind {
@@ -80,6 +83,10 @@ pub enum ShortPulse {
     Stretch,
     /// 004: the Frequency_Output edge band `edge_band` decides constant 0 / PWM / constant 1.
     Band,
+    /// Cycle extension (PLC PWM output modules' "extend cycle"): the period grows so that the
+    /// short pulse or break is exactly its minimum and the duty is kept, up to `extend_max`
+    /// times the period; beyond that the pulse or break is suppressed, as with `suppress`.
+    Extend,
 }
 
 impl ShortPulse {
@@ -89,6 +96,7 @@ impl ShortPulse {
             ShortPulse::Suppress => "suppress",
             ShortPulse::Stretch => "stretch",
             ShortPulse::Band => "band",
+            ShortPulse::Extend => "extend",
         }
     }
 }
@@ -294,8 +302,13 @@ named_enum!(
 );
 named_enum!(
     ShortPulse,
-    "suppress|stretch|band",
-    [ShortPulse::Suppress, ShortPulse::Stretch, ShortPulse::Band]
+    "suppress|stretch|band|extend",
+    [
+        ShortPulse::Suppress,
+        ShortPulse::Stretch,
+        ShortPulse::Band,
+        ShortPulse::Extend
+    ]
 );
 named_enum!(
     ApplyAt,
@@ -336,6 +349,9 @@ pub struct ChannelParams {
     pub short_pulse: Option<ShortPulse>,
     /// Frequency_Output edge `i_rEdge` (004), 0..=1, used by [`ShortPulse::Band`].
     pub edge_band: f64,
+    /// The longest period [`ShortPulse::Extend`] may grow to, a factor of `period_ms`,
+    /// 1..=100; 1 allows no extension (the policy then acts as `suppress`).
+    pub extend_max: f64,
     /// Apply-at policy override.
     pub apply_at: Option<ApplyAt>,
     /// Disable policy override.
@@ -383,6 +399,7 @@ impl Default for ChannelParams {
             profile: Profile::PicoGfx,
             short_pulse: None,
             edge_band: 0.0,
+            extend_max: 10.0,
             apply_at: None,
             on_disable: None,
             command_timeout_ms: 0,
@@ -544,6 +561,14 @@ pub enum ConfigError {
         /// `max_duty_pct`.
         max_pct: f64,
     },
+    /// `extend_max` outside 1..=100 or not a number.
+    #[error("extend_max {value} is outside 1..{max}")]
+    ExtendMaxOutOfRange {
+        /// The refused value, a factor of the period.
+        value: f64,
+        /// The maximum.
+        max: f64,
+    },
     /// A slew limit outside 0..=100 000 %/s or not a number.
     #[error("duty_slew_pct_per_s {value} is outside 0..{max}")]
     SlewOutOfRange {
@@ -637,7 +662,7 @@ impl ChannelParams {
     /// Checks every limit of SPEC §1 and 000's table and resolves the profile.
     ///
     /// The checks run in a fixed order so the reason given is deterministic: period, minimum
-    /// times, edge band, watchdog, fault value, maximum on time, power limits, slew limit.
+    /// times, edge band, cycle extension, watchdog, fault value, maximum on time, power limits, slew limit.
     pub fn validate(&self) -> Result<ChannelConfig, ConfigError> {
         let kind = self.output_kind;
         if self.period_ms != 0 && self.period_ms < kind.min_period_ms() {
@@ -679,9 +704,12 @@ impl ChannelParams {
         // A minimum longer than the period is valid (000: ME up to 65 535 ms whatever PD; 002:
         // nMinSwiTi "limited to values between 0 and nPrd"): it acts as the period, so every
         // duty other than 0 and 100 % gives a constant output for the period, with E1. With no
-        // pulses (period 0) the minima are kept as given for when a period is set again.
+        // pulses (period 0) the minima are kept as given for when a period is set again; under
+        // `extend` too, as the extended period can hold them.
+        // With `extend` the period grows to hold a minimum, so it is kept as given too.
+        let extends = self.effective_short_pulse() == ShortPulse::Extend;
         let effective = |ms: u64| {
-            let ms = if self.period_ms == 0 {
+            let ms = if self.period_ms == 0 || extends {
                 ms
             } else {
                 ms.min(self.period_ms)
@@ -693,6 +721,12 @@ impl ChannelParams {
         let period = self.period_ms * NS_PER_MS;
         within(self.edge_band, 0.0..=1.0, |value| {
             ConfigError::EdgeBandOutOfRange { value }
+        })?;
+        within(self.extend_max, 1.0..=MAX_EXTEND_FACTOR, |value| {
+            ConfigError::ExtendMaxOutOfRange {
+                value,
+                max: MAX_EXTEND_FACTOR,
+            }
         })?;
         self.check_watchdog()?;
         if self.max_on_ms > MAX_ON_MS {
@@ -968,6 +1002,55 @@ mod tests {
         for v in [0.0, 0.5, 1.0] {
             assert!(validated(|p| p.edge_band = v).is_ok());
         }
+    }
+
+    #[test]
+    fn extend_max_range() {
+        for v in [0.99, 0.0, -1.0, 100.5, f64::NAN, f64::INFINITY] {
+            let r = validated(|p| p.extend_max = v);
+            assert!(
+                matches!(r, Err(ConfigError::ExtendMaxOutOfRange { .. })),
+                "{v}"
+            );
+        }
+        assert_eq!(
+            validated(|p| p.extend_max = 0.5).unwrap_err().to_string(),
+            "extend_max 0.5 is outside 1..100"
+        );
+        for v in [1.0, 10.0, 100.0] {
+            assert_eq!(
+                validated(|p| p.extend_max = v).unwrap().params.extend_max,
+                v
+            );
+        }
+        assert_eq!("extend".parse::<ShortPulse>(), Ok(ShortPulse::Extend));
+        assert_eq!(
+            "x".parse::<ShortPulse>().unwrap_err().to_string(),
+            "`x` is not one of: suppress|stretch|band|extend"
+        );
+    }
+
+    #[test]
+    fn extend_keeps_minima_longer_than_the_period() {
+        // The extended period can hold them; the other policies take the period instead.
+        let c = validated(|p| {
+            p.period_ms = 1000;
+            p.min_on_ms = 3000;
+            p.min_off_ms = Some(2000);
+            p.short_pulse = Some(ShortPulse::Extend);
+        })
+        .unwrap();
+        assert_eq!((c.min_on, c.min_off), (3000 * NS_PER_MS, 2000 * NS_PER_MS));
+        // So does the check of the maximum on time against the minimum on time.
+        assert!(matches!(
+            validated(|p| {
+                p.period_ms = 1000;
+                p.min_on_ms = 3000;
+                p.max_on_ms = 2000;
+                p.short_pulse = Some(ShortPulse::Extend);
+            }),
+            Err(ConfigError::MaxOnBelowMinOn { .. })
+        ));
     }
 
     #[test]

@@ -26,6 +26,12 @@ pub enum Rule {
     BandLow,
     /// `band`: the duty lay in the upper edge band; constant 1 (004).
     BandHigh,
+    /// `extend`: the pulse was shorter than the minimum on time; the period grew so that it is
+    /// exactly the minimum and the duty is kept (PLC PWM output modules' "extend cycle").
+    ExtendedPulse,
+    /// `extend`: the break was shorter than the minimum off time; the period grew so that it
+    /// is exactly the minimum and the duty is kept.
+    ExtendedBreak,
 }
 
 impl Rule {
@@ -40,7 +46,14 @@ impl Rule {
             Rule::StretchedBreak => "stretched_break",
             Rule::BandLow => "band_low",
             Rule::BandHigh => "band_high",
+            Rule::ExtendedPulse => "extended_pulse",
+            Rule::ExtendedBreak => "extended_break",
         }
+    }
+
+    /// Whether the period of the plan grew beyond the configured one (`extend`).
+    pub const fn extended(self) -> bool {
+        matches!(self, Rule::ExtendedPulse | Rule::ExtendedBreak)
     }
 }
 
@@ -57,13 +70,15 @@ pub struct Plan {
     pub duty: f64,
     /// On time, ns.
     pub t_on: Nanos,
-    /// Off time, ns; `t_on + t_off` is the period.
+    /// Off time, ns; `t_on + t_off` is the period (longer than the configured one when the
+    /// rule is an extension).
     pub t_off: Nanos,
     /// E1 (000): the commanded duty could not be reproduced because of a minimum time (or
     /// `max_on`).
     pub e1: bool,
     /// The minimum-time limit flag (002's bLmtSwiTi): a time was raised to its minimum (or
-    /// `max_on`).
+    /// `max_on`), or a minimum time set the length of an extended period (the duty is kept,
+    /// so E1 is not set, but the output's timing is not the configured one).
     pub limited: bool,
     /// The rule that shaped this plan.
     pub rule: Rule,
@@ -75,11 +90,36 @@ pub struct Plan {
 impl Plan {
     /// The duty actually delivered, `t_on / T` (0 with no period).
     pub fn applied_duty(&self) -> f64 {
-        let period = self.t_on + self.t_off;
+        let period = self.period();
         if period == 0 {
             0.0
         } else {
             self.t_on as f64 / period as f64
+        }
+    }
+
+    /// The period of the plan, `t_on + t_off`, ns: the configured one, or the extended one;
+    /// 0 with no period.
+    pub fn period(&self) -> Nanos {
+        self.t_on + self.t_off
+    }
+
+    /// An extended plan laid on a grid of whole periods of `grid` ns (the stagger grid): its
+    /// period grows to the next whole number of grid periods and its on time to the same
+    /// duty of it, so the duty stays exact and the next period starts on the grid. Both times
+    /// only grow, so the minima still hold. Other plans are returned as they are.
+    pub fn on_grid(self, grid: Nanos) -> Plan {
+        let period = self.period();
+        if !self.rule.extended() || grid == 0 || period.is_multiple_of(grid) {
+            return self;
+        }
+        let whole = period.div_ceil(grid).saturating_mul(grid);
+        let t_on = ((self.duty * whole as f64).round() as Nanos).clamp(self.t_on, whole);
+        let t_off = (whole - t_on).max(self.t_off.min(whole - t_on));
+        Plan {
+            t_on,
+            t_off,
+            ..self
         }
     }
 
@@ -144,6 +184,11 @@ impl Plan {
         // Round to the nearest ns; the whole period stays exactly `period`.
         let t_on = ((duty * period as f64).round() as Nanos).min(period);
         let t_off = period - t_on;
+        if cfg.short_pulse == ShortPulse::Extend && (t_on < cfg.min_on || t_off < cfg.min_off) {
+            if let Some(plan) = extended(duty, cfg) {
+                return Plan { duty, ..plan };
+            }
+        }
         // A time stretched to its minimum: `t_on` on, the rest of the period off, flagged. One
         // that leaves no valid break or pulse beside it (the minima together exceed the period)
         // takes the whole period.
@@ -161,8 +206,9 @@ impl Plan {
                     stretched(period, Rule::StretchedPulse)
                 }
                 ShortPulse::Stretch => stretched(cfg.min_on, Rule::StretchedPulse),
-                // `band` keeps suppress as its safety net inside the PWM range.
-                ShortPulse::Suppress | ShortPulse::Band => {
+                // `band` keeps suppress as its safety net inside the PWM range; `extend` falls
+                // back to it beyond `extend_max`.
+                ShortPulse::Suppress | ShortPulse::Band | ShortPulse::Extend => {
                     constant(false, Rule::SuppressedPulse, true)
                 }
             };
@@ -175,7 +221,7 @@ impl Plan {
                     stretched(period, Rule::StretchedBreak)
                 }
                 ShortPulse::Stretch => stretched(period - cfg.min_off, Rule::StretchedBreak),
-                ShortPulse::Suppress | ShortPulse::Band => {
+                ShortPulse::Suppress | ShortPulse::Band | ShortPulse::Extend => {
                     constant(true, Rule::SuppressedBreak, true)
                 }
             };
@@ -186,6 +232,45 @@ impl Plan {
             ..base
         }
     }
+}
+
+/// `extend` for duty fraction `duty` (strictly between 0 and 1) whose pulse or break is below
+/// its minimum at the configured period: the period `T' = max(min_on / d, min_off / (1 - d))`,
+/// in which the phase whose minimum sets it is exactly that minimum and the other is the rest
+/// of `T'` rounded to the nearest ns (never below its own minimum), so `t_on / T'` is `d` within
+/// half a ns of `T'`. `None` when `T'` exceeds `extend_max` times the configured period.
+///
+/// E1 stays clear, as the duty is delivered; the limit flag is set, as a minimum time set the
+/// length of the period.
+fn extended(duty: f64, cfg: &ChannelConfig) -> Option<Plan> {
+    let (min_on, min_off) = (cfg.min_on as f64, cfg.min_off as f64);
+    // The factor needs no resolving: it is read as the user gave it.
+    let limit = (cfg.params.extend_max * cfg.period as f64).floor();
+    // min_on / d >= min_off / (1 - d), without dividing.
+    let pulse_sets_it = min_on * (1.0 - duty) >= min_off * duty;
+    let ideal = if pulse_sets_it {
+        min_on / duty
+    } else {
+        min_off / (1.0 - duty)
+    };
+    // Also refuses a duty so close to 0 or 1 that `ideal` is not finite.
+    if ideal.is_nan() || ideal > limit + 1.0 {
+        return None;
+    }
+    let (t_on, t_off, rule) = if pulse_sets_it {
+        let rest = (min_on * (1.0 - duty) / duty).round() as Nanos;
+        (cfg.min_on, rest.max(cfg.min_off), Rule::ExtendedPulse)
+    } else {
+        let rest = (min_off * duty / (1.0 - duty)).round() as Nanos;
+        (rest.max(cfg.min_on), cfg.min_off, Rule::ExtendedBreak)
+    };
+    ((t_on + t_off) as f64 <= limit).then_some(Plan {
+        t_on,
+        t_off,
+        limited: true,
+        rule,
+        ..Plan::default()
+    })
 }
 
 /// Relative tolerance under which two duty fractions count as equal: far below any duty a
@@ -265,7 +350,12 @@ mod tests {
 
     #[test]
     fn zero_and_full_are_exact_and_never_flag_002() {
-        for sp in [ShortPulse::Suppress, ShortPulse::Stretch, ShortPulse::Band] {
+        for sp in [
+            ShortPulse::Suppress,
+            ShortPulse::Stretch,
+            ShortPulse::Band,
+            ShortPulse::Extend,
+        ] {
             let c = cfg(1000, 400, sp, 0.3);
             let p = Plan::new(0.0, &c);
             assert_eq!((p.t_on, p.e1, p.limited), (0, false, false), "{sp}");
@@ -420,6 +510,160 @@ mod tests {
         // 100 % runs into the next period: cut, even at 100 %.
         assert!(Plan::new(1.0, &c).max_on && Plan::new(1.0, &c).e1);
         assert!(!Plan::new(0.0, &c).max_on);
+    }
+
+    /// `extend` with `extend_max` and both minima as given.
+    fn extend(period_ms: u64, min_on_ms: u64, min_off_ms: u64, extend_max: f64) -> ChannelConfig {
+        ChannelParams {
+            period_ms,
+            min_on_ms,
+            min_off_ms: Some(min_off_ms),
+            short_pulse: Some(ShortPulse::Extend),
+            extend_max,
+            ..ChannelParams::default()
+        }
+        .validate()
+        .unwrap()
+    }
+
+    #[test]
+    fn extend_grows_the_period_so_the_short_phase_is_exactly_its_minimum() {
+        // 1000 ms period, 100 ms minimum on and off time: T' = min_on / d or min_off / (1 - d).
+        let c = extend(1000, 100, 100, 10.0);
+        for (duty, want) in [
+            (0.05, (100 * MS, 1900 * MS, Rule::ExtendedPulse)),
+            (0.95, (1900 * MS, 100 * MS, Rule::ExtendedBreak)),
+            (0.02, (100 * MS, 4900 * MS, Rule::ExtendedPulse)),
+            // Long enough at the configured period: unchanged.
+            (0.1, (100 * MS, 900 * MS, Rule::Exact)),
+            (0.5, (500 * MS, 500 * MS, Rule::Exact)),
+        ] {
+            let p = Plan::new(duty, &c);
+            assert_eq!((p.t_on, p.t_off, p.rule), want, "{duty}");
+            // The duty is kept: no E1; an extension sets the limit flag.
+            assert!(!p.e1, "{duty}");
+            assert_eq!(p.limited, p.rule.extended(), "{duty}");
+            assert!((p.applied_duty() - duty).abs() < 1e-12, "{duty}: {p:?}");
+        }
+    }
+
+    #[test]
+    fn extend_keeps_the_duty_to_half_a_ns_of_the_period() {
+        // 7 % of T' = 100 ms / 0.07 = 1428.571 428 57 ms: the break is rounded to the ns, the
+        // pulse is exactly the minimum.
+        let c = extend(1000, 100, 100, 10.0);
+        let p = Plan::new(0.07, &c);
+        assert_eq!((p.t_on, p.t_off), (100 * MS, 1_328_571_429));
+        let error = (p.t_on as f64 - 0.07 * p.period() as f64).abs();
+        assert!(error <= 0.5, "{error} ns");
+        // And the mirror for a short break.
+        let p = Plan::new(0.93, &c);
+        assert_eq!((p.t_on, p.t_off), (1_328_571_429, 100 * MS));
+        assert!((p.t_on as f64 - 0.93 * p.period() as f64).abs() <= 0.5);
+    }
+
+    #[test]
+    fn extend_takes_the_longer_period_when_both_minima_matter() {
+        // The numbers of 000's relay table: PD 150 ms, ME 100 ms = min off. No duty fits both
+        // minima in one period; extended, every duty has both: the minimum that needs the
+        // longer period is exactly met, the other phase is at least its own minimum.
+        let c = extend(150, 100, 100, 10.0);
+        for (pct, want) in [
+            (50, (100, 100, Rule::ExtendedPulse)),
+            (40, (100, 150, Rule::ExtendedPulse)),
+            (60, (150, 100, Rule::ExtendedBreak)),
+            (20, (100, 400, Rule::ExtendedPulse)),
+        ] {
+            let p = Plan::new(f64::from(pct) / 100.0, &c);
+            assert_eq!(
+                (p.t_on, p.t_off, p.rule),
+                (want.0 * MS, want.1 * MS, want.2)
+            );
+        }
+        // Unequal minima: at 30 % the pulse is 45 ms, short of 50 ms, and the break 105 ms,
+        // short of 200 ms; min_off / 0.7 = 285.7 ms beats min_on / 0.3 = 166.7 ms.
+        let c = extend(150, 50, 200, 10.0);
+        let p = Plan::new(0.3, &c);
+        assert_eq!((p.t_on, p.t_off), (85_714_286, 200 * MS));
+        assert_eq!(p.rule, Rule::ExtendedBreak);
+        for pct in 1..100u32 {
+            let d = f64::from(pct) / 100.0;
+            let p = Plan::new(d, &c);
+            if p.rule.extended() {
+                assert!(p.t_on >= c.min_on && p.t_off >= c.min_off, "{pct} %: {p:?}");
+                assert!(p.period() >= c.period, "{pct} %: {p:?}");
+                assert!(
+                    (p.t_on as f64 - d * p.period() as f64).abs() <= 0.5,
+                    "{pct} %"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn extend_stops_at_extend_max_then_suppresses_with_e1() {
+        // 1 % of 1 s with a 100 ms minimum needs exactly 10 s: allowed at 10 x, not at 9.99 x.
+        let p = Plan::new(0.01, &extend(1000, 100, 100, 10.0));
+        assert_eq!(
+            (p.t_on, p.t_off, p.rule),
+            (100 * MS, 9900 * MS, Rule::ExtendedPulse)
+        );
+        let p = Plan::new(0.01, &extend(1000, 100, 100, 9.99));
+        assert_eq!((p.t_on, p.t_off), (0, 1000 * MS));
+        assert_eq!(
+            (p.rule, p.e1, p.limited),
+            (Rule::SuppressedPulse, true, false)
+        );
+        let p = Plan::new(0.99, &extend(1000, 100, 100, 9.99));
+        assert_eq!(
+            (p.t_on, p.t_off, p.rule),
+            (1000 * MS, 0, Rule::SuppressedBreak)
+        );
+        // 1 x: no extension possible, exactly suppress.
+        let ext = extend(1000, 100, 100, 1.0);
+        let sup = cfg(1000, 100, ShortPulse::Suppress, 0.0);
+        for pct in 0..=100u32 {
+            let d = f64::from(pct) / 100.0;
+            let (a, b) = (Plan::new(d, &ext), Plan::new(d, &sup));
+            assert_eq!(
+                (a.t_on, a.t_off, a.e1, a.rule),
+                (b.t_on, b.t_off, b.e1, b.rule)
+            );
+        }
+        // A duty too small for any finite period.
+        let p = Plan::new(1e-300, &extend(1000, 100, 100, 100.0));
+        assert_eq!(p.rule, Rule::SuppressedPulse);
+    }
+
+    #[test]
+    fn extend_holds_a_minimum_longer_than_the_period() {
+        // Under extend a minimum above the period is kept as given: the period grows to it.
+        let c = extend(1000, 3000, 3000, 10.0);
+        assert_eq!((c.min_on, c.min_off), (3000 * MS, 3000 * MS));
+        let p = Plan::new(0.5, &c);
+        assert_eq!(
+            (p.t_on, p.t_off, p.rule),
+            (3000 * MS, 3000 * MS, Rule::ExtendedPulse)
+        );
+        // 20 % needs 15 s: beyond 10 x, suppressed.
+        assert_eq!(Plan::new(0.2, &c).rule, Rule::SuppressedPulse);
+    }
+
+    #[test]
+    fn max_on_still_flags_an_extended_pulse_longer_than_itself() {
+        let c = ChannelParams {
+            period_ms: 150,
+            min_on_ms: 100,
+            max_on_ms: 120,
+            output_kind: crate::core::OutputKind::Relay,
+            short_pulse: Some(ShortPulse::Extend),
+            ..ChannelParams::default()
+        }
+        .validate()
+        .unwrap();
+        let p = Plan::new(0.6, &c);
+        assert_eq!((p.t_on, p.rule), (150 * MS, Rule::ExtendedBreak));
+        assert!(p.max_on && p.e1 && p.limited, "{p:?}");
     }
 
     #[test]

@@ -9,6 +9,9 @@ use crate::core::{Bank, ChannelConfig, Command, Event, Level, Nanos, Status};
 
 /// An input for one channel.
 #[derive(Debug, Clone, Copy, PartialEq)]
+// Inputs travel by value through the wait-free ring buffer: boxing the configuration would
+// allocate on the ROS side and free on the output thread.
+#[allow(clippy::large_enum_variant)]
 pub enum Input {
     /// A duty command (percent, SV or fraction).
     Command(Command),

@@ -1,8 +1,9 @@
 //! What the node knows about each channel's health, and how it reads as a
 //! `diagnostic_msgs/DiagnosticStatus` (one per channel, named `<node name>: <ch>`, hardware id
 //! the line or `sim`), following the ROS diagnostics conventions: OK; WARN when E1 or the
-//! minimum-time limit acts (the maximum on time included), when the command in force was
-//! clamped, or for a while after a command was refused; ERROR on a tripped watchdog, a latched
+//! minimum-time limit acts (the maximum on time included; not a cycle extension, which keeps
+//! the duty: it is named in the message at OK), when the command in force was clamped, or for
+//! a while after a command was refused; ERROR on a tripped watchdog, a latched
 //! e-stop or an output fault. The other protections of the load (power limits, slew, dead
 //! band) are named in the message and the `protections` key while they act, at level OK: they
 //! do what they were set for.
@@ -404,7 +405,7 @@ impl ChannelHealth {
             DiagnosticStatus::ERROR
         } else if self.recent_rejection(now).is_some()
             || self.recent_refusal(now).is_some()
-            || s.is_some_and(|s| s.e1 || s.limited || s.command_clamped)
+            || s.is_some_and(|s| s.e1 || (s.limited && !s.rule.extended()) || s.command_clamped)
         {
             DiagnosticStatus::WARN
         } else {
@@ -491,7 +492,7 @@ impl ChannelHealth {
                 pct(s.duty_applied)
             );
         }
-        if s.limited {
+        if s.limited && !s.rule.extended() {
             return format!(
                 "minimum time limit acts ({}); {:.1} % applied for {:.1} % commanded",
                 s.rule.as_str(),
@@ -503,6 +504,16 @@ impl ChannelHealth {
             "disabled".into()
         } else if s.period == 0 {
             "enabled, no pulses (period 0)".into()
+        } else if s.rule.extended() {
+            format!(
+                "enabled, {:.1} % ({:.1} ms on / {:.1} ms off); cycle extended to {:.1} ms to \
+                 keep the duty ({})",
+                pct(s.duty_applied),
+                ms(s.t_on),
+                ms(s.t_off),
+                ms(s.period),
+                s.rule.as_str()
+            )
         } else {
             format!(
                 "enabled, {:.1} % ({:.1} ms on / {:.1} ms off)",
@@ -554,6 +565,7 @@ impl ChannelHealth {
                 ("e1", s.e1.to_string()),
                 ("min_time_limited", s.limited.to_string()),
                 ("rule", s.rule.as_str().to_string()),
+                ("cycle_extended", s.rule.extended().to_string()),
                 (
                     "protections",
                     s.protections.names().collect::<Vec<_>>().join(","),
@@ -687,6 +699,48 @@ mod tests {
         h.output_fault = true;
         assert_eq!(h.level(0), DiagnosticStatus::ERROR);
         assert!(h.message(0).starts_with("output fault"));
+    }
+
+    #[test]
+    fn a_cycle_extension_is_named_at_ok_and_max_on_still_warns() {
+        // 5 % of 1 s with a 100 ms minimum: the period grew to 2 s; the duty is delivered.
+        let extended = Status {
+            duty_commanded: 0.05,
+            duty_target: 0.05,
+            duty_applied: 0.05,
+            period: 2000 * NS_PER_MS,
+            t_on: 100 * NS_PER_MS,
+            t_off: 1900 * NS_PER_MS,
+            limited: true,
+            rule: Rule::ExtendedPulse,
+            ..status()
+        };
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(extended);
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(d.level, DiagnosticStatus::OK);
+        assert_eq!(
+            d.message,
+            "enabled, 5.0 % (100.0 ms on / 1900.0 ms off); cycle extended to 2000.0 ms to keep \
+             the duty (extended_pulse)"
+        );
+        assert_eq!(kv(&d, "cycle_extended"), "true");
+        assert_eq!(kv(&d, "period_ms"), "2000.000");
+        assert_eq!(kv(&d, "rule"), "extended_pulse");
+        assert_eq!(kv(&d, "min_time_limited"), "true");
+        // The maximum on time cutting an extended pulse is E1: WARN.
+        h.status = Some(Status {
+            e1: true,
+            protections: Protections {
+                max_on: true,
+                ..Protections::default()
+            },
+            ..extended
+        });
+        assert_eq!(h.level(0), DiagnosticStatus::WARN);
+        h.status = Some(status());
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(kv(&d, "cycle_extended"), "false");
     }
 
     #[test]

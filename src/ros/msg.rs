@@ -271,7 +271,7 @@ pub struct ChannelStatus {
     /// No command for command_timeout_ms: output forced off until the next command.
     pub watchdog_tripped: bool,
     /// The rule that shaped the plan: exact, no_period, suppressed_pulse, suppressed_break,
-    /// stretched_pulse, stretched_break, band_low, band_high.
+    /// stretched_pulse, stretched_break, band_low, band_high, extended_pulse, extended_break.
     pub rule: String,
     /// The command in force after the power limits and the dead band, percent 0..100.
     pub duty_target: f64,
@@ -296,7 +296,7 @@ pub struct ChannelParams {
     pub output_kind: String,
     /// `pico_gfx`, `twincat_ba`, `tcont_cp`, `schneider_pwm` or `frequency_output`.
     pub profile: String,
-    /// `suppress`, `stretch`, `band`, or "" = as the profile says.
+    /// `suppress`, `stretch`, `band`, `extend`, or "" = as the profile says.
     pub short_pulse: String,
     /// Frequency_Output edge band i_rEdge, 0..1.
     pub edge_band: f64,

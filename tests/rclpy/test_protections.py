@@ -17,6 +17,7 @@ from helpers_rules import (
     NODE,
     ChannelClient,
     Edge,
+    after,
     diag_level,
     diag_values,
     mono_ns,
@@ -219,6 +220,83 @@ def test_a_change_inside_the_dead_band_is_ignored(node_process, ros):
     edges = close_trace(proc)
     assert_pwm(edges, *w_ignored, period, 100 * MS, "53 % inside the band after 50 %")
     assert_pwm(edges, *w_taken, period, t_on_ns(0.56, period), "56 % outside the band")
+
+
+# ---------------------------------------------------------------------------------------------
+# Cycle extension
+# ---------------------------------------------------------------------------------------------
+
+
+def test_extend_grows_the_period_and_keeps_the_duty(node_process, ros):
+    """short_pulse extend (PLC PWM output modules' "extend cycle"), 200 ms period, 30 ms minimum
+    on and off time. 5 % (a 10 ms pulse) is neither dropped nor stretched: the period grows to
+    30 ms / 0.05 = 600 ms with a pulse of exactly 30 ms, so the duty is 5 %; 95 % likewise
+    gives 600 ms with a break of exactly 30 ms. No E1, the limit flag, diagnostics OK naming the
+    extension. extend_max 2 (400 ms) is too short for it: suppressed, E1, WARN."""
+    period, extended = 200, 600
+    proc, ch = start(node_process, ros, pw01__period_ms=period, pw01__min_on_ms=30,
+                     pw01__short_pulse="extend", pw01__duty=5.0, pw01__enable=True)
+    st = ch.wait_status(lambda s: s.rule == "extended_pulse", "5 % extended")
+    assert (st.e1, st.min_time_limited) == (False, True), st
+    assert (st.period_ms, st.on_time_ms, st.off_time_ms) == (600.0, 30.0, 570.0), st
+    assert close(st.duty_applied, 5.0) and close(st.duty_commanded, 5.0), st
+    assert ch.e1_state() is False
+    d = ch.wait_diag(lambda d: diag_values(d).get("cycle_extended") == "true", "extended")
+    assert diag_level(d) == OK, d
+    assert "cycle extended to 600.0 ms to keep the duty (extended_pulse)" in d.message, d
+    assert diag_values(d)["period_ms"] == "600.000", d
+    t0 = mono_ns()
+    edges = wait_trace(proc, lambda es: len(pulses(after(es, t0))) >= 4, "4 extended pulses",
+                       spin=ch.ros.spin_once, timeout=15.0)
+
+    high = ch.duty(95.0)
+    st = ch.wait_status(lambda s: s.rule == "extended_break", "95 % extended", high.index)
+    assert (st.e1, st.min_time_limited) == (False, True), st
+    assert (st.period_ms, st.on_time_ms, st.off_time_ms) == (600.0, 570.0, 30.0), st
+    w95 = window_after(high, 4, extended)
+    observe_until(ch, w95[1] + extended * MS)
+
+    result = ros.set_parameters(NODE, {"pw01.extend_max": 0.5})["pw01.extend_max"]
+    assert not result.successful and "extend_max" in result.reason, result
+    result = ros.set_parameters(NODE, {"pw01.extend_max": 2.0})["pw01.extend_max"]
+    assert result.successful, result.reason
+    changed = mono_ns()
+    st = ch.wait_status(lambda s: s.rule == "suppressed_break", "95 % beyond extend_max",
+                        start=len(ch.status.messages))
+    assert (st.e1, st.min_time_limited, st.period_ms) == (True, False, 200.0), st
+    ch.wait_e1(True, "600 ms is beyond 2 x 200 ms")
+    d = ch.wait_diag(lambda d: diag_values(d).get("rule") == "suppressed_break", "suppressed")
+    assert diag_level(d) == WARN and diag_values(d)["cycle_extended"] == "false", d
+    # The extended period running at the change ends within 600 ms: constant 1 from then.
+    quiet = (changed + extended * MS, changed + (extended + 3 * period) * MS)
+    observe_until(ch, quiet[1])
+    edges = close_trace(proc)
+
+    # 5 %: rises on the 600 ms grid, each pulse exactly the 30 ms minimum (from its real rise).
+    ps = assert_pwm(edges, t0, high.first_publish_ns, extended, 30 * MS, "5 % extended",
+                    at_minimum=True)
+    n = len(ps)
+    assert n >= 3, ps
+    # The duty over the N whole extended periods: 5 % within the rises' write latencies.
+    on = sum(f.scheduled_ns - r.scheduled_ns for r, f in ps)
+    span = n * extended * MS
+    assert abs(on - 0.05 * span) <= n * REAL_EDGE_SLACK_NS, (on, span)
+    # 95 %: falls on the 600 ms grid, each break exactly 30 ms (from its real fall), so each
+    # rise follows its fall by the minimum.
+    inside = [e for e in edges if w95[0] <= e.scheduled_ns <= w95[1]]
+    falls = [e for e in inside if e.level == 0]
+    assert len(falls) >= 3, inside
+    for f in falls:
+        assert (f.scheduled_ns - falls[0].scheduled_ns) % (extended * MS) == 0, (
+            f"fall {(f.scheduled_ns - falls[0].scheduled_ns) / MS} ms after the first, off the "
+            "600 ms grid"
+        )
+    for f, r in zip(inside, inside[1:]):
+        if f.level == 0:
+            assert r.scheduled_ns - f.scheduled_ns == 30 * MS or counted_from(f, r, 30 * MS), (
+                f"break of {(r.scheduled_ns - f.scheduled_ns) / MS} ms, expected 30 ms"
+            )
+    assert_constant(edges, *quiet, 1, "95 % suppressed beyond extend_max")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -118,7 +118,7 @@ pub struct Status {
     pub duty_target: f64,
     /// The duty delivered by the plan in force, 0..=1.
     pub duty_applied: f64,
-    /// Period in force, ns.
+    /// Period in force, ns: the configured one, or the longer one `extend` grew it to.
     pub period: Nanos,
     /// On time of the plan in force, ns (002's fActTiOn).
     pub t_on: Nanos,
@@ -190,7 +190,7 @@ impl Channel {
             command_clamped: self.duty.clamped,
             duty_target: self.target(),
             duty_applied: self.plan.applied_duty(),
-            period: self.cfg.period,
+            period: self.period(),
             t_on: self.plan.t_on,
             t_off: self.plan.t_off,
             remaining_on,

@@ -43,15 +43,14 @@ impl Channel {
     /// `forced`: the trip itself, a safety off at once; otherwise the end of the fault value's
     /// hold time, which leaves a running fault pulse its minimum on time.
     pub(super) fn trip_off(&mut self, t: Nanos, forced: bool, emit: &mut dyn FnMut(Event)) {
+        // The running period's length, extended or not, before the plan for 0 % replaces it.
+        let period = self.period();
         self.latch(Plan::new(0.0, &self.cfg), emit);
         if let Some(step) = self.step {
             // Keep the period grid: stay off for the rest of this period.
             let end = match (step.level, step.kind) {
                 (Level::Low, StepKind::Run | StepKind::Align) => step.end,
-                _ => self
-                    .period_end
-                    .unwrap_or(self.period_start + self.cfg.period)
-                    .max(t),
+                _ => self.period_end.unwrap_or(self.period_start + period).max(t),
             };
             let start = if step.level == Level::High {
                 t

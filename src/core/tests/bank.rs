@@ -242,6 +242,31 @@ fn with_duties_above_100_percent_the_last_phase_ends_with_the_period() {
     );
 }
 
+#[test]
+fn an_extended_period_spans_whole_periods_of_the_grid_and_keeps_its_duty() {
+    // 7 % of 200 ms is 14 ms, below the 30 ms minimum: extend wants 428.6 ms; on the stagger
+    // grid it takes three whole periods, 600 ms, with 7 % of it on (42 ms).
+    let ext = ChannelParams {
+        period_ms: 200,
+        min_on_ms: 30,
+        short_pulse: Some(ShortPulse::Extend),
+        ..ChannelParams::default()
+    };
+    let mut r = Rack::new(&[period(200), ext], STAGGER);
+    r.duty(0, 20.0)
+        .duty(1, 7.0)
+        .enable(0, true)
+        .enable(1, true)
+        .at(1800);
+    assert_eq!(r.spans_ms(0).len(), 9);
+    assert_eq!(
+        r.spans_ms(1),
+        [(40.0, 82.0), (640.0, 682.0), (1240.0, 1282.0)],
+        "after pw01's 40 ms, every third period of the grid"
+    );
+    assert_eq!(r.most_high(), 1);
+}
+
 fn limit(max_on: usize) -> Bank {
     Bank {
         phase: Phase::Sync,
@@ -362,21 +387,21 @@ proptest! {
     fn never_more_lines_high_than_max_simultaneous_on(
         max_on in 1usize..4,
         stagger in any::<bool>(),
-        chans in prop::collection::vec((prop::sample::select(vec![100u64, 250, 1000]), 0u64..80, 0u32..=100), 2..7),
+        chans in prop::collection::vec((prop::sample::select(vec![100u64, 250, 1000]), 0u64..80, 0u32..=100, prop::sample::select(vec![ShortPulse::Stretch, ShortPulse::Suppress, ShortPulse::Extend])), 2..7),
         ops in prop::collection::vec((0u64..2000, 0usize..7, 0u32..=100, any::<bool>()), 0..30),
     ) {
         let params: Vec<ChannelParams> = chans
             .iter()
-            .map(|&(period_ms, min_on_ms, _)| ChannelParams {
+            .map(|&(period_ms, min_on_ms, _, policy)| ChannelParams {
                 period_ms,
                 min_on_ms,
-                short_pulse: Some(ShortPulse::Stretch),
+                short_pulse: Some(policy),
                 ..ChannelParams::default()
             })
             .collect();
         let phase = if stagger { Phase::Stagger } else { Phase::Sync };
         let mut r = Rack::new(&params, Bank { phase, max_on });
-        for (i, &(_, _, pct)) in chans.iter().enumerate() {
+        for (i, &(_, _, pct, _)) in chans.iter().enumerate() {
             r.duty(i, f64::from(pct)).enable(i, true);
         }
         let mut t = 0;

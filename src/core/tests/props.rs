@@ -4,7 +4,7 @@
 use super::harness::{Bench, Cause, MS};
 use crate::core::{
     ApplyAt, Channel, ChannelConfig, ChannelParams, Command, Event, Level, Nanos, OnDisable,
-    OutputKind, Plan, Profile, ShortPulse,
+    OutputKind, Plan, Profile, Rule, ShortPulse,
 };
 use proptest::prelude::*;
 
@@ -38,11 +38,15 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
         prop_oneof![2 => Just(None), 1 => (0u64..120).prop_map(Some), 1 => (0u64..600).prop_map(Some)],
         prop_oneof![4 => Just(OutputKind::Transistor), 1 => Just(OutputKind::Relay)],
         prop::sample::select(Profile::ALL.to_vec()),
-        prop::option::of(prop::sample::select(vec![
-            ShortPulse::Suppress,
-            ShortPulse::Stretch,
-            ShortPulse::Band,
-        ])),
+        (
+            prop::option::of(prop::sample::select(vec![
+                ShortPulse::Suppress,
+                ShortPulse::Stretch,
+                ShortPulse::Band,
+                ShortPulse::Extend,
+            ])),
+            prop_oneof![2 => Just(10.0f64), 1 => 1.0..=20.0f64],
+        ),
         0.0..=1.0f64,
         prop::option::of(prop::sample::select(vec![
             ApplyAt::NextPeriod,
@@ -58,7 +62,7 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
         arb_protections(),
     )
         .prop_map(
-            |(period_ms, min_on_ms, min_off_ms, kind, profile, sp, e, aa, od, to, (fd, fh), pr)| ChannelParams {
+            |(period_ms, min_on_ms, min_off_ms, kind, profile, (sp, xm), e, aa, od, to, (fd, fh), pr)| ChannelParams {
                 period_ms,
                 min_on_ms,
                 min_off_ms,
@@ -66,6 +70,7 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
                 profile,
                 short_pulse: sp,
                 edge_band: e,
+                extend_max: xm,
                 apply_at: aa,
                 on_disable: od,
                 command_timeout_ms: to,
@@ -307,7 +312,9 @@ proptest! {
         minima_held(&edges, &history, "")?;
     }
 
-    /// With `next_period`, every rising edge lies exactly on the period grid from the enable.
+    /// With `next_period`, every rising edge lies exactly on the period grid from the enable
+    /// (`extend` moves the grid by design: see
+    /// `extend_delivers_the_exact_duty_over_n_extended_periods`).
     #[test]
     fn next_period_rising_edges_lie_on_the_grid(
         start in arb_params().prop_filter("pulsing", |p| p.period_ms > 0),
@@ -319,6 +326,7 @@ proptest! {
             apply_at: Some(ApplyAt::NextPeriod),
             command_timeout_ms: 0,
             max_on_ms: 0,
+            short_pulse: start.short_pulse.filter(|sp| *sp != ShortPulse::Extend),
             ..start
         };
         let period = params.period_ms * MS;
@@ -340,8 +348,9 @@ proptest! {
 
     /// Over N periods of a constant command the delivered on time is exactly N times the
     /// reproducible on time (integer ns) of the command after the power limits, under every
-    /// policy; and E1 is set exactly when the delivered on time differs from the limited one
-    /// for a minimum-time reason.
+    /// policy (over N extended periods under `extend`); and E1 is set exactly when the
+    /// delivered on time differs from the limited one for a minimum-time reason (an extended
+    /// period keeps the duty: no E1, the limit flag).
     #[test]
     fn delivered_on_time_is_exact_and_e1_means_not_reproduced(
         start in arb_params().prop_filter("pulsing", |p| p.period_ms > 0),
@@ -362,14 +371,94 @@ proptest! {
         let duty = cfg.limit_duty(b.status().duty_commanded);
         prop_assert_eq!(b.status().duty_target, duty);
         let plan = Plan::new(duty, &cfg);
-        b.run_to(n * cfg.period);
-        prop_assert_eq!(b.on_time(0, n * cfg.period), n * plan.t_on);
+        let period = plan.period();
+        prop_assert!(period == cfg.period || plan.rule.extended(), "{:?}", plan);
+        b.run_to(n * period);
+        prop_assert_eq!(b.on_time(0, n * period), n * plan.t_on);
         let ideal = (duty * cfg.period as f64).round() as Nanos;
         let s = b.status();
+        prop_assert_eq!(s.period, period);
+        let extended = plan.rule.extended();
         if cfg.short_pulse != ShortPulse::Band {
-            prop_assert_eq!(s.e1, plan.t_on != ideal.min(cfg.period), "duty {} plan {:?}", duty, plan);
+            prop_assert_eq!(s.e1, plan.t_on != ideal.min(cfg.period) && !extended, "duty {} plan {:?}", duty, plan);
         }
-        prop_assert_eq!(s.limited, plan.t_on != ideal && cfg.short_pulse == ShortPulse::Stretch);
+        prop_assert_eq!(
+            s.limited,
+            (plan.t_on != ideal && cfg.short_pulse == ShortPulse::Stretch) || extended
+        );
+    }
+
+    /// `extend` (cycle extension): a duty whose pulse or break is below its minimum gets a
+    /// longer period in which that phase is exactly its minimum and the duty is kept; over N
+    /// such periods the line shows exactly the plan's edges, on the extended grid, and the on
+    /// time delivered is the duty times the time within half a ns per period. The period
+    /// never grows beyond `extend_max` times the configured one: a duty that would need more
+    /// is suppressed (E1), and only then.
+    #[test]
+    fn extend_delivers_the_exact_duty_over_n_extended_periods(
+        period_ms in 5u64..400,
+        min_on_ms in 0u64..600,
+        min_off_ms in prop::option::of(0u64..600),
+        kind in prop_oneof![3 => Just(OutputKind::Transistor), 1 => Just(OutputKind::Relay)],
+        extend_max in prop_oneof![2 => Just(10.0f64), 1 => 1.0..=20.0f64],
+        apply_at in prop::sample::select(vec![ApplyAt::NextPeriod, ApplyAt::NextStep, ApplyAt::Immediate]),
+        pct in prop_oneof![2 => 0.001..1.0f64, 3 => 0.001..99.999f64, 2 => 99.0..99.999f64],
+        n in 1u64..20,
+    ) {
+        // Within the output kind's limits: a relay's period from 100 ms, its minima 0 or from
+        // 50 ms.
+        let relay = kind == OutputKind::Relay;
+        let floor = |ms: u64| if relay && ms > 0 { ms.max(50) } else { ms };
+        let params = ChannelParams {
+            period_ms: if relay { period_ms.max(100) } else { period_ms },
+            min_on_ms: floor(min_on_ms),
+            min_off_ms: min_off_ms.map(floor),
+            output_kind: kind,
+            short_pulse: Some(ShortPulse::Extend),
+            extend_max,
+            apply_at: Some(apply_at),
+            ..ChannelParams::default()
+        };
+        let cfg = params.validate().unwrap();
+        let d = pct / 100.0;
+        let plan = Plan::new(d, &cfg);
+        let period = plan.period();
+        let mut b = Bench::new(params);
+        b.duty(pct).enable();
+        b.run_to(n * period);
+        let s = b.status();
+        let ideal = (cfg.min_on as f64 / d).max(cfg.min_off as f64 / (1.0 - d));
+        let limit = cfg.params.extend_max * cfg.period as f64;
+        if plan.rule.extended() {
+            prop_assert!(period >= cfg.period && period as f64 <= limit, "{:?}", plan);
+            prop_assert!(plan.t_on >= cfg.min_on && plan.t_off >= cfg.min_off, "{:?}", plan);
+            if plan.rule == Rule::ExtendedPulse {
+                prop_assert_eq!(plan.t_on, cfg.min_on);
+            } else {
+                prop_assert_eq!(plan.t_off, cfg.min_off);
+            }
+            // The line: exactly the plan's edges, period after period, and the next rise.
+            let want: Vec<(Nanos, Level)> = (0..n)
+                .flat_map(|k| [(k * period, Level::High), (k * period + plan.t_on, Level::Low)])
+                .chain([(n * period, Level::High)])
+                .collect();
+            prop_assert_eq!(b.edges(), want);
+            let on = b.on_time(0, n * period);
+            prop_assert_eq!(on, n * plan.t_on);
+            let error = (on as f64 - d * (n * period) as f64).abs();
+            prop_assert!(error <= 0.5 * n as f64 + 1e-3, "{} ns off over {} periods", error, n);
+            prop_assert!(!s.e1 && s.limited, "{:?}", s);
+            prop_assert_eq!((s.period, s.rule), (period, plan.rule));
+        } else if plan.rule == Rule::Exact {
+            prop_assert_eq!(period, cfg.period);
+            prop_assert!(!s.e1 && !s.limited);
+        } else {
+            // Suppressed: only because the extension would exceed extend_max.
+            prop_assert!(matches!(plan.rule, Rule::SuppressedPulse | Rule::SuppressedBreak), "{:?}", plan);
+            prop_assert!(ideal >= limit - 1.0, "suppressed though {} ns <= {} ns", ideal, limit);
+            prop_assert!(s.e1 && !s.limited);
+            prop_assert_eq!(s.period, cfg.period);
+        }
     }
 
     /// The watchdog fires exactly at last command + timeout, and the output stays off from

@@ -1279,3 +1279,149 @@ fn slew_ramps_again_when_pulses_restart_from_period_zero() {
         "H@1000 L@1500 H@2000 L@4000 H@11000 L@11500 H@12000"
     );
 }
+
+// ---- issue 12: cycle extension -----------------------------------------------------------------
+
+/// 1 s period, 100 ms minimum on and off time, `extend`.
+fn extending(f: impl FnOnce(&mut ChannelParams)) -> ChannelParams {
+    with(|p| {
+        p.period_ms = 1000;
+        p.min_on_ms = 100;
+        p.short_pulse = Some(crate::core::ShortPulse::Extend);
+        f(p);
+    })
+}
+
+#[test]
+fn extend_grows_the_period_so_a_short_pulse_is_exactly_min_on() {
+    // 5 % of 1 s is a 50 ms pulse, below the 100 ms minimum: the period grows to
+    // 100 ms / 0.05 = 2 s, the pulse is exactly 100 ms, the duty is 5 % as commanded.
+    let mut b = Bench::new(extending(|_| {}));
+    b.duty(5.0).enable().at(6500.0);
+    assert_eq!(
+        b.wave(),
+        "H@0 L@100 H@2000 L@2100 H@4000 L@4100 H@6000 L@6100"
+    );
+    assert_eq!(b.on_time(0, 6000 * MS), 300 * MS, "5 % of 6 s");
+    let s = b.status();
+    assert_eq!(s.rule, Rule::ExtendedPulse);
+    assert_eq!(
+        (s.period, s.t_on, s.t_off),
+        (2000 * MS, 100 * MS, 1900 * MS)
+    );
+    assert_eq!(s.duty_applied, 0.05);
+    // The duty is delivered: no E1; the limit flag says a minimum time set the period.
+    assert!(!s.e1 && s.limited, "{s:?}");
+    assert_eq!(
+        b.notes(),
+        vec![(
+            0,
+            Event::Flags {
+                e1: false,
+                limited: true
+            }
+        )]
+    );
+}
+
+#[test]
+fn extend_grows_the_period_so_a_short_break_is_exactly_min_off() {
+    let mut b = Bench::new(extending(|_| {}));
+    b.duty(95.0).enable().at(4500.0);
+    assert_eq!(b.wave(), "H@0 L@1900 H@2000 L@3900 H@4000");
+    let s = b.status();
+    assert_eq!((s.rule, s.period), (Rule::ExtendedBreak, 2000 * MS));
+    assert!(!s.e1 && s.limited);
+}
+
+#[test]
+fn extend_holds_both_minima_where_no_period_could_000() {
+    // PD 150 ms, ME 100 ms (000's relay table): suppress gives 0 or 1 for every duty. Extended,
+    // 40 % is 100 ms on / 150 ms off and 60 % 150 ms on / 100 ms off.
+    let relay = |p: &mut ChannelParams| {
+        p.period_ms = 150;
+        p.output_kind = OutputKind::Relay;
+    };
+    let mut b = Bench::new(extending(relay));
+    b.duty(40.0).enable().at(500.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@250 L@350 H@500");
+    let mut b = Bench::new(extending(relay));
+    b.duty(60.0).enable().at(500.0);
+    assert_eq!(b.wave(), "H@0 L@150 H@250 L@400 H@500");
+    let mut b = Bench::new(with(|p| {
+        relay(p);
+        p.min_on_ms = 100;
+    }));
+    b.duty(40.0).enable().at(500.0);
+    assert_eq!(b.wave(), "", "suppress: the 60 ms pulse is dropped");
+}
+
+#[test]
+fn extend_beyond_extend_max_suppresses_with_e1() {
+    // 1 % needs 100 ms / 0.01 = 10 s: allowed at extend_max 10 (the default), not at 5.
+    let mut b = Bench::new(extending(|_| {}));
+    b.duty(1.0).enable().at(10_500.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@10000 L@10100");
+    assert!(!b.status().e1);
+    let mut b = Bench::new(extending(|p| p.extend_max = 5.0));
+    b.duty(1.0).enable().at(10_500.0);
+    assert_eq!(b.wave(), "");
+    let s = b.status();
+    assert_eq!((s.rule, s.period), (Rule::SuppressedPulse, 1000 * MS));
+    assert!(s.e1 && !s.limited);
+    // 3 % needs 3.33 s: within 5 x.
+    b.duty(3.0).at(16_000.0);
+    assert_eq!(b.wave(), "H@11000 L@11100 H@14333.3333 L@14433.3333");
+}
+
+#[test]
+fn an_extended_period_completes_before_a_new_command_000() {
+    // next_period: a command during an extended period takes effect at its end, and the
+    // period returns to 1 s once the pulse is long enough.
+    let mut b = Bench::new(extending(|_| {}));
+    b.duty(5.0).enable().at(500.0).duty(50.0).at(3700.0);
+    assert_eq!(b.wave(), "H@0 L@100 H@2000 L@2500 H@3000 L@3500");
+    let s = b.status();
+    assert_eq!(
+        (s.rule, s.period, s.limited),
+        (Rule::Exact, 1000 * MS, false)
+    );
+    assert!(b.notes().contains(&(
+        2000 * MS,
+        Event::Flags {
+            e1: false,
+            limited: false
+        }
+    )));
+}
+
+#[test]
+fn a_trip_keeps_the_extended_period_grid() {
+    // 16 % with a 400 ms minimum extends the period to 2.5 s. The watchdog trips inside the
+    // first pulse: off at once for the rest of that extended period, so commands from 1.2 s
+    // on restart the pulses at 2.5 s, not on the 1 s grid.
+    let mut b = Bench::new(extending(|p| {
+        p.min_on_ms = 400;
+        p.command_timeout_ms = 300;
+    }));
+    b.duty(16.0).enable().at(1200.0);
+    for t in [
+        1200.0, 1400.0, 1600.0, 1800.0, 2000.0, 2200.0, 2400.0, 2600.0, 2800.0,
+    ] {
+        b.at(t).duty(16.0);
+    }
+    b.at(3000.0);
+    assert_eq!(b.wave(), "H@0 L@300 H@2500 L@2900");
+}
+
+#[test]
+fn extend_is_off_by_default() {
+    let mut b = Bench::new(with(|p| p.min_on_ms = 100));
+    b.duty(5.0).enable().at(3000.0);
+    assert_eq!(b.wave(), "");
+    assert_eq!(b.status().period, 1000 * MS);
+    assert_eq!(
+        crate::core::ChannelConfig::default().params.extend_max,
+        10.0
+    );
+}

@@ -12,7 +12,8 @@ use super::{ParamType, Range, DEFAULT_CHANNELS, MAX_CHANNELS, MAX_STATUS_RATE_HZ
 use super::{ParameterValue as V, MIN_STATUS_RATE_HZ};
 use super::{MAX_HEARTBEAT_HZ, MIN_HEARTBEAT_HZ};
 use crate::core::config::{
-    ShortStr, UnknownName, MAX_ON_MS, MAX_PERIOD_MS, MAX_SLEW_PCT_PER_S, MAX_TIMEOUT_MS,
+    ShortStr, UnknownName, MAX_EXTEND_FACTOR, MAX_ON_MS, MAX_PERIOD_MS, MAX_SLEW_PCT_PER_S,
+    MAX_TIMEOUT_MS,
 };
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::ros::msg;
@@ -314,7 +315,8 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             description: "Minimum on time, ms (ME / T_MINI / nMinSwiTi / P_B_TM). 0: the \
                           hardware floor (0.1 ms transistor, 50 ms relay).",
             constraints: "relay: 0 or >= 50; above period_ms acts as period_ms (every duty \
-                          but 0 and 100 % then gives 0 or 1 with E1)",
+                          but 0 and 100 % then gives 0 or 1 with E1), except with short_pulse \
+                          extend",
             range: Range::Integer(0, MAX_PERIOD_MS as i64),
             core: Some(|c, v| {
                 c.min_on_ms = ms(v);
@@ -328,7 +330,8 @@ pub(super) fn channel_decls() -> Vec<Decl> {
         Decl {
             description: "Minimum off time, ms. -1: as the profile says (= min_on_ms, except \
                           twincat_ba: the hardware floor).",
-            constraints: "relay: 0 or >= 50; above period_ms acts as period_ms",
+            constraints: "relay: 0 or >= 50; above period_ms acts as period_ms, except with \
+                          short_pulse extend",
             range: Range::Integer(-1, MAX_PERIOD_MS as i64),
             note: " (-1 = as the profile says)",
             core: Some(|c, v| {
@@ -369,9 +372,11 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
-            description: "Pulses or breaks below their minimum: suppress, stretch or band. \
-                          Empty: as the profile says.",
-            constraints: "suppress|stretch|band or empty",
+            description: "Pulses or breaks below their minimum: suppress, stretch, band or \
+                          extend (the period grows so the pulse or break is exactly its \
+                          minimum and the duty is kept, up to extend_max). Empty: as the \
+                          profile says.",
+            constraints: "suppress|stretch|band|extend or empty",
             choices: Some(|s| spelled::<ShortPulse>(s, true)),
             core: Some(|c, v| {
                 c.short_pulse = policy(v)?;
@@ -393,6 +398,21 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             }),
             msg: Some(|m| V::Double(m.edge_band)),
             ..Decl::new("edge_band", Double, || V::Double(core_defaults().edge_band))
+        },
+        Decl {
+            description: "Longest period short_pulse extend may grow to, a factor of \
+                          period_ms: a pulse or break that would need a longer one is \
+                          suppressed, with E1. 1: no extension.",
+            constraints: "takes effect at the next period boundary",
+            range: Range::Double(1.0, MAX_EXTEND_FACTOR),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.extend_max = double(v);
+                Ok(())
+            }),
+            ..Decl::new("extend_max", Double, || {
+                V::Double(core_defaults().extend_max)
+            })
         },
         Decl {
             description: "When a new duty takes effect: next_period, next_step or immediate. \
