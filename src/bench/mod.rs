@@ -13,7 +13,7 @@ mod floor;
 
 use clap::Args;
 use pwm_actuator::clock;
-use pwm_actuator::core::{ChannelParams, Command, Nanos, NS_PER_MS};
+use pwm_actuator::core::{Bank, ChannelParams, Command, Nanos, Phase, NS_PER_MS};
 use pwm_actuator::engine::{self, Engine, EngineOptions, Input, Report, Request};
 use pwm_actuator::output::SimOutput;
 use serde::Serialize;
@@ -44,6 +44,19 @@ pub struct BenchOptions {
     /// Print one JSON object instead of the table
     #[arg(long)]
     pub json: bool,
+    /// How the channels' periods lie: sync (at their enables, offset by --offset-ms) or
+    /// stagger (on a shared grid, pulses end to end), as the node parameter `phase`
+    #[arg(long, value_name = "PHASE", default_value = "sync", value_parser = phase)]
+    pub phase: Phase,
+    /// At most this many lines on at once (node parameter `max_simultaneous_on`), 0 = no limit
+    #[arg(long = "max-simultaneous-on", value_name = "N", default_value_t = 0, value_parser = number::<usize>, allow_hyphen_values = true)]
+    pub max_simultaneous_on: usize,
+}
+
+/// Parses `--phase`.
+fn phase(s: &str) -> Result<Phase, String> {
+    s.parse()
+        .map_err(|e: pwm_actuator::core::config::UnknownName| e.to_string())
 }
 
 impl Default for BenchOptions {
@@ -56,6 +69,8 @@ impl Default for BenchOptions {
             seconds: 10.0,
             rt_priority: None,
             json: false,
+            phase: Phase::Sync,
+            max_simultaneous_on: 0,
         }
     }
 }
@@ -119,6 +134,12 @@ impl BenchOptions {
     /// Checks the ranges clap does not know.
     pub fn validate(&self) -> Result<(), String> {
         let o = self;
+        if o.max_simultaneous_on > 256 {
+            return Err(format!(
+                "--max-simultaneous-on {} is outside 0..256",
+                o.max_simultaneous_on
+            ));
+        }
         if o.channels == 0 || o.channels > 256 {
             return Err(format!("--channels {} is outside 1..256", o.channels));
         }
@@ -151,11 +172,13 @@ pub fn run(opts: BenchOptions) -> i32 {
     }
     if !opts.json {
         println!(
-            "pwm_actuator bench: {} channels, period {} ms, duty {} %, offset {} ms, {} s per side, sim output{}",
+            "pwm_actuator bench: {} channels, period {} ms, duty {} %, offset {} ms, phase {}, max on {}, {} s per side, sim output{}",
             opts.channels,
             opts.period_ms,
             opts.duty_percent,
             opts.offset_ms,
+            opts.phase,
+            opts.max_simultaneous_on,
             opts.seconds,
             opts.rt_priority
                 .map(|p| format!(", SCHED_FIFO {p}"))
@@ -442,6 +465,10 @@ fn engine_options(opts: &BenchOptions) -> EngineOptions {
     EngineOptions {
         rt_priority: opts.rt_priority,
         queue_capacity: 16_384,
+        bank: Bank {
+            phase: opts.phase,
+            max_on: opts.max_simultaneous_on,
+        },
         ..EngineOptions::default()
     }
 }
