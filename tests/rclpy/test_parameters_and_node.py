@@ -77,6 +77,7 @@ CHANNEL_PARAMS = (
     "zero_means_zero",
     "duty_slew_pct_per_s",
     "duty_deadband_pct",
+    "extend_max",
     "active_low",
     "enable",
     "duty",
