@@ -55,7 +55,8 @@ impl Step {
     }
 }
 
-/// What `max_simultaneous_on` did to a period's on phase, worst last.
+/// What waiting for a slot (`max_simultaneous_on`, or a stagger group's line on) did to a
+/// period's on phase, worst last.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Default)]
 enum SlotUse {
     /// It started on time.
@@ -143,8 +144,10 @@ pub struct Channel {
     /// Where the on phases other channels placed in this staggered period end, ns after the
     /// period start, and the on time those of its group run per period, ns.
     lead: (Nanos, Nanos),
-    /// Where the on phase of the running staggered period starts, ns after its start.
+    /// Where the on phase of the running period starts, ns after the period start (as placed
+    /// on the stagger grid, or as started late for want of a slot), and how long it is, ns.
     placed: Nanos,
+    on_len: Nanos,
     /// A slot is free under `max_simultaneous_on` (see [`Channel::set_slot`]).
     slot: bool,
     /// The end of the running period, when it is fixed: by the stagger grid, or by an on phase
@@ -200,6 +203,7 @@ impl Channel {
             grid: false,
             lead: (0, 0),
             placed: 0,
+            on_len: 0,
             slot: true,
             period_end: None,
             slot_now: SlotUse::None,
@@ -627,14 +631,9 @@ impl Channel {
             match (step.kind, step.level) {
                 (StepKind::Run, Level::High) => self.end_on_step(t, emit),
                 (StepKind::Run | StepKind::Align, _) => self.start_period(t, emit),
-                (StepKind::Lead, _) => {
-                    if self.cfg.apply_at != ApplyAt::NextPeriod {
-                        // 002/003: the on step's time comes from the command current now.
-                        let duty = self.decide(t);
-                        self.latch(Plan::new(duty, &self.cfg), emit);
-                    }
-                    self.begin_on(t, emit);
-                }
+                // The on phase was placed for its length at the period start: a command since
+                // takes effect with the next period (with `immediate`, on the running pulse).
+                (StepKind::Lead, _) => self.begin_on(t, emit),
                 (StepKind::Wait, _) => self.skip(t, emit),
             }
             return;
@@ -669,6 +668,8 @@ impl Channel {
         }
         self.latch(plan, emit);
         self.period_start = t;
+        self.placed = 0;
+        self.on_len = plan.t_on;
         self.period_end = (self.grid && period > 0).then(|| t.saturating_add(plan.period()));
         if period == 0 {
             // 000: period 0, no pulses; the output is held at 0.
@@ -684,7 +685,14 @@ impl Channel {
         // Staggered: the on phase starts after those already placed, if it fits there.
         // The on phase lies within the first period of the grid (an extended plan's rest of
         // its period is off).
+        // The on phase starts no earlier than the line's minimum break allows, so its place
+        // is where the line will really be on.
         let (after, others) = if self.grid { self.lead } else { (0, 0) };
+        let guard = match self.break_ends_at() {
+            Some(end) if self.grid => end.saturating_sub(t),
+            _ => 0,
+        };
+        let after = after.max(guard);
         let room = period.saturating_sub(plan.t_on).min(plan.t_off);
         if after > room && others.saturating_add(plan.t_on) <= period {
             self.step = Some(Step::off(StepKind::Align, t, t.saturating_add(period)));
@@ -750,6 +758,9 @@ impl Channel {
             }
             return;
         };
+        if step.kind == StepKind::Wait {
+            self.rewait(now, emit);
+        }
         if step.kind != StepKind::Run || (step.level == Level::Low && self.period_end.is_some()) {
             // An off step placed by the stagger grid or a slot ends where it was placed.
             self.poll(now, emit);

@@ -448,7 +448,7 @@ where
                 if let Some(half) = opts.heartbeat_half_period_ns {
                     worker.start_heartbeat(configs.len(), half, now);
                 }
-                worker.set_bank(opts.bank);
+                worker.set_bank(now, opts.bank);
                 if opts.start_held {
                     worker.set_live(now, false);
                 }

@@ -119,16 +119,23 @@ impl<O: Output> Worker<O> {
         }
         let now = clock::monotonic_ns();
         for i in 0..self.channels.len() {
-            if let Some(due) = self.channels[i].poll_at().filter(|t| *t <= now) {
+            if self.channels[i].poll_at().is_some_and(|t| t <= now) {
                 self.bank.before(&mut self.channels, i, now);
                 let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
                 self.channels[i].poll(now, &mut |e| sink.event(e));
                 self.pushed |= sink.pushed;
                 self.touched[i] = true;
                 self.sync_pair(i, now);
-                // A slot freed by a deadline is handed on at its scheduled instant, so the
+                // A slot freed by a fall is handed on at the fall's scheduled instant, so the
                 // next pulse starts where the last one ended, whatever the wake-up latency.
-                self.sync_bank(due);
+                let fell = self
+                    .changes
+                    .iter()
+                    .rev()
+                    .find(|c| c.line == i)
+                    .filter(|c| c.level == Level::Low)
+                    .map_or(now, |c| c.scheduled_ns);
+                self.sync_bank(fell);
             }
         }
         // Without a heartbeat, or before its time, nothing more to look at.
@@ -168,17 +175,28 @@ impl<O: Output> Worker<O> {
         self.touched[p] = true;
     }
 
-    /// Sets the node-level planner (`phase`, `max_simultaneous_on`); it takes effect at each
-    /// channel's next period start.
-    pub(crate) fn set_bank(&mut self, bank: Bank) {
+    /// Sets the node-level planner (`phase`, `max_simultaneous_on`) at `now`: the phase takes
+    /// effect at each channel's next period start, a lowered limit at once.
+    pub(crate) fn set_bank(&mut self, now: Nanos, bank: Bank) {
         self.bank = bank;
         for i in 0..self.channels.len() {
-            self.bank.before(&mut self.channels, i, 0);
+            self.bank.before(&mut self.channels, i, now);
         }
+        // A lowered limit takes effect at once, a raised one lets waiting pulses start.
+        let (changes, reports, dropped) = (&mut self.changes, &mut self.reports, &self.dropped);
+        let (touched, mut pushed) = (&mut self.touched, false);
+        self.bank.shed(&mut self.channels, now, &mut |c, e| {
+            let mut sink = Sink::new(c, changes, reports, dropped);
+            sink.event(e);
+            pushed |= sink.pushed;
+            touched[c] = true;
+        });
+        self.pushed |= pushed;
+        self.sync_bank(now);
     }
 
-    /// After any action at `now`: free slots under `max_simultaneous_on` go to the on phases
-    /// waiting for one (written in this same batch).
+    /// After any action, at `now` (the instant a line went off, when one did): on phases
+    /// waiting for a slot that may start now do (written in this same batch).
     fn sync_bank(&mut self, now: Nanos) {
         let (changes, reports, dropped) = (&mut self.changes, &mut self.reports, &self.dropped);
         let (touched, mut pushed) = (&mut self.touched, false);
@@ -242,7 +260,7 @@ impl<O: Output> Worker<O> {
         match req.input {
             Input::EStop(latched) => return self.estop(now, latched),
             Input::Live(live) => return self.set_live(now, live),
-            Input::Bank(bank) => return self.set_bank(bank),
+            Input::Bank(bank) => return self.set_bank(now, bank),
             _ => {}
         }
         self.bank.before(&mut self.channels, req.channel, now);

@@ -476,10 +476,10 @@ impl ChannelHealth {
                 pct(s.duty_applied)
             );
         }
-        if s.e1 && s.protections.simultaneous && !s.limited {
+        if s.e1 && s.protections.delayed && !s.limited {
             return format!(
-                "E1: max_simultaneous_on: no slot came free in time, a pulse was skipped \
-                 ({} skipped so far)",
+                "E1: a pulse was skipped: no line went off in time for it (max_simultaneous_on, \
+                 or another channel of its stagger group still on); {} skipped so far",
                 s.skipped_pulses
             );
         }

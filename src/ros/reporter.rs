@@ -354,10 +354,11 @@ impl Reporter {
                 self.health[ch].missed += u64::from(edges);
                 warn!("{name}: the output thread woke late; {edges} scheduled edges were merged");
             }
-            Event::Skipped => {
+            Event::Skipped { .. } => {
                 warn!(
-                    "{name}: max_simultaneous_on: no slot came free before the latest start of \
-                     this period's pulse; it was skipped"
+                    "{name}: a pulse was skipped: no line went off before its latest start in \
+                     its period (max_simultaneous_on, or another channel of its stagger group \
+                     still on)"
                 );
             }
             Event::Plan(_) | Event::Edge { .. } => {}

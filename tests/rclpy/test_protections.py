@@ -372,7 +372,7 @@ def test_max_simultaneous_on_delays_a_pulse_then_skips_what_cannot_fit(node_proc
     for rise, fall in ra + rb:
         assert fall.scheduled_ns - rise.scheduled_ns == t_on_ns(0.4, period), (rise, fall)
     late = (a, b)[waiting]
-    late.wait_status(lambda s: "max_simultaneous_on" in s.protections, "the slot limit acting")
+    late.wait_status(lambda s: "delayed" in s.protections, "the slot limit acting")
     assert not late.e1_state(), "delayed, not lost: no E1"
     switch_ns = mono_ns()
     a.duty(60.0)
@@ -381,6 +381,7 @@ def test_max_simultaneous_on_delays_a_pulse_then_skips_what_cannot_fit(node_proc
     d = late.wait_diag(lambda d: int(diag_values(d).get("skipped_pulses", "0")) > 0,
                        "skips counted")
     assert diag_level(d) == WARN and "max_simultaneous_on" in d.message, d
+    assert "delayed" in diag_values(d)["protections"], d
     edges = close_all_traces(proc, ("pw01", "pw02"))
     ra, rb = high_runs(edges["pw01"]), high_runs(edges["pw02"])
     assert not overlaps(ra, rb), overlaps(ra, rb)[:3]

@@ -1,6 +1,8 @@
 //! Where a channel's on phase goes, for the node-level planner ([`crate::core::Bank`]): the
-//! stagger grid and lead, and the slots of `max_simultaneous_on`: an on phase without a slot
-//! waits, off, keeping its whole length, and is skipped once it can no longer fit its period.
+//! stagger grid and lead, and the slot an on phase needs to start: under
+//! `max_simultaneous_on` a free one, under stagger also no other line of its group on. An on
+//! phase without a slot waits, off, keeping its whole length, and is skipped once it can no
+//! longer fit its period.
 
 use super::{Channel, Event, Level, Nanos, SlotUse, Step, StepKind};
 
@@ -17,28 +19,30 @@ impl Channel {
     }
 
     /// Where the next staggered period's on phase goes, read when a period starts: `after`,
-    /// where the on phases the other channels of its group placed in that period end (ns after
-    /// its start), and `others`, the on time those channels run per period (ns). The phase
-    /// starts at `after` if it ends within the period there. If not, and all the phases would
-    /// fit in one period (the space is there, cut up by a channel that stopped), the channel
-    /// waits for the next period, where the group is laid out afresh; if they cannot fit
-    /// (duties above 100 % together), it ends with the period and overlaps.
+    /// where the on phases of the other channels of its group end in that period (ns after its
+    /// start), and `others`, the on time those channels run per period (ns). The phase starts
+    /// at `after` (or where the line's minimum break ends, if later) if it ends within the
+    /// period there. If not, and all the phases would fit in one period (the space is there,
+    /// cut up by a channel that stopped), the channel waits for the next period, where the
+    /// group is laid out afresh; if they cannot fit (duties above 100 % together), it is
+    /// placed to end with the period, where it waits for the line before it to go off.
     pub fn set_lead(&mut self, after: Nanos, others: Nanos) {
         self.lead = (after, others);
     }
 
-    /// Where the on phase of the running staggered period ends, ns after the period start
-    /// (0 when it has none).
-    pub fn placed_end(&self) -> Nanos {
-        if self.plan.t_on == 0 {
-            0
-        } else {
-            self.placed + self.plan.t_on
-        }
+    /// Where the on phase of the running period ends, ns (monotonic), as placed or as started
+    /// late; `None` when it has none.
+    pub fn on_end(&self) -> Option<Nanos> {
+        (self.running() && self.on_len > 0).then(|| {
+            self.period_start
+                .saturating_add(self.placed)
+                .saturating_add(self.on_len)
+        })
     }
 
-    /// Whether a slot is free for this channel under `max_simultaneous_on`: an on phase that
-    /// starts without one waits, off, until [`Channel::grant`] (see [`Channel::occupies`]).
+    /// Whether an on phase may start now (see [`Channel::occupies`]): a slot is free under
+    /// `max_simultaneous_on` and, under stagger, no other line of its group is on. One that
+    /// starts without it waits, off, until [`Channel::grant`].
     pub fn set_slot(&mut self, free: bool) {
         self.slot = free;
     }
@@ -48,32 +52,63 @@ impl Channel {
         self.level == Level::High || self.line.level == Level::High
     }
 
-    /// When the on phase now waiting for a slot began to wait, ns; `None` when none waits.
-    pub fn waiting_since(&self) -> Option<Nanos> {
+    /// When the on phase waiting for a slot began to wait, ns, if one waits and may still
+    /// start at `at` (ns) and fit its period.
+    pub fn waiting_at(&self, at: Nanos) -> Option<Nanos> {
         self.step
-            .filter(|s| s.kind == StepKind::Wait)
+            .filter(|s| s.kind == StepKind::Wait && s.end >= at)
             .map(|s| s.start)
     }
 
-    /// A slot was given at `now` (ns; the instant the slot freed, which may lie a little before
-    /// the caller's clock) to the on phase waiting for one: it starts then (not before it
-    /// began to wait), with its whole length, and the break after it shrinks so the period
-    /// keeps its end.
-    pub fn grant(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
+    /// A slot was given at `at` (ns; the instant it freed, which may lie a little before the
+    /// caller's clock) to the on phase waiting for one: it starts then (not before it began
+    /// to wait), with its whole length, and the break after it shrinks so the period keeps its
+    /// end. A wait whose latest start has passed is skipped at that instant instead.
+    pub fn grant(&mut self, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        let Some(wait) = self.step.filter(|s| s.kind == StepKind::Wait) else {
+            return;
+        };
         self.slot = true;
-        if let Some(since) = self.waiting_since() {
-            self.begin_on(now.max(since), emit);
+        if wait.end < at {
+            return self.skip(wait.end, emit);
         }
+        let t = at.max(wait.start);
+        if t > wait.start {
+            self.slot_now = self.slot_now.max(SlotUse::Delayed);
+        }
+        self.begin_on(t, emit);
     }
 
-    /// The on phase of the running period starts at `t`, if a slot is free under
-    /// `max_simultaneous_on`; else it waits for one, as long as the whole pulse still fits in
+    /// Gives up the running on phase at `at` (ns) to bring the lines on under a lowered
+    /// `max_simultaneous_on`: the schedule goes off for the rest of the period (the line
+    /// follows once it has kept its minimum on time), and the shortened pulse sets E1.
+    /// Returns whether there was an on phase to give up.
+    pub fn yield_slot(&mut self, at: Nanos, emit: &mut dyn FnMut(Event)) -> bool {
+        if !self.step.is_some_and(|s| s.level == Level::High) {
+            return false;
+        }
+        let end = self.fix_period_end().max(at);
+        self.slot_now = SlotUse::Skipped;
+        self.report_flags(emit);
+        self.step = Some(Step::off(StepKind::Run, at, end));
+        self.set_level(Level::Low, at, emit);
+        true
+    }
+
+    /// When the running on step started, ns, if one runs.
+    pub fn on_since(&self) -> Option<Nanos> {
+        self.step
+            .filter(|s| s.level == Level::High)
+            .map(|s| s.start)
+    }
+
+    /// The on phase of the running period starts at `t`, if it has a slot (see
+    /// [`Channel::set_slot`]); else it waits for one, as long as the whole pulse still fits in
     /// its period, and is skipped after that.
     pub(super) fn begin_on(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
-        let len = self.plan.t_on;
+        let len = self.on_len;
         if !self.slot {
             let end = self.fix_period_end();
-            self.slot_now = self.slot_now.max(SlotUse::Delayed);
             match end.checked_sub(len) {
                 Some(latest) if latest > t => {
                     self.step = Some(Step::off(StepKind::Wait, t, latest));
@@ -83,6 +118,14 @@ impl Channel {
             }
             return;
         }
+        if self
+            .period_end
+            .is_some_and(|end| t.saturating_add(len) > end)
+        {
+            // A pulse that grew while it waited no longer fits its period.
+            return self.skip(t, emit);
+        }
+        self.placed = t.saturating_sub(self.period_start);
         self.step = Some(Step {
             level: Level::High,
             start: t,
@@ -90,6 +133,28 @@ impl Channel {
             kind: StepKind::Run,
         });
         self.set_level(Level::High, t, emit);
+    }
+
+    /// A re-evaluation (003) while the on phase waits: it waits for its new length, and is
+    /// skipped at `now` if that can no longer fit.
+    pub(super) fn rewait(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
+        let Some(wait) = self.step.filter(|s| s.kind == StepKind::Wait) else {
+            return;
+        };
+        self.on_len = self.plan.t_on;
+        match self.fix_period_end().checked_sub(self.on_len) {
+            _ if self.on_len == 0 => {
+                let end = self.fix_period_end();
+                self.step = Some(Step::off(StepKind::Run, wait.start, end));
+            }
+            Some(latest) if latest > now => {
+                self.step = Some(Step {
+                    end: latest,
+                    ..wait
+                })
+            }
+            _ => self.skip(now, emit),
+        }
     }
 
     /// The end of the running period, fixed from now on: an on phase that starts late keeps
@@ -109,7 +174,7 @@ impl Channel {
     pub(super) fn skip(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         self.skipped += 1;
         self.slot_now = SlotUse::Skipped;
-        emit(Event::Skipped);
+        emit(Event::Skipped { at: t });
         self.report_flags(emit);
         let end = self.fix_period_end();
         if end > t {

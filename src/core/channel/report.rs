@@ -40,9 +40,13 @@ pub enum Event {
         /// The duty fraction applied, 0..=1.
         applied: f64,
     },
-    /// No slot was free under `max_simultaneous_on` before the latest start that fits the on
-    /// phase in its period: the channel stays off for the rest of the period.
-    Skipped,
+    /// The on phase found no slot (`max_simultaneous_on`, or under stagger another line of its
+    /// group on) before the latest start that fits it in its period, or gave its slot up to a
+    /// lowered `max_simultaneous_on`: the channel stays off for the rest of the period.
+    Skipped {
+        /// When it was given up, ns.
+        at: Nanos,
+    },
     /// The channel was polled so late that `edges` scheduled edges fell in the past together;
     /// they were merged so that no zero-width pulse reaches the output.
     Missed {
@@ -69,15 +73,16 @@ pub struct Protections {
     /// `phase` is `stagger`: the channel's periods run on the grid it shares with the channels
     /// of the same period, its on phase placed after theirs.
     pub stagger: bool,
-    /// `max_simultaneous_on` delayed or skipped an on phase in this period or the one before
-    /// (a skip sets E1 for those periods: the duty was not delivered).
-    pub simultaneous: bool,
+    /// An on phase waited for another line to go off (`max_simultaneous_on`, or under stagger
+    /// a line of its group still on) or was skipped, in this period or the one before (a skip
+    /// sets E1 for those periods: the duty was not delivered).
+    pub delayed: bool,
 }
 
 impl Protections {
     /// The names of the protections acting, as reported on `~/<ch>/status` and
     /// `/diagnostics`: `max_on`, `max_duty`, `min_duty`, `slew`, `deadband`, `stagger`,
-    /// `max_simultaneous_on`.
+    /// `delayed`.
     pub fn names(&self) -> impl Iterator<Item = &'static str> {
         [
             (self.max_on, "max_on"),
@@ -86,7 +91,7 @@ impl Protections {
             (self.slew, "slew"),
             (self.deadband, "deadband"),
             (self.stagger, "stagger"),
-            (self.simultaneous, "max_simultaneous_on"),
+            (self.delayed, "delayed"),
         ]
         .into_iter()
         .filter_map(|(on, name)| on.then_some(name))
@@ -147,8 +152,7 @@ pub struct Status {
     pub protections: Protections,
     /// Valid commands the dead band ignored since the channel was created.
     pub ignored_commands: u64,
-    /// On phases skipped since the channel was created: no slot was free under
-    /// `max_simultaneous_on` before the latest start that fits the pulse in its period.
+    /// On phases skipped since the channel was created (see [`Event::Skipped`]).
     pub skipped_pulses: u64,
 }
 
@@ -209,7 +213,7 @@ impl Channel {
                 slew: self.slewing() && !self.watchdog_tripped && self.slewed != self.target(),
                 deadband: self.last_ignored,
                 stagger: self.grid && self.enabled && self.cfg.period > 0,
-                simultaneous: self.slot_now.max(self.slot_before) != super::SlotUse::None,
+                delayed: self.slot_now.max(self.slot_before) != super::SlotUse::None,
             },
             ignored_commands: self.ignored,
             skipped_pulses: self.skipped,

@@ -192,8 +192,9 @@ pub(super) fn node_decls() -> Vec<Decl> {
             description: "How the channels' periods lie against each other. sync: each \
                           channel's periods start at its enable. stagger: channels of equal \
                           period share a grid of whole periods and lay their on phases end to \
-                          end in channel order, so no two switch on together and, with the \
-                          duties summing to at most 100 %, no two are on together.",
+                          end in channel order; no two lines of equal period are ever on \
+                          together (a pulse that would be waits, or is skipped with E1), and \
+                          with the duties summing to at most 100 % none has to.",
             constraints: "sync|stagger; takes effect at each channel's next period start (a \
                           channel joining the grid waits, off, for its next instant)",
             choices: Some(|s| spelled::<Phase>(s, false)),
@@ -203,9 +204,10 @@ pub(super) fn node_decls() -> Vec<Decl> {
             description: "At most this many lines on at once, over all channels: an on phase \
                           without a free slot waits, off, with its whole length and within \
                           its period (the break after it shrinks), and is skipped and reported \
-                          when it can no longer fit. Never shortens a pulse or break below its \
-                          minimum. 0: no limit.",
-            constraints: "takes effect at the next on phase",
+                          (E1) when it can no longer fit. Never shortens a pulse or break below \
+                          its minimum. 0: no limit.",
+            constraints: "a lowered limit takes effect at once: the latest-started pulses \
+                          end as soon as their minimum on time allows (E1)",
             range: Range::Integer(0, MAX_CHANNELS as i64),
             note: " (0 = no limit)",
             ..Decl::new("max_simultaneous_on", Integer, || V::Integer(0))
