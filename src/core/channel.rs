@@ -19,13 +19,15 @@
 //! the power limits (`max_duty_pct`, `min_duty_pct`, `zero_means_zero`) after clamping, the
 //! dead band that ignores small changes, and the slew limit that moves the duty applied toward
 //! the command at most at its rate, advanced at every decision point (a period or step start,
-//! a re-evaluation) by the virtual time since the last one.
+//! a re-evaluation) by the virtual time since the last one. After them, the rolling-average
+//! cap keeps the line's on time over a window within its energy budget (see `budget`).
 
 use super::command::{Command, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
 use super::plan::{definitely_less, Plan};
 use super::{Level, Nanos};
 
+mod budget;
 mod duty;
 mod gates;
 mod placement;
@@ -156,6 +158,8 @@ pub struct Channel {
     slot_before: SlotUse,
     /// Pulses skipped because no slot was free before their latest start.
     skipped: u64,
+    /// The line's on time over the rolling-average window (`avg_duty_limit_pct`).
+    avg: budget::Budget,
 }
 
 impl Channel {
@@ -205,6 +209,7 @@ impl Channel {
             slot_now: SlotUse::None,
             slot_before: SlotUse::None,
             skipped: 0,
+            avg: budget::Budget::new(cfg.avg_window),
         }
     }
 
@@ -406,6 +411,7 @@ impl Channel {
             }
         } else {
             self.step = None;
+            self.avg.acts = false;
             self.cut_now = false;
             self.cut_before = false;
             self.slot_now = SlotUse::None;
@@ -463,6 +469,7 @@ impl Channel {
     /// (at `now` if the line has already been high that long).
     fn put_config(&mut self, cfg: ChannelConfig, now: Nanos) {
         self.cfg = cfg;
+        self.avg_relayout(now);
         self.retime_held();
         self.retime_cut(now);
     }
@@ -551,6 +558,9 @@ impl Channel {
     }
 
     fn write_line(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        if let (Level::High, Some(since)) = (self.line.level, self.line.since) {
+            self.avg_fall(since, at);
+        }
         self.line = Line {
             level,
             since: Some(at),
@@ -631,7 +641,8 @@ impl Channel {
                     if self.cfg.apply_at != ApplyAt::NextPeriod {
                         // 002/003: the on step's time comes from the command current now.
                         let duty = self.decide(t);
-                        self.latch(Plan::new(duty, &self.cfg), emit);
+                        let plan = self.capped_plan(t, duty, None);
+                        self.latch(plan, emit);
                     }
                     self.begin_on(t, emit);
                 }
@@ -662,11 +673,8 @@ impl Channel {
         self.cut_before = std::mem::take(&mut self.cut_now);
         self.slot_before = std::mem::take(&mut self.slot_now);
         let duty = self.decide(t);
-        let mut plan = Plan::new(duty, &self.cfg);
-        if self.grid {
-            // An extended period spans whole periods of the grid.
-            plan = plan.on_grid(period);
-        }
+        // An extended period spans whole periods of the grid.
+        let plan = self.capped_plan(t, duty, self.grid.then_some(period));
         self.latch(plan, emit);
         self.period_start = t;
         self.period_end = (self.grid && period > 0).then(|| t.saturating_add(plan.period()));
@@ -714,7 +722,7 @@ impl Channel {
             // 002: each step's time comes from the command current when it starts; 003 likewise.
             ApplyAt::NextStep | ApplyAt::Immediate => {
                 let duty = self.decide(t);
-                let plan = Plan::new(duty, &self.cfg);
+                let plan = self.break_plan(t, duty);
                 self.latch(plan, emit);
                 plan.t_off
             }
@@ -735,7 +743,14 @@ impl Channel {
     /// new length has already passed ends now, but never before its minimum.
     fn reevaluate(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
         let duty = self.decide(now);
-        let plan = Plan::new(duty, &self.cfg);
+        // A break after the on phase keeps to what the period start allowed; elsewhere an on
+        // phase may start or run from now.
+        let plan = match self.step {
+            Some(s) if s.level == Level::Low && s.kind == StepKind::Run => {
+                self.break_plan(now, duty)
+            }
+            _ => self.capped_plan(now, duty, None),
+        };
         self.latch(plan, emit);
         let Some(step) = self.step else {
             if self.enabled && self.cfg.period > 0 {

@@ -21,6 +21,9 @@ pub const MAX_TIMEOUT_MS: u64 = 86_400_000;
 /// Longest maximum on time accepted, in ms (one day).
 pub const MAX_ON_MS: u64 = 86_400_000;
 
+/// Longest window of the rolling-average duty cap, s (a day).
+pub const MAX_AVG_WINDOW_S: u64 = 86_400;
+
 /// Fastest duty slew limit accepted, percent per second (100 % in 1 ms).
 pub const MAX_SLEW_PCT_PER_S: f64 = 100_000.0;
 
@@ -387,6 +390,11 @@ pub struct ChannelParams {
     /// the one in force by less is ignored (relay wear); 0 %, `min_duty_pct` and
     /// `max_duty_pct` always pass. 0 = off.
     pub duty_deadband_pct: f64,
+    /// Rolling-average cap, percent 0..=100: over every window of `avg_window_s` the line is
+    /// on for at most this share of the window (an energy budget). 100 = off.
+    pub avg_duty_limit_pct: f64,
+    /// The window of the rolling-average cap, s; 1..=86 400.
+    pub avg_window_s: u64,
 }
 
 impl Default for ChannelParams {
@@ -411,6 +419,8 @@ impl Default for ChannelParams {
             zero_means_zero: false,
             duty_slew_pct_per_s: 0.0,
             duty_deadband_pct: 0.0,
+            avg_duty_limit_pct: 100.0,
+            avg_window_s: 60,
         }
     }
 }
@@ -442,6 +452,8 @@ pub enum PercentParam {
     MinDuty,
     /// `duty_deadband_pct`.
     Deadband,
+    /// `avg_duty_limit_pct`.
+    AvgDutyLimit,
 }
 
 impl fmt::Display for PercentParam {
@@ -450,6 +462,7 @@ impl fmt::Display for PercentParam {
             PercentParam::MaxDuty => "max_duty_pct",
             PercentParam::MinDuty => "min_duty_pct",
             PercentParam::Deadband => "duty_deadband_pct",
+            PercentParam::AvgDutyLimit => "avg_duty_limit_pct",
         })
     }
 }
@@ -577,6 +590,14 @@ pub enum ConfigError {
         /// The maximum, percent per second.
         max: f64,
     },
+    /// The window of the rolling-average cap outside 1..=86 400 s.
+    #[error("avg_window_s {value_s} is outside 1..{max_s} s")]
+    AvgWindowOutOfRange {
+        /// The refused value, s.
+        value_s: u64,
+        /// The maximum, s.
+        max_s: u64,
+    },
 }
 
 /// Validated channel settings in nanoseconds, with every profile default resolved.
@@ -614,6 +635,10 @@ pub struct ChannelConfig {
     pub slew_per_s: f64,
     /// Dead band of commands, fraction 0..=1; 0 = off.
     pub deadband: f64,
+    /// Rolling-average cap of the line's on time, fraction 0..=1 of `avg_window` (1 = off).
+    pub avg_limit: f64,
+    /// The window of the rolling-average cap, ns.
+    pub avg_window: Nanos,
     /// The parameters this was made from (for status and round trips).
     pub params: ChannelParams,
 }
@@ -662,7 +687,8 @@ impl ChannelParams {
     /// Checks every limit of SPEC §1 and 000's table and resolves the profile.
     ///
     /// The checks run in a fixed order so the reason given is deterministic: period, minimum
-    /// times, edge band, cycle extension, watchdog, fault value, maximum on time, power limits, slew limit.
+    /// times, edge band, cycle extension, watchdog, fault value, maximum on time, power limits, slew
+    /// limit, rolling-average cap.
     pub fn validate(&self) -> Result<ChannelConfig, ConfigError> {
         let kind = self.output_kind;
         if self.period_ms != 0 && self.period_ms < kind.min_period_ms() {
@@ -746,6 +772,7 @@ impl ChannelParams {
             (PercentParam::MaxDuty, self.max_duty_pct),
             (PercentParam::MinDuty, self.min_duty_pct),
             (PercentParam::Deadband, self.duty_deadband_pct),
+            (PercentParam::AvgDutyLimit, self.avg_duty_limit_pct),
         ] {
             if !(0.0..=100.0).contains(&value) {
                 return Err(ConfigError::PercentOutOfRange { which, value });
@@ -761,6 +788,12 @@ impl ChannelParams {
             return Err(ConfigError::SlewOutOfRange {
                 value: self.duty_slew_pct_per_s,
                 max: MAX_SLEW_PCT_PER_S,
+            });
+        }
+        if !(1..=MAX_AVG_WINDOW_S).contains(&self.avg_window_s) {
+            return Err(ConfigError::AvgWindowOutOfRange {
+                value_s: self.avg_window_s,
+                max_s: MAX_AVG_WINDOW_S,
             });
         }
         Ok(ChannelConfig {
@@ -780,6 +813,8 @@ impl ChannelParams {
             zero_means_zero: self.zero_means_zero,
             slew_per_s: self.duty_slew_pct_per_s / 100.0,
             deadband: self.duty_deadband_pct / 100.0,
+            avg_limit: self.avg_duty_limit_pct / 100.0,
+            avg_window: self.avg_window_s * 1_000 * NS_PER_MS,
             params: *self,
         })
     }
@@ -1236,6 +1271,42 @@ mod tests {
         })
         .unwrap();
         assert_eq!((c.limit_duty(0.0), c.limit_duty(0.05)), (0.0, 0.1));
+    }
+
+    #[test]
+    fn the_rolling_average_cap_is_checked() {
+        let c = params().validate().unwrap();
+        assert_eq!((c.avg_limit, c.avg_window), (1.0, 60 * 1000 * NS_PER_MS));
+        for (pct, s) in [(101.0, 60), (-1.0, 60), (f64::NAN, 60)] {
+            let e = ChannelParams {
+                avg_duty_limit_pct: pct,
+                avg_window_s: s,
+                ..params()
+            }
+            .validate()
+            .unwrap_err();
+            assert!(e.to_string().starts_with("avg_duty_limit_pct "), "{e}");
+        }
+        for s in [0, MAX_AVG_WINDOW_S + 1] {
+            let e = ChannelParams {
+                avg_window_s: s,
+                ..params()
+            }
+            .validate()
+            .unwrap_err();
+            assert_eq!(
+                e.to_string(),
+                format!("avg_window_s {s} is outside 1..86400 s")
+            );
+        }
+        let c = ChannelParams {
+            avg_duty_limit_pct: 25.0,
+            avg_window_s: MAX_AVG_WINDOW_S,
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        assert_eq!((c.avg_limit, c.avg_window), (0.25, 86_400_000 * NS_PER_MS));
     }
 
     #[test]
