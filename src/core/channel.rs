@@ -19,15 +19,18 @@
 //! the power limits (`max_duty_pct`, `min_duty_pct`, `zero_means_zero`) after clamping, the
 //! dead band that ignores small changes, and the slew limit that moves the duty applied toward
 //! the command at most at its rate, advanced at every decision point (a period or step start,
-//! a re-evaluation) by the virtual time since the last one.
+//! a re-evaluation) by the virtual time since the last one. After them, the rolling-average
+//! cap keeps the line's on time over a window within its energy budget (see `budget`).
 
 use super::command::{Command, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
 use super::plan::{definitely_less, Plan};
 use super::{Level, Nanos};
 
+mod budget;
 mod duty;
 mod gates;
+mod line;
 mod placement;
 mod report;
 mod watchdog;
@@ -159,6 +162,8 @@ pub struct Channel {
     slot_before: SlotUse,
     /// Pulses skipped because no slot was free before their latest start.
     skipped: u64,
+    /// The line's on time over the rolling-average window (`avg_duty_limit_pct`).
+    avg: budget::Budget,
 }
 
 impl Channel {
@@ -209,6 +214,7 @@ impl Channel {
             slot_now: SlotUse::None,
             slot_before: SlotUse::None,
             skipped: 0,
+            avg: budget::Budget::new(cfg.avg_window),
         }
     }
 
@@ -410,6 +416,7 @@ impl Channel {
             }
         } else {
             self.step = None;
+            self.avg.acts = false;
             self.cut_now = false;
             self.cut_before = false;
             self.slot_now = SlotUse::None;
@@ -467,120 +474,9 @@ impl Channel {
     /// (at `now` if the line has already been high that long).
     fn put_config(&mut self, cfg: ChannelConfig, now: Nanos) {
         self.cfg = cfg;
+        self.avg_relayout(now);
         self.retime_held();
         self.retime_cut(now);
-    }
-
-    /// Times the cut of a high line at `max_on_ms` after its last real rise, but not before
-    /// `floor`; none when the line is low or no maximum is set.
-    fn retime_cut(&mut self, floor: Nanos) {
-        self.line.cut = match (self.line.level, self.line.since) {
-            (Level::High, Some(since)) if self.cfg.max_on > 0 => {
-                Some(since.saturating_add(self.cfg.max_on).max(floor))
-            }
-            _ => None,
-        };
-    }
-
-    /// Moves a change held back for the line to no earlier than the end of the minimum of the
-    /// phase the line is in (after the phase's start or the minima changed).
-    fn retime_held(&mut self) {
-        if let Some((level, at)) = self.line.held {
-            self.line.held = Some((level, self.earliest(level, at)));
-        }
-    }
-
-    /// The earliest instant at or after `at` the line may change to `level`.
-    fn earliest(&self, level: Level, at: Nanos) -> Nanos {
-        debug_assert_ne!(level, self.line.level);
-        self.line
-            .since
-            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
-            .max(at)
-    }
-
-    /// The minimum time the line must keep `level` once it has it, ns.
-    fn min_for(&self, level: Level) -> Nanos {
-        match level {
-            Level::High => self.cfg.min_on,
-            Level::Low => self.cfg.min_off,
-        }
-    }
-
-    /// When the line's current break reaches its minimum, if the line is low and has ever
-    /// been high.
-    fn break_ends_at(&self) -> Option<Nanos> {
-        match (self.line.level, self.line.since) {
-            (Level::Low, Some(since)) => Some(since.saturating_add(self.cfg.min_off)),
-            _ => None,
-        }
-    }
-
-    /// The schedule asks for `level` at `at`: the line follows at once if it has kept its level
-    /// for its minimum, else the change is held back until it has. Asking for the level the
-    /// line has cancels a change held back (that pulse or break never reaches the line).
-    fn set_level(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
-        self.level = level;
-        if self.estop && level == Level::High {
-            // Latched: the line stays low and nothing is held back for later.
-            return;
-        }
-        if level == self.line.level {
-            // A change held back by the interlock never reached the line: two edges missed.
-            // One held while the line is held inactive was never meant to reach it.
-            if self.line.held.take().is_some() && self.live && !self.line.resumes {
-                emit(Event::Missed { edges: 2 });
-            }
-            return;
-        }
-        let when = self.earliest(level, at);
-        if when == at && !(self.no_rise() && level == Level::High) {
-            self.write_line(level, at, emit);
-        } else {
-            // Asking again for the rise that resumes after a cut keeps it one.
-            let held = Some((level, when));
-            self.line.resumes &= self.line.held == held;
-            self.line.held = held;
-        }
-    }
-
-    /// A safety off (falling EN, watchdog trip): the line goes low at `at`, whatever its
-    /// minimum on time.
-    fn force_low(&mut self, at: Nanos, emit: &mut dyn FnMut(Event)) {
-        self.level = Level::Low;
-        self.line.held = None;
-        if self.line.level != Level::Low {
-            self.write_line(Level::Low, at, emit);
-        }
-    }
-
-    fn write_line(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
-        self.line = Line {
-            level,
-            since: Some(at),
-            held: None,
-            locked: self.line.locked,
-            cut: None,
-            resumes: false,
-        };
-        self.retime_cut(at);
-        emit(Event::Edge { at, level });
-    }
-
-    /// `max_on_ms` has run out on the high line at `t`: it goes low now (its minimum on time
-    /// has passed, as `max_on_ms` is never below it) and the schedule's rise, if it still asks
-    /// for one, is held back for the minimum break. A line held on by 004's hold stays off.
-    fn cut(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
-        let resume = self.enabled && self.level == Level::High;
-        self.write_line(Level::Low, t, emit);
-        if resume {
-            self.line.held = Some((Level::High, t.saturating_add(self.cfg.min_off)));
-            self.line.resumes = true;
-        } else {
-            self.level = Level::Low;
-        }
-        self.cut_now = true;
-        self.report_flags(emit);
     }
 
     /// Makes `plan` the plan in force and reports what changed.
@@ -661,11 +557,8 @@ impl Channel {
         self.cut_before = std::mem::take(&mut self.cut_now);
         self.slot_before = std::mem::take(&mut self.slot_now);
         let duty = self.decide(t);
-        let mut plan = Plan::new(duty, &self.cfg);
-        if self.grid {
-            // An extended period spans whole periods of the grid.
-            plan = plan.on_grid(period);
-        }
+        // An extended period spans whole periods of the grid.
+        let plan = self.capped_plan(t, duty, self.grid.then_some(period));
         self.latch(plan, emit);
         self.period_start = t;
         self.placed = 0;
@@ -722,7 +615,7 @@ impl Channel {
             // 002: each step's time comes from the command current when it starts; 003 likewise.
             ApplyAt::NextStep | ApplyAt::Immediate => {
                 let duty = self.decide(t);
-                let plan = Plan::new(duty, &self.cfg);
+                let plan = self.break_plan(t, duty);
                 self.latch(plan, emit);
                 plan.t_off
             }
@@ -743,7 +636,14 @@ impl Channel {
     /// new length has already passed ends now, but never before its minimum.
     fn reevaluate(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
         let duty = self.decide(now);
-        let plan = Plan::new(duty, &self.cfg);
+        // A break after the on phase keeps to what the period start allowed; elsewhere an on
+        // phase may start or run from now.
+        let plan = match self.step {
+            Some(s) if s.level == Level::Low && s.kind == StepKind::Run => {
+                self.break_plan(now, duty)
+            }
+            _ => self.capped_plan(now, duty, None),
+        };
         self.latch(plan, emit);
         let Some(step) = self.step else {
             if self.enabled && self.cfg.period > 0 {

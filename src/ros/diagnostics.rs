@@ -5,8 +5,8 @@
 //! the duty: it is named in the message at OK), when the command in force was clamped, or for
 //! a while after a command was refused; ERROR on a tripped watchdog, a latched
 //! e-stop or an output fault. The other protections of the load (power limits, slew, dead
-//! band) are named in the message and the `protections` key while they act, at level OK: they
-//! do what they were set for.
+//! band, the rolling-average cap) are named in the message and the `protections` key while
+//! they act, at level OK: they do what they were set for.
 //!
 //! The node itself has one more status, `<node name>: node` ([`NodeHealth`]): the output
 //! thread's lateness over the last second, lost reports, the lifecycle state and the e-stop.
@@ -572,6 +572,7 @@ impl ChannelHealth {
                 ),
                 ("ignored_commands", s.ignored_commands.to_string()),
                 ("skipped_pulses", s.skipped_pulses.to_string()),
+                ("avg_duty_pct", format!("{:.3}", percent(s.avg_duty))),
             ]);
         }
         kv.extend([
@@ -659,6 +660,7 @@ mod tests {
             protections: Protections::default(),
             ignored_commands: 0,
             skipped_pulses: 0,
+            avg_duty: 0.0,
         }
     }
 

@@ -275,7 +275,8 @@ pub struct ChannelStatus {
     pub rule: String,
     /// The command in force after the power limits and the dead band, percent 0..100.
     pub duty_target: f64,
-    /// The protections of the load acting now: max_on, max_duty, min_duty, slew, deadband.
+    /// The protections of the load acting now: max_on, max_duty, min_duty, slew, deadband,
+    /// stagger, max_simultaneous_on, avg_duty.
     pub protections: Vec<String>,
 }
 ros_message!(ChannelStatus, "pwm_actuator_msgs", "ChannelStatus");

@@ -1,5 +1,7 @@
 //! The load's protections between a command and the plan: the power limits, the dead band and
-//! the slew limit (what the channel plans for), and whether the maximum on time acts.
+//! the slew limit (what the channel plans for), and whether the maximum on time acts. The
+//! rolling-average cap comes after them (`budget`): it limits the duty applied, not the
+//! command in force.
 
 use super::{Channel, Nanos};
 

@@ -77,12 +77,15 @@ pub struct Protections {
     /// a line of its group still on) or was skipped, in this period or the one before (a skip
     /// sets E1 for those periods: the duty was not delivered).
     pub delayed: bool,
+    /// The rolling-average cap (`avg_duty_limit_pct`) holds the on time planned in this period
+    /// below what the other rules give: the line's energy budget over the window is spent.
+    pub avg_duty: bool,
 }
 
 impl Protections {
     /// The names of the protections acting, as reported on `~/<ch>/status` and
     /// `/diagnostics`: `max_on`, `max_duty`, `min_duty`, `slew`, `deadband`, `stagger`,
-    /// `delayed`.
+    /// `delayed`, `avg_duty`.
     pub fn names(&self) -> impl Iterator<Item = &'static str> {
         [
             (self.max_on, "max_on"),
@@ -92,6 +95,7 @@ impl Protections {
             (self.deadband, "deadband"),
             (self.stagger, "stagger"),
             (self.delayed, "delayed"),
+            (self.avg_duty, "avg_duty"),
         ]
         .into_iter()
         .filter_map(|(on, name)| on.then_some(name))
@@ -154,6 +158,9 @@ pub struct Status {
     pub ignored_commands: u64,
     /// On phases skipped since the channel was created (see [`Event::Skipped`]).
     pub skipped_pulses: u64,
+    /// The line's average duty over the window of the rolling-average cap ending now, 0..=1, as
+    /// the channel counts it (never less than the real one).
+    pub avg_duty: f64,
 }
 
 impl Status {
@@ -214,9 +221,11 @@ impl Channel {
                 deadband: self.last_ignored,
                 stagger: self.grid && self.enabled && self.cfg.period > 0,
                 delayed: self.slot_now.max(self.slot_before) != super::SlotUse::None,
+                avg_duty: self.avg.acts && self.running(),
             },
             ignored_commands: self.ignored,
             skipped_pulses: self.skipped,
+            avg_duty: self.avg_duty(now),
         }
     }
 }

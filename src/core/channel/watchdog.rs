@@ -45,6 +45,7 @@ impl Channel {
     pub(super) fn trip_off(&mut self, t: Nanos, forced: bool, emit: &mut dyn FnMut(Event)) {
         // The running period's length, extended or not, before the plan for 0 % replaces it.
         let period = self.period();
+        self.avg.acts = false;
         self.latch(Plan::new(0.0, &self.cfg), emit);
         if let Some(step) = self.step {
             // Keep the period grid: stay off for the rest of this period.

@@ -179,6 +179,55 @@ impl Bench {
         }
         total
     }
+    /// The line's high spans `[rise, fall)`, ns, in order; a running one ends now.
+    pub fn high_spans(&self) -> Vec<(Nanos, Nanos)> {
+        let mut spans = Vec::new();
+        let mut rise = None;
+        for (t, level) in self.edges() {
+            match level {
+                Level::High => rise = rise.or(Some(t)),
+                Level::Low => spans.extend(rise.take().map(|a| (a, t))),
+            }
+        }
+        spans.extend(rise.map(|a| (a, self.now.max(a))));
+        spans
+    }
+
+    /// The most on time any window of `w` ns up to now holds, ns, and where that window ends.
+    pub fn max_window_on(&self, w: Nanos) -> (Nanos, Nanos) {
+        self.windows_on(w)
+            .into_iter()
+            .max()
+            .unwrap_or((0, self.now))
+    }
+
+    /// The on time of the windows of `w` ns up to now that may hold the most, ns, each with
+    /// where it ends: a window holds the most when it ends at a fall or begins at a rise (or
+    /// ends now), so only those are listed.
+    pub fn windows_on(&self, w: Nanos) -> Vec<(Nanos, Nanos)> {
+        let spans = self.high_spans();
+        let mut before = vec![0];
+        for (a, z) in &spans {
+            before.push(before.last().unwrap() + (z - a));
+        }
+        // On time in [0, x).
+        let on_before = |x: Nanos| -> Nanos {
+            let i = spans.partition_point(|(a, _)| *a < x);
+            if i == 0 {
+                0
+            } else {
+                let (a, z) = spans[i - 1];
+                before[i - 1] + (x.min(z) - a)
+            }
+        };
+        spans
+            .iter()
+            .flat_map(|(a, z)| [*z, a.saturating_add(w)])
+            .chain([self.now])
+            .filter(|end| *end <= self.now)
+            .map(|end| (on_before(end) - on_before(end.saturating_sub(w)), end))
+            .collect()
+    }
 }
 
 fn trim(ms: f64) -> String {

@@ -83,14 +83,16 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
                 zero_means_zero: pr.2,
                 duty_slew_pct_per_s: pr.3,
                 duty_deadband_pct: pr.4,
+                avg_duty_limit_pct: pr.5.0,
+                avg_window_s: pr.5.1,
             },
         )
         .prop_filter("valid parameters", |p| p.validate().is_ok())
 }
 
 /// The load's protections: max on time (ms), (max, min) duty (%), zero means zero, slew (%/s),
-/// dead band (%); each off half of the time or more.
-fn arb_protections() -> impl Strategy<Value = (u64, (f64, f64), bool, f64, f64)> {
+/// dead band (%), rolling-average cap (%, window s); each off half of the time or more.
+fn arb_protections() -> impl Strategy<Value = (u64, (f64, f64), bool, f64, f64, (f64, u64))> {
     (
         prop_oneof![2 => Just(0u64), 1 => 1u64..3000],
         prop_oneof![
@@ -100,6 +102,7 @@ fn arb_protections() -> impl Strategy<Value = (u64, (f64, f64), bool, f64, f64)>
         any::<bool>(),
         prop_oneof![2 => Just(0.0f64), 1 => 0.0..500.0f64],
         prop_oneof![2 => Just(0.0f64), 1 => 0.0..20.0f64],
+        prop_oneof![3 => Just((100.0f64, 60u64)), 1 => (0.0..100.0f64, 1u64..5)],
     )
 }
 
@@ -363,6 +366,7 @@ proptest! {
             max_on_ms: 0,
             duty_slew_pct_per_s: 0.0,
             duty_deadband_pct: 0.0,
+            avg_duty_limit_pct: 100.0,
             ..start
         };
         let cfg = params.validate().unwrap();
@@ -631,6 +635,60 @@ proptest! {
                     a / 1000, z / 1000, cfg.max_on / 1000, since / 1000
                 );
             }
+        }
+    }
+
+    /// The rolling-average cap (issue 12): no window of `avg_window_s` (any start) holds more
+    /// on time than the limit times the window, to the nanosecond, whatever commands (100 %
+    /// included), enables, e-stops, holds, parameters, policies, minima and the other
+    /// protections come in between. The cap decides only where an on phase may start or run,
+    /// and what it lets the line commit to (an on time, or the rest of a running pulse's
+    /// minimum) fits the budget then, so no pulse planned within it can overrun it: the bound
+    /// is exact (tolerance 0). One thing can: a minimum on time raised while a pulse runs
+    /// keeps the line on for the new minimum (a promise about the line, like the old one), so
+    /// a window that overlaps the raise or the new minimum after it may hold the raise more.
+    /// Parameter changes keep the cap and `on_disable: off` (a line held on by `hold` is not
+    /// pulsed, and not capped).
+    #[test]
+    fn no_window_holds_more_on_time_than_the_avg_duty_cap(
+        start in arb_params(),
+        limit in prop_oneof![1 => 0.0..100.0f64, 1 => Just(25.0f64)],
+        window_s in 1u64..4,
+        ops in arb_ops(),
+    ) {
+        let capped = |p: ChannelParams| ChannelParams {
+            avg_duty_limit_pct: limit,
+            avg_window_s: window_s,
+            on_disable: Some(OnDisable::Off),
+            ..p
+        };
+        let ops: Vec<_> = ops
+            .into_iter()
+            .map(|(dt, op)| match op {
+                Op::Params(p) => (dt, Op::Params(capped(p))),
+                op => (dt, op),
+            })
+            .collect();
+        let (b, history) = play(capped(start), &ops);
+        let window = window_s * 1000 * MS;
+        let allowed = (limit / 100.0 * window as f64).floor() as Nanos;
+        // Where the minimum on time grew, and by how much.
+        let raises: Vec<(Nanos, Nanos, Nanos)> = history
+            .windows(2)
+            .filter(|h| h[1].1.min_on > h[0].1.min_on)
+            .map(|h| (h[1].0, h[1].1.min_on, h[1].1.min_on - h[0].1.min_on))
+            .collect();
+        for (on, end) in b.windows_on(window) {
+            let slack: Nanos = raises
+                .iter()
+                .filter(|(t, min_on, _)| end > *t && end.saturating_sub(window) < t + min_on)
+                .map(|r| r.2)
+                .sum();
+            prop_assert!(
+                on <= allowed + slack,
+                "{} us on in the {} s window ending at {} us, {} us allowed (+{} us): {}",
+                on / 1000, window_s, end / 1000, allowed / 1000, slack / 1000, b.wave()
+            );
         }
     }
 

@@ -1182,6 +1182,108 @@ fn the_fault_value_is_limited_by_max_duty_too() {
     assert_eq!((s.duty_applied, s.t_on), (0.5, 500 * MS));
 }
 
+/// 25 % over 10 s at a 1 s period.
+fn avg_capped(f: impl FnOnce(&mut ChannelParams)) -> ChannelParams {
+    with(|p| {
+        p.avg_duty_limit_pct = 25.0;
+        p.avg_window_s = 10;
+        f(p);
+    })
+}
+
+#[test]
+fn avg_duty_caps_the_on_time_of_every_window_and_recovers_as_it_slides() {
+    const S: u64 = 1000 * MS;
+    let mut b = Bench::new(avg_capped(|_| ()));
+    b.duty(100.0).enable().at(2200.0);
+    // The budget (2.5 s) runs out in the third period: its on phase is the rest of it.
+    assert_eq!(b.status().t_on, 500 * MS);
+    b.at(5000.0);
+    assert_eq!(b.wave(), "H@0 L@2500");
+    let s = b.status();
+    assert!(s.protections.avg_duty && !s.e1, "{s:?}");
+    assert_eq!(s.protections.names().collect::<Vec<_>>(), ["avg_duty"]);
+    assert_eq!((s.duty_target, s.duty_applied, s.t_on), (1.0, 0.0, 0));
+    assert_eq!(s.avg_duty, 0.25);
+    // Off until on time leaves the window; then on again, and never more than 2.5 s in any
+    // window of 10 s.
+    b.at(10_500.0);
+    assert_eq!(b.wave(), "H@0 L@2500");
+    b.at(120_000.0);
+    let (most, _) = b.max_window_on(10 * S);
+    assert!(most <= 2500 * MS, "{} ms in 10 s: {}", most / MS, b.wave());
+    assert!(b.on_time(10 * S, 12 * S) > 0, "{}", b.wave());
+    // Conservative, but not by much: the budget is released at period starts, so about one
+    // period of each window is lost (2.5 s per 11 s).
+    let avg = b.on_time(20 * S, 120 * S) as f64 / (100 * S) as f64;
+    assert!((0.22..=0.25).contains(&avg), "{avg}");
+    // The cap limits the duty applied, not the command in force.
+    assert_eq!(b.status().duty_target, 1.0);
+}
+
+#[test]
+fn a_command_within_the_avg_duty_budget_runs_as_it_is() {
+    let mut b = Bench::new(avg_capped(|_| ()));
+    b.duty(20.0).enable().at(30_500.0);
+    let mut free = Bench::new(p());
+    free.duty(20.0).enable().at(30_500.0);
+    assert_eq!(b.edges(), free.edges());
+    let s = b.status();
+    assert!(!s.protections.any(), "{s:?}");
+    assert!((0.19..=0.21).contains(&s.avg_duty), "{}", s.avg_duty);
+}
+
+#[test]
+fn a_minimum_time_rule_never_takes_the_line_past_the_avg_duty_budget() {
+    // 0.5 s are left in the third period, but stretch would raise that to the 600 ms minimum:
+    // the period is off instead.
+    let mut b = Bench::new(avg_capped(|p| {
+        p.min_on_ms = 600;
+        p.short_pulse = Some(crate::core::ShortPulse::Stretch);
+    }));
+    b.duty(100.0).enable().at(3500.0);
+    assert_eq!(b.wave(), "H@0 L@2000");
+    assert!(b.status().protections.avg_duty);
+    b.at(60_000.0);
+    assert!(b.max_window_on(10_000 * MS).0 <= 2500 * MS, "{}", b.wave());
+}
+
+#[test]
+fn the_fault_value_is_capped_by_avg_duty_too() {
+    let mut b = Bench::new(avg_capped(|p| {
+        p.command_timeout_ms = 500;
+        p.fault_duty_pct = 100.0;
+        p.avg_window_s = 4;
+    }));
+    b.duty(0.0).enable().at(30_000.0);
+    assert!(b.status().fault_active);
+    assert!(b.on_time(0, 30_000 * MS) > 0);
+    assert!(b.max_window_on(4000 * MS).0 <= 1000 * MS, "{}", b.wave());
+}
+
+#[test]
+fn avg_duty_holds_under_next_step_and_immediate() {
+    for apply_at in [ApplyAt::NextStep, ApplyAt::Immediate] {
+        let mut b = Bench::new(avg_capped(|p| {
+            p.apply_at = Some(apply_at);
+            p.period_ms = 300;
+        }));
+        b.duty(70.0).enable();
+        for i in 0..40 {
+            b.at(1000.0 * i as f64 + 130.0)
+                .duty(if i % 2 == 0 { 100.0 } else { 40.0 });
+        }
+        b.at(50_000.0);
+        let (most, end) = b.max_window_on(10_000 * MS);
+        assert!(
+            most <= 2500 * MS,
+            "{apply_at:?}: {} ms up to {} ms",
+            most / MS,
+            end / MS
+        );
+    }
+}
+
 #[test]
 fn slew_ramps_the_duty_from_each_enable_soft_start() {
     // 10 %/s at T = 1 s: the duty applied rises 10 % a period toward 35 %, from 0 at the

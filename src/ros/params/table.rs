@@ -12,8 +12,8 @@ use super::{ParamType, Range, DEFAULT_CHANNELS, MAX_CHANNELS, MAX_STATUS_RATE_HZ
 use super::{ParameterValue as V, MIN_STATUS_RATE_HZ};
 use super::{MAX_HEARTBEAT_HZ, MIN_HEARTBEAT_HZ};
 use crate::core::config::{
-    ShortStr, UnknownName, MAX_EXTEND_FACTOR, MAX_ON_MS, MAX_PERIOD_MS, MAX_SLEW_PCT_PER_S,
-    MAX_TIMEOUT_MS,
+    ShortStr, UnknownName, MAX_AVG_WINDOW_S, MAX_EXTEND_FACTOR, MAX_ON_MS, MAX_PERIOD_MS,
+    MAX_SLEW_PCT_PER_S, MAX_TIMEOUT_MS,
 };
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::ros::msg;
@@ -593,6 +593,36 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             }),
             ..Decl::new("duty_deadband_pct", Double, || {
                 V::Double(core_defaults().duty_deadband_pct)
+            })
+        },
+        Decl {
+            description: "Rolling-average cap, percent 0..100: over every window of \
+                          avg_window_s the line is on for at most this share of the window \
+                          (an energy budget); a period whose on time would exceed what is left \
+                          is shortened or planned off. It limits the duty applied, the fault \
+                          value included. 100: off.",
+            constraints: "takes effect at the next period boundary",
+            range: Range::Double(0.0, 100.0),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.avg_duty_limit_pct = double(v);
+                Ok(())
+            }),
+            ..Decl::new("avg_duty_limit_pct", Double, || {
+                V::Double(core_defaults().avg_duty_limit_pct)
+            })
+        },
+        Decl {
+            description: "The window of the rolling-average cap, s.",
+            constraints: "takes effect at the next period boundary",
+            range: Range::Integer(1, MAX_AVG_WINDOW_S as i64),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.avg_window_s = int(v).max(0) as u64;
+                Ok(())
+            }),
+            ..Decl::new("avg_window_s", Integer, || {
+                V::Integer(core_defaults().avg_window_s as i64)
             })
         },
         Decl {

@@ -7,7 +7,10 @@
 
 use super::Nanos;
 use std::fmt;
-use std::str::FromStr;
+
+mod policy;
+
+pub use policy::{ApplyAt, OnDisable, OutputKind, Profile, ShortPulse, ShortStr, UnknownName};
 
 /// Nanoseconds in one millisecond.
 pub const NS_PER_MS: Nanos = 1_000_000;
@@ -21,312 +24,14 @@ pub const MAX_TIMEOUT_MS: u64 = 86_400_000;
 /// Longest maximum on time accepted, in ms (one day).
 pub const MAX_ON_MS: u64 = 86_400_000;
 
+/// Longest window of the rolling-average duty cap, s (a day).
+pub const MAX_AVG_WINDOW_S: u64 = 86_400;
+
 /// Fastest duty slew limit accepted, percent per second (100 % in 1 ms).
 pub const MAX_SLEW_PCT_PER_S: f64 = 100_000.0;
 
 /// Largest cycle extension accepted, a factor of the period (`extend_max`).
 pub const MAX_EXTEND_FACTOR: f64 = 100.0;
-
-/// The electrical kind of output, which sets the limits of 000's table.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
-pub enum OutputKind {
-    /// Transistor (solid-state) output: period >= 5 ms, shortest on/off time 0.1 ms (000).
-    #[default]
-    Transistor,
-    /// Relay output: period >= 100 ms, minimum on time >= 50 ms (000).
-    Relay,
-}
-
-impl OutputKind {
-    /// Shortest period accepted when the period is not 0, in ms (000: transistor 5, relay 100).
-    pub const fn min_period_ms(self) -> u64 {
-        match self {
-            OutputKind::Transistor => 5,
-            OutputKind::Relay => 100,
-        }
-    }
-
-    /// The hardware floor for on and off times, in ns (000: transistor 0.1 ms, relay 50 ms).
-    pub const fn floor_ns(self) -> Nanos {
-        match self {
-            OutputKind::Transistor => 100_000,
-            OutputKind::Relay => 50 * NS_PER_MS,
-        }
-    }
-
-    /// Shortest explicit (non-zero) minimum time accepted, in ms (000: relay min on 50 ms).
-    pub const fn min_explicit_time_ms(self) -> u64 {
-        match self {
-            OutputKind::Transistor => 0,
-            OutputKind::Relay => 50,
-        }
-    }
-
-    /// The parameter spelling: `transistor` or `relay`.
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            OutputKind::Transistor => "transistor",
-            OutputKind::Relay => "relay",
-        }
-    }
-}
-
-/// What happens to a pulse or break shorter than its minimum (SPEC §1.2).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
-pub enum ShortPulse {
-    /// 000, 001, 003: a too-short pulse is not emitted (output 0 for the period), a too-short
-    /// break is not emitted (output 1 for the period); E1 is set.
-    #[default]
-    Suppress,
-    /// 002: a too-short pulse is raised to the minimum (bLmtSwiTi), the break shrinks to keep the
-    /// period; likewise a too-short break is raised to its minimum.
-    Stretch,
-    /// 004: the Frequency_Output edge band `edge_band` decides constant 0 / PWM / constant 1.
-    Band,
-    /// Cycle extension (PLC PWM output modules' "extend cycle"): the period grows so that the
-    /// short pulse or break is exactly its minimum and the duty is kept, up to `extend_max`
-    /// times the period; beyond that the pulse or break is suppressed, as with `suppress`.
-    Extend,
-}
-
-impl ShortPulse {
-    /// The parameter spelling.
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            ShortPulse::Suppress => "suppress",
-            ShortPulse::Stretch => "stretch",
-            ShortPulse::Band => "band",
-            ShortPulse::Extend => "extend",
-        }
-    }
-}
-
-/// When a new command takes effect (SPEC §1.3).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
-pub enum ApplyAt {
-    /// 000: the running period completes with the times computed at its start.
-    #[default]
-    NextPeriod,
-    /// 002: the running on or off step completes with its latched time.
-    NextStep,
-    /// 003: the running pulse or break is extended or ended at once (never below its minimum).
-    Immediate,
-}
-
-impl ApplyAt {
-    /// The parameter spelling.
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            ApplyAt::NextPeriod => "next_period",
-            ApplyAt::NextStep => "next_step",
-            ApplyAt::Immediate => "immediate",
-        }
-    }
-}
-
-/// What a falling edge of enable does to the output (SPEC §1.4).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
-pub enum OnDisable {
-    /// 000, 002: the output goes to 0 at once.
-    #[default]
-    Off,
-    /// 004: the output keeps its current level until enabled again.
-    Hold,
-}
-
-impl OnDisable {
-    /// The parameter spelling.
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            OnDisable::Off => "off",
-            OnDisable::Hold => "hold",
-        }
-    }
-}
-
-/// A coherent set of policies named after the vendor block it reproduces.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
-pub enum Profile {
-    /// Eaton Pico GFX PW01/PW02 (000): suppress, next_period, off; min off = min on.
-    #[default]
-    PicoGfx,
-    /// Beckhoff FB_BA_PWM (002): stretch the on time only, next_step, off; min off = floor.
-    TwincatBa,
-    /// Siemens TCONT_CP pulse generator (003): suppress, immediate, off; min off = min on.
-    TcontCp,
-    /// Schneider PWM (001): suppress, next_period, off; min off = min on.
-    SchneiderPwm,
-    /// Schneider Frequency_Output (004): band, next_period, hold; min off = min on.
-    FrequencyOutput,
-}
-
-impl Profile {
-    /// Every profile, in documentation order.
-    pub const ALL: [Profile; 5] = [
-        Profile::PicoGfx,
-        Profile::TwincatBa,
-        Profile::TcontCp,
-        Profile::SchneiderPwm,
-        Profile::FrequencyOutput,
-    ];
-
-    /// The parameter spelling.
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            Profile::PicoGfx => "pico_gfx",
-            Profile::TwincatBa => "twincat_ba",
-            Profile::TcontCp => "tcont_cp",
-            Profile::SchneiderPwm => "schneider_pwm",
-            Profile::FrequencyOutput => "frequency_output",
-        }
-    }
-
-    /// The short-pulse policy this profile implies.
-    pub const fn short_pulse(self) -> ShortPulse {
-        match self {
-            Profile::TwincatBa => ShortPulse::Stretch,
-            Profile::FrequencyOutput => ShortPulse::Band,
-            _ => ShortPulse::Suppress,
-        }
-    }
-
-    /// The apply-at policy this profile implies.
-    pub const fn apply_at(self) -> ApplyAt {
-        match self {
-            Profile::TwincatBa => ApplyAt::NextStep,
-            Profile::TcontCp => ApplyAt::Immediate,
-            _ => ApplyAt::NextPeriod,
-        }
-    }
-
-    /// The disable policy this profile implies.
-    pub const fn on_disable(self) -> OnDisable {
-        match self {
-            Profile::FrequencyOutput => OnDisable::Hold,
-            _ => OnDisable::Off,
-        }
-    }
-
-    /// Whether an unset `min_off_ms` follows `min_on_ms` (000) or falls to the hardware floor
-    /// (002: nMinSwiTi limits the switch-on time only).
-    pub const fn min_off_follows_min_on(self) -> bool {
-        !matches!(self, Profile::TwincatBa)
-    }
-
-    /// The vendor block this profile reproduces, for documentation and diagnostics.
-    pub const fn vendor_block(self) -> &'static str {
-        match self {
-            Profile::PicoGfx => "Eaton Pico GFX PW01/PW02",
-            Profile::TwincatBa => "Beckhoff TwinCAT FB_BA_PWM",
-            Profile::TcontCp => "Siemens S7 TCONT_CP pulse generator",
-            Profile::SchneiderPwm => "Schneider process library PWM",
-            Profile::FrequencyOutput => "Schneider Frequency_Output",
-        }
-    }
-}
-
-/// A policy or profile name that is not one of the accepted spellings.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-#[error("`{value}` is not one of: {accepted}")]
-pub struct UnknownName {
-    /// What was asked for (truncated to its first 32 bytes when longer).
-    pub value: ShortStr,
-    /// The accepted spellings, `|`-separated.
-    pub accepted: &'static str,
-}
-
-/// A short, `Copy` string for error values (at most 32 bytes, cut at a char boundary).
-#[derive(Clone, Copy, PartialEq, Eq)]
-pub struct ShortStr {
-    buf: [u8; 32],
-    len: u8,
-}
-
-impl ShortStr {
-    /// Keeps the first 32 bytes of `s` (at a char boundary).
-    pub fn new(s: &str) -> Self {
-        let mut end = s.len().min(32);
-        while !s.is_char_boundary(end) {
-            end -= 1;
-        }
-        let mut buf = [0u8; 32];
-        buf[..end].copy_from_slice(&s.as_bytes()[..end]);
-        ShortStr {
-            buf,
-            len: end as u8,
-        }
-    }
-
-    /// The kept text.
-    pub fn as_str(&self) -> &str {
-        // Always cut at a char boundary of valid UTF-8 in `new`.
-        std::str::from_utf8(&self.buf[..self.len as usize]).unwrap_or("")
-    }
-}
-
-impl fmt::Display for ShortStr {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl fmt::Debug for ShortStr {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        fmt::Debug::fmt(self.as_str(), f)
-    }
-}
-
-macro_rules! named_enum {
-    ($ty:ty, $accepted:literal, [$($v:expr),+ $(,)?]) => {
-        impl FromStr for $ty {
-            type Err = UnknownName;
-            fn from_str(s: &str) -> Result<Self, UnknownName> {
-                [$($v),+]
-                    .into_iter()
-                    .find(|v| v.as_str() == s)
-                    .ok_or(UnknownName { value: ShortStr::new(s), accepted: $accepted })
-            }
-        }
-        impl fmt::Display for $ty {
-            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-                f.write_str(self.as_str())
-            }
-        }
-    };
-}
-
-named_enum!(
-    OutputKind,
-    "transistor|relay",
-    [OutputKind::Transistor, OutputKind::Relay]
-);
-named_enum!(
-    ShortPulse,
-    "suppress|stretch|band|extend",
-    [
-        ShortPulse::Suppress,
-        ShortPulse::Stretch,
-        ShortPulse::Band,
-        ShortPulse::Extend
-    ]
-);
-named_enum!(
-    ApplyAt,
-    "next_period|next_step|immediate",
-    [ApplyAt::NextPeriod, ApplyAt::NextStep, ApplyAt::Immediate]
-);
-named_enum!(OnDisable, "off|hold", [OnDisable::Off, OnDisable::Hold]);
-named_enum!(
-    Profile,
-    "pico_gfx|twincat_ba|tcont_cp|schneider_pwm|frequency_output",
-    [
-        Profile::PicoGfx,
-        Profile::TwincatBa,
-        Profile::TcontCp,
-        Profile::SchneiderPwm,
-        Profile::FrequencyOutput
-    ]
-);
 
 /// The settings of one channel as a user states them (SPEC §1 table): milliseconds, a profile,
 /// and optional policy overrides. `None` means "as the profile says".
@@ -387,6 +92,11 @@ pub struct ChannelParams {
     /// the one in force by less is ignored (relay wear); 0 %, `min_duty_pct` and
     /// `max_duty_pct` always pass. 0 = off.
     pub duty_deadband_pct: f64,
+    /// Rolling-average cap, percent 0..=100: over every window of `avg_window_s` the line is
+    /// on for at most this share of the window (an energy budget). 100 = off.
+    pub avg_duty_limit_pct: f64,
+    /// The window of the rolling-average cap, s; 1..=86 400.
+    pub avg_window_s: u64,
 }
 
 impl Default for ChannelParams {
@@ -411,6 +121,8 @@ impl Default for ChannelParams {
             zero_means_zero: false,
             duty_slew_pct_per_s: 0.0,
             duty_deadband_pct: 0.0,
+            avg_duty_limit_pct: 100.0,
+            avg_window_s: 60,
         }
     }
 }
@@ -442,6 +154,8 @@ pub enum PercentParam {
     MinDuty,
     /// `duty_deadband_pct`.
     Deadband,
+    /// `avg_duty_limit_pct`.
+    AvgDutyLimit,
 }
 
 impl fmt::Display for PercentParam {
@@ -450,6 +164,7 @@ impl fmt::Display for PercentParam {
             PercentParam::MaxDuty => "max_duty_pct",
             PercentParam::MinDuty => "min_duty_pct",
             PercentParam::Deadband => "duty_deadband_pct",
+            PercentParam::AvgDutyLimit => "avg_duty_limit_pct",
         })
     }
 }
@@ -577,6 +292,14 @@ pub enum ConfigError {
         /// The maximum, percent per second.
         max: f64,
     },
+    /// The window of the rolling-average cap outside 1..=86 400 s.
+    #[error("avg_window_s {value_s} is outside 1..{max_s} s")]
+    AvgWindowOutOfRange {
+        /// The refused value, s.
+        value_s: u64,
+        /// The maximum, s.
+        max_s: u64,
+    },
 }
 
 /// Validated channel settings in nanoseconds, with every profile default resolved.
@@ -614,6 +337,10 @@ pub struct ChannelConfig {
     pub slew_per_s: f64,
     /// Dead band of commands, fraction 0..=1; 0 = off.
     pub deadband: f64,
+    /// Rolling-average cap of the line's on time, fraction 0..=1 of `avg_window` (1 = off).
+    pub avg_limit: f64,
+    /// The window of the rolling-average cap, ns.
+    pub avg_window: Nanos,
     /// The parameters this was made from (for status and round trips).
     pub params: ChannelParams,
 }
@@ -662,7 +389,8 @@ impl ChannelParams {
     /// Checks every limit of SPEC §1 and 000's table and resolves the profile.
     ///
     /// The checks run in a fixed order so the reason given is deterministic: period, minimum
-    /// times, edge band, cycle extension, watchdog, fault value, maximum on time, power limits, slew limit.
+    /// times, edge band, cycle extension, watchdog, fault value, maximum on time, power limits, slew
+    /// limit, rolling-average cap.
     pub fn validate(&self) -> Result<ChannelConfig, ConfigError> {
         let kind = self.output_kind;
         if self.period_ms != 0 && self.period_ms < kind.min_period_ms() {
@@ -746,6 +474,7 @@ impl ChannelParams {
             (PercentParam::MaxDuty, self.max_duty_pct),
             (PercentParam::MinDuty, self.min_duty_pct),
             (PercentParam::Deadband, self.duty_deadband_pct),
+            (PercentParam::AvgDutyLimit, self.avg_duty_limit_pct),
         ] {
             if !(0.0..=100.0).contains(&value) {
                 return Err(ConfigError::PercentOutOfRange { which, value });
@@ -761,6 +490,12 @@ impl ChannelParams {
             return Err(ConfigError::SlewOutOfRange {
                 value: self.duty_slew_pct_per_s,
                 max: MAX_SLEW_PCT_PER_S,
+            });
+        }
+        if !(1..=MAX_AVG_WINDOW_S).contains(&self.avg_window_s) {
+            return Err(ConfigError::AvgWindowOutOfRange {
+                value_s: self.avg_window_s,
+                max_s: MAX_AVG_WINDOW_S,
             });
         }
         Ok(ChannelConfig {
@@ -780,6 +515,8 @@ impl ChannelParams {
             zero_means_zero: self.zero_means_zero,
             slew_per_s: self.duty_slew_pct_per_s / 100.0,
             deadband: self.duty_deadband_pct / 100.0,
+            avg_limit: self.avg_duty_limit_pct / 100.0,
+            avg_window: self.avg_window_s * 1_000 * NS_PER_MS,
             params: *self,
         })
     }
@@ -1236,6 +973,42 @@ mod tests {
         })
         .unwrap();
         assert_eq!((c.limit_duty(0.0), c.limit_duty(0.05)), (0.0, 0.1));
+    }
+
+    #[test]
+    fn the_rolling_average_cap_is_checked() {
+        let c = params().validate().unwrap();
+        assert_eq!((c.avg_limit, c.avg_window), (1.0, 60 * 1000 * NS_PER_MS));
+        for (pct, s) in [(101.0, 60), (-1.0, 60), (f64::NAN, 60)] {
+            let e = ChannelParams {
+                avg_duty_limit_pct: pct,
+                avg_window_s: s,
+                ..params()
+            }
+            .validate()
+            .unwrap_err();
+            assert!(e.to_string().starts_with("avg_duty_limit_pct "), "{e}");
+        }
+        for s in [0, MAX_AVG_WINDOW_S + 1] {
+            let e = ChannelParams {
+                avg_window_s: s,
+                ..params()
+            }
+            .validate()
+            .unwrap_err();
+            assert_eq!(
+                e.to_string(),
+                format!("avg_window_s {s} is outside 1..86400 s")
+            );
+        }
+        let c = ChannelParams {
+            avg_duty_limit_pct: 25.0,
+            avg_window_s: MAX_AVG_WINDOW_S,
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        assert_eq!((c.avg_limit, c.avg_window), (0.25, 86_400_000 * NS_PER_MS));
     }
 
     #[test]

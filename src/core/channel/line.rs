@@ -1,0 +1,122 @@
+//! The line guard: the output line as really written, and every change of level the schedule
+//! asks for held back until the line has kept its level for its minimum (counted from the last
+//! real edge); the maximum on time's cut of a high line.
+
+use super::{Channel, Event, Level, Line, Nanos};
+
+impl Channel {
+    /// Times the cut of a high line at `max_on_ms` after its last real rise, but not before
+    /// `floor`; none when the line is low or no maximum is set.
+    pub(super) fn retime_cut(&mut self, floor: Nanos) {
+        self.line.cut = match (self.line.level, self.line.since) {
+            (Level::High, Some(since)) if self.cfg.max_on > 0 => {
+                Some(since.saturating_add(self.cfg.max_on).max(floor))
+            }
+            _ => None,
+        };
+    }
+
+    /// Moves a change held back for the line to no earlier than the end of the minimum of the
+    /// phase the line is in (after the phase's start or the minima changed).
+    pub(super) fn retime_held(&mut self) {
+        if let Some((level, at)) = self.line.held {
+            self.line.held = Some((level, self.earliest(level, at)));
+        }
+    }
+
+    /// The earliest instant at or after `at` the line may change to `level`.
+    pub(super) fn earliest(&self, level: Level, at: Nanos) -> Nanos {
+        debug_assert_ne!(level, self.line.level);
+        self.line
+            .since
+            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
+            .max(at)
+    }
+
+    /// The minimum time the line must keep `level` once it has it, ns.
+    pub(super) fn min_for(&self, level: Level) -> Nanos {
+        match level {
+            Level::High => self.cfg.min_on,
+            Level::Low => self.cfg.min_off,
+        }
+    }
+
+    /// When the line's current break reaches its minimum, if the line is low and has ever
+    /// been high.
+    pub(super) fn break_ends_at(&self) -> Option<Nanos> {
+        match (self.line.level, self.line.since) {
+            (Level::Low, Some(since)) => Some(since.saturating_add(self.cfg.min_off)),
+            _ => None,
+        }
+    }
+
+    /// The schedule asks for `level` at `at`: the line follows at once if it has kept its level
+    /// for its minimum, else the change is held back until it has. Asking for the level the
+    /// line has cancels a change held back (that pulse or break never reaches the line).
+    pub(super) fn set_level(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        self.level = level;
+        if self.estop && level == Level::High {
+            // Latched: the line stays low and nothing is held back for later.
+            return;
+        }
+        if level == self.line.level {
+            // A change held back by the interlock never reached the line: two edges missed.
+            // One held while the line is held inactive was never meant to reach it.
+            if self.line.held.take().is_some() && self.live && !self.line.resumes {
+                emit(Event::Missed { edges: 2 });
+            }
+            return;
+        }
+        let when = self.earliest(level, at);
+        if when == at && !(self.no_rise() && level == Level::High) {
+            self.write_line(level, at, emit);
+        } else {
+            // Asking again for the rise that resumes after a cut keeps it one.
+            let held = Some((level, when));
+            self.line.resumes &= self.line.held == held;
+            self.line.held = held;
+        }
+    }
+
+    /// A safety off (falling EN, watchdog trip): the line goes low at `at`, whatever its
+    /// minimum on time.
+    pub(super) fn force_low(&mut self, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        self.level = Level::Low;
+        self.line.held = None;
+        if self.line.level != Level::Low {
+            self.write_line(Level::Low, at, emit);
+        }
+    }
+
+    pub(super) fn write_line(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        if let (Level::High, Some(since)) = (self.line.level, self.line.since) {
+            self.avg_fall(since, at);
+        }
+        self.line = Line {
+            level,
+            since: Some(at),
+            held: None,
+            locked: self.line.locked,
+            cut: None,
+            resumes: false,
+        };
+        self.retime_cut(at);
+        emit(Event::Edge { at, level });
+    }
+
+    /// `max_on_ms` has run out on the high line at `t`: it goes low now (its minimum on time
+    /// has passed, as `max_on_ms` is never below it) and the schedule's rise, if it still asks
+    /// for one, is held back for the minimum break. A line held on by 004's hold stays off.
+    pub(super) fn cut(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
+        let resume = self.enabled && self.level == Level::High;
+        self.write_line(Level::Low, t, emit);
+        if resume {
+            self.line.held = Some((Level::High, t.saturating_add(self.cfg.min_off)));
+            self.line.resumes = true;
+        } else {
+            self.level = Level::Low;
+        }
+        self.cut_now = true;
+        self.report_flags(emit);
+    }
+}
