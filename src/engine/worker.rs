@@ -120,22 +120,26 @@ impl<O: Output> Worker<O> {
         let now = clock::monotonic_ns();
         for i in 0..self.channels.len() {
             if self.channels[i].poll_at().is_some_and(|t| t <= now) {
+                let held = self.channels[i].occupies();
                 self.bank.before(&mut self.channels, i, now);
                 let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
                 self.channels[i].poll(now, &mut |e| sink.event(e));
                 self.pushed |= sink.pushed;
                 self.touched[i] = true;
                 self.sync_pair(i, now);
-                // A slot freed by a fall is handed on at the fall's scheduled instant, so the
-                // next pulse starts where the last one ended, whatever the wake-up latency.
-                let fell = self
-                    .changes
-                    .iter()
-                    .rev()
-                    .find(|c| c.line == i)
-                    .filter(|c| c.level == Level::Low)
-                    .map_or(now, |c| c.scheduled_ns);
-                self.sync_bank(fell);
+                // Only a slot given up can let a waiting pulse start. It is handed on at the
+                // fall's scheduled instant, so the next pulse starts where the last one ended,
+                // whatever the wake-up latency.
+                if held && !self.channels[i].occupies() {
+                    let fell = self
+                        .changes
+                        .iter()
+                        .rev()
+                        .find(|c| c.line == i)
+                        .filter(|c| c.level == Level::Low)
+                        .map_or(now, |c| c.scheduled_ns);
+                    self.sync_bank(fell);
+                }
             }
         }
         // Without a heartbeat, or before its time, nothing more to look at.

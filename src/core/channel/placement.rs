@@ -30,6 +30,17 @@ impl Channel {
         self.lead = (after, others);
     }
 
+    /// Whether acting at `now` may start a period: no schedule runs (an enable, a command
+    /// from idle), or a step that can end a period (an off step, the alignment to the grid,
+    /// an on step with no break after it) is due. A lead set for the next period matters only
+    /// then.
+    pub fn may_start_period(&self, now: Nanos) -> bool {
+        match self.step {
+            None => true,
+            Some(s) => s.end <= now && matches!(s.kind, StepKind::Run | StepKind::Align),
+        }
+    }
+
     /// Where the on phase of the running period ends, ns (monotonic), as placed or as started
     /// late; `None` when it has none.
     pub fn on_end(&self) -> Option<Nanos> {

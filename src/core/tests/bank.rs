@@ -45,16 +45,30 @@ impl Rack {
     }
 
     /// One action on channel `i` at the current instant, as the output thread does it.
+    /// After an input, the planner always looks for waiting pulses; after a poll only if the
+    /// channel gave a slot up, as the output thread does.
     fn act(&mut self, i: usize, f: impl FnOnce(&mut Channel, Nanos, &mut dyn FnMut(Event))) {
+        self.act_as(i, true, f);
+    }
+
+    fn act_as(
+        &mut self,
+        i: usize,
+        input: bool,
+        f: impl FnOnce(&mut Channel, Nanos, &mut dyn FnMut(Event)),
+    ) {
         let now = self.now;
+        let held = self.channels[i].occupies();
         self.bank.before(&mut self.channels, i, now);
         let (edges, skips) = (&mut self.edges, &mut self.skips);
         f(&mut self.channels[i], now, &mut |e| {
             Rack::record(edges, skips, i, e)
         });
-        self.bank.after(&mut self.channels, now, &mut |c, e| {
-            Rack::record(edges, skips, c, e)
-        });
+        if input || (held && !self.channels[i].occupies()) {
+            self.bank.after(&mut self.channels, now, &mut |c, e| {
+                Rack::record(edges, skips, c, e)
+            });
+        }
     }
 
     /// Sets the planner at the current instant, as the output thread does on a parameter
@@ -84,7 +98,7 @@ impl Rack {
             self.now = d;
             for i in 0..self.channels.len() {
                 if self.channels[i].poll_at().is_some_and(|p| p <= d) {
-                    self.act(i, |ch, now, emit| ch.poll(now, emit));
+                    self.act_as(i, false, |ch, now, emit| ch.poll(now, emit));
                 }
             }
         }
