@@ -2,7 +2,7 @@
 //! drives them (in channel order, [`Bank::before`] and [`Bank::after`] around each action),
 //! every deadline processed exactly when due.
 
-use super::harness::MS;
+use super::harness::{high_spans, MS};
 use crate::core::{
     Bank, Channel, ChannelParams, Command, Event, Level, Nanos, Phase, ShortPulse, NS_PER_MS,
 };
@@ -148,28 +148,6 @@ impl Rack {
         }
         most as usize
     }
-}
-
-/// The spans [rise, fall) a line was high, from its edges; a span still open ends at `now`.
-fn high_spans(edges: &[(Nanos, Level)], now: Nanos) -> Vec<(Nanos, Nanos)> {
-    let mut spans = Vec::new();
-    let mut rise = None;
-    for &(t, l) in edges {
-        match (l, rise) {
-            (Level::High, None) => rise = Some(t),
-            (Level::Low, Some(r)) => {
-                if t > r {
-                    spans.push((r, t));
-                }
-                rise = None;
-            }
-            _ => {}
-        }
-    }
-    if let Some(r) = rise.filter(|r| *r < now) {
-        spans.push((r, now));
-    }
-    spans
 }
 
 fn period(ms: u64) -> ChannelParams {

@@ -181,16 +181,7 @@ impl Bench {
     }
     /// The line's high spans `[rise, fall)`, ns, in order; a running one ends now.
     pub fn high_spans(&self) -> Vec<(Nanos, Nanos)> {
-        let mut spans = Vec::new();
-        let mut rise = None;
-        for (t, level) in self.edges() {
-            match level {
-                Level::High => rise = rise.or(Some(t)),
-                Level::Low => spans.extend(rise.take().map(|a| (a, t))),
-            }
-        }
-        spans.extend(rise.map(|a| (a, self.now.max(a))));
-        spans
+        high_spans(&self.edges(), self.now)
     }
 
     /// The most on time any window of `w` ns up to now holds, ns, and where that window ends.
@@ -228,6 +219,23 @@ impl Bench {
             .map(|end| (on_before(end) - on_before(end.saturating_sub(w)), end))
             .collect()
     }
+}
+
+/// The spans `[rise, fall)` a line was high, ns, in order, from its edges (level @ ns): a
+/// repeated rise keeps the first, a zero-length pulse (rise and fall at one instant, which the
+/// output thread merges away) is no span, and a span still open ends at `now`.
+pub fn high_spans(edges: &[(Nanos, Level)], now: Nanos) -> Vec<(Nanos, Nanos)> {
+    let mut spans = Vec::new();
+    let mut rise = None;
+    for &(t, level) in edges {
+        match level {
+            Level::High => rise = rise.or(Some(t)),
+            Level::Low => spans.extend(rise.take().map(|a| (a, t))),
+        }
+    }
+    spans.extend(rise.map(|a| (a, now)));
+    spans.retain(|(a, z)| a < z);
+    spans
 }
 
 fn trim(ms: f64) -> String {
