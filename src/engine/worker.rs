@@ -167,16 +167,31 @@ impl<O: Output> Worker<O> {
         let Some(p) = self.interlocks.partner(i) else {
             return;
         };
+        self.across(|channels, pairs, _, emit| pairs.sync(channels, i, now, emit));
+        self.touched[p] = true;
+    }
+
+    /// Runs a step of a planner over the channels (`f`: the split-range pairs, the node-level
+    /// planner), routing the events it makes for any channel as that channel's own: edges to
+    /// the write batch, the rest to the report queue, and a fresh status for the channel.
+    fn across(
+        &mut self,
+        f: impl FnOnce(&mut [Channel], &Interlocks, Bank, &mut dyn FnMut(usize, Event)),
+    ) {
         let (changes, reports, dropped) = (&mut self.changes, &mut self.reports, &self.dropped);
-        let mut pushed = false;
-        self.interlocks
-            .sync(&mut self.channels, i, now, &mut |c, e| {
+        let (touched, mut pushed) = (&mut self.touched, false);
+        f(
+            &mut self.channels,
+            &self.interlocks,
+            self.bank,
+            &mut |c, e| {
                 let mut sink = Sink::new(c, changes, reports, dropped);
                 sink.event(e);
                 pushed |= sink.pushed;
-            });
+                touched[c] = true;
+            },
+        );
         self.pushed |= pushed;
-        self.touched[p] = true;
     }
 
     /// Sets the node-level planner (`phase`, `max_simultaneous_on`) at `now`: the phase takes
@@ -187,30 +202,14 @@ impl<O: Output> Worker<O> {
             self.bank.before(&mut self.channels, i, now);
         }
         // A lowered limit takes effect at once, a raised one lets waiting pulses start.
-        let (changes, reports, dropped) = (&mut self.changes, &mut self.reports, &self.dropped);
-        let (touched, mut pushed) = (&mut self.touched, false);
-        self.bank.shed(&mut self.channels, now, &mut |c, e| {
-            let mut sink = Sink::new(c, changes, reports, dropped);
-            sink.event(e);
-            pushed |= sink.pushed;
-            touched[c] = true;
-        });
-        self.pushed |= pushed;
+        self.across(|channels, _, bank, emit| bank.shed(channels, now, emit));
         self.sync_bank(now);
     }
 
     /// After any action, at `now` (the instant a line went off, when one did): on phases
     /// waiting for a slot that may start now do (written in this same batch).
     fn sync_bank(&mut self, now: Nanos) {
-        let (changes, reports, dropped) = (&mut self.changes, &mut self.reports, &self.dropped);
-        let (touched, mut pushed) = (&mut self.touched, false);
-        self.bank.after(&mut self.channels, now, &mut |c, e| {
-            let mut sink = Sink::new(c, changes, reports, dropped);
-            sink.event(e);
-            pushed |= sink.pushed;
-            touched[c] = true;
-        });
-        self.pushed |= pushed;
+        self.across(|channels, _, bank, emit| bank.after(channels, now, emit));
     }
 
     /// Latches or releases the e-stop of every channel at `now`.
