@@ -23,9 +23,8 @@
 //!   minimum on time). Nothing else here shortens a pulse or a break: the channel's line
 //!   guard still holds every minimum.
 
-use super::config::{ShortStr, UnknownName};
+use super::config::named_enum;
 use super::{Channel, Event, Nanos};
-use std::str::FromStr;
 
 /// How the channels' periods are placed against each other (node parameter `phase`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -47,26 +46,7 @@ impl Phase {
     }
 }
 
-impl FromStr for Phase {
-    type Err = UnknownName;
-
-    fn from_str(s: &str) -> Result<Phase, Self::Err> {
-        match s {
-            "sync" => Ok(Phase::Sync),
-            "stagger" => Ok(Phase::Stagger),
-            _ => Err(UnknownName {
-                value: ShortStr::new(s),
-                accepted: "sync|stagger",
-            }),
-        }
-    }
-}
-
-impl std::fmt::Display for Phase {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
+named_enum!(Phase, "sync|stagger", [Phase::Sync, Phase::Stagger]);
 
 /// The node-level settings: `phase` and `max_simultaneous_on`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

@@ -268,11 +268,6 @@ impl Channel {
         self.enabled
     }
 
-    /// When the running period started, ns.
-    pub fn period_start(&self) -> Nanos {
-        self.period_start
-    }
-
     /// The channel runs periods: enabled, with a period, a schedule running.
     pub fn running(&self) -> bool {
         self.enabled && self.cfg.period > 0 && self.step.is_some()

@@ -92,18 +92,17 @@ impl Channel {
 
     /// Gives up the running on phase at `at` (ns) to bring the lines on under a lowered
     /// `max_simultaneous_on`: the schedule goes off for the rest of the period (the line
-    /// follows once it has kept its minimum on time), and the shortened pulse sets E1.
-    /// Returns whether there was an on phase to give up.
-    pub fn yield_slot(&mut self, at: Nanos, emit: &mut dyn FnMut(Event)) -> bool {
+    /// follows once it has kept its minimum on time), and the shortened pulse sets E1. Does
+    /// nothing without a running on phase.
+    pub fn yield_slot(&mut self, at: Nanos, emit: &mut dyn FnMut(Event)) {
         if !self.step.is_some_and(|s| s.level == Level::High) {
-            return false;
+            return;
         }
         let end = self.fix_period_end().max(at);
         self.slot_now = SlotUse::Skipped;
         self.report_flags(emit);
         self.step = Some(Step::off(StepKind::Run, at, end));
         self.set_level(Level::Low, at, emit);
-        true
     }
 
     /// When the running on step started, ns, if one runs.

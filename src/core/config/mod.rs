@@ -10,6 +10,7 @@ use std::fmt;
 
 mod policy;
 
+pub(crate) use policy::named_enum;
 pub use policy::{ApplyAt, OnDisable, OutputKind, Profile, ShortPulse, ShortStr, UnknownName};
 
 /// Nanoseconds in one millisecond.

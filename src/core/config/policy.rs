@@ -4,7 +4,6 @@
 
 use super::{Nanos, NS_PER_MS};
 use std::fmt;
-use std::str::FromStr;
 
 /// The electrical kind of output, which sets the limits of 000's table.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
@@ -255,24 +254,30 @@ impl fmt::Debug for ShortStr {
     }
 }
 
+/// `FromStr` (refusing other spellings with [`UnknownName`]) and `Display` for an enum of named
+/// choices with an `as_str`, from the list of its values.
 macro_rules! named_enum {
     ($ty:ty, $accepted:literal, [$($v:expr),+ $(,)?]) => {
-        impl FromStr for $ty {
-            type Err = UnknownName;
-            fn from_str(s: &str) -> Result<Self, UnknownName> {
+        impl std::str::FromStr for $ty {
+            type Err = $crate::core::config::UnknownName;
+            fn from_str(s: &str) -> Result<Self, Self::Err> {
                 [$($v),+]
                     .into_iter()
                     .find(|v| v.as_str() == s)
-                    .ok_or(UnknownName { value: ShortStr::new(s), accepted: $accepted })
+                    .ok_or($crate::core::config::UnknownName {
+                        value: $crate::core::config::ShortStr::new(s),
+                        accepted: $accepted,
+                    })
             }
         }
-        impl fmt::Display for $ty {
-            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        impl std::fmt::Display for $ty {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
                 f.write_str(self.as_str())
             }
         }
     };
 }
+pub(crate) use named_enum;
 
 named_enum!(
     OutputKind,

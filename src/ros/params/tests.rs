@@ -179,6 +179,32 @@ fn choices_are_checked_with_the_accepted_spellings() {
 }
 
 #[test]
+fn the_planners_parameters_are_checked() {
+    let s = ParamStore::new(2);
+    let e = live(&s, "phase", V::String("staggered".into())).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "parameter `phase`: `staggered` is not one of: sync|stagger"
+    );
+    assert!(live(&s, "phase", V::String(String::new())).is_err());
+    assert!(live(&s, "phase", V::Integer(1)).is_err());
+    assert!(live(&s, "phase", V::String("stagger".into())).is_ok());
+    for bad in [-1, 100, i64::MAX] {
+        assert!(
+            live(&s, "max_simultaneous_on", V::Integer(bad)).is_err(),
+            "{bad}"
+        );
+    }
+    assert!(live(&s, "max_simultaneous_on", V::Double(1.5)).is_err());
+    for ok in [0, 1, 99] {
+        assert!(
+            live(&s, "max_simultaneous_on", V::Integer(ok)).is_ok(),
+            "{ok}"
+        );
+    }
+}
+
+#[test]
 fn read_only_parameters_refuse_live_changes_but_accept_their_value() {
     let s = ParamStore::new(1);
     let e = live(&s, "pw01.active_low", V::Boolean(true)).unwrap_err();
