@@ -22,6 +22,7 @@
 //! a re-evaluation) by the virtual time since the last one. After them, the rolling-average
 //! cap keeps the line's on time over a window within its energy budget (see `budget`).
 
+use super::board::{LineBoard, Seat};
 use super::command::{Command, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
 use super::plan::{definitely_less, Plan};
@@ -164,6 +165,9 @@ pub struct Channel {
     skipped: u64,
     /// The line's on time over the rolling-average window (`avg_duty_limit_pct`).
     avg: budget::Budget,
+    /// The board of the node's real line levels this channel's line guard consults before a
+    /// rise (see [`Channel::seat_on`]); `None` for a channel on its own.
+    seat: Option<Seat>,
 }
 
 impl Channel {
@@ -215,7 +219,21 @@ impl Channel {
             slot_before: SlotUse::None,
             skipped: 0,
             avg: budget::Budget::new(cfg.avg_window),
+            seat: None,
         }
+    }
+
+    /// Seats the channel on `board` as line `line`: from then on every rise of its line is
+    /// checked against the board's rules at the moment it would be written (a split-range
+    /// partner high, `max_simultaneous_on` lines high), and held back while they forbid it;
+    /// every level written is recorded there. Call before the first action.
+    pub fn seat_on(&mut self, board: &std::sync::Arc<LineBoard>, line: usize) {
+        let seat = Seat {
+            board: std::sync::Arc::clone(board),
+            line,
+        };
+        seat.set(self.line.level);
+        self.seat = Some(seat);
     }
 
     /// The logical level of the output line, as last emitted in an [`Event::Edge`].
@@ -232,7 +250,11 @@ impl Channel {
     /// later than the instant it was emitted at: the minimum of the phase it began counts from
     /// here. The output thread calls this after each write; virtual-time callers need not.
     pub fn edge_written(&mut self, at: Nanos) {
-        if self.line.since.is_some_and(|s| at > s) {
+        if let Some(since) = self.line.since.filter(|s| at > *s) {
+            if self.line.level == Level::Low {
+                // The line was on until the fall really happened.
+                self.avg_late_fall(since, at);
+            }
             self.line.since = Some(at);
             self.retime_held();
             self.retime_cut(at);
@@ -316,6 +338,10 @@ impl Channel {
         if changed {
             // The edge reaches the line now, however long ago it was due: the minimum of the
             // phase it begins counts from now, so a late edge moves the next one.
+            if self.line.level == Level::Low {
+                // And a late fall left the line on until now.
+                self.avg_late_fall(self.line.since.unwrap_or(now), now);
+            }
             self.line.since = Some(now);
             emit(Event::Edge {
                 at: last_at,

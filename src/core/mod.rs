@@ -5,6 +5,7 @@
 //! scheduled times and the instant it should call again ([`Channel::poll_at`]).
 
 pub mod bank;
+pub mod board;
 pub mod channel;
 pub mod command;
 pub mod config;
@@ -12,6 +13,7 @@ pub mod interlock;
 pub mod plan;
 
 pub use bank::{Bank, Phase};
+pub use board::LineBoard;
 pub use channel::{Channel, Event, Protections, Status};
 pub use command::{Command, CommandError, Duty, SV_FULL_SCALE};
 pub use config::{

@@ -1,6 +1,9 @@
 //! The output thread: the only place where time is read and outputs are written.
 //!
 //! Requests arrive from the ROS side through a wait-free ring buffer and an eventfd wake-up;
+//! the safety inputs (e-stop, the hold of the lines, the planner's limits) through a
+//! latest-value slot read at every wake-up before the queue ([`safety`]), so a full queue
+//! cannot lose or delay them;
 //! the thread sleeps on a timerfd armed with absolute CLOCK_MONOTONIC deadlines, polls the
 //! channel cores, writes edges to the [`Output`](crate::output::Output) and sends reports back
 //! through a second ring buffer that never blocks it (a full buffer drops and counts).
@@ -99,10 +102,15 @@ pub enum Report {
     },
 }
 
+pub mod safety;
 mod thread;
 pub(crate) mod worker;
 
+#[cfg(test)]
+mod tests;
+
 pub use thread::{
     monotonic_timer, spawn, spawn_with, Engine, EngineError, EngineHandle, EngineOptions, Liveness,
-    OutputThread, Reports, Requests, LIVENESS_TICK_NS, SHUTDOWN_WAIT,
+    NotTaken, OutputThread, Reports, Requests, SafetyPath, LIVENESS_TICK_NS, SAFETY_TAKE_BOUND,
+    SHUTDOWN_WAIT,
 };

@@ -5,8 +5,9 @@
 //! Real-time set-up is opt-in (`rt_priority`): SCHED_FIFO and mlockall, each refused cleanly
 //! with one log line when the process lacks the privilege.
 
+use super::safety::SafetySlot;
 use super::worker::{Stop, Worker};
-use super::{Report, Request};
+use super::{Input, Report, Request};
 use crate::clock;
 use crate::core::{Bank, ChannelConfig, Nanos};
 use crate::output::{EmergencyOff, ErrorKind, Output, OutputError};
@@ -138,21 +139,110 @@ impl EngineError {
     }
 }
 
+/// How long a safety input may wait for the output thread to take it before the outputs are
+/// switched off through the emergency handle instead ([`SafetyPath::take`]). The thread takes
+/// one within microseconds when it runs; only a thread stuck in a write or starved of CPU for
+/// this long misses it.
+pub const SAFETY_TAKE_BOUND: Duration = Duration::from_millis(250);
+
+/// The safety inputs' path to the output thread (see [`safety`](super::safety)): the e-stop,
+/// the hold of the lines and the planner's limits, as latest values the thread reads at every
+/// wake-up before any queued request. Never full, never blocks; cheap to clone.
+#[derive(Clone)]
+pub struct SafetyPath {
+    slot: Arc<SafetySlot>,
+    wake: Arc<EventFd>,
+    emergency: Arc<dyn EmergencyOff>,
+    alive: Arc<AtomicBool>,
+}
+
+/// A safety input the output thread did not take within the bound.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum NotTaken {
+    /// The thread runs but did not take it in time (stuck in a write, starved of CPU).
+    #[error("the output thread did not take it within {} ms", .0.as_millis())]
+    Late(Duration),
+    /// The thread has stopped (after an output fault or a shutdown).
+    #[error("the output thread has stopped")]
+    Stopped,
+}
+
+impl SafetyPath {
+    /// Stores `input` (an [`Input::EStop`], [`Input::Live`] or [`Input::Bank`]; anything else
+    /// is ignored and returns 0) and wakes the thread; returns the request number to wait for.
+    pub fn store(&self, input: Input) -> u64 {
+        let request = match input {
+            Input::EStop(latched) => self.slot.estop(latched),
+            Input::Live(live) => self.slot.live(live),
+            Input::Bank(bank) => self.slot.bank(bank),
+            _ => return 0,
+        };
+        // EAGAIN: the counter is saturated, a wake-up is pending anyway.
+        let _ = self.wake.write(1);
+        request
+    }
+
+    /// Waits up to `bound` until the output thread has applied request `request` and written
+    /// the lines; returns how long that took.
+    pub fn wait(&self, request: u64, bound: Duration) -> Result<Duration, NotTaken> {
+        let start = std::time::Instant::now();
+        loop {
+            if self.slot.taken(request) {
+                return Ok(start.elapsed());
+            }
+            if !self.alive.load(Ordering::Acquire) {
+                return Err(NotTaken::Stopped);
+            }
+            if start.elapsed() >= bound {
+                return Err(NotTaken::Late(bound));
+            }
+            std::thread::sleep(Duration::from_micros(50));
+        }
+    }
+
+    /// [`SafetyPath::store`], then [`SafetyPath::wait`] up to [`SAFETY_TAKE_BOUND`]. A thread
+    /// that still runs but did not take it in time has every output switched off through the
+    /// emergency handle (the outputs stay off for the rest of the process: the thread's next
+    /// write fails and it stops with an output fault); a stopped thread has left them off.
+    /// Either way no line is on when this returns an error.
+    pub fn take(&self, input: Input) -> Result<Duration, NotTaken> {
+        let request = self.store(input);
+        let r = self.wait(request, SAFETY_TAKE_BOUND);
+        if r.is_err() {
+            self.emergency.all_inactive();
+        }
+        r
+    }
+
+    /// Whether request `request` has been taken.
+    pub fn taken(&self, request: u64) -> bool {
+        self.slot.taken(request)
+    }
+}
+
 /// The ROS side's end of the request queue.
 pub struct Requests {
     tx: rtrb::Producer<Request>,
     wake: Arc<EventFd>,
     channels: usize,
+    safety: SafetyPath,
 }
 
 impl Requests {
-    /// Queues a request and wakes the output thread. Never blocks.
+    /// Queues a request and wakes the output thread. Never blocks. The safety inputs
+    /// ([`Input::EStop`], [`Input::Live`], [`Input::Bank`]) go through the
+    /// [`SafetyPath`] instead, which is never full; use [`Requests::safety`] to wait until
+    /// the thread has taken them.
     pub fn send(&mut self, request: Request) -> Result<(), EngineError> {
         if request.channel >= self.channels {
             return Err(EngineError::NoSuchChannel(request.channel));
         }
         if self.tx.is_abandoned() {
             return Err(EngineError::Stopped);
+        }
+        if let Input::EStop(_) | Input::Live(_) | Input::Bank(_) = request.input {
+            self.safety.store(request.input);
+            return Ok(());
         }
         self.tx.push(request).map_err(|_| EngineError::QueueFull {
             capacity: self.tx.buffer().capacity(),
@@ -165,6 +255,11 @@ impl Requests {
     /// Number of channels.
     pub fn channels(&self) -> usize {
         self.channels
+    }
+
+    /// The safety inputs' path, for callers that hold it apart from the queue's lock.
+    pub fn safety(&self) -> SafetyPath {
+        self.safety.clone()
     }
 }
 
@@ -429,6 +524,8 @@ where
     let emergency = output.emergency_off();
     let channels = configs.len();
     let liveness = Liveness::new(clock::monotonic_ns());
+    let slot = Arc::new(SafetySlot::new(!opts.start_held, opts.bank));
+    let alive = Arc::new(AtomicBool::new(true));
 
     let thread = {
         let (req_wake, rep_wake, stop, fault, dropped, liveness) = (
@@ -439,12 +536,13 @@ where
             dropped.clone(),
             liveness.clone(),
         );
+        let (slot, alive) = (slot.clone(), alive.clone());
         std::thread::Builder::new()
             .name("pwm-output".into())
             .spawn(move || {
                 real_time_setup(opts.rt_priority);
                 let now = clock::monotonic_ns();
-                let mut worker = Worker::new(&configs, output, rep_tx, dropped, now);
+                let mut worker = Worker::new(&configs, output, rep_tx, dropped, now, slot);
                 if let Some(half) = opts.heartbeat_half_period_ns {
                     worker.start_heartbeat(configs.len(), half, now);
                 }
@@ -469,6 +567,7 @@ where
                 // system call (timerfd, poll) this is the only place that does it.
                 let ran = run(&mut thread);
                 let finished = thread.finish();
+                alive.store(false, Ordering::Release);
                 ran.and(finished)
             })
             .map_err(EngineError::Spawn)?
@@ -478,6 +577,12 @@ where
             tx: req_tx,
             wake: req_wake.clone(),
             channels,
+            safety: SafetyPath {
+                slot,
+                wake: req_wake.clone(),
+                emergency: emergency.clone(),
+                alive,
+            },
         },
         reports: Reports {
             rx: rep_rx,

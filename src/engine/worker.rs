@@ -4,9 +4,10 @@
 //!
 //! Nothing here sleeps, locks, or allocates after construction.
 
+use super::safety::{SafetySlot, Wanted};
 use super::{EdgeReport, Input, Report, Request};
 use crate::clock;
-use crate::core::{Bank, Channel, ChannelConfig, Event, Interlocks, Level, Nanos};
+use crate::core::{Bank, Channel, ChannelConfig, Event, Interlocks, Level, LineBoard, Nanos};
 use crate::output::{LineChange, Output, OutputError};
 use rtrb::{Consumer, Producer};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -22,6 +23,9 @@ pub(crate) enum Stop<E> {
 pub(crate) struct Worker<O: Output> {
     channels: Vec<Channel>,
     interlocks: Interlocks,
+    /// The lines' real levels and the rules across them, read by every channel's line guard
+    /// at the moment it writes a rise.
+    board: Arc<LineBoard>,
     bank: Bank,
     seq: Vec<u64>,
     touched: Vec<bool>,
@@ -32,6 +36,11 @@ pub(crate) struct Worker<O: Output> {
     /// Set when at least one report was pushed since the last `take_pushed`.
     pushed: bool,
     heartbeat: Option<Heartbeat>,
+    /// The safety inputs' slot, and what of it has been applied.
+    safety: Arc<SafetySlot>,
+    seen: Wanted,
+    /// The clock (the monotonic clock; virtual time in tests).
+    clock: fn() -> Nanos,
 }
 
 /// The heartbeat line: toggled every half period on an absolute grid while the thread runs.
@@ -63,11 +72,18 @@ impl<O: Output> Worker<O> {
         reports: Producer<Report>,
         dropped: Arc<AtomicU64>,
         now: Nanos,
+        safety: Arc<SafetySlot>,
     ) -> Self {
         let n = configs.len();
+        let board = LineBoard::new(n);
+        let mut channels: Vec<Channel> = configs.iter().map(|c| Channel::new(*c, now)).collect();
+        for (i, ch) in channels.iter_mut().enumerate() {
+            ch.seat_on(&board, i);
+        }
         Worker {
-            channels: configs.iter().map(|c| Channel::new(*c, now)).collect(),
+            channels,
             interlocks: Interlocks::new(n),
+            board,
             bank: Bank::default(),
             seq: vec![0; n],
             touched: vec![false; n],
@@ -79,7 +95,17 @@ impl<O: Output> Worker<O> {
             dropped,
             pushed: false,
             heartbeat: None,
+            seen: safety.wanted(),
+            safety,
+            clock: clock::monotonic_ns,
         }
+    }
+
+    /// Reads time from `clock` instead of the monotonic clock (virtual time in tests).
+    #[cfg(test)]
+    pub(crate) fn with_clock(mut self, clock: fn() -> Nanos) -> Self {
+        self.clock = clock;
+        self
     }
 
     /// Toggles output line `line` every `half` ns from `now + half` on (a half period of at
@@ -113,11 +139,13 @@ impl<O: Output> Worker<O> {
     /// Applies every queued request, then every due deadline, writes the resulting edges in one
     /// call, and reports them.
     pub(crate) fn run(&mut self, requests: &mut Consumer<Request>) -> Result<(), Stop<O::Error>> {
-        let now = clock::monotonic_ns();
+        let now = (self.clock)();
+        // The safety inputs first, whatever waits in the queue.
+        let taken = self.take_safety(now);
         while let Ok(req) = requests.pop() {
             self.apply(now, req);
         }
-        let now = clock::monotonic_ns();
+        let now = (self.clock)();
         for i in 0..self.channels.len() {
             if self.channels[i].poll_at().is_some_and(|t| t <= now) {
                 let held = self.channels[i].occupies();
@@ -142,6 +170,7 @@ impl<O: Output> Worker<O> {
                 }
             }
         }
+        self.retry_rises(now);
         // Without a heartbeat, or before its time, nothing more to look at.
         let due = self.heartbeat.as_ref().is_some_and(|hb| hb.next <= now);
         let toggle = due && self.heartbeat_runs();
@@ -158,7 +187,60 @@ impl<O: Output> Worker<O> {
                 hb.next = now + hb.half;
             }
         }
-        self.flush(now)
+        self.flush(now)?;
+        if let Some(request) = taken {
+            // Applied and written: only now is it done.
+            self.safety.mark_taken(request);
+        }
+        Ok(())
+    }
+
+    /// Applies what changed in the safety slot since the last look, at `now`: the e-stop
+    /// (every latch and reset since, in order, folded: a latch and a reset both missed still
+    /// disable every channel), the hold of the lines, the planner. Returns the request number
+    /// it covers, if anything was asked since the last look.
+    fn take_safety(&mut self, now: Nanos) -> Option<u64> {
+        if self.safety.requested() == self.seen.request {
+            return None;
+        }
+        let w = self.safety.wanted();
+        let (from, to) = (self.seen.estop_epoch, w.estop_epoch);
+        if to > from {
+            // Latch, reset, latch, ... from the state applied; more than three steps repeat.
+            let steps = if to - from > 2 {
+                2 + (to - from) % 2
+            } else {
+                to - from
+            };
+            let mut latched = from % 2 == 1;
+            for _ in 0..steps {
+                latched = !latched;
+                self.estop(now, latched);
+            }
+        }
+        if w.live != self.seen.live {
+            self.set_live(now, w.live);
+        }
+        if w.bank != self.seen.bank {
+            self.set_bank(now, w.bank);
+        }
+        self.seen = w;
+        Some(w.request)
+    }
+
+    /// Rises the board of the lines held back while another line was high, written now that
+    /// it allows them, in channel order; each keeps the pair and the planner in step.
+    fn retry_rises(&mut self, now: Nanos) {
+        for i in 0..self.channels.len() {
+            if !self.channels[i].rise_due(now) {
+                continue;
+            }
+            let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
+            self.channels[i].retry_rise(now, &mut |e| sink.event(e));
+            self.pushed |= sink.pushed;
+            self.touched[i] = true;
+            self.sync_pair(i, now);
+        }
     }
 
     /// After channel `i` acted: its split-range partner, if any, is interlocked while `i` is
@@ -198,6 +280,7 @@ impl<O: Output> Worker<O> {
     /// effect at each channel's next period start, a lowered limit at once.
     pub(crate) fn set_bank(&mut self, now: Nanos, bank: Bank) {
         self.bank = bank;
+        self.board.set_max_on(bank.max_on);
         for i in 0..self.channels.len() {
             self.bank.before(&mut self.channels, i, now);
         }
@@ -284,7 +367,9 @@ impl<O: Output> Worker<O> {
             Input::Pair(partner) => {
                 // Refused pairs (unknown channel, already paired) are checked by the caller at
                 // start-up; here they are ignored rather than stop the thread.
-                let _ = self.interlocks.pair(req.channel, partner);
+                if self.interlocks.pair(req.channel, partner).is_ok() {
+                    self.board.pair(req.channel, partner);
+                }
             }
             Input::EStop(_) | Input::Live(_) | Input::Bank(_) => {}
         }
@@ -306,7 +391,7 @@ impl<O: Output> Worker<O> {
                 self.push(Report::OutputFault { channel });
                 return Err(Stop::Fault { channel, error });
             }
-            let actual_ns = clock::monotonic_ns();
+            let actual_ns = (self.clock)();
             let wall_ns = clock::wall_ns();
             self.report_status(now);
             for k in 0..self.changes.len() {
@@ -351,7 +436,7 @@ impl<O: Output> Worker<O> {
     /// Drives every line inactive (recording the edges of lines that were on) and returns the
     /// output so the caller can drop it where it wants.
     pub(crate) fn shut_down(mut self) -> (O, Result<(), O::Error>) {
-        let now = clock::monotonic_ns();
+        let now = (self.clock)();
         for (i, ch) in self.channels.iter().enumerate() {
             if ch.level() == Level::High {
                 self.changes.push(LineChange {

@@ -44,6 +44,10 @@ pub(super) struct Budget {
     allowance: Nanos,
     /// The cap holds the plan below what the other rules give.
     pub(super) acts: bool,
+    /// How much later than scheduled falls reach the line (a late wake-up, the write itself),
+    /// ns: the largest seen, decaying by a sixteenth at each fall, kept as a margin for the
+    /// next fall.
+    fall_lag: Nanos,
 }
 
 impl Budget {
@@ -57,6 +61,7 @@ impl Budget {
             window,
             allowance: Nanos::MAX,
             acts: false,
+            fall_lag: 0,
         }
     }
 
@@ -103,6 +108,7 @@ impl Budget {
         *self = Budget {
             allowance: self.allowance,
             acts: self.acts,
+            fall_lag: self.fall_lag,
             ..Budget::new(window)
         };
         self.count(now.saturating_sub(total), now);
@@ -118,6 +124,17 @@ impl Channel {
     /// The line fell at `at` after being high since `since`: counts the span.
     pub(super) fn avg_fall(&mut self, since: Nanos, at: Nanos) {
         self.avg.count(since.min(at), at);
+    }
+
+    /// A fall scheduled at `scheduled` reached the line only at `actual`: the line was on
+    /// until then, and the next fall may be as late (kept as a margin, see `committed`).
+    pub(super) fn avg_late_fall(&mut self, scheduled: Nanos, actual: Nanos) {
+        if actual <= scheduled {
+            return;
+        }
+        self.avg.count(scheduled, actual);
+        let lag = actual - scheduled;
+        self.avg.fall_lag = lag.max(self.avg.fall_lag - self.avg.fall_lag / 16);
     }
 
     /// Lays the ring out for the window in force at `now` (after a configuration change).
@@ -145,7 +162,7 @@ impl Channel {
     /// its on time, or what is left of the running pulse's minimum on time, whichever is
     /// longer (a rise also lasts its minimum); and if `max_on_ms` can cut the on phase, one
     /// more minimum on time (the pulse that resumes after the cut lasts its minimum, and may
-    /// outlast the on phase by that much).
+    /// outlast the on phase by that much); and for each fall, the lateness falls have shown.
     fn committed(&self, plan: &Plan, t: Nanos) -> Nanos {
         let (on, high_since) = match (self.line.level, self.line.since) {
             (Level::High, Some(since)) => (
@@ -156,11 +173,14 @@ impl Channel {
             _ if plan.t_on > 0 => (plan.t_on.max(self.cfg.min_on), t),
             _ => return 0,
         };
+        // Each fall may reach the line as late as the falls before it did.
+        let lag = self.avg.fall_lag;
         let max_on = self.cfg.max_on;
         if max_on > 0 && high_since.saturating_add(max_on) < t.saturating_add(on) {
             on.saturating_add(self.cfg.min_on)
+                .saturating_add(lag.saturating_mul(2))
         } else {
-            on
+            on.saturating_add(lag)
         }
     }
 

@@ -100,9 +100,27 @@ impl Channel {
         }
     }
 
-    /// No rise may reach the line: the interlock is engaged, the e-stop latched, or the line
-    /// is held inactive.
+    /// No rise may reach the line: the interlock is engaged, the e-stop latched, the line is
+    /// held inactive, or the board of the node's lines forbids it (see [`LineBoard`](crate::core::LineBoard)).
     pub(super) fn no_rise(&self) -> bool {
-        self.line.locked || self.estop || !self.live
+        self.line.locked || self.estop || !self.live || self.board_refuses()
+    }
+
+    /// The board of the node's lines forbids a rise of this line now.
+    pub(super) fn board_refuses(&self) -> bool {
+        self.seat.as_ref().is_some_and(|s| !s.may_rise())
+    }
+
+    /// Whether a rise held back is due at `now` (its minimum break has passed) and no gate
+    /// keeps it off the line: [`Channel::retry_rise`] would write it.
+    pub fn rise_due(&self, now: Nanos) -> bool {
+        matches!(self.line.held, Some((Level::High, at)) if at <= now) && !self.no_rise()
+    }
+
+    /// Writes a rise held back whose time has come, at `now`, if no gate keeps it off the
+    /// line any more. The driver calls this after every batch of actions, for rises the board
+    /// of the node's lines held back while another line was high.
+    pub fn retry_rise(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
+        self.release_held_rise(now, emit);
     }
 }

@@ -89,6 +89,16 @@ impl Channel {
     }
 
     pub(super) fn write_line(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
+        if level == Level::High && self.no_rise() {
+            // The last line: whatever asked for this rise, a gate forbids it now (the board of
+            // the node's lines above all, which no flag set before the action can have
+            // missed). It waits, held back, as a rise the interlock holds.
+            self.line.held = Some((Level::High, at));
+            return;
+        }
+        if let Some(seat) = &self.seat {
+            seat.set(level);
+        }
         if let (Level::High, Some(since)) = (self.line.level, self.line.since) {
             self.avg_fall(since, at);
         }

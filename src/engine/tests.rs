@@ -1,0 +1,538 @@
+//! The output thread's work in virtual time: the very [`Worker`] the thread runs, fed requests
+//! and safety inputs at random instants, woken late at random, with an output that checks at
+//! every write what no path may put on the lines: the two lines of a split-range pair high
+//! together, or a rise that leaves more lines high than `max_simultaneous_on`.
+
+use super::safety::SafetySlot;
+use super::worker::Worker;
+use super::{Input, Report, Request};
+use crate::core::{
+    ApplyAt, Bank, ChannelParams, Command, Level, Nanos, OutputKind, Phase, Profile, NS_PER_MS,
+};
+use crate::output::{EmergencyOff, LineChange, Output};
+use proptest::prelude::*;
+use std::cell::{Cell, RefCell};
+use std::sync::atomic::AtomicU64;
+use std::sync::Arc;
+
+const MS: Nanos = NS_PER_MS;
+/// How long a write takes in virtual time, ns.
+const WRITE_NS: Nanos = 30_000;
+
+thread_local! {
+    static NOW: Cell<Nanos> = const { Cell::new(0) };
+    /// The rules the output checks, and what it saw.
+    static LINES: RefCell<Lines> = RefCell::new(Lines::default());
+}
+
+fn now() -> Nanos {
+    NOW.with(Cell::get)
+}
+
+fn set_now(t: Nanos) {
+    NOW.with(|n| n.set(t));
+}
+
+#[derive(Default)]
+struct Lines {
+    high: Vec<bool>,
+    pairs: Vec<(usize, usize)>,
+    /// The limit in force for the writes from now on (0: none).
+    max_on: usize,
+    violations: Vec<String>,
+    rises: usize,
+    /// Every level written per line, at the instant the write completed (ns).
+    edges: Vec<Vec<(Nanos, bool)>>,
+}
+
+/// An output that checks the rules across lines at every write, after the whole batch.
+struct CheckedOutput {
+    lines: usize,
+}
+
+struct NoEmergency;
+impl EmergencyOff for NoEmergency {
+    fn all_inactive(&self) {}
+}
+
+impl Output for CheckedOutput {
+    type Error = std::convert::Infallible;
+
+    fn line_count(&self) -> usize {
+        self.lines
+    }
+
+    fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), Self::Error> {
+        LINES.with(|l| {
+            let mut l = l.borrow_mut();
+            let mut rose = false;
+            let done = now() + WRITE_NS;
+            for c in changes {
+                if c.line < l.high.len() {
+                    rose |= c.level == Level::High && !l.high[c.line];
+                    l.high[c.line] = c.level.is_high();
+                    l.edges[c.line].push((done, c.level.is_high()));
+                }
+            }
+            let t = now();
+            for &(a, b) in &l.pairs.clone() {
+                if l.high[a] && l.high[b] {
+                    l.violations
+                        .push(format!("lines {a} and {b} high together at {t} ns"));
+                }
+            }
+            let count = l.high.iter().filter(|h| **h).count();
+            if rose {
+                l.rises += 1;
+                if l.max_on > 0 && count > l.max_on {
+                    let max = l.max_on;
+                    l.violations.push(format!(
+                        "a rise left {count} lines high (max {max}) at {t} ns"
+                    ));
+                }
+            }
+        });
+        // The write takes time: the edge reaches the line later than it was decided.
+        set_now(now() + WRITE_NS);
+        Ok(())
+    }
+
+    fn set_all_inactive(&mut self) -> Result<(), Self::Error> {
+        LINES.with(|l| l.borrow_mut().high.iter_mut().for_each(|h| *h = false));
+        Ok(())
+    }
+
+    fn emergency_off(&self) -> Arc<dyn EmergencyOff> {
+        Arc::new(NoEmergency)
+    }
+}
+
+/// The worker with its queues, driven as the output thread drives it.
+struct Bench {
+    worker: Worker<CheckedOutput>,
+    tx: rtrb::Producer<Request>,
+    rx: rtrb::Consumer<Request>,
+    reports: rtrb::Consumer<Report>,
+    slot: Arc<SafetySlot>,
+}
+
+impl Bench {
+    fn new(params: &[ChannelParams], pairs: &[(usize, usize)], held: bool) -> Bench {
+        set_now(1_000 * MS);
+        let n = params.len();
+        LINES.with(|l| {
+            *l.borrow_mut() = Lines {
+                high: vec![false; n],
+                edges: vec![Vec::new(); n],
+                pairs: pairs.to_vec(),
+                ..Lines::default()
+            }
+        });
+        let configs: Vec<_> = params
+            .iter()
+            .map(|p| p.validate().expect("valid test parameters"))
+            .collect();
+        let (tx, rx) = rtrb::RingBuffer::new(4096);
+        let (rep_tx, reports) = rtrb::RingBuffer::new(1 << 16);
+        let slot = Arc::new(SafetySlot::new(!held, Bank::default()));
+        let mut worker = Worker::new(
+            &configs,
+            CheckedOutput { lines: n },
+            rep_tx,
+            Arc::new(AtomicU64::new(0)),
+            now(),
+            Arc::clone(&slot),
+        )
+        .with_clock(now);
+        if held {
+            worker.set_live(now(), false);
+        }
+        let mut b = Bench {
+            worker,
+            tx,
+            rx,
+            reports,
+            slot,
+        };
+        for &(a, c) in pairs {
+            b.send(a, Input::Pair(c));
+            b.send(c, Input::Pair(a));
+        }
+        b.wake();
+        b
+    }
+
+    fn send(&mut self, channel: usize, input: Input) {
+        match input {
+            Input::EStop(on) => {
+                self.slot.estop(on);
+            }
+            Input::Live(on) => {
+                self.slot.live(on);
+            }
+            Input::Bank(bank) => {
+                LINES.with(|l| l.borrow_mut().max_on = bank.max_on);
+                self.slot.bank(bank);
+            }
+            input => self
+                .tx
+                .push(Request { channel, input })
+                .expect("queue has room"),
+        }
+    }
+
+    /// One wake-up now, as the thread's loop does it.
+    fn wake(&mut self) {
+        if self.worker.run(&mut self.rx).is_err() {
+            unreachable!("the checked output never fails");
+        }
+        while self.reports.pop().is_ok() {}
+    }
+
+    /// Runs every deadline up to `t`, each woken `late` ns after it is due.
+    fn run_to(&mut self, t: Nanos, late: Nanos) {
+        while let Some(d) = self.worker.next_deadline() {
+            let at = d.max(now()) + late;
+            if at > t {
+                break;
+            }
+            set_now(at);
+            self.wake();
+        }
+        set_now(t.max(now()));
+    }
+}
+
+fn violations() -> Vec<String> {
+    LINES.with(|l| l.borrow().violations.clone())
+}
+
+fn rises() -> usize {
+    LINES.with(|l| l.borrow().rises)
+}
+
+/// The most on time line `line` had in any window of `window` ns, counting each high span from
+/// the end of the rise's write to the end of the fall's write.
+fn most_on_in_a_window(line: usize, window: Nanos) -> Nanos {
+    most_on_after(line, window, 0)
+}
+
+/// [`most_on_in_a_window`] over the windows that start at or after `from` (ns) only.
+fn most_on_after(line: usize, window: Nanos, from: Nanos) -> Nanos {
+    let edges = LINES.with(|l| l.borrow().edges[line].clone());
+    let mut spans = Vec::new();
+    let mut rose = None;
+    for (t, high) in edges {
+        match (high, rose) {
+            (true, None) => rose = Some(t),
+            (false, Some(r)) => {
+                spans.push((r, t));
+                rose = None;
+            }
+            _ => {}
+        }
+    }
+    spans
+        .iter()
+        .filter(|&&(_, end)| end >= from + window)
+        .map(|&(_, end)| {
+            let start = end - window;
+            spans
+                .iter()
+                .map(|&(a, b)| b.min(end).saturating_sub(a.max(start)))
+                .sum::<Nanos>()
+        })
+        .max()
+        .unwrap_or(0)
+}
+
+fn params(period_ms: u64, min_on_ms: u64, apply_at: Option<ApplyAt>) -> ChannelParams {
+    ChannelParams {
+        period_ms,
+        min_on_ms,
+        apply_at,
+        output_kind: OutputKind::Transistor,
+        ..ChannelParams::default()
+    }
+}
+
+#[test]
+fn a_pulse_started_by_a_slot_hand_over_never_overlaps_its_split_partner() {
+    // The case: 4 channels, pw01/pw02 a split pair, max 2 on, periods 200 ms, duties
+    // 50/20/30/40; pw03 and pw04 enabled, pw01 20 ms later, pw02 80 ms after that.
+    let p = params(200, 0, None);
+    let mut b = Bench::new(&[p; 4], &[(0, 1)], false);
+    b.send(
+        0,
+        Input::Bank(Bank {
+            phase: Phase::Sync,
+            max_on: 2,
+        }),
+    );
+    for (ch, d) in [(0, 50.0), (1, 20.0), (2, 30.0), (3, 40.0)] {
+        b.send(ch, Input::Command(Command::Percent(d)));
+    }
+    b.send(2, Input::Enable(true));
+    b.send(3, Input::Enable(true));
+    b.wake();
+    let t0 = now();
+    b.run_to(t0 + 20 * MS, 0);
+    b.send(0, Input::Enable(true));
+    b.wake();
+    b.run_to(t0 + 100 * MS, 0);
+    b.send(1, Input::Enable(true));
+    b.wake();
+    b.run_to(t0 + 3_000 * MS, 0);
+    assert!(rises() > 20, "the lines ran: {} rises", rises());
+    assert_eq!(violations(), Vec::<String>::new());
+}
+
+#[test]
+fn activating_a_managed_node_never_raises_both_lines_of_a_pair() {
+    // Both channels of a pair enabled at 95 % while the lines are held (inactive): at every
+    // activation only one line may rise.
+    let p = params(200, 0, None);
+    let mut b = Bench::new(&[p; 2], &[(0, 1)], true);
+    for ch in 0..2 {
+        b.send(ch, Input::Command(Command::Percent(95.0)));
+        b.send(ch, Input::Enable(true));
+    }
+    b.wake();
+    for k in 0..10 {
+        let t = now();
+        b.run_to(t + 37 * MS * (k + 1), 0);
+        b.send(0, Input::Live(true));
+        b.wake();
+        let t = now();
+        b.run_to(t + 300 * MS, 0);
+        b.send(0, Input::Live(false));
+        b.wake();
+    }
+    assert!(rises() >= 10, "the lines ran: {} rises", rises());
+    assert_eq!(violations(), Vec::<String>::new());
+}
+
+#[test]
+fn safety_inputs_are_taken_before_the_queued_commands_and_acknowledged_after_the_write() {
+    let p = params(100, 0, None);
+    let mut b = Bench::new(&[p; 2], &[], false);
+    b.send(0, Input::Command(Command::Percent(50.0)));
+    b.send(0, Input::Enable(true));
+    b.wake();
+    assert!(LINES.with(|l| l.borrow().high[0]), "pw01 on");
+    // A queue full of commands, then the e-stop: it is taken in the same wake-up, first, and
+    // no command after it raises a line.
+    for _ in 0..1000 {
+        b.send(0, Input::Enable(true));
+        b.send(0, Input::Command(Command::Percent(90.0)));
+    }
+    let r = b.slot.estop(true);
+    assert!(!b.slot.taken(r));
+    b.wake();
+    assert!(b.slot.taken(r), "acknowledged once written");
+    assert!(LINES.with(|l| !l.borrow().high[0]), "pw01 off");
+    let before = rises();
+    let t = now();
+    b.run_to(t + 2_000 * MS, 0);
+    assert_eq!(rises(), before, "nothing rises while latched");
+    // A latch and a reset both made before the thread looks still disable the channel.
+    let r = b.slot.estop(false);
+    b.wake();
+    assert!(b.slot.taken(r));
+    b.send(0, Input::Enable(true));
+    b.wake();
+    let t = now();
+    b.run_to(t + 200 * MS, 0);
+    assert!(rises() > before, "runs again after reset and enable");
+    b.slot.estop(true);
+    b.slot.estop(false);
+    b.wake();
+    let after = rises();
+    let t = now();
+    b.run_to(t + 1_000 * MS, 0);
+    assert_eq!(rises(), after, "the missed latch disabled the channel");
+}
+
+#[test]
+fn a_lowered_limit_and_a_hold_act_whatever_waits_in_the_queue() {
+    let p = params(100, 0, None);
+    let mut b = Bench::new(&[p; 3], &[], false);
+    for ch in 0..3 {
+        b.send(ch, Input::Command(Command::Percent(60.0)));
+        b.send(ch, Input::Enable(true));
+    }
+    b.wake();
+    for _ in 0..1000 {
+        b.send(1, Input::Command(Command::Percent(70.0)));
+    }
+    b.send(
+        0,
+        Input::Bank(Bank {
+            phase: Phase::Sync,
+            max_on: 1,
+        }),
+    );
+    let t = now();
+    b.run_to(t + 2_000 * MS, 0);
+    assert_eq!(violations(), Vec::<String>::new());
+    for _ in 0..1000 {
+        b.send(2, Input::Command(Command::Percent(80.0)));
+    }
+    let r = b.slot.live(false);
+    b.wake();
+    assert!(b.slot.taken(r));
+    assert!(
+        LINES.with(|l| l.borrow().high.iter().all(|h| !h)),
+        "all held off"
+    );
+    let before = rises();
+    let t = now();
+    b.run_to(t + 1_000 * MS, 0);
+    assert_eq!(rises(), before, "nothing rises while held");
+}
+
+#[derive(Debug, Clone)]
+enum Op {
+    Duty(usize, f64),
+    Split(f64),
+    Enable(usize, bool),
+    Live(bool),
+    EStop(bool),
+    Limit(usize, bool),
+}
+
+fn arb_op() -> impl Strategy<Value = Op> {
+    prop_oneof![
+        6 => (0usize..4, 10.0..100.0f64).prop_map(|(c, d)| Op::Duty(c, d)),
+        2 => (-100.0..100.0f64).prop_map(Op::Split),
+        4 => (0usize..4, prop::bool::weighted(0.8)).prop_map(|(c, on)| Op::Enable(c, on)),
+        2 => any::<bool>().prop_map(Op::Live),
+        1 => prop::bool::weighted(0.3).prop_map(Op::EStop),
+        2 => (0usize..4, any::<bool>()).prop_map(|(m, s)| Op::Limit(m, s)),
+    ]
+}
+
+fn arb_params() -> impl Strategy<Value = ChannelParams> {
+    (
+        prop::sample::select(vec![100u64, 150, 200]),
+        prop_oneof![Just(0u64), 1u64..40],
+        prop::sample::select(Profile::ALL.to_vec()),
+        prop::option::of(prop::sample::select(vec![
+            ApplyAt::NextPeriod,
+            ApplyAt::NextStep,
+            ApplyAt::Immediate,
+        ])),
+    )
+        .prop_map(|(period_ms, min_on_ms, profile, apply_at)| ChannelParams {
+            profile,
+            ..params(period_ms, min_on_ms, apply_at)
+        })
+}
+
+#[test]
+fn the_average_cap_holds_on_the_line_with_late_falls() {
+    // The case: period 10 ms, 50 % commanded, cap 30 % over 1 s; every write takes
+    // 30 us and every wake-up is 0.1 ms late.
+    let p = ChannelParams {
+        avg_duty_limit_pct: 30.0,
+        avg_window_s: 1,
+        ..params(10, 0, None)
+    };
+    let mut b = Bench::new(&[p], &[], false);
+    b.send(0, Input::Command(Command::Percent(50.0)));
+    b.send(0, Input::Enable(true));
+    b.wake();
+    let t = now();
+    b.run_to(t + 5_000 * MS, 100_000);
+    let most = most_on_in_a_window(0, 1_000 * MS);
+    assert!(most > 250 * MS, "the line ran at the cap: {most} ns");
+    assert!(
+        most <= 300 * MS,
+        "{most} ns on in a 1 s window, 300 ms allowed"
+    );
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 400, ..ProptestConfig::default() })]
+
+    /// The rolling-average cap holds on the line as written: falls that reach the line late
+    /// (a late wake-up, the write itself) count, and each decision keeps a margin of the
+    /// lateness falls have shown. A fall later than every one before it (the first fall among
+    /// them) can overshoot by that extra lateness once; it is then counted and taken off what
+    /// follows, so with the lateness steady no later window holds more than the cap.
+    #[test]
+    fn no_window_on_the_line_holds_more_than_the_average_cap(
+        period_ms in prop::sample::select(vec![10u64, 20, 50, 100]),
+        duty in 20.0..100.0f64,
+        limit in 5.0..60.0f64,
+        window_s in 1u64..3,
+        late in 0u64..300_000,
+        spike in prop::option::of(0u64..300_000),
+    ) {
+        let p = ChannelParams {
+            avg_duty_limit_pct: limit,
+            avg_window_s: window_s,
+            ..params(period_ms, 0, None)
+        };
+        let mut b = Bench::new(&[p], &[], false);
+        b.send(0, Input::Command(Command::Percent(duty)));
+        b.send(0, Input::Enable(true));
+        b.wake();
+        let window = window_s * 1_000 * MS;
+        let t = now() + 2 * window;
+        b.run_to(t, late);
+        // One wake-up later than all before it, then steady again.
+        let extra = spike.unwrap_or(0);
+        let t = now() + period_ms * MS;
+        b.run_to(t, late + extra);
+        let t = now() + 2 * window;
+        b.run_to(t, late);
+        let allowed = (limit / 100.0 * window as f64).floor() as Nanos;
+        // The first fall and the spike are later than any fall before them.
+        let unforeseen = late + WRITE_NS + extra;
+        let most = most_on_in_a_window(0, window);
+        prop_assert!(
+            most <= allowed + unforeseen,
+            "{} ns on in a window, {} allowed (+{} ns unforeseen)", most, allowed, unforeseen
+        );
+        // After the first two windows (the spike's and the first fall's), exact.
+        let settled = most_on_after(0, window, t.saturating_sub(window));
+        prop_assert!(settled <= allowed, "{} ns on in a late window, {} allowed", settled, allowed);
+    }
+
+    /// Whatever decided a rise — a slot handed over, an activation, a hold or an e-stop
+    /// released, a late wake-up, a command re-timing a pulse — the lines of a split-range pair
+    /// are never high together and no rise leaves more lines high than `max_simultaneous_on`.
+    #[test]
+    fn no_path_puts_a_pair_high_together_or_more_lines_high_than_the_limit(
+        chans in prop::collection::vec(arb_params(), 4),
+        held in any::<bool>(),
+        ops in prop::collection::vec(((0u64..400).prop_map(|ms| ms * MS), arb_op()), 1..60),
+        late in prop::collection::vec(prop_oneof![3 => Just(0u64), 1 => 0u64..5 * MS], 60),
+    ) {
+        let mut b = Bench::new(&chans, &[(0, 1)], held);
+        for (k, (dt, op)) in ops.into_iter().enumerate() {
+            let t = now() + dt;
+            b.run_to(t, late[k]);
+            match op {
+                Op::Duty(c, d) => b.send(c, Input::Command(Command::Percent(d))),
+                Op::Split(pct) => {
+                    let (h, c) = crate::core::split_command(pct, 0.0);
+                    b.send(0, Input::Command(h));
+                    b.send(1, Input::Command(c));
+                }
+                Op::Enable(c, on) => b.send(c, Input::Enable(on)),
+                Op::Live(on) => b.send(0, Input::Live(on)),
+                Op::EStop(on) => b.send(0, Input::EStop(on)),
+                Op::Limit(max_on, stagger) => b.send(0, Input::Bank(Bank {
+                    phase: if stagger { Phase::Stagger } else { Phase::Sync },
+                    max_on,
+                })),
+            }
+            b.wake();
+        }
+        let t = now() + 2_000 * MS;
+        b.run_to(t, 0);
+        prop_assert_eq!(violations(), Vec::<String>::new());
+    }
+}

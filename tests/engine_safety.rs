@@ -1,0 +1,276 @@
+//! The safety inputs reach the line whatever fills the request queue: with the output thread
+//! stuck in a write (as a hung driver or CPU starvation would leave it) while commands fill the
+//! queue, an e-stop, a hold of the lines and a lowered `max_simultaneous_on` are still taken —
+//! first, as soon as the thread runs again — and acknowledged only once written; one the thread
+//! does not take within the bound has the outputs switched off by the emergency handle.
+
+use pwm_actuator::core::{Bank, ChannelParams, Command, Level, Phase};
+use pwm_actuator::engine::{
+    self, EngineError, EngineOptions, Input, NotTaken, Request, SAFETY_TAKE_BOUND,
+};
+use pwm_actuator::output::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+/// What the stalling output shares with the test.
+#[derive(Default)]
+struct Shared {
+    /// Line levels as written.
+    high: Mutex<Vec<bool>>,
+    /// (writes stall, a write is stalled now)
+    gate: Mutex<(bool, bool)>,
+    cv: Condvar,
+    /// Rises written, per line.
+    rises: Mutex<Vec<usize>>,
+    /// Most lines high after a write with a rise.
+    most_high_at_rise: Mutex<usize>,
+    tripped: AtomicBool,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("tripped")]
+struct Tripped;
+impl OutputError for Tripped {
+    fn kind(&self) -> ErrorKind {
+        ErrorKind::Tripped
+    }
+}
+
+struct StallingOutput(Arc<Shared>);
+
+struct Emergency(Arc<Shared>);
+impl EmergencyOff for Emergency {
+    fn all_inactive(&self) {
+        self.0.tripped.store(true, Ordering::SeqCst);
+        self.0
+            .high
+            .lock()
+            .unwrap()
+            .iter_mut()
+            .for_each(|h| *h = false);
+    }
+}
+
+impl Output for StallingOutput {
+    type Error = Tripped;
+    fn line_count(&self) -> usize {
+        self.0.high.lock().unwrap().len()
+    }
+    fn set_levels(&mut self, changes: &[LineChange]) -> Result<(), Tripped> {
+        {
+            let mut g = self.0.gate.lock().unwrap();
+            while g.0 {
+                g.1 = true;
+                self.0.cv.notify_all();
+                g = self.0.cv.wait(g).unwrap();
+            }
+            g.1 = false;
+        }
+        if self.0.tripped.load(Ordering::SeqCst) {
+            return Err(Tripped);
+        }
+        let mut high = self.0.high.lock().unwrap();
+        let mut rose = false;
+        for c in changes {
+            if !high[c.line] && c.level == Level::High {
+                rose = true;
+                self.0.rises.lock().unwrap()[c.line] += 1;
+            }
+            high[c.line] = c.level.is_high();
+        }
+        if rose {
+            let n = high.iter().filter(|h| **h).count();
+            let mut most = self.0.most_high_at_rise.lock().unwrap();
+            *most = (*most).max(n);
+        }
+        Ok(())
+    }
+    fn set_all_inactive(&mut self) -> Result<(), Tripped> {
+        self.0
+            .high
+            .lock()
+            .unwrap()
+            .iter_mut()
+            .for_each(|h| *h = false);
+        Ok(())
+    }
+    fn emergency_off(&self) -> Arc<dyn EmergencyOff> {
+        Arc::new(Emergency(Arc::clone(&self.0)))
+    }
+}
+
+impl Shared {
+    fn new(lines: usize) -> Arc<Shared> {
+        let s = Shared::default();
+        *s.high.lock().unwrap() = vec![false; lines];
+        *s.rises.lock().unwrap() = vec![0; lines];
+        Arc::new(s)
+    }
+
+    /// Makes the next write stall and waits until the thread is stuck in it.
+    fn stall(&self) {
+        let mut g = self.gate.lock().unwrap();
+        g.0 = true;
+        let start = Instant::now();
+        while !g.1 {
+            assert!(start.elapsed() < Duration::from_secs(5), "no write came");
+            g = self
+                .cv
+                .wait_timeout(g, Duration::from_millis(10))
+                .unwrap()
+                .0;
+        }
+    }
+
+    fn release(&self) {
+        self.gate.lock().unwrap().0 = false;
+        self.cv.notify_all();
+    }
+
+    fn rises(&self) -> usize {
+        self.rises.lock().unwrap().iter().sum()
+    }
+
+    fn any_high(&self) -> bool {
+        self.high.lock().unwrap().iter().any(|h| *h)
+    }
+}
+
+const QUEUE: usize = 16;
+
+fn start(channels: usize, duty: f64) -> (Arc<Shared>, engine::Engine) {
+    let shared = Shared::new(channels);
+    let cfg = ChannelParams {
+        period_ms: 20,
+        ..ChannelParams::default()
+    }
+    .validate()
+    .unwrap();
+    let opts = EngineOptions {
+        queue_capacity: QUEUE,
+        ..EngineOptions::default()
+    };
+    let mut e = engine::spawn(
+        vec![cfg; channels],
+        StallingOutput(Arc::clone(&shared)),
+        opts,
+    )
+    .unwrap();
+    for channel in 0..channels {
+        for input in [Input::Command(Command::Percent(duty)), Input::Enable(true)] {
+            e.requests.send(Request { channel, input }).unwrap();
+        }
+    }
+    (shared, e)
+}
+
+/// Fills the request queue with duty commands until it refuses one.
+fn fill(e: &mut engine::Engine) {
+    for k in 0..10 * QUEUE {
+        let r = e.requests.send(Request {
+            channel: 0,
+            input: Input::Command(Command::Percent(40.0 + (k % 20) as f64)),
+        });
+        if matches!(r, Err(EngineError::QueueFull { .. })) {
+            return;
+        }
+    }
+    panic!("the queue never filled");
+}
+
+/// With the thread stuck in a write and the queue full, `input` is sent: it is accepted, and
+/// taken as soon as the write returns (well within the bound), acknowledged only then.
+fn taken_behind_a_full_queue(e: &mut engine::Engine, shared: &Shared, input: Input) {
+    std::thread::sleep(Duration::from_millis(50));
+    shared.stall();
+    fill(e);
+    let safety = e.requests.safety();
+    e.requests
+        .send(Request { channel: 0, input })
+        .expect("a safety input is never refused for a full queue");
+    let request = safety.store(input);
+    std::thread::sleep(Duration::from_millis(50));
+    assert!(!safety.taken(request), "not done while the thread is stuck");
+    shared.release();
+    let took = safety.wait(request, SAFETY_TAKE_BOUND);
+    assert!(took.is_ok(), "taken once the write returned: {took:?}");
+    assert!(!shared.tripped.load(Ordering::SeqCst));
+}
+
+#[test]
+fn an_estop_behind_a_full_queue_is_taken_before_the_commands() {
+    let (shared, mut e) = start(1, 50.0);
+    taken_behind_a_full_queue(&mut e, &shared, Input::EStop(true));
+    assert!(
+        !shared.any_high(),
+        "the line is off once the e-stop is taken"
+    );
+    let rises = shared.rises();
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(shared.rises(), rises, "no rise while latched");
+    e.handle.shutdown().unwrap();
+}
+
+#[test]
+fn a_hold_behind_a_full_queue_is_taken_before_the_commands() {
+    let (shared, mut e) = start(2, 50.0);
+    taken_behind_a_full_queue(&mut e, &shared, Input::Live(false));
+    assert!(
+        !shared.any_high(),
+        "the lines are off once the hold is taken"
+    );
+    let rises = shared.rises();
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(shared.rises(), rises, "no rise while held");
+    e.handle.shutdown().unwrap();
+}
+
+#[test]
+fn a_lowered_limit_behind_a_full_queue_is_taken_before_the_commands() {
+    let (shared, mut e) = start(3, 60.0);
+    let limit = Input::Bank(Bank {
+        phase: Phase::Sync,
+        max_on: 1,
+    });
+    taken_behind_a_full_queue(&mut e, &shared, limit);
+    *shared.most_high_at_rise.lock().unwrap() = 0;
+    let rises = shared.rises();
+    std::thread::sleep(Duration::from_millis(400));
+    assert!(shared.rises() > rises, "the lines still run");
+    assert_eq!(
+        *shared.most_high_at_rise.lock().unwrap(),
+        1,
+        "never more than one line high after a rise once the limit is taken"
+    );
+    e.handle.shutdown().unwrap();
+}
+
+#[test]
+fn a_safety_input_not_taken_in_time_switches_the_outputs_off_by_the_emergency_handle() {
+    let (shared, e) = start(2, 90.0);
+    std::thread::sleep(Duration::from_millis(50));
+    shared.stall();
+    let safety = e.requests.safety();
+    let start = Instant::now();
+    let r = safety.take(Input::EStop(true));
+    assert_eq!(r, Err(NotTaken::Late(SAFETY_TAKE_BOUND)));
+    assert!(start.elapsed() >= SAFETY_TAKE_BOUND);
+    assert!(
+        shared.tripped.load(Ordering::SeqCst),
+        "emergency handle used"
+    );
+    assert!(!shared.any_high(), "every line off");
+    shared.release();
+    // The thread's next write fails (tripped): it stops, leaving every line off.
+    let start = Instant::now();
+    while !e.handle.is_finished() {
+        assert!(start.elapsed() < Duration::from_secs(5), "the thread stops");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert!(!shared.any_high());
+    assert!(matches!(
+        e.handle.shutdown(),
+        Err(EngineError::OutputFault { .. })
+    ));
+}
