@@ -19,7 +19,7 @@ use crate::clock;
 use crate::core::Nanos;
 use crate::engine::Input;
 use crate::output::safety::lock_ignore_poison as lock;
-use log::{info, warn};
+use log::{error, info, warn};
 use ros2_client::Node;
 use std::sync::Arc;
 use std::sync::Mutex;
@@ -121,8 +121,10 @@ impl EStop {
         if self.timeout_ns > 0 && now.saturating_sub(s.last_release) >= self.timeout_ns {
             return refuse("no false on ~/estop within estop_timeout_ms: the stop is still open");
         }
-        if inputs.send(0, Input::EStop(false)).is_err() {
-            return refuse("the output thread did not take the reset");
+        if let Err(e) = inputs.safety().take(Input::EStop(false)) {
+            // Latched again in the slot, so the thread and this state agree when it resumes.
+            inputs.safety().store(Input::EStop(true));
+            return refuse(&format!("the reset was not applied: {e}"));
         }
         s.latched = false;
         inputs.state().set_estop(false);
@@ -142,12 +144,23 @@ impl EStop {
         }
         s.latched = true;
         inputs.state().set_estop(true);
-        let _ = inputs.send(0, Input::EStop(true));
-        match cause {
-            Cause::Input => warn!("e-stop latched (~/estop true): every output driven inactive"),
-            Cause::Timeout => warn!(
-                "e-stop latched: no false on ~/estop within {} ms; every output driven inactive",
+        let why = match cause {
+            Cause::Input => "~/estop true".to_string(),
+            Cause::Timeout => format!(
+                "no false on ~/estop within {} ms",
                 self.timeout_ns / 1_000_000
+            ),
+        };
+        // Said only once the output thread has written the lines, or the emergency handle
+        // has switched them off.
+        match inputs.safety().take(Input::EStop(true)) {
+            Ok(took) => warn!(
+                "e-stop latched ({why}): every output driven inactive ({} us after the input)",
+                took.as_micros()
+            ),
+            Err(e) => error!(
+                "e-stop latched ({why}), but {e}: every output switched off by the emergency \
+                 handle"
             ),
         }
     }

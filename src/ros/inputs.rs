@@ -18,7 +18,7 @@ use super::params::{self, show_value, ParamError, ParamStore, Phase};
 use super::reporter::Note;
 use crate::clock;
 use crate::core::Command;
-use crate::engine::{EngineError, Input, Request, Requests};
+use crate::engine::{EngineError, Input, Request, Requests, SafetyPath};
 use crate::output::safety::lock_ignore_poison as lock;
 use log::{debug, info, warn};
 use ros2_client::builtin_interfaces::Time;
@@ -54,6 +54,8 @@ pub struct Inputs {
     pub names: Vec<String>,
     params: Mutex<ParamStore>,
     requests: Mutex<Requests>,
+    /// The safety inputs' own path, apart from the queue's lock (see [`SafetyPath`]).
+    safety: SafetyPath,
     enables: Mutex<Vec<Option<bool>>>,
     param_events: Publisher<raw::ParameterEvent>,
     notes: SyncSender<Note>,
@@ -80,6 +82,7 @@ impl Inputs {
             enables: Mutex::new(vec![None; names.len()]),
             names,
             params: Mutex::new(store),
+            safety: requests.safety(),
             requests: Mutex::new(requests),
             param_events,
             notes,
@@ -96,6 +99,12 @@ impl Inputs {
     /// Number of channels.
     pub fn channels(&self) -> usize {
         self.names.len()
+    }
+
+    /// The safety inputs' path to the output thread: never full, taken before any queued
+    /// request, with an acknowledgment once the lines have it.
+    pub fn safety(&self) -> &SafetyPath {
+        &self.safety
     }
 
     fn name(&self, channel: usize) -> &str {
@@ -205,12 +214,19 @@ impl Inputs {
             .changes
             .iter()
             .any(|(name, _)| name == "phase" || name == "max_simultaneous_on");
-        if planner {
-            // The output thread takes it at each channel's next period start; a failed send
-            // is logged by `send`.
-            let _ = self.send(0, Input::Bank(params::bank_of(&store)));
-        }
+        let bank = params::bank_of(&store);
         drop(store);
+        if planner {
+            // Through the safety path (a lowered limit must not wait behind commands), and
+            // answered only once the output thread has it: a lowered limit acts at once, the
+            // phase at each channel's next period start.
+            if let Err(e) = self.safety.take(Input::Bank(bank)) {
+                log::error!(
+                    "the planner's new settings were not taken: {e}; every output switched off \
+                     by the emergency handle"
+                );
+            }
+        }
         for note in &accepted.notes {
             info!("{note}");
         }

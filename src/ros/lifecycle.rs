@@ -176,10 +176,28 @@ impl Actions for LineActions {
 
 impl LineActions {
     /// Lets every line follow its channel, or holds every line inactive.
+    ///
+    /// Answered only once the output thread has taken it. A hold it did not take in time has
+    /// switched every output off through the emergency handle (so the lines are off and the
+    /// transition stands); a release it did not take is withdrawn and the transition fails.
     fn live(&self, live: bool) -> Result<(), String> {
-        self.inputs
-            .send(0, Input::Live(live))
-            .map_err(|e| e.to_string())
+        let safety = self.inputs.safety();
+        match safety.take(Input::Live(live)) {
+            Ok(_) => Ok(()),
+            Err(e) if !live => {
+                log::error!(
+                    "the hold of the lines was not taken: {e}; every output switched off by \
+                     the emergency handle"
+                );
+                Ok(())
+            }
+            Err(e) => {
+                safety.store(Input::Live(false));
+                Err(format!(
+                    "the output thread did not let the lines follow: {e}"
+                ))
+            }
+        }
     }
 }
 

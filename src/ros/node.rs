@@ -605,8 +605,11 @@ async fn serve(
     logging::shutting_down();
     crate::service::stopping();
     // Every line off and held off now, not after the ROS side is torn down: no pulse starts
-    // while the node stops.
-    let _ = inputs.send(0, Input::Live(false));
+    // while the node stops. A thread that does not take it in time has the outputs switched
+    // off by the emergency handle.
+    if let Err(e) = inputs.safety().take(Input::Live(false)) {
+        warn!("the hold of the lines at stop was not taken: {e}");
+    }
     drop(pinger);
     for t in &tasks {
         t.abort();
