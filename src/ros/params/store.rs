@@ -9,7 +9,12 @@ use crate::core::{ChannelConfig, ChannelParams};
 use crate::ros::msg;
 use ros2_client::parameters::raw;
 use ros2_client::ParameterValue;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
+use std::ops::Bound;
+
+/// At most this many distinct prefixes in one `list_parameters` request; a request with more
+/// lists nothing (the node has at most a few thousand parameters, under far fewer prefixes).
+pub const MAX_LIST_PREFIXES: usize = 4096;
 
 /// Whether a parameter change is made at start-up (read-only ones allowed) or while running.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -132,28 +137,58 @@ impl ParamStore {
     /// `depth` dots (0 = any); otherwise names equal to a prefix or under `prefix.` within
     /// `depth` further levels. Returns `(names, prefixes)`.
     pub fn list(&self, prefixes: &[String], depth: u64) -> (Vec<String>, Vec<String>) {
-        let within = |s: &str| depth == 0 || (s.matches('.').count() as u64) < depth;
-        let mut names = Vec::new();
-        let mut found_prefixes: Vec<String> = Vec::new();
-        for name in self.values.keys() {
-            let all = prefixes.is_empty() && within(name);
-            let under = prefixes.iter().any(|p| {
-                name == p
-                    || name
-                        .strip_prefix(p.as_str())
-                        .and_then(|r| r.strip_prefix('.'))
-                        .is_some_and(|r| within(&format!(".{r}")))
-            });
-            if all || under {
-                names.push(name.clone());
-                if let Some((ns, _)) = name.rsplit_once('.') {
-                    if !found_prefixes.iter().any(|p| p == ns) {
-                        found_prefixes.push(ns.to_string());
+        // `dots` separators below the prefix are within `depth` (0: any depth).
+        let within = |dots: usize| depth == 0 || (dots as u64) < depth;
+        let mut found: BTreeSet<&str> = BTreeSet::new();
+        if prefixes.is_empty() {
+            found.extend(
+                self.values
+                    .keys()
+                    .map(String::as_str)
+                    .filter(|n| within(n.matches('.').count())),
+            );
+        } else {
+            // Each distinct prefix once, each by a range look-up: the cost is bounded by the
+            // distinct prefixes (at most MAX_LIST_PREFIXES) times log(parameters), plus the
+            // names found, never prefixes times parameters.
+            let distinct: BTreeSet<&str> = prefixes.iter().map(String::as_str).collect();
+            if distinct.len() > MAX_LIST_PREFIXES {
+                log::debug!(
+                    "list_parameters: {} distinct prefixes, more than {MAX_LIST_PREFIXES}; \
+                     nothing listed",
+                    distinct.len()
+                );
+                return (Vec::new(), Vec::new());
+            }
+            for p in distinct {
+                if let Some((name, _)) = self.values.get_key_value(p) {
+                    found.insert(name.as_str());
+                }
+                let under = format!("{p}.");
+                for name in self
+                    .values
+                    .range::<str, _>((Bound::Included(under.as_str()), Bound::Unbounded))
+                    .map(|(n, _)| n.as_str())
+                    .take_while(|n| n.starts_with(under.as_str()))
+                {
+                    if within(1 + name[under.len()..].matches('.').count()) {
+                        found.insert(name);
                     }
                 }
             }
         }
-        (names, found_prefixes)
+        let mut found_prefixes: Vec<String> = Vec::new();
+        for name in &found {
+            if let Some((ns, _)) = name.rsplit_once('.') {
+                if !found_prefixes.iter().any(|p| p == ns) {
+                    found_prefixes.push(ns.to_string());
+                }
+            }
+        }
+        (
+            found.into_iter().map(str::to_string).collect(),
+            found_prefixes,
+        )
     }
 
     /// The channel's parameters as the core's [`ChannelParams`], from `values`, each mapped
