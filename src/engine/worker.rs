@@ -424,11 +424,19 @@ impl<O: Output> Worker<O> {
         for i in 0..self.channels.len() {
             if std::mem::take(&mut self.touched[i]) {
                 let status = self.channels[i].status(now);
-                self.push(Report::Status {
-                    channel: i,
-                    status,
-                    at_ns: now,
-                });
+                let sent = push_report(
+                    &mut self.reports,
+                    &self.dropped,
+                    Report::Status {
+                        channel: i,
+                        status,
+                        at_ns: now,
+                    },
+                );
+                self.pushed |= sent;
+                // A status is the latest state, not an event: one the full queue refused is
+                // sent again at the next wake-up, so the reader never keeps a stale one.
+                self.touched[i] = !sent;
             }
         }
     }
@@ -461,16 +469,19 @@ impl<O: Output> Worker<O> {
     }
 
     fn push(&mut self, report: Report) {
-        push_report(&mut self.reports, &self.dropped, report);
+        let _ = push_report(&mut self.reports, &self.dropped, report);
         self.pushed = true;
     }
 }
 
-fn push_report(reports: &mut Producer<Report>, dropped: &AtomicU64, report: Report) {
+/// Pushes `report`; returns whether it was queued.
+fn push_report(reports: &mut Producer<Report>, dropped: &AtomicU64, report: Report) -> bool {
     if reports.push(report).is_err() {
         // The reader lags: never wait for it, count what is lost.
         dropped.fetch_add(1, Ordering::Relaxed);
+        return false;
     }
+    true
 }
 
 /// Routes a channel's core events: edges to the write batch, the rest to the report queue.
@@ -515,7 +526,7 @@ impl<'a> Sink<'a> {
                 }
             }
             event => {
-                push_report(
+                let _ = push_report(
                     self.reports,
                     self.dropped,
                     Report::Core {
