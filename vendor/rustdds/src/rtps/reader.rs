@@ -1497,6 +1497,14 @@ impl Reader {
 
   // An ACKNACK without the final flag requests an immediate HEARTBEAT from the
   // writer.
+  //
+  // pwm_actuator: the set's base is 0, not 1. Fast DDS (and RTI) send their
+  // preemptive ACKNACK with base 0, and Fast DDS's StatefulWriter::process_acknack
+  // answers only that form with an immediate HEARTBEAT: to a base-1 ACKNACK that
+  // requests nothing it merely restarts its periodic heartbeat timer, so a sample
+  // the writer sent before this reader had matched it (and which was therefore
+  // dropped) came back only after a whole heartbeat period (3 s by default).
+  // Cyclone DDS and RustDDS writers take base 0 as preemptive as well.
   fn send_preemptive_acknack_to(&self, writer_proxy: &mut RtpsWriterProxy) {
     let flags = BitFlags::<ACKNACK_Flags>::from_flag(ACKNACK_Flags::Endianness);
     let acknack_count = writer_proxy.next_ack_nack_sequence_number();
@@ -1510,7 +1518,7 @@ impl Reader {
       AckNack {
         reader_id: self.entity_id(),
         writer_id: remote_writer_guid.entity_id,
-        reader_sn_state: SequenceNumberSet::new_empty(SequenceNumber::new(1)),
+        reader_sn_state: SequenceNumberSet::new_empty(SequenceNumber::zero()),
         count: acknack_count,
       },
       InfoDestination {
@@ -1879,6 +1887,151 @@ mod tests {
       .matched_writer(writer_guid)
       .expect("Did not find a matched writer");
     assert_eq!(writer_proxy.sent_ack_nack_count, 3);
+  }
+
+  // pwm_actuator: a reliable writer may match this reader, and send it a DATA,
+  // before this reader has discovered the writer. The DATA is dropped (no writer
+  // proxy). When the writer is then matched, the reader must ask for what it
+  // missed in the form every vendor answers with an immediate HEARTBEAT: an
+  // ACKNACK without the Final flag whose set is empty and based at 0 (Fast DDS
+  // ignores one based at 1 until its next periodic heartbeat, 3 s later).
+  #[test]
+  fn reader_asks_for_samples_sent_before_the_writer_was_matched() {
+    use std::net::UdpSocket;
+
+    let dds_cache = Arc::new(RwLock::new(DDSCache::new()));
+    let topic_name = "test_name";
+    let reliable_qos = QosPolicyBuilder::new()
+      .reliability(Reliability::Reliable {
+        max_blocking_time: Duration::from_millis(100),
+      })
+      .build();
+    let topic_cache_handle = dds_cache.write().unwrap().add_new_topic(
+      topic_name.to_string(),
+      TypeDesc::new("test_type".to_string()),
+      &reliable_qos,
+    );
+    let (notification_sender, notification_receiver) = crate::mio_source::notification_channel(100);
+    let (_notification_event_source, notification_event_sender) =
+      mio_source::make_poll_channel().unwrap();
+    let (status_sender, _status_receiver) = sync_status_channel::<DataReaderStatus>(4).unwrap();
+    let (participant_status_sender, _participant_status_receiver) =
+      sync_status_channel(16).unwrap();
+    let (_reader_command_sender, reader_command_receiver) =
+      wake_channel::<ReaderCommand>(10, &LoopWaker::new());
+    let reader_guid = GUID::dummy_test_guid(EntityKind::READER_NO_KEY_USER_DEFINED);
+    let mut reader = Reader::new(
+      ReaderIngredients {
+        guid: reader_guid,
+        notification_sender,
+        status_sender,
+        topic_name: topic_name.to_string(),
+        topic_cache_handle,
+        like_stateless: false,
+        qos_policy: reliable_qos.clone(),
+        data_reader_command_receiver: reader_command_receiver,
+        data_reader_waker: Arc::new(Mutex::new(None)),
+        poll_event_sender: notification_event_sender,
+        security_plugins: None,
+        discovery_notify: None,
+      },
+      Rc::new(UDPSender::new(0).unwrap()),
+      new_shared_timer(),
+      participant_status_sender,
+    );
+
+    // The remote writer, reachable at a socket of this test.
+    let writer_socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    writer_socket
+      .set_read_timeout(Some(StdDuration::from_secs(2)))
+      .unwrap();
+    let writer_locator = Locator::from(writer_socket.local_addr().unwrap());
+    let writer_guid = GUID::new(
+      GuidPrefix::new(&[7; 12]),
+      EntityId::new([0, 0, 1], EntityKind::WRITER_NO_KEY_USER_DEFINED),
+    );
+    let mr_state = MessageReceiverState {
+      source_guid_prefix: writer_guid.prefix,
+      ..Default::default()
+    };
+    let data = Data {
+      reader_id: reader_guid.entity_id,
+      writer_id: writer_guid.entity_id,
+      writer_sn: SequenceNumber::new(1),
+      ..Data::default()
+    };
+    let data_flags = BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Data);
+    let acknacks_to_writer = || {
+      let mut buf = vec![0; 1500];
+      let len = writer_socket
+        .recv(&mut buf)
+        .expect("no ACKNACK reached the writer");
+      buf.truncate(len);
+      Message::read_from_buffer(&bytes::Bytes::from(buf))
+        .unwrap()
+        .submessages
+        .into_iter()
+        .filter_map(|s| match s.body {
+          crate::rtps::SubmessageBody::Reader(ReaderSubmessage::AckNack(an, flags)) => {
+            Some((an, flags))
+          }
+          _ => None,
+        })
+        .collect::<Vec<_>>()
+    };
+
+    // 1. DATA sn 1 from a writer this reader has not matched yet: dropped.
+    reader.handle_data_msg(data.clone(), data_flags, &mr_state);
+    assert!(notification_receiver.try_recv().is_err());
+
+    // 2. The writer is matched: a preemptive ACKNACK goes to it.
+    reader.matched_writer_add(
+      writer_guid,
+      EntityId::UNKNOWN,
+      vec![writer_locator],
+      vec![],
+      &reliable_qos,
+    );
+    let acknacks = acknacks_to_writer();
+    assert_eq!(acknacks.len(), 1);
+    let (acknack, flags) = &acknacks[0];
+    assert_eq!(acknack.writer_id, writer_guid.entity_id);
+    assert!(
+      !flags.contains(ACKNACK_Flags::Final),
+      "a HEARTBEAT must be requested"
+    );
+    assert!(acknack.reader_sn_state.iter().next().is_none());
+    assert_eq!(
+      acknack.reader_sn_state.base(),
+      SequenceNumber::zero(),
+      "a preemptive ACKNACK based at 1 is not answered by Fast DDS"
+    );
+
+    // 3. The writer answers with a HEARTBEAT; the reader requests sn 1 ...
+    let heartbeat = Heartbeat {
+      reader_id: reader_guid.entity_id,
+      writer_id: writer_guid.entity_id,
+      first_sn: SequenceNumber::new(1),
+      last_sn: SequenceNumber::new(1),
+      count: 2,
+    };
+    assert!(reader.handle_heartbeat_msg(&heartbeat, false, &mr_state));
+    let acknacks = acknacks_to_writer();
+    assert_eq!(
+      acknacks[0].0.reader_sn_state.iter().collect::<Vec<_>>(),
+      vec![SequenceNumber::new(1)]
+    );
+
+    // 4. ... and takes the resent DATA.
+    reader.handle_data_msg(data, data_flags, &mr_state);
+    assert!(notification_receiver.try_recv().is_ok());
+    assert_eq!(
+      reader
+        .matched_writer(writer_guid)
+        .unwrap()
+        .all_ackable_before(),
+      SequenceNumber::new(2)
+    );
   }
 
   #[test]
