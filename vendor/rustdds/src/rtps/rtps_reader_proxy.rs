@@ -511,6 +511,13 @@ impl RtpsReaderProxy {
     self.pending_gap.extend(gap_sn_set);
   }
 
+  /// pwm_actuator: send `seq_num` to this reader although it was written before
+  /// the reader matched (see `Writer::matched_reader_update`).
+  pub fn send_written_before_match(&mut self, seq_num: SequenceNumber) {
+    self.pending_gap.remove(&seq_num);
+    self.unsent_changes.insert(seq_num);
+  }
+
   pub fn get_pending_gap(&self) -> &BTreeSet<SequenceNumber> {
     &self.pending_gap
   }

@@ -2031,6 +2031,17 @@ impl Writer {
               );
             }
           }
+          // pwm_actuator: send what was addressed to this reader before it matched
+          // (see matched_reader_update) now, not when it asks for it.
+          let new_reader_guid = reader_proxy.remote_reader_guid;
+          if self.is_reliable() && !self.like_stateless {
+            if let Some(rp) = self.lookup_reader_proxy_mut(new_reader_guid) {
+              if rp.first_unsent_change().is_some() {
+                rp.repair_mode = true;
+                self.schedule_repair_data(new_reader_guid, std::time::Duration::ZERO);
+              }
+            }
+          }
           info!(
             "Matched new remote reader on topic={:?} reader={:?}",
             self.topic_name(),
@@ -2102,6 +2113,17 @@ impl Writer {
           // before matching with this reader. Therefore we set the reader as pending GAP
           // for all existing sequence numbers
           new_proxy.set_pending_gap_up_to(self.send_buffer.last_change_sequence_number());
+          // pwm_actuator: except the samples addressed to this very reader. A service
+          // reply carries the related sample identity of its request, and a ROS 2
+          // client on Fast DDS puts its reply reader's GUID there. The server may
+          // receive the request before it has discovered that reader; the reply
+          // then goes to no one, and without this the reader would get only a GAP
+          // for it once matched. rmw_fastrtps waits for the match before it writes
+          // a reply; here the reply waits in the history instead (bounded by it)
+          // and goes out as soon as the reader matches.
+          for sn in self.send_buffer.related_to(new_proxy.remote_reader_guid) {
+            new_proxy.send_written_before_match(sn);
+          }
         }
         new_proxy.resolve_send_route(
           &self.interface_observations.borrow(),
@@ -3028,6 +3050,117 @@ mod tests {
       f.ack_nack(1..=5, 2);
       assert_eq!(f.unsent(), 5);
       assert_eq!(f.repair_round(), 5);
+    }
+
+    // pwm_actuator: a service reply is written before the server has discovered
+    // the client's reply reader, which the reply's related sample identity names.
+    // When that reader matches, the Volatile writer GAPs the other samples written
+    // before the match but sends it the reply, without waiting for an ACKNACK.
+    #[test]
+    fn reply_written_before_its_reader_matched_goes_to_it_on_match() {
+      use crate::{dds::with_key::datawriter::WriteOptionsBuilder, structure::rpc::SampleIdentity};
+      let qos = QosPolicyBuilder::new()
+        .reliability(Reliability::Reliable {
+          max_blocking_time: Duration::from_millis(100),
+        })
+        .history(History::KeepLast { depth: 10 })
+        .durability(Durability::Volatile)
+        .build();
+      let writer_id = EntityId::new([0, 0, 1], EntityKind::WRITER_NO_KEY_USER_DEFINED);
+      let guid = GUID::new(GuidPrefix::new(&[1; 12]), writer_id);
+      let reader_id = EntityId::new([0, 0, 2], EntityKind::READER_NO_KEY_USER_DEFINED);
+      let reply_reader = GUID::new(GuidPrefix::new(&[2; 12]), reader_id);
+      let other_reader = GUID::new(GuidPrefix::new(&[3; 12]), reader_id);
+      let send_buffer = WriterSendBuffer::new(
+        guid,
+        "reply_test".to_string(),
+        true,  // reliable
+        false, // not built-in
+        true,  // volatile
+        10,
+        10,
+        10,
+      );
+      // 1: a reply to another client, 2: the reply to ours, 3: no related identity.
+      for related in [Some(other_reader), Some(reply_reader), None] {
+        let mut options = WriteOptionsBuilder::new();
+        if let Some(writer_guid) = related {
+          options = options.related_sample_identity(SampleIdentity {
+            writer_guid,
+            sequence_number: SequenceNumber::new(1),
+          });
+        }
+        let data = DDSData::new(SerializedPayload::new(
+          RepresentationIdentifier::CDR_LE,
+          vec![0; 8],
+        ));
+        assert!(matches!(
+          send_buffer.admit_blocking(options.build(), data, Some(StdDuration::ZERO)),
+          Admission::Admitted(_)
+        ));
+      }
+      let (status_sender, _status) = sync_status_channel(4).unwrap();
+      let (participant_status_sender, _participant_status) = sync_status_channel(16).unwrap();
+      let timer = new_shared_timer();
+      let mut writer = Writer::new(
+        WriterIngredients {
+          guid,
+          send_buffer,
+          topic_name: "reply_test".to_string(),
+          like_stateless: false,
+          qos_policies: qos.clone(),
+          status_sender,
+          security_plugins: None,
+        },
+        Rc::new(UDPSender::new(0).unwrap()),
+        Rc::clone(&timer),
+        participant_status_sender,
+        Rc::new(RefCell::new(InterfaceObservations::default())),
+        Rc::from(Vec::<IfAddr>::new()),
+      );
+      writer.nack_response_delay = StdDuration::from_secs(10);
+      // Sent while no reader was matched.
+      writer.process_pending();
+
+      writer.update_reader_proxy(
+        &RtpsReaderProxy::new(reply_reader, qos.clone(), false),
+        &qos,
+      );
+      let proxy = &writer.readers[&reply_reader];
+      assert_eq!(
+        proxy.get_pending_gap().iter().copied().collect::<Vec<_>>(),
+        vec![SequenceNumber::new(1), SequenceNumber::new(3)],
+        "only the samples not addressed to the reader are GAPs"
+      );
+      assert_eq!(proxy.first_unsent_change(), Some(SequenceNumber::new(2)));
+
+      // The reply goes out at once, not after an ACKNACK and nack_response_delay.
+      let give_up = Instant::now() + StdDuration::from_secs(1);
+      let event = loop {
+        let fired = timer.borrow_mut().poll();
+        match fired {
+          Some(DpTimerEvent::Writer {
+            event: event @ TimedEvent::SendRepairData { to_reader },
+            ..
+          }) if to_reader == reply_reader => break event,
+          Some(_) => {}
+          None if Instant::now() < give_up => std::thread::sleep(StdDuration::from_millis(1)),
+          None => panic!("the reply was not scheduled for sending"),
+        }
+      };
+      writer.handle_timed_event(event);
+      let proxy = &writer.readers[&reply_reader];
+      assert_eq!(proxy.first_unsent_change(), None);
+      assert!(!proxy.repair_mode);
+
+      // The other client's reader, matched later, gets its own reply (1) and GAPs.
+      writer.update_reader_proxy(
+        &RtpsReaderProxy::new(other_reader, qos.clone(), false),
+        &qos,
+      );
+      let proxy = &writer.readers[&other_reader];
+      assert_eq!(proxy.get_pending_gap().len(), 2);
+      assert_eq!(proxy.first_unsent_change(), Some(SequenceNumber::new(1)));
     }
 
     // While the reader's send socket has queued control datagrams, a round

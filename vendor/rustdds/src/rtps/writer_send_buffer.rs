@@ -375,6 +375,23 @@ impl WriterSendBuffer {
     self.shared.inner.lock().unwrap().changes.get(&sn).cloned()
   }
 
+  /// pwm_actuator: the sequence numbers of the retained samples whose related
+  /// sample identity names `guid`. A service reply names the request it answers;
+  /// a ROS 2 client on Fast DDS puts the GUID of its reply reader there.
+  pub fn related_to(&self, guid: GUID) -> Vec<SequenceNumber> {
+    let inner = self.shared.inner.lock().unwrap();
+    inner
+      .changes
+      .iter()
+      .filter(|(_, cc)| {
+        cc.write_options
+          .related_sample_identity()
+          .is_some_and(|identity| identity.writer_guid == guid)
+      })
+      .map(|(sn, _)| *sn)
+      .collect()
+  }
+
   /// Evict all samples with sequence number strictly less than `remove_before`.
   pub fn remove_changes_before(&self, remove_before: SequenceNumber) {
     let shared = &*self.shared;
