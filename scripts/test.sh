@@ -96,6 +96,23 @@ printf 'cargo test: %d passed, %d failed, %d ignored in %d test binaries\n' \
 grep '^test result: ' "$LOG_DIR/cargo-test.log" | sed 's/^/  /'
 passed=$((passed + c_pass)) failed=$((failed + c_fail)) skipped=$((skipped + c_skip))
 
+# 4a. The vendored rustdds's patch (vendor/rustdds/README.pwm_actuator.md): the unit tests of
+# its changes. The crate is a path dependency, not a member of this package, so `cargo test`
+# above does not run them; its own other tests are upstream's and are not counted here.
+# shellcheck disable=SC2317  # called through run_step
+vendor_tests() {
+    cargo test --lib --locked --manifest-path vendor/rustdds/Cargo.toml \
+        --target-dir "$REPO/target/vendor-rustdds" -- \
+        data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
+        reply_written_before_its_reader_matched_goes_to_it_on_match 2>&1 |
+        tee "$LOG_DIR/vendor-test.log"
+    return "${PIPESTATUS[0]}"
+}
+run_step "rustdds patch tests" vendor_tests
+read -r v_pass v_fail < <(awk '/^test result: /{for(i=1;i<=NF;i++){if($(i+1)~/^passed;?$/)p+=$i; if($(i+1)~/^failed;?$/)f+=$i}} END{print p+0, f+0}' "$LOG_DIR/vendor-test.log")
+printf 'rustdds patch tests: %d passed, %d failed\n' "$v_pass" "$v_fail"
+passed=$((passed + v_pass)) failed=$((failed + v_fail))
+
 # 4b. Real kernel GPIO lines: in a QEMU guest with a gpio-sim chip (scripts/gpio-vm.sh), the
 # GPIO backend's integration test (ignored by `cargo test` above, counted as skipped there) and
 # the node-level checks of the release binary in tests/gpio_vm/. Counted as passed only when they
