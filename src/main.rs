@@ -11,7 +11,11 @@ mod safe_off_cmd;
 
 use clap::error::ErrorKind;
 use clap::FromArgMatches;
-use pwm_actuator::ros::{self, args::RosArgs, cli};
+use pwm_actuator::ros;
+use pwm_actuator::ros::config::{
+    args::{self, RosArgs},
+    cli,
+};
 use std::process::ExitCode;
 
 /// What the command line asks for.
@@ -41,7 +45,7 @@ fn command() -> clap::Command {
 
 fn invocation(args: &[String]) -> Invocation {
     // A malformed ROS argument is the node's to report, in its own format.
-    let Ok(split) = ros::args::parse(args) else {
+    let Ok(split) = args::parse(args) else {
         return Invocation::Node;
     };
     let mut cmd = command();

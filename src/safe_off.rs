@@ -12,16 +12,16 @@
 
 use crate::output::gpio::{plan_requests, request_plan, to_value, GpioError, GpioLine};
 use crate::output::{Backend, Level};
-use crate::ros::args;
-use crate::ros::cli;
-use crate::ros::names::NodeIdentity;
-use crate::ros::node::{start_values, NodeError};
-use crate::ros::params::{self, StartValue, StartupConfig};
+use crate::ros::config::args;
+use crate::ros::config::cli;
+use crate::ros::config::names::NodeIdentity;
+use crate::ros::config::params::{self, StartValue, StartupConfig};
+use crate::ros::config::start::{start_values, ConfigError};
 use gpiocdev::line::Values;
 use std::path::PathBuf;
 
 /// The node name whose `--params-file` sections apply (the node's default name).
-pub use crate::ros::node::NODE_NAME;
+pub use crate::ros::config::names::NODE_NAME;
 
 /// Exit status: every line driven inactive.
 pub const EXIT_OK: i32 = 0;
@@ -29,14 +29,14 @@ pub const EXIT_OK: i32 = 0;
 pub const EXIT_REFUSED: i32 = 1;
 /// Exit status: the arguments or the configuration are wrong (nothing was touched), as for the
 /// node.
-pub use crate::ros::node::EXIT_USAGE;
+pub use crate::ros::config::cli::EXIT_USAGE;
 
 /// Why safe-off did not drive every line inactive.
 #[derive(Debug, thiserror::Error)]
 pub enum SafeOffError {
     /// The node's command line or configuration is refused, as the node would refuse it.
     #[error(transparent)]
-    Config(#[from] NodeError),
+    Config(#[from] ConfigError),
     /// A line cannot be requested (busy: names the holder) or written.
     #[error(transparent)]
     Gpio(#[from] GpioError),
@@ -58,7 +58,7 @@ impl SafeOffError {
         match self {
             SafeOffError::Gpio(GpioError::LineBusy { .. } | GpioError::Write { .. })
             | SafeOffError::StillActive { .. } => EXIT_REFUSED,
-            SafeOffError::Config(e) => e.exit_code(),
+            SafeOffError::Config(_) => EXIT_USAGE,
             SafeOffError::Gpio(_) => EXIT_USAGE,
         }
     }
@@ -67,18 +67,18 @@ impl SafeOffError {
 /// The GPIO lines the node would drive with the command line `args` (node syntax, without the
 /// program name); `--output gpio` is implied.
 pub fn lines_from_node_args(args: &[String]) -> Result<Vec<GpioLine>, SafeOffError> {
-    let parsed = args::parse(args).map_err(NodeError::from)?;
-    let flags = cli::parse_flags(&parsed.app).map_err(NodeError::from)?;
+    let parsed = args::parse(args).map_err(ConfigError::from)?;
+    let flags = cli::parse_flags(&parsed.app).map_err(ConfigError::from)?;
     let id =
-        NodeIdentity::from_remaps(NODE_NAME, "/", &parsed.ros.remaps).map_err(NodeError::from)?;
+        NodeIdentity::from_remaps(NODE_NAME, "/", &parsed.ros.remaps).map_err(ConfigError::from)?;
     let mut values = start_values(&flags, &parsed.ros, &id, &id.fully_qualified())?;
     values.push(StartValue {
         name: "output".into(),
         value: ros2_client::ParameterValue::String("gpio".into()),
         origin: "safe-off".into(),
     });
-    let su = params::start_up(&values).map_err(NodeError::from)?;
-    let cfg = StartupConfig::from_store(&su.store).map_err(NodeError::from)?;
+    let su = params::start_up(&values).map_err(ConfigError::from)?;
+    let cfg = StartupConfig::from_store(&su.store).map_err(ConfigError::from)?;
     let Backend::Gpio { lines } = cfg.output.backend else {
         unreachable!("output gpio was set last");
     };

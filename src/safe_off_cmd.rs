@@ -3,7 +3,7 @@
 //! read exactly as the node reads them.
 
 use clap::{ArgAction, Args, FromArgMatches};
-use pwm_actuator::ros::params::channel_of;
+use pwm_actuator::ros::config::params::channel_of;
 use std::path::PathBuf;
 
 /// Options of `pwm_actuator_node safe-off`.

@@ -6,7 +6,7 @@
 #[path = "common/ros_harness.rs"]
 mod ros_harness;
 
-use pwm_actuator::ros::msg::{ChannelParams, DiagnosticArray};
+use pwm_actuator::ros::interface::msg::{ChannelParams, DiagnosticArray};
 use ros2_client::parameters::raw;
 use ros2_client::ParameterValue as V;
 use ros_harness::*;

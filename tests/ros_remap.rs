@@ -4,7 +4,7 @@
 #[path = "common/ros_harness.rs"]
 mod ros_harness;
 
-use pwm_actuator::ros::msg::{ChannelStatus, DiagnosticArray, Float64};
+use pwm_actuator::ros::interface::msg::{ChannelStatus, DiagnosticArray, Float64};
 use ros2_client::parameters::raw;
 use ros2_client::ParameterValue as V;
 use ros_harness::*;

@@ -5,7 +5,7 @@
 #[path = "common/ros_harness.rs"]
 mod ros_harness;
 
-use pwm_actuator::ros::msg::{
+use pwm_actuator::ros::interface::msg::{
     Bool, ChannelStatus, DiagnosticArray, DiagnosticStatus, Float64, OutputEdge, UInt16,
 };
 use ros2_client::{Log, Subscription};

@@ -6,7 +6,7 @@
 #[path = "common/ros_harness.rs"]
 mod ros_harness;
 
-use pwm_actuator::ros::msg::DiagnosticArray;
+use pwm_actuator::ros::interface::msg::DiagnosticArray;
 use ros_harness::*;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};

@@ -10,7 +10,7 @@
 #[path = "common/ros_harness.rs"]
 mod ros_harness;
 
-use pwm_actuator::ros::msg::DiagnosticArray;
+use pwm_actuator::ros::interface::msg::DiagnosticArray;
 use ros2_client::Context;
 use ros_harness::*;
 use rustdds::{DomainParticipantBuilder, DomainParticipantSecurityConfigFiles};
@@ -25,7 +25,7 @@ fn keystore(tag: &str) -> (PathBuf, PathBuf) {
     let ks = std::env::temp_dir().join(format!("pwm_keystore_{}_{tag}", std::process::id()));
     let enclave = ks.join("enclaves").join("pwm");
     std::fs::create_dir_all(&enclave).unwrap();
-    for f in pwm_actuator::ros::security::ENCLAVE_FILES {
+    for f in pwm_actuator::ros::config::security::ENCLAVE_FILES {
         std::fs::copy(Path::new(FIXTURES).join(f), enclave.join(f)).unwrap();
     }
     (ks, enclave)

@@ -7,31 +7,33 @@
 //! the way out the output thread drives every output inactive and the trace files are flushed
 //! before the process exits.
 
-use super::args::{self, ArgsError, RosArgs};
-use super::cli::{self, CliError, Flags, DEMO_ORIGIN};
-use super::diagnostics::ChannelHealth;
-use super::discovery::{self, Discovery, DiscoveryError};
-use super::endpoints::{listen, publisher, ros_err, subscription};
-use super::estop::{self, EStop};
-use super::inputs::{Inputs, NOTE_QUEUE};
-use super::lifecycle::{self, Lifecycle, LineActions};
-use super::logging::{self, LogConfig};
-use super::msg;
-use super::name_clash::{self, NameClash};
-use super::names::{NameError, NodeIdentity};
-use super::node_state::NodeState;
-use super::params::{self, show_value, ParamError, ParamStore, StartValue, StartupConfig};
-use super::qos;
-use super::reporter::{ChannelPubs, Reporter, StopSignal};
-use super::security::{self, SecurityError, SecurityRequest};
-use super::services::{self, ServiceError};
-use super::split::{self, SplitError};
 use crate::clock;
 use crate::core::{split_command, ChannelConfig, Command};
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
 use crate::output::{self, install_panic_hook, AnyOutput, Backend, LineSlot, OpenError, Output};
+use crate::ros::config::args::{self, ArgsError, RosArgs};
+use crate::ros::config::cli::{self, CliError, DEMO_ORIGIN, EXIT_FAILURE, EXIT_USAGE};
+use crate::ros::config::discovery::{self, Discovery, DiscoveryError};
+use crate::ros::config::logging::{self, LogConfig};
+use crate::ros::config::names::{NameError, NodeIdentity, NODE_NAME};
+use crate::ros::config::params::{self, ParamError, ParamStore, StartupConfig};
+use crate::ros::config::security::{self, SecurityError, SecurityRequest};
+use crate::ros::config::split::{self, SplitError};
+use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultError};
+use crate::ros::inbound::estop::{self, EStop};
+use crate::ros::inbound::inputs::{Inputs, NOTE_QUEUE};
+use crate::ros::inbound::lifecycle::{self, Lifecycle, LineActions};
+use crate::ros::inbound::node_state::NodeState;
+use crate::ros::inbound::param_services;
+use crate::ros::interface::msg;
+use crate::ros::interface::qos;
+use crate::ros::outbound::diagnostics::ChannelHealth;
+use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
+use crate::ros::wire::endpoints::{listen, publisher, subscription, EndpointError};
+use crate::ros::wire::name_clash::{self, NameClash};
+use crate::ros::wire::services;
 use crate::service::WatchdogPinger;
 use log::{error, info, warn};
 use ros2_client::{Context, NodeName, NodeOptions};
@@ -41,44 +43,12 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::task::JoinHandle;
 
-/// The node's name before remapping.
-pub const NODE_NAME: &str = "pwm_actuator";
-
-/// Highest `ROS_DOMAIN_ID` accepted (the DDS port mapping's limit).
-pub const MAX_DOMAIN_ID: u16 = 232;
-
-/// Exit code for a bad command line or configuration.
-pub const EXIT_USAGE: i32 = 2;
-
-/// Exit code for a failure while running (output fault, ROS failure).
-pub const EXIT_FAILURE: i32 = 1;
-
 /// Why the node could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]
 pub enum NodeError {
-    /// Bad `--ros-args` or parameter file.
+    /// The configuration is refused (command line, names, parameters, discovery, security).
     #[error(transparent)]
-    Args(#[from] ArgsError),
-    /// Bad node option.
-    #[error(transparent)]
-    Cli(#[from] CliError),
-    /// A name that does not resolve.
-    #[error(transparent)]
-    Name(#[from] NameError),
-    /// `ROS_DOMAIN_ID` is not a domain id.
-    #[error("ROS_DOMAIN_ID `{value}` is not a domain id: expected an integer 0..={max}")]
-    DomainId {
-        /// The value found.
-        value: String,
-        /// The highest id.
-        max: u16,
-    },
-    /// A start-up parameter value refused.
-    #[error(transparent)]
-    Param(#[from] ParamError),
-    /// The `split` parameter is refused.
-    #[error(transparent)]
-    Split(#[from] SplitError),
+    Config(#[from] ConfigError),
     /// The output cannot be built (trace files, line bindings, chips, busy lines).
     #[error(transparent)]
     Output(#[from] OpenError),
@@ -94,60 +64,57 @@ pub enum NodeError {
         #[source]
         source: Box<dyn std::error::Error + Send + Sync>,
     },
-    /// A parameter service cannot be created.
+    /// An endpoint (topic, publisher, subscription, service) cannot be created.
     #[error(transparent)]
-    Service(#[from] ServiceError),
+    Endpoint(#[from] EndpointError),
     /// The async runtime cannot start.
     #[error("cannot start the async runtime: {0}")]
     Runtime(#[source] std::io::Error),
-    /// A discovery setting that cannot be honoured.
-    #[error(transparent)]
-    Discovery(#[from] DiscoveryError),
-    /// Security is enforced and cannot be provided.
-    #[error(transparent)]
-    Security(#[from] SecurityError),
     /// The systemd watchdog thread cannot start.
     #[error("cannot start the systemd watchdog thread: {0}")]
     Watchdog(#[source] std::io::Error),
-    /// `PWM_ACTUATOR_FAULT` is malformed.
-    #[error("{0}")]
-    Fault(String),
 }
+
+/// Each configuration error converts into a [`NodeError`] through [`ConfigError`].
+macro_rules! config_from {
+    ($($t:ty),*) => {$(
+        impl From<$t> for NodeError {
+            fn from(e: $t) -> NodeError {
+                NodeError::Config(ConfigError::from(e))
+            }
+        }
+    )*};
+}
+config_from!(
+    ArgsError,
+    CliError,
+    NameError,
+    ParamError,
+    SplitError,
+    DiscoveryError,
+    SecurityError,
+    FaultError
+);
 
 impl NodeError {
     /// The process exit code for this error.
     pub fn exit_code(&self) -> i32 {
         match self {
-            NodeError::Args(_)
-            | NodeError::Cli(_)
-            | NodeError::Name(_)
-            | NodeError::DomainId { .. }
-            | NodeError::Param(_)
-            | NodeError::Fault(_)
-            | NodeError::Split(_)
-            | NodeError::Security(_)
-            | NodeError::Discovery(_)
             // Opening the output fails only on configuration: a trace path, a line bound
             // twice, a missing chip, a busy line, an offset the chip lacks, no permission.
             // Write faults come later, as `Engine`.
-            | NodeError::Output(_) => EXIT_USAGE,
+            NodeError::Config(_) | NodeError::Output(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
     }
 }
 
-/// Reads `ROS_DOMAIN_ID` (unset or empty: 0).
-pub fn domain_id_from(value: Option<&str>) -> Result<u16, NodeError> {
-    match value.map(str::trim) {
-        None | Some("") => Ok(0),
-        Some(v) => v
-            .parse::<u16>()
-            .ok()
-            .filter(|d| *d <= MAX_DOMAIN_ID)
-            .ok_or_else(|| NodeError::DomainId {
-                value: v.to_string(),
-                max: MAX_DOMAIN_ID,
-            }),
+/// Maps a creation error of ros2-client to [`NodeError::Ros`] naming `what`.
+fn ros_err(what: impl Into<String>) -> impl FnOnce(ros2_client::CreateError) -> NodeError {
+    let what = what.into();
+    move |e| NodeError::Ros {
+        what,
+        source: Box::new(e),
     }
 }
 
@@ -249,37 +216,6 @@ fn ignored_warnings(ignored: &[String]) -> (Vec<String>, Option<String>) {
     (out, summary)
 }
 
-/// The start-up values: options first, then the ROS arguments in order. Logs where a ROS
-/// argument overrides an option.
-pub(crate) fn start_values(
-    flags: &Flags,
-    ros: &RosArgs,
-    id: &NodeIdentity,
-    fqn: &str,
-) -> Result<Vec<StartValue>, NodeError> {
-    let mut v = flags.start_values();
-    let from_options: Vec<(String, String)> = v
-        .iter()
-        .map(|s| (s.name.clone(), s.origin.clone()))
-        .collect();
-    for o in ros.overrides(&id.name, fqn)? {
-        if let Some((_, opt)) = from_options.iter().find(|(n, _)| *n == o.name) {
-            info!(
-                "{} = {} from {} overrides {opt}",
-                o.name,
-                show_value(&o.value),
-                o.origin
-            );
-        }
-        v.push(StartValue {
-            name: o.name,
-            value: o.value,
-            origin: o.origin,
-        });
-    }
-    Ok(v)
-}
-
 /// Opens the output (`PWM_ACTUATOR_FAULT=fail-write-after=N` or `hang-write-after-ms=N`
 /// makes its writes fail or hang, for the exit-path tests) and installs the panic hook with its emergency handle.
 ///
@@ -287,7 +223,7 @@ pub(crate) fn start_values(
 /// returned slot.
 fn open_output(cfg: &StartupConfig) -> Result<(AnyOutput, Option<LineSlot>), NodeError> {
     let mut spec = cfg.output.clone();
-    spec.fault = Fault::from_env().map_err(NodeError::Fault)?;
+    spec.fault = Fault::from_env().map_err(FaultError)?;
     let (out, lines) = match cfg.managed {
         true => output::open_deferred(&spec)?,
         false => (output::open(&spec)?, None),
@@ -413,7 +349,7 @@ async fn serve(
         .map_err(ros_err("publisher /parameter_events"))?;
 
     let engine = start_engine(&cfg, output)?;
-    if let Some(Fault::PanicAfterMs(ms)) = Fault::from_env().map_err(NodeError::Fault)? {
+    if let Some(Fault::PanicAfterMs(ms)) = Fault::from_env().map_err(FaultError)? {
         warn!("{FAULT_ENV}: panicking in {ms} ms");
         std::thread::spawn(move || {
             std::thread::sleep(std::time::Duration::from_millis(ms));
@@ -529,7 +465,7 @@ async fn serve(
             b.command(cold, c);
         }));
     }
-    tasks.extend(services::spawn(&mut node, &id, remaps, &inputs)?);
+    tasks.extend(param_services::spawn(&mut node, &id, remaps, &inputs)?);
     tasks.extend(estop::spawn(&mut node, &id, remaps, &inputs, &estop)?);
     if cfg.managed {
         let events = publisher(
@@ -722,8 +658,8 @@ mod tests {
         assert_eq!(domain_id_from(Some(" 7 ")).unwrap(), 7);
         for bad in ["233", "-1", "abc", "1.5", "70000"] {
             let e = domain_id_from(Some(bad)).unwrap_err();
-            assert_eq!(e.exit_code(), EXIT_USAGE);
             assert!(e.to_string().contains(bad), "{e}");
+            assert_eq!(NodeError::from(e).exit_code(), EXIT_USAGE);
         }
     }
 

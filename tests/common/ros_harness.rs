@@ -22,17 +22,17 @@ use std::time::{Duration, Instant};
 /// One channel's topics, as a ROS user sees them: its inputs to publish on and its outputs.
 pub struct ChannelTopics {
     /// `~/<ch>/duty`.
-    pub duty: Publisher<pwm_actuator::ros::msg::Float64>,
+    pub duty: Publisher<pwm_actuator::ros::interface::msg::Float64>,
     /// `~/<ch>/sv`.
-    pub sv: Publisher<pwm_actuator::ros::msg::UInt16>,
+    pub sv: Publisher<pwm_actuator::ros::interface::msg::UInt16>,
     /// `~/<ch>/enable`.
-    pub enable: Publisher<pwm_actuator::ros::msg::Bool>,
+    pub enable: Publisher<pwm_actuator::ros::interface::msg::Bool>,
     /// `~/<ch>/edges`.
-    pub edges: Subscription<pwm_actuator::ros::msg::OutputEdge>,
+    pub edges: Subscription<pwm_actuator::ros::interface::msg::OutputEdge>,
     /// `~/<ch>/status`.
-    pub status: Subscription<pwm_actuator::ros::msg::ChannelStatus>,
+    pub status: Subscription<pwm_actuator::ros::interface::msg::ChannelStatus>,
     /// `~/<ch>/e1` (transient local).
-    pub e1: Subscription<pwm_actuator::ros::msg::Bool>,
+    pub e1: Subscription<pwm_actuator::ros::interface::msg::Bool>,
 }
 
 /// A message type with its ROS type name, for typed subscriptions and publishers.
@@ -51,11 +51,11 @@ pub trait TopicType {
 /// The node's own message types take their names from `RosMessage`.
 macro_rules! node_topic_types {
     ($($ty:ident),+) => {
-        $(impl TopicType for pwm_actuator::ros::msg::$ty {
+        $(impl TopicType for pwm_actuator::ros::interface::msg::$ty {
             const PKG: &'static str =
-                <pwm_actuator::ros::msg::$ty as pwm_actuator::ros::msg::RosMessage>::PACKAGE;
+                <pwm_actuator::ros::interface::msg::$ty as pwm_actuator::ros::interface::msg::RosMessage>::PACKAGE;
             const NAME: &'static str =
-                <pwm_actuator::ros::msg::$ty as pwm_actuator::ros::msg::RosMessage>::NAME;
+                <pwm_actuator::ros::interface::msg::$ty as pwm_actuator::ros::interface::msg::RosMessage>::NAME;
         })+
     };
 }
@@ -376,7 +376,7 @@ impl Ros {
 
     /// The topics of one channel of the node `/pwm_actuator` (`pw01`, ...).
     pub fn channel(&mut self, ch: &str) -> ChannelTopics {
-        use pwm_actuator::ros::msg::{Bool, ChannelStatus, Float64, OutputEdge, UInt16};
+        use pwm_actuator::ros::interface::msg::{Bool, ChannelStatus, Float64, OutputEdge, UInt16};
         let base = format!("/pwm_actuator/{ch}");
         ChannelTopics {
             duty: self.publisher::<Float64>(&format!("{base}/duty")),
@@ -602,7 +602,7 @@ pub fn assert_mentions(text: &str, needles: &[&str]) {
 }
 
 /// The value of key `key` in a diagnostic status.
-pub fn kv<'a>(d: &'a pwm_actuator::ros::msg::DiagnosticStatus, key: &str) -> &'a str {
+pub fn kv<'a>(d: &'a pwm_actuator::ros::interface::msg::DiagnosticStatus, key: &str) -> &'a str {
     d.values
         .iter()
         .find(|k| k.key == key)

@@ -5,7 +5,10 @@
 //! ros2-client does not expand `~` and does not remap, so every name the node creates goes
 //! through [`NodeIdentity::resolve`] first. Pure string work: nothing here touches DDS.
 
-use super::args::{Remap, RemapKind};
+use crate::ros::config::args::{Remap, RemapKind};
+
+/// The node's name before remapping.
+pub const NODE_NAME: &str = "pwm_actuator";
 
 /// A topic or service name that ROS does not accept.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -178,7 +181,7 @@ pub fn to_ros_name(full: &str) -> Result<ros2_client::Name, NameError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros::args::parse_remap;
+    use crate::ros::config::args::parse_remap;
 
     fn remaps(rules: &[&str]) -> Vec<Remap> {
         rules.iter().map(|r| parse_remap(r).unwrap()).collect()

@@ -29,7 +29,7 @@ use rustdds::dds::CreateResult;
 use rustdds::{DomainParticipant, DomainParticipantBuilder};
 use std::net::{IpAddr, Ipv4Addr};
 
-use crate::ros::logging::shown;
+use crate::ros::config::logging::shown;
 
 /// `ROS_AUTOMATIC_DISCOVERY_RANGE`.
 pub const RANGE_ENV: &str = "ROS_AUTOMATIC_DISCOVERY_RANGE";
@@ -154,7 +154,7 @@ pub fn read(var: impl Fn(&str) -> Option<String>) -> Result<Discovery, Discovery
 
 impl Discovery {
     /// Builds the DDS participant for `domain` with this range, secured with the enclave in
-    /// `secure` (see [`super::security`]; only with the cargo feature `dds-security`, else
+    /// `secure` (see [`crate::ros::config::security`]; only with the cargo feature `dds-security`, else
     /// `secure` is never `Some`).
     pub fn participant(
         &self,

@@ -14,10 +14,10 @@
 //!
 //! Pure: counts and times (monotonic ns) are passed in; nothing here reads a clock.
 
-use super::diagnostics::key_values;
-use super::msg::DiagnosticStatus;
-use super::node_state::RateSettings;
 use crate::core::Nanos;
+use crate::ros::inbound::node_state::RateSettings;
+use crate::ros::interface::msg::DiagnosticStatus;
+use crate::ros::outbound::diagnostics::key_values;
 
 /// The summary when neither bound is set.
 pub const NOT_CHECKED: &str =

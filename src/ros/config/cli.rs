@@ -5,20 +5,26 @@
 //! appear.
 //!
 //! Parsed with clap ([`command`]); the `--ros-args` blocks are split off before, by hand
-//! ([`super::args`]), because they follow rcl's rules. Parsing only: nothing here starts
+//! ([`crate::ros::config::args`]), because they follow rcl's rules. Parsing only: nothing here starts
 //! anything.
 
-use super::params::{channel_of, StartValue};
 use crate::output::gpio::parse_line_addr;
+use crate::ros::config::params::{channel_of, StartValue};
 use clap::error::{ContextKind, ContextValue, ErrorKind};
 use clap::{ArgAction, Args, FromArgMatches};
 use ros2_client::ParameterValue;
+
+/// Exit code for a bad command line or configuration.
+pub const EXIT_USAGE: i32 = 2;
+
+/// Exit code for a failure while running (output fault, ROS failure).
+pub const EXIT_FAILURE: i32 = 1;
 
 /// The usage line of the node (a program with subcommands adds its own).
 pub const NODE_USAGE: &str = "pwm_actuator_node [OPTIONS] [--ros-args ROS_ARGUMENTS... [--]]";
 
 /// The part of `--help` that is not generated from the options: the ROS arguments, which
-/// follow rcl's rules and are split off by hand ([`super::args`]), the environment and the
+/// follow rcl's rules and are split off by hand ([`crate::ros::config::args`]), the environment and the
 /// topics.
 pub const ROS_HELP: &str = "\
 Each option sets the start-up value of the ROS parameter in brackets; --params-file and -p

@@ -2,8 +2,8 @@
 //! them, and ROS 2 parameter files (`--params-file`).
 //!
 //! ros2-client does not parse `--ros-args`, so this module does. It only parses: it does not
-//! resolve names against a node ([`super::names`] does) and does not apply parameters
-//! ([`super::params`] does). Reading a parameter file is its only I/O.
+//! resolve names against a node ([`crate::ros::config::names`] does) and does not apply parameters
+//! ([`crate::ros::config::params`] does). Reading a parameter file is its only I/O.
 //!
 //! Supported inside a `--ros-args` block: `-r/--remap [node:]from:=to` (including `__node`,
 //! `__name`, `__ns` and the `rostopic://` / `rosservice://` prefixes), `-p/--param
@@ -241,7 +241,7 @@ pub struct RosArgs {
     pub params: Vec<ParamSource>,
     /// Log levels, in order (a later one wins).
     pub log_levels: Vec<LogLevelArg>,
-    /// `-e/--enclave`: the SROS2 enclave; see [`super::security`] for what is done with it.
+    /// `-e/--enclave`: the SROS2 enclave; see [`crate::ros::config::security`] for what is done with it.
     pub enclave: Option<String>,
     /// `--log-config-file` (accepted; this node configures logging from `--log-level` only).
     pub log_config_file: Option<PathBuf>,

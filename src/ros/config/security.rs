@@ -17,7 +17,7 @@
 //! This module only reads variables and files' existence and decides; it must not touch the
 //! network.
 
-use crate::ros::logging::shown;
+use crate::ros::config::logging::shown;
 use log::{info, warn};
 use std::path::{Path, PathBuf};
 

@@ -10,15 +10,15 @@
 
 use super::{ParamType, Range, DEFAULT_CHANNELS, MAX_CHANNELS, MAX_STATUS_RATE_HZ};
 use super::{ParameterValue as V, MIN_STATUS_RATE_HZ};
+use super::{DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW};
+use super::{MAX_COMMAND_HZ_WINDOW, MAX_EXPECTED_COMMAND_HZ};
 use super::{MAX_HEARTBEAT_HZ, MIN_HEARTBEAT_HZ};
 use crate::core::config::{
     ShortStr, UnknownName, MAX_AVG_WINDOW_S, MAX_EXTEND_FACTOR, MAX_ON_MS, MAX_PERIOD_MS,
     MAX_SLEW_PCT_PER_S, MAX_TIMEOUT_MS,
 };
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
-use crate::ros::msg;
-use crate::ros::node_state::{DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW};
-use crate::ros::node_state::{MAX_COMMAND_HZ_WINDOW, MAX_EXPECTED_COMMAND_HZ};
+use crate::ros::interface::msg;
 use std::str::FromStr;
 
 /// Who decides about a value's range.

@@ -6,7 +6,7 @@ use super::table::{self, channel_decls, node_decls};
 use super::{channel_name, channel_of, check_choice, check_range, coerce, make, Descriptor};
 use super::{shown, ParamError, MAX_CHANNELS};
 use crate::core::{ChannelConfig, ChannelParams};
-use crate::ros::msg;
+use crate::ros::interface::msg;
 use ros2_client::parameters::raw;
 use ros2_client::ParameterValue;
 use std::collections::{BTreeMap, BTreeSet};

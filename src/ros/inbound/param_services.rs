@@ -10,11 +10,12 @@
 //! same names, types and QoS, here. Handlers only read the store or call
 //! [`Inputs::set_params`]; they never block.
 
-use super::args::Remap;
-use super::inputs::Inputs;
-use super::names::{to_ros_name, NameError, NameKind, NodeIdentity};
-use futures::StreamExt;
-use log::{debug, warn};
+use crate::ros::config::args::Remap;
+use crate::ros::config::names::NodeIdentity;
+use crate::ros::inbound::inputs::Inputs;
+use crate::ros::wire::endpoints::EndpointError;
+use crate::ros::wire::services::ServiceMaker;
+use crate::ros::wire::services::{Request, Response};
 use ros2_client::parameters::raw;
 use ros2_client::rcl_interfaces::{
     DescribeParametersRequest, DescribeParametersResponse, GetParameterTypesRequest,
@@ -22,26 +23,9 @@ use ros2_client::rcl_interfaces::{
     ListParametersResponse, ListParametersResult, SetParametersAtomicallyResponse,
     SetParametersRequest, SetParametersResponse,
 };
-use ros2_client::{Message, Node, ParameterValue, Server, ServiceMapping, ServiceTypeName};
+use ros2_client::{Node, ParameterValue};
 use std::sync::Arc;
 use tokio::task::JoinHandle;
-
-/// Errors creating the services.
-#[derive(Debug, thiserror::Error)]
-pub enum ServiceError {
-    /// A service name that does not resolve (e.g. a bad remap).
-    #[error(transparent)]
-    Name(#[from] NameError),
-    /// DDS refused to create the service.
-    #[error("cannot create service {name}")]
-    Create {
-        /// The service.
-        name: String,
-        /// Why.
-        #[source]
-        source: ros2_client::CreateError,
-    },
-}
 
 fn get(b: &Inputs, req: GetParametersRequest) -> GetParametersResponse {
     b.with_params(|s| GetParametersResponse {
@@ -140,72 +124,6 @@ fn set_atomically(b: &Inputs, req: SetParametersRequest) -> SetParametersAtomica
     }
 }
 
-/// A service request type: a message a server task can own.
-pub trait Request: Message + Clone + Send + Sync + 'static {}
-impl<T: Message + Clone + Send + Sync + 'static> Request for T {}
-
-/// A service response type: a message a server task can send.
-pub trait Response: Message + Send + Sync + 'static {}
-impl<T: Message + Send + Sync + 'static> Response for T {}
-
-/// What a node's services are created with: the node, its identity and remapping rules.
-pub struct ServiceMaker<'a> {
-    /// The node.
-    pub node: &'a mut Node,
-    /// Its name and namespace.
-    pub id: &'a NodeIdentity,
-    /// The remapping rules.
-    pub remaps: &'a [Remap],
-}
-
-impl ServiceMaker<'_> {
-    /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
-    /// of type `package/type_name` and the task that answers each request with `handler`.
-    pub fn serve<Req, Resp>(
-        &mut self,
-        name: &str,
-        package: &str,
-        type_name: &str,
-        handler: impl Fn(Req) -> Resp + Send + 'static,
-    ) -> Result<JoinHandle<()>, ServiceError>
-    where
-        Req: Request,
-        Resp: Response,
-    {
-        let full = self.id.resolve(name, NameKind::Service, self.remaps)?;
-        let qos = super::qos::services();
-        let server: Server<Req, Resp> = self
-            .node
-            .create_server(
-                ServiceMapping::Enhanced,
-                &to_ros_name(&full)?,
-                &ServiceTypeName::new(package, type_name),
-                qos.clone(),
-                qos,
-            )
-            .map_err(|source| ServiceError::Create {
-                name: full.clone(),
-                source,
-            })?;
-        Ok(tokio::spawn(async move {
-            let stream = server.receive_request_stream();
-            futures::pin_mut!(stream);
-            while let Some(r) = stream.next().await {
-                match r {
-                    Ok((id, req)) => {
-                        debug!("{full}: request");
-                        let resp = handler(req);
-                        if let Err(e) = server.async_send_response(id, resp).await {
-                            warn!("{full}: cannot send the response: {e}");
-                        }
-                    }
-                    Err(e) => warn!("{full}: unreadable request: {e}"),
-                }
-            }
-        }))
-    }
-}
-
 /// What every parameter service of the node is created with.
 struct Servers<'a> {
     maker: ServiceMaker<'a>,
@@ -220,7 +138,7 @@ impl Servers<'_> {
         base: &'static str,
         type_name: &'static str,
         handler: fn(&Inputs, Req) -> Resp,
-    ) -> Result<JoinHandle<()>, ServiceError>
+    ) -> Result<JoinHandle<()>, EndpointError>
     where
         Req: Request,
         Resp: Response,
@@ -241,7 +159,7 @@ pub fn spawn(
     id: &NodeIdentity,
     remaps: &[Remap],
     inputs: &Arc<Inputs>,
-) -> Result<Vec<JoinHandle<()>>, ServiceError> {
+) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut s = Servers {
         maker: ServiceMaker { node, id, remaps },
         inputs,

@@ -7,23 +7,14 @@
 //! for the report thread, and the report thread never waits for a callback. Nothing here
 //! publishes or reads a clock.
 
-use super::lifecycle::{state, state_label};
-use super::params::{channel_name, ParamStore};
+use crate::ros::config::params::{channel_name, ParamStore};
+pub use crate::ros::config::params::{
+    DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW, MAX_COMMAND_HZ_WINDOW,
+    MAX_EXPECTED_COMMAND_HZ,
+};
+use crate::ros::interface::lifecycle::{state, state_label};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
 use std::sync::Arc;
-
-/// Default `command_hz_window`: diagnostics runs (one a second) in the window, as
-/// diagnostic_updater's `FrequencyStatusParam` (`window_size = 5`).
-pub const DEFAULT_COMMAND_HZ_WINDOW: usize = 5;
-
-/// Largest `command_hz_window`, runs (10 minutes at one a second).
-pub const MAX_COMMAND_HZ_WINDOW: usize = 600;
-
-/// Default `command_hz_tolerance`, a fraction, as diagnostic_updater's `FrequencyStatusParam`.
-pub const DEFAULT_COMMAND_HZ_TOLERANCE: f64 = 0.1;
-
-/// Highest `expected_command_hz_min` / `_max`, Hz.
-pub const MAX_EXPECTED_COMMAND_HZ: f64 = 10_000.0;
 
 /// The bounds of one channel's command-rate check, Hz, with the node's window and tolerance.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -112,7 +103,7 @@ impl NodeState {
     }
 
     /// The cell the lifecycle keeps its current state id in (`lifecycle_msgs/State`), for
-    /// [`Lifecycle::new`](super::lifecycle::Lifecycle::new).
+    /// [`Lifecycle::new`](crate::ros::inbound::lifecycle::Lifecycle::new).
     pub fn lifecycle_cell(&self) -> Arc<AtomicU8> {
         Arc::clone(&self.lifecycle)
     }
@@ -203,7 +194,7 @@ impl NodeState {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros::params::Phase;
+    use crate::ros::config::params::Phase;
     use ros2_client::ParameterValue as V;
 
     #[test]

@@ -21,7 +21,7 @@
 //! Must not block for long or allocate without bound: it runs on every thread that logs, never
 //! on the output thread's hot path (the engine does not log there).
 
-use super::args::RosArgs;
+use crate::ros::config::args::RosArgs;
 use log::{LevelFilter, Log, Metadata, Record};
 use ros2_client::rosout::RosoutRaw;
 use ros2_client::NodeLoggingHandle;
@@ -457,7 +457,10 @@ impl Log for Logger {
 
 /// The modules whose informational lines are caused by input from the ROS graph, one per
 /// message (an enable, a parameter change, an e-stop input).
-const INPUT_TARGETS: [&str; 2] = ["pwm_actuator::ros::inputs", "pwm_actuator::ros::estop"];
+const INPUT_TARGETS: [&str; 2] = [
+    "pwm_actuator::ros::inbound::inputs",
+    "pwm_actuator::ros::inbound::estop",
+];
 
 /// Whether records of `level` from `target` go through the rate limiter: warnings and errors
 /// from anywhere, and any record from the modules input drives ([`INPUT_TARGETS`]).
@@ -496,7 +499,7 @@ pub fn attach_rosout(handle: NodeLoggingHandle) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros::args::parse;
+    use crate::ros::config::args::parse;
 
     fn config(a: &[&str]) -> LogConfig {
         let args: Vec<String> = a.iter().map(|s| s.to_string()).collect();
@@ -550,12 +553,12 @@ mod tests {
     #[test]
     fn input_driven_info_lines_are_limited_and_other_info_lines_are_not() {
         use log::Level::{Debug, Error, Info, Warn};
-        assert!(rate_limited(Info, "pwm_actuator::ros::inputs"));
-        assert!(rate_limited(Debug, "pwm_actuator::ros::estop"));
+        assert!(rate_limited(Info, "pwm_actuator::ros::inbound::inputs"));
+        assert!(rate_limited(Debug, "pwm_actuator::ros::inbound::estop"));
         assert!(rate_limited(Warn, "pwm_actuator::ros::node"));
         assert!(rate_limited(Error, "rustdds::rtps"));
         // Edge lines have a rate of their own (edge_log_rate); start-up lines are few.
-        assert!(!rate_limited(Info, "pwm_actuator::ros::console"));
+        assert!(!rate_limited(Info, "pwm_actuator::ros::outbound::console"));
         assert!(!rate_limited(Info, "pwm_actuator::ros::node"));
     }
 

@@ -13,13 +13,12 @@
 //! What the report thread reads of this side without a note (command counts, the command-rate
 //! check's settings, the e-stop) is in the atomics of [`NodeState`].
 
-use super::node_state::NodeState;
-use super::params::{self, show_value, ParamError, ParamStore, Phase};
-use super::reporter::Note;
 use crate::clock;
-use crate::core::Command;
+use crate::core::{Command, Nanos};
 use crate::engine::{EngineError, Input, Request, Requests, SafetyPath};
 use crate::output::safety::lock_ignore_poison as lock;
+use crate::ros::config::params::{self, show_value, ParamError, ParamStore, Phase};
+use crate::ros::inbound::node_state::NodeState;
 use log::{debug, info, warn};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::parameters::raw;
@@ -27,6 +26,24 @@ use ros2_client::{ParameterValue, Publisher};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
+
+/// What the ROS callbacks tell the reporter.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Note {
+    /// A parameter change was refused: the reason, shown as WARN on the channels it names.
+    Refused {
+        /// Channels the refused change named.
+        channels: Vec<usize>,
+        /// Why, as given to the client.
+        reason: String,
+        /// When, monotonic ns.
+        at: Nanos,
+    },
+    /// `status_rate_hz` changed, Hz (0 = on change only).
+    StatusRate(f64),
+    /// `edge_log_rate` changed, lines per second and channel.
+    EdgeLogRate(u32),
+}
 
 /// Notes that may wait for the reporter at once; more are dropped and counted.
 pub const NOTE_QUEUE: usize = 64;

@@ -8,17 +8,17 @@
 //! a reset every channel is disabled and runs again only on its next `enable=true` (the core's
 //! [`Channel::set_estop`](crate::core::Channel::set_estop)).
 
-use super::args::Remap;
-use super::endpoints::{listen, subscription};
-use super::inputs::Inputs;
-use super::msg::{self, TriggerResponse};
-use super::names::NodeIdentity;
-use super::node::NodeError;
-use super::services;
 use crate::clock;
 use crate::core::Nanos;
 use crate::engine::Input;
 use crate::output::safety::lock_ignore_poison as lock;
+use crate::ros::config::args::Remap;
+use crate::ros::config::names::NodeIdentity;
+use crate::ros::inbound::inputs::Inputs;
+use crate::ros::interface::msg::{self, TriggerResponse};
+use crate::ros::wire::endpoints::EndpointError;
+use crate::ros::wire::endpoints::{listen, subscription};
+use crate::ros::wire::services;
 use log::{error, info, warn};
 use ros2_client::Node;
 use std::sync::Arc;
@@ -174,7 +174,7 @@ pub(crate) fn spawn(
     remaps: &[Remap],
     inputs: &Arc<Inputs>,
     estop: &Arc<EStop>,
-) -> Result<Vec<JoinHandle<()>>, NodeError> {
+) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut tasks = Vec::new();
     let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
     let (full, s) = subscription::<msg::Bool>(node, id, remaps, "~/estop")?;

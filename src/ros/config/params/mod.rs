@@ -27,6 +27,19 @@ use ros2_client::parameters::raw;
 use ros2_client::ParameterValue;
 use table::Checked;
 
+/// Default `command_hz_window`: diagnostics runs (one a second) in the window, as
+/// diagnostic_updater's `FrequencyStatusParam` (`window_size = 5`).
+pub const DEFAULT_COMMAND_HZ_WINDOW: usize = 5;
+
+/// Largest `command_hz_window`, runs (10 minutes at one a second).
+pub const MAX_COMMAND_HZ_WINDOW: usize = 600;
+
+/// Default `command_hz_tolerance`, a fraction, as diagnostic_updater's `FrequencyStatusParam`.
+pub const DEFAULT_COMMAND_HZ_TOLERANCE: f64 = 0.1;
+
+/// Highest `expected_command_hz_min` / `_max`, Hz.
+pub const MAX_EXPECTED_COMMAND_HZ: f64 = 10_000.0;
+
 /// Most channels a node may have (names stay two digits: `pw01`..`pw99`).
 pub const MAX_CHANNELS: usize = 99;
 

@@ -1,25 +1,38 @@
 //! The node's topics, publishers and subscriptions, created with its identity and remapping
 //! rules, and the task that hands each received message to a callback.
 
-use super::args::Remap;
-use super::msg::RosMessage;
-use super::names::{to_ros_name, NameKind, NodeIdentity};
-use super::node::NodeError;
-use super::qos;
+use crate::ros::config::args::Remap;
+use crate::ros::config::names::{to_ros_name, NameError, NameKind, NodeIdentity};
+use crate::ros::interface::msg::RosMessage;
+use crate::ros::interface::qos;
 use futures::StreamExt;
 use log::{debug, warn};
 use ros2_client::{Message, Node, Publisher, QosProfile, Subscription};
 use tokio::task::JoinHandle;
 
-/// Maps a creation error of ros2-client to [`NodeError::Ros`] naming `what`.
-pub(crate) fn ros_err(
+/// Why an endpoint (a topic, publisher, subscription or service) of the node cannot be made.
+#[derive(Debug, thiserror::Error)]
+pub enum EndpointError {
+    /// Its name does not resolve (e.g. a bad remap).
+    #[error(transparent)]
+    Name(#[from] NameError),
+    /// DDS refused to create it.
+    #[error("ROS: cannot create {what}")]
+    Create {
+        /// What: `topic /pwm_actuator/pw01/duty`, `service /pwm_actuator/reset_estop`, ...
+        what: String,
+        /// Why (ros2-client's error).
+        #[source]
+        source: ros2_client::CreateError,
+    },
+}
+
+/// Maps a creation error of ros2-client to [`EndpointError::Create`] naming `what`.
+pub(crate) fn create_err(
     what: impl Into<String>,
-) -> impl FnOnce(ros2_client::CreateError) -> NodeError {
+) -> impl FnOnce(ros2_client::CreateError) -> EndpointError {
     let what = what.into();
-    move |e| NodeError::Ros {
-        what,
-        source: Box::new(e),
-    }
+    move |source| EndpointError::Create { what, source }
 }
 
 /// Resolves a topic name of this node.
@@ -30,11 +43,11 @@ pub(crate) fn topic(
     name: &str,
     type_name: ros2_client::MessageTypeName,
     qos: &QosProfile,
-) -> Result<(String, rustdds::Topic), NodeError> {
+) -> Result<(String, rustdds::Topic), EndpointError> {
     let full = id.resolve(name, NameKind::Topic, remaps)?;
     let t = node
         .create_topic(&to_ros_name(&full)?, type_name, qos)
-        .map_err(ros_err(format!("topic {full}")))?;
+        .map_err(create_err(format!("topic {full}")))?;
     Ok((full, t))
 }
 
@@ -44,11 +57,11 @@ pub(crate) fn publisher<M: RosMessage>(
     remaps: &[Remap],
     name: &str,
     qos: QosProfile,
-) -> Result<Publisher<M>, NodeError> {
+) -> Result<Publisher<M>, EndpointError> {
     let (full, t) = topic(node, id, remaps, name, M::type_name(), &qos)?;
     debug!("publishing {full}");
     node.create_publisher(&t, Some(qos))
-        .map_err(ros_err(format!("publisher {full}")))
+        .map_err(create_err(format!("publisher {full}")))
 }
 
 pub(crate) fn subscription<M: RosMessage + 'static>(
@@ -56,13 +69,13 @@ pub(crate) fn subscription<M: RosMessage + 'static>(
     id: &NodeIdentity,
     remaps: &[Remap],
     name: &str,
-) -> Result<(String, Subscription<M>), NodeError> {
+) -> Result<(String, Subscription<M>), EndpointError> {
     let qos = qos::commands();
     let (full, t) = topic(node, id, remaps, name, M::type_name(), &qos)?;
     debug!("subscribing {full}");
     let s = node
         .create_subscription(&t, Some(qos))
-        .map_err(ros_err(format!("subscription {full}")))?;
+        .map_err(create_err(format!("subscription {full}")))?;
     Ok((full, s))
 }
 

@@ -11,21 +11,24 @@
 //! it keeps) and the atomics of [`NodeState`] (command counts, the rate check's settings, the
 //! lifecycle state, the e-stop).
 //!
-//! Publishing never waits for a slow subscriber (see [`super::qos`]); what cannot be published
+//! Publishing never waits for a slow subscriber (see [`crate::ros::interface::qos`]); what cannot be published
 //! is counted.
 
-use super::console::EdgeLines;
-use super::diagnostics::{clamp_text, status_changed, status_msg, ChannelHealth, NodeCounters};
-use super::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
-use super::frequency::{FrequencyReport, FrequencyStatus};
-use super::logging;
-use super::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
-use super::node_state::NodeState;
-use super::params::{MAX_STATUS_RATE_HZ, MIN_STATUS_RATE_HZ};
-use super::qos::MAX_SAMPLE_BYTES;
 use crate::clock;
 use crate::core::{Event, Nanos, Status};
 use crate::engine::{EdgeReport, Report};
+use crate::ros::config::logging;
+use crate::ros::config::params::{MAX_STATUS_RATE_HZ, MIN_STATUS_RATE_HZ};
+use crate::ros::inbound::inputs::Note;
+use crate::ros::inbound::node_state::NodeState;
+use crate::ros::interface::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
+use crate::ros::interface::qos::MAX_SAMPLE_BYTES;
+use crate::ros::outbound::console::EdgeLines;
+use crate::ros::outbound::diagnostics::{
+    clamp_text, status_changed, status_msg, ChannelHealth, NodeCounters,
+};
+use crate::ros::outbound::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
+use crate::ros::outbound::frequency::{FrequencyReport, FrequencyStatus};
 use log::{debug, error, info, warn};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::Publisher;
@@ -46,24 +49,6 @@ const DIAGNOSTICS_COALESCE_NS: Nanos = 50_000_000;
 
 /// The longest the report thread sleeps between looks at its clocks and notes.
 pub const MAX_WAIT: Duration = Duration::from_millis(100);
-
-/// What the ROS callbacks tell the reporter.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Note {
-    /// A parameter change was refused: the reason, shown as WARN on the channels it names.
-    Refused {
-        /// Channels the refused change named.
-        channels: Vec<usize>,
-        /// Why, as given to the client.
-        reason: String,
-        /// When, monotonic ns.
-        at: Nanos,
-    },
-    /// `status_rate_hz` changed, Hz (0 = on change only).
-    StatusRate(f64),
-    /// `edge_log_rate` changed, lines per second and channel.
-    EdgeLogRate(u32),
-}
 
 /// The per-channel publishers.
 pub struct ChannelPubs {
@@ -296,7 +281,10 @@ impl Reporter {
         }
         // The output thread sends the status snapshot an edge belongs to ahead of the edge.
         let (duty, e1) = self.health[ch].status.map_or((0.0, false), |s| {
-            (super::diagnostics::percent(s.duty_commanded), s.e1)
+            (
+                crate::ros::outbound::diagnostics::percent(s.duty_commanded),
+                s.e1,
+            )
         });
         for line in self
             .lines

@@ -1,7 +1,7 @@
 use super::*;
 use crate::core::{ChannelConfig, MinTime, OutputKind};
 use crate::output::{Backend, GpioLine, OutputSpec};
-use crate::ros::msg;
+use crate::ros::interface::msg;
 use ParameterValue as V;
 
 fn sv(name: &str, value: V) -> StartValue {
@@ -530,7 +530,7 @@ fn channel_names() {
 /// its default and whether it is read-only (`RO`), as the table in `table.rs` says.
 #[test]
 fn the_readme_tables_match_the_parameter_table() {
-    let readme = include_str!("../../../README.md");
+    let readme = include_str!("../../../../README.md");
     let section = readme
         .split("### Parameters")
         .nth(1)

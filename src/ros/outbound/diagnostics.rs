@@ -14,8 +14,8 @@
 //! Pure bookkeeping fed by engine reports; it does not publish and does not read clocks (times
 //! are passed in).
 
-use super::msg::{ChannelStatus, DiagnosticStatus, KeyValue};
 use crate::core::{Command, Nanos, Status, NS_PER_MS};
+use crate::ros::interface::msg::{ChannelStatus, DiagnosticStatus, KeyValue};
 
 /// How long a refused command keeps the channel at WARN, ns.
 pub const REFUSAL_WARN_NS: Nanos = 5_000_000_000;
@@ -113,7 +113,7 @@ pub struct NodeCounters {
     /// Reports the output thread could not queue for the ROS side (the report thread fell
     /// behind): edges written to the line but never published.
     pub reports_dropped: u64,
-    /// Input samples larger than [`super::qos::MAX_SAMPLE_BYTES`], dropped before decoding.
+    /// Input samples larger than [`crate::ros::interface::qos::MAX_SAMPLE_BYTES`], dropped before decoding.
     pub samples_too_large: u64,
 }
 
@@ -277,7 +277,7 @@ impl NodeHealth {
         if Self::recent(self.last_too_large, now) {
             return format!(
                 "input samples larger than {} KiB dropped: {} since start-up",
-                super::qos::MAX_SAMPLE_BYTES / 1024,
+                crate::ros::interface::qos::MAX_SAMPLE_BYTES / 1024,
                 self.counters.samples_too_large
             );
         }
@@ -1001,14 +1001,14 @@ mod tests {
     #[test]
     fn the_analyzers_file_names_the_node_s_prefix() {
         use yaml_rust2::YamlLoader;
-        let text = include_str!("../../launch-notes/diagnostic_analyzers.yaml");
+        let text = include_str!("../../../launch-notes/diagnostic_analyzers.yaml");
         let docs = YamlLoader::load_from_str(text).expect("valid YAML");
         let a = &docs[0]["analyzers"]["ros__parameters"]["pwm_actuator"];
         assert_eq!(
             a["type"].as_str(),
             Some("diagnostic_aggregator/GenericAnalyzer")
         );
-        let node = crate::ros::node::NODE_NAME;
+        let node = crate::ros::config::names::NODE_NAME;
         let prefix = format!("{node}:");
         let prefixes: Vec<&str> = a["find_and_remove_prefix"]
             .as_vec()

@@ -1,0 +1,13 @@
+//! ROS → output thread: commands, enables and parameter changes ([`inputs`]), the e-stop
+//! ([`estop`]), the managed node ([`lifecycle`]), the parameter services ([`param_services`]),
+//! and what the callbacks share with the report side ([`node_state`], the notes of
+//! [`inputs`]).
+//!
+//! Layer 4 of the ROS shell: may import [`interface`](super::interface),
+//! [`config`](super::config) and [`wire`](super::wire); never the outbound side.
+
+pub mod estop;
+pub mod inputs;
+pub mod lifecycle;
+pub mod node_state;
+pub mod param_services;

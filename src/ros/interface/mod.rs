@@ -1,0 +1,8 @@
+//! The ROS interface's types: the messages the node exchanges ([`msg`]), their QoS ([`qos`])
+//! and the managed node's state graph ([`lifecycle`]).
+//!
+//! Layer 1 of the ROS shell: imports nothing else of it.
+
+pub mod lifecycle;
+pub mod msg;
+pub mod qos;

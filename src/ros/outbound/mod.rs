@@ -1,0 +1,10 @@
+//! Output thread → ROS: the reporter on the report thread ([`reporter`]): edges, E1, status,
+//! `/diagnostics` ([`diagnostics`]), the command-rate check ([`frequency`]) and the console
+//! ([`console`]).
+//!
+//! Layer 5 of the ROS shell: may import every layer before it.
+
+pub mod console;
+pub mod diagnostics;
+pub mod frequency;
+pub mod reporter;
