@@ -69,6 +69,14 @@ else
     run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
 fi
 
+# 2b. The layers: no import cycle among the files of src/, no layer of the ROS shell importing
+# one after it (scripts/check-layers.py). One check.
+if run_step "layers" python3 scripts/check-layers.py; then
+    passed=$((passed + 1))
+else
+    failed=$((failed + 1))
+fi
+
 # 3. The release binary the rclpy suite runs.
 release_ok=1
 run_step "cargo build --release" cargo build --release --bins --locked || release_ok=0
