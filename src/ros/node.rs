@@ -8,7 +8,7 @@
 //! before the process exits.
 
 use crate::clock;
-use crate::core::{split_command, ChannelConfig, Command};
+use crate::core::ChannelConfig;
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
@@ -23,17 +23,15 @@ use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
 use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultError};
 use crate::ros::inbound::estop::{self, EStop};
-use crate::ros::inbound::inputs::{Inputs, NOTE_QUEUE};
-use crate::ros::inbound::lifecycle::{self, Lifecycle, LineActions};
+use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
+use crate::ros::inbound::lifecycle;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::inbound::param_services;
-use crate::ros::interface::msg;
 use crate::ros::interface::qos;
 use crate::ros::outbound::diagnostics::ChannelHealth;
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
-use crate::ros::wire::endpoints::{listen, publisher, subscription, EndpointError};
+use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use crate::ros::wire::name_clash::{self, NameClash};
-use crate::ros::wire::services;
 use crate::service::WatchdogPinger;
 use log::{error, info, warn};
 use ros2_client::{Context, NodeName, NodeOptions};
@@ -174,7 +172,7 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
     }
     let cfg = StartupConfig::from_store(&su.store)?;
     let channel_names: Vec<String> = cfg.channels.iter().map(|c| c.name.clone()).collect();
-    let splits = split::parse(su.store.string("split").unwrap_or(""), &channel_names)?;
+    let splits = split::parse(&cfg.settings.split, &channel_names)?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("pwm-ros")
@@ -224,7 +222,7 @@ fn ignored_warnings(ignored: &[String]) -> (Vec<String>, Option<String>) {
 fn open_output(cfg: &StartupConfig) -> Result<(AnyOutput, Option<LineSlot>), NodeError> {
     let mut spec = cfg.output.clone();
     spec.fault = Fault::from_env().map_err(FaultError)?;
-    let (out, lines) = match cfg.managed {
+    let (out, lines) = match cfg.settings.managed {
         true => output::open_deferred(&spec)?,
         false => (output::open(&spec)?, None),
     };
@@ -232,18 +230,57 @@ fn open_output(cfg: &StartupConfig) -> Result<(AnyOutput, Option<LineSlot>), Nod
     Ok((out, lines))
 }
 
+/// What the node runs, for its start-up line: channels, output, traces.
+fn what_runs(cfg: &StartupConfig) -> String {
+    let n = cfg.channels.len();
+    let output = match (&cfg.output.backend, cfg.output.trace.len()) {
+        (Backend::Sim { .. }, 0) => "sim output".to_string(),
+        (Backend::Sim { .. }, n) => format!("sim output, {n} trace file(s)"),
+        (Backend::Gpio { .. }, 0) => "gpio output".to_string(),
+        (Backend::Gpio { .. }, n) => format!("gpio output, {n} trace file(s)"),
+    };
+    format!("{n} channel{} ({output})", if n == 1 { "" } else { "s" })
+}
+
+/// The channels' health for the diagnostics before the output thread reports: as the core
+/// creates a channel (disabled, output off, duty 0), on its GPIO line or `sim`.
+fn channel_health(cfg: &StartupConfig, hardware_ids: &[String]) -> Vec<ChannelHealth> {
+    let hw = hardware_ids
+        .iter()
+        .map(String::as_str)
+        .chain(std::iter::repeat("sim"));
+    cfg.channels
+        .iter()
+        .zip(hw)
+        .map(|(c, hw)| {
+            let mut h = ChannelHealth::new(&c.name, hw);
+            let now = clock::monotonic_ns();
+            h.status = Some(crate::core::Channel::new(c.config, now).status(now));
+            h
+        })
+        .collect()
+}
+
 /// Starts the output thread on the opened output.
 fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeError> {
     let configs: Vec<ChannelConfig> = cfg.channels.iter().map(|c| c.config).collect();
     let opts = EngineOptions {
-        rt_priority: cfg.rt_priority,
-        heartbeat_half_period_ns: cfg.heartbeat_hz.map(|hz| (5e8 / hz).round() as u64),
+        rt_priority: cfg.settings.rt_priority,
+        heartbeat_half_period_ns: cfg.heartbeat_hz().map(|hz| (5e8 / hz).round() as u64),
         // A managed node starts unconfigured: every line held inactive.
-        start_held: cfg.managed,
-        bank: cfg.bank,
+        start_held: cfg.settings.managed,
+        bank: cfg.settings.bank,
         ..EngineOptions::default()
     };
-    engine::spawn(configs, output, opts).map_err(NodeError::Engine)
+    let engine = engine::spawn(configs, output, opts).map_err(NodeError::Engine)?;
+    if let Some(Fault::PanicAfterMs(ms)) = Fault::from_env().map_err(FaultError)? {
+        warn!("{FAULT_ENV}: panicking in {ms} ms");
+        std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(ms));
+            panic!("{FAULT_ENV}: injected panic after {ms} ms");
+        });
+    }
+    Ok(engine)
 }
 
 /// Moves reports from the output thread to ROS until `quit` is set or the output thread ends.
@@ -316,70 +353,25 @@ async fn serve(
         tasks.push(tokio::spawn(name_clash::watch(events, clash)));
     }
 
-    let n = cfg.channels.len();
-    let mut pubs = Vec::with_capacity(n);
-    for c in &cfg.channels {
-        pubs.push(ChannelPubs {
-            edges: publisher(
-                &mut node,
-                &id,
-                remaps,
-                &format!("~/{}/edges", c.name),
-                qos::edges(),
-            )?,
-            e1: publisher(
-                &mut node,
-                &id,
-                remaps,
-                &format!("~/{}/e1", c.name),
-                qos::e1(),
-            )?,
-            status: publisher(
-                &mut node,
-                &id,
-                remaps,
-                &format!("~/{}/status", c.name),
-                qos::status(),
-            )?,
-        });
-    }
-    let diagnostics = publisher(&mut node, &id, remaps, "/diagnostics", qos::diagnostics())?;
+    let names: Vec<String> = cfg.channels.iter().map(|c| c.name.clone()).collect();
+    let mut ep = Endpoints {
+        node: &mut node,
+        id: &id,
+        remaps,
+    };
+    let (pubs, diagnostics) = ChannelPubs::create(&mut ep, &names)?;
     let param_events = node
         .create_publisher(&context.get_parameter_events_topic(), None)
         .map_err(ros_err("publisher /parameter_events"))?;
 
     let engine = start_engine(&cfg, output)?;
-    if let Some(Fault::PanicAfterMs(ms)) = Fault::from_env().map_err(FaultError)? {
-        warn!("{FAULT_ENV}: panicking in {ms} ms");
-        std::thread::spawn(move || {
-            std::thread::sleep(std::time::Duration::from_millis(ms));
-            panic!("{FAULT_ENV}: injected panic after {ms} ms");
-        });
-    }
     let Engine {
         requests,
         reports,
         handle,
     } = engine;
     let (notes_tx, notes_rx) = std::sync::mpsc::sync_channel(NOTE_QUEUE);
-    let health: Vec<ChannelHealth> = cfg
-        .channels
-        .iter()
-        .zip(
-            hardware_ids
-                .iter()
-                .map(String::as_str)
-                .chain(std::iter::repeat("sim")),
-        )
-        .map(|(c, hw)| {
-            let mut h = ChannelHealth::new(&c.name, hw);
-            // Until the output thread reports, the channel is as the core creates it:
-            // disabled, output off, duty 0.
-            let now = clock::monotonic_ns();
-            h.status = Some(crate::core::Channel::new(c.config, now).status(now));
-            h
-        })
-        .collect();
+    let health = channel_health(&cfg, &hardware_ids);
     let stop_signal = Arc::new(StopSignal::default());
     let node_state = Arc::new(NodeState::from_store(&store));
     let reporter = Reporter::new(
@@ -388,12 +380,12 @@ async fn serve(
         pubs,
         diagnostics,
         notes_rx,
-        cfg.status_rate_hz,
-        cfg.edge_log_rate,
+        cfg.settings.status_rate_hz,
+        cfg.settings.edge_log_rate,
         Arc::clone(&stop_signal),
         Arc::clone(&node_state),
     );
-    let estop = Arc::new(EStop::new(cfg.estop_timeout_ms));
+    let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
         fqn.clone(),
         store,
@@ -402,95 +394,20 @@ async fn serve(
         notes_tx,
         Arc::clone(&node_state),
     ));
-    // rclcpp announces declared parameters as new on /parameter_events; so does this node.
-    let declared = inputs.with_params(|s| {
-        s.all()
-            .into_iter()
-            .map(|(name, value)| ros2_client::parameters::raw::Parameter {
-                name,
-                value: value.into(),
-            })
-            .collect()
-    });
-    inputs.publish_param_event(declared, Vec::new());
+    inputs.announce_declared();
 
-    for (ch, c) in cfg.channels.iter().enumerate() {
-        let b = Arc::clone(&inputs);
-        let (full, s) =
-            subscription::<msg::Float64>(&mut node, &id, remaps, &format!("~/{}/duty", c.name))?;
-        tasks.push(listen(full, s, move |m| {
-            b.command(ch, Command::Percent(m.data))
-        }));
-        let b = Arc::clone(&inputs);
-        let (full, s) =
-            subscription::<msg::UInt16>(&mut node, &id, remaps, &format!("~/{}/sv", c.name))?;
-        tasks.push(listen(full, s, move |m| b.command(ch, Command::Sv(m.data))));
-        let b = Arc::clone(&inputs);
-        let (full, s) =
-            subscription::<msg::Bool>(&mut node, &id, remaps, &format!("~/{}/enable", c.name))?;
-        tasks.push(listen(full, s, move |m| b.enable(ch, m.data)));
-        let b = Arc::clone(&inputs);
-        let door = format!("~/{}/params", c.name);
-        let (full, s) = subscription::<msg::ChannelParams>(&mut node, &id, remaps, &door)?;
-        tasks.push(listen(full, s, move |m| {
-            match params::items_from_msg(ch, &m) {
-                Ok(items) => {
-                    // A refusal is logged and recorded by `set_params` itself.
-                    let _ = b.set_params(items, &door);
-                }
-                Err(e) => b.refused_message(ch, &door, &e.to_string()),
-            }
-        }));
-    }
-    // 001's split range: the output thread keeps each pair's lines apart from the start.
-    for pair in &splits {
-        let (hot, cold) = (&cfg.channels[pair.hot].name, &cfg.channels[pair.cold].name);
-        info!(
-            "split {}: {hot} hot, {cold} cold, dead band {} %",
-            pair.name, pair.deadband_pct
-        );
-        let _ = inputs.send(pair.hot, Input::Pair(pair.cold));
-        let _ = inputs.send(pair.cold, Input::Pair(pair.hot));
-        let b = Arc::clone(&inputs);
-        let (hot, cold, band) = (pair.hot, pair.cold, pair.deadband_pct);
-        let (full, s) = subscription::<msg::Float64>(
-            &mut node,
-            &id,
-            remaps,
-            &format!("~/split/{}/command", pair.name),
-        )?;
-        tasks.push(listen(full, s, move |m| {
-            let (h, c) = split_command(m.data, band);
-            b.command(hot, h);
-            b.command(cold, c);
-        }));
-    }
-    tasks.extend(param_services::spawn(&mut node, &id, remaps, &inputs)?);
-    tasks.extend(estop::spawn(&mut node, &id, remaps, &inputs, &estop)?);
-    if cfg.managed {
-        let events = publisher(
-            &mut node,
-            &id,
-            remaps,
-            "~/transition_event",
-            qos::commands(),
-        )?;
-        let actions = LineActions {
-            inputs: Arc::clone(&inputs),
-            lines: line_slot,
-        };
-        let lifecycle = Arc::new(Lifecycle::new(
-            Box::new(actions),
-            events,
-            node_state.lifecycle_cell(),
-        ));
-        let mut maker = services::ServiceMaker {
-            node: &mut node,
-            id: &id,
-            remaps,
-        };
-        tasks.extend(lifecycle::spawn(&mut maker, &lifecycle)?);
-        info!("managed node: unconfigured; every line held inactive until configure and activate");
+    let mut ep = Endpoints {
+        node: &mut node,
+        id: &id,
+        remaps,
+    };
+    tasks.extend(inputs::listen_channels(&mut ep, &inputs, &names)?);
+    tasks.extend(inputs::listen_splits(&mut ep, &inputs, &splits)?);
+    tasks.extend(param_services::spawn(&mut ep, &inputs)?);
+    tasks.extend(estop::spawn(&mut ep, &inputs, &estop)?);
+    if cfg.settings.managed {
+        let cell = node_state.lifecycle_cell();
+        tasks.extend(lifecycle::serve(&mut ep, &inputs, line_slot, cell)?);
     }
     let quit = Arc::new(AtomicBool::new(false));
     let pump_thread = {
@@ -501,30 +418,8 @@ async fn serve(
             .map_err(NodeError::Runtime)?
     };
 
-    // Start-up duty and enable: the duty first, so the first period already uses it.
-    for (ch, c) in cfg.channels.iter().enumerate() {
-        if c.duty_percent != 0.0 {
-            let _ = inputs.send(ch, Input::Command(Command::Percent(c.duty_percent)));
-        }
-        if c.enable {
-            info!(
-                "{}: enabled at start-up, duty {:.1} %",
-                c.name,
-                c.duty_percent + 0.0
-            );
-            let _ = inputs.send(ch, Input::Enable(true));
-        }
-    }
-    info!(
-        "{fqn} running: {n} channel{} ({}), ROS domain {domain}",
-        if n == 1 { "" } else { "s" },
-        match (&cfg.output.backend, cfg.output.trace.len()) {
-            (Backend::Sim { .. }, 0) => "sim output".to_string(),
-            (Backend::Sim { .. }, n) => format!("sim output, {n} trace file(s)"),
-            (Backend::Gpio { .. }, 0) => "gpio output".to_string(),
-            (Backend::Gpio { .. }, n) => format!("gpio output, {n} trace file(s)"),
-        }
-    );
+    inputs.start_up(&cfg.channels);
+    info!("{fqn} running: {}, ROS domain {domain}", what_runs(&cfg));
 
     // Lines requested, output thread running, ROS side up: systemd's Type=notify start ends.
     crate::service::ready();

@@ -12,15 +12,10 @@ use crate::clock;
 use crate::core::Nanos;
 use crate::engine::Input;
 use crate::output::safety::lock_ignore_poison as lock;
-use crate::ros::config::args::Remap;
-use crate::ros::config::names::NodeIdentity;
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::interface::msg::{self, TriggerResponse};
-use crate::ros::wire::endpoints::EndpointError;
-use crate::ros::wire::endpoints::{listen, subscription};
-use crate::ros::wire::services;
+use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{error, info, warn};
-use ros2_client::Node;
 use std::sync::Arc;
 use std::sync::Mutex;
 use tokio::task::JoinHandle;
@@ -168,20 +163,17 @@ impl EStop {
 
 /// `~/estop` (reliable, volatile: any publisher matches), `~/reset_estop` (std_srvs/Trigger)
 /// and, with `estop_timeout_ms`, the task that latches when no `false` comes in time.
-pub(crate) fn spawn(
-    node: &mut Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
+pub fn spawn(
+    ep: &mut Endpoints<'_>,
     inputs: &Arc<Inputs>,
     estop: &Arc<EStop>,
 ) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut tasks = Vec::new();
     let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
-    let (full, s) = subscription::<msg::Bool>(node, id, remaps, "~/estop")?;
-    tasks.push(listen(full, s, move |m| e.input(&b, m.data)));
+    tasks.push(ep.listen("~/estop", move |m: msg::Bool| e.input(&b, m.data))?);
     let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
     let reset = move |_: msg::EmptyRequest| e.reset(&b);
-    let mut maker = services::ServiceMaker { node, id, remaps };
+    let mut maker = ep.services();
     tasks.push(maker.serve("~/reset_estop", "std_srvs", "Trigger", reset)?);
     if let Some(period) = estop.timeout_check_period() {
         let (b, e) = (Arc::clone(inputs), Arc::clone(estop));

@@ -14,11 +14,15 @@
 //! check's settings, the e-stop) is in the atomics of [`NodeState`].
 
 use crate::clock;
-use crate::core::{Command, Nanos};
+use crate::core::{split_command, Command, Nanos};
 use crate::engine::{EngineError, Input, Request, Requests, SafetyPath};
 use crate::output::safety::lock_ignore_poison as lock;
+use crate::ros::config::params::ChannelStart;
 use crate::ros::config::params::{self, show_value, ParamError, ParamStore, Phase};
+use crate::ros::config::split::SplitPair;
 use crate::ros::inbound::node_state::NodeState;
+use crate::ros::interface::msg;
+use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{debug, info, warn};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::parameters::raw;
@@ -26,6 +30,7 @@ use ros2_client::{ParameterValue, Publisher};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
+use tokio::task::JoinHandle;
 
 /// What the ROS callbacks tell the reporter.
 #[derive(Debug, Clone, PartialEq)]
@@ -225,19 +230,16 @@ impl Inputs {
             }
             sent.push(*ch);
         }
+        let before = store.node_settings();
         let changed = store.commit(&accepted);
         self.state.apply_params(&store);
-        let planner = accepted
-            .changes
-            .iter()
-            .any(|(name, _)| name == "phase" || name == "max_simultaneous_on");
-        let bank = params::bank_of(&store);
+        let after = store.node_settings();
         drop(store);
-        if planner {
+        if after.bank != before.bank {
             // Through the safety path (a lowered limit must not wait behind commands), and
             // answered only once the output thread has it: a lowered limit acts at once, the
             // phase at each channel's next period start.
-            if let Err(e) = self.safety.take(Input::Bank(bank)) {
+            if let Err(e) = self.safety.take(Input::Bank(after.bank)) {
                 log::error!(
                     "the planner's new settings were not taken: {e}; every output switched off \
                      by the emergency handle"
@@ -249,13 +251,12 @@ impl Inputs {
         }
         for (name, value) in &accepted.changes {
             info!("parameter {name} = {} (via {door})", show_value(value));
-            match (name.as_str(), value) {
-                ("status_rate_hz", ParameterValue::Double(r)) => self.note(Note::StatusRate(*r)),
-                ("edge_log_rate", ParameterValue::Integer(r)) => {
-                    self.note(Note::EdgeLogRate((*r).clamp(0, 1000) as u32))
-                }
-                _ => {}
-            }
+        }
+        if after.status_rate_hz != before.status_rate_hz {
+            self.note(Note::StatusRate(after.status_rate_hz));
+        }
+        if after.edge_log_rate != before.edge_log_rate {
+            self.note(Note::EdgeLogRate(after.edge_log_rate));
         }
         if accepted.changes.is_empty() {
             debug!("parameters unchanged (via {door})");
@@ -291,6 +292,38 @@ impl Inputs {
         });
     }
 
+    /// Announces every declared parameter as new on `/parameter_events`, as rclcpp does.
+    pub fn announce_declared(&self) {
+        let declared = self.with_params(|s| {
+            s.all()
+                .into_iter()
+                .map(|(name, value)| raw::Parameter {
+                    name,
+                    value: value.into(),
+                })
+                .collect()
+        });
+        self.publish_param_event(declared, Vec::new());
+    }
+
+    /// The start-up duty and enable of each channel: the duty first, so the first period
+    /// already uses it.
+    pub fn start_up(&self, channels: &[ChannelStart]) {
+        for (ch, c) in channels.iter().enumerate() {
+            if c.duty_percent != 0.0 {
+                let _ = self.send(ch, Input::Command(Command::Percent(c.duty_percent)));
+            }
+            if c.enable {
+                info!(
+                    "{}: enabled at start-up, duty {:.1} %",
+                    c.name,
+                    c.duty_percent + 0.0
+                );
+                let _ = self.send(ch, Input::Enable(true));
+            }
+        }
+    }
+
     /// Publishes a `/parameter_events` message (nothing when both lists are empty).
     pub fn publish_param_event(&self, new: Vec<raw::Parameter>, changed: Vec<raw::Parameter>) {
         if new.is_empty() && changed.is_empty() {
@@ -307,4 +340,73 @@ impl Inputs {
             warn!("cannot publish /parameter_events: {e}");
         }
     }
+}
+
+/// The inputs of each channel, `~/<ch>/duty`, `~/<ch>/sv`, `~/<ch>/enable` and
+/// `~/<ch>/params`, and the tasks that hand them to `inputs`; `names`: the channels in order.
+pub fn listen_channels(
+    ep: &mut Endpoints<'_>,
+    inputs: &Arc<Inputs>,
+    names: &[String],
+) -> Result<Vec<JoinHandle<()>>, EndpointError> {
+    let mut tasks = Vec::new();
+    for (ch, name) in names.iter().enumerate() {
+        let b = Arc::clone(inputs);
+        tasks.push(
+            ep.listen(&format!("~/{name}/duty"), move |m: msg::Float64| {
+                b.command(ch, Command::Percent(m.data))
+            })?,
+        );
+        let b = Arc::clone(inputs);
+        tasks.push(ep.listen(&format!("~/{name}/sv"), move |m: msg::UInt16| {
+            b.command(ch, Command::Sv(m.data))
+        })?);
+        let b = Arc::clone(inputs);
+        tasks.push(ep.listen(&format!("~/{name}/enable"), move |m: msg::Bool| {
+            b.enable(ch, m.data)
+        })?);
+        let b = Arc::clone(inputs);
+        let door = format!("~/{name}/params");
+        let topic = door.clone();
+        tasks.push(ep.listen(&topic, move |m: msg::ChannelParams| {
+            match params::items_from_msg(ch, &m) {
+                Ok(items) => {
+                    // A refusal is logged and recorded by `set_params` itself.
+                    let _ = b.set_params(items, &door);
+                }
+                Err(e) => b.refused_message(ch, &door, &e.to_string()),
+            }
+        })?);
+    }
+    Ok(tasks)
+}
+
+/// 001's split range: pairs each hot and cold channel in the output thread (their lines are
+/// never high together from the start) and listens on `~/split/<name>/command`.
+pub fn listen_splits(
+    ep: &mut Endpoints<'_>,
+    inputs: &Arc<Inputs>,
+    pairs: &[SplitPair],
+) -> Result<Vec<JoinHandle<()>>, EndpointError> {
+    let mut tasks = Vec::new();
+    for pair in pairs {
+        info!(
+            "split {}: {} hot, {} cold, dead band {} %",
+            pair.name,
+            inputs.name(pair.hot),
+            inputs.name(pair.cold),
+            pair.deadband_pct
+        );
+        let _ = inputs.send(pair.hot, Input::Pair(pair.cold));
+        let _ = inputs.send(pair.cold, Input::Pair(pair.hot));
+        let b = Arc::clone(inputs);
+        let (hot, cold, band) = (pair.hot, pair.cold, pair.deadband_pct);
+        let topic = format!("~/split/{}/command", pair.name);
+        tasks.push(ep.listen(&topic, move |m: msg::Float64| {
+            let (h, c) = split_command(m.data, band);
+            b.command(hot, h);
+            b.command(cold, c);
+        })?);
+    }
+    Ok(tasks)
 }

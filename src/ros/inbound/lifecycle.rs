@@ -22,8 +22,9 @@ use crate::ros::interface::msg::{
     GetAvailableTransitionsResponse, GetStateResponse, LifecycleState, LifecycleTransition,
     TransitionDescription, TransitionEvent,
 };
-use crate::ros::wire::endpoints::EndpointError;
-use crate::ros::wire::services::ServiceMaker;
+use crate::ros::interface::qos;
+use crate::ros::wire::endpoints::ServiceMaker;
+use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{info, warn};
 use ros2_client::Publisher;
 use std::sync::atomic::{AtomicU8, Ordering};
@@ -357,6 +358,27 @@ fn query<R: 'static>(
 ) -> impl Fn(EmptyRequest) -> R + Send + 'static {
     let l = Arc::clone(lifecycle);
     move |_| answer(&l)
+}
+
+/// The managed node on ROS: `~/transition_event`, the lifecycle services, and the state
+/// machine whose transitions hold or release the lines (`lines`: the GPIO lines requested on
+/// configure; `None` for the sim output). `cell`: where the state is published for the
+/// diagnostics.
+pub fn serve(
+    ep: &mut Endpoints<'_>,
+    inputs: &Arc<Inputs>,
+    lines: Option<LineSlot>,
+    cell: Arc<AtomicU8>,
+) -> Result<Vec<JoinHandle<()>>, EndpointError> {
+    let events = ep.publisher("~/transition_event", qos::commands())?;
+    let actions = LineActions {
+        inputs: Arc::clone(inputs),
+        lines,
+    };
+    let lifecycle = Arc::new(Lifecycle::new(Box::new(actions), events, cell));
+    let tasks = spawn(&mut ep.services(), &lifecycle)?;
+    info!("managed node: unconfigured; every line held inactive until configure and activate");
+    Ok(tasks)
 }
 
 #[cfg(test)]

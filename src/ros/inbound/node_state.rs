@@ -92,7 +92,7 @@ impl NodeState {
     /// check set as the store says.
     pub fn from_store(store: &ParamStore) -> NodeState {
         let mut s = NodeState::new(store.channels());
-        s.managed = store.bool("managed").unwrap_or(false);
+        s.managed = store.node_settings().managed;
         s.apply_params(store);
         s
     }
@@ -178,16 +178,11 @@ impl NodeState {
             c.max_hz
                 .store(get("expected_command_hz_max").to_bits(), Ordering::Relaxed);
         }
-        let window = store
-            .int("command_hz_window")
-            .map_or(DEFAULT_COMMAND_HZ_WINDOW, |w| {
-                w.clamp(1, MAX_COMMAND_HZ_WINDOW as i64) as usize
-            });
-        self.window.store(window, Ordering::Relaxed);
-        let tolerance = store
-            .double("command_hz_tolerance")
-            .unwrap_or(DEFAULT_COMMAND_HZ_TOLERANCE);
-        self.tolerance.store(tolerance.to_bits(), Ordering::Relaxed);
+        let settings = store.node_settings();
+        self.window
+            .store(settings.command_hz_window, Ordering::Relaxed);
+        self.tolerance
+            .store(settings.command_hz_tolerance.to_bits(), Ordering::Relaxed);
     }
 }
 

@@ -10,12 +10,9 @@
 //! same names, types and QoS, here. Handlers only read the store or call
 //! [`Inputs::set_params`]; they never block.
 
-use crate::ros::config::args::Remap;
-use crate::ros::config::names::NodeIdentity;
 use crate::ros::inbound::inputs::Inputs;
-use crate::ros::wire::endpoints::EndpointError;
-use crate::ros::wire::services::ServiceMaker;
-use crate::ros::wire::services::{Request, Response};
+use crate::ros::wire::endpoints::{EndpointError, Endpoints, ServiceMaker};
+use crate::ros::wire::endpoints::{Request, Response};
 use ros2_client::parameters::raw;
 use ros2_client::rcl_interfaces::{
     DescribeParametersRequest, DescribeParametersResponse, GetParameterTypesRequest,
@@ -23,7 +20,7 @@ use ros2_client::rcl_interfaces::{
     ListParametersResponse, ListParametersResult, SetParametersAtomicallyResponse,
     SetParametersRequest, SetParametersResponse,
 };
-use ros2_client::{Node, ParameterValue};
+use ros2_client::ParameterValue;
 use std::sync::Arc;
 use tokio::task::JoinHandle;
 
@@ -155,13 +152,11 @@ impl Servers<'_> {
 
 /// Creates the six parameter services and the tasks serving them.
 pub fn spawn(
-    node: &mut Node,
-    id: &NodeIdentity,
-    remaps: &[Remap],
+    ep: &mut Endpoints<'_>,
     inputs: &Arc<Inputs>,
 ) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut s = Servers {
-        maker: ServiceMaker { node, id, remaps },
+        maker: ep.services(),
         inputs,
     };
     Ok(vec![

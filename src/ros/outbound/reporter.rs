@@ -22,13 +22,14 @@ use crate::ros::config::params::{MAX_STATUS_RATE_HZ, MIN_STATUS_RATE_HZ};
 use crate::ros::inbound::inputs::Note;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::interface::msg::{self, DiagnosticArray, DiagnosticStatus, Header};
-use crate::ros::interface::qos::MAX_SAMPLE_BYTES;
+use crate::ros::interface::qos::{self, MAX_SAMPLE_BYTES};
 use crate::ros::outbound::console::EdgeLines;
 use crate::ros::outbound::diagnostics::{
     clamp_text, status_changed, status_msg, ChannelHealth, NodeCounters,
 };
 use crate::ros::outbound::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
 use crate::ros::outbound::frequency::{FrequencyReport, FrequencyStatus};
+use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{debug, error, info, warn};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::Publisher;
@@ -58,6 +59,25 @@ pub struct ChannelPubs {
     pub e1: Publisher<msg::Bool>,
     /// `~/<ch>/status`.
     pub status: Publisher<msg::ChannelStatus>,
+}
+
+impl ChannelPubs {
+    /// The publishers of each channel (`names` in order) and `/diagnostics`.
+    pub fn create(
+        ep: &mut Endpoints<'_>,
+        names: &[String],
+    ) -> Result<(Vec<ChannelPubs>, Publisher<DiagnosticArray>), EndpointError> {
+        let mut pubs = Vec::with_capacity(names.len());
+        for name in names {
+            pubs.push(ChannelPubs {
+                edges: ep.publisher(&format!("~/{name}/edges"), qos::edges())?,
+                e1: ep.publisher(&format!("~/{name}/e1"), qos::e1())?,
+                status: ep.publisher(&format!("~/{name}/status"), qos::status())?,
+            });
+        }
+        let diagnostics = ep.publisher("/diagnostics", qos::diagnostics())?;
+        Ok((pubs, diagnostics))
+    }
 }
 
 /// What the reporter shares with the node's main task: the request to stop, and whether an

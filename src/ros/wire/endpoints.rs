@@ -1,5 +1,7 @@
-//! The node's topics, publishers and subscriptions, created with its identity and remapping
-//! rules, and the task that hands each received message to a callback.
+//! The node's endpoints, created with its identity and remapping rules: topics, publishers,
+//! subscriptions with the task that hands each received message to a callback, and services
+//! with the task that answers each request ([`ServiceMaker::serve`], the one place a service
+//! is created).
 
 use crate::ros::config::args::Remap;
 use crate::ros::config::names::{to_ros_name, NameError, NameKind, NodeIdentity};
@@ -7,7 +9,9 @@ use crate::ros::interface::msg::RosMessage;
 use crate::ros::interface::qos;
 use futures::StreamExt;
 use log::{debug, warn};
-use ros2_client::{Message, Node, Publisher, QosProfile, Subscription};
+use ros2_client::{
+    Message, Node, Publisher, QosProfile, Server, ServiceMapping, ServiceTypeName, Subscription,
+};
 use tokio::task::JoinHandle;
 
 /// Why an endpoint (a topic, publisher, subscription or service) of the node cannot be made.
@@ -95,4 +99,110 @@ where
             }
         }
     })
+}
+
+/// What every endpoint of the node is made with: the node, its identity and the remapping
+/// rules. Each owner of a group of endpoints (a channel's topics, the e-stop, the lifecycle,
+/// the parameter services, the reporter's publishers) makes them through this.
+pub struct Endpoints<'a> {
+    /// The node.
+    pub node: &'a mut Node,
+    /// Its name and namespace.
+    pub id: &'a NodeIdentity,
+    /// The remapping rules.
+    pub remaps: &'a [Remap],
+}
+
+impl Endpoints<'_> {
+    /// A publisher of `name` (resolved as a node's topic name) with `qos`.
+    pub fn publisher<M: RosMessage>(
+        &mut self,
+        name: &str,
+        qos: QosProfile,
+    ) -> Result<Publisher<M>, EndpointError> {
+        publisher(self.node, self.id, self.remaps, name, qos)
+    }
+
+    /// A subscription of `name` with the commands' QoS, and the task that runs `on_msg` for
+    /// every message until it is aborted.
+    pub fn listen<M, F>(&mut self, name: &str, on_msg: F) -> Result<JoinHandle<()>, EndpointError>
+    where
+        M: RosMessage + Send + Sync + 'static,
+        F: FnMut(M) + Send + 'static,
+    {
+        let (full, sub) = subscription::<M>(self.node, self.id, self.remaps, name)?;
+        Ok(listen(full, sub, on_msg))
+    }
+
+    /// The service maker over the same node, identity and rules.
+    pub fn services(&mut self) -> ServiceMaker<'_> {
+        ServiceMaker {
+            node: self.node,
+            id: self.id,
+            remaps: self.remaps,
+        }
+    }
+}
+
+/// A service request type: a message a server task can own.
+pub trait Request: Message + Clone + Send + Sync + 'static {}
+impl<T: Message + Clone + Send + Sync + 'static> Request for T {}
+
+/// A service response type: a message a server task can send.
+pub trait Response: Message + Send + Sync + 'static {}
+impl<T: Message + Send + Sync + 'static> Response for T {}
+
+/// What a node's services are created with: the node, its identity and remapping rules.
+pub struct ServiceMaker<'a> {
+    /// The node.
+    pub node: &'a mut Node,
+    /// Its name and namespace.
+    pub id: &'a NodeIdentity,
+    /// The remapping rules.
+    pub remaps: &'a [Remap],
+}
+
+impl ServiceMaker<'_> {
+    /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
+    /// of type `package/type_name` and the task that answers each request with `handler`.
+    pub fn serve<Req, Resp>(
+        &mut self,
+        name: &str,
+        package: &str,
+        type_name: &str,
+        handler: impl Fn(Req) -> Resp + Send + 'static,
+    ) -> Result<JoinHandle<()>, EndpointError>
+    where
+        Req: Request,
+        Resp: Response,
+    {
+        let full = self.id.resolve(name, NameKind::Service, self.remaps)?;
+        let qos = crate::ros::interface::qos::services();
+        let server: Server<Req, Resp> = self
+            .node
+            .create_server(
+                ServiceMapping::Enhanced,
+                &to_ros_name(&full)?,
+                &ServiceTypeName::new(package, type_name),
+                qos.clone(),
+                qos,
+            )
+            .map_err(create_err(format!("service {full}")))?;
+        Ok(tokio::spawn(async move {
+            let stream = server.receive_request_stream();
+            futures::pin_mut!(stream);
+            while let Some(r) = stream.next().await {
+                match r {
+                    Ok((id, req)) => {
+                        debug!("{full}: request");
+                        let resp = handler(req);
+                        if let Err(e) = server.async_send_response(id, resp).await {
+                            warn!("{full}: cannot send the response: {e}");
+                        }
+                    }
+                    Err(e) => warn!("{full}: unreadable request: {e}"),
+                }
+            }
+        }))
+    }
 }

@@ -1,5 +1,5 @@
 //! Making the node's endpoints: subscriptions, publishers and the tasks that listen
-//! ([`endpoints`]), the one service maker every service goes through ([`services`]), and the
+//! ([`endpoints`]), with the one service maker every service goes through, and the
 //! watch for another node with this node's name ([`name_clash`]).
 //!
 //! Layer 3 of the ROS shell: may import [`interface`](super::interface) and
@@ -7,4 +7,3 @@
 
 pub mod endpoints;
 pub mod name_clash;
-pub mod services;

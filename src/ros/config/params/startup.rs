@@ -2,9 +2,10 @@
 //! store and the configuration the node starts with.
 
 use super::table::node_decls;
+use super::NodeSettings;
 use super::DEFAULT_CHANNELS;
 use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Phase};
-use crate::core::{Bank, ChannelConfig};
+use crate::core::ChannelConfig;
 use crate::output::{Backend, GpioLine, OutputSpec};
 
 /// The name of the heartbeat line (in traces and safe-off's report).
@@ -109,25 +110,14 @@ pub struct StartupConfig {
     /// The output: backend, lines (with their polarity; the heartbeat line last, after the
     /// channels' lines), trace files.
     pub output: OutputSpec,
-    /// The heartbeat line's frequency, Hz, when there is a heartbeat line.
-    pub heartbeat_hz: Option<f64>,
-    /// The heartbeat e-stop's timeout, ms; 0 = off.
-    pub estop_timeout_ms: u64,
-    /// A managed (lifecycle) node.
-    pub managed: bool,
-    /// Periodic status rate, Hz (0 = on change only).
-    pub status_rate_hz: f64,
-    /// Edge lines per second and channel (0 = none).
-    pub edge_log_rate: u32,
-    /// SCHED_FIFO priority, if asked for.
-    pub rt_priority: Option<i32>,
-    /// The node-level planner: `phase` and `max_simultaneous_on`.
-    pub bank: Bank,
+    /// The node-level settings.
+    pub settings: NodeSettings,
 }
 
 impl StartupConfig {
     /// Reads the start-up configuration from a store built by [`start_up`].
     pub fn from_store(store: &ParamStore) -> Result<StartupConfig, ParamError> {
+        let settings = store.node_settings();
         let mut channels = Vec::new();
         for ch in 0..store.channels() {
             let name = channel_name(ch);
@@ -138,16 +128,8 @@ impl StartupConfig {
                 name,
             });
         }
-        let trace: Vec<PathBuf> = store
-            .string("trace")
-            .unwrap_or("")
-            .split(',')
-            .map(str::trim)
-            .filter(|s| !s.is_empty())
-            .map(PathBuf::from)
-            .collect();
-        let heartbeat = u32::try_from(store.int("heartbeat_line").unwrap_or(-1)).ok();
-        let backend = if store.string("output") == Some("gpio") {
+        let heartbeat = settings.heartbeat_line;
+        let backend = if settings.gpio {
             let mut lines = Vec::new();
             for c in &channels {
                 let offset = store.int(&format!("{}.gpio_line", c.name)).unwrap_or(-1);
@@ -172,7 +154,7 @@ impl StartupConfig {
             if let Some(offset) = heartbeat {
                 lines.push(GpioLine {
                     name: HEARTBEAT_LINE.into(),
-                    chip: PathBuf::from(store.string("heartbeat_chip").unwrap_or("/dev/gpiochip0")),
+                    chip: settings.heartbeat_chip.clone(),
                     offset,
                     active_low: false,
                 });
@@ -187,36 +169,20 @@ impl StartupConfig {
         };
         let output = OutputSpec {
             backend,
-            trace,
+            trace: settings.trace.clone(),
             fault: None,
         };
-        let rt = store.int("rt_priority").unwrap_or(0);
         Ok(StartupConfig {
             channels,
             output,
-            heartbeat_hz: heartbeat.map(|_| store.double("heartbeat_hz").unwrap_or(10.0)),
-            estop_timeout_ms: u64::try_from(store.int("estop_timeout_ms").unwrap_or(0))
-                .unwrap_or(0),
-            managed: store.bool("managed").unwrap_or(false),
-            status_rate_hz: store.double("status_rate_hz").unwrap_or(10.0),
-            edge_log_rate: store.int("edge_log_rate").unwrap_or(10).clamp(0, 1000) as u32,
-            rt_priority: (rt > 0).then_some(rt.min(99) as i32),
-            bank: bank_of(store),
+            settings,
         })
     }
-}
 
-/// The node-level planner the store's `phase` and `max_simultaneous_on` ask for (values the
-/// table refused never reach the store; anything else reads as the default).
-pub fn bank_of(store: &ParamStore) -> Bank {
-    Bank {
-        phase: store
-            .string("phase")
-            .and_then(|s| s.parse().ok())
-            .unwrap_or_default(),
-        max_on: store
-            .int("max_simultaneous_on")
-            .and_then(|n| usize::try_from(n).ok())
-            .unwrap_or(0),
+    /// The heartbeat line's frequency, Hz, when there is a heartbeat line.
+    pub fn heartbeat_hz(&self) -> Option<f64> {
+        self.settings
+            .heartbeat_line
+            .map(|_| self.settings.heartbeat_hz)
     }
 }

@@ -4,7 +4,7 @@
 
 use super::table::{self, channel_decls, node_decls};
 use super::{channel_name, channel_of, check_choice, check_range, coerce, make, Descriptor};
-use super::{shown, ParamError, MAX_CHANNELS};
+use super::{shown, NodeSettings, ParamError, MAX_CHANNELS};
 use crate::core::{ChannelConfig, ChannelParams};
 use crate::ros::interface::msg;
 use ros2_client::parameters::raw;
@@ -131,6 +131,19 @@ impl ParamStore {
             Some(ParameterValue::String(s)) => Some(s),
             _ => None,
         }
+    }
+
+    /// The node-level settings the store's values give (the table's defaults where a value
+    /// is not in the store).
+    pub fn node_settings(&self) -> NodeSettings {
+        let mut n = NodeSettings::default();
+        for d in node_decls() {
+            if let Some(to_node) = d.node {
+                let v = self.values.get(d.suffix).cloned().unwrap_or_else(d.default);
+                to_node(&mut n, &v);
+            }
+        }
+        n
     }
 
     /// Answers `list_parameters` the way rclcpp does: with no prefixes, names with fewer than

@@ -8,6 +8,7 @@
 //! Defaults and limits of the channel settings come from the core (`ChannelParams::default()`,
 //! `MAX_PERIOD_MS`, `MAX_TIMEOUT_MS`), so none is written twice.
 
+use super::settings::NodeSettings;
 use super::{ParamType, Range, DEFAULT_CHANNELS, MAX_CHANNELS, MAX_STATUS_RATE_HZ};
 use super::{ParameterValue as V, MIN_STATUS_RATE_HZ};
 use super::{DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW};
@@ -63,7 +64,12 @@ pub(super) struct Decl {
     pub core: Option<ToCore>,
     /// Channel parameters exposed on `~/<ch>/params`: the message field of the same name.
     pub msg: Option<FromMsg>,
+    /// Node parameters: how the value maps into the [`NodeSettings`].
+    pub node: Option<ToNode>,
 }
+
+/// Maps a node parameter's (checked) value into the node's settings.
+pub(super) type ToNode = fn(&mut NodeSettings, &V);
 
 /// Why a start-up-only parameter cannot change while running.
 const START_UP: &str = "it is read at start-up only; restart the node to change it";
@@ -83,6 +89,7 @@ impl Decl {
             choices: None,
             core: None,
             msg: None,
+            node: None,
         }
     }
 }
@@ -123,6 +130,10 @@ fn policy<T: FromStr<Err = UnknownName>>(v: &V) -> Result<Option<T>, UnknownName
     }
 }
 
+fn boolean(v: &V) -> bool {
+    matches!(v, V::Boolean(true))
+}
+
 fn double(v: &V) -> f64 {
     match v {
         V::Double(x) => *x,
@@ -142,6 +153,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             description: "Number of PWM channels, named pw01, pw02, ...",
             read_only: Some(START_UP),
             range: Range::Integer(1, MAX_CHANNELS as i64),
+            node: Some(|n, v| n.channels = int(v).max(0) as usize),
             ..Decl::new("channels", Integer, || V::Integer(DEFAULT_CHANNELS as i64))
         },
         Decl {
@@ -156,6 +168,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                     accepted: "sim|gpio",
                 }),
             }),
+            node: Some(|n, v| n.gpio = text(v) == "gpio"),
             ..Decl::new("output", String, || V::String("sim".into()))
         },
         Decl {
@@ -164,6 +177,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           and shutdown; ~/change_state and the other lifecycle services.",
             constraints: "start-up only (--managed)",
             read_only: Some(START_UP),
+            node: Some(|n, v| n.managed = boolean(v)),
             ..Decl::new("managed", Bool, || V::Boolean(false))
         },
         Decl {
@@ -171,6 +185,14 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           comma-separated; .vcd and/or .csv. Empty: no trace.",
             constraints: "start-up only",
             read_only: Some(START_UP),
+            node: Some(|n, v| {
+                n.trace = text(v)
+                    .split(',')
+                    .map(str::trim)
+                    .filter(|s| !s.is_empty())
+                    .map(std::path::PathBuf::from)
+                    .collect()
+            }),
             ..Decl::new("trace", String, || V::String(std::string::String::new()))
         },
         Decl {
@@ -180,12 +202,14 @@ pub(super) fn node_decls() -> Vec<Decl> {
             range: Range::Double(0.0, MAX_STATUS_RATE_HZ),
             checked: Checked::OffOr(MIN_STATUS_RATE_HZ),
             note: " (0 = on change only)",
+            node: Some(|n, v| n.status_rate_hz = double(v)),
             ..Decl::new("status_rate_hz", Double, || V::Double(10.0))
         },
         Decl {
             description: "Console lines per second and channel showing edges (info level); \
                           edges beyond are summarised once a second. 0: no edge lines.",
             range: Range::Integer(0, 1000),
+            node: Some(|n, v| n.edge_log_rate = int(v).clamp(0, 1000) as u32),
             ..Decl::new("edge_log_rate", Integer, || V::Integer(10))
         },
         Decl {
@@ -198,6 +222,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "sync|stagger; takes effect at each channel's next period start (a \
                           channel joining the grid waits, off, for its next instant)",
             choices: Some(|s| spelled::<Phase>(s, false)),
+            node: Some(|n, v| n.set_phase(text(v))),
             ..Decl::new("phase", String, || V::String(Phase::Sync.as_str().into()))
         },
         Decl {
@@ -210,6 +235,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           end as soon as their minimum on time allows (E1)",
             range: Range::Integer(0, MAX_CHANNELS as i64),
             note: " (0 = no limit)",
+            node: Some(|n, v| n.bank.max_on = int(v).max(0) as usize),
             ..Decl::new("max_simultaneous_on", Integer, || V::Integer(0))
         },
         Decl {
@@ -219,6 +245,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           (diagnostic_updater's FrequencyStatus window_size).",
             constraints: "a change starts a new, empty window",
             range: Range::Integer(1, MAX_COMMAND_HZ_WINDOW as i64),
+            node: Some(|n, v| n.command_hz_window = int(v).max(1) as usize),
             ..Decl::new("command_hz_window", Integer, || {
                 V::Integer(DEFAULT_COMMAND_HZ_WINDOW as i64)
             })
@@ -229,6 +256,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           * (1 + tolerance) are met (diagnostic_updater's FrequencyStatus \
                           tolerance).",
             range: Range::Double(0.0, 1.0),
+            node: Some(|n, v| n.command_hz_tolerance = double(v)),
             ..Decl::new("command_hz_tolerance", Double, || {
                 V::Double(DEFAULT_COMMAND_HZ_TOLERANCE)
             })
@@ -240,6 +268,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           together. Empty: none.",
             constraints: "each channel in one pair at most",
             read_only: Some(START_UP),
+            node: Some(|n, v| n.split = text(v).to_string()),
             ..Decl::new("split", String, || V::String(std::string::String::new()))
         },
         Decl {
@@ -252,12 +281,14 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "start-up only; driven inactive by safe-off too",
             read_only: Some(START_UP),
             range: Range::Integer(-1, u32::MAX as i64),
+            node: Some(|n, v| n.heartbeat_line = u32::try_from(int(v)).ok()),
             ..Decl::new("heartbeat_line", Integer, || V::Integer(-1))
         },
         Decl {
             description: "Chip of the heartbeat line (output gpio).",
             constraints: "start-up only",
             read_only: Some(START_UP),
+            node: Some(|n, v| n.heartbeat_chip = text(v).into()),
             ..Decl::new("heartbeat_chip", String, || {
                 V::String("/dev/gpiochip0".into())
             })
@@ -267,6 +298,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           period).",
             read_only: Some(START_UP),
             range: Range::Double(MIN_HEARTBEAT_HZ, MAX_HEARTBEAT_HZ),
+            node: Some(|n, v| n.heartbeat_hz = double(v)),
             ..Decl::new("heartbeat_hz", Double, || V::Double(10.0))
         },
         Decl {
@@ -276,6 +308,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "start-up only",
             read_only: Some(START_UP),
             range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
+            node: Some(|n, v| n.estop_timeout_ms = ms(v)),
             ..Decl::new("estop_timeout_ms", Integer, || V::Integer(0))
         },
         Decl {
@@ -284,11 +317,15 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "needs CAP_SYS_NICE or an rtprio limit; refused cleanly otherwise",
             read_only: Some(START_UP),
             range: Range::Integer(0, 99),
+            node: Some(|n, v| {
+                n.rt_priority = Some(int(v)).filter(|p| *p > 0).map(|p| p.min(99) as i32)
+            }),
             ..Decl::new("rt_priority", Integer, || V::Integer(0))
         },
         Decl {
             description: "Standard ROS parameter; always false here.",
             constraints: "only false: pulses are timed on CLOCK_MONOTONIC",
+            node: Some(|n, v| n.use_sim_time = boolean(v)),
             ..Decl::new("use_sim_time", Bool, || V::Boolean(false))
         },
     ]

@@ -452,7 +452,7 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
             fault: None,
         }
     );
-    assert_eq!(cfg.rt_priority, None);
+    assert_eq!(cfg.settings.rt_priority, None);
     assert!(start_up(&[sv("channels", V::Integer(0))]).is_err());
     assert!(start_up(&[sv("channels", V::Integer(100))]).is_err());
     assert!(start_up(&[sv("pw01.duty", V::Double(150.0))]).is_err());
