@@ -10,7 +10,7 @@ use pwm_actuator::core::Command;
 use pwm_actuator::engine::{self, EngineError, EngineOptions};
 use pwm_actuator::output::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
 use pwm_actuator::ros::config::names::to_ros_name;
-use pwm_actuator::ros::config::params::{ParamStore, Phase};
+use pwm_actuator::ros::config::params::{ParamStore, Stage};
 use pwm_actuator::ros::inbound::inputs::{ChangeError, Inputs, NOTE_QUEUE};
 use pwm_actuator::ros::inbound::node_state::NodeState;
 use pwm_actuator::ros::interface::msg::{DiagnosticArray, DiagnosticStatus, RosMessage};
@@ -95,7 +95,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     let a = store
         .check(
             &[("pw01.period_ms".into(), ParameterValue::Integer(50))],
-            Phase::StartUp,
+            Stage::StartUp,
         )
         .unwrap();
     store.commit(&a);

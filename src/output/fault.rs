@@ -28,7 +28,7 @@ pub enum Fault {
 
 impl Fault {
     /// Reads [`FAULT_ENV`]; `Ok(None)` when unset, `Err` with the reason when malformed.
-    pub fn from_env() -> Result<Option<Fault>, String> {
+    pub fn from_env() -> Result<Option<Fault>, FaultSpecError> {
         match std::env::var(FAULT_ENV) {
             Err(_) => Ok(None),
             Ok(v) => Fault::parse(&v).map(Some),
@@ -36,12 +36,9 @@ impl Fault {
     }
 
     /// Parses `panic-after-ms=N`, `fail-write-after=N` or `hang-write-after-ms=N`.
-    pub fn parse(s: &str) -> Result<Fault, String> {
-        let bad = || {
-            format!(
-                "{FAULT_ENV}=`{s}`: expected panic-after-ms=N, fail-write-after=N or \
-                 hang-write-after-ms=N"
-            )
+    pub fn parse(s: &str) -> Result<Fault, FaultSpecError> {
+        let bad = || FaultSpecError {
+            value: s.chars().take(64).collect(),
         };
         let (kind, n) = s.split_once('=').ok_or_else(bad)?;
         let n: u64 = n.trim().parse().map_err(|_| bad())?;
@@ -52,6 +49,17 @@ impl Fault {
             _ => Err(bad()),
         }
     }
+}
+
+/// A malformed [`FAULT_ENV`] value.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "{FAULT_ENV}=`{value}`: expected panic-after-ms=N, fail-write-after=N or \
+     hang-write-after-ms=N"
+)]
+pub struct FaultSpecError {
+    /// The value given (its first 64 characters).
+    pub value: String,
 }
 
 /// The error of an injected write failure.
@@ -216,6 +224,7 @@ mod tests {
         );
         assert!(Fault::parse("panic")
             .unwrap_err()
+            .to_string()
             .contains("panic-after-ms=N"));
         assert!(Fault::parse("fail-write-after=x").is_err());
         assert_eq!(

@@ -21,7 +21,7 @@ use crate::ros::config::names::{NameError, NodeIdentity, NODE_NAME};
 use crate::ros::config::params::{self, ParamError, ParamStore, StartupConfig};
 use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
-use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultError};
+use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
 use crate::ros::inbound::estop::{self, EStop};
 use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
 use crate::ros::inbound::lifecycle;
@@ -91,7 +91,7 @@ config_from!(
     SplitError,
     DiscoveryError,
     SecurityError,
-    FaultError
+    FaultSpecError
 );
 
 impl NodeError {
@@ -221,7 +221,7 @@ fn ignored_warnings(ignored: &[String]) -> (Vec<String>, Option<String>) {
 /// returned slot.
 fn open_output(cfg: &StartupConfig) -> Result<(AnyOutput, Option<LineSlot>), NodeError> {
     let mut spec = cfg.output.clone();
-    spec.fault = Fault::from_env().map_err(FaultError)?;
+    spec.fault = Fault::from_env()?;
     let (out, lines) = match cfg.settings.managed {
         true => output::open_deferred(&spec)?,
         false => (output::open(&spec)?, None),
@@ -273,7 +273,7 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
         ..EngineOptions::default()
     };
     let engine = engine::spawn(configs, output, opts).map_err(NodeError::Engine)?;
-    if let Some(Fault::PanicAfterMs(ms)) = Fault::from_env().map_err(FaultError)? {
+    if let Some(Fault::PanicAfterMs(ms)) = Fault::from_env()? {
         warn!("{FAULT_ENV}: panicking in {ms} ms");
         std::thread::spawn(move || {
             std::thread::sleep(std::time::Duration::from_millis(ms));

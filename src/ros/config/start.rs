@@ -2,6 +2,7 @@
 //! values (node options first, then the ROS arguments in order), the domain id, and every way
 //! a configuration can be refused ([`ConfigError`], exit status 2).
 
+pub use crate::output::fault::FaultSpecError;
 use crate::ros::config::args::{ArgsError, RosArgs};
 use crate::ros::config::cli::{CliError, Flags};
 use crate::ros::config::discovery::DiscoveryError;
@@ -48,13 +49,8 @@ pub enum ConfigError {
     Security(#[from] SecurityError),
     /// `PWM_ACTUATOR_FAULT` is malformed.
     #[error(transparent)]
-    Fault(#[from] FaultError),
+    Fault(#[from] FaultSpecError),
 }
-
-/// `PWM_ACTUATOR_FAULT` (the fault injection of the exit-path tests) is malformed: why.
-#[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-pub struct FaultError(pub String);
 
 /// Reads `ROS_DOMAIN_ID` (unset or empty: 0).
 pub fn domain_id_from(value: Option<&str>) -> Result<u16, ConfigError> {

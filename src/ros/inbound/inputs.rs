@@ -18,7 +18,7 @@ use crate::core::{split_command, Command, Nanos};
 use crate::engine::{EngineError, Input, Request, Requests, SafetyPath};
 use crate::output::safety::lock_ignore_poison as lock;
 use crate::ros::config::params::ChannelStart;
-use crate::ros::config::params::{self, show_value, ParamError, ParamStore, Phase};
+use crate::ros::config::params::{self, show_value, ParamError, ParamStore, Stage};
 use crate::ros::config::split::SplitPair;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::interface::msg;
@@ -200,7 +200,7 @@ impl Inputs {
         door: &str,
     ) -> Result<(), ChangeError> {
         let mut store = lock(&self.params);
-        let accepted = match store.check(&items, Phase::Live) {
+        let accepted = match store.check(&items, Stage::Live) {
             Ok(a) => a,
             Err(e) => {
                 drop(store);

@@ -11,10 +11,11 @@
 //! no line requested; inactive, lines requested and held inactive; active, lines follow their
 //! channels; finalized, lines released.
 
-use crate::engine::Input;
+use crate::engine::{Input, NotTaken};
 use crate::error::chain;
 use crate::output::safety::lock_ignore_poison as lock;
-use crate::output::LineSlot;
+use crate::output::{GpioError, LineSlot};
+use crate::ros::config::params::ParamError;
 use crate::ros::inbound::inputs::Inputs;
 pub use crate::ros::interface::lifecycle::{state, state_label, Edge, GRAPH, STATES};
 use crate::ros::interface::msg::{
@@ -31,19 +32,46 @@ use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use tokio::task::JoinHandle;
 
+/// Why a transition's action failed (the machine then takes the failure edge).
+#[derive(Debug, thiserror::Error)]
+pub enum TransitionError {
+    /// The parameters in force no longer give a valid configuration.
+    #[error(transparent)]
+    Params(#[from] ParamError),
+    /// The GPIO lines cannot be requested (missing chip, busy line, no permission).
+    #[error("cannot open the GPIO output: {}", chain(.0))]
+    Lines(#[from] GpioError),
+    /// The output thread did not take the release of the lines in time.
+    #[error("the output thread did not let the lines follow: {0}")]
+    NotLive(#[from] NotTaken),
+    /// A refusal by other actions than the node's own (a test's, for instance).
+    #[error("{0}")]
+    Refused(&'static str),
+}
+
+/// A transition that cannot start from the current state.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("transition {asked} is not available from state {state}")]
+pub struct Unavailable {
+    /// The transition as asked for: its id, or its label (bounded, quoted).
+    pub asked: String,
+    /// The current state's label.
+    pub state: &'static str,
+}
+
 /// What the node does in each transition. An `Err` is a failure: the machine takes the
 /// transition's failure edge (configure: back to unconfigured) and the reason is logged.
 pub trait Actions: Send + Sync {
     /// unconfigured → inactive: check the parameters, request the lines (held inactive).
-    fn configure(&self) -> Result<(), String>;
+    fn configure(&self) -> Result<(), TransitionError>;
     /// inactive → active: the lines follow their channels.
-    fn activate(&self) -> Result<(), String>;
+    fn activate(&self) -> Result<(), TransitionError>;
     /// active → inactive: every line inactive at once.
-    fn deactivate(&self) -> Result<(), String>;
+    fn deactivate(&self) -> Result<(), TransitionError>;
     /// inactive → unconfigured: release the lines (driven inactive first).
-    fn cleanup(&self) -> Result<(), String>;
+    fn cleanup(&self) -> Result<(), TransitionError>;
     /// any primary state → finalized: every line inactive and released.
-    fn shutdown(&self) -> Result<(), String>;
+    fn shutdown(&self) -> Result<(), TransitionError>;
 }
 
 /// What this node's transitions do to its lines (see [`Actions`]).
@@ -55,35 +83,32 @@ pub struct LineActions {
 }
 
 impl Actions for LineActions {
-    fn configure(&self) -> Result<(), String> {
+    fn configure(&self) -> Result<(), TransitionError> {
         // The parameters in force must still give a valid configuration for every channel.
         self.inputs
-            .with_params(|s| (0..s.channels()).try_for_each(|ch| s.channel_config(ch).map(drop)))
-            .map_err(|e| e.to_string())?;
+            .with_params(|s| (0..s.channels()).try_for_each(|ch| s.channel_config(ch).map(drop)))?;
         if let Some(lines) = &self.lines {
-            lines
-                .attach()
-                .map_err(|e| format!("cannot open the GPIO output: {}", chain(&e)))?;
+            lines.attach()?;
         }
         Ok(())
     }
 
-    fn activate(&self) -> Result<(), String> {
+    fn activate(&self) -> Result<(), TransitionError> {
         self.live(true)
     }
 
-    fn deactivate(&self) -> Result<(), String> {
+    fn deactivate(&self) -> Result<(), TransitionError> {
         self.live(false)
     }
 
-    fn cleanup(&self) -> Result<(), String> {
+    fn cleanup(&self) -> Result<(), TransitionError> {
         if let Some(lines) = &self.lines {
             lines.detach();
         }
         Ok(())
     }
 
-    fn shutdown(&self) -> Result<(), String> {
+    fn shutdown(&self) -> Result<(), TransitionError> {
         // Released even when the hold could not be queued: dropping the lines drives them
         // inactive.
         let held = self.live(false);
@@ -98,7 +123,7 @@ impl LineActions {
     /// Answered only once the output thread has taken it. A hold it did not take in time has
     /// switched every output off through the emergency handle (so the lines are off and the
     /// transition stands); a release it did not take is withdrawn and the transition fails.
-    fn live(&self, live: bool) -> Result<(), String> {
+    fn live(&self, live: bool) -> Result<(), TransitionError> {
         let safety = self.inputs.safety();
         match safety.take(Input::Live(live)) {
             Ok(_) => Ok(()),
@@ -111,9 +136,7 @@ impl LineActions {
             }
             Err(e) => {
                 safety.store(Input::Live(false));
-                Err(format!(
-                    "the output thread did not let the lines follow: {e}"
-                ))
+                Err(e.into())
             }
         }
     }
@@ -159,7 +182,7 @@ impl Machine {
         id: u8,
         label: &str,
         actions: &dyn Actions,
-    ) -> Result<(bool, Vec<Step>), String> {
+    ) -> Result<(bool, Vec<Step>), Unavailable> {
         let requested = self.available().into_iter().find(|(tid, tlabel, _, _)| {
             if id != 0 {
                 *tid == id
@@ -168,15 +191,14 @@ impl Machine {
             }
         });
         let Some(first) = requested else {
-            return Err(format!(
-                "transition {} is not available from state {}",
-                if id != 0 {
+            return Err(Unavailable {
+                asked: if id != 0 {
                     id.to_string()
                 } else {
                     format!("`{}`", crate::ros::config::logging::shown(label))
                 },
-                state_label(self.state)
-            ));
+                state: state_label(self.state),
+            });
         };
         let mut steps = vec![first];
         let result = match first.1 {
@@ -393,11 +415,11 @@ mod tests {
     }
 
     impl Recorder {
-        fn call(&self, what: &'static str) -> Result<(), String> {
+        fn call(&self, what: &'static str) -> Result<(), TransitionError> {
             lock(&self.calls).push(what);
             let fail = what == "configure" && self.fail_configure.load(Ordering::SeqCst);
             if fail {
-                Err("line busy".into())
+                Err(TransitionError::Refused("line busy"))
             } else {
                 Ok(())
             }
@@ -405,19 +427,19 @@ mod tests {
     }
 
     impl Actions for Recorder {
-        fn configure(&self) -> Result<(), String> {
+        fn configure(&self) -> Result<(), TransitionError> {
             self.call("configure")
         }
-        fn activate(&self) -> Result<(), String> {
+        fn activate(&self) -> Result<(), TransitionError> {
             self.call("activate")
         }
-        fn deactivate(&self) -> Result<(), String> {
+        fn deactivate(&self) -> Result<(), TransitionError> {
             self.call("deactivate")
         }
-        fn cleanup(&self) -> Result<(), String> {
+        fn cleanup(&self) -> Result<(), TransitionError> {
             self.call("cleanup")
         }
-        fn shutdown(&self) -> Result<(), String> {
+        fn shutdown(&self) -> Result<(), TransitionError> {
             self.call("shutdown")
         }
     }
@@ -468,7 +490,11 @@ mod tests {
         assert_eq!(steps[1], (11, "transition_failure", 10, 1));
         assert_eq!(m.state(), state::UNCONFIGURED);
         // Not available from unconfigured: refused, nothing runs.
-        assert!(m.change(3, "", &a).unwrap_err().contains("not available"));
+        assert!(m
+            .change(3, "", &a)
+            .unwrap_err()
+            .to_string()
+            .contains("not available"));
         assert!(m.change(0, "activate", &a).is_err());
         assert_eq!(*lock(&a.calls), ["configure"]);
         // Shutdown by label from unconfigured takes transition 5.

@@ -189,7 +189,7 @@ impl NodeState {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros::config::params::Phase;
+    use crate::ros::config::params::Stage;
     use ros2_client::ParameterValue as V;
 
     #[test]
@@ -217,12 +217,12 @@ mod tests {
                     ("command_hz_window".into(), V::Integer(10)),
                     ("command_hz_tolerance".into(), V::Double(0.25)),
                 ],
-                Phase::Live,
+                Stage::Live,
             )
             .unwrap();
         store.commit(&a);
         let a = store
-            .check(&[("managed".into(), V::Boolean(true))], Phase::StartUp)
+            .check(&[("managed".into(), V::Boolean(true))], Stage::StartUp)
             .unwrap();
         store.commit(&a);
         let s = NodeState::from_store(&store);

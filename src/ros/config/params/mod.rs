@@ -19,7 +19,7 @@ mod table;
 
 pub use settings::NodeSettings;
 pub use startup::{start_up, ChannelStart, StartUp, StartValue, StartupConfig};
-pub use store::{items_from_msg, Accepted, ParamStore, Phase};
+pub use store::{items_from_msg, Accepted, ParamStore, Stage};
 pub use table::msg_fields;
 
 use super::logging::{escape_controls, shown};

@@ -4,7 +4,7 @@
 use super::table::node_decls;
 use super::NodeSettings;
 use super::DEFAULT_CHANNELS;
-use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Phase};
+use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Stage};
 use crate::core::ChannelConfig;
 use crate::output::{Backend, GpioLine, OutputSpec};
 
@@ -75,7 +75,7 @@ pub fn start_up(values: &[StartValue]) -> Result<StartUp, ParamError> {
             }
         })
         .collect();
-    let accepted = store.check(&items, Phase::StartUp)?;
+    let accepted = store.check(&items, Stage::StartUp)?;
     store.commit(&accepted);
     // Defaults are valid by construction, but say so if a channel is not.
     for ch in 0..store.channels() {

@@ -18,7 +18,7 @@ pub const MAX_LIST_PREFIXES: usize = 4096;
 
 /// Whether a parameter change is made at start-up (read-only ones allowed) or while running.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Phase {
+pub enum Stage {
     /// Defaults, flags, `-p` and parameter files.
     StartUp,
     /// Parameter services and the `~/<ch>/params` topic.
@@ -241,7 +241,7 @@ impl ParamStore {
     pub fn check(
         &self,
         items: &[(String, ParameterValue)],
-        phase: Phase,
+        stage: Stage,
     ) -> Result<Accepted, ParamError> {
         let mut working = self.values.clone();
         let mut notes = Vec::new();
@@ -257,7 +257,7 @@ impl ParamStore {
             if name == "use_sim_time" && v == ParameterValue::Boolean(true) {
                 return Err(ParamError::SimTime);
             }
-            if phase == Phase::Live && d.read_only && self.values.get(name) != Some(&v) {
+            if stage == Stage::Live && d.read_only && self.values.get(name) != Some(&v) {
                 return Err(ParamError::ReadOnly {
                     name: name.clone(),
                     why: d.why_read_only,

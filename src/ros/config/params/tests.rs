@@ -18,7 +18,7 @@ fn item(name: &str, value: V) -> (String, V) {
 
 /// Checks setting `name` to `value` while the node runs.
 fn live(s: &ParamStore, name: &str, value: V) -> Result<Accepted, ParamError> {
-    s.check(&[item(name, value)], Phase::Live)
+    s.check(&[item(name, value)], Stage::Live)
 }
 
 #[test]
@@ -65,7 +65,7 @@ fn coercion_is_lossless_or_refused() {
         Err(ParamError::WrongType { .. })
     ));
     assert!(matches!(
-        s.check(&[item("pw01.active_low", V::Integer(1))], Phase::StartUp),
+        s.check(&[item("pw01.active_low", V::Integer(1))], Stage::StartUp),
         Err(ParamError::WrongType { .. })
     ));
 }
@@ -96,7 +96,7 @@ fn the_core_judges_channel_settings_and_cross_rules() {
                 item("pw02.min_on_ms", V::Integer(30)),
                 item("pw02.output_kind", V::String("relay".into())),
             ],
-            Phase::Live,
+            Stage::Live,
         )
         .unwrap_err();
     assert!(matches!(
@@ -113,7 +113,7 @@ fn the_core_judges_channel_settings_and_cross_rules() {
         item("pw02.min_on_ms", V::Integer(2000)),
         item("pw02.period_ms", V::Integer(5000)),
     ];
-    let a = s.check(&both, Phase::Live).unwrap();
+    let a = s.check(&both, Stage::Live).unwrap();
     assert_eq!(a.configs.len(), 1);
     assert_eq!(a.configs[0].0, 1);
     assert_eq!(a.configs[0].1.period, 5000 * crate::core::NS_PER_MS);
@@ -174,7 +174,7 @@ fn choices_are_checked_with_the_accepted_spellings() {
     assert!(live(&s, "pw01.short_pulse", V::String(String::new())).is_ok());
     assert!(live(&s, "pw01.short_pulse", V::String("band".into())).is_ok());
     assert!(s
-        .check(&[item("output", V::String("spi".into()))], Phase::StartUp)
+        .check(&[item("output", V::String("spi".into()))], Stage::StartUp)
         .is_err());
 }
 
@@ -214,7 +214,7 @@ fn read_only_parameters_refuse_live_changes_but_accept_their_value() {
     assert!(a.changes.is_empty() && a.configs.is_empty());
     assert!(live(&s, "channels", V::Integer(3)).is_err());
     assert!(s
-        .check(&[item("pw01.active_low", V::Boolean(true))], Phase::StartUp)
+        .check(&[item("pw01.active_low", V::Boolean(true))], Stage::StartUp)
         .is_ok());
     assert_eq!(
         live(&s, "use_sim_time", V::Boolean(true)),
@@ -235,7 +235,7 @@ fn a_refused_change_leaves_the_store_as_it_was() {
         item("pw01.min_on_ms", V::Integer(30)),
         item("pw01.output_kind", V::String("relay".into())),
     ];
-    assert!(s.check(&bad, Phase::Live).is_err());
+    assert!(s.check(&bad, Stage::Live).is_err());
     assert_eq!(s.int("pw01.period_ms"), Some(500));
     assert_eq!(s.int("pw01.min_on_ms"), Some(0));
 }
@@ -307,7 +307,7 @@ fn unchanged_values_are_not_changes() {
                 item("pw01.period_ms", V::Integer(10)),
                 item("pw01.period_ms", V::Integer(20)),
             ],
-            Phase::Live,
+            Stage::Live,
         )
         .unwrap();
     assert_eq!(a.changes, vec![item("pw01.period_ms", V::Integer(20))]);
