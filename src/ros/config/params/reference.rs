@@ -74,8 +74,11 @@ pub fn reference_markdown() -> String {
         &channel,
     );
     page.push_str("\n## Details\n");
-    for d in node.iter().chain(&channel) {
-        details(&mut page, d, channel.iter().any(|c| c.suffix == d.suffix));
+    for d in &node {
+        details(&mut page, d, d.suffix);
+    }
+    for d in &channel {
+        details(&mut page, d, &format!("pwNN.{}", d.suffix));
     }
     page
 }
@@ -102,14 +105,9 @@ fn summary(page: &mut String, title: &str, lead: &str, decls: &[Decl]) {
     }
 }
 
-/// One parameter's description and rules.
-fn details(page: &mut String, d: &Decl, is_channel: bool) {
+/// One parameter's description and rules; `name` is how it is set (`pwNN.` for a channel's).
+fn details(page: &mut String, d: &Decl, name: &str) {
     let _ = writeln!(page, "\n### {}\n", d.suffix);
-    let name = if is_channel {
-        format!("pwNN.{}", d.suffix)
-    } else {
-        d.suffix.to_string()
-    };
     let _ = writeln!(
         page,
         "`{name}`, {ty}, default `{default}`.\n\n{description}\n",
