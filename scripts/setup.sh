@@ -4,6 +4,9 @@
 #              scripts/requirements-ros.txt pinned by scripts/constraints-ros.txt;
 #   .ros-ws/   a colcon workspace (build/, install/, log/) holding the interface package
 #              pwm_actuator_msgs built from msg/.
+# With `--distro kilted` the same for ROS 2 Kilted, side by side: .venv-kilted/ from
+# scripts/requirements-ros-kilted.txt pinned by scripts/constraints-ros-kilted.txt, and
+# .ros-ws-kilted/ built with that venv's tools.
 # Nothing is written outside the repository except Debian packages (only when one is missing)
 # and pip's download cache in $HOME.
 #
@@ -11,25 +14,20 @@
 # changed, so a re-run with nothing changed takes about a second. Any change rebuilds that step
 # from scratch, so a stale file can never survive it.
 #
-# Usage: scripts/setup.sh [--force] [--relock]
+# Usage: scripts/setup.sh [--distro jazzy|kilted] [--force] [--relock]
+#   --distro   which ROS 2 distribution to set up (default jazzy)
 #   --force    rebuild the virtualenv and the messages even if nothing changed
-#   --relock   reinstall from requirements-ros.txt without the lock and rewrite
-#              constraints-ros.txt from what got installed
-# Use the result with `source scripts/env.sh`.
+#   --relock   reinstall from the requirements file without the lock and rewrite the
+#              constraints file from what got installed
+# Use the result with `source scripts/env.sh` (Kilted: `PWM_DISTRO=kilted source scripts/env.sh`).
 
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 # This script by a path that does not depend on how it was called (it is part of the venv hash).
 SELF="$REPO/scripts/$(basename "${BASH_SOURCE[0]}")"
-VENV="$REPO/.venv"
-WS="$REPO/.ros-ws"
-REQUIREMENTS="$REPO/scripts/requirements-ros.txt"
-CONSTRAINTS="$REPO/scripts/constraints-ros.txt"
 MSG_PKG_DIR="$REPO/msg"
 MSG_PKG=pwm_actuator_msgs
-VENV_STAMP="$VENV/.pwm-setup-stamp"
-MSGS_STAMP="$WS/.pwm-msgs-stamp"
 # The prefix the ROS wheels were built in; their exported CMake targets name include directories
 # below it, and CMake refuses include directories that do not exist.
 WHEEL_BUILD_PREFIX=/opt/python/cp311-cp311
@@ -37,15 +35,33 @@ WHEEL_BUILD_PREFIX=/opt/python/cp311-cp311
 force=0
 force_msgs=0
 relock=0
-for arg in "$@"; do
-    case "$arg" in
+distro=jazzy
+while (($#)); do
+    case "$1" in
         --force) force=1 ;;
         --rebuild-msgs) force_msgs=1 ;;
         --relock) relock=1; force=1 ;;
-        -h | --help) sed -n '2,19p' "$SELF" | sed 's/^# \{0,1\}//'; exit 0 ;;
-        *) echo "setup: unknown argument '$arg' (try --help)" >&2; exit 2 ;;
+        --distro) (($# > 1)) || { echo "setup: --distro needs a value" >&2; exit 2; }
+            distro=$2; shift ;;
+        --distro=*) distro=${1#--distro=} ;;
+        -h | --help) sed -n '2,22p' "$SELF" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        *) echo "setup: unknown argument '$1' (try --help)" >&2; exit 2 ;;
     esac
+    shift
 done
+
+# Jazzy keeps the paths it always had; any other distribution gets its own, suffixed ones.
+case "$distro" in
+    jazzy) suffix="" ;;
+    kilted) suffix="-kilted" ;;
+    *) echo "setup: unknown distribution '$distro' (jazzy or kilted)" >&2; exit 2 ;;
+esac
+VENV="$REPO/.venv$suffix"
+WS="$REPO/.ros-ws$suffix"
+REQUIREMENTS="$REPO/scripts/requirements-ros$suffix.txt"
+CONSTRAINTS="$REPO/scripts/constraints-ros$suffix.txt"
+VENV_STAMP="$VENV/.pwm-setup-stamp"
+MSGS_STAMP="$WS/.pwm-msgs-stamp"
 
 SECONDS=0
 say() { printf 'setup: %s\n' "$*"; }
@@ -125,7 +141,7 @@ if ((${#apt_missing[@]})); then
     "${sudo_cmd[@]}" apt-get install -y -qq --no-install-recommends "${apt_missing[@]}" </dev/null
     PYTHON="$(find_python || true)"
 fi
-[[ -n "$PYTHON" ]] || die "no Python 3.11 found (the ROS Jazzy wheels are cp311)"
+[[ -n "$PYTHON" ]] || die "no Python 3.11 found (the ROS $distro wheels are cp311)"
 # The interpreter itself, not a launcher shim, so the hash changes if it is replaced.
 PYTHON_REAL="$("$PYTHON" -c 'import os, sys; print(os.path.realpath(sys.executable))')"
 PYTHON_VERSION="$("$PYTHON" -c 'import platform; print(platform.python_version())')"
@@ -155,10 +171,12 @@ map_wheel_prefix() {
 
 write_lock() {
     {
-        cat <<'EOF'
-# Every package installed into .venv/ by scripts/setup.sh, pinned, so that a fresh clone gets the
-# same set as the one last checked. Used as `pip install -r requirements-ros.txt -c <this file>`.
-# Regenerate after changing requirements-ros.txt with `scripts/setup.sh --relock`.
+        local relock_cmd="scripts/setup.sh --relock"
+        [[ "$distro" == jazzy ]] || relock_cmd="scripts/setup.sh --distro $distro --relock"
+        cat <<EOF
+# Every package installed into ${VENV#"$REPO"/}/ by scripts/setup.sh, pinned, so that a fresh clone gets the
+# same set as the one last checked. Used as \`pip install -r ${REQUIREMENTS##*/} -c <this file>\`.
+# Regenerate after changing ${REQUIREMENTS##*/} with \`$relock_cmd\`.
 EOF
         "$VENV/bin/python" - <<'EOF'
 from importlib import metadata
@@ -201,7 +219,8 @@ else
 fi
 
 # ---------------------------------------------------------------------------------------------
-# 3. The interface package pwm_actuator_msgs, built with colcon into .ros-ws/.
+# 3. The interface package pwm_actuator_msgs, built with colcon into .ros-ws/ (or its
+#    distribution's .ros-ws-NAME/).
 # ---------------------------------------------------------------------------------------------
 msg_files=("$MSG_PKG_DIR/package.xml" "$MSG_PKG_DIR/CMakeLists.txt")
 while IFS= read -r -d '' f; do msg_files+=("$f"); done \
@@ -229,7 +248,7 @@ build_msgs() {
             </dev/null >"$WS/colcon-build.out" 2>&1
     ); then
         cat "$WS/colcon-build.out" >&2
-        die "colcon build of $MSG_PKG failed (full log in .ros-ws/log/)"
+        die "colcon build of $MSG_PKG failed (full log in ${WS#"$REPO"/}/log/)"
     fi
     printf '%s\n' "$msgs_key" >"$MSGS_STAMP"
     say "$MSG_PKG built ($((SECONDS - step_start)) s)"
@@ -250,7 +269,7 @@ fi
 verify() {
     (
         # shellcheck source=scripts/env.sh
-        source "$REPO/scripts/env.sh"
+        PWM_DISTRO="$distro" source "$REPO/scripts/env.sh"
         export ROS_LOG_DIR="$WS/ros_log"
         python - <<'EOF'
 import rclpy
@@ -274,13 +293,18 @@ if ! verify >"$WS/verify.out" 2>&1; then
     # then everything, before giving up.
     if ((!msgs_built)); then
         say "the existing environment does not work; rebuilding $MSG_PKG"
-        exec "$SELF" --rebuild-msgs
+        exec "$SELF" --distro "$distro" --rebuild-msgs
     fi
     if ((!venv_built)); then
         say "the environment still does not work; rebuilding the virtualenv too"
-        exec "$SELF" --force
+        exec "$SELF" --distro "$distro" --force
     fi
     cat "$WS/verify.out" >&2
     die "the freshly built environment does not work (see above)"
 fi
-say "ready: rclpy and $MSG_PKG import (${SECONDS} s); use it with 'source scripts/env.sh'"
+if [[ "$distro" == jazzy ]]; then
+    say "ready: rclpy and $MSG_PKG import (${SECONDS} s); use it with 'source scripts/env.sh'"
+else
+    say "ready ($distro): rclpy and $MSG_PKG import (${SECONDS} s); use it with" \
+        "'PWM_DISTRO=$distro source scripts/env.sh'"
+fi
