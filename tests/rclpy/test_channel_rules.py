@@ -156,6 +156,7 @@ def close(a: float, b: float, tol: float = 1e-6) -> bool:
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.smoke
 def test_period_and_on_time_of_edges(node_process, ros):
     """000: "the on time is proportional to SV, the period duration is unchanged": at 37 % of
     200 ms every period is exactly 200 ms and every pulse exactly 74 ms (scheduled times); the

@@ -10,6 +10,8 @@ the node's behaviour (that is the other modules' job).
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
+import os
 import re
 import sys
 import textwrap
@@ -144,6 +146,24 @@ def test_rclpy_initialises_on_the_test_domain(ros, ros_domain_id):
     assert get_rmw_implementation_identifier() == "rmw_fastrtps_cpp"
     # The node is visible in its own graph, which needs the RMW to be working.
     ros.wait_for_node(ros.node.get_name())
+
+
+@pytest.mark.smoke
+def test_rclpy_and_the_messages_are_of_the_distribution_set_up():
+    """ROS_DISTRO (scripts/env.sh, from PWM_DISTRO) names the distribution whose rclpy this
+    interpreter imports and whose tools built pwm_actuator_msgs, so that a run reported as Kilted
+    really ran Kilted's rclpy against the node."""
+    import rclpy
+
+    distro = os.environ.get("ROS_DISTRO", "")
+    assert distro in ("jazzy", "kilted"), f"ROS_DISTRO={distro!r}: source scripts/env.sh"
+    importlib.metadata.version(f"ros-{distro}-rclpy")  # raises if that wheel is not installed
+    venv = Path(sys.prefix).resolve()
+    assert Path(rclpy.__file__).resolve().is_relative_to(venv), (rclpy.__file__, venv)
+    suffix = "" if distro == "jazzy" else f"-{distro}"
+    workspace = (Path(__file__).resolve().parents[2] / f".ros-ws{suffix}").resolve()
+    msgs = Path(importlib.import_module(MSG_PACKAGE).__file__).resolve()
+    assert msgs.is_relative_to(workspace), (msgs, workspace)
 
 
 def test_domain_ids_are_exclusive_while_held(tmp_path):

@@ -7,6 +7,7 @@ open its GPIO line fails and leaves the node unconfigured.
 
 from __future__ import annotations
 
+import pytest
 from lifecycle_msgs.msg import Transition, TransitionEvent
 from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
 from rcl_interfaces.srv import GetParameters
@@ -35,6 +36,7 @@ def rises_between(edges, start_ns: int, end_ns: int):
     return [e for e in edges if e.level == 1 and start_ns < e.scheduled_ns <= end_ns]
 
 
+@pytest.mark.smoke
 def test_the_lifecycle_walk_keeps_the_line_inactive_except_while_active(node_process, ros):
     proc = node_process(
         ["--managed"] + node_args(pw01__period_ms=200, pw01__duty=50.0, pw01__enable=True)

@@ -352,6 +352,7 @@ def wait_for_stderr(ros: RosClient, proc: ManagedProcess, needle: str, what: str
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.smoke
 def test_period_change_through_set_parameters_applies_at_a_period_boundary(ros, node_process, svc):
     events = subscribe_events(ros)
     proc = start_node(
@@ -570,6 +571,7 @@ def test_invalid_values_are_refused_with_a_reason_and_the_old_values_stay(ros, n
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.smoke
 def test_descriptors_ranges_and_listing(ros, node_process, svc):
     start_node(node_process)
     d = svc.describe_parameters(["pw01.period_ms", "pw01.edge_band", "pw01.active_low"])
@@ -735,6 +737,7 @@ def test_whole_doubles_are_taken_for_integers_and_fractions_refused(ros, node_pr
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.smoke
 def test_diagnostics_ok_for_a_normal_channel(ros, node_process):
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics")
     start_node(
@@ -867,6 +870,7 @@ def test_diagnostics_error_when_the_watchdog_trips_and_ok_after_a_command(ros, n
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.smoke
 def test_node_and_namespace_remapping(ros, node_process):
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics")
     edges = ros.subscribe(OutputEdge, "/plant/heater/pw01/edges", 100)
