@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # The project's test command: sets up the ROS 2 environment (scripts/setup.sh), then checks
 # formatting and lints, builds the release node, runs the Rust tests and the rclpy suite in
-# tests/rclpy against the release binary. Exits non-zero if any step fails; the last line is a
-# summary of all tests run ("total: N passed, N failed, N skipped").
+# tests/rclpy against the release binary with ROS 2 Jazzy's rclpy, then the suite's smoke subset
+# (`pytest -m smoke`) with ROS 2 Kilted's (`scripts/setup.sh --distro kilted`). Exits non-zero if
+# any step fails; the last line is a summary of all tests run ("total: N passed, N failed,
+# N skipped").
 #
 # The GPIO tests run on real kernel GPIO lines in a QEMU guest (scripts/gpio-vm.sh, which
 # installs QEMU and builds a gpio-sim module on first use); where the guest cannot run they are
@@ -10,7 +12,7 @@
 #
 # Usage: scripts/test.sh [--quick] [-- PYTEST_ARGS...]
 #   --quick   skip `cargo fmt --check` and `cargo clippy`
-#   PYTEST_ARGS are passed to pytest (e.g. `-- -k edges -x`).
+#   PYTEST_ARGS are passed to the Jazzy run of pytest (e.g. `-- -k edges -x`).
 
 set -uo pipefail
 
@@ -23,7 +25,7 @@ while (($#)); do
     case "$1" in
         --quick) quick=1 ;;
         --) shift; pytest_extra=("$@"); break ;;
-        -h | --help) sed -n '2,14p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h | --help) sed -n '2,16p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
         *) echo "test: unknown argument '$1' (try --help)" >&2; exit 2 ;;
     esac
     shift
@@ -213,6 +215,26 @@ else
     failed=$((failed + 1))
 fi
 
+# Adds the counts of a pytest junit XML file to the totals; its skips also go to junit_skipped.
+junit_skipped=0
+add_junit_counts() {
+    local p_tests p_fail p_err p_skip
+    read -r p_tests p_fail p_err p_skip < <(python3 - "$1" <<'EOF'
+import sys
+import xml.etree.ElementTree as ET
+
+root = ET.parse(sys.argv[1]).getroot()
+suites = [root] if root.tag == "testsuite" else root.findall("testsuite")
+total = [sum(int(s.get(k, 0)) for s in suites) for k in ("tests", "failures", "errors", "skipped")]
+print(*total)
+EOF
+    )
+    passed=$((passed + p_tests - p_fail - p_err - p_skip))
+    failed=$((failed + p_fail + p_err))
+    skipped=$((skipped + p_skip))
+    junit_skipped=$p_skip
+}
+
 # 5. The rclpy suite, with the venv's python and the built messages.
 # shellcheck disable=SC2317  # called through run_step
 rclpy_suite() {
@@ -220,7 +242,7 @@ rclpy_suite() {
     rm -f "$junit"
     (
         # shellcheck source=scripts/env.sh
-        source "$REPO/scripts/env.sh"
+        PWM_DISTRO=jazzy source "$REPO/scripts/env.sh"
         # ROS logs of the run stay in the checkout (git-ignored), not in ~/.ros.
         export ROS_HOME="$REPO/.ros-ws/ros_home"
         export PWM_ACTUATOR_NODE="${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}"
@@ -232,19 +254,7 @@ rclpy_suite() {
         echo "test: pytest collected no tests" >&2
     fi
     if [[ -f "$junit" ]]; then
-        read -r p_tests p_fail p_err p_skip < <(python3 - "$junit" <<'EOF'
-import sys
-import xml.etree.ElementTree as ET
-
-root = ET.parse(sys.argv[1]).getroot()
-suites = [root] if root.tag == "testsuite" else root.findall("testsuite")
-total = [sum(int(s.get(k, 0)) for s in suites) for k in ("tests", "failures", "errors", "skipped")]
-print(*total)
-EOF
-        )
-        passed=$((passed + p_tests - p_fail - p_err - p_skip))
-        failed=$((failed + p_fail + p_err))
-        skipped=$((skipped + p_skip))
+        add_junit_counts "$junit"
     fi
     return "$rc"
 }
@@ -253,6 +263,50 @@ if ((release_ok)); then
 else
     skipped_steps+=("rclpy tests (no release build)")
     failed_steps+=("rclpy tests")
+fi
+
+# 5a. ROS 2 Kilted: the smoke subset of the rclpy suite (`pytest -m smoke`: a duty command's
+# edges, the parameter services and /parameter_events, diagnostics, the lifecycle, the node in
+# the graph) with Kilted's rclpy from .venv-kilted/ (scripts/setup.sh --distro kilted) against
+# the same release binary. PYTEST_ARGS are not passed: the subset always runs whole. A setup
+# that fails counts as a failed step and a failed test, never as skipped; so does a smoke test
+# that skips, since none of them has a reason to.
+# shellcheck disable=SC2317  # called through run_step
+kilted_smoke() {
+    local junit="$LOG_DIR/rclpy-kilted-junit.xml" rc
+    rm -f "$junit"
+    (
+        # shellcheck source=scripts/env.sh
+        PWM_DISTRO=kilted source "$REPO/scripts/env.sh"
+        # ROS logs of the run stay in the checkout (git-ignored), not in ~/.ros.
+        export ROS_HOME="$REPO/.ros-ws-kilted/ros_home"
+        export PWM_ACTUATOR_NODE="${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}"
+        exec python -m pytest tests/rclpy -m smoke -v -ra --junitxml="$junit"
+    ) </dev/null
+    rc=$?
+    if ((rc == 5)); then
+        echo "test: pytest -m smoke collected no tests" >&2
+    fi
+    if [[ -f "$junit" ]]; then
+        add_junit_counts "$junit"
+        if ((junit_skipped && rc == 0)); then
+            echo "test: $junit_skipped Kilted smoke test(s) skipped; they must run" >&2
+            rc=1
+        fi
+    else
+        # No result at all (pytest did not start): one failure, so it can never look clean.
+        failed=$((failed + 1))
+    fi
+    return "$rc"
+}
+if ((!release_ok)); then
+    skipped_steps+=("rclpy smoke (kilted) (no release build)")
+    failed_steps+=("rclpy smoke (kilted)")
+elif ! run_step "setup (kilted)" scripts/setup.sh --distro kilted; then
+    echo "test: setup --distro kilted failed; the Kilted smoke subset did not run" >&2
+    failed=$((failed + 1))
+else
+    run_step "rclpy smoke (kilted)" kilted_smoke
 fi
 
 banner "summary"
