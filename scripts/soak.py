@@ -403,7 +403,11 @@ def main() -> int:
             alive = False
             break
         if now >= next_sample:
-            s = (now - t0, rss_kib(pid), cpu_seconds(pid) - cpu0)
+            try:
+                s = (now - t0, rss_kib(pid), cpu_seconds(pid) - cpu0)
+            except (OSError, RuntimeError):  # it exited since the poll
+                alive = False
+                break
             samples.append(s)
             sample_file.write(f"{s[0]:.1f},{s[1]},{s[2]:.2f}\n")
             sample_file.flush()
