@@ -23,7 +23,8 @@ Every 10 s it samples the node's RSS (/proc/PID/status) and CPU time (/proc/PID/
 minute it prints the figures so far. At the end it stops the node with SIGTERM and prints:
 
 - RSS at start, at the end of the warm-up, at the end, and its slope after the warm-up
-  (least-squares line through the samples, kB per minute);
+  (least-squares line through the samples, kB per minute), and the slopes of its two parts,
+  RssAnon (heap, stacks) and RssFile (pages of the binary and libraries);
 - CPU, % of one core;
 - edges per channel from the trace, and from ROS: messages received, the highest `seq`, the
   gaps in `seq` after the first one received, and how many messages disagree with the trace
@@ -94,11 +95,16 @@ def take_domain() -> tuple[int, int]:
     sys.exit("soak: every ROS domain id 1..101 is held by a test run")
 
 
-def rss_kib(pid: int) -> int:
+def rss_kib(pid: int) -> tuple[int, int, int]:
+    """VmRSS, RssAnon (heap, stacks) and RssFile (the binary's and libraries' pages), kB."""
+    got = {}
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    raise RuntimeError(f"no VmRSS for pid {pid}")
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "RssAnon", "RssFile"):
+            got[key] = int(value.split()[0])
+    if len(got) != 3:
+        raise RuntimeError(f"no VmRSS for pid {pid}")
+    return got["VmRSS"], got["RssAnon"], got["RssFile"]
 
 
 def cpu_seconds(pid: int) -> float:
@@ -387,9 +393,10 @@ def main() -> int:
 
     t0 = time.monotonic()
     cpu0 = cpu_seconds(pid)
-    samples: list[tuple[float, int, float]] = []  # (s since t0, RSS kB, CPU s since t0)
+    # (s since t0, RSS kB, CPU s since t0, RssAnon kB, RssFile kB)
+    samples: list[tuple[float, int, float, int, int]] = []
     sample_file = (work / "samples.csv").open("w")
-    sample_file.write("t_s,rss_kib,cpu_s\n")
+    sample_file.write("t_s,rss_kib,cpu_s,rss_anon_kib,rss_file_kib\n")
     due = {ch: t0 for ch in CHANNELS}
     next_sample = t0
     next_toggle = t0 + TOGGLE_S
@@ -404,12 +411,13 @@ def main() -> int:
             break
         if now >= next_sample:
             try:
-                s = (now - t0, rss_kib(pid), cpu_seconds(pid) - cpu0)
+                rss, anon, file_ = rss_kib(pid)
+                s = (now - t0, rss, cpu_seconds(pid) - cpu0, anon, file_)
             except (OSError, RuntimeError):  # it exited since the poll
                 alive = False
                 break
             samples.append(s)
-            sample_file.write(f"{s[0]:.1f},{s[1]},{s[2]:.2f}\n")
+            sample_file.write(f"{s[0]:.1f},{s[1]},{s[2]:.2f},{s[3]},{s[4]}\n")
             sample_file.flush()
             next_sample += SAMPLE_S
         if now >= stop_at:
@@ -427,7 +435,7 @@ def main() -> int:
             ctl.change_parameters()
             next_params += PARAMS_S
         if now >= next_print:
-            warm = [(t, r) for t, r, _ in samples if t >= 60 * warmup_min]
+            warm = [(s[0], s[1]) for s in samples if s[0] >= 60 * warmup_min]
             sl = slope_per_minute(warm)
             print(f"soak: {(now - t0) / 60:5.1f} min  RSS {samples[-1][1]} kB  "
                   f"slope after warm-up {'-' if sl is None else f'{sl:+.2f}'} kB/min  "
@@ -486,8 +494,13 @@ def main() -> int:
             "highest_seq": top,
             "disagreeing": bad,
         }
-    warm = [(t, r) for t, r, _ in samples if t >= 60 * warmup_min]
+    warm = [(s[0], s[1]) for s in samples if s[0] >= 60 * warmup_min]
     slope = slope_per_minute(warm)
+
+    def part_slope(i: int) -> float | None:
+        sl = slope_per_minute([(s[0], s[i]) for s in samples if s[0] >= 60 * warmup_min])
+        return None if sl is None else round(sl, 3)
+
     first_warm = warm[0][1] if warm else None
     wall = t_end - t0
     cpu = samples[-1][2] if samples else 0.0
@@ -499,13 +512,20 @@ def main() -> int:
         "rss_start_kib": samples[0][1] if samples else None,
         "rss_after_warmup_kib": first_warm,
         "rss_end_kib": samples[-1][1] if samples else None,
-        "rss_max_kib": max(r for _, r, _ in samples) if samples else None,
+        "rss_max_kib": max(s[1] for s in samples) if samples else None,
         "rss_slope_after_warmup_kb_per_min": None if slope is None else round(slope, 3),
         "rss_samples_in_fit": len(warm),
         # The same fit from minute 5 on, whatever the warm-up, for comparison between runs.
         "rss_slope_from_minute_5_kb_per_min": None
-        if (s5 := slope_per_minute([(t, r) for t, r, _ in samples if t >= 300])) is None
+        if (s5 := slope_per_minute([(s[0], s[1]) for s in samples if s[0] >= 300])) is None
         else round(s5, 3),
+        # RSS in two parts: anonymous memory (heap, stacks) and pages of the binary and
+        # libraries, which grow as code runs for the first time and shrink under page-cache
+        # pressure.
+        "rss_anon_slope_after_warmup_kb_per_min": part_slope(3),
+        "rss_file_slope_after_warmup_kb_per_min": part_slope(4),
+        "rss_anon_start_end_kib": [samples[0][3], samples[-1][3]] if samples else None,
+        "rss_file_start_end_kib": [samples[0][4], samples[-1][4]] if samples else None,
         "cpu_percent_of_one_core": round(100 * cpu / max(samples[-1][0], 1e-9), 2)
         if samples else None,
         "commands_sent": ctl.sent,
