@@ -1664,13 +1664,22 @@ impl Writer {
   ) {
     let first_keeper = if !self.like_stateless {
       // Regular stateful writer behavior
-      // All readers have acked up to this point (SequenceNumber)
+      // All reliable readers have acked up to this point (SequenceNumber).
+      // Best-effort readers never send an ACKNACK, so they do not count, and
+      // with no reliable reader matched nothing waits for an acknowledgement:
+      // everything written counts as acked, as in `refresh_acked_frontier` and
+      // `WriterSendBuffer::is_acked_through`, and History depth alone decides
+      // what stays (for a late joiner of a durable writer).
+      // pwm_actuator: was the minimum over all readers, or zero with none, so a
+      // writer with no reliable reader (/rosout, a durable ~/<ch>/e1) evicted
+      // nothing until DEFAULT_WRITER_MAX_SAMPLES.
       let acked_by_all_readers = self
         .readers
         .values()
+        .filter(|rp| rp.qos().is_reliable())
         .map(RtpsReaderProxy::acked_up_to_before)
         .min()
-        .unwrap_or_else(SequenceNumber::zero);
+        .unwrap_or_else(|| self.send_buffer.last_change_sequence_number().plus_1());
       // If all readers have acked all up to before 5, and depth is 5, we need
       // to keep samples 0..4, i.e. from acked_up_to_before - depth .
       let depth_keeper = if let Some(depth) = depth {
@@ -3180,6 +3189,67 @@ mod tests {
       f.writer.udp_sender.flush_control(SocketId::Unicast);
       assert_eq!(f.repair_round(), 5);
       assert!(!f.reader_proxy().repair_mode);
+    }
+
+    // pwm_actuator: cache cleaning keeps History depth when no reliable reader
+    // waits for an acknowledgement.
+    fn keep_last_durable(reader: Reliability) -> Fixture {
+      let writer_qos = QosPolicyBuilder::new()
+        .reliability(Reliability::Reliable {
+          max_blocking_time: Duration::from_millis(100),
+        })
+        .history(History::KeepLast { depth: 3 })
+        .durability(Durability::TransientLocal)
+        .build();
+      let reader_qos = QosPolicyBuilder::new()
+        .reliability(reader)
+        .history(History::KeepLast { depth: 3 })
+        .build();
+      Fixture::new(
+        EntityId::new([0, 0, 1], EntityKind::WRITER_WITH_KEY_USER_DEFINED),
+        writer_qos,
+        EntityId::new([0, 0, 2], EntityKind::READER_WITH_KEY_USER_DEFINED),
+        &reader_qos,
+        50,
+        8,
+        None,
+      )
+    }
+
+    // A durable KeepLast writer (as /rosout or a latched topic) with no reader
+    // at all keeps its last `depth` samples, for a late joiner, and no more.
+    #[test]
+    fn cache_cleaning_without_readers_keeps_depth() {
+      let mut f = keep_last_durable(Reliability::BestEffort);
+      let reader = f.reader_guid;
+      f.writer.reader_lost(reader);
+      assert!(f.writer.readers.is_empty());
+      assert_eq!(f.writer.send_buffer.retained_len(), 50);
+      f.writer.handle_cache_cleaning();
+      assert_eq!(f.writer.send_buffer.retained_len(), 3);
+      assert_eq!(
+        f.writer.send_buffer.first_change_sequence_number(),
+        SequenceNumber::new(48)
+      );
+    }
+
+    // A best-effort reader never acknowledges: it must not hold samples back.
+    #[test]
+    fn cache_cleaning_ignores_best_effort_readers() {
+      let mut f = keep_last_durable(Reliability::BestEffort);
+      f.writer.handle_cache_cleaning();
+      assert_eq!(f.writer.send_buffer.retained_len(), 3);
+    }
+
+    // A reliable reader that has not acknowledged anything keeps every sample
+    // available for repair (up to the resource-limit backstop), as before.
+    #[test]
+    fn cache_cleaning_keeps_what_a_reliable_reader_has_not_acked() {
+      let mut f = keep_last_durable(Reliability::Reliable {
+        max_blocking_time: Duration::from_millis(100),
+      });
+      f.writer.handle_cache_cleaning();
+      assert_eq!(f.writer.send_buffer.retained_len(), 50);
     }
   }
 }

@@ -302,6 +302,24 @@ impl WriterSendBuffer {
         inner.first_seq = oldest.plus_1();
       }
     }
+    // pwm_actuator: with reliable readers matched, samples every one of them
+    // has acknowledged are needed for nothing but History depth, so the oldest
+    // of them go on insert once the buffer holds more than `max_retain`. The
+    // periodic cache cleaning (6 s) did this alone before, so between two
+    // cleanings a writer published per event (an edge, a status) held every
+    // sample of those 6 s: memory that grew with the publishing rate, not with
+    // the History depth. Unacknowledged samples stay for repair, bounded by the
+    // send window.
+    if !shared.is_builtin && shared.reliable_writer && inner.reliable_readers_present {
+      while inner.changes.len() > inner.max_retain {
+        let oldest = match inner.changes.keys().next().copied() {
+          Some(sn) if sn < inner.acked_before => sn,
+          _ => break,
+        };
+        inner.changes.remove(&oldest);
+        inner.first_seq = oldest.plus_1();
+      }
+    }
     seq
   }
 
@@ -678,6 +696,49 @@ mod tests {
     for _ in 0..10 {
       assert!(admit_now(&buf, WriteOptions::default()));
     }
-    assert_eq!(buf.retained_len(), max_retain + 10);
+    // pwm_actuator: the ten unacknowledged samples stay, past max_retain; the
+    // four acknowledged ones from before the match are dropped on insert (see
+    // `acknowledged_samples_beyond_depth_go_on_insert`). Was max_retain + 10.
+    assert_eq!(buf.retained_len(), 10);
+    assert_eq!(buf.first_change_sequence_number(), SequenceNumber::new(101));
+  }
+
+  // pwm_actuator: with a reliable reader matched, acknowledged samples beyond
+  // `max_retain` (History depth) go on insert; unacknowledged ones stay for
+  // repair whatever their number.
+  #[test]
+  fn acknowledged_samples_beyond_depth_go_on_insert() {
+    let max_retain = 3;
+    for volatile in [true, false] {
+      let buf = WriterSendBuffer::new(
+        GUID::GUID_UNKNOWN,
+        "t".to_string(),
+        /* reliable_writer */ true,
+        /* is_builtin */ false,
+        volatile,
+        /* window_limit */ 1000,
+        /* backlog_limit */ 1000,
+        max_retain,
+      );
+      buf.set_acked_frontier(Some(SequenceNumber::new(1)));
+      for _ in 0..10 {
+        assert!(admit_now(&buf, WriteOptions::default()));
+      }
+      // Nothing acknowledged: all ten kept for repair.
+      assert_eq!(buf.retained_len(), 10);
+      // 1..=8 acknowledged: the next insert drops acknowledged ones down to
+      // the depth, and keeps 9 and 10, which are not.
+      buf.set_acked_frontier(Some(SequenceNumber::new(9)));
+      assert!(admit_now(&buf, WriteOptions::default())); // seq 11
+      assert_eq!(buf.retained_len(), max_retain);
+      assert_eq!(buf.first_change_sequence_number(), SequenceNumber::new(9));
+      // Everything acknowledged, and a steady stream: never above the depth.
+      for _ in 0..100 {
+        let next = buf.last_change_sequence_number().plus_1();
+        buf.set_acked_frontier(Some(next));
+        assert!(admit_now(&buf, WriteOptions::default()));
+        assert_eq!(buf.retained_len(), max_retain);
+      }
+    }
   }
 }
