@@ -5,3 +5,4 @@ mod bank;
 mod harness;
 mod props;
 mod rules;
+mod timebase;
