@@ -93,6 +93,7 @@ fn own_messages_match_their_msg_files() {
             rule: String::new(),
             duty_target: 0.0,
             protections: vec!["max_on".into()],
+            time_base_ms: 0.0,
         }),
     );
     check_file(

@@ -161,6 +161,8 @@ pub struct Status {
     /// The line's average duty over the window of the rolling-average cap ending now, 0..=1, as
     /// the channel counts it (never less than the real one).
     pub avg_duty: f64,
+    /// The time base in force, ns (`time_base_ms` rounded to the ns); 0 = off.
+    pub time_base: Nanos,
 }
 
 impl Status {
@@ -226,6 +228,7 @@ impl Channel {
             ignored_commands: self.ignored,
             skipped_pulses: self.skipped,
             avg_duty: self.avg_duty(now),
+            time_base: self.cfg.tick,
         }
     }
 }

@@ -278,6 +278,8 @@ pub struct ChannelStatus {
     /// The protections of the load acting now: max_on, max_duty, min_duty, slew, deadband,
     /// stagger, max_simultaneous_on, avg_duty.
     pub protections: Vec<String>,
+    /// The time base in force, ms (0: off): every pulse and break is a whole number of ticks.
+    pub time_base_ms: f64,
 }
 ros_message!(ChannelStatus, "pwm_actuator_msgs", "ChannelStatus");
 

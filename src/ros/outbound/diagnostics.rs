@@ -89,6 +89,7 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         rule: s.rule.as_str().to_string(),
         duty_target: percent(s.duty_target),
         protections: s.protections.names().map(str::to_string).collect(),
+        time_base_ms: ms(s.time_base),
     }
 }
 
@@ -573,6 +574,7 @@ impl ChannelHealth {
                 ("ignored_commands", s.ignored_commands.to_string()),
                 ("skipped_pulses", s.skipped_pulses.to_string()),
                 ("avg_duty_pct", format!("{:.3}", percent(s.avg_duty))),
+                ("time_base_ms", format!("{:.6}", ms(s.time_base))),
             ]);
         }
         kv.extend([
@@ -661,6 +663,7 @@ mod tests {
             ignored_commands: 0,
             skipped_pulses: 0,
             avg_duty: 0.0,
+            time_base: 0,
         }
     }
 

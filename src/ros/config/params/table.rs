@@ -454,6 +454,23 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
+            description: "Time base (tick), ms: every pulse and break is a whole number of \
+                          ticks and every edge lies on the tick grid (003's CYCLE_P, 001's \
+                          task period, a zero-cross SSR's half cycle: 10 for 50 Hz, 8.3333 \
+                          for 60 Hz). Rounded to the ns; the period to whole ticks, the \
+                          minima up, max_on_ms down. 0: off.",
+            constraints: "0, or 0.1..period_ms; takes effect at the next period boundary",
+            range: Range::Double(0.0, MAX_PERIOD_MS as f64),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.time_base_ms = double(v);
+                Ok(())
+            }),
+            ..Decl::new("time_base_ms", Double, || {
+                V::Double(core_defaults().time_base_ms)
+            })
+        },
+        Decl {
             description: "When a new duty takes effect: next_period, next_step or immediate. \
                           Empty: as the profile says.",
             constraints: "next_period|next_step|immediate or empty",
