@@ -415,6 +415,12 @@ impl ChannelParams {
         self.on_disable.unwrap_or(self.profile.on_disable())
     }
 
+    /// Whether a minimum time of any size is limited rather than refused (002: nMinSwiTi
+    /// "internally limited to values between 0 and nPrd").
+    fn limits_minima(&self) -> bool {
+        self.profile == Profile::TwincatBa
+    }
+
     /// The watchdog's limits: its timeout, and the fault value it runs and for how long.
     fn check_watchdog(&self) -> Result<(), ConfigError> {
         at_most_a_day(self.command_timeout_ms, |value_ms, max_ms| {
@@ -496,8 +502,10 @@ impl ChannelParams {
                 });
             }
             // No vendor allows more than an hour (000: ME <= 65 535 ms); the bound also keeps
-            // the nanosecond arithmetic below far from overflow.
-            if value_ms > MAX_PERIOD_MS {
+            // the nanosecond arithmetic below far from overflow. 002: nMinSwiTi is
+            // "internally limited to values between 0 and nPrd": under twincat_ba any value is
+            // limited (below), never refused.
+            if value_ms > MAX_PERIOD_MS && !self.limits_minima() {
                 return Err(ConfigError::MinTimeTooLong {
                     which,
                     value_ms,
@@ -515,6 +523,9 @@ impl ChannelParams {
         // With a time base, rounded up to whole ticks, then limited to the (rounded) period.
         let effective = |ms: u64| {
             let limited = !(self.period_ms == 0 || extends);
+            // Under twincat_ba a minimum is limited, not refused: to the period, or to an
+            // hour while there is none to limit it to (or `extend` keeps it as given).
+            let ms = ms.min(MAX_PERIOD_MS);
             let ms = if limited { ms.min(self.period_ms) } else { ms };
             let ns = whole_up((ms * NS_PER_MS).max(kind.floor_ns()));
             if limited {

@@ -6,3 +6,4 @@ mod harness;
 mod props;
 mod rules;
 mod timebase;
+mod vendor;

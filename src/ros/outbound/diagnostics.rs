@@ -90,7 +90,17 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         duty_target: percent(s.duty_target),
         protections: s.protections.names().map(str::to_string).collect(),
         time_base_ms: ms(s.time_base),
+        on_time_input_ms: ms(s.t_on_input),
+        off_time_input_ms: ms(s.t_off_input),
+        remaining_on_s: whole_seconds(rem_on),
+        remaining_off_s: whole_seconds(rem_off),
     }
+}
+
+/// A remaining time in whole seconds, as 002's UDINT countdowns nRemTiOn / nRemTiOff show it:
+/// truncated (a countdown shows 0 in its last second), saturating.
+pub fn whole_seconds(ns: Nanos) -> u32 {
+    u32::try_from(ns / 1_000_000_000).unwrap_or(u32::MAX)
 }
 
 /// Whether two snapshots differ in anything but the running step's remaining time (what
@@ -664,6 +674,8 @@ mod tests {
             skipped_pulses: 0,
             avg_duty: 0.0,
             time_base: 0,
+            t_on_input: 370 * NS_PER_MS,
+            t_off_input: 630 * NS_PER_MS,
         }
     }
 
@@ -900,6 +912,33 @@ mod tests {
             clamp_text(Command::Sv(5000), 1.0),
             "SV 5000 is outside 0..4095, clamped to 100.0 %"
         );
+    }
+
+    #[test]
+    fn the_status_carries_the_input_s_times_and_whole_second_countdowns_002() {
+        // 002: fActTiOn / fActTiOff from the current input beside the times in force, and the
+        // countdowns nRemTiOn / nRemTiOff in whole seconds (UDINT), truncated.
+        let s = Status {
+            remaining_on: 2_999 * NS_PER_MS,
+            step_end: Some(3_000 * NS_PER_MS),
+            t_on_input: 600 * NS_PER_MS,
+            t_off_input: 400 * NS_PER_MS,
+            time_base: 8_333_333,
+            ..status()
+        };
+        let m = status_msg(0, &s, 0, 5);
+        assert_eq!((m.on_time_ms, m.off_time_ms), (370.0, 630.0));
+        assert_eq!((m.on_time_input_ms, m.off_time_input_ms), (600.0, 400.0));
+        assert_eq!((m.remaining_on_ms, m.remaining_on_s), (3_000.0, 3));
+        let m = status_msg(0, &s, NS_PER_MS, 5);
+        assert_eq!((m.remaining_on_s, m.remaining_off_s), (2, 0));
+        assert_eq!(m.time_base_ms, 8.333333);
+        assert_eq!(whole_seconds(999_999_999), 0);
+        assert_eq!(whole_seconds(Nanos::MAX), u32::MAX);
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(s);
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(kv(&d, "time_base_ms"), "8.333333");
     }
 
     #[test]

@@ -355,8 +355,10 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                           hardware floor (0.1 ms transistor, 50 ms relay).",
             constraints: "relay: 0 or >= 50; above period_ms acts as period_ms (every duty \
                           but 0 and 100 % then gives 0 or 1 with E1), except with short_pulse \
-                          extend",
+                          extend; above one hour refused, except under twincat_ba (002: \
+                          limited to the period whatever its size)",
             range: Range::Integer(0, MAX_PERIOD_MS as i64),
+            checked: Checked::Core,
             core: Some(|c, v| {
                 c.min_on_ms = ms(v);
                 Ok(())
@@ -368,7 +370,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
         },
         Decl {
             description: "Minimum off time, ms. -1: as the profile says (= min_on_ms, except \
-                          twincat_ba: the hardware floor).",
+                          twincat_ba and schneider_pwm: the hardware floor).",
             constraints: "relay: 0 or >= 50; above period_ms acts as period_ms, except with \
                           short_pulse extend",
             range: Range::Integer(-1, MAX_PERIOD_MS as i64),
