@@ -170,6 +170,8 @@ pub struct Status {
     pub t_on_input: Nanos,
     /// Off time the current input gives, ns (002's fActTiOff); see `t_on_input`.
     pub t_off_input: Nanos,
+    /// A vendor recommendation the settings in force do not follow (003, 001).
+    pub sizing: Option<crate::core::Sizing>,
 }
 
 impl Status {
@@ -241,6 +243,7 @@ impl Channel {
             time_base: self.cfg.tick,
             t_on_input: input.t_on,
             t_off_input: input.t_off,
+            sizing: self.cfg.sizing(),
         }
     }
 }

@@ -9,9 +9,11 @@ use super::Nanos;
 use std::fmt;
 
 mod policy;
+mod sizing;
 
 pub(crate) use policy::named_enum;
 pub use policy::{ApplyAt, OnDisable, OutputKind, Profile, ShortPulse, ShortStr, UnknownName};
+pub use sizing::Sizing;
 
 /// Nanoseconds in one millisecond.
 pub const NS_PER_MS: Nanos = 1_000_000;

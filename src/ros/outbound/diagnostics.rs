@@ -417,6 +417,7 @@ impl ChannelHealth {
         } else if self.recent_rejection(now).is_some()
             || self.recent_refusal(now).is_some()
             || s.is_some_and(|s| s.e1 || (s.limited && !s.rule.extended()) || s.command_clamped)
+            || s.is_some_and(|s| s.sizing.is_some())
         {
             DiagnosticStatus::WARN
         } else {
@@ -533,6 +534,11 @@ impl ChannelHealth {
                 ms(s.t_off)
             )
         };
+        // Sizing advice: the channel runs as set; a vendor recommends otherwise (WARN).
+        let state = match s.sizing {
+            Some(advice) => format!("{state}; sizing: {advice}"),
+            None => state,
+        };
         if s.protections.any() {
             let acting: Vec<&str> = s.protections.names().collect();
             format!(
@@ -585,6 +591,10 @@ impl ChannelHealth {
                 ("skipped_pulses", s.skipped_pulses.to_string()),
                 ("avg_duty_pct", format!("{:.3}", percent(s.avg_duty))),
                 ("time_base_ms", format!("{:.6}", ms(s.time_base))),
+                (
+                    "sizing_advice",
+                    s.sizing.map(|a| a.to_string()).unwrap_or_default(),
+                ),
             ]);
         }
         kv.extend([
@@ -676,6 +686,7 @@ mod tests {
             time_base: 0,
             t_on_input: 370 * NS_PER_MS,
             t_off_input: 630 * NS_PER_MS,
+            sizing: None,
         }
     }
 
@@ -939,6 +950,40 @@ mod tests {
         h.status = Some(s);
         let d = h.to_status("n", 0, NodeCounters::default());
         assert_eq!(kv(&d, "time_base_ms"), "8.333333");
+    }
+
+    #[test]
+    fn sizing_advice_is_a_warn_naming_the_rule_and_the_figures_003_001() {
+        let cfg = crate::core::ChannelParams {
+            profile: crate::core::Profile::TcontCp,
+            period_ms: 1000,
+            time_base_ms: 100.0,
+            ..crate::core::ChannelParams::default()
+        }
+        .validate()
+        .unwrap();
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(Status {
+            sizing: cfg.sizing(),
+            ..status()
+        });
+        assert_eq!(h.level(0), DiagnosticStatus::WARN);
+        let m = h.message(0);
+        assert!(
+            m.starts_with(
+                "enabled, 37.0 % (370.0 ms on / 630.0 ms off); sizing: 003 recommends \
+                           CYCLE_P <= PER_TM/50: time_base_ms 100 is above period_ms 1000 / 50 \
+                           = 20 ms"
+            ),
+            "{m}"
+        );
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert!(kv(&d, "sizing_advice").starts_with("003 recommends CYCLE_P"));
+        // Without it: OK and an empty value.
+        h.status = Some(status());
+        assert_eq!(h.level(0), DiagnosticStatus::OK);
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(kv(&d, "sizing_advice"), "");
     }
 
     #[test]
