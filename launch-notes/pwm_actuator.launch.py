@@ -59,7 +59,7 @@ def generate_launch_description():
             "rt_priority",
             default_value="0",
             description="SCHED_FIFO priority of the output thread, 1..99; 0 = normal "
-            "scheduling. Needs an rtprio limit or CAP_SYS_NICE (see realtime.md); "
+            "scheduling. Needs an rtprio limit or CAP_SYS_NICE (see docs/realtime.md); "
             "when refused the node logs one warning and runs normally.",
         ),
     ]

@@ -80,7 +80,8 @@ command -v xz >/dev/null || missing+=(xz-utils)
     || die "/bin/busybox has no 'ip' applet: needs busybox-static"
 
 # The kernel: the ABI Debian's linux-image-amd64 points at (bookworm: 6.1.0-NN-amd64).
-KVER="$(ls -d /usr/src/linux-headers-6.1.0-*-amd64 2>/dev/null | sort -V | tail -n1 | sed 's|.*/linux-headers-||')"
+# (On a machine without any headers `ls` fails: under pipefail that must not end the script.)
+KVER="$({ ls -d /usr/src/linux-headers-6.1.0-*-amd64 2>/dev/null || true; } | sort -V | tail -n1 | sed 's|.*/linux-headers-||')"
 if [[ -z "$KVER" ]]; then
     abi="$(apt-cache depends linux-image-amd64 2>/dev/null | sed -n 's/.*Depends: linux-image-\(6\.1\.0-[0-9]*-amd64\)$/\1/p' | head -n1)"
     if [[ -z "$abi" ]]; then

@@ -112,7 +112,8 @@ vendor_tests() {
     cargo test --lib --locked --manifest-path vendor/rustdds/Cargo.toml \
         --target-dir "$REPO/target/vendor-rustdds" -- \
         data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
-        reply_written_before_its_reader_matched_goes_to_it_on_match 2>&1 |
+        reply_written_before_its_reader_matched_goes_to_it_on_match \
+        unanswered_nack_is_repeated_until_the_samples_come 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"
 }

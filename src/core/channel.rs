@@ -266,6 +266,7 @@ impl Channel {
     /// here. The output thread calls this after each write; virtual-time callers need not.
     pub fn edge_written(&mut self, at: Nanos) {
         if let Some(since) = self.line.since.filter(|s| at > *s) {
+            self.avg_write_seen();
             if self.line.level == Level::Low {
                 // The line was on until the fall really happened.
                 self.avg_late_fall(since, at);

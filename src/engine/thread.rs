@@ -784,7 +784,7 @@ fn real_time_setup(rt_priority: Option<i32>) {
     if rc != 0 {
         log::warn!(
             "SCHED_FIFO priority {prio} refused ({}); running with normal scheduling \
-             (see launch-notes/realtime.md: rtprio limit or CAP_SYS_NICE)",
+             (see docs/realtime.md: rtprio limit or CAP_SYS_NICE)",
             std::io::Error::last_os_error()
         );
         return;

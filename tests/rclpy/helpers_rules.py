@@ -30,7 +30,7 @@ MS = 1_000_000
 #: Timing accuracy is the benchmark's business; this only catches an edge written at a wrong
 #: moment, on a loaded 2-core machine.
 WRITE_TOL_NS = 20 * MS
-#: QoS of `~/<ch>/e1`: reliable, transient local, keep last 1 (README), so a late subscriber
+#: QoS of `~/<ch>/e1`: reliable, transient local, keep last 1 (docs/interface.md), so a late subscriber
 #: gets the current state.
 E1_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,

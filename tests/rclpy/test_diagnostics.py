@@ -1,5 +1,5 @@
 """What /diagnostics says beyond each channel's own status, read by an rclpy client as an
-aggregator or an operator would (README: "Diagnostics"):
+aggregator or an operator would (docs/interface.md, "Diagnostics"):
 
 - `<node>: <ch> command frequency`: diagnostic_updater's FrequencyStatus on the channel's duty
   commands; with commands at 10 Hz and `expected_command_hz_min` 5 it is OK, and when they stop
@@ -8,7 +8,7 @@ aggregator or an operator would (README: "Diagnostics"):
 - `<node>: node`: the lifecycle state (`unmanaged`, or a managed node's state as it moves),
   the e-stop, the output thread's lateness and the lost reports;
 - `launch-notes/diagnostic_analyzers.yaml`: its analyzer takes exactly the statuses the node
-  publishes, and names them as the README says.
+  publishes, and names them as docs/interface.md says.
 """
 
 from __future__ import annotations

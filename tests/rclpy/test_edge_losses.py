@@ -1,8 +1,8 @@
 """Where edge messages are lost, and what the node counts of it (issue 9): a subscriber that
 stops taking messages for 2 s, as an rclpy callback that blocks would, seen over ROS.
 
-The README says: a gap in `seq` is edges this subscriber lost; a subscriber's own reader keeps
-as many unread messages as its History depth and acknowledges each one as it arrives, so what
+docs/interface.md says: a gap in `seq` is edges this subscriber lost; a subscriber's own reader
+keeps as many unread messages as its History depth and acknowledges each one as it arrives, so what
 it overwrites is lost where no publisher can see it; the node's writer never drops an edge
 silently (a full send window is a failed publish, counted in `publish_failures`).
 """

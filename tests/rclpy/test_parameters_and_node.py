@@ -55,7 +55,7 @@ NODE = "/pwm_actuator"
 MS = 1_000_000
 TRACE_HEADER = "t_ns,channel,level,scheduled_ns"
 
-#: Every per-channel parameter the README documents.
+#: Every per-channel parameter the parameter page (docs/parameters.md) documents.
 CHANNEL_PARAMS = (
     "period_ms",
     "min_on_ms",
@@ -469,7 +469,7 @@ def test_params_topic_refuses_the_whole_message_when_one_field_is_bad(ros, node_
 
 
 def test_refused_parameter_puts_the_channel_at_warn(ros, node_process, svc):
-    # README: "WARN when E1 or the limit flag acts, when the command in force was clamped, or
+    # docs/interface.md: "WARN when E1 or the limit flag acts, when the command in force was clamped, or
     # for 5 s after a refused command or parameter".
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics")
     start_node(node_process)
@@ -588,7 +588,7 @@ def test_descriptors_ranges_and_listing(ros, node_process, svc):
     assert [(r.from_value, r.to_value) for r in band.floating_point_range] == [(0.0, 1.0)]
     assert not band.integer_range and not band.read_only
 
-    assert d["pw01.active_low"].read_only, "README: active_low is read-only once running"
+    assert d["pw01.active_low"].read_only, "docs/parameters.md: active_low is read-only once running"
 
     listed = svc.list_parameters()
     names = set(listed.names)
@@ -612,7 +612,7 @@ MANY_CHANNELS = 8
 
 
 def test_every_parameter_service_answers_for_all_parameters_at_once(ros, node_process):
-    # README: the parameter services answer requests of any size, e.g. for every parameter at
+    # docs/parameters.md: the parameter services answer requests of any size, e.g. for every parameter at
     # once as `ros2 param dump` asks. Replies above one datagram are fragmented; each must reach
     # the rclpy client, and the same client's later calls must still be answered.
     proc = node_process(["--channels", str(MANY_CHANNELS)])
@@ -714,7 +714,7 @@ def test_whole_doubles_are_taken_for_integers_and_fractions_refused(ros, node_pr
     assert result.successful, result.reason
     [value] = svc.get_parameter_values(["pw01.period_ms"])
     assert (value.type, value.integer_value) == (ParameterType.PARAMETER_INTEGER, 500)
-    # README: "the log says so".
+    # docs/parameters.md: "the log says so".
     wait_for_stderr(ros, proc, "500.0 taken as integer 500", "the coercion note")
 
     [result] = svc.set_parameters({"pw01.period_ms": 500.5}).values()

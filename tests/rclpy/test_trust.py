@@ -4,7 +4,7 @@ every UDP socket of the node is bound to the loopback device, and an rclpy (Fast
 with the same setting still discovers and commands it.
 
 Interop of DDS security with rclpy cannot be tested here: the Fast DDS in the registry's rclpy
-wheels is built without its security plugins (see the README, "Security and trust").
+wheels is built without its security plugins (see docs/security.md).
 """
 
 from __future__ import annotations

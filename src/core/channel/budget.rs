@@ -22,8 +22,13 @@
 //! window would. A decision that only times a break (the end of an on step) keeps to what the
 //! last decision allowed.
 
-use super::super::plan::Plan;
+use super::super::plan::{Plan, Rule};
 use super::{Channel, Level, Nanos};
+
+/// The least margin kept for a fall's lateness on a line whose writes take time, ns: about what
+/// one write takes here (tens of µs), with room; it covers the first fall, before any has been
+/// seen.
+pub(super) const FALL_LAG_FLOOR: Nanos = 100_000;
 
 /// Buckets in the ring of past on time.
 pub(super) const BUCKETS: usize = 64;
@@ -45,8 +50,9 @@ pub(super) struct Budget {
     /// The cap holds the plan below what the other rules give.
     pub(super) acts: bool,
     /// How much later than scheduled falls reach the line (a late wake-up, the write itself),
-    /// ns: the largest seen, decaying by a sixteenth at each fall, kept as a margin for the
-    /// next fall.
+    /// ns: the largest seen, decaying by a sixteenth at each fall, and at least
+    /// [`FALL_LAG_FLOOR`] once the line has shown a write of its own (0 in virtual time, where
+    /// edges take no time); kept as a margin for the next fall.
     fall_lag: Nanos,
 }
 
@@ -126,6 +132,12 @@ impl Channel {
         self.avg.count(since.min(at), at);
     }
 
+    /// An edge reached the line after it was emitted: the line's writes take time, so every
+    /// fall keeps at least [`FALL_LAG_FLOOR`] as a margin from now on.
+    pub(super) fn avg_write_seen(&mut self) {
+        self.avg.fall_lag = self.avg.fall_lag.max(FALL_LAG_FLOOR);
+    }
+
     /// A fall scheduled at `scheduled` reached the line only at `actual`: the line was on
     /// until then, and the next fall may be as late (kept as a margin, see `committed`).
     pub(super) fn avg_late_fall(&mut self, scheduled: Nanos, actual: Nanos) {
@@ -134,7 +146,9 @@ impl Channel {
         }
         self.avg.count(scheduled, actual);
         let lag = actual - scheduled;
-        self.avg.fall_lag = lag.max(self.avg.fall_lag - self.avg.fall_lag / 16);
+        self.avg.fall_lag = lag
+            .max(self.avg.fall_lag - self.avg.fall_lag / 16)
+            .max(FALL_LAG_FLOOR);
     }
 
     /// Lays the ring out for the window in force at `now` (after a configuration change).
@@ -227,6 +241,13 @@ impl Channel {
                 (false, true) => tighter,
                 (false, false) => shape(0.0),
             }
+        };
+        // A duty the cap lowered below what a pulse can be (a sliver of budget left): the
+        // period is off by the cap, not E1 — the cap is a configured limit.
+        let allowed = if allowed.t_on < plan.t_on && allowed.rule == Rule::SuppressedPulse {
+            shape(0.0)
+        } else {
+            allowed
         };
         self.avg.acts = allowed.t_on < plan.t_on;
         self.carry = allowed.carry;

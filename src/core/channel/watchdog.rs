@@ -1,5 +1,5 @@
-//! The command watchdog (SPEC §1.3): when it fires, what the fault value does, and how the
-//! output goes off keeping the period grid.
+//! The command watchdog (SPEC §1, `command_timeout_ms`; §4): when it fires, what the fault
+//! value does, and how the output goes off keeping the period grid.
 
 use super::{Channel, Event, Level, Nanos, Plan, Step, StepKind};
 

@@ -115,7 +115,7 @@ pub enum SecurityError {
          neither authenticate itself nor refuse unauthenticated participants. Refusing to start \
          rather than run unsecured. To run \
          unsecured on purpose, unset {ENABLE_ENV} or set {STRATEGY_ENV}=Permissive, and isolate \
-         the ROS domain (see the README, \"Security and trust\")"
+         the ROS domain (see docs/security.md)"
     )]
     EnforceUnsupported {
         /// What was asked, as [`SecurityRequest`] describes it.

@@ -1,4 +1,5 @@
-//! The QoS of every topic and service of the node, in one place so the README can state them.
+//! The QoS of every topic and service of the node, in one place so docs/interface.md can state
+//! them.
 //!
 //! | topic / service | reliability | durability | history | notes |
 //! |---|---|---|---|---|

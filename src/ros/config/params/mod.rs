@@ -12,11 +12,13 @@
 //! whole number (`500.0` becomes `500`), a double parameter accepts an integer (`1` becomes
 //! `1.0`); both are lossless and reported as notes. Anything else of the wrong type is refused.
 
+mod reference;
 mod settings;
 mod startup;
 mod store;
 mod table;
 
+pub use reference::{reference_markdown, REFERENCE_COMMAND, REFERENCE_PATH};
 pub use settings::NodeSettings;
 pub use startup::{start_up, ChannelStart, StartUp, StartValue, StartupConfig};
 pub use store::{items_from_msg, Accepted, ParamStore, Stage};

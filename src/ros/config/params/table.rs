@@ -3,7 +3,8 @@
 //! its special values mean, its accepted spellings, and — for a channel parameter — how it maps
 //! into the core's [`ChannelParams`] and from the `pwm_actuator_msgs/ChannelParams` message. The
 //! parameter services' declarations and descriptors, the validation messages, the message
-//! mapping and the README's tables (compared by a test) all derive from it.
+//! mapping and the parameter page `docs/parameters.md` (generated, compared by a test) all
+//! derive from it.
 //!
 //! Defaults and limits of the channel settings come from the core (`ChannelParams::default()`,
 //! `MAX_PERIOD_MS`, `MAX_TIMEOUT_MS`), so none is written twice.

@@ -526,58 +526,6 @@ fn channel_names() {
     assert_eq!(channel_of("channels"), None);
 }
 
-/// The README's parameter tables list exactly the declared parameters, each with its type,
-/// its default and whether it is read-only (`RO`), as the table in `table.rs` says.
-#[test]
-fn the_readme_tables_match_the_parameter_table() {
-    let readme = include_str!("../../../../README.md");
-    let section = readme
-        .split("### Parameters")
-        .nth(1)
-        .and_then(|s| s.split("### Command line").next())
-        .expect("a Parameters section before Command line");
-    let mut rows = std::collections::BTreeMap::new();
-    for line in section.lines().filter(|l| l.starts_with("| `")) {
-        let cells: Vec<&str> = line.split('|').map(str::trim).collect();
-        let name = cells[1].trim_matches('`').to_string();
-        assert!(
-            rows.insert(name.clone(), (cells[2], cells[3], line.contains("(RO")))
-                .is_none(),
-            "{name} listed twice"
-        );
-    }
-    let declared: Vec<table::Decl> = table::node_decls()
-        .into_iter()
-        .chain(table::channel_decls())
-        .collect();
-    for d in &declared {
-        let Some((ty, default, ro)) = rows.remove(d.suffix) else {
-            panic!("{} is declared but not in the README", d.suffix);
-        };
-        let want_ty = match d.ptype {
-            ParamType::Bool => "bool",
-            ParamType::Integer => "int",
-            ParamType::Double => "double",
-            ParamType::String => "string",
-        };
-        assert_eq!(ty, want_ty, "{}: type", d.suffix);
-        let shown_default = default.trim_matches('`');
-        let same = match (d.default)() {
-            V::Boolean(b) => shown_default == b.to_string(),
-            V::Integer(i) => shown_default.parse::<i64>() == Ok(i),
-            V::Double(x) => shown_default.parse::<f64>() == Ok(x),
-            V::String(s) if s.is_empty() => shown_default == "\"\"",
-            V::String(s) => shown_default == s,
-            other => panic!("{}: default {other:?}", d.suffix),
-        };
-        assert!(same, "{}: README default {default}", d.suffix);
-        let read_only = d.read_only.is_some();
-        // Node parameters say (RO) themselves; a channel parameter's row says it when it is.
-        assert_eq!(ro, read_only, "{}: read-only in the README", d.suffix);
-    }
-    assert!(rows.is_empty(), "in the README but not declared: {rows:?}");
-}
-
 #[test]
 fn twincat_ba_limits_a_minimum_of_any_size_to_the_period_002() {
     // 002: nMinSwiTi is "internally limited to values between 0 and nPrd": under twincat_ba a

@@ -69,7 +69,22 @@ use crate::no_security::SecurityPluginsHandle;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) enum TimedEvent {
   DeadlineMissedCheck,
+  // pwm_actuator: ask a writer again for the samples a NACK asked for, if they
+  // have not come (see `repeat_nack`).
+  RepeatNack {
+    writer: GUID,
+    heartbeat_count: i32,
+    first_sn: SequenceNumber,
+    last_sn: SequenceNumber,
+    delay_ms: u64,
+    repeats_left: u8,
+  },
 }
+
+// pwm_actuator: a NACK that is not answered is sent again after this long, then
+// after twice as long, ..., at most NACK_REPEATS times (50 + 100 + ... + 800 ms).
+const NACK_REPEAT_FIRST_DELAY_MS: u64 = 50;
+const NACK_REPEATS: u8 = 5;
 
 // Some pieces necessary to construct a reader.
 // These can be sent between threads, whereas a Reader cannot.
@@ -347,6 +362,119 @@ impl Reader {
         self.handle_requested_deadline_event();
         self.set_requested_deadline_check_timer(); // re-prime timer
       }
+      TimedEvent::RepeatNack {
+        writer,
+        heartbeat_count,
+        first_sn,
+        last_sn,
+        delay_ms,
+        repeats_left,
+      } => self.repeat_nack(
+        writer,
+        heartbeat_count,
+        (first_sn, last_sn),
+        delay_ms,
+        repeats_left,
+      ),
+    }
+  }
+
+  // pwm_actuator: a NACK (an ACKNACK that requests samples) can be ignored by
+  // the writer. Fast DDS's StatefulWriter marks a sample it has just sent as
+  // UNDERWAY and turns it UNACKNOWLEDGED on its event thread
+  // (nack_supression_duration, 0 by default); a NACK that arrives before that only
+  // moves UNACKNOWLEDGED samples to REQUESTED, so it is dropped, and the sample is
+  // sent again only after the writer's next periodic HEARTBEAT (3 s). That happens
+  // when a fresh publisher's first sample was dropped here because its writer was
+  // not matched yet: the preemptive ACKNACK on match brings a HEARTBEAT at once,
+  // and the NACK that answers it can reach the writer within a few ms of its first
+  // send. So while samples a NACK asked for are still missing and no later
+  // HEARTBEAT has been answered, the NACK is sent again, with a new count, after
+  // 50, 100, 200, 400 and 800 ms.
+  fn arm_repeat_nack(
+    &self,
+    writer: GUID,
+    heartbeat_count: i32,
+    (first_sn, last_sn): (SequenceNumber, SequenceNumber),
+    delay_ms: u64,
+    repeats_left: u8,
+  ) {
+    if repeats_left == 0 {
+      return;
+    }
+    self.timed_event_timer.borrow_mut().set_timeout(
+      StdDuration::from_millis(delay_ms),
+      DpTimerEvent::Reader {
+        entity_id: self.my_guid.entity_id,
+        event: TimedEvent::RepeatNack {
+          writer,
+          heartbeat_count,
+          first_sn,
+          last_sn,
+          delay_ms,
+          repeats_left,
+        },
+      },
+    );
+  }
+
+  fn repeat_nack(
+    &mut self,
+    writer: GUID,
+    heartbeat_count: i32,
+    range: (SequenceNumber, SequenceNumber),
+    delay_ms: u64,
+    repeats_left: u8,
+  ) {
+    if self.like_stateless || !self.matched_writers.contains_key(&writer) {
+      return;
+    }
+    let sent = self
+      .with_mutable_writer_proxy(writer, |this, writer_proxy| {
+        if writer_proxy.received_heartbeat_count != heartbeat_count {
+          // A later HEARTBEAT was answered; its NACK, if any, repeats itself.
+          return false;
+        }
+        let missing = writer_proxy.missing_seqnums(range.0, range.1);
+        let Some(&first_missing) = missing.first() else {
+          return false;
+        };
+        let reader_sn_state = SequenceNumberSet::from_base_and_set(
+          first_missing,
+          &missing
+            .iter()
+            .copied()
+            .take_while(|sn| sn < &(first_missing + SequenceNumber::new(256)))
+            .collect(),
+        );
+        let acknack = AckNack {
+          reader_id: this.entity_id(),
+          writer_id: writer.entity_id,
+          reader_sn_state,
+          count: writer_proxy.next_ack_nack_sequence_number(),
+        };
+        let flags = BitFlags::<ACKNACK_Flags>::from_flag(ACKNACK_Flags::Endianness)
+          | BitFlags::<ACKNACK_Flags>::from_flag(ACKNACK_Flags::Final);
+        this.send_acknack_to(
+          flags,
+          acknack,
+          InfoDestination {
+            guid_prefix: writer.prefix,
+          },
+          &writer_proxy.unicast_locator_list,
+          writer,
+        );
+        true
+      })
+      .unwrap_or(false);
+    if sent {
+      self.arm_repeat_nack(
+        writer,
+        heartbeat_count,
+        range,
+        delay_ms * 2,
+        repeats_left - 1,
+      );
     }
   }
 
@@ -1143,6 +1271,17 @@ impl Reader {
             reply_locators,
             writer_guid,
           );
+
+          if !missing_seqnums.is_empty() {
+            // pwm_actuator: see `repeat_nack`.
+            this.arm_repeat_nack(
+              writer_guid,
+              heartbeat.count,
+              (heartbeat.first_sn, heartbeat.last_sn),
+              NACK_REPEAT_FIRST_DELAY_MS,
+              NACK_REPEATS,
+            );
+          }
 
           return true;
         }
@@ -2032,6 +2171,162 @@ mod tests {
         .all_ackable_before(),
       SequenceNumber::new(2)
     );
+  }
+
+  // pwm_actuator: a NACK the writer does not answer is sent again, with a new
+  // count, until the samples come; then no more.
+  #[test]
+  fn unanswered_nack_is_repeated_until_the_samples_come() {
+    use std::{net::UdpSocket, time::Instant};
+
+    let dds_cache = Arc::new(RwLock::new(DDSCache::new()));
+    let reliable_qos = QosPolicyBuilder::new()
+      .reliability(Reliability::Reliable {
+        max_blocking_time: Duration::from_millis(100),
+      })
+      .build();
+    let topic_cache_handle = dds_cache.write().unwrap().add_new_topic(
+      "test_name".to_string(),
+      TypeDesc::new("test_type".to_string()),
+      &reliable_qos,
+    );
+    let (notification_sender, notification_receiver) = crate::mio_source::notification_channel(100);
+    let (_notification_event_source, notification_event_sender) =
+      mio_source::make_poll_channel().unwrap();
+    let (status_sender, _status_receiver) = sync_status_channel::<DataReaderStatus>(4).unwrap();
+    let (participant_status_sender, _participant_status_receiver) =
+      sync_status_channel(16).unwrap();
+    let (_reader_command_sender, reader_command_receiver) =
+      wake_channel::<ReaderCommand>(10, &LoopWaker::new());
+    let reader_guid = GUID::dummy_test_guid(EntityKind::READER_NO_KEY_USER_DEFINED);
+    let timer = new_shared_timer();
+    let mut reader = Reader::new(
+      ReaderIngredients {
+        guid: reader_guid,
+        notification_sender,
+        status_sender,
+        topic_name: "test_name".to_string(),
+        topic_cache_handle,
+        like_stateless: false,
+        qos_policy: reliable_qos.clone(),
+        data_reader_command_receiver: reader_command_receiver,
+        data_reader_waker: Arc::new(Mutex::new(None)),
+        poll_event_sender: notification_event_sender,
+        security_plugins: None,
+        discovery_notify: None,
+      },
+      Rc::new(UDPSender::new(0).unwrap()),
+      timer.clone(),
+      participant_status_sender,
+    );
+    let writer_socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    writer_socket
+      .set_read_timeout(Some(StdDuration::from_secs(2)))
+      .unwrap();
+    let writer_guid = GUID::new(
+      GuidPrefix::new(&[7; 12]),
+      EntityId::new([0, 0, 1], EntityKind::WRITER_NO_KEY_USER_DEFINED),
+    );
+    let mr_state = MessageReceiverState {
+      source_guid_prefix: writer_guid.prefix,
+      ..Default::default()
+    };
+    let acknack_to_writer = || {
+      let mut buf = vec![0; 1500];
+      let len = writer_socket
+        .recv(&mut buf)
+        .expect("no ACKNACK reached the writer");
+      buf.truncate(len);
+      Message::read_from_buffer(&bytes::Bytes::from(buf))
+        .unwrap()
+        .submessages
+        .into_iter()
+        .find_map(|s| match s.body {
+          crate::rtps::SubmessageBody::Reader(ReaderSubmessage::AckNack(an, _)) => Some(an),
+          _ => None,
+        })
+        .unwrap()
+    };
+    // The reader's next timed event, waited for up to `max_wait`.
+    let next_event = |max_wait: StdDuration| {
+      let give_up = Instant::now() + max_wait;
+      loop {
+        if let Some(DpTimerEvent::Reader { event, .. }) = timer.borrow_mut().poll() {
+          return Some(event);
+        }
+        if Instant::now() > give_up {
+          return None;
+        }
+        std::thread::sleep(StdDuration::from_millis(5));
+      }
+    };
+
+    reader.matched_writer_add(
+      writer_guid,
+      EntityId::UNKNOWN,
+      vec![Locator::from(writer_socket.local_addr().unwrap())],
+      vec![],
+      &reliable_qos,
+    );
+    let preemptive = acknack_to_writer();
+    assert!(preemptive.reader_sn_state.iter().next().is_none());
+
+    // HEARTBEAT 1..1: the reader asks for sn 1.
+    let heartbeat = Heartbeat {
+      reader_id: reader_guid.entity_id,
+      writer_id: writer_guid.entity_id,
+      first_sn: SequenceNumber::new(1),
+      last_sn: SequenceNumber::new(1),
+      count: 2,
+    };
+    assert!(reader.handle_heartbeat_msg(&heartbeat, false, &mr_state));
+    let nack = acknack_to_writer();
+    assert_eq!(
+      nack.reader_sn_state.iter().collect::<Vec<_>>(),
+      vec![SequenceNumber::new(1)]
+    );
+
+    // The writer ignores it: 50 ms later the reader asks again, with a new count,
+    // then after 100 ms.
+    let mut last_count = nack.count;
+    for expected_delay_ms in [50, 100] {
+      let started = Instant::now();
+      let event = next_event(StdDuration::from_secs(2)).expect("no repeat was scheduled");
+      assert!(started.elapsed() >= StdDuration::from_millis(expected_delay_ms - 10));
+      reader.handle_timed_event(event);
+      let repeat = acknack_to_writer();
+      assert_eq!(
+        repeat.reader_sn_state.iter().collect::<Vec<_>>(),
+        vec![SequenceNumber::new(1)]
+      );
+      assert!(repeat.count > last_count, "a repeat with an old count is ignored");
+      last_count = repeat.count;
+    }
+
+    // The DATA comes: the next repeat finds nothing missing, sends nothing and
+    // schedules no further one.
+    let data = Data {
+      reader_id: reader_guid.entity_id,
+      writer_id: writer_guid.entity_id,
+      writer_sn: SequenceNumber::new(1),
+      ..Data::default()
+    };
+    reader.handle_data_msg(
+      data,
+      BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Data),
+      &mr_state,
+    );
+    assert!(notification_receiver.try_recv().is_ok());
+    let event = next_event(StdDuration::from_secs(2)).expect("the third repeat was not scheduled");
+    reader.handle_timed_event(event);
+    writer_socket
+      .set_read_timeout(Some(StdDuration::from_millis(200)))
+      .unwrap();
+    assert!(
+      writer_socket.recv(&mut [0; 1500]).is_err(),
+      "an ACKNACK was sent for a sample already received"
+    );
+    assert!(next_event(StdDuration::from_secs(1)).is_none());
   }
 
   #[test]
