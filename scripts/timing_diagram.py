@@ -19,8 +19,11 @@ channels of a scenario (`--scenario`, see SCENARIOS) enabled at start-up. The de
 `minimum`: pw01 at 37 % of 200 ms, and pw02 at 10 % of 200 ms with a 30 ms minimum on time
 under the twincat_ba profile, which stretches the 20 ms pulse to 30 ms and sets E1. `sync` and
 `stagger`: three channels at 15, 25 and 30 % of 200 ms with `phase` sync or stagger. `extend`:
-10 % of 100 ms with a 30 ms minimum on time, extended (pw01) and stretched (pw02). `--seconds` after the first edge it sends SIGTERM (the node drives every output
-inactive and must exit 0), then renders the trace with the command in the title.
+10 % of 100 ms with a 30 ms minimum on time, extended (pw01) and stretched (pw02). `timebase`:
+37.1 % of 100 ms with a 60 Hz half-cycle time base (pw01) and without (pw02), drawn over the
+tick grid, with the mean duty of each channel's full periods. `--seconds` after the first edge
+it sends SIGTERM (the node drives every output inactive and must exit 0), then renders the
+trace with the command in the title.
 
 Dependency: matplotlib (pinned in scripts/requirements-docs.txt; install it into the repository's
 virtualenv with `.venv/bin/pip install -r scripts/requirements-docs.txt -c
@@ -103,9 +106,27 @@ SCENARIOS: dict[str, list[tuple[str, str]]] = {
             )
         ],
     ],
+    # A zero-cross SSR on 60 Hz mains switches only at the half-cycle zero crossings (drawn as
+    # the grid). 37.1 % of 100 ms is 4.452 half cycles: with the time base (pw01) the pulses are
+    # 4 or 5 whole half cycles on the grid, the remainder carried so the mean is 37.1 %; without
+    # (pw02) every pulse is 37.1 ms and ends between two crossings, which the SSR rounds itself.
+    "timebase": [
+        *[
+            (f"{ch}.{name}", value)
+            for ch, extra in (("pw01", [("time_base_ms", "8.333333")]), ("pw02", []))
+            for name, value in (
+                ("period_ms", "100"),
+                *extra,
+                ("duty", "37.1"),
+                ("enable", "true"),
+            )
+        ],
+    ],
 }
 # --run's default scenario.
 DEFAULT_SCENARIO = "minimum"
+# Scenarios drawn over a tick grid: its period, ns (the instants k * tick of CLOCK_MONOTONIC).
+SCENARIO_GRID: dict[str, int] = {"timebase": 8_333_333}
 
 
 def _import_pyplot():
@@ -198,11 +219,13 @@ def read_trace(path: Path) -> list[Channel]:
     return list(channels.values())
 
 
-def first_full_pulse(ch: Channel) -> Pulse | None:
-    """The first rising edge that has a falling edge and a next rising edge after it."""
+def first_full_pulse(ch: Channel, scheduled: bool = False) -> Pulse | None:
+    """The first rising edge that has a falling edge and a next rising edge after it, at the
+    times the edges were written (`scheduled`: at the instants the core scheduled them)."""
     edges = []
     prev = None
-    for t, lvl, _ in ch.rows:
+    for written, lvl, sched in ch.rows:
+        t = sched if scheduled else written
         if prev is not None and lvl != prev:
             edges.append((t, lvl))
         prev = lvl
@@ -218,6 +241,26 @@ def lateness_us(ch: Channel) -> list[float]:
     return [(t - s) / 1000.0 for t, _, s in ch.rows[1:]]
 
 
+def mean_duty(ch: Channel) -> float:
+    """The on time between the first and the last rising edge over that time, % (scheduled
+    instants)."""
+    edges = []
+    prev = None
+    for _, lvl, sched in ch.rows:
+        if prev is not None and lvl != prev:
+            edges.append((sched, lvl))
+        prev = lvl
+    rises = [t for t, lvl in edges if lvl == 1]
+    if len(rises) < 2:
+        return float("nan")
+    start, end = rises[0], rises[-1]
+    on = 0
+    for (t, lvl), (t2, _) in zip(edges, edges[1:]):
+        if lvl == 1 and start <= t and t2 <= end:
+            on += t2 - t
+    return 100.0 * on / (end - start)
+
+
 def fmt_ms(ns: int) -> str:
     return f"{ns / NS_PER_MS:.1f} ms"
 
@@ -228,9 +271,12 @@ def render(
     title: str,
     notes: dict[str, str] | None = None,
     marker: tuple[int, str] | None = None,
+    grid_ns: int | None = None,
 ) -> None:
     """Draws the diagram to `out`. `notes` adds a line under a channel's name; `marker` is an
-    (absolute t_ns, label) drawn as a vertical line across every channel."""
+    (absolute t_ns, label) drawn as a vertical line across every channel; `grid_ns` draws the
+    tick grid (the instants k * grid_ns of the trace's clock) behind every channel and adds each
+    channel's mean duty over its full periods."""
     plt = _import_pyplot()
     notes = notes or {}
     t0 = min(ch.rows[0][0] for ch in channels)
@@ -250,6 +296,11 @@ def render(
         color = colors[i % len(colors)]
         xs = [ms(t) for t, _, _ in ch.rows] + [x_end]
         ys = [lvl for _, lvl, _ in ch.rows] + [ch.rows[-1][1]]
+        if grid_ns:
+            k = -(-t0 // grid_ns)
+            while k * grid_ns <= t0 + x_end * NS_PER_MS:
+                ax.axvline(ms(k * grid_ns), color="0.8", linewidth=0.5, zorder=0)
+                k += 1
         ax.step(xs, ys, where="post", color=color, linewidth=1.6)
         ax.fill_between(xs, ys, step="post", color=color, alpha=0.15, linewidth=0)
         ax.set_ylim(-0.75, 1.75)
@@ -268,7 +319,8 @@ def render(
         summary = f"{edges} edges"
         if late:
             summary += f", lateness median {statistics.median(late):.0f} µs, max {max(late):.0f} µs"
-        pulse = first_full_pulse(ch)
+        # Over a tick grid the pulse is measured where the core put it, on the grid.
+        pulse = first_full_pulse(ch, scheduled=bool(grid_ns))
         if pulse is None:
             if edges == 0:
                 summary = f"no edge: constant {ch.rows[0][1]}"
@@ -294,6 +346,8 @@ def render(
         )
         duty = 100.0 * pulse.on_ns / pulse.period_ns
         summary = f"first full pulse: duty {duty:.1f} %; " + summary
+        if grid_ns:
+            summary = f"{mean_duty(ch):.2f} % over its full periods; " + summary
         ax.set_title(summary, loc="right", fontsize=9)
 
     if marker is not None:
@@ -481,7 +535,10 @@ def main(argv: list[str]) -> int:
                 )
             command = " ".join(shlex.quote(s) for s in shown)
             title = a.title or wrap_title(f"{command}   (SIGTERM {a.seconds:g} s after the first edge)")
-            render(channels, a.output, title, notes=notes, marker=(term_ns, label))
+            render(
+                channels, a.output, title, notes=notes, marker=(term_ns, label),
+                grid_ns=SCENARIO_GRID.get(a.scenario),
+            )
     except TraceError as e:
         print(f"timing_diagram: {e}", file=sys.stderr)
         return 2

@@ -93,6 +93,11 @@ fn own_messages_match_their_msg_files() {
             rule: String::new(),
             duty_target: 0.0,
             protections: vec!["max_on".into()],
+            time_base_ms: 0.0,
+            on_time_input_ms: 0.0,
+            off_time_input_ms: 0.0,
+            remaining_on_s: 0,
+            remaining_off_s: 0,
         }),
     );
     check_file(

@@ -214,11 +214,13 @@ async fn params_topic_applies_whole_or_refuses_whole() {
     ])
     .await;
 
-    // One bad field refuses the whole message.
+    // One bad field refuses the whole message: a minimum above an hour under pico_gfx (under
+    // twincat_ba it would be limited to the period, 002's nMinSwiTi).
     let bad = ChannelParams {
-        set: vec!["period_ms".into(), "min_on_ms".into()],
+        set: vec!["period_ms".into(), "min_on_ms".into(), "profile".into()],
         period_ms: 300,
         min_on_ms: 4_000_000,
+        profile: "pico_gfx".into(),
         ..ChannelParams::default()
     };
     let _ = topic.publish(bad);

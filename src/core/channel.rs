@@ -15,6 +15,15 @@
 //! promise about the line too: a high phase is cut once it has lasted `max_on_ms` from its real
 //! rise, and the schedule's next rise waits out the minimum break after the cut.
 //!
+//! With a time base (issue 25) every time the schedule plans with is a whole number of ticks
+//! (the period, the on and off times, the minima, the maximum on time) and the line guard holds
+//! every change of level until an instant of the tick grid (`k * tick` on the monotonic clock):
+//! so every edge lies on the grid, and every pulse and break is whole ticks, whatever started
+//! the schedule between two ticks (an enable, a release, a re-evaluation). Each period carries
+//! the rounding remainder of its on time into the next (see [`Plan::carried`]). Only the safety
+//! offs, a maximum on time overdue, and edges written late lie off the grid, by their lateness;
+//! the next edge is back on it, its phase at least its minimum from the real edge.
+//!
 //! Between a command and the plan lie the load's protections (issue 12), each off by default:
 //! the power limits (`max_duty_pct`, `min_duty_pct`, `zero_means_zero`) after clamping, the
 //! dead band that ignores small changes, and the slew limit that moves the duty applied toward
@@ -168,6 +177,10 @@ pub struct Channel {
     /// The board of the node's real line levels this channel's line guard consults before a
     /// rise (see [`Channel::seat_on`]); `None` for a channel on its own.
     seat: Option<Seat>,
+    /// With a time base: the rounding remainder the running period took in, and the one the
+    /// last plan made leaves for the next period, ticks (see [`Plan::carried`]).
+    carry_in: f64,
+    carry: f64,
 }
 
 impl Channel {
@@ -220,6 +233,8 @@ impl Channel {
             skipped: 0,
             avg: budget::Budget::new(cfg.avg_window),
             seat: None,
+            carry_in: 0.0,
+            carry: 0.0,
         }
     }
 
@@ -422,6 +437,8 @@ impl Channel {
             // Soft start: the slew limit ramps the duty applied from 0 at each enable.
             self.slewed = 0.0;
             self.slewed_at = None;
+            // A new run of periods: no rounding remainder is carried over from the last one.
+            self.carry = 0.0;
             // A stale command does not get a fresh lease: the watchdog counts from the last
             // command, not from the enable.
             self.trip_if_stale(now, emit);
@@ -578,6 +595,8 @@ impl Channel {
         }
         self.cut_before = std::mem::take(&mut self.cut_now);
         self.slot_before = std::mem::take(&mut self.slot_now);
+        // Every decision of this period plans with the remainder the last period left.
+        self.carry_in = self.carry;
         let duty = self.decide(t);
         // An extended period spans whole periods of the grid.
         let plan = self.capped_plan(t, duty, self.grid.then_some(period));

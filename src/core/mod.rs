@@ -18,7 +18,7 @@ pub use channel::{Channel, Event, Protections, Status};
 pub use command::{Command, CommandError, Duty, SV_FULL_SCALE};
 pub use config::{
     ApplyAt, ChannelConfig, ChannelParams, ConfigError, MinTime, OnDisable, OutputKind,
-    PercentParam, Profile, ShortPulse, NS_PER_MS,
+    PercentParam, Profile, ShortPulse, Sizing, NS_PER_MS,
 };
 pub use interlock::{split_command, Interlocks, PairError};
 pub use plan::{Plan, Rule};

@@ -85,6 +85,10 @@ pub struct Plan {
     /// The plan keeps the line high longer than `max_on_ms` (a constant 1, or an on time above
     /// it): the line guard will cut it, so E1 and the limit flag are set too.
     pub max_on: bool,
+    /// With a time base: the rounding remainder this plan leaves for the next period, ticks,
+    /// within ±½ (see [`Plan::carried`]); 0 without a time base, and for the plans that are
+    /// not a rounded duty (0 %, 100 %, the band's constants, extended periods).
+    pub carry: f64,
 }
 
 impl Plan {
@@ -108,13 +112,19 @@ impl Plan {
     /// period grows to the next whole number of grid periods and its on time to the same
     /// duty of it, so the duty stays exact and the next period starts on the grid. Both times
     /// only grow, so the minima still hold. Other plans are returned as they are.
-    pub fn on_grid(self, grid: Nanos) -> Plan {
+    /// With a time base of `tick` ns the on time is rounded to whole ticks (`grid` is a whole
+    /// number of them).
+    pub fn on_grid(self, grid: Nanos, tick: Nanos) -> Plan {
         let period = self.period();
         if !self.rule.extended() || grid == 0 || period.is_multiple_of(grid) {
             return self;
         }
         let whole = period.div_ceil(grid).saturating_mul(grid);
-        let t_on = ((self.duty * whole as f64).round() as Nanos).clamp(self.t_on, whole);
+        let t_on = match tick {
+            0 => (self.duty * whole as f64).round() as Nanos,
+            tick => (self.duty * whole as f64 / tick as f64).round() as Nanos * tick,
+        };
+        let t_on = t_on.clamp(self.t_on, whole);
         let t_off = (whole - t_on).max(self.t_off.min(whole - t_on));
         Plan {
             t_on,
@@ -124,9 +134,26 @@ impl Plan {
     }
 
     /// Makes the plan for duty fraction `duty` (0..=1) under `cfg`: the minimum-time rules,
-    /// then whether the maximum on time will cut what they give.
+    /// then whether the maximum on time will cut what they give. With a time base, the first
+    /// period of a run (no rounding remainder carried in).
     pub fn new(duty: f64, cfg: &ChannelConfig) -> Plan {
-        let plan = Plan::shape(duty, cfg);
+        Plan::carried(duty, cfg, 0.0)
+    }
+
+    /// [`Plan::new`] for a period that takes in the rounding remainder `carry` (ticks) the
+    /// period before left (its [`Plan::carry`]); without a time base `carry` is ignored.
+    ///
+    /// With a time base of `τ` ns and a period of `P` ticks, the on time is `n` ticks with
+    /// `n = round(d × P + carry)`, and the plan carries `d × P + carry - n` on (error
+    /// diffusion): over any run of periods of one command the on time delivered is within
+    /// one tick of the command's, instead of the bias plain rounding would repeat every
+    /// period. The minimum-time rules then act on the rounded on time exactly as on the
+    /// ns-rounded one without a time base (E1, the limit flag). The carry is only the
+    /// rounding remainder, taken before the rules: what a rule adds or removes (a suppressed
+    /// pulse, a stretched one) is not carried, so the carry stays within ±½ tick and cannot
+    /// build up behind a minimum.
+    pub fn carried(duty: f64, cfg: &ChannelConfig, carry: f64) -> Plan {
+        let plan = Plan::shape(duty, cfg, carry);
         // The on phase runs into the next period (a constant 1) or is longer than max_on by
         // itself: the line cannot deliver it. Even 100 % sets E1 here, unlike the minimum-time
         // rules: the output is not the constant 1 the command asks for.
@@ -143,7 +170,7 @@ impl Plan {
     }
 
     /// The minimum-time rules of SPEC §1.2 for duty fraction `duty` under `cfg`.
-    fn shape(duty: f64, cfg: &ChannelConfig) -> Plan {
+    fn shape(duty: f64, cfg: &ChannelConfig, carry: f64) -> Plan {
         let period = cfg.period;
         let base = Plan {
             duty,
@@ -181,8 +208,18 @@ impl Plan {
                 return constant(true, Rule::BandHigh, false);
             }
         }
-        // Round to the nearest ns; the whole period stays exactly `period`.
-        let t_on = ((duty * period as f64).round() as Nanos).min(period);
+        // Round to the nearest ns (with a time base: to whole ticks, carrying the remainder);
+        // the whole period stays exactly `period`.
+        let (t_on, carry) = match cfg.tick {
+            0 => (((duty * period as f64).round() as Nanos).min(period), 0.0),
+            tick => {
+                let ticks = (period / tick) as f64;
+                let ideal = duty * ticks + carry.clamp(-0.5, 0.5);
+                let n = ideal.round().clamp(0.0, ticks);
+                ((n as Nanos) * tick, ideal - n)
+            }
+        };
+        let base = Plan { carry, ..base };
         let t_off = period - t_on;
         if cfg.short_pulse == ShortPulse::Extend && (t_on < cfg.min_on || t_off < cfg.min_off) {
             if let Some(plan) = extended(duty, cfg) {
@@ -208,9 +245,10 @@ impl Plan {
                 ShortPulse::Stretch => stretched(cfg.min_on, Rule::StretchedPulse),
                 // `band` keeps suppress as its safety net inside the PWM range; `extend` falls
                 // back to it beyond `extend_max`.
-                ShortPulse::Suppress | ShortPulse::Band | ShortPulse::Extend => {
-                    constant(false, Rule::SuppressedPulse, true)
-                }
+                ShortPulse::Suppress | ShortPulse::Band | ShortPulse::Extend => Plan {
+                    carry,
+                    ..constant(false, Rule::SuppressedPulse, true)
+                },
             };
         }
         if t_off < cfg.min_off {
@@ -221,9 +259,10 @@ impl Plan {
                     stretched(period, Rule::StretchedBreak)
                 }
                 ShortPulse::Stretch => stretched(period - cfg.min_off, Rule::StretchedBreak),
-                ShortPulse::Suppress | ShortPulse::Band | ShortPulse::Extend => {
-                    constant(true, Rule::SuppressedBreak, true)
-                }
+                ShortPulse::Suppress | ShortPulse::Band | ShortPulse::Extend => Plan {
+                    carry,
+                    ..constant(true, Rule::SuppressedBreak, true)
+                },
             };
         }
         Plan {
@@ -257,11 +296,17 @@ fn extended(duty: f64, cfg: &ChannelConfig) -> Option<Plan> {
     if ideal.is_nan() || ideal > limit + 1.0 {
         return None;
     }
+    // With a time base the rest is rounded to whole ticks too (the minima already are); the
+    // duty is then kept to within half a tick of `T'`, with no carry.
+    let whole = |ns: f64| match cfg.tick {
+        0 => ns.round() as Nanos,
+        tick => (ns / tick as f64).round() as Nanos * tick,
+    };
     let (t_on, t_off, rule) = if pulse_sets_it {
-        let rest = (min_on * (1.0 - duty) / duty).round() as Nanos;
+        let rest = whole(min_on * (1.0 - duty) / duty);
         (cfg.min_on, rest.max(cfg.min_off), Rule::ExtendedPulse)
     } else {
-        let rest = (min_off * duty / (1.0 - duty)).round() as Nanos;
+        let rest = whole(min_off * duty / (1.0 - duty));
         (rest.max(cfg.min_on), cfg.min_off, Rule::ExtendedBreak)
     };
     ((t_on + t_off) as f64 <= limit).then_some(Plan {

@@ -78,6 +78,7 @@ CHANNEL_PARAMS = (
     "duty_slew_pct_per_s",
     "duty_deadband_pct",
     "extend_max",
+    "time_base_ms",
     "avg_duty_limit_pct",
     "avg_window_s",
     "active_low",

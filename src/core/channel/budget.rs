@@ -221,8 +221,8 @@ impl Channel {
     /// `allowance / T`, or 0 if a minimum-time rule would still exceed it.
     fn allowed_plan(&mut self, t: Nanos, duty: f64, grid: Option<Nanos>) -> Plan {
         let shape = |duty: f64| {
-            let plan = Plan::new(duty, &self.cfg);
-            grid.map_or(plan, |g| plan.on_grid(g))
+            let plan = Plan::carried(duty, &self.cfg, self.carry_in);
+            grid.map_or(plan, |g| plan.on_grid(g, self.cfg.tick))
         };
         let plan = shape(duty);
         let allowance = self.avg.allowance;
@@ -250,6 +250,7 @@ impl Channel {
             allowed
         };
         self.avg.acts = allowed.t_on < plan.t_on;
+        self.carry = allowed.carry;
         allowed
     }
 }

@@ -94,8 +94,12 @@ impl Channel {
             return;
         }
         if let Some((Level::High, at)) = self.line.held {
-            if at <= now {
+            // With a time base a rise released between two ticks waits for the next.
+            let tick = self.cfg.tick_at_or_after(now);
+            if at <= now && tick == now {
                 self.write_line(Level::High, now, emit);
+            } else if at <= now {
+                self.line.held = Some((Level::High, tick));
             }
         }
     }

@@ -6,7 +6,10 @@ use super::{Channel, Event, Level, Line, Nanos};
 
 impl Channel {
     /// Times the cut of a high line at `max_on_ms` after its last real rise, but not before
-    /// `floor`; none when the line is low or no maximum is set.
+    /// `floor`; none when the line is low or no maximum is set. With a time base the cut lies
+    /// on the grid when the rise did (the maximum is whole ticks); one already overdue (a late
+    /// poll, a maximum lowered during the run) happens at `floor`, off the grid: the maximum
+    /// is a promise about the line.
     pub(super) fn retime_cut(&mut self, floor: Nanos) {
         self.line.cut = match (self.line.level, self.line.since) {
             (Level::High, Some(since)) if self.cfg.max_on > 0 => {
@@ -24,13 +27,21 @@ impl Channel {
         }
     }
 
-    /// The earliest instant at or after `at` the line may change to `level`.
+    /// The earliest instant at or after `at` the line may change to `level`: once the line has
+    /// kept its level for its minimum, and with a time base on the next instant of the tick
+    /// grid. The grid is the instants `k * tick` of the monotonic clock; the minima are whole
+    /// ticks, so a change asked for on the grid after a phase that began on it is not moved,
+    /// and one asked for between two ticks waits for the next. A phase that began off the
+    /// grid (an edge written late, a safety off) ends on it all the same, at least its
+    /// minimum later.
     pub(super) fn earliest(&self, level: Level, at: Nanos) -> Nanos {
         debug_assert_ne!(level, self.line.level);
-        self.line
+        let at = self
+            .line
             .since
             .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
-            .max(at)
+            .max(at);
+        self.cfg.tick_at_or_after(at)
     }
 
     /// The minimum time the line must keep `level` once it has it, ns.
@@ -121,7 +132,7 @@ impl Channel {
         let resume = self.enabled && self.level == Level::High;
         self.write_line(Level::Low, t, emit);
         if resume {
-            self.line.held = Some((Level::High, t.saturating_add(self.cfg.min_off)));
+            self.line.held = Some((Level::High, self.earliest(Level::High, t)));
             self.line.resumes = true;
         } else {
             self.level = Level::Low;

@@ -161,6 +161,17 @@ pub struct Status {
     /// The line's average duty over the window of the rolling-average cap ending now, 0..=1, as
     /// the channel counts it (never less than the real one).
     pub avg_duty: f64,
+    /// The time base in force, ns (`time_base_ms` rounded to the ns); 0 = off.
+    pub time_base: Nanos,
+    /// On time the current input gives, ns: 002's fActTiOn, "continuously calculated" from the
+    /// command in force through the minimum-time rules and the time base (not the
+    /// rolling-average cap, which decides at a period start), while `t_on` is the time the
+    /// running period or step latched.
+    pub t_on_input: Nanos,
+    /// Off time the current input gives, ns (002's fActTiOff); see `t_on_input`.
+    pub t_off_input: Nanos,
+    /// A vendor recommendation the settings in force do not follow (003, 001).
+    pub sizing: Option<crate::core::Sizing>,
 }
 
 impl Status {
@@ -183,6 +194,9 @@ impl Status {
 impl Channel {
     /// The channel's report at `now` (ns).
     pub fn status(&self, now: Nanos) -> Status {
+        // 002: the times are computed continuously from the input, whatever the running step
+        // latched.
+        let input = Plan::carried(self.effective_duty(), &self.cfg, self.carry_in);
         let (remaining_on, remaining_off) = match self.step {
             Some(s) if s.level == Level::High => (s.end.saturating_sub(now), 0),
             Some(s) => (0, s.end.saturating_sub(now)),
@@ -226,6 +240,10 @@ impl Channel {
             ignored_commands: self.ignored,
             skipped_pulses: self.skipped,
             avg_duty: self.avg_duty(now),
+            time_base: self.cfg.tick,
+            t_on_input: input.t_on,
+            t_off_input: input.t_off,
+            sizing: self.cfg.sizing(),
         }
     }
 }

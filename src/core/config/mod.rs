@@ -9,9 +9,11 @@ use super::Nanos;
 use std::fmt;
 
 mod policy;
+mod sizing;
 
 pub(crate) use policy::named_enum;
 pub use policy::{ApplyAt, OnDisable, OutputKind, Profile, ShortPulse, ShortStr, UnknownName};
+pub use sizing::Sizing;
 
 /// Nanoseconds in one millisecond.
 pub const NS_PER_MS: Nanos = 1_000_000;
@@ -33,6 +35,9 @@ pub const MAX_SLEW_PCT_PER_S: f64 = 100_000.0;
 
 /// Largest cycle extension accepted, a factor of the period (`extend_max`).
 pub const MAX_EXTEND_FACTOR: f64 = 100.0;
+
+/// Shortest time base accepted when it is not 0, ms: the transistor floor (000: 0.1 ms).
+pub const MIN_TIME_BASE_MS: f64 = 0.1;
 
 /// The settings of one channel as a user states them (SPEC §1 table): milliseconds, a profile,
 /// and optional policy overrides. `None` means "as the profile says".
@@ -98,6 +103,12 @@ pub struct ChannelParams {
     pub avg_duty_limit_pct: f64,
     /// The window of the rolling-average cap, s; 1..=86 400.
     pub avg_window_s: u64,
+    /// Time base (tick), ms; 0 = off. Every pulse and break is then a whole number of ticks
+    /// and every edge the schedule asks for lies on the channel's tick grid (003's CYCLE_P,
+    /// 001's task period, the half cycle a zero-cross SSR switches on). Fractional values are
+    /// accepted (8.3333 for 60 Hz half cycles); the tick is rounded to the nearest ns. 0, or
+    /// 0.1 ..= `period_ms`.
+    pub time_base_ms: f64,
 }
 
 impl Default for ChannelParams {
@@ -124,6 +135,7 @@ impl Default for ChannelParams {
             duty_deadband_pct: 0.0,
             avg_duty_limit_pct: 100.0,
             avg_window_s: 60,
+            time_base_ms: 0.0,
         }
     }
 }
@@ -173,6 +185,24 @@ impl fmt::Display for PercentParam {
 /// Why a set of channel parameters is refused. The old settings stay in force.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum ConfigError {
+    /// A time base that is not 0 or 0.1 ms ..= one hour, or not a number.
+    #[error("time_base_ms {value} is outside 0 or {min}..{max} ms")]
+    TimeBaseOutOfRange {
+        /// The refused value, ms.
+        value: f64,
+        /// The shortest non-zero time base, ms.
+        min: f64,
+        /// The longest, ms.
+        max: f64,
+    },
+    /// A time base longer than the period: a period holds at least one tick.
+    #[error("time_base_ms {value} is above period_ms {period_ms}")]
+    TimeBaseAbovePeriod {
+        /// The refused value, ms.
+        value: f64,
+        /// The period, ms.
+        period_ms: u64,
+    },
     /// A non-zero period below the output kind's minimum (000: transistor 5 ms, relay 100 ms).
     #[error(
         "period_ms {period_ms} is below the {kind} minimum of {min_ms} ms (0 stops the pulses)"
@@ -342,11 +372,24 @@ pub struct ChannelConfig {
     pub avg_limit: f64,
     /// The window of the rolling-average cap, ns.
     pub avg_window: Nanos,
+    /// The time base, ns (`time_base_ms` rounded to the nearest ns); 0 = off. With a tick,
+    /// `period`, `min_on`, `min_off` and `max_on` are whole numbers of ticks (see
+    /// [`ChannelParams::validate`]) and the tick grid is the instants `k * tick` of the
+    /// monotonic clock, `k` an integer.
+    pub tick: Nanos,
     /// The parameters this was made from (for status and round trips).
     pub params: ChannelParams,
 }
 
 impl ChannelConfig {
+    /// The first instant of the tick grid at or after `t`, ns; `t` itself without a time base.
+    pub fn tick_at_or_after(&self, t: Nanos) -> Nanos {
+        match self.tick {
+            0 => t,
+            tick => t.div_ceil(tick).saturating_mul(tick),
+        }
+    }
+
     /// The duty fraction the power limits make of a command's fraction `duty` (0..=1): limited
     /// to `min_duty..=max_duty`, except that 0 stays 0 with `zero_means_zero`.
     pub fn limit_duty(&self, duty: f64) -> f64 {
@@ -374,6 +417,12 @@ impl ChannelParams {
         self.on_disable.unwrap_or(self.profile.on_disable())
     }
 
+    /// Whether a minimum time of any size is limited rather than refused (002: nMinSwiTi
+    /// "internally limited to values between 0 and nPrd").
+    fn limits_minima(&self) -> bool {
+        self.profile == Profile::TwincatBa
+    }
+
     /// The watchdog's limits: its timeout, and the fault value it runs and for how long.
     fn check_watchdog(&self) -> Result<(), ConfigError> {
         at_most_a_day(self.command_timeout_ms, |value_ms, max_ms| {
@@ -389,9 +438,16 @@ impl ChannelParams {
 
     /// Checks every limit of SPEC §1 and 000's table and resolves the profile.
     ///
-    /// The checks run in a fixed order so the reason given is deterministic: period, minimum
-    /// times, edge band, cycle extension, watchdog, fault value, maximum on time, power limits, slew
-    /// limit, rolling-average cap.
+    /// The checks run in a fixed order so the reason given is deterministic: period, time base,
+    /// minimum times, edge band, cycle extension, watchdog, fault value, maximum on time, power
+    /// limits, slew limit, rolling-average cap.
+    ///
+    /// With a time base (`time_base_ms` > 0, tick `τ` ns) the times become whole ticks: the
+    /// period is rounded to the nearest whole number of ticks (at least one), so every period
+    /// has the same number of ticks and the period grid stays on the tick grid; the minimum
+    /// times are rounded up (a minimum is never shortened), then limited to the rounded period
+    /// as before; the maximum on time is rounded down (a limit is never lengthened), and
+    /// refused if that puts it below the minimum on time.
     pub fn validate(&self) -> Result<ChannelConfig, ConfigError> {
         let kind = self.output_kind;
         if self.period_ms != 0 && self.period_ms < kind.min_period_ms() {
@@ -407,6 +463,33 @@ impl ChannelParams {
                 max_ms: MAX_PERIOD_MS,
             });
         }
+        if !(self.time_base_ms == 0.0
+            || (MIN_TIME_BASE_MS..=MAX_PERIOD_MS as f64).contains(&self.time_base_ms))
+        {
+            return Err(ConfigError::TimeBaseOutOfRange {
+                value: self.time_base_ms,
+                min: MIN_TIME_BASE_MS,
+                max: MAX_PERIOD_MS as f64,
+            });
+        }
+        if self.period_ms != 0 && self.time_base_ms > self.period_ms as f64 {
+            return Err(ConfigError::TimeBaseAbovePeriod {
+                value: self.time_base_ms,
+                period_ms: self.period_ms,
+            });
+        }
+        // The tick in whole ns: the grid is then exact integer arithmetic on the monotonic
+        // clock. The rounding is at most 0.5 ns a tick (60 ns/s at 120 ticks/s), far below
+        // the mains frequency's own tolerance, and the clock is not locked to the mains anyway.
+        let tick = (self.time_base_ms * NS_PER_MS as f64).round() as Nanos;
+        let whole_up = |ns: Nanos| match tick {
+            0 => ns,
+            _ => ns.div_ceil(tick) * tick,
+        };
+        let period = match tick {
+            _ if self.period_ms == 0 || tick == 0 => self.period_ms * NS_PER_MS,
+            _ => (((self.period_ms * NS_PER_MS) + tick / 2) / tick).max(1) * tick,
+        };
         let min_off_ms = match self.min_off_ms {
             Some(v) => v,
             None if self.profile.min_off_follows_min_on() => self.min_on_ms,
@@ -421,8 +504,10 @@ impl ChannelParams {
                 });
             }
             // No vendor allows more than an hour (000: ME <= 65 535 ms); the bound also keeps
-            // the nanosecond arithmetic below far from overflow.
-            if value_ms > MAX_PERIOD_MS {
+            // the nanosecond arithmetic below far from overflow. 002: nMinSwiTi is
+            // "internally limited to values between 0 and nPrd": under twincat_ba any value is
+            // limited (below), never refused.
+            if value_ms > MAX_PERIOD_MS && !self.limits_minima() {
                 return Err(ConfigError::MinTimeTooLong {
                     which,
                     value_ms,
@@ -437,17 +522,22 @@ impl ChannelParams {
         // `extend` too, as the extended period can hold them.
         // With `extend` the period grows to hold a minimum, so it is kept as given too.
         let extends = self.effective_short_pulse() == ShortPulse::Extend;
+        // With a time base, rounded up to whole ticks, then limited to the (rounded) period.
         let effective = |ms: u64| {
-            let ms = if self.period_ms == 0 || extends {
-                ms
+            let limited = !(self.period_ms == 0 || extends);
+            // Under twincat_ba a minimum is limited, not refused: to the period, or to an
+            // hour while there is none to limit it to (or `extend` keeps it as given).
+            let ms = ms.min(MAX_PERIOD_MS);
+            let ms = if limited { ms.min(self.period_ms) } else { ms };
+            let ns = whole_up((ms * NS_PER_MS).max(kind.floor_ns()));
+            if limited {
+                ns.min(period)
             } else {
-                ms.min(self.period_ms)
-            };
-            (ms * NS_PER_MS).max(kind.floor_ns())
+                ns
+            }
         };
         let min_on = effective(self.min_on_ms);
         let min_off = effective(min_off_ms);
-        let period = self.period_ms * NS_PER_MS;
         within(self.edge_band, 0.0..=1.0, |value| {
             ConfigError::EdgeBandOutOfRange { value }
         })?;
@@ -464,8 +554,12 @@ impl ChannelParams {
                 max_ms: MAX_ON_MS,
             });
         }
-        let max_on = self.max_on_ms * NS_PER_MS;
-        if max_on != 0 && max_on < min_on {
+        // With a time base, rounded down to whole ticks: the line is never on longer.
+        let max_on = match tick {
+            0 => self.max_on_ms * NS_PER_MS,
+            _ => self.max_on_ms * NS_PER_MS / tick * tick,
+        };
+        if self.max_on_ms != 0 && max_on < min_on {
             return Err(ConfigError::MaxOnBelowMinOn {
                 max_on_ms: self.max_on_ms,
                 min_on_ms: min_on as f64 / NS_PER_MS as f64,
@@ -518,6 +612,7 @@ impl ChannelParams {
             deadband: self.duty_deadband_pct / 100.0,
             avg_limit: self.avg_duty_limit_pct / 100.0,
             avg_window: self.avg_window_s * 1_000 * NS_PER_MS,
+            tick,
             params: *self,
         })
     }

@@ -132,7 +132,8 @@ pub enum Profile {
     TwincatBa,
     /// Siemens TCONT_CP pulse generator (003): suppress, immediate, off; min off = min on.
     TcontCp,
-    /// Schneider PWM (001): suppress, next_period, off; min off = min on.
+    /// Schneider PWM (001): suppress, next_period, off; min off = floor (T_MINI is a minimum
+    /// pulse).
     SchneiderPwm,
     /// Schneider Frequency_Output (004): band, next_period, hold; min off = min on.
     FrequencyOutput,
@@ -186,9 +187,9 @@ impl Profile {
     }
 
     /// Whether an unset `min_off_ms` follows `min_on_ms` (000) or falls to the hardware floor
-    /// (002: nMinSwiTi limits the switch-on time only).
+    /// (002: nMinSwiTi limits the switch-on time only; 001: T_MINI is "a minimum pulse").
     pub const fn min_off_follows_min_on(self) -> bool {
-        !matches!(self, Profile::TwincatBa)
+        !matches!(self, Profile::TwincatBa | Profile::SchneiderPwm)
     }
 
     /// The vendor block this profile reproduces, for documentation and diagnostics.

@@ -699,3 +699,44 @@ fn a_late_wake_up_skips_a_wait_that_expired_before_the_slot_freed() {
         r.skips
     );
 }
+
+/// The time base under the planner (issue 25): staggered or limited to one line on, every
+/// edge lies on the tick grid, every pulse is whole ticks, and the lines still never overlap.
+#[test]
+fn the_planner_keeps_every_edge_on_the_tick_grid() {
+    // 60 Hz half cycles: 8 333 300 ns; 1000 ms is 120 ticks (999.996 ms).
+    let ticked = |ms: u64| ChannelParams {
+        time_base_ms: 8.3333,
+        ..period(ms)
+    };
+    let tick = 8_333_300;
+    for bank in [STAGGER, limit(1)] {
+        let mut r = Rack::new(&[ticked(1000), ticked(1000), ticked(1000)], bank);
+        r.duty(0, 23.0).duty(1, 31.0).duty(2, 17.0);
+        r.at(250)
+            .enable(0, true)
+            .at(603)
+            .enable(1, true)
+            .enable(2, true);
+        r.at(1777).duty(1, 12.5).at(8000);
+        for (i, edges) in r.edges.iter().enumerate() {
+            assert!(!edges.is_empty());
+            assert!(
+                edges.iter().all(|(t, _)| t % tick == 0),
+                "{bank:?} channel {i}: {edges:?}"
+            );
+        }
+        assert_eq!(r.most_high(), 1, "{bank:?}");
+        // 23 % of 120 ticks is 27.6: 28, 27, 28, 28, 27, ... (the last pulse still runs).
+        let on: Vec<Nanos> = high_spans(&r.edges[0], 8000 * MS - 1)
+            .iter()
+            .map(|(a, b)| b - a)
+            .collect();
+        assert!(
+            on[..on.len() - 1]
+                .iter()
+                .all(|t| *t == 27 * tick || *t == 28 * tick),
+            "{bank:?}: {on:?}"
+        );
+    }
+}

@@ -5,3 +5,5 @@ mod bank;
 mod harness;
 mod props;
 mod rules;
+mod timebase;
+mod vendor;

@@ -85,6 +85,7 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
                 duty_deadband_pct: pr.4,
                 avg_duty_limit_pct: pr.5.0,
                 avg_window_s: pr.5.1,
+                time_base_ms: 0.0,
             },
         )
         .prop_filter("valid parameters", |p| p.validate().is_ok())
@@ -293,6 +294,128 @@ fn minima_held(
             );
         }
     }
+    Ok(())
+}
+
+/// Runs `ops` with a thread that wakes late and writes late by `delays`, and checks that no
+/// pulse or break on the line (between the instants edges were really written) is shorter than
+/// its minimum, except where a safety off ends it, and that the maximum on time counts from the
+/// real rise.
+fn late_run(
+    start: ChannelParams,
+    ops: &[(Nanos, Op)],
+    delays: &[(Nanos, Nanos)],
+) -> Result<(), TestCaseError> {
+    let mut ch = Channel::new(start.validate().unwrap(), 0);
+    let mut now: Nanos = 0;
+    let mut k = 0usize;
+    // (written at, level, governed)
+    let mut line: Vec<(Nanos, Level, bool)> = Vec::new();
+    // Falls: (written at, scheduled at, merged with other edges by a late poll).
+    let mut falls: Vec<(Nanos, Nanos, bool)> = Vec::new();
+    let mut history = vec![(0, *ch.config())];
+    // PWM_TRACE=1 puts the whole run in the failure message.
+    let trace = std::env::var_os("PWM_TRACE").is_some();
+    let mut dbg_log: Vec<String> = Vec::new();
+    let write = |ch: &mut Channel,
+                 at: Nanos,
+                 events: &[Event],
+                 forced_cause: bool,
+                 line: &mut Vec<(Nanos, Level, bool)>,
+                 falls: &mut Vec<(Nanos, Nanos, bool)>,
+                 k: &mut usize|
+     -> Nanos {
+        let tripped = events.contains(&Event::Watchdog { tripped: true });
+        let merged = events.iter().any(|e| matches!(e, Event::Missed { .. }));
+        let mut written = at;
+        for e in events {
+            if let Event::Edge {
+                level,
+                at: scheduled,
+            } = e
+            {
+                written = at + delays[*k % delays.len()].1;
+                *k += 1;
+                ch.edge_written(written);
+                let forced = *level == Level::Low && (forced_cause || tripped);
+                line.push((written, *level, !forced));
+                if *level == Level::Low {
+                    falls.push((written, *scheduled, merged));
+                }
+            }
+        }
+        written
+    };
+    let mut ends = ops.to_vec();
+    ends.push((3000 * MS, Op::Duty(f64::NAN)));
+    for (dt, op) in &ends {
+        let target = now + dt;
+        while let Some(d) = ch.poll_at().filter(|d| *d <= target) {
+            let wake = d.max(now) + delays[k % delays.len()].0;
+            k += 1;
+            let mut ev = Vec::new();
+            ch.poll(wake, &mut |e| ev.push(e));
+            if trace {
+                dbg_log.push(format!(
+                    "poll d={} wake={} {:?} since={:?}",
+                    d / 1000,
+                    wake / 1000,
+                    ev,
+                    ch.line_since()
+                ));
+            }
+            now = write(&mut ch, wake, &ev, false, &mut line, &mut falls, &mut k);
+            history.push((now, *ch.config()));
+        }
+        let t = target.max(now);
+        let mut ev = Vec::new();
+        let mut disable = false;
+        match op {
+            Op::Duty(v) => ch.command(t, Command::Percent(*v), &mut |e| ev.push(e)),
+            Op::Sv(v) => ch.command(t, Command::Sv(*v), &mut |e| ev.push(e)),
+            Op::Enable(on) => {
+                disable = !*on;
+                ch.set_enable(t, *on, &mut |e| ev.push(e))
+            }
+            Op::Params(p) => ch.set_config(t, p.validate().unwrap(), &mut |e| ev.push(e)),
+            Op::EStop(on) => {
+                disable = *on;
+                ch.set_estop(t, *on, &mut |e| ev.push(e))
+            }
+            Op::Live(on) => {
+                disable = !*on;
+                ch.set_live(t, *on, &mut |e| ev.push(e))
+            }
+        }
+        if trace {
+            dbg_log.push(format!("op t={} {:?} {:?}", t / 1000, op, ev));
+        }
+        now = write(&mut ch, t, &ev, disable, &mut line, &mut falls, &mut k);
+        history.push((now, *ch.config()));
+    }
+    for w in line.windows(2) {
+        let ((a, la, _), (z, lz, _)) = (w[0], w[1]);
+        prop_assert_ne!(la, lz, "levels alternate");
+        // The maximum on time counts from the real rise: the cut is scheduled no later
+        // than max_on_ms after the instant the rise was written (unless a late poll
+        // merged it with later edges), while one maximum stays in force.
+        if la == Level::High {
+            let fall = falls.iter().find(|f| f.0 == z).copied();
+            let max_on = max_on_during(&history, a, z);
+            if let (Some((_, scheduled, false)), Some(max_on)) = (fall, max_on) {
+                prop_assert!(
+                    scheduled <= a + max_on,
+                    "high written at {} us, its fall scheduled at {} us: beyond max_on {} us\n{}",
+                    a / 1000,
+                    scheduled / 1000,
+                    max_on / 1000,
+                    dbg_log.join("\n")
+                );
+            }
+        }
+    }
+    // Times here are when the edges were written.
+    minima_held(&line, &history, &format!("\n{}", dbg_log.join("\n")))?;
     Ok(())
 }
 
@@ -517,94 +640,7 @@ proptest! {
         ops in arb_ops(),
         delays in prop::collection::vec((0u64..80_000_000, 0u64..200_000), 64),
     ) {
-        let mut ch = Channel::new(start.validate().unwrap(), 0);
-        let mut now: Nanos = 0;
-        let mut k = 0usize;
-        // (written at, level, governed)
-        let mut line: Vec<(Nanos, Level, bool)> = Vec::new();
-        // Falls: (written at, scheduled at, merged with other edges by a late poll).
-        let mut falls: Vec<(Nanos, Nanos, bool)> = Vec::new();
-        let mut history = vec![(0, *ch.config())];
-        // PWM_TRACE=1 puts the whole run in the failure message.
-        let trace = std::env::var_os("PWM_TRACE").is_some();
-        let mut dbg_log: Vec<String> = Vec::new();
-        let write = |ch: &mut Channel, at: Nanos, events: &[Event], forced_cause: bool,
-                         line: &mut Vec<(Nanos, Level, bool)>,
-                         falls: &mut Vec<(Nanos, Nanos, bool)>, k: &mut usize| -> Nanos {
-            let tripped = events.contains(&Event::Watchdog { tripped: true });
-            let merged = events.iter().any(|e| matches!(e, Event::Missed { .. }));
-            let mut written = at;
-            for e in events {
-                if let Event::Edge { level, at: scheduled } = e {
-                    written = at + delays[*k % delays.len()].1;
-                    *k += 1;
-                    ch.edge_written(written);
-                    let forced = *level == Level::Low && (forced_cause || tripped);
-                    line.push((written, *level, !forced));
-                    if *level == Level::Low {
-                        falls.push((written, *scheduled, merged));
-                    }
-                }
-            }
-            written
-        };
-        let mut ends = ops.clone();
-        ends.push((3000 * MS, Op::Duty(f64::NAN)));
-        for (dt, op) in &ends {
-            let target = now + dt;
-            while let Some(d) = ch.poll_at().filter(|d| *d <= target) {
-                let wake = d.max(now) + delays[k % delays.len()].0;
-                k += 1;
-                let mut ev = Vec::new();
-                ch.poll(wake, &mut |e| ev.push(e));
-                if trace { dbg_log.push(format!("poll d={} wake={} {:?} since={:?}", d/1000, wake/1000, ev, ch.line_since())); }
-                now = write(&mut ch, wake, &ev, false, &mut line, &mut falls, &mut k);
-                history.push((now, *ch.config()));
-            }
-            let t = target.max(now);
-            let mut ev = Vec::new();
-            let mut disable = false;
-            match op {
-                Op::Duty(v) => ch.command(t, Command::Percent(*v), &mut |e| ev.push(e)),
-                Op::Sv(v) => ch.command(t, Command::Sv(*v), &mut |e| ev.push(e)),
-                Op::Enable(on) => {
-                    disable = !*on;
-                    ch.set_enable(t, *on, &mut |e| ev.push(e))
-                }
-                Op::Params(p) => ch.set_config(t, p.validate().unwrap(), &mut |e| ev.push(e)),
-                Op::EStop(on) => {
-                    disable = *on;
-                    ch.set_estop(t, *on, &mut |e| ev.push(e))
-                }
-                Op::Live(on) => {
-                    disable = !*on;
-                    ch.set_live(t, *on, &mut |e| ev.push(e))
-                }
-            }
-            if trace { dbg_log.push(format!("op t={} {:?} {:?}", t/1000, op, ev)); }
-            now = write(&mut ch, t, &ev, disable, &mut line, &mut falls, &mut k);
-            history.push((now, *ch.config()));
-        }
-        for w in line.windows(2) {
-            let ((a, la, _), (z, lz, _)) = (w[0], w[1]);
-            prop_assert_ne!(la, lz, "levels alternate");
-            // The maximum on time counts from the real rise: the cut is scheduled no later
-            // than max_on_ms after the instant the rise was written (unless a late poll
-            // merged it with later edges), while one maximum stays in force.
-            if la == Level::High {
-                let fall = falls.iter().find(|f| f.0 == z).copied();
-                let max_on = max_on_during(&history, a, z);
-                if let (Some((_, scheduled, false)), Some(max_on)) = (fall, max_on) {
-                    prop_assert!(
-                        scheduled <= a + max_on,
-                        "high written at {} us, its fall scheduled at {} us: beyond max_on {} us\n{}",
-                        a / 1000, scheduled / 1000, max_on / 1000, dbg_log.join("\n")
-                    );
-                }
-            }
-        }
-        // Times here are when the edges were written.
-        minima_held(&line, &history, &format!("\n{}", dbg_log.join("\n")))?;
+        late_run(start, &ops, &delays)?;
     }
 
     /// The maximum on time (issue 12): no high run on the line lasts longer than `max_on_ms`
@@ -791,5 +827,167 @@ proptest! {
         if 2 * edge_pct <= 100 {
             prop_assert_eq!((p.t_on, p.t_off), (q.t_off, q.t_on), "{} % / {} %", pct, 100 - pct);
         }
+    }
+}
+
+/// A time base for a channel of `period_ms`: a 60 Hz or 50 Hz half cycle, a round tick, or any
+/// one from 0.1 ms with four decimals; never above the period.
+fn arb_time_base() -> impl Strategy<Value = f64> {
+    prop_oneof![
+        1 => Just(8.3333f64),
+        1 => Just(8.333333f64),
+        1 => Just(10.0f64),
+        1 => Just(1.0f64),
+        2 => (1_000u64..500_000).prop_map(|x| x as f64 / 10_000.0),
+    ]
+}
+
+/// `p` with the time base `tb` (kept within its period), if that is valid.
+fn with_time_base(p: ChannelParams, tb: f64) -> Option<ChannelParams> {
+    let tb = if p.period_ms > 0 {
+        tb.min(p.period_ms as f64)
+    } else {
+        tb
+    };
+    exactly(p, tb)
+}
+
+/// `p` with the time base `tb` as it is, if that is valid.
+fn exactly(p: ChannelParams, tb: f64) -> Option<ChannelParams> {
+    let q = ChannelParams {
+        time_base_ms: tb,
+        ..p
+    };
+    q.validate().is_ok().then_some(q)
+}
+
+proptest! {
+    /// The time base (issue 25): every edge the schedule asks for lies on the tick grid (a
+    /// whole multiple of the tick on the monotonic clock), so every pulse and break between
+    /// two of them is a whole number of ticks, and none is shorter than its minimum (whole
+    /// ticks too) — whatever the policies, profiles, protections, minima, commands, enables,
+    /// e-stops, holds and parameter changes. Only the safety offs (a falling enable, a
+    /// watchdog trip, the e-stop, a hold) act at once, off the grid.
+    #[test]
+    fn with_a_time_base_every_edge_is_on_the_tick_grid(
+        start in arb_params(),
+        tb in arb_time_base(),
+        ops in arb_ops(),
+    ) {
+        let Some(start) = with_time_base(start, tb) else { return Ok(()) };
+        // One time base throughout; a parameter set it does not fit is left out.
+        let ops: Vec<(Nanos, Op)> = ops
+            .into_iter()
+            .map(|(dt, op)| match op {
+                Op::Params(p) => (dt, exactly(p, start.time_base_ms).map_or(Op::Duty(50.0), Op::Params)),
+                op => (dt, op),
+            })
+            .collect();
+        let tick = start.validate().unwrap().tick;
+        let (b, history) = play(start, &ops);
+        let edges = timed_edges(&b);
+        // A maximum on time lowered during a run cuts the line at once when it comes into
+        // force: a promise about the line, like the safety offs.
+        let lowered: Vec<Nanos> = history
+            .windows(2)
+            .filter(|h| h[1].1.max_on != h[0].1.max_on)
+            .map(|h| h[1].0)
+            .collect();
+        let scheduled = |(t, level, governed): &(Nanos, Level, bool)| {
+            *governed && !(*level == Level::Low && lowered.contains(t))
+        };
+        for e in &edges {
+            if scheduled(e) {
+                prop_assert_eq!(e.0 % tick, 0, "{:?} edge at {} ns off the {} ns grid: {}", e.1, e.0, tick, b.wave());
+            }
+        }
+        // So every pulse and break between two of them is whole ticks.
+        for w in edges.windows(2) {
+            if scheduled(&w[0]) && scheduled(&w[1]) {
+                prop_assert_eq!((w[1].0 - w[0].0) % tick, 0);
+            }
+        }
+        minima_held(&edges, &history, "")?;
+    }
+
+    /// The time base's error diffusion: over any run of consecutive periods of a constant
+    /// command the on time delivered is within one tick of the command's (the duty after the
+    /// power limits times the period in force), each period's on time a whole number of ticks,
+    /// under every policy and profile — wherever the minimum-time rules leave the rounded
+    /// pulses alone (where they act, E1 says so, as without a time base).
+    #[test]
+    fn with_a_time_base_the_delivered_on_time_is_within_one_tick_over_any_run(
+        start in arb_params().prop_filter("pulsing", |p| p.period_ms > 0),
+        tb in arb_time_base(),
+        pct in 0.0..=100.0f64,
+        n in 2u64..40,
+    ) {
+        let params = ChannelParams {
+            command_timeout_ms: 0,
+            max_on_ms: 0,
+            duty_slew_pct_per_s: 0.0,
+            duty_deadband_pct: 0.0,
+            avg_duty_limit_pct: 100.0,
+            ..start
+        };
+        let Some(params) = with_time_base(params, tb) else { return Ok(()) };
+        let cfg = params.validate().unwrap();
+        let (tick, period) = (cfg.tick, cfg.period);
+        prop_assert_eq!(period % tick, 0);
+        let mut b = Bench::new(params);
+        b.duty(pct).enable();
+        let d = cfg.limit_duty(b.status().duty_commanded);
+        b.run_to(n * period);
+        let on: Vec<Nanos> = (0..n).map(|k| b.on_time(k * period, (k + 1) * period)).collect();
+        prop_assert!(on.iter().all(|t| t % tick == 0), "{:?}", on);
+        prop_assert!(b.edges().iter().all(|(t, _)| t % tick == 0), "{}", b.wave());
+        // The rounded on times lie within a tick of d × P either way: if every one of them
+        // passes the rules, the duty is delivered.
+        let ticks = (period / tick) as f64;
+        let x = d * ticks;
+        let untouched = (x.floor() as i64 - 1..=x.ceil() as i64 + 1).all(|m| {
+            m > 0
+                && (m as f64) < ticks
+                && m as u64 * tick >= cfg.min_on
+                && period - m as u64 * tick >= cfg.min_off
+        });
+        let band = cfg.short_pulse == ShortPulse::Band
+            && (crate::core::plan::definitely_less(d, cfg.edge_band)
+                || crate::core::plan::definitely_less(1.0 - cfg.edge_band, d));
+        if d > 0.0 && d < 1.0 && untouched && !band {
+            for i in 0..n as usize {
+                for j in i + 1..=n as usize {
+                    let got: Nanos = on[i..j].iter().sum();
+                    let want = d * (j - i) as f64 * period as f64;
+                    prop_assert!(
+                        (got as f64 - want).abs() <= tick as f64 + 1e-6 * want,
+                        "periods {}..{}: {} ns on, {} ns commanded, tick {} ns",
+                        i, j, got, want, tick
+                    );
+                }
+            }
+            prop_assert!(!b.status().e1);
+        }
+    }
+
+    /// Late wake-ups and late writes with a time base: the line still never holds a pulse or
+    /// a break shorter than its minimum (counted from the real edges); an edge written late is
+    /// off the grid by its lateness, and the next one is back on it.
+    #[test]
+    fn with_a_time_base_late_edges_never_shorten_a_phase_below_its_minimum(
+        start in arb_params(),
+        tb in arb_time_base(),
+        ops in arb_ops(),
+        delays in prop::collection::vec((0u64..80_000_000, 0u64..200_000), 64),
+    ) {
+        let Some(start) = with_time_base(start, tb) else { return Ok(()) };
+        let ops: Vec<(Nanos, Op)> = ops
+            .into_iter()
+            .map(|(dt, op)| match op {
+                Op::Params(p) => (dt, exactly(p, start.time_base_ms).map_or(Op::Duty(50.0), Op::Params)),
+                op => (dt, op),
+            })
+            .collect();
+        late_run(start, &ops, &delays)?;
     }
 }

@@ -161,7 +161,7 @@ impl Inputs {
         r
     }
 
-    /// A duty command from `~/<ch>/duty`, `~/<ch>/sv` or a split-range pair, counted for the
+    /// A duty command from `~/<ch>/duty`, `~/<ch>/sv`, `~/<ch>/fraction` or a split-range pair, counted for the
     /// channel's command-rate check. The core refuses NaN and infinities and clamps
     /// out-of-range values; its verdict, with the command and its unit, comes back as a report.
     pub fn command(&self, channel: usize, command: Command) {
@@ -342,8 +342,8 @@ impl Inputs {
     }
 }
 
-/// The inputs of each channel, `~/<ch>/duty`, `~/<ch>/sv`, `~/<ch>/enable` and
-/// `~/<ch>/params`, and the tasks that hand them to `inputs`; `names`: the channels in order.
+/// The inputs of each channel, `~/<ch>/duty`, `~/<ch>/sv`, `~/<ch>/fraction` (004's i_rIput,
+/// 0..1), `~/<ch>/enable` and `~/<ch>/params`, and the tasks that hand them to `inputs`; `names`: the channels in order.
 pub fn listen_channels(
     ep: &mut Endpoints<'_>,
     inputs: &Arc<Inputs>,
@@ -361,6 +361,12 @@ pub fn listen_channels(
         tasks.push(ep.listen(&format!("~/{name}/sv"), move |m: msg::UInt16| {
             b.command(ch, Command::Sv(m.data))
         })?);
+        let b = Arc::clone(inputs);
+        tasks.push(
+            ep.listen(&format!("~/{name}/fraction"), move |m: msg::Float64| {
+                b.command(ch, Command::Fraction(m.data))
+            })?,
+        );
         let b = Arc::clone(inputs);
         tasks.push(ep.listen(&format!("~/{name}/enable"), move |m: msg::Bool| {
             b.enable(ch, m.data)

@@ -278,6 +278,16 @@ pub struct ChannelStatus {
     /// The protections of the load acting now: max_on, max_duty, min_duty, slew, deadband,
     /// stagger, max_simultaneous_on, avg_duty.
     pub protections: Vec<String>,
+    /// The time base in force, ms (0: off): every pulse and break is a whole number of ticks.
+    pub time_base_ms: f64,
+    /// On time the current input gives, ms (002's fActTiOn, continuously calculated).
+    pub on_time_input_ms: f64,
+    /// Off time the current input gives, ms (002's fActTiOff, continuously calculated).
+    pub off_time_input_ms: f64,
+    /// Remaining time of the running on step in whole seconds (002's UDINT nRemTiOn).
+    pub remaining_on_s: u32,
+    /// Remaining time of the running off step in whole seconds (002's UDINT nRemTiOff).
+    pub remaining_off_s: u32,
 }
 ros_message!(ChannelStatus, "pwm_actuator_msgs", "ChannelStatus");
 

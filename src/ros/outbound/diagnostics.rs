@@ -89,7 +89,18 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         rule: s.rule.as_str().to_string(),
         duty_target: percent(s.duty_target),
         protections: s.protections.names().map(str::to_string).collect(),
+        time_base_ms: ms(s.time_base),
+        on_time_input_ms: ms(s.t_on_input),
+        off_time_input_ms: ms(s.t_off_input),
+        remaining_on_s: whole_seconds(rem_on),
+        remaining_off_s: whole_seconds(rem_off),
     }
+}
+
+/// A remaining time in whole seconds, as 002's UDINT countdowns nRemTiOn / nRemTiOff show it:
+/// truncated (a countdown shows 0 in its last second), saturating.
+pub fn whole_seconds(ns: Nanos) -> u32 {
+    u32::try_from(ns / 1_000_000_000).unwrap_or(u32::MAX)
 }
 
 /// Whether two snapshots differ in anything but the running step's remaining time (what
@@ -406,6 +417,7 @@ impl ChannelHealth {
         } else if self.recent_rejection(now).is_some()
             || self.recent_refusal(now).is_some()
             || s.is_some_and(|s| s.e1 || (s.limited && !s.rule.extended()) || s.command_clamped)
+            || s.is_some_and(|s| s.sizing.is_some())
         {
             DiagnosticStatus::WARN
         } else {
@@ -522,6 +534,11 @@ impl ChannelHealth {
                 ms(s.t_off)
             )
         };
+        // Sizing advice: the channel runs as set; a vendor recommends otherwise (WARN).
+        let state = match s.sizing {
+            Some(advice) => format!("{state}; sizing: {advice}"),
+            None => state,
+        };
         if s.protections.any() {
             let acting: Vec<&str> = s.protections.names().collect();
             format!(
@@ -573,6 +590,11 @@ impl ChannelHealth {
                 ("ignored_commands", s.ignored_commands.to_string()),
                 ("skipped_pulses", s.skipped_pulses.to_string()),
                 ("avg_duty_pct", format!("{:.3}", percent(s.avg_duty))),
+                ("time_base_ms", format!("{:.6}", ms(s.time_base))),
+                (
+                    "sizing_advice",
+                    s.sizing.map(|a| a.to_string()).unwrap_or_default(),
+                ),
             ]);
         }
         kv.extend([
@@ -661,6 +683,10 @@ mod tests {
             ignored_commands: 0,
             skipped_pulses: 0,
             avg_duty: 0.0,
+            time_base: 0,
+            t_on_input: 370 * NS_PER_MS,
+            t_off_input: 630 * NS_PER_MS,
+            sizing: None,
         }
     }
 
@@ -897,6 +923,67 @@ mod tests {
             clamp_text(Command::Sv(5000), 1.0),
             "SV 5000 is outside 0..4095, clamped to 100.0 %"
         );
+    }
+
+    #[test]
+    fn the_status_carries_the_input_s_times_and_whole_second_countdowns_002() {
+        // 002: fActTiOn / fActTiOff from the current input beside the times in force, and the
+        // countdowns nRemTiOn / nRemTiOff in whole seconds (UDINT), truncated.
+        let s = Status {
+            remaining_on: 2_999 * NS_PER_MS,
+            step_end: Some(3_000 * NS_PER_MS),
+            t_on_input: 600 * NS_PER_MS,
+            t_off_input: 400 * NS_PER_MS,
+            time_base: 8_333_333,
+            ..status()
+        };
+        let m = status_msg(0, &s, 0, 5);
+        assert_eq!((m.on_time_ms, m.off_time_ms), (370.0, 630.0));
+        assert_eq!((m.on_time_input_ms, m.off_time_input_ms), (600.0, 400.0));
+        assert_eq!((m.remaining_on_ms, m.remaining_on_s), (3_000.0, 3));
+        let m = status_msg(0, &s, NS_PER_MS, 5);
+        assert_eq!((m.remaining_on_s, m.remaining_off_s), (2, 0));
+        assert_eq!(m.time_base_ms, 8.333333);
+        assert_eq!(whole_seconds(999_999_999), 0);
+        assert_eq!(whole_seconds(Nanos::MAX), u32::MAX);
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(s);
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(kv(&d, "time_base_ms"), "8.333333");
+    }
+
+    #[test]
+    fn sizing_advice_is_a_warn_naming_the_rule_and_the_figures_003_001() {
+        let cfg = crate::core::ChannelParams {
+            profile: crate::core::Profile::TcontCp,
+            period_ms: 1000,
+            time_base_ms: 100.0,
+            ..crate::core::ChannelParams::default()
+        }
+        .validate()
+        .unwrap();
+        let mut h = ChannelHealth::new("pw01", "sim");
+        h.status = Some(Status {
+            sizing: cfg.sizing(),
+            ..status()
+        });
+        assert_eq!(h.level(0), DiagnosticStatus::WARN);
+        let m = h.message(0);
+        assert!(
+            m.starts_with(
+                "enabled, 37.0 % (370.0 ms on / 630.0 ms off); sizing: 003 recommends \
+                           CYCLE_P <= PER_TM/50: time_base_ms 100 is above period_ms 1000 / 50 \
+                           = 20 ms"
+            ),
+            "{m}"
+        );
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert!(kv(&d, "sizing_advice").starts_with("003 recommends CYCLE_P"));
+        // Without it: OK and an empty value.
+        h.status = Some(status());
+        assert_eq!(h.level(0), DiagnosticStatus::OK);
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(kv(&d, "sizing_advice"), "");
     }
 
     #[test]

@@ -356,8 +356,10 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                           hardware floor (0.1 ms transistor, 50 ms relay).",
             constraints: "relay: 0 or >= 50; above period_ms acts as period_ms (every duty \
                           but 0 and 100 % then gives 0 or 1 with E1), except with short_pulse \
-                          extend",
+                          extend; above one hour refused, except under twincat_ba (002: \
+                          limited to the period whatever its size)",
             range: Range::Integer(0, MAX_PERIOD_MS as i64),
+            checked: Checked::Core,
             core: Some(|c, v| {
                 c.min_on_ms = ms(v);
                 Ok(())
@@ -369,7 +371,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
         },
         Decl {
             description: "Minimum off time, ms. -1: as the profile says (= min_on_ms, except \
-                          twincat_ba: the hardware floor).",
+                          twincat_ba and schneider_pwm: the hardware floor).",
             constraints: "relay: 0 or >= 50; above period_ms acts as period_ms, except with \
                           short_pulse extend",
             range: Range::Integer(-1, MAX_PERIOD_MS as i64),
@@ -452,6 +454,23 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             }),
             ..Decl::new("extend_max", Double, || {
                 V::Double(core_defaults().extend_max)
+            })
+        },
+        Decl {
+            description: "Time base (tick), ms: every pulse and break is a whole number of \
+                          ticks and every edge lies on the tick grid (003's CYCLE_P, 001's \
+                          task period, a zero-cross SSR's half cycle: 10 for 50 Hz, 8.3333 \
+                          for 60 Hz). Rounded to the ns; the period to whole ticks, the \
+                          minima up, max_on_ms down. 0: off.",
+            constraints: "0, or 0.1..period_ms; takes effect at the next period boundary",
+            range: Range::Double(0.0, MAX_PERIOD_MS as f64),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.time_base_ms = double(v);
+                Ok(())
+            }),
+            ..Decl::new("time_base_ms", Double, || {
+                V::Double(core_defaults().time_base_ms)
             })
         },
         Decl {

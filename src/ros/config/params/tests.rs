@@ -525,3 +525,19 @@ fn channel_names() {
     assert_eq!(channel_of("pw00.duty"), None);
     assert_eq!(channel_of("channels"), None);
 }
+
+#[test]
+fn twincat_ba_limits_a_minimum_of_any_size_to_the_period_002() {
+    // 002: nMinSwiTi is "internally limited to values between 0 and nPrd": under twincat_ba a
+    // minimum above an hour is limited to the period, not refused; elsewhere it still is.
+    let s = ParamStore::new(1);
+    let e = live(&s, "pw01.min_on_ms", V::Integer(5_000_000)).unwrap_err();
+    assert!(e.to_string().contains("5000000"), "{e}");
+    let both = [
+        item("pw01.profile", V::String("twincat_ba".into())),
+        item("pw01.min_on_ms", V::Integer(5_000_000)),
+    ];
+    let a = s.check(&both, Stage::Live).unwrap();
+    assert_eq!(a.changes.len(), 2);
+    assert!(live(&s, "pw01.min_on_ms", V::Integer(-1)).is_err());
+}
