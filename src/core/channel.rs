@@ -25,12 +25,14 @@
 use super::board::{LineBoard, Seat};
 use super::command::{Command, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
+use super::heater::Heat;
 use super::plan::{definitely_less, Plan};
 use super::{Level, Nanos};
 
 mod budget;
 mod duty;
 mod gates;
+mod heat;
 mod line;
 mod placement;
 mod report;
@@ -168,6 +170,8 @@ pub struct Channel {
     /// The board of the node's real line levels this channel's line guard consults before a
     /// rise (see [`Channel::seat_on`]); `None` for a channel on its own.
     seat: Option<Seat>,
+    /// The heater loop and its checks (issue 22); inert without feedback.
+    heat: Heat,
 }
 
 impl Channel {
@@ -220,6 +224,7 @@ impl Channel {
             skipped: 0,
             avg: budget::Budget::new(cfg.avg_window),
             seat: None,
+            heat: Heat::new(&cfg.heater, now),
         }
     }
 
@@ -300,6 +305,7 @@ impl Channel {
         [
             self.step.map(|s| s.end),
             self.watchdog_deadline(),
+            self.heat_deadline(),
             self.fault_until.filter(|t| *t != Nanos::MAX),
             self.line.cut,
             self.line
@@ -366,8 +372,26 @@ impl Channel {
     }
 
     /// Takes a duty command at `now` (SPEC §1.1). NaN and infinities are refused and the last
-    /// valid command stays; out-of-range values are clamped and flagged.
+    /// valid command stays; out-of-range values are clamped and flagged. Under `control` `pid`
+    /// the loop sets the duty: a command is refused ([`Event::Refused`]).
     pub fn command(&mut self, now: Nanos, command: Command, emit: &mut dyn FnMut(Event)) {
+        if self.pid_on() {
+            emit(Event::Refused(crate::core::heater::Refusal::DutyUnderPid));
+            return;
+        }
+        self.take_command(now, command, true, emit);
+    }
+
+    /// A duty from a command or from the loop, through everything a command goes through.
+    /// `fed`: it feeds the watchdog (a command does; the loop's duty does not, as under `pid`
+    /// the watchdog watches the setpoint and the feedback).
+    fn take_command(
+        &mut self,
+        now: Nanos,
+        command: Command,
+        fed: bool,
+        emit: &mut dyn FnMut(Event),
+    ) {
         let duty = match command.to_duty() {
             Ok(d) => d,
             Err(e) => {
@@ -382,7 +406,9 @@ impl Channel {
             });
         }
         self.duty = duty;
-        self.last_command_at = now;
+        if fed {
+            self.last_command_at = now;
+        }
         // The dead band (relay wear): a change of the limited duty smaller than the band is
         // ignored; the command still counts for the watchdog. The ends always pass, so the
         // load can always be switched fully off or to its maximum.
@@ -398,7 +424,7 @@ impl Channel {
         } else {
             self.accepted = duty.fraction;
         }
-        if self.watchdog_tripped {
+        if self.watchdog_tripped && fed {
             self.watchdog_tripped = false;
             self.fault_until = None;
             emit(Event::Watchdog { tripped: false });
@@ -414,6 +440,9 @@ impl Channel {
     /// Sets enable at `now` (SPEC §1.1, §1.4).
     pub fn set_enable(&mut self, now: Nanos, enable: bool, emit: &mut dyn FnMut(Event)) {
         if enable == self.enabled {
+            return;
+        }
+        if enable && !self.heat_before_enable(now, emit) {
             return;
         }
         self.enabled = enable;
@@ -436,6 +465,7 @@ impl Channel {
                 _ => self.start_period(now, emit),
             }
         } else {
+            self.heat.next_sample = None;
             self.step = None;
             self.avg.acts = false;
             self.cut_now = false;
@@ -462,6 +492,8 @@ impl Channel {
     /// the next period boundary (with `immediate` in force: at once); the watchdog timeout
     /// takes effect at once, since it guards safety, not timing.
     pub fn set_config(&mut self, now: Nanos, cfg: ChannelConfig, emit: &mut dyn FnMut(Event)) {
+        // The heater loop and its checks take their settings at once: they guard the load.
+        self.heat_config(now, cfg.heater);
         self.cfg.command_timeout = cfg.command_timeout;
         self.cfg.params.command_timeout_ms = cfg.params.command_timeout_ms;
         // The fault value guards safety too: in force at once.
@@ -535,6 +567,11 @@ impl Channel {
             // The fault value has run its hold time: off, as a trip without one.
             self.fault_until = None;
             self.trip_off(t, false, emit);
+            return;
+        }
+        // A heater check before any step: a fault switches the line off before a rise due at
+        // the same instant, and a sample gives the period starting then its duty.
+        if self.heat_due(t, emit) {
             return;
         }
         if let Some((level, at)) = self.line.held {

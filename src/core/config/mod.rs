@@ -8,7 +8,10 @@
 use super::Nanos;
 use std::fmt;
 
+pub mod heater;
 mod policy;
+
+use heater::{HeaterConfig, HeaterConfigError, HeaterParams};
 
 pub(crate) use policy::named_enum;
 pub use policy::{ApplyAt, OnDisable, OutputKind, Profile, ShortPulse, ShortStr, UnknownName};
@@ -98,6 +101,8 @@ pub struct ChannelParams {
     pub avg_duty_limit_pct: f64,
     /// The window of the rolling-average cap, s; 1..=86 400.
     pub avg_window_s: u64,
+    /// The heater loop and its checks (issue 22); off by default.
+    pub heater: HeaterParams,
 }
 
 impl Default for ChannelParams {
@@ -124,6 +129,7 @@ impl Default for ChannelParams {
             duty_deadband_pct: 0.0,
             avg_duty_limit_pct: 100.0,
             avg_window_s: 60,
+            heater: HeaterParams::default(),
         }
     }
 }
@@ -301,6 +307,9 @@ pub enum ConfigError {
         /// The maximum, s.
         max_s: u64,
     },
+    /// A heater setting was refused.
+    #[error(transparent)]
+    Heater(#[from] HeaterConfigError),
 }
 
 /// Validated channel settings in nanoseconds, with every profile default resolved.
@@ -342,6 +351,8 @@ pub struct ChannelConfig {
     pub avg_limit: f64,
     /// The window of the rolling-average cap, ns.
     pub avg_window: Nanos,
+    /// The heater loop and its checks.
+    pub heater: HeaterConfig,
     /// The parameters this was made from (for status and round trips).
     pub params: ChannelParams,
 }
@@ -518,6 +529,7 @@ impl ChannelParams {
             deadband: self.duty_deadband_pct / 100.0,
             avg_limit: self.avg_duty_limit_pct / 100.0,
             avg_window: self.avg_window_s * 1_000 * NS_PER_MS,
+            heater: self.heater.validate()?,
             params: *self,
         })
     }

@@ -3,5 +3,6 @@
 
 mod bank;
 mod harness;
+mod heater;
 mod props;
 mod rules;

@@ -9,6 +9,7 @@ use crate::core::{
 use proptest::prelude::*;
 
 #[derive(Debug, Clone)]
+#[allow(clippy::large_enum_variant)]
 enum Op {
     Duty(f64),
     Sv(u16),
@@ -85,6 +86,7 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
                 duty_deadband_pct: pr.4,
                 avg_duty_limit_pct: pr.5.0,
                 avg_window_s: pr.5.1,
+                heater: Default::default(),
             },
         )
         .prop_filter("valid parameters", |p| p.validate().is_ok())

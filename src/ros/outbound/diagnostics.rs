@@ -661,6 +661,7 @@ mod tests {
             ignored_commands: 0,
             skipped_pulses: 0,
             avg_duty: 0.0,
+            heater: Default::default(),
         }
     }
 

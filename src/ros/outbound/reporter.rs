@@ -369,6 +369,7 @@ impl Reporter {
                      still on)"
                 );
             }
+            Event::Refused(_) | Event::HeaterFault(_) | Event::FaultReset { .. } => {}
             Event::Plan(_) | Event::Edge { .. } => {}
         }
     }
