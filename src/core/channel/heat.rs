@@ -415,6 +415,16 @@ impl Channel {
                 .fault
                 .is_some_and(|f| self.condition(now, f).is_some()),
             runaway_error: self.heat.not_heating.error(),
+            sizing: {
+                let ms = |ns: Nanos| ns as f64 / super::super::NS_PER_MS as f64;
+                let mut rules = super::super::heater::sizing(
+                    &self.cfg.heater.params,
+                    ms(self.cfg.period),
+                    ms(self.cfg.min_on),
+                    ms(self.cfg.min_off),
+                );
+                [rules.next(), rules.next(), rules.next()]
+            },
         }
     }
 }

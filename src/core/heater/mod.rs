@@ -175,6 +175,8 @@ pub struct HeaterStatus {
     pub fault_lasts: bool,
     /// `not_heating`'s summed error, °C·s.
     pub runaway_error: f64,
+    /// TCONT_CP's sizing rules (003) the settings break under `pid`.
+    pub sizing: [Option<Sizing>; 3],
 }
 
 /// A rule of TCONT_CP's sizing (003) that the settings break while `pid` is in force.

@@ -526,7 +526,7 @@ fn channel_names() {
     assert_eq!(channel_of("channels"), None);
 }
 
-/// The README's parameter tables list exactly the declared parameters, each with its type,
+/// The README's parameter tables (and docs/heater.md's) list exactly the declared parameters, each with its type,
 /// its default and whether it is read-only (`RO`), as the table in `table.rs` says.
 #[test]
 fn the_readme_tables_match_the_parameter_table() {
@@ -536,8 +536,18 @@ fn the_readme_tables_match_the_parameter_table() {
         .nth(1)
         .and_then(|s| s.split("### Command line").next())
         .expect("a Parameters section before Command line");
+    // The heater loop's parameters are listed on their own page.
+    let heater = include_str!("../../../../docs/heater.md")
+        .split("## Parameters")
+        .nth(1)
+        .and_then(|s| s.split("\n## ").next())
+        .expect("a Parameters section in docs/heater.md");
     let mut rows = std::collections::BTreeMap::new();
-    for line in section.lines().filter(|l| l.starts_with("| `")) {
+    for line in section
+        .lines()
+        .chain(heater.lines())
+        .filter(|l| l.starts_with("| `"))
+    {
         let cells: Vec<&str> = line.split('|').map(str::trim).collect();
         let name = cells[1].trim_matches('`').to_string();
         assert!(
