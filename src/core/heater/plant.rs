@@ -81,8 +81,9 @@ pub struct Plant {
     power: f64,
     /// Changes of the line that have not reached the heater yet: (when they do, level).
     pending: VecDeque<(Nanos, bool)>,
-    /// The line as last told.
+    /// The line as last told, and since when.
     line: bool,
+    line_since: Nanos,
     fault: PlantFault,
     stuck_reading: Option<f64>,
     rng: u64,
@@ -98,6 +99,7 @@ impl Plant {
             power: 0.0,
             pending: VecDeque::new(),
             line: false,
+            line_since: now,
             fault: PlantFault::None,
             stuck_reading: None,
             rng: seed | 1,
@@ -125,11 +127,17 @@ impl Plant {
         self.temp
     }
 
+    /// The line as last told, and since when (ns).
+    pub fn line_state(&self) -> (bool, Nanos) {
+        (self.line, self.line_since)
+    }
+
     /// The line changed to `on` at `at` (not before the last instant advanced to).
     pub fn line(&mut self, at: Nanos, on: bool) {
         self.advance(at);
         if on != self.line {
             self.line = on;
+            self.line_since = at;
             let dead = (self.p.dead_time_s * 1e9) as Nanos;
             self.pending.push_back((at.saturating_add(dead), on));
         }

@@ -59,6 +59,14 @@ pub struct Bool {
 }
 ros_message!(Bool, "std_msgs", "Bool");
 
+/// `std_msgs/String`.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct StringMsg {
+    /// The text.
+    pub data: String,
+}
+ros_message!(StringMsg, "std_msgs", "String");
+
 /// `std_srvs/Trigger` response.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct TriggerResponse {
