@@ -21,7 +21,7 @@ LOG="$(mktemp -d)"
 "$NODE" --output sim --ros-args \
     -p pw01.feedback_topic:=/heater/temperature -p pw01.control:=pid \
     -p pw01.pid_kp:=12.5 -p pw01.pid_ki:=0.78 -p pw01.temp_min_c:=0.0 -p pw01.temp_max_c:=250.0 \
-    -p pw01.feedback_timeout_ms:=2000 -p pw01.stuck_on_rise_c:=8.0 -p pw01.enable:=true \
+    -p pw01.feedback_timeout_ms:=5000 -p pw01.stuck_on_rise_c:=8.0 -p pw01.enable:=true \
     >"$LOG/node.log" 2>&1 &
 node_pid=$!
 trap 'kill "$node_pid" 2>/dev/null; wait "$node_pid" 2>/dev/null || true' EXIT
