@@ -72,6 +72,60 @@ def run_loop(node_process, process_launcher, node_binary, ros):
     return proc, ch, sim, faults
 
 
+def test_feedback_matches_reliable_and_best_effort_publishers_and_inputs_are_checked(
+    node_process, ros
+):
+    """No simulated heater: the test publishes the readings itself, reliable then best effort;
+    under open a setpoint is refused with the reason; a NaN reading latches
+    temperature_out_of_range."""
+    proc, ch = start(
+        node_process,
+        ros,
+        pw01__feedback_topic=TOPIC,
+        pw01__temp_min_c=0.0,
+        pw01__temp_max_c=150.0,
+    )
+    reliable = ros.publisher(Temperature, TOPIC, 10)
+    best_effort = ros.publisher(Temperature, TOPIC, qos_profile_sensor_data)
+    ros.wait_for_subscribers(reliable, 1)
+    ros.wait_for_subscribers(best_effort, 1)
+    for pub, value in ((reliable, 42.5), (best_effort, 43.5)):
+        ch.send(
+            pub,
+            Temperature(temperature=value),
+            ch.status,
+            lambda s, v=value: s.temperature_c == v,
+            f"status showing the reading {value}",
+        )
+    s = ch.status.messages[-1]
+    assert s.control == "open" and s.heater_fault == "", s
+    d = ch.wait_diag(lambda d: diag_values(d).get("temperature_c") == "43.500", "the reading")
+    assert diag_level(d) != ERROR, d
+    sp = ros.publisher(Float64, f"{NODE}/pw01/setpoint")
+    ros.wait_for_subscribers(sp, 1)
+    sp.publish(Float64(data=50.0))
+    ch.wait_diag(
+        lambda d: "setpoint refused: control is open" in diag_values(d).get("last_rejection", ""),
+        "the setpoint refused under open",
+    )
+    r = reset(ros)
+    assert not r.success and "no heater fault is latched" in r.message, r.message
+    reliable.publish(Temperature(temperature=float("nan")))
+    d = ch.wait_diag(lambda d: diag_level(d) == ERROR, "ERROR after a NaN reading")
+    assert d.message.startswith("heater fault temperature_out_of_range:"), d.message
+    r = reset(ros)
+    assert not r.success and "the condition lasts" in r.message, r.message
+    ch.send(
+        reliable,
+        Temperature(temperature=41.0),
+        ch.status,
+        lambda s: s.temperature_c == 41.0 and not s.heater_fault_lasts,
+        "a valid reading again",
+    )
+    r = reset(ros)
+    assert r.success, r.message
+
+
 def reset(ros) -> Trigger.Response:
     return ros.call(Trigger, f"{NODE}/pw01/reset_fault", Trigger.Request())
 

@@ -462,3 +462,30 @@ proptest! {
         prop_assert!(r.no_rise_after(at));
     }
 }
+
+#[test]
+fn under_pid_the_watchdog_watches_the_setpoint_and_the_feedback() {
+    let plant = PlantParams::default();
+    let mut p = params(heater(&plant));
+    p.command_timeout_ms = 3000;
+    let mut r = Rig::new(p, plant, 1);
+    r.setpoint(60.0).enable().secs(2.0);
+    let tripped = |r: &Rig| r.ch.status(r.now).watchdog_tripped;
+    assert!(!tripped(&r));
+    // Readings keep coming, the setpoint is not repeated: it trips 3 s after the setpoint.
+    r.secs(1.1);
+    assert!(tripped(&r));
+    assert_eq!(r.ch.level(), Level::Low);
+    // A fresh setpoint (the readings are fresh): recovered, the loop runs again.
+    r.setpoint(60.0).secs(1.0);
+    assert!(!tripped(&r));
+    assert!(r.ch.status(r.now).heater.terms.output > 0.0);
+    // Now the sensor falls silent while the setpoint is repeated: it trips on the feedback.
+    r.plant.set_fault(PlantFault::SensorSilent);
+    let silent = r.now;
+    while r.now < silent + 5 * S && !tripped(&r) {
+        r.setpoint(60.0).secs(0.5);
+    }
+    assert!(tripped(&r), "the silent feedback tripped the watchdog");
+    assert!(r.now <= silent + 4 * S);
+}
