@@ -9,7 +9,6 @@ pub mod board;
 pub mod channel;
 pub mod command;
 pub mod config;
-pub mod heater;
 pub mod interlock;
 pub mod plan;
 

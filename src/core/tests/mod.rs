@@ -3,7 +3,6 @@
 
 mod bank;
 mod harness;
-mod heater;
 mod props;
 mod rules;
 mod timebase;

@@ -103,9 +103,7 @@ impl EStop {
             success: false,
             message: message.to_string(),
         };
-        // The output thread latches it itself for a heater fault under
-        // heater_fault_latches_estop: the slot says so.
-        if !s.latched && !inputs.safety().estop_latched() {
+        if !s.latched {
             return TriggerResponse {
                 success: true,
                 message: "the e-stop is not latched".into(),
