@@ -135,6 +135,17 @@ impl Shared {
     fn any_high(&self) -> bool {
         self.high.lock().unwrap().iter().any(|h| *h)
     }
+
+    /// Every line is off now, and none rises in the next 300 ms.
+    fn off_and_stays_off(&self, what: &str) {
+        assert!(
+            !self.any_high(),
+            "the lines are off once the {what} is taken"
+        );
+        let rises = self.rises();
+        std::thread::sleep(Duration::from_millis(300));
+        assert_eq!(self.rises(), rises, "no rise while the {what} holds");
+    }
 }
 
 const QUEUE: usize = 16;
@@ -202,13 +213,7 @@ fn taken_behind_a_full_queue(e: &mut engine::Engine, shared: &Shared, input: Inp
 fn an_estop_behind_a_full_queue_is_taken_before_the_commands() {
     let (shared, mut e) = start(1, 50.0);
     taken_behind_a_full_queue(&mut e, &shared, Input::EStop(true));
-    assert!(
-        !shared.any_high(),
-        "the line is off once the e-stop is taken"
-    );
-    let rises = shared.rises();
-    std::thread::sleep(Duration::from_millis(300));
-    assert_eq!(shared.rises(), rises, "no rise while latched");
+    shared.off_and_stays_off("e-stop");
     e.handle.shutdown().unwrap();
 }
 
@@ -216,13 +221,7 @@ fn an_estop_behind_a_full_queue_is_taken_before_the_commands() {
 fn a_hold_behind_a_full_queue_is_taken_before_the_commands() {
     let (shared, mut e) = start(2, 50.0);
     taken_behind_a_full_queue(&mut e, &shared, Input::Live(false));
-    assert!(
-        !shared.any_high(),
-        "the lines are off once the hold is taken"
-    );
-    let rises = shared.rises();
-    std::thread::sleep(Duration::from_millis(300));
-    assert_eq!(shared.rises(), rises, "no rise while held");
+    shared.off_and_stays_off("hold");
     e.handle.shutdown().unwrap();
 }
 
