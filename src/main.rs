@@ -1,6 +1,7 @@
 //! `pwm_actuator_node`: the ROS 2 node (see `pwm_actuator::ros`), `pwm_actuator_node bench ...`
 //! for the timing benchmark, or `pwm_actuator_node safe-off ...` to drive the node's lines
-//! inactive after it ended (see `pwm_actuator::safe_off`).
+//! inactive after it ended (see `pwm_actuator::safe_off`), or `pwm_actuator_node sim-heater ...`
+//! for a simulated heater driven by a channel's edges.
 //!
 //! One command line, parsed by clap: the node's options ([`cli::Flags`]) and a subcommand per
 //! other job, each with its own generated `--help`. The `--ros-args` blocks are split off
@@ -8,6 +9,7 @@
 
 mod bench;
 mod safe_off_cmd;
+mod sim_heater;
 
 use clap::error::ErrorKind;
 use clap::FromArgMatches;
@@ -26,6 +28,8 @@ enum Invocation {
     Bench(bench::BenchOptions),
     /// Drive the lines inactive; the node command line equivalent to the options.
     SafeOff(Vec<String>),
+    /// Run the simulated heater.
+    SimHeater(Box<sim_heater::SimHeaterOptions>),
     /// Already answered (help, or a subcommand's usage error): exit with this code.
     Exit(u8),
 }
@@ -39,6 +43,7 @@ fn command() -> clap::Command {
         ))
         .subcommand(bench::command())
         .subcommand(safe_off_cmd::command())
+        .subcommand(sim_heater::command())
         .args_conflicts_with_subcommands(true)
         .disable_help_subcommand(true)
 }
@@ -78,6 +83,13 @@ fn invocation(args: &[String]) -> Invocation {
                     Invocation::Exit(2)
                 }
             },
+            Some(("sim-heater", sub)) => match sim_heater::options(sub) {
+                Ok(o) => Invocation::SimHeater(Box::new(o)),
+                Err(e) => {
+                    let _ = e.print();
+                    Invocation::Exit(2)
+                }
+            },
             _ if m.get_flag("help") => {
                 println!("{}", cmd.render_help().to_string().trim_end());
                 Invocation::Exit(0)
@@ -93,7 +105,7 @@ fn invocation(args: &[String]) -> Invocation {
             if split
                 .app
                 .first()
-                .is_some_and(|a| a == "bench" || a == "safe-off") =>
+                .is_some_and(|a| a == "bench" || a == "safe-off" || a == "sim-heater") =>
         {
             let _ = e.print();
             Invocation::Exit(2)
@@ -118,6 +130,7 @@ fn main() -> ExitCode {
         Invocation::Node => ros::run(&args),
         Invocation::Bench(opts) => bench::run(opts),
         Invocation::SafeOff(node_args) => pwm_actuator::safe_off::run(&node_args),
+        Invocation::SimHeater(opts) => sim_heater::run(*opts),
         Invocation::Exit(code) => return ExitCode::from(code),
     };
     ExitCode::from(u8::try_from(code).unwrap_or(1))
@@ -132,5 +145,6 @@ mod tests {
         super::command().debug_assert();
         super::bench::command().debug_assert();
         super::safe_off_cmd::command().debug_assert();
+        super::sim_heater::command().debug_assert();
     }
 }

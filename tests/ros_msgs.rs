@@ -98,6 +98,17 @@ fn own_messages_match_their_msg_files() {
             off_time_input_ms: 0.0,
             remaining_on_s: 0,
             remaining_off_s: 0,
+            control: String::new(),
+            temperature_c: 0.0,
+            temperature_age_ms: 0.0,
+            setpoint_c: 0.0,
+            pid_p: 0.0,
+            pid_i: 0.0,
+            pid_d: 0.0,
+            pid_output: 0.0,
+            heater_fault: String::new(),
+            heater_fault_message: String::new(),
+            heater_fault_lasts: false,
         }),
     );
     check_file(
@@ -135,6 +146,7 @@ const KEY_VALUE: &str = "string key\nstring value\n";
 const DIAGNOSTIC_STATUS: &str = "byte OK=0\nbyte WARN=1\nbyte ERROR=2\nbyte STALE=3\n\
     byte level\nstring name\nstring message\nstring hardware_id\nKeyValue[] values\n";
 const DIAGNOSTIC_ARRAY: &str = "std_msgs/Header header\nDiagnosticStatus[] status\n";
+const TEMPERATURE: &str = "std_msgs/Header header\nfloat64 temperature\nfloat64 variance\n";
 
 #[test]
 fn standard_messages_match_ros() {
@@ -179,6 +191,22 @@ fn standard_messages_match_ros() {
     assert_eq!(
         fields(shape_of(&Bool::default())),
         vec![("data".into(), Shape::Bool)]
+    );
+    let temp = Temperature {
+        header: Header {
+            stamp: t(),
+            frame_id: String::new(),
+        },
+        temperature: 0.0,
+        variance: 0.0,
+    };
+    assert_eq!(
+        fields(shape_of(&temp)),
+        parse_msg(TEMPERATURE, &nested).unwrap()
+    );
+    assert_eq!(
+        Temperature::type_name().dds_msg_type(),
+        "sensor_msgs::msg::dds_::Temperature_"
     );
     assert_eq!(DiagnosticStatus::WARN, 1);
 }

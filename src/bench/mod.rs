@@ -51,7 +51,16 @@ pub struct BenchOptions {
     /// At most this many lines on at once (node parameter `max_simultaneous_on`), 0 = no limit
     #[arg(long = "max-simultaneous-on", value_name = "N", default_value_t = 0, value_parser = number::<usize>, allow_hyphen_values = true)]
     pub max_simultaneous_on: usize,
+    /// Every channel under control pid (sampled every period), fed a temperature reading at
+    /// 10 Hz and a setpoint that give --duty
+    #[arg(long)]
+    pub pid: bool,
 }
+
+/// Under `--pid`: the setpoint, °C, and the proportional gain, % per °C; the readings lie
+/// duty / kp below the setpoint, so the loop's duty is --duty.
+const PID_SETPOINT_C: f64 = 50.0;
+const PID_KP: f64 = 10.0;
 
 /// Parses `--phase`.
 fn phase(s: &str) -> Result<Phase, String> {
@@ -71,6 +80,7 @@ impl Default for BenchOptions {
             json: false,
             phase: Phase::Sync,
             max_simultaneous_on: 0,
+            pid: false,
         }
     }
 }
@@ -162,18 +172,24 @@ pub fn run(opts: BenchOptions) -> i32 {
         eprintln!("{e}");
         return 2;
     }
-    let params = ChannelParams {
+    let mut params = ChannelParams {
         period_ms: opts.period_ms,
         ..ChannelParams::default()
     };
+    if opts.pid {
+        params.heater.feedback = true;
+        params.heater.control = pwm_actuator::core::heater::Control::Pid;
+        params.heater.pid_kp = PID_KP;
+    }
     if let Err(e) = params.validate() {
         eprintln!("--period-ms: {e}");
         return 2;
     }
     if !opts.json {
         println!(
-            "pwm_actuator bench: {} channels, period {} ms, duty {} %, offset {} ms, phase {}, max on {}, {} s per side, sim output{}",
+            "pwm_actuator bench: {} channels{}, period {} ms, duty {} %, offset {} ms, phase {}, max on {}, {} s per side, sim output{}",
             opts.channels,
+            if opts.pid { " under pid" } else { "" },
             opts.period_ms,
             opts.duty_percent,
             opts.offset_ms,
@@ -388,12 +404,18 @@ fn run_side(
             .send(Request { channel, input })
             .map_err(|e| e.to_string())
     };
+    let reading = PID_SETPOINT_C - opts.duty_percent / PID_KP;
     for ch in 0..opts.channels {
-        send(
-            &mut requests,
-            ch,
-            Input::Command(Command::Percent(opts.duty_percent)),
-        )?;
+        if opts.pid {
+            send(&mut requests, ch, Input::Setpoint(PID_SETPOINT_C))?;
+            send(&mut requests, ch, Input::Feedback(reading))?;
+        } else {
+            send(
+                &mut requests,
+                ch,
+                Input::Command(Command::Percent(opts.duty_percent)),
+            )?;
+        }
     }
     // Stagger the channels' period starts by the offset, wrapped into the period.
     let period_ns = opts.period_ms * NS_PER_MS;
@@ -409,7 +431,19 @@ fn run_side(
     }
     // Measure a whole window after the last enable.
     let window = Window::start();
-    sleep_until(window.wall0 + (opts.seconds * 1e9) as Nanos);
+    let end = window.wall0 + (opts.seconds * 1e9) as Nanos;
+    if opts.pid {
+        // A sensor at 10 Hz, as a feedback_topic would deliver it.
+        let mut next = window.wall0;
+        while next < end {
+            for ch in 0..opts.channels {
+                send(&mut requests, ch, Input::Feedback(reading))?;
+            }
+            next += 100 * NS_PER_MS;
+            sleep_until(next.min(end));
+        }
+    }
+    sleep_until(end);
     let measured = window.end();
     handle.shutdown().map_err(|e| e.to_string())?;
     drop(requests);

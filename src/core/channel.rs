@@ -34,12 +34,14 @@
 use super::board::{LineBoard, Seat};
 use super::command::{Command, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
+use super::heater::Heat;
 use super::plan::{definitely_less, Plan};
 use super::{Level, Nanos};
 
 mod budget;
 mod duty;
 mod gates;
+mod heat;
 mod line;
 mod placement;
 mod report;
@@ -181,6 +183,8 @@ pub struct Channel {
     /// last plan made leaves for the next period, ticks (see [`Plan::carried`]).
     carry_in: f64,
     carry: f64,
+    /// The heater loop and its checks (issue 22); inert without feedback.
+    heat: Heat,
 }
 
 impl Channel {
@@ -235,6 +239,7 @@ impl Channel {
             seat: None,
             carry_in: 0.0,
             carry: 0.0,
+            heat: Heat::new(&cfg.heater, now),
         }
     }
 
@@ -316,6 +321,7 @@ impl Channel {
         [
             self.step.map(|s| s.end),
             self.watchdog_deadline(),
+            self.heat_deadline(),
             self.fault_until.filter(|t| *t != Nanos::MAX),
             self.line.cut,
             self.line
@@ -382,8 +388,26 @@ impl Channel {
     }
 
     /// Takes a duty command at `now` (SPEC §1.1). NaN and infinities are refused and the last
-    /// valid command stays; out-of-range values are clamped and flagged.
+    /// valid command stays; out-of-range values are clamped and flagged. Under `control` `pid`
+    /// the loop sets the duty: a command is refused ([`Event::Refused`]).
     pub fn command(&mut self, now: Nanos, command: Command, emit: &mut dyn FnMut(Event)) {
+        if self.pid_on() {
+            emit(Event::Refused(crate::core::heater::Refusal::DutyUnderPid));
+            return;
+        }
+        self.take_command(now, command, true, emit);
+    }
+
+    /// A duty from a command or from the loop, through everything a command goes through.
+    /// `fed`: it feeds the watchdog (a command does; the loop's duty does not, as under `pid`
+    /// the watchdog watches the setpoint and the feedback).
+    fn take_command(
+        &mut self,
+        now: Nanos,
+        command: Command,
+        fed: bool,
+        emit: &mut dyn FnMut(Event),
+    ) {
         let duty = match command.to_duty() {
             Ok(d) => d,
             Err(e) => {
@@ -398,7 +422,9 @@ impl Channel {
             });
         }
         self.duty = duty;
-        self.last_command_at = now;
+        if fed {
+            self.last_command_at = now;
+        }
         // The dead band (relay wear): a change of the limited duty smaller than the band is
         // ignored; the command still counts for the watchdog. The ends always pass, so the
         // load can always be switched fully off or to its maximum.
@@ -414,7 +440,7 @@ impl Channel {
         } else {
             self.accepted = duty.fraction;
         }
-        if self.watchdog_tripped {
+        if self.watchdog_tripped && fed {
             self.watchdog_tripped = false;
             self.fault_until = None;
             emit(Event::Watchdog { tripped: false });
@@ -430,6 +456,9 @@ impl Channel {
     /// Sets enable at `now` (SPEC §1.1, §1.4).
     pub fn set_enable(&mut self, now: Nanos, enable: bool, emit: &mut dyn FnMut(Event)) {
         if enable == self.enabled {
+            return;
+        }
+        if enable && !self.heat_before_enable(now, emit) {
             return;
         }
         self.enabled = enable;
@@ -454,6 +483,7 @@ impl Channel {
                 _ => self.start_period(now, emit),
             }
         } else {
+            self.heat.next_sample = None;
             self.step = None;
             self.avg.acts = false;
             self.cut_now = false;
@@ -480,6 +510,8 @@ impl Channel {
     /// the next period boundary (with `immediate` in force: at once); the watchdog timeout
     /// takes effect at once, since it guards safety, not timing.
     pub fn set_config(&mut self, now: Nanos, cfg: ChannelConfig, emit: &mut dyn FnMut(Event)) {
+        // The heater loop and its checks take their settings at once: they guard the load.
+        self.heat_config(now, cfg.heater);
         self.cfg.command_timeout = cfg.command_timeout;
         self.cfg.params.command_timeout_ms = cfg.params.command_timeout_ms;
         // The fault value guards safety too: in force at once.
@@ -553,6 +585,11 @@ impl Channel {
             // The fault value has run its hold time: off, as a trip without one.
             self.fault_until = None;
             self.trip_off(t, false, emit);
+            return;
+        }
+        // A heater check before any step: a fault switches the line off before a rise due at
+        // the same instant, and a sample gives the period starting then its duty.
+        if self.heat_due(t, emit) {
             return;
         }
         if let Some((level, at)) = self.line.held {

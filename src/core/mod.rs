@@ -9,6 +9,7 @@ pub mod board;
 pub mod channel;
 pub mod command;
 pub mod config;
+pub mod heater;
 pub mod interlock;
 pub mod plan;
 

@@ -38,6 +38,18 @@ pub enum Input {
     /// [`Bank`](crate::core::Bank)); the request's channel is ignored. Takes effect at each
     /// channel's next period start.
     Bank(Bank),
+    /// A temperature reading of the channel's feedback, °C (any value: NaN and infinities
+    /// latch `temperature_out_of_range`); it counts as arriving when the thread takes it.
+    Feedback(f64),
+    /// A setpoint for the channel's loop, °C (see
+    /// [`Channel::set_setpoint`](crate::core::Channel::set_setpoint)).
+    Setpoint(f64),
+    /// Clears the channel's heater fault if its condition is gone; the answer comes back as
+    /// the core's `FaultReset` event with this ticket.
+    ResetFault(u32),
+    /// Whether a heater fault of any channel latches the e-stop of every channel
+    /// (`heater_fault_latches_estop`); the request's channel is ignored. Sent at start-up.
+    HeaterEstop(bool),
 }
 
 /// An input addressed to a channel.
@@ -75,6 +87,9 @@ impl EdgeReport {
 
 /// What the output thread reports.
 #[derive(Debug, Clone, Copy, PartialEq)]
+// Reports travel by value through the wait-free ring buffer: boxing a status (the heater's
+// figures made it the large variant) would allocate on the output thread.
+#[allow(clippy::large_enum_variant)]
 pub enum Report {
     /// An edge was written.
     Edge(EdgeReport),

@@ -104,6 +104,12 @@ impl SafetySlot {
         }
     }
 
+    /// Whether the e-stop is latched in the slot (by the ROS side, or by the output thread for
+    /// a heater fault under `heater_fault_latches_estop`).
+    pub(crate) fn estop_latched(&self) -> bool {
+        self.estop.load(Ordering::Acquire) % 2 == 1
+    }
+
     /// The counter of the requests made so far.
     pub(crate) fn requested(&self) -> u64 {
         self.requested.load(Ordering::Acquire)

@@ -593,3 +593,52 @@ fn a_status_the_full_report_queue_refused_is_sent_at_the_next_wake_up() {
     let status = statuses(&mut reports).expect("the status, sent again");
     assert!(status.estopped && !status.enabled, "{status:?}");
 }
+
+#[test]
+fn a_heater_fault_stops_the_heartbeat_and_can_latch_the_estop_of_every_channel() {
+    let heater = ChannelParams {
+        heater: crate::core::heater::HeaterParams {
+            feedback: true,
+            temp_max_c: 300.0,
+            ..Default::default()
+        },
+        ..params(1000, 0, None)
+    };
+    let mut b = Bench::new(&[heater, params(1000, 0, None)], &[], false);
+    // The heartbeat is line 2, recorded like the channels' lines.
+    LINES.with(|l| {
+        let mut l = l.borrow_mut();
+        l.high.push(false);
+        l.edges.push(Vec::new());
+    });
+    b.worker.start_heartbeat(2, 50 * MS, now());
+    b.send(0, Input::HeaterEstop(true));
+    for ch in 0..2 {
+        b.send(ch, Input::Command(crate::core::Command::Percent(100.0)));
+        b.send(ch, Input::Enable(true));
+    }
+    b.send(0, Input::Feedback(25.0));
+    b.wake();
+    b.run_to(now() + 1_000 * MS, 0);
+    let toggles = |l: &Lines| l.edges[2].len();
+    let before = LINES.with(|l| toggles(&l.borrow()));
+    assert!(before >= 18, "the heartbeat runs: {before} toggles");
+    assert!(LINES.with(|l| l.borrow().high[0] && l.borrow().high[1]));
+    // A reading above temp_max_c: channel 0's line off at once, and with it, through the
+    // e-stop, channel 1's; the heartbeat rests inactive.
+    b.send(0, Input::Feedback(350.0));
+    b.wake();
+    LINES.with(|l| {
+        let l = l.borrow();
+        assert!(!l.high[0] && !l.high[1] && !l.high[2], "{:?}", l.high);
+    });
+    assert!(b.slot.estop_latched());
+    let after = LINES.with(|l| toggles(&l.borrow()));
+    b.run_to(now() + 2_000 * MS, 0);
+    assert_eq!(
+        LINES.with(|l| toggles(&l.borrow())),
+        after,
+        "the heartbeat stopped"
+    );
+    assert!(LINES.with(|l| !l.borrow().high.iter().any(|h| *h)));
+}

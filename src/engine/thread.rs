@@ -182,6 +182,12 @@ impl SafetyPath {
         request
     }
 
+    /// Whether the e-stop is latched in the slot, by the ROS side or by the output thread (a
+    /// heater fault under `heater_fault_latches_estop`).
+    pub fn estop_latched(&self) -> bool {
+        self.slot.estop_latched()
+    }
+
     /// Waits up to `bound` until the output thread has applied request `request` and written
     /// the lines; returns how long that took.
     pub fn wait(&self, request: u64, bound: Duration) -> Result<Duration, NotTaken> {

@@ -41,6 +41,10 @@ pub(crate) struct Worker<O: Output> {
     seen: Wanted,
     /// The clock (the monotonic clock; virtual time in tests).
     clock: fn() -> Nanos,
+    /// Which channels had a heater fault latched at the last look.
+    heater_faulted: Vec<bool>,
+    /// A heater fault latches the e-stop of every channel (`heater_fault_latches_estop`).
+    heater_estop: bool,
 }
 
 /// The heartbeat line: toggled every half period on an absolute grid while the thread runs.
@@ -98,6 +102,8 @@ impl<O: Output> Worker<O> {
             seen: safety.wanted(),
             safety,
             clock: clock::monotonic_ns,
+            heater_faulted: vec![false; n],
+            heater_estop: false,
         }
     }
 
@@ -141,7 +147,7 @@ impl<O: Output> Worker<O> {
     pub(crate) fn run(&mut self, requests: &mut Consumer<Request>) -> Result<(), Stop<O::Error>> {
         let now = (self.clock)();
         // The safety inputs first, whatever waits in the queue.
-        let taken = self.take_safety(now);
+        let mut taken = self.take_safety(now);
         while let Ok(req) = requests.pop() {
             self.apply(now, req);
         }
@@ -171,6 +177,9 @@ impl<O: Output> Worker<O> {
             }
         }
         self.retry_rises(now);
+        if let Some(r) = self.sync_heater_faults(now) {
+            taken = Some(r);
+        }
         // Without a heartbeat, or before its time, nothing more to look at.
         let due = self.heartbeat.as_ref().is_some_and(|hb| hb.next <= now);
         let toggle = due && self.heartbeat_runs();
@@ -226,6 +235,31 @@ impl<O: Output> Worker<O> {
         }
         self.seen = w;
         Some(w.request)
+    }
+
+    /// After the channels acted at `now`: a heater fault newly latched stops the heartbeat (an
+    /// external contactor drops) and, with `heater_fault_latches_estop`, latches the e-stop of
+    /// every channel through the safety slot, so the ROS side sees it latched and its reset
+    /// releases it. Returns the slot's request number when it latched the e-stop.
+    fn sync_heater_faults(&mut self, now: Nanos) -> Option<u64> {
+        let (mut changed, mut new) = (false, false);
+        for (ch, seen) in self.channels.iter().zip(self.heater_faulted.iter_mut()) {
+            let faulted = ch.heater_fault().is_some();
+            if faulted != *seen {
+                changed = true;
+                new |= faulted;
+                *seen = faulted;
+            }
+        }
+        let mut taken = None;
+        if new && self.heater_estop && !self.safety.estop_latched() {
+            self.safety.estop(true);
+            taken = self.take_safety(now);
+        }
+        if changed {
+            self.heartbeat_gate(now);
+        }
+        taken
     }
 
     /// Rises the board of the lines held back while another line was high, written now that
@@ -322,10 +356,12 @@ impl<O: Output> Worker<O> {
         self.sync_bank(now);
     }
 
-    /// Whether the heartbeat toggles: every line live and no e-stop latched (the output
-    /// thread sets both for every channel at once).
+    /// Whether the heartbeat toggles: every line live, no e-stop and no heater fault latched
+    /// (the output thread sets the first two for every channel at once).
     fn heartbeat_runs(&self) -> bool {
-        self.channels.iter().all(|c| c.live() && !c.estopped())
+        self.channels
+            .iter()
+            .all(|c| c.live() && !c.estopped() && c.heater_fault().is_none())
     }
 
     /// After an e-stop or a hold changed: a heartbeat that stopped rests inactive, and it
@@ -347,6 +383,10 @@ impl<O: Output> Worker<O> {
             Input::EStop(latched) => return self.estop(now, latched),
             Input::Live(live) => return self.set_live(now, live),
             Input::Bank(bank) => return self.set_bank(now, bank),
+            Input::HeaterEstop(on) => {
+                self.heater_estop = on;
+                return;
+            }
             _ => {}
         }
         self.bank.before(&mut self.channels, req.channel, now);
@@ -371,7 +411,10 @@ impl<O: Output> Worker<O> {
                     self.board.pair(req.channel, partner);
                 }
             }
-            Input::EStop(_) | Input::Live(_) | Input::Bank(_) => {}
+            Input::Feedback(c) => ch.feedback(now, c, emit),
+            Input::Setpoint(c) => ch.set_setpoint(now, c, emit),
+            Input::ResetFault(ticket) => ch.reset_heater_fault(now, ticket, emit),
+            Input::EStop(_) | Input::Live(_) | Input::Bank(_) | Input::HeaterEstop(_) => {}
         }
         self.pushed |= sink.pushed;
         self.touched[req.channel] = true;

@@ -23,6 +23,7 @@ use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
 use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
 use crate::ros::inbound::estop::{self, EStop};
+use crate::ros::inbound::heater::{self, HeaterChannel};
 use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
 use crate::ros::inbound::lifecycle;
 use crate::ros::inbound::node_state::NodeState;
@@ -403,6 +404,21 @@ async fn serve(
     };
     tasks.extend(inputs::listen_channels(&mut ep, &inputs, &names)?);
     tasks.extend(inputs::listen_splits(&mut ep, &inputs, &splits)?);
+    let heaters: Vec<HeaterChannel> = cfg
+        .channels
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| !c.feedback_topic.is_empty())
+        .map(|(channel, c)| HeaterChannel {
+            channel,
+            name: c.name.clone(),
+            feedback_topic: c.feedback_topic.clone(),
+        })
+        .collect();
+    tasks.extend(heater::listen_heaters(&mut ep, &inputs, &heaters)?);
+    if cfg.settings.heater_fault_latches_estop {
+        let _ = inputs.send(0, Input::HeaterEstop(true));
+    }
     tasks.extend(param_services::spawn(&mut ep, &inputs)?);
     tasks.extend(estop::spawn(&mut ep, &inputs, &estop)?);
     if cfg.settings.managed {

@@ -56,6 +56,7 @@ MS = 1_000_000
 TRACE_HEADER = "t_ns,channel,level,scheduled_ns"
 
 #: Every per-channel parameter the parameter page (docs/parameters.md) documents.
+#: Every per-channel parameter the README and docs/heater.md document.
 CHANNEL_PARAMS = (
     "period_ms",
     "min_on_ms",
@@ -86,6 +87,23 @@ CHANNEL_PARAMS = (
     "duty",
     "gpio_chip",
     "gpio_line",
+    # The heater loop (docs/heater.md).
+    "feedback_topic",
+    "control",
+    "pid_sample_ms",
+    "pid_kp",
+    "pid_ki",
+    "pid_kd",
+    "pid_d_filter_s",
+    "temp_min_c",
+    "temp_max_c",
+    "feedback_timeout_ms",
+    "runaway_hysteresis_c",
+    "runaway_max_error",
+    "runaway_gain_time_s",
+    "runaway_heating_gain_c",
+    "stuck_on_rise_c",
+    "stuck_on_time_s",
 )
 
 

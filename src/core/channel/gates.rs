@@ -107,7 +107,13 @@ impl Channel {
     /// No rise may reach the line: the interlock is engaged, the e-stop latched, the line is
     /// held inactive, or the board of the node's lines forbids it (see [`LineBoard`](crate::core::LineBoard)).
     pub(super) fn no_rise(&self) -> bool {
-        self.line.locked || self.estop || !self.live || self.board_refuses()
+        self.line.locked || self.latched() || !self.live || self.board_refuses()
+    }
+
+    /// The e-stop or a heater fault is latched: the line stays low and nothing is held back
+    /// for later.
+    pub(super) fn latched(&self) -> bool {
+        self.estop || self.heat.fault.is_some()
     }
 
     /// The board of the node's lines forbids a rise of this line now.

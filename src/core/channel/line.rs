@@ -66,7 +66,7 @@ impl Channel {
     /// line has cancels a change held back (that pulse or break never reaches the line).
     pub(super) fn set_level(&mut self, level: Level, at: Nanos, emit: &mut dyn FnMut(Event)) {
         self.level = level;
-        if self.estop && level == Level::High {
+        if self.latched() && level == Level::High {
             // Latched: the line stays low and nothing is held back for later.
             return;
         }

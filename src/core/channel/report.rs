@@ -1,6 +1,7 @@
 //! What a channel tells its caller: the events it emits and the status it reports.
 
 use super::super::command::{Command, CommandError};
+use super::super::heater::{HeaterFault, HeaterStatus, Refusal, ResetRefusal};
 use super::super::plan::{Plan, Rule};
 use super::super::{Level, Nanos};
 use super::Channel;
@@ -46,6 +47,19 @@ pub enum Event {
     Skipped {
         /// When it was given up, ns.
         at: Nanos,
+    },
+    /// A heater input was refused (a duty command under `pid`, a setpoint under `open` or out
+    /// of its range); what was in force stays.
+    Refused(Refusal),
+    /// A heater check latched a fault: the line went off at once and stays off until
+    /// [`Channel::reset_heater_fault`] clears it.
+    HeaterFault(HeaterFault),
+    /// The answer to [`Channel::reset_heater_fault`] with the caller's `ticket`.
+    FaultReset {
+        /// The caller's number for the request.
+        ticket: u32,
+        /// Cleared, or why not.
+        result: Result<(), ResetRefusal>,
     },
     /// The channel was polled so late that `edges` scheduled edges fell in the past together;
     /// they were merged so that no zero-width pulse reaches the output.
@@ -172,6 +186,8 @@ pub struct Status {
     pub t_off_input: Nanos,
     /// A vendor recommendation the settings in force do not follow (003, 001).
     pub sizing: Option<crate::core::Sizing>,
+    /// The heater loop: reading, setpoint, the PID's terms, a latched heater fault.
+    pub heater: HeaterStatus,
 }
 
 impl Status {
@@ -207,7 +223,7 @@ impl Channel {
             active: self.enabled
                 && self.cfg.period > 0
                 && !self.watchdog_tripped
-                && !self.estop
+                && !self.latched()
                 && self.live,
             level: self.line.level,
             duty_commanded: self.duty.fraction,
@@ -244,6 +260,7 @@ impl Channel {
             t_on_input: input.t_on,
             t_off_input: input.t_off,
             sizing: self.cfg.sizing(),
+            heater: self.heater_status(now),
         }
     }
 }

@@ -8,8 +8,11 @@
 use super::Nanos;
 use std::fmt;
 
+pub mod heater;
 mod policy;
 mod sizing;
+
+use heater::{HeaterConfig, HeaterConfigError, HeaterParams};
 
 pub(crate) use policy::named_enum;
 pub use policy::{ApplyAt, OnDisable, OutputKind, Profile, ShortPulse, ShortStr, UnknownName};
@@ -109,6 +112,8 @@ pub struct ChannelParams {
     /// accepted (8.3333 for 60 Hz half cycles); the tick is rounded to the nearest ns. 0, or
     /// 0.1 ..= `period_ms`.
     pub time_base_ms: f64,
+    /// The heater loop and its checks (issue 22); off by default.
+    pub heater: HeaterParams,
 }
 
 impl Default for ChannelParams {
@@ -136,6 +141,7 @@ impl Default for ChannelParams {
             avg_duty_limit_pct: 100.0,
             avg_window_s: 60,
             time_base_ms: 0.0,
+            heater: HeaterParams::default(),
         }
     }
 }
@@ -331,6 +337,9 @@ pub enum ConfigError {
         /// The maximum, s.
         max_s: u64,
     },
+    /// A heater setting was refused.
+    #[error(transparent)]
+    Heater(#[from] HeaterConfigError),
 }
 
 /// Validated channel settings in nanoseconds, with every profile default resolved.
@@ -377,6 +386,8 @@ pub struct ChannelConfig {
     /// [`ChannelParams::validate`]) and the tick grid is the instants `k * tick` of the
     /// monotonic clock, `k` an integer.
     pub tick: Nanos,
+    /// The heater loop and its checks.
+    pub heater: HeaterConfig,
     /// The parameters this was made from (for status and round trips).
     pub params: ChannelParams,
 }
@@ -613,6 +624,7 @@ impl ChannelParams {
             avg_limit: self.avg_duty_limit_pct / 100.0,
             avg_window: self.avg_window_s * 1_000 * NS_PER_MS,
             tick,
+            heater: self.heater.validate()?,
             params: *self,
         })
     }

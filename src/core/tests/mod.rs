@@ -3,6 +3,7 @@
 
 mod bank;
 mod harness;
+mod heater;
 mod props;
 mod rules;
 mod timebase;

@@ -9,6 +9,7 @@ use crate::core::{
 use proptest::prelude::*;
 
 #[derive(Debug, Clone)]
+#[allow(clippy::large_enum_variant)]
 enum Op {
     Duty(f64),
     Sv(u16),
@@ -86,6 +87,7 @@ fn arb_params() -> impl Strategy<Value = ChannelParams> {
                 avg_duty_limit_pct: pr.5.0,
                 avg_window_s: pr.5.1,
                 time_base_ms: 0.0,
+                heater: Default::default(),
             },
         )
         .prop_filter("valid parameters", |p| p.validate().is_ok())

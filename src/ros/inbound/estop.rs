@@ -103,7 +103,9 @@ impl EStop {
             success: false,
             message: message.to_string(),
         };
-        if !s.latched {
+        // The output thread latches it itself for a heater fault under
+        // heater_fault_latches_estop: the slot says so.
+        if !s.latched && !inputs.safety().estop_latched() {
             return TriggerResponse {
                 success: true,
                 message: "the e-stop is not latched".into(),

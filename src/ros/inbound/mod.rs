@@ -1,5 +1,5 @@
 //! ROS → output thread: commands, enables and parameter changes ([`inputs`]), the e-stop
-//! ([`estop`]), the managed node ([`lifecycle`]), the parameter services ([`param_services`]),
+//! ([`estop`]), the heater loop's readings, setpoints and fault resets ([`heater`]), the managed node ([`lifecycle`]), the parameter services ([`param_services`]),
 //! and what the callbacks share with the report side ([`node_state`], the notes of
 //! [`inputs`]).
 //!
@@ -7,6 +7,7 @@
 //! [`config`](super::config) and [`wire`](super::wire); never the outbound side.
 
 pub mod estop;
+pub mod heater;
 pub mod inputs;
 pub mod lifecycle;
 pub mod node_state;

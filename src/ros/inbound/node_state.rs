@@ -70,7 +70,16 @@ pub struct NodeState {
     window: AtomicUsize,
     /// f64 bits.
     tolerance: AtomicU64,
+    /// `heater_fault_latches_estop`.
+    heater_estop: AtomicBool,
+    /// Per channel, the last answer to `~/<ch>/reset_fault`: its ticket and the outcome. The
+    /// one lock here, held for a copy by the report thread and the reset service only.
+    resets: Box<[std::sync::Mutex<Option<ResetAnswer>>]>,
+    next_ticket: std::sync::atomic::AtomicU32,
 }
+
+/// The answer to a `~/<ch>/reset_fault`: its ticket, and cleared or why not.
+pub type ResetAnswer = (u32, Result<(), String>);
 
 impl NodeState {
     /// The state of a node with `channels` channels: unmanaged (and so always `active`),
@@ -85,6 +94,35 @@ impl NodeState {
             channels: (0..channels).map(|_| CommandStream::default()).collect(),
             window: AtomicUsize::new(DEFAULT_COMMAND_HZ_WINDOW),
             tolerance: AtomicU64::new(DEFAULT_COMMAND_HZ_TOLERANCE.to_bits()),
+            heater_estop: AtomicBool::new(false),
+            resets: (0..channels).map(|_| std::sync::Mutex::new(None)).collect(),
+            next_ticket: std::sync::atomic::AtomicU32::new(1),
+        }
+    }
+
+    /// Whether a heater fault latches the e-stop of every channel.
+    pub fn heater_estop(&self) -> bool {
+        self.heater_estop.load(Ordering::Acquire)
+    }
+
+    /// A fresh ticket for a `~/<ch>/reset_fault` request.
+    pub fn reset_ticket(&self) -> u32 {
+        self.next_ticket.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Records the output thread's answer to the reset with `ticket` of `channel`.
+    pub fn answer_reset(&self, channel: usize, ticket: u32, result: Result<(), String>) {
+        if let Some(slot) = self.resets.get(channel) {
+            *crate::output::safety::lock_ignore_poison(slot) = Some((ticket, result));
+        }
+    }
+
+    /// The answer to the reset with `ticket` of `channel`, once it has come.
+    pub fn reset_answer(&self, channel: usize, ticket: u32) -> Option<Result<(), String>> {
+        let slot = self.resets.get(channel)?;
+        match &*crate::output::safety::lock_ignore_poison(slot) {
+            Some((t, r)) if *t == ticket => Some(r.clone()),
+            _ => None,
         }
     }
 
@@ -93,6 +131,10 @@ impl NodeState {
     pub fn from_store(store: &ParamStore) -> NodeState {
         let mut s = NodeState::new(store.channels());
         s.managed = store.node_settings().managed;
+        s.heater_estop.store(
+            store.node_settings().heater_fault_latches_estop,
+            Ordering::Release,
+        );
         s.apply_params(store);
         s
     }

@@ -59,6 +59,14 @@ pub struct Bool {
 }
 ros_message!(Bool, "std_msgs", "Bool");
 
+/// `std_msgs/String`.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct StringMsg {
+    /// The text.
+    pub data: String,
+}
+ros_message!(StringMsg, "std_msgs", "String");
+
 /// `std_srvs/Trigger` response.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct TriggerResponse {
@@ -288,8 +296,42 @@ pub struct ChannelStatus {
     pub remaining_on_s: u32,
     /// Remaining time of the running off step in whole seconds (002's UDINT nRemTiOff).
     pub remaining_off_s: u32,
+    /// `open` or `pid`.
+    pub control: String,
+    /// The last reading, °C (NaN: none).
+    pub temperature_c: f64,
+    /// Age of the last reading, ms (-1: none).
+    pub temperature_age_ms: f64,
+    /// The setpoint in force, °C (NaN: none).
+    pub setpoint_c: f64,
+    /// The loop's proportional term, %.
+    pub pid_p: f64,
+    /// The loop's integral term, %.
+    pub pid_i: f64,
+    /// The loop's derivative term, %.
+    pub pid_d: f64,
+    /// The loop's output, %.
+    pub pid_output: f64,
+    /// The latched heater fault's check, or empty.
+    pub heater_fault: String,
+    /// Its message with the figures.
+    pub heater_fault_message: String,
+    /// Its condition still holds.
+    pub heater_fault_lasts: bool,
 }
 ros_message!(ChannelStatus, "pwm_actuator_msgs", "ChannelStatus");
+
+/// `sensor_msgs/Temperature`: a temperature in °C, with its variance (0 = unknown).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Temperature {
+    /// When and where it was measured.
+    pub header: Header,
+    /// The temperature, °C.
+    pub temperature: f64,
+    /// Its variance, °C²; 0 = unknown.
+    pub variance: f64,
+}
+ros_message!(Temperature, "sensor_msgs", "Temperature");
 
 /// `pwm_actuator_msgs/ChannelParams` (msg/ChannelParams.msg): several parameters of one channel,
 /// applied together or refused whole. Only the fields named in `set` are applied.

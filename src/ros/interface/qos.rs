@@ -4,6 +4,8 @@
 //! | topic / service | reliability | durability | history | notes |
 //! |---|---|---|---|---|
 //! | `~/<ch>/duty`, `~/<ch>/sv`, `~/<ch>/enable`, `~/<ch>/params` (in) | reliable | volatile | keep last 10 | rclpy's default (`create_publisher(..., 10)`); best-effort publishers do not match |
+//! | `feedback_topic` (in, `sensor_msgs/Temperature`) | best effort | volatile | keep last 10 | matches best-effort and reliable publishers |
+//! | `~/<ch>/setpoint` (in) | reliable | volatile | keep last 10 | as the commands |
 //! | `~/<ch>/edges` (out) | reliable | volatile | keep last 100 | never blocks the node: a full send window drops and counts |
 //! | `~/<ch>/status` (out) | reliable | volatile | keep last 10 | as above |
 //! | `~/<ch>/e1` (out) | reliable | transient local | keep last 1 | a late subscriber asking for transient local gets the current E1 |
@@ -58,6 +60,15 @@ pub fn diagnostics() -> QosProfile {
     QosProfile::publisher_default()
         .history(History::KeepLast { depth: 10 })
         .reliability_reliable(WhenFull::Wait(Duration::from_millis(10)))
+}
+
+/// Sensor readings (`feedback_topic`): best effort, volatile, keep last 10, as rclpy's
+/// `qos_profile_sensor_data` asks; a best-effort reader matches best-effort and reliable
+/// writers alike.
+pub fn sensor() -> QosProfile {
+    QosProfile::publisher_default()
+        .history(History::KeepLast { depth: 10 })
+        .reliability(ros2_client::qos::Reliability::BestEffort)
 }
 
 /// Parameter services: `rmw_qos_profile_services_default` (reliable, volatile, keep last 10).

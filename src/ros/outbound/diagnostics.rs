@@ -94,6 +94,23 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         off_time_input_ms: ms(s.t_off_input),
         remaining_on_s: whole_seconds(rem_on),
         remaining_off_s: whole_seconds(rem_off),
+        control: if s.heater.pid { "pid" } else { "open" }.into(),
+        temperature_c: s.heater.reading.map_or(f64::NAN, |(c, _)| c),
+        temperature_age_ms: s
+            .heater
+            .reading
+            .map_or(-1.0, |(_, at)| ms(now.saturating_sub(at))),
+        setpoint_c: s.heater.setpoint.unwrap_or(f64::NAN),
+        pid_p: s.heater.terms.p,
+        pid_i: s.heater.terms.i,
+        pid_d: s.heater.terms.d,
+        pid_output: s.heater.terms.output,
+        heater_fault: s
+            .heater
+            .fault
+            .map_or(String::new(), |f| f.check().to_string()),
+        heater_fault_message: s.heater.fault.map_or(String::new(), |f| f.to_string()),
+        heater_fault_lasts: s.heater.fault_lasts,
     }
 }
 
@@ -412,10 +429,14 @@ impl ChannelHealth {
     /// The diagnostic level at monotonic time `now`.
     pub fn level(&self, now: Nanos) -> u8 {
         let s = self.status.as_ref();
-        if self.output_fault || self.watchdog_tripped() || s.is_some_and(|s| s.estopped) {
+        if self.output_fault
+            || self.watchdog_tripped()
+            || s.is_some_and(|s| s.estopped || s.heater.fault.is_some())
+        {
             DiagnosticStatus::ERROR
         } else if self.recent_rejection(now).is_some()
             || self.recent_refusal(now).is_some()
+            || s.is_some_and(|s| s.heater.sizing[0].is_some())
             || s.is_some_and(|s| s.e1 || (s.limited && !s.rule.extended()) || s.command_clamped)
             || s.is_some_and(|s| s.sizing.is_some())
         {
@@ -434,6 +455,14 @@ impl ChannelHealth {
         let Some(s) = self.status.as_ref() else {
             return "starting".into();
         };
+        if let Some(f) = s.heater.fault {
+            let after = if s.heater.fault_lasts {
+                "the condition lasts; ~/<ch>/reset_fault is refused until it is gone"
+            } else {
+                "the condition is gone; ~/<ch>/reset_fault clears it"
+            };
+            return format!("heater fault {f}; line off and held off ({after})");
+        }
         if s.estopped {
             return "e-stop latched: output held off until ~/reset_estop and a fresh enable".into();
         }
@@ -539,6 +568,9 @@ impl ChannelHealth {
             Some(advice) => format!("{state}; sizing: {advice}"),
             None => state,
         };
+        if let Some(rule) = s.heater.sizing[0] {
+            return format!("{state}; {rule}");
+        }
         if s.protections.any() {
             let acting: Vec<&str> = s.protections.names().collect();
             format!(
@@ -596,6 +628,38 @@ impl ChannelHealth {
                     s.sizing.map(|a| a.to_string()).unwrap_or_default(),
                 ),
             ]);
+            let h = &s.heater;
+            if h.feedback {
+                let num = |v: Option<f64>| v.map_or("none".into(), |v| format!("{v:.3}"));
+                kv.extend([
+                    ("control", if h.pid { "pid" } else { "open" }.to_string()),
+                    ("temperature_c", num(h.reading.map(|(c, _)| c))),
+                    (
+                        "temperature_age_ms",
+                        num(h.reading.map(|(_, at)| ms(now.saturating_sub(at)))),
+                    ),
+                    ("setpoint_c", num(h.setpoint)),
+                    ("pid_p_pct", format!("{:.3}", h.terms.p)),
+                    ("pid_i_pct", format!("{:.3}", h.terms.i)),
+                    ("pid_d_pct", format!("{:.3}", h.terms.d)),
+                    ("pid_output_pct", format!("{:.3}", h.terms.output)),
+                    ("runaway_error", format!("{:.1}", h.runaway_error)),
+                    (
+                        "heater_fault",
+                        h.fault.map_or(String::new(), |f| f.check().to_string()),
+                    ),
+                    ("heater_fault_lasts", h.fault_lasts.to_string()),
+                    (
+                        "sizing",
+                        h.sizing
+                            .iter()
+                            .flatten()
+                            .map(|r| r.to_string())
+                            .collect::<Vec<_>>()
+                            .join("; "),
+                    ),
+                ]);
+            }
         }
         kv.extend([
             ("watchdog_tripped", self.watchdog_tripped().to_string()),
@@ -687,6 +751,7 @@ mod tests {
             t_on_input: 370 * NS_PER_MS,
             t_off_input: 630 * NS_PER_MS,
             sizing: None,
+            heater: Default::default(),
         }
     }
 

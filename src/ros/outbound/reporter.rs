@@ -369,6 +369,30 @@ impl Reporter {
                      still on)"
                 );
             }
+            Event::Refused(r) => {
+                let h = &mut self.health[ch];
+                h.rejected += 1;
+                h.last_rejection = Some((r.to_string(), now));
+                warn!("{name}: {r}");
+            }
+            Event::HeaterFault(f) => {
+                error!("{name}: heater fault latched: {f}; line off, held off until ~/{name}/reset_fault");
+                if self.state.heater_estop() {
+                    // The output thread latched the e-stop of every channel with it.
+                    self.state.set_estop(true);
+                    error!("heater_fault_latches_estop: e-stop latched for every channel");
+                }
+            }
+            Event::FaultReset { ticket, result } => {
+                match &result {
+                    Ok(()) => info!(
+                        "{name}: heater fault reset; the channel is disabled until its next enable"
+                    ),
+                    Err(e) => warn!("{name}: heater fault reset refused: {e}"),
+                }
+                self.state
+                    .answer_reset(ch, ticket, result.map_err(|e| e.to_string()));
+            }
             Event::Plan(_) | Event::Edge { .. } => {}
         }
     }

@@ -74,7 +74,17 @@ pub(crate) fn subscription<M: RosMessage + 'static>(
     remaps: &[Remap],
     name: &str,
 ) -> Result<(String, Subscription<M>), EndpointError> {
-    let qos = qos::commands();
+    subscription_with(node, id, remaps, name, qos::commands())
+}
+
+/// A subscription to `name` with `qos`.
+pub(crate) fn subscription_with<M: RosMessage + 'static>(
+    node: &mut Node,
+    id: &NodeIdentity,
+    remaps: &[Remap],
+    name: &str,
+    qos: QosProfile,
+) -> Result<(String, Subscription<M>), EndpointError> {
     let (full, t) = topic(node, id, remaps, name, M::type_name(), &qos)?;
     debug!("subscribing {full}");
     let s = node
@@ -131,6 +141,22 @@ impl Endpoints<'_> {
         F: FnMut(M) + Send + 'static,
     {
         let (full, sub) = subscription::<M>(self.node, self.id, self.remaps, name)?;
+        Ok(listen(full, sub, on_msg))
+    }
+
+    /// Subscribes to `name` with `qos` (a sensor's best effort) and hands each message to
+    /// `on_msg` in a task.
+    pub fn listen_with<M, F>(
+        &mut self,
+        name: &str,
+        qos: QosProfile,
+        on_msg: F,
+    ) -> Result<JoinHandle<()>, EndpointError>
+    where
+        M: RosMessage + Send + Sync + 'static,
+        F: FnMut(M) + Send + 'static,
+    {
+        let (full, sub) = subscription_with::<M>(self.node, self.id, self.remaps, name, qos)?;
         Ok(listen(full, sub, on_msg))
     }
 

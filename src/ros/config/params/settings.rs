@@ -43,6 +43,8 @@ pub struct NodeSettings {
     pub rt_priority: Option<i32>,
     /// `use_sim_time`: always false here.
     pub use_sim_time: bool,
+    /// `heater_fault_latches_estop`: a heater fault of any channel latches the e-stop.
+    pub heater_fault_latches_estop: bool,
 }
 
 impl NodeSettings {

@@ -100,6 +100,8 @@ pub struct ChannelStart {
     pub enable: bool,
     /// Duty at start-up, percent.
     pub duty_percent: f64,
+    /// `feedback_topic`: the temperature topic, empty for none.
+    pub feedback_topic: String,
 }
 
 /// What the node needs at start-up, read from the store.
@@ -125,6 +127,10 @@ impl StartupConfig {
                 config: store.channel_config(ch)?,
                 enable: store.bool(&format!("{name}.enable")).unwrap_or(false),
                 duty_percent: store.double(&format!("{name}.duty")).unwrap_or(0.0),
+                feedback_topic: store
+                    .string(&format!("{name}.feedback_topic"))
+                    .unwrap_or("")
+                    .to_string(),
                 name,
             });
         }

@@ -19,6 +19,10 @@ use crate::core::config::{
     ShortStr, UnknownName, MAX_AVG_WINDOW_S, MAX_EXTEND_FACTOR, MAX_ON_MS, MAX_PERIOD_MS,
     MAX_SLEW_PCT_PER_S, MAX_TIMEOUT_MS,
 };
+use crate::core::heater::{
+    Control, HeaterParams, MAX_DELTA_C, MAX_GAIN, MAX_RUNAWAY_ERROR, MAX_TEMP_C, MAX_TIME_S,
+    MIN_TEMP_C,
+};
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::ros::interface::msg;
 use std::str::FromStr;
@@ -144,6 +148,10 @@ fn double(v: &V) -> f64 {
 
 fn core_defaults() -> ChannelParams {
     ChannelParams::default()
+}
+
+fn heater_defaults() -> HeaterParams {
+    HeaterParams::default()
 }
 
 /// The node-level parameters.
@@ -322,6 +330,15 @@ pub(super) fn node_decls() -> Vec<Decl> {
                 n.rt_priority = Some(int(v)).filter(|p| *p > 0).map(|p| p.min(99) as i32)
             }),
             ..Decl::new("rt_priority", Integer, || V::Integer(0))
+        },
+        Decl {
+            description: "A heater fault of any channel (temperature_out_of_range, \
+                          sensor_timeout, not_heating, stuck_on) also latches the e-stop of \
+                          every channel; ~/reset_estop releases it.",
+            constraints: "start-up only",
+            read_only: Some(START_UP),
+            node: Some(|n, v| n.heater_fault_latches_estop = boolean(v)),
+            ..Decl::new("heater_fault_latches_estop", Bool, || V::Boolean(false))
         },
         Decl {
             description: "Standard ROS parameter; always false here.",
@@ -680,6 +697,203 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             }),
             ..Decl::new("avg_window_s", Integer, || {
                 V::Integer(core_defaults().avg_window_s as i64)
+            })
+        },
+        Decl {
+            description: "Temperature feedback: a sensor_msgs/Temperature topic (°C), \
+                          subscribed best effort so best-effort and reliable publishers both \
+                          match. Its last reading and age go to ~/<ch>/status and \
+                          /diagnostics. Empty: none.",
+            constraints: "start-up only; needed by control pid and the heater checks",
+            read_only: Some(START_UP),
+            core: Some(|c, v| {
+                c.heater.feedback = !text(v).is_empty();
+                Ok(())
+            }),
+            ..Decl::new("feedback_topic", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "Who sets the duty: open (duty commands, as without a heater loop) \
+                          or pid (the loop, from the feedback and ~/<ch>/setpoint). Under pid \
+                          a duty command is refused, and command_timeout_ms watches the \
+                          setpoint and the feedback; under open a setpoint is refused.",
+            constraints: "open|pid; pid needs feedback_topic; a switch is bumpless",
+            choices: Some(|s| spelled::<Control>(s, false)),
+            core: Some(|c, v| {
+                c.heater.control = text(v).parse()?;
+                Ok(())
+            }),
+            ..Decl::new("control", String, || {
+                V::String(heater_defaults().control.as_str().into())
+            })
+        },
+        Decl {
+            description: "PID sample, ms: the loop computes the duty this often from the \
+                          latest reading. 0: the channel's period.",
+            constraints: "0, or 10..3600000; in force at once",
+            range: Range::Integer(0, MAX_PERIOD_MS as i64),
+            checked: Checked::Core,
+            note: " (0 = the channel's period)",
+            core: Some(|c, v| {
+                c.heater.pid_sample_ms = ms(v);
+                Ok(())
+            }),
+            ..Decl::new("pid_sample_ms", Integer, || V::Integer(0))
+        },
+        Decl {
+            description: "Proportional gain, % per °C.",
+            constraints: "a gain change is bumpless",
+            range: Range::Double(0.0, MAX_GAIN),
+            core: Some(|c, v| {
+                c.heater.pid_kp = double(v);
+                Ok(())
+            }),
+            ..Decl::new("pid_kp", Double, || V::Double(0.0))
+        },
+        Decl {
+            description: "Integral gain, % per °C·s (TI = pid_kp / pid_ki). The integral \
+                          stops while the duty is held at a limit (anti-windup).",
+            constraints: "a gain change is bumpless",
+            range: Range::Double(0.0, MAX_GAIN),
+            core: Some(|c, v| {
+                c.heater.pid_ki = double(v);
+                Ok(())
+            }),
+            ..Decl::new("pid_ki", Double, || V::Double(0.0))
+        },
+        Decl {
+            description: "Derivative gain, % per °C/s, on the measurement (no kick on a \
+                          setpoint step).",
+            constraints: "a gain change is bumpless",
+            range: Range::Double(0.0, MAX_GAIN),
+            core: Some(|c, v| {
+                c.heater.pid_kd = double(v);
+                Ok(())
+            }),
+            ..Decl::new("pid_kd", Double, || V::Double(0.0))
+        },
+        Decl {
+            description: "Time constant of the derivative's first-order filter, s. 0: none.",
+            range: Range::Double(0.0, MAX_TIME_S),
+            core: Some(|c, v| {
+                c.heater.pid_d_filter_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("pid_d_filter_s", Double, || V::Double(0.0))
+        },
+        Decl {
+            description: "Lowest valid reading, °C: below it (and NaN or ±inf) the heater \
+                          fault temperature_out_of_range latches. Also the lowest setpoint.",
+            constraints: "below temp_max_c",
+            range: Range::Double(MIN_TEMP_C, MAX_TEMP_C),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.heater.temp_min_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("temp_min_c", Double, || {
+                V::Double(heater_defaults().temp_min_c)
+            })
+        },
+        Decl {
+            description: "Highest valid reading, °C: above it the heater fault \
+                          temperature_out_of_range latches. Also the highest setpoint. Set it \
+                          for a real heater (Klipper's max_temp).",
+            constraints: "above temp_min_c",
+            range: Range::Double(MIN_TEMP_C, MAX_TEMP_C),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.heater.temp_max_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("temp_max_c", Double, || {
+                V::Double(heater_defaults().temp_max_c)
+            })
+        },
+        Decl {
+            description: "sensor_timeout: no reading for this long while the channel is \
+                          enabled latches the heater fault. 0: off.",
+            range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
+            note: " (0 = off)",
+            core: Some(|c, v| {
+                c.heater.feedback_timeout_ms = ms(v);
+                Ok(())
+            }),
+            ..Decl::new("feedback_timeout_ms", Integer, || V::Integer(0))
+        },
+        Decl {
+            description: "not_heating (Klipper's verify_heater hysteresis), °C: within this of \
+                          the setpoint the check rests.",
+            range: Range::Double(0.0, MAX_DELTA_C),
+            core: Some(|c, v| {
+                c.heater.runaway_hysteresis_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("runaway_hysteresis_c", Double, || {
+                V::Double(heater_defaults().runaway_hysteresis_c)
+            })
+        },
+        Decl {
+            description: "not_heating (verify_heater max_error), °C·s: the error summed once a \
+                          second below setpoint − hysteresis at which the fault latches.",
+            range: Range::Double(0.0, MAX_RUNAWAY_ERROR),
+            core: Some(|c, v| {
+                c.heater.runaway_max_error = double(v);
+                Ok(())
+            }),
+            ..Decl::new("runaway_max_error", Double, || {
+                V::Double(heater_defaults().runaway_max_error)
+            })
+        },
+        Decl {
+            description: "not_heating (verify_heater check_gain_time), s: after a new \
+                          setpoint, the temperature must gain runaway_heating_gain_c within \
+                          this, again and again, until within the hysteresis.",
+            range: Range::Double(1.0, MAX_TIME_S),
+            core: Some(|c, v| {
+                c.heater.runaway_gain_time_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("runaway_gain_time_s", Double, || {
+                V::Double(heater_defaults().runaway_gain_time_s)
+            })
+        },
+        Decl {
+            description: "not_heating (verify_heater heating_gain), °C.",
+            range: Range::Double(0.001, MAX_DELTA_C),
+            core: Some(|c, v| {
+                c.heater.runaway_heating_gain_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("runaway_heating_gain_c", Double, || {
+                V::Double(heater_defaults().runaway_heating_gain_c)
+            })
+        },
+        Decl {
+            description: "stuck_on: a rise of more than this, °C, within stuck_on_time_s while \
+                          the line has been held off the whole time (a welded SSR or relay) \
+                          latches the heater fault. 0: off.",
+            constraints: "above the rise a healthy heater makes after switching off \
+                          (docs/heater.md)",
+            range: Range::Double(0.0, MAX_DELTA_C),
+            note: " (0 = off)",
+            core: Some(|c, v| {
+                c.heater.stuck_on_rise_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("stuck_on_rise_c", Double, || V::Double(0.0))
+        },
+        Decl {
+            description: "stuck_on's window, s.",
+            range: Range::Double(1.0, MAX_TIME_S),
+            core: Some(|c, v| {
+                c.heater.stuck_on_time_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("stuck_on_time_s", Double, || {
+                V::Double(heater_defaults().stuck_on_time_s)
             })
         },
         Decl {

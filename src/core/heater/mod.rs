@@ -1,0 +1,322 @@
+//! The heater loop of a channel (issue 22): temperature feedback, a PID to a setpoint, and the
+//! heater checks that latch a fault and switch the line off. Pure: the channel drives it in
+//! virtual time (`Channel::feedback`, `Channel::set_setpoint`, its deadlines), and only the
+//! channel knows when its line was really on, which `stuck_on` needs.
+//!
+//! Everything is off by default: a channel without feedback runs open loop as before.
+//!
+//! - [`pid`]: the loop.
+//! - [`checks`]: `not_heating` (Klipper's `verify_heater`) and `stuck_on`.
+//! - [`plant`]: a first-order-plus-dead-time heater, for the tests and the simulated heater.
+
+pub mod checks;
+pub mod pid;
+pub mod plant;
+
+pub use super::config::heater::{
+    Control, Gains, HeaterConfig, HeaterConfigError, HeaterParams, Runaway, MAX_DELTA_C, MAX_GAIN,
+    MAX_RUNAWAY_ERROR, MAX_TEMP_C, MAX_TIME_S, MIN_SAMPLE_MS, MIN_TEMP_C,
+};
+use super::Nanos;
+pub use checks::{NotHeating, Rise, StuckOn};
+pub use pid::{Pid, Terms};
+pub use plant::{Plant, PlantFault, PlantParams};
+use std::fmt;
+
+/// How often `not_heating` ticks (Klipper's `verify_heater` runs every second).
+pub const CHECK_TICK: Nanos = 1_000_000_000;
+
+/// A latched heater fault: which check, with its figures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum HeaterFault {
+    /// A reading outside `temp_min_c..=temp_max_c`, NaN or infinite.
+    OutOfRange {
+        /// The reading, °C.
+        celsius: f64,
+        /// `temp_min_c`.
+        min_c: f64,
+        /// `temp_max_c`.
+        max_c: f64,
+    },
+    /// No reading for `feedback_timeout_ms` while enabled.
+    SensorTimeout {
+        /// Time since the last reading (or since start-up), ms.
+        silent_ms: u64,
+        /// `feedback_timeout_ms`.
+        timeout_ms: u64,
+    },
+    /// Klipper's "not heating at expected rate".
+    NotHeating {
+        /// The reading, °C.
+        celsius: f64,
+        /// The setpoint, °C.
+        target_c: f64,
+        /// The summed error, °C·s.
+        error: f64,
+        /// `runaway_max_error`.
+        max_error: f64,
+    },
+    /// The temperature rose while the line was held off (a welded SSR or relay).
+    StuckOn {
+        /// The rise within the window, °C.
+        rise_c: f64,
+        /// `stuck_on_rise_c`.
+        limit_c: f64,
+        /// `stuck_on_time_s`.
+        window_s: f64,
+    },
+}
+
+impl HeaterFault {
+    /// The check's name, as on `/diagnostics`: `temperature_out_of_range`, `sensor_timeout`,
+    /// `not_heating`, `stuck_on`.
+    pub fn check(&self) -> &'static str {
+        match self {
+            HeaterFault::OutOfRange { .. } => "temperature_out_of_range",
+            HeaterFault::SensorTimeout { .. } => "sensor_timeout",
+            HeaterFault::NotHeating { .. } => "not_heating",
+            HeaterFault::StuckOn { .. } => "stuck_on",
+        }
+    }
+}
+
+impl fmt::Display for HeaterFault {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            HeaterFault::OutOfRange {
+                celsius,
+                min_c,
+                max_c,
+            } => write!(
+                f,
+                "temperature_out_of_range: reading {celsius} °C outside {min_c}..{max_c} °C"
+            ),
+            HeaterFault::SensorTimeout {
+                silent_ms,
+                timeout_ms,
+            } => write!(
+                f,
+                "sensor_timeout: no reading for {silent_ms} ms (feedback_timeout_ms {timeout_ms})"
+            ),
+            HeaterFault::NotHeating {
+                celsius,
+                target_c,
+                error,
+                max_error,
+            } => write!(
+                f,
+                "not_heating: {celsius:.2} °C for setpoint {target_c:.2} °C, error {error:.1} \
+                 °C·s reached runaway_max_error {max_error}"
+            ),
+            HeaterFault::StuckOn {
+                rise_c,
+                limit_c,
+                window_s,
+            } => write!(
+                f,
+                "stuck_on: rose {rise_c:.2} °C within {window_s} s with the line off \
+                 (stuck_on_rise_c {limit_c})"
+            ),
+        }
+    }
+}
+
+/// Why a heater input was refused; what was in force stays.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum Refusal {
+    /// A duty command while `control` is `pid`.
+    #[error("duty command refused: control is pid (send a setpoint, or set control open)")]
+    DutyUnderPid,
+    /// A setpoint while `control` is `open`.
+    #[error("setpoint refused: control is open (set control pid)")]
+    SetpointUnderOpen,
+    /// A setpoint that is NaN or infinite.
+    #[error("setpoint {0} refused: not a finite number")]
+    SetpointNotFinite(f64),
+    /// A setpoint outside the temperature limits.
+    #[error("setpoint {value} °C refused: outside temp_min_c..temp_max_c ({min_c}..{max_c} °C)")]
+    SetpointOutOfRange {
+        /// The setpoint.
+        value: f64,
+        /// `temp_min_c`.
+        min_c: f64,
+        /// `temp_max_c`.
+        max_c: f64,
+    },
+}
+
+/// Why `reset_fault` was refused.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum ResetRefusal {
+    /// No heater fault is latched.
+    #[error("no heater fault is latched")]
+    NoFault,
+    /// The condition of the latched fault lasts.
+    #[error("the condition lasts: {0}")]
+    Lasts(HeaterFault),
+}
+
+/// What the channel reports of its heater loop.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct HeaterStatus {
+    /// Feedback is configured.
+    pub feedback: bool,
+    /// `control` is `pid`.
+    pub pid: bool,
+    /// The last reading, °C, and when it arrived (monotonic ns).
+    pub reading: Option<(f64, Nanos)>,
+    /// The setpoint in force, °C.
+    pub setpoint: Option<f64>,
+    /// The PID's terms at its last sample.
+    pub terms: Terms,
+    /// The latched fault.
+    pub fault: Option<HeaterFault>,
+    /// The condition of the latched fault still holds (a reset would be refused).
+    pub fault_lasts: bool,
+    /// `not_heating`'s summed error, °C·s.
+    pub runaway_error: f64,
+    /// TCONT_CP's sizing rules (003) the settings break under `pid`.
+    pub sizing: [Option<Sizing>; 3],
+}
+
+/// A rule of TCONT_CP's sizing (003) that the settings break while `pid` is in force.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Sizing {
+    /// `period_ms` above TI/5, TI = kp/ki (003: "PER_TM <= TI/5").
+    PeriodAboveTi5 {
+        /// The period, ms.
+        period_ms: f64,
+        /// TI, s.
+        ti_s: f64,
+    },
+    /// A minimum time above a tenth of the period (003: "P_B_TM <= 0.1 * PER_TM").
+    MinTimeAboveTenth {
+        /// `min_on_ms` or `min_off_ms`.
+        which: &'static str,
+        /// Its value, ms.
+        value_ms: f64,
+        /// The period, ms.
+        period_ms: f64,
+    },
+}
+
+impl fmt::Display for Sizing {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Sizing::PeriodAboveTi5 { period_ms, ti_s } => write!(
+                f,
+                "sizing rule period_ms <= TI/5 broken (003): period_ms {period_ms} > TI/5 = {} ms \
+                 (TI = pid_kp/pid_ki = {ti_s:.3} s)",
+                ti_s * 1000.0 / 5.0
+            ),
+            Sizing::MinTimeAboveTenth {
+                which,
+                value_ms,
+                period_ms,
+            } => write!(
+                f,
+                "sizing rule minimum time <= 0.1 x period broken (003): {which} {value_ms} > \
+                 {} ms",
+                period_ms / 10.0
+            ),
+        }
+    }
+}
+
+/// TCONT_CP's sizing rules (003) for a channel under `pid`: period `period_ms`, the minima
+/// `min_on_ms` and `min_off_ms` as configured (0 = the hardware floor, which is not counted).
+pub fn sizing(
+    heater: &HeaterParams,
+    period_ms: f64,
+    min_on_ms: f64,
+    min_off_ms: f64,
+) -> impl Iterator<Item = Sizing> {
+    let pid = heater.control == Control::Pid && period_ms > 0.0;
+    let ti_s = (heater.pid_ki > 0.0).then(|| heater.pid_kp / heater.pid_ki);
+    let ti = ti_s
+        .filter(|ti| pid && period_ms > ti * 1000.0 / 5.0)
+        .map(|ti_s| Sizing::PeriodAboveTi5 { period_ms, ti_s });
+    let minima = [("min_on_ms", min_on_ms), ("min_off_ms", min_off_ms)]
+        .into_iter()
+        .filter(move |(_, v)| pid && *v > 0.1 * period_ms)
+        .map(move |(which, value_ms)| Sizing::MinTimeAboveTenth {
+            which,
+            value_ms,
+            period_ms,
+        });
+    ti.into_iter().chain(minima)
+}
+
+/// The heater state a channel keeps (see the module documentation).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Heat {
+    pub(crate) pid: Pid,
+    pub(crate) not_heating: NotHeating,
+    pub(crate) stuck: StuckOn,
+    /// The last reading, °C, and when it arrived.
+    pub(crate) reading: Option<(f64, Nanos)>,
+    /// The setpoint in force and when it arrived.
+    pub(crate) setpoint: Option<(f64, Nanos)>,
+    /// Since when readings are expected (creation, or the last reconfiguration of feedback).
+    pub(crate) expected_since: Nanos,
+    /// The next PID sample, the last one, and the next `not_heating` tick.
+    pub(crate) next_sample: Option<Nanos>,
+    pub(crate) last_sample: Option<Nanos>,
+    pub(crate) next_tick: Option<Nanos>,
+    /// The latched fault.
+    pub(crate) fault: Option<HeaterFault>,
+    /// The rise `stuck_on` saw at the last reading.
+    pub(crate) rise: Rise,
+}
+
+impl Heat {
+    pub(crate) fn new(cfg: &HeaterConfig, now: Nanos) -> Heat {
+        Heat {
+            pid: Pid::new(cfg.gains),
+            not_heating: NotHeating::default(),
+            stuck: StuckOn::default(),
+            reading: None,
+            setpoint: None,
+            expected_since: now,
+            next_sample: None,
+            last_sample: None,
+            next_tick: cfg
+                .params
+                .feedback
+                .then_some(now.saturating_add(CHECK_TICK)),
+            fault: None,
+            rise: Rise {
+                rise_c: 0.0,
+                off_whole_window: false,
+            },
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tcont_cp_sizing_rules_003() {
+        let p = HeaterParams {
+            feedback: true,
+            control: Control::Pid,
+            pid_kp: 10.0,
+            pid_ki: 1.0,
+            ..HeaterParams::default()
+        };
+        // TI = 10 s: the period may be up to 2 s.
+        assert_eq!(sizing(&p, 2000.0, 0.0, 0.0).count(), 0);
+        let w: Vec<_> = sizing(&p, 2500.0, 300.0, 0.0).collect();
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(w[0].to_string().contains("period_ms <= TI/5"));
+        assert!(w[1].to_string().contains("min_on_ms 300 > 250 ms"));
+        // Open loop: no rule applies.
+        let open = HeaterParams {
+            control: Control::Open,
+            ..p
+        };
+        assert_eq!(sizing(&open, 2500.0, 300.0, 0.0).count(), 0);
+    }
+}

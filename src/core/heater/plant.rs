@@ -1,0 +1,241 @@
+//! A heater as a first-order-plus-dead-time plant, driven by the real line's edges: for the
+//! core's tests in virtual time and for the simulated heater (`sim-heater`). Pure: the caller
+//! passes the instants.
+//!
+//! With the heater at power `u` (0 or 1: the line), after the dead time `L`:
+//! `dT/dt = (ambient + rate·tau·u − T) / tau`, so at full power the temperature rises at
+//! `rate` °C/s from ambient and settles `rate·tau` above it. Between changes of the delayed
+//! input the solution is exact: `T(t+h) = T∞ + (T − T∞)·e^(−h/tau)`.
+
+use super::super::Nanos;
+use std::collections::VecDeque;
+
+/// A plant's constants.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlantParams {
+    /// Rise at 100 % from ambient, °C/s.
+    pub rate_c_per_s: f64,
+    /// Time constant, s.
+    pub tau_s: f64,
+    /// Dead time between the line and the sensor, s.
+    pub dead_time_s: f64,
+    /// Ambient, °C (and the start temperature).
+    pub ambient_c: f64,
+    /// Peak sensor noise, °C (uniform in ±noise).
+    pub noise_c: f64,
+}
+
+impl Default for PlantParams {
+    fn default() -> Self {
+        PlantParams {
+            rate_c_per_s: 2.0,
+            tau_s: 60.0,
+            dead_time_s: 2.0,
+            ambient_c: 20.0,
+            noise_c: 0.0,
+        }
+    }
+}
+
+/// A fault injected into the plant.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PlantFault {
+    /// None.
+    #[default]
+    None,
+    /// The heater is disconnected: no power whatever the line.
+    HeaterDisconnected,
+    /// The heater is stuck on (a welded SSR): full power whatever the line.
+    HeaterStuckOn,
+    /// The sensor reports its last value for ever.
+    SensorStuck,
+    /// The sensor sends nothing.
+    SensorSilent,
+    /// The sensor is shorted: it reads ambient.
+    SensorShorted,
+}
+
+impl PlantFault {
+    /// The spelling used by `sim-heater`: `none`, `heater_disconnected`, `heater_stuck_on`,
+    /// `sensor_stuck`, `sensor_silent`, `sensor_shorted`.
+    pub fn parse(s: &str) -> Option<PlantFault> {
+        Some(match s {
+            "none" => PlantFault::None,
+            "heater_disconnected" => PlantFault::HeaterDisconnected,
+            "heater_stuck_on" => PlantFault::HeaterStuckOn,
+            "sensor_stuck" => PlantFault::SensorStuck,
+            "sensor_silent" => PlantFault::SensorSilent,
+            "sensor_shorted" => PlantFault::SensorShorted,
+            _ => return None,
+        })
+    }
+}
+
+/// The plant (see the module documentation).
+#[derive(Debug, Clone)]
+pub struct Plant {
+    p: PlantParams,
+    temp: f64,
+    at: Nanos,
+    /// The power in effect at the heater now (after the dead time), 0 or 1.
+    power: f64,
+    /// Changes of the line that have not reached the heater yet: (when they do, level).
+    pending: VecDeque<(Nanos, bool)>,
+    /// The line as last told, and since when.
+    line: bool,
+    line_since: Nanos,
+    fault: PlantFault,
+    stuck_reading: Option<f64>,
+    rng: u64,
+}
+
+impl Plant {
+    /// A plant at ambient at instant `now`, its line off; `seed` drives the noise.
+    pub fn new(p: PlantParams, now: Nanos, seed: u64) -> Plant {
+        Plant {
+            p,
+            temp: p.ambient_c,
+            at: now,
+            power: 0.0,
+            pending: VecDeque::new(),
+            line: false,
+            line_since: now,
+            fault: PlantFault::None,
+            stuck_reading: None,
+            rng: seed | 1,
+        }
+    }
+
+    /// The constants.
+    pub fn params(&self) -> &PlantParams {
+        &self.p
+    }
+
+    /// Injects `fault` from now on.
+    pub fn set_fault(&mut self, fault: PlantFault) {
+        self.fault = fault;
+        self.stuck_reading = None;
+    }
+
+    /// The fault injected.
+    pub fn fault(&self) -> PlantFault {
+        self.fault
+    }
+
+    /// The true temperature at the last instant advanced to, °C.
+    pub fn temperature(&self) -> f64 {
+        self.temp
+    }
+
+    /// The line as last told, and since when (ns).
+    pub fn line_state(&self) -> (bool, Nanos) {
+        (self.line, self.line_since)
+    }
+
+    /// The line changed to `on` at `at` (not before the last instant advanced to).
+    pub fn line(&mut self, at: Nanos, on: bool) {
+        self.advance(at);
+        if on != self.line {
+            self.line = on;
+            self.line_since = at;
+            let dead = (self.p.dead_time_s * 1e9) as Nanos;
+            self.pending.push_back((at.saturating_add(dead), on));
+        }
+    }
+
+    fn dt_to(&mut self, t: Nanos) {
+        if t <= self.at {
+            return;
+        }
+        let h = (t - self.at) as f64 / 1e9;
+        let power = match self.fault {
+            PlantFault::HeaterDisconnected => 0.0,
+            PlantFault::HeaterStuckOn => 1.0,
+            _ => self.power,
+        };
+        let target = self.p.ambient_c + self.p.rate_c_per_s * self.p.tau_s * power;
+        self.temp = target + (self.temp - target) * (-h / self.p.tau_s).exp();
+        self.at = t;
+    }
+
+    /// Advances the plant to `t`.
+    pub fn advance(&mut self, t: Nanos) {
+        while let Some(&(when, on)) = self.pending.front() {
+            if when > t {
+                break;
+            }
+            self.dt_to(when);
+            self.power = if on { 1.0 } else { 0.0 };
+            self.pending.pop_front();
+        }
+        self.dt_to(t);
+    }
+
+    fn noise(&mut self) -> f64 {
+        // xorshift64*: deterministic per seed.
+        self.rng ^= self.rng >> 12;
+        self.rng ^= self.rng << 25;
+        self.rng ^= self.rng >> 27;
+        let x = self.rng.wrapping_mul(0x2545_F491_4F6C_DD1D);
+        let unit = (x >> 11) as f64 / (1u64 << 53) as f64;
+        (2.0 * unit - 1.0) * self.p.noise_c
+    }
+
+    /// The sensor's reading at `t`, °C, or `None` when it is silent.
+    pub fn reading(&mut self, t: Nanos) -> Option<f64> {
+        self.advance(t);
+        let noisy = self.temp + self.noise();
+        match self.fault {
+            PlantFault::SensorSilent => None,
+            PlantFault::SensorShorted => Some(self.p.ambient_c),
+            PlantFault::SensorStuck => Some(*self.stuck_reading.get_or_insert(noisy)),
+            _ => Some(noisy),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const S: Nanos = 1_000_000_000;
+
+    #[test]
+    fn full_power_after_the_dead_time_then_first_order() {
+        let p = PlantParams {
+            rate_c_per_s: 1.0,
+            tau_s: 100.0,
+            dead_time_s: 5.0,
+            ambient_c: 20.0,
+            noise_c: 0.0,
+        };
+        let mut plant = Plant::new(p, 0, 1);
+        plant.line(0, true);
+        assert_eq!(plant.reading(5 * S), Some(20.0));
+        // 100 s after the dead time: 20 + 100·(1 − e^−1).
+        let t = plant.reading(105 * S).unwrap();
+        assert!(
+            (t - (20.0 + 100.0 * (1.0 - (-1.0f64).exp()))).abs() < 1e-9,
+            "{t}"
+        );
+        plant.line(105 * S, false);
+        // Still heating for the dead time.
+        assert!(plant.reading(110 * S).unwrap() > t);
+        assert!(plant.reading(200 * S).unwrap() < t);
+    }
+
+    #[test]
+    fn faults() {
+        let mut plant = Plant::new(PlantParams::default(), 0, 1);
+        plant.set_fault(PlantFault::HeaterStuckOn);
+        let a = plant.reading(10 * S).unwrap();
+        assert!(a > 30.0, "{a}");
+        plant.set_fault(PlantFault::SensorStuck);
+        let b = plant.reading(20 * S).unwrap();
+        assert_eq!(plant.reading(30 * S), Some(b));
+        plant.set_fault(PlantFault::SensorShorted);
+        assert_eq!(plant.reading(40 * S), Some(20.0));
+        plant.set_fault(PlantFault::SensorSilent);
+        assert_eq!(plant.reading(50 * S), None);
+    }
+}

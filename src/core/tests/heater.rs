@@ -1,0 +1,491 @@
+//! The heater loop in virtual time: a channel under `pid` driving a first-order-plus-dead-time
+//! plant through its real edges, the plant's sensor read at a fixed rate. The PID's behaviour
+//! in the channel (bumpless switches, limits), then the heater checks against healthy and
+//! broken plants, as examples and as properties.
+
+use crate::core::heater::{
+    Control, HeaterFault, HeaterParams, Plant, PlantFault, PlantParams, ResetRefusal,
+};
+use crate::core::{Channel, ChannelParams, Event, Level, Nanos, NS_PER_MS};
+use proptest::prelude::*;
+
+const S: Nanos = 1_000_000_000;
+
+/// A channel, its plant and the sensor's reading clock, run together in virtual time.
+struct Rig {
+    ch: Channel,
+    plant: Plant,
+    now: Nanos,
+    next_reading: Nanos,
+    reading_every: Nanos,
+    /// Every event except edges and plans, with its instant.
+    notes: Vec<(Nanos, Event)>,
+    /// Line changes: (instant, level).
+    edges: Vec<(Nanos, Level)>,
+    /// The highest and lowest true temperature after `watch_from`.
+    watch_from: Nanos,
+    band: (f64, f64),
+}
+
+fn heater(plant: &PlantParams) -> HeaterParams {
+    // SIMC tuning (Skogestad) with tc = dead time: kp = tau / (K·2L), TI = min(tau, 8L),
+    // K = rate·tau / 100 °C per %.
+    let k = plant.rate_c_per_s * plant.tau_s / 100.0;
+    let l = plant.dead_time_s.max(0.5);
+    let kp = plant.tau_s / (k * 2.0 * l);
+    let ti = plant.tau_s.min(8.0 * l);
+    HeaterParams {
+        feedback: true,
+        control: Control::Pid,
+        pid_kp: kp,
+        pid_ki: kp / ti,
+        pid_kd: 0.0,
+        temp_min_c: -20.0,
+        temp_max_c: 1000.0,
+        ..HeaterParams::default()
+    }
+}
+
+fn params(h: HeaterParams) -> ChannelParams {
+    ChannelParams {
+        period_ms: 1000,
+        heater: h,
+        ..ChannelParams::default()
+    }
+}
+
+impl Rig {
+    fn new(p: ChannelParams, plant: PlantParams, seed: u64) -> Rig {
+        Rig {
+            ch: Channel::new(p.validate().expect("valid test parameters"), 0),
+            plant: Plant::new(plant, 0, seed),
+            now: 0,
+            next_reading: 0,
+            reading_every: 250 * NS_PER_MS,
+            notes: Vec::new(),
+            edges: Vec::new(),
+            watch_from: Nanos::MAX,
+            band: (f64::INFINITY, f64::NEG_INFINITY),
+        }
+    }
+
+    fn act(&mut self, f: impl FnOnce(&mut Channel, Nanos, &mut dyn FnMut(Event))) {
+        let (now, plant, notes, edges) =
+            (self.now, &mut self.plant, &mut self.notes, &mut self.edges);
+        f(&mut self.ch, now, &mut |e| match e {
+            Event::Edge { at, level } => {
+                plant.line(now, level.is_high());
+                edges.push((at, level));
+            }
+            Event::Plan(_) => {}
+            other => notes.push((now, other)),
+        });
+    }
+
+    /// Runs every deadline and reading up to `t`.
+    fn run_to(&mut self, t: Nanos) -> &mut Self {
+        loop {
+            let due = self.ch.poll_at().unwrap_or(Nanos::MAX);
+            let next = due.min(self.next_reading);
+            if next > t {
+                break;
+            }
+            self.now = next;
+            if next == self.next_reading {
+                self.next_reading += self.reading_every;
+                if let Some(c) = self.plant.reading(next) {
+                    self.act(|ch, now, emit| ch.feedback(now, c, emit));
+                }
+                if next >= self.watch_from {
+                    let temp = self.plant.temperature();
+                    self.band = (self.band.0.min(temp), self.band.1.max(temp));
+                }
+            } else {
+                self.act(|ch, now, emit| ch.poll(now, emit));
+            }
+        }
+        self.now = t;
+        self.plant.advance(t);
+        self
+    }
+
+    fn secs(&mut self, s: f64) -> &mut Self {
+        self.run_to(self.now + (s * 1e9) as Nanos)
+    }
+
+    fn enable(&mut self) -> &mut Self {
+        self.act(|ch, now, emit| ch.set_enable(now, true, emit));
+        self
+    }
+
+    fn setpoint(&mut self, c: f64) -> &mut Self {
+        self.act(|ch, now, emit| ch.set_setpoint(now, c, emit));
+        self
+    }
+
+    fn faults(&self) -> Vec<(Nanos, HeaterFault)> {
+        self.notes
+            .iter()
+            .filter_map(|(t, e)| match e {
+                Event::HeaterFault(f) => Some((*t, *f)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn first_fault(&self) -> Option<(Nanos, HeaterFault)> {
+        self.faults().first().copied()
+    }
+
+    fn reset(&mut self) -> Result<(), ResetRefusal> {
+        self.act(|ch, now, emit| ch.reset_heater_fault(now, 7, emit));
+        match self.notes.last() {
+            Some((_, Event::FaultReset { ticket: 7, result })) => *result,
+            other => panic!("no answer to the reset: {other:?}"),
+        }
+    }
+
+    /// No rise of the line after `t`.
+    fn no_rise_after(&self, t: Nanos) -> bool {
+        !self
+            .edges
+            .iter()
+            .any(|(at, l)| *at > t && *l == Level::High)
+    }
+}
+
+#[test]
+fn the_loop_holds_its_setpoint_within_one_degree() {
+    let plant = PlantParams {
+        noise_c: 0.05,
+        ..PlantParams::default()
+    };
+    let mut r = Rig::new(params(heater(&plant)), plant, 1);
+    r.setpoint(80.0).enable().secs(300.0);
+    r.watch_from = r.now;
+    r.secs(300.0);
+    let (lo, hi) = r.band;
+    assert!(lo > 79.0 && hi < 81.0, "settled between {lo} and {hi}");
+    assert!(r.faults().is_empty(), "{:?}", r.faults());
+    let s = r.ch.status(r.now).heater;
+    assert_eq!(s.setpoint, Some(80.0));
+    // At 80 °C the plant needs (80 − 20) / 120 = 50 % on average: the integral carries it.
+    assert!((s.terms.output - 50.0).abs() < 10.0, "{s:?}");
+    assert!((s.terms.i - 50.0).abs() < 10.0, "{s:?}");
+}
+
+#[test]
+fn duty_and_setpoint_are_refused_in_the_wrong_mode() {
+    let plant = PlantParams::default();
+    let mut r = Rig::new(params(heater(&plant)), plant, 1);
+    r.act(|ch, now, emit| ch.command(now, crate::core::Command::Percent(50.0), emit));
+    assert!(matches!(
+        r.notes.last(),
+        Some((
+            _,
+            Event::Refused(crate::core::heater::Refusal::DutyUnderPid)
+        ))
+    ));
+    for bad in [f64::NAN, f64::INFINITY, 2000.0, -50.0] {
+        r.setpoint(bad);
+        assert!(
+            matches!(r.notes.last(), Some((_, Event::Refused(_)))),
+            "{bad}"
+        );
+    }
+    assert_eq!(r.ch.status(0).heater.setpoint, None);
+    let mut open = HeaterParams {
+        control: Control::Open,
+        ..heater(&plant)
+    };
+    open.feedback = true;
+    let mut r = Rig::new(params(open), plant, 1);
+    r.setpoint(50.0);
+    assert!(matches!(
+        r.notes.last(),
+        Some((
+            _,
+            Event::Refused(crate::core::heater::Refusal::SetpointUnderOpen)
+        ))
+    ));
+}
+
+#[test]
+fn open_to_pid_and_back_is_bumpless() {
+    let plant = PlantParams::default();
+    let pid = heater(&plant);
+    let open = HeaterParams {
+        control: Control::Open,
+        ..pid
+    };
+    let mut r = Rig::new(params(open), plant, 1);
+    r.act(|ch, now, emit| ch.command(now, crate::core::Command::Percent(40.0), emit));
+    r.enable().secs(200.0);
+    let temp = r.plant.temperature();
+    // Switch to pid: the duty in force stays until a setpoint, and the first sample with the
+    // setpoint at the current temperature gives the same duty.
+    let cfg = params(pid).validate().unwrap();
+    r.act(|ch, now, emit| ch.set_config(now, cfg, emit));
+    r.secs(2.0);
+    assert_eq!(r.ch.status(r.now).duty_commanded, 0.4);
+    r.setpoint(temp).secs(1.0);
+    let d = r.ch.status(r.now).duty_commanded * 100.0;
+    assert!((d - 40.0).abs() < 3.0, "duty jumped to {d} %");
+    // And back to open: the loop's last duty stays until a command.
+    let before = r.ch.status(r.now).duty_commanded;
+    let cfg = params(open).validate().unwrap();
+    r.act(|ch, now, emit| ch.set_config(now, cfg, emit));
+    r.secs(5.0);
+    assert_eq!(r.ch.status(r.now).duty_commanded, before);
+}
+
+#[test]
+fn a_gain_change_under_pid_does_not_jump_the_duty() {
+    let plant = PlantParams::default();
+    let h = heater(&plant);
+    let mut r = Rig::new(params(h), plant, 1);
+    r.setpoint(80.0).enable().secs(400.0);
+    let before = r.ch.status(r.now).heater.terms.output;
+    let stronger = HeaterParams {
+        pid_kp: h.pid_kp * 3.0,
+        pid_ki: h.pid_ki * 2.0,
+        ..h
+    };
+    let cfg = params(stronger).validate().unwrap();
+    r.act(|ch, now, emit| ch.set_config(now, cfg, emit));
+    r.secs(1.0);
+    let after = r.ch.status(r.now).heater.terms.output;
+    assert!((after - before).abs() < 5.0, "{before} -> {after}");
+}
+
+#[test]
+fn the_integral_stays_within_max_duty() {
+    let plant = PlantParams::default();
+    let mut p = params(heater(&plant));
+    p.max_duty_pct = 30.0;
+    let mut r = Rig::new(p, plant, 1);
+    // 30 % gives at most 56 °C: 150 °C is never reached, the output sits at 30 %.
+    r.setpoint(150.0).enable().secs(120.0);
+    let t = r.ch.status(r.now).heater.terms;
+    assert_eq!(t.output, 30.0);
+    assert!(t.i <= 30.0, "{t:?}");
+    // A setpoint below the temperature: the output leaves the limit at the next sample.
+    r.setpoint(25.0).secs(1.0);
+    assert_eq!(r.ch.status(r.now).heater.terms.output, 0.0);
+}
+
+#[test]
+fn out_of_range_and_nan_latch_with_the_line_off_at_once() {
+    let plant = PlantParams::default();
+    let mut h = heater(&plant);
+    h.temp_max_c = 90.0;
+    let mut r = Rig::new(params(h), plant, 1);
+    r.setpoint(85.0).enable().secs(20.0);
+    assert_eq!(r.ch.level(), Level::High);
+    let now = r.now;
+    r.act(|ch, now, emit| ch.feedback(now, f64::NAN, emit));
+    assert_eq!(r.ch.level(), Level::Low, "off at once");
+    let (at, f) = r.first_fault().unwrap();
+    assert_eq!(at, now);
+    assert_eq!(f.check(), "temperature_out_of_range");
+    assert!(r.ch.heater_fault().is_some());
+    // The NaN lasts: refused. The next (good) reading clears the condition.
+    assert!(matches!(r.reset(), Err(ResetRefusal::Lasts(_))));
+    r.secs(5.0);
+    assert!(r.no_rise_after(now));
+    // Enable while latched: taken, no rise.
+    r.enable().secs(5.0);
+    assert!(r.no_rise_after(now));
+    assert_eq!(r.reset(), Ok(()));
+    assert!(
+        !r.ch.enabled(),
+        "disabled after a reset until the next enable"
+    );
+    r.secs(3.0);
+    assert!(r.no_rise_after(now));
+    r.enable().secs(3.0);
+    assert!(!r.no_rise_after(now));
+    assert_eq!(r.reset(), Err(ResetRefusal::NoFault));
+}
+
+#[test]
+fn a_silent_sensor_latches_sensor_timeout() {
+    let plant = PlantParams::default();
+    let mut h = heater(&plant);
+    h.feedback_timeout_ms = 2000;
+    let mut r = Rig::new(params(h), plant, 1);
+    r.setpoint(60.0).enable().secs(10.0);
+    assert!(r.faults().is_empty());
+    r.plant.set_fault(PlantFault::SensorSilent);
+    let silent = r.now;
+    r.secs(5.0);
+    let (at, f) = r.first_fault().expect("sensor_timeout");
+    assert_eq!(f.check(), "sensor_timeout");
+    // The last reading came at most one reading interval before the silence.
+    assert!(
+        at <= silent + 2 * S && at + 250 * NS_PER_MS >= silent + 2 * S,
+        "{at}"
+    );
+    assert_eq!(r.ch.level(), Level::Low);
+    assert!(matches!(r.reset(), Err(ResetRefusal::Lasts(_))));
+    r.plant.set_fault(PlantFault::None);
+    r.secs(1.0);
+    assert_eq!(r.reset(), Ok(()));
+}
+
+#[test]
+fn enabling_with_a_stale_sensor_latches_at_once() {
+    let plant = PlantParams::default();
+    let mut h = heater(&plant);
+    h.feedback_timeout_ms = 1000;
+    let mut r = Rig::new(params(h), plant, 1);
+    r.plant.set_fault(PlantFault::SensorSilent);
+    r.secs(3.0).setpoint(50.0).enable();
+    assert_eq!(r.first_fault().map(|f| f.1.check()), Some("sensor_timeout"));
+    assert!(r.edges.is_empty(), "the line never rose");
+}
+
+/// What a sizing rule allows: plants, setpoints and changes for which the checks must stay
+/// quiet (docs/heater.md, "Sizing the checks").
+fn arb_plant() -> impl Strategy<Value = PlantParams> {
+    (
+        0.5f64..3.0,
+        30.0f64..200.0,
+        0.5f64..3.0,
+        15.0f64..25.0,
+        0.0f64..0.2,
+    )
+        .prop_map(|(rate, tau, dead, ambient, noise)| PlantParams {
+            rate_c_per_s: rate,
+            tau_s: tau,
+            dead_time_s: dead,
+            ambient_c: ambient,
+            noise_c: noise,
+        })
+}
+
+/// Setpoints as fractions of the plant's full-power rise above ambient, at most 60 %.
+fn arb_setpoints() -> impl Strategy<Value = Vec<(f64, f64)>> {
+    prop::collection::vec((0.1f64..0.6, 30.0f64..200.0), 1..4)
+}
+
+/// The stuck-on sizing: a healthy plant keeps rising for its dead time after the line goes
+/// off, at most at its full-power rate, and the noise adds twice its peak.
+fn stuck_rise(plant: &PlantParams) -> f64 {
+    1.5 * (plant.rate_c_per_s * plant.dead_time_s + 2.0 * plant.noise_c) + 0.5
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    /// `not_heating` and `stuck_on` never trip while a healthy plant is heated to setpoints
+    /// within the sizing, through setpoint changes up and down.
+    #[test]
+    fn healthy_heating_never_trips(plant in arb_plant(), sps in arb_setpoints(), seed in 1u64..1000) {
+        let mut h = heater(&plant);
+        h.stuck_on_rise_c = stuck_rise(&plant);
+        h.stuck_on_time_s = 10.0;
+        h.feedback_timeout_ms = 1000;
+        let mut r = Rig::new(params(h), plant, seed);
+        r.enable();
+        for (fraction, hold_s) in sps {
+            let sp = plant.ambient_c + fraction * plant.rate_c_per_s * plant.tau_s;
+            r.setpoint(sp).secs(hold_s);
+            prop_assert!(r.faults().is_empty(), "{:?} at setpoint {sp}, {:.1} °C", r.faults(), r.plant.temperature());
+        }
+    }
+
+    /// A heater that comes loose trips `not_heating` within the bound its parameters give:
+    /// once the reading lies `m` below setpoint − hysteresis and falls (one dead time after
+    /// the disconnection at the latest, as the plant then only cools), a running approach
+    /// ends within `runaway_gain_time_s` (it cannot gain), and each tick after adds at least
+    /// `m` to the error: `gain_time + ceil(max_error / m) + 2` ticks.
+    #[test]
+    fn a_disconnected_heater_always_trips_not_heating(plant in arb_plant(), fraction in 0.2f64..0.6, after_s in 0.0f64..200.0) {
+        let plant = PlantParams { noise_c: 0.0, ..plant };
+        let h = heater(&plant);
+        let mut r = Rig::new(params(h), plant, 1);
+        let sp = plant.ambient_c + fraction * plant.rate_c_per_s * plant.tau_s;
+        // A setpoint the cold heater is below the band of (else there is nothing to see).
+        prop_assume!(sp - h.runaway_hysteresis_c - 2.0 > plant.ambient_c);
+        r.setpoint(sp).enable().secs(after_s);
+        r.plant.set_fault(PlantFault::HeaterDisconnected);
+        let cut = r.now;
+        let m = 1.0;
+        // Find when the reading first lies m below the band and the dead time has passed.
+        let mut below = None;
+        while r.first_fault().is_none() && r.now < cut + 3600 * S {
+            r.secs(0.25);
+            if below.is_none() && r.now >= cut + (plant.dead_time_s * 1e9) as Nanos
+                && r.plant.temperature() < sp - h.runaway_hysteresis_c - m {
+                below = Some(r.now);
+            }
+        }
+        let (at, f) = r.first_fault().expect("not_heating must trip");
+        prop_assert_eq!(f.check(), "not_heating");
+        let below = below.unwrap_or(at);
+        let bound = below
+            + (h.runaway_gain_time_s * 1e9) as Nanos
+            + ((h.runaway_max_error / m).ceil() as Nanos + 2) * S;
+        prop_assert!(at <= bound, "tripped {:.1} s after the reading was below the band, bound {:.1} s",
+            (at - below) as f64 / 1e9, (bound - below) as f64 / 1e9);
+        prop_assert_eq!(r.ch.level(), Level::Low);
+        prop_assert!(r.no_rise_after(at));
+    }
+
+    /// A welded SSR (the heater on whatever the line) trips `stuck_on` once the loop holds the
+    /// line off and the rise over the window exceeds the limit; the reset is refused while
+    /// the temperature still rises.
+    #[test]
+    fn a_stuck_heater_always_trips_stuck_on(plant in arb_plant(), fraction in 0.1f64..0.4) {
+        let mut h = heater(&plant);
+        h.stuck_on_rise_c = stuck_rise(&plant);
+        h.stuck_on_time_s = 10.0;
+        h.temp_max_c = 3000.0;
+        let mut r = Rig::new(params(h), plant, 1);
+        let sp = plant.ambient_c + fraction * plant.rate_c_per_s * plant.tau_s;
+        r.setpoint(sp).enable().secs(60.0);
+        r.plant.set_fault(PlantFault::HeaterStuckOn);
+        let stuck = r.now;
+        while r.first_fault().is_none() && r.now < stuck + 600 * S {
+            r.secs(0.25);
+        }
+        let (at, f) = r.first_fault().expect("stuck_on must trip");
+        prop_assert_eq!(f.check(), "stuck_on", "{:?}", f);
+        prop_assert_eq!(r.ch.level(), Level::Low);
+        // While it still rises, the reset is refused; once the power is cut (the contactor
+        // the stopped heartbeat drops) and the window has passed, it is taken.
+        prop_assert!(matches!(r.reset(), Err(ResetRefusal::Lasts(_))));
+        r.plant.set_fault(PlantFault::None);
+        r.secs(h.stuck_on_time_s + plant.dead_time_s + 1.0);
+        prop_assert_eq!(r.reset(), Ok(()));
+        prop_assert!(r.no_rise_after(at));
+    }
+}
+
+#[test]
+fn under_pid_the_watchdog_watches_the_setpoint_and_the_feedback() {
+    let plant = PlantParams::default();
+    let mut p = params(heater(&plant));
+    p.command_timeout_ms = 3000;
+    let mut r = Rig::new(p, plant, 1);
+    r.setpoint(60.0).enable().secs(2.0);
+    let tripped = |r: &Rig| r.ch.status(r.now).watchdog_tripped;
+    assert!(!tripped(&r));
+    // Readings keep coming, the setpoint is not repeated: it trips 3 s after the setpoint.
+    r.secs(1.1);
+    assert!(tripped(&r));
+    assert_eq!(r.ch.level(), Level::Low);
+    // A fresh setpoint (the readings are fresh): recovered, the loop runs again.
+    r.setpoint(60.0).secs(1.0);
+    assert!(!tripped(&r));
+    assert!(r.ch.status(r.now).heater.terms.output > 0.0);
+    // Now the sensor falls silent while the setpoint is repeated: it trips on the feedback.
+    r.plant.set_fault(PlantFault::SensorSilent);
+    let silent = r.now;
+    while r.now < silent + 5 * S && !tripped(&r) {
+        r.setpoint(60.0).secs(0.5);
+    }
+    assert!(tripped(&r), "the silent feedback tripped the watchdog");
+    assert!(r.now <= silent + 4 * S);
+}

@@ -1,0 +1,113 @@
+//! The heater loop's inputs (issue 22), for each channel with a `feedback_topic`: the
+//! temperature subscription (`sensor_msgs/Temperature`, best effort, so best-effort sensor
+//! publishers and reliable ones both match), `~/<ch>/setpoint` (`std_msgs/Float64`, °C) and
+//! `~/<ch>/reset_fault` (`std_srvs/Trigger`).
+//!
+//! Readings and setpoints go to the output thread through the request queue, like commands:
+//! one dropped or late is what `sensor_timeout` is there to catch. A reset is decided by the
+//! core, which alone knows whether the fault's condition is gone; the service waits for its
+//! answer, which the report thread files in the node state.
+
+use crate::engine::Input;
+use crate::ros::inbound::inputs::Inputs;
+use crate::ros::interface::msg::{self, TriggerResponse};
+use crate::ros::interface::qos;
+use crate::ros::wire::endpoints::{EndpointError, Endpoints};
+use log::{info, warn};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::task::JoinHandle;
+
+/// How long `~/<ch>/reset_fault` waits for the output thread's answer.
+pub const RESET_WAIT: Duration = Duration::from_secs(1);
+
+/// A channel with a heater loop: its index, its name and its feedback topic.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct HeaterChannel {
+    /// Channel index.
+    pub channel: usize,
+    /// `pw01`, ...
+    pub name: String,
+    /// The `sensor_msgs/Temperature` topic, as configured (relative names resolve in the
+    /// node's namespace, and remapping applies).
+    pub feedback_topic: String,
+}
+
+/// The feedback subscription, `~/<ch>/setpoint` and `~/<ch>/reset_fault` of each channel in
+/// `heaters`, and the tasks that hand them to `inputs`.
+pub fn listen_heaters(
+    ep: &mut Endpoints<'_>,
+    inputs: &Arc<Inputs>,
+    heaters: &[HeaterChannel],
+) -> Result<Vec<JoinHandle<()>>, EndpointError> {
+    let mut tasks = Vec::new();
+    for h in heaters {
+        let ch = h.channel;
+        info!("{}: temperature feedback from {}", h.name, h.feedback_topic);
+        let b = Arc::clone(inputs);
+        tasks.push(ep.listen_with(
+            &h.feedback_topic,
+            qos::sensor(),
+            move |m: msg::Temperature| {
+                let _ = b.send(ch, Input::Feedback(m.temperature));
+            },
+        )?);
+        let b = Arc::clone(inputs);
+        tasks.push(
+            ep.listen(&format!("~/{}/setpoint", h.name), move |m: msg::Float64| {
+                let _ = b.send(ch, Input::Setpoint(m.data));
+            })?,
+        );
+        let b = Arc::clone(inputs);
+        let name = h.name.clone();
+        let reset = move |_: msg::EmptyRequest| reset(&b, ch, &name);
+        let mut maker = ep.services();
+        tasks.push(maker.serve(
+            &format!("~/{}/reset_fault", h.name),
+            "std_srvs",
+            "Trigger",
+            reset,
+        )?);
+    }
+    Ok(tasks)
+}
+
+/// `~/<ch>/reset_fault`: asks the output thread to clear the channel's heater fault and
+/// answers with its verdict (refused with the reason while the condition lasts).
+fn reset(inputs: &Inputs, channel: usize, name: &str) -> TriggerResponse {
+    let refuse = |message: String| TriggerResponse {
+        success: false,
+        message,
+    };
+    let ticket = inputs.state().reset_ticket();
+    if let Err(e) = inputs.send(channel, Input::ResetFault(ticket)) {
+        return refuse(format!("the reset did not reach the output thread: {e}"));
+    }
+    let start = Instant::now();
+    loop {
+        if let Some(answer) = inputs.state().reset_answer(channel, ticket) {
+            return match answer {
+                Ok(()) => {
+                    inputs.note_disabled(channel);
+                    TriggerResponse {
+                        success: true,
+                        message: format!(
+                            "{name}: heater fault cleared; the channel is disabled until its \
+                             next enable"
+                        ),
+                    }
+                }
+                Err(reason) => refuse(format!("{name}: reset refused: {reason}")),
+            };
+        }
+        if start.elapsed() >= RESET_WAIT {
+            warn!("{name}: no answer to the heater fault reset within {RESET_WAIT:?}");
+            return refuse(format!(
+                "{name}: no answer from the output thread within {} ms; nothing changed \
+                 that is known",
+                RESET_WAIT.as_millis()
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}

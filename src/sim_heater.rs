@@ -1,0 +1,422 @@
+//! `pwm_actuator_node sim-heater`: a simulated heater as its own process and ROS participant,
+//! so the whole loop can be tried without hardware (part of the binary only).
+//!
+//! It listens to a channel's `~/<ch>/edges` (the node's real edges, as they reached the line)
+//! and runs the core's first-order-plus-dead-time [`Plant`] on them in real time, publishing
+//! its sensor as `sensor_msgs/Temperature` at a fixed rate. Faults are injected from the
+//! command line (`--fault`, `--fault-after`) or at run time on `~/fault` (`std_msgs/String`:
+//! `none`, `heater_disconnected`, `heater_stuck_on`, `sensor_stuck`, `sensor_silent`,
+//! `sensor_shorted`). With `--record` it writes every reading and every edge to a CSV file
+//! (`t_s,kind,value,true_c`), for the pictures of docs/heater.md.
+
+use clap::{ArgAction, Args, FromArgMatches};
+use futures::StreamExt;
+use pwm_actuator::clock;
+use pwm_actuator::core::heater::{Plant, PlantFault, PlantParams};
+use pwm_actuator::ros::config::discovery;
+use pwm_actuator::ros::config::start::domain_id_from;
+use pwm_actuator::ros::interface::msg::{self, Header, RosMessage};
+use ros2_client::builtin_interfaces::Time;
+use ros2_client::qos::{History, Reliability};
+use ros2_client::{Context, NodeName, NodeOptions, QosProfile};
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+/// Options of `pwm_actuator_node sim-heater`.
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct SimHeaterOptions {
+    /// The node whose channel drives the heater
+    #[arg(long, value_name = "NODE", default_value = "/pwm_actuator")]
+    pub node: String,
+    /// The channel whose edges drive the heater
+    #[arg(long, value_name = "CH", default_value = "pw01")]
+    pub channel: String,
+    /// The topic the temperature is published on (sensor_msgs/Temperature)
+    #[arg(long, value_name = "TOPIC", default_value = "/heater/temperature")]
+    pub topic: String,
+    /// Readings per second, 0.1..1000
+    #[arg(long, value_name = "HZ", default_value_t = 10.0)]
+    pub rate_hz: f64,
+    /// Rise at 100 % from ambient, °C/s, 0.001..1000
+    #[arg(long, value_name = "C_PER_S", default_value_t = 2.0)]
+    pub heat_rate: f64,
+    /// Time constant, s, 0.1..100000
+    #[arg(long, value_name = "S", default_value_t = 60.0)]
+    pub tau: f64,
+    /// Dead time between the line and the sensor, s, 0..600
+    #[arg(long, value_name = "S", default_value_t = 2.0)]
+    pub dead_time: f64,
+    /// Ambient and start temperature, °C, -100..1000
+    #[arg(long, value_name = "C", default_value_t = 20.0)]
+    pub ambient: f64,
+    /// Peak sensor noise, °C (uniform), 0..100
+    #[arg(long, value_name = "C", default_value_t = 0.05)]
+    pub noise: f64,
+    /// A fault to inject: none, heater_disconnected, heater_stuck_on, sensor_stuck,
+    /// sensor_silent, sensor_shorted
+    #[arg(long, value_name = "FAULT", default_value = "none")]
+    pub fault: String,
+    /// Inject --fault this many seconds after start (0: from the start)
+    #[arg(long, value_name = "S", default_value_t = 0.0)]
+    pub fault_after: f64,
+    /// Publish reliable instead of best effort (the node's reader matches both)
+    #[arg(long, action = ArgAction::SetTrue)]
+    pub reliable: bool,
+    /// Write every reading and edge to this CSV file
+    #[arg(long, value_name = "FILE.csv")]
+    pub record: Option<PathBuf>,
+    /// Also act as the user: publish this setpoint (°C) on the channel's ~/<ch>/setpoint once
+    /// a second
+    #[arg(long, value_name = "C")]
+    pub setpoint: Option<f64>,
+    /// Print the temperature and the line's share of on time this often, s (0: never)
+    #[arg(long, value_name = "S", default_value_t = 0.0)]
+    pub print_every: f64,
+    /// Stop after this many seconds (0: run until interrupted)
+    #[arg(long, value_name = "S", default_value_t = 0.0)]
+    pub duration: f64,
+}
+
+/// The `sim-heater` subcommand, for the whole command line.
+pub fn command() -> clap::Command {
+    SimHeaterOptions::augment_args(clap::Command::new("sim-heater"))
+        .about(
+            "A simulated heater (first order plus dead time) driven by a channel's ~/<ch>/edges, \
+             publishing sensor_msgs/Temperature; faults injected with --fault or on \
+             ~/fault (std_msgs/String). Its own ROS participant (node sim_heater).",
+        )
+        .disable_help_flag(true)
+        .arg(
+            clap::Arg::new("help")
+                .short('h')
+                .long("help")
+                .action(ArgAction::Help)
+                .help("Print help"),
+        )
+}
+
+/// Parses the subcommand's matches.
+pub fn options(m: &clap::ArgMatches) -> Result<SimHeaterOptions, clap::Error> {
+    SimHeaterOptions::from_arg_matches(m)
+}
+
+/// Why the options are refused.
+fn check(o: &SimHeaterOptions) -> Result<(PlantParams, PlantFault), String> {
+    let within = |name: &str, v: f64, lo: f64, hi: f64| {
+        if (lo..=hi).contains(&v) {
+            Ok(())
+        } else {
+            Err(format!("--{name} {v} is outside {lo}..{hi}"))
+        }
+    };
+    within("rate-hz", o.rate_hz, 0.1, 1000.0)?;
+    within("heat-rate", o.heat_rate, 0.001, 1000.0)?;
+    within("tau", o.tau, 0.1, 100_000.0)?;
+    within("dead-time", o.dead_time, 0.0, 600.0)?;
+    within("ambient", o.ambient, -100.0, 1000.0)?;
+    within("noise", o.noise, 0.0, 100.0)?;
+    within("fault-after", o.fault_after, 0.0, 1e6)?;
+    within("duration", o.duration, 0.0, 1e7)?;
+    within("print-every", o.print_every, 0.0, 1e6)?;
+    if let Some(sp) = o.setpoint {
+        within("setpoint", sp, -273.15, 3000.0)?;
+    }
+    let fault = PlantFault::parse(&o.fault).ok_or_else(|| {
+        format!(
+            "--fault {}: expected none, heater_disconnected, heater_stuck_on, sensor_stuck, \
+             sensor_silent or sensor_shorted",
+            o.fault
+        )
+    })?;
+    Ok((
+        PlantParams {
+            rate_c_per_s: o.heat_rate,
+            tau_s: o.tau,
+            dead_time_s: o.dead_time,
+            ambient_c: o.ambient,
+            noise_c: o.noise,
+        },
+        fault,
+    ))
+}
+
+/// Runs the simulated heater; returns the exit status (0 done, 1 ROS error, 2 bad options).
+pub fn run(o: SimHeaterOptions) -> i32 {
+    let (params, fault) = match check(&o) {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("sim-heater: {e}");
+            return 2;
+        }
+    };
+    let rt = match tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("sim-heater: cannot start the runtime: {e}");
+            return 1;
+        }
+    };
+    match rt.block_on(serve(o, params, fault)) {
+        Ok(()) => 0,
+        Err(e) => {
+            eprintln!("sim-heater: {e}");
+            1
+        }
+    }
+}
+
+/// The topic `name` (a full ROS name) of type `ty`.
+fn make_topic(
+    node: &ros2_client::Node,
+    name: &str,
+    ty: ros2_client::MessageTypeName,
+    qos: &QosProfile,
+) -> Result<rustdds::Topic, String> {
+    let ros_name = ros2_client::Name::parse(name).map_err(|e| format!("topic {name}: {e}"))?;
+    node.create_topic(&ros_name, ty, qos)
+        .map_err(|e| format!("topic {name}: {e}"))
+}
+
+/// The plant's line as last told and since when (monotonic ns).
+fn plant_line(plant: &Mutex<Plant>) -> (bool, u64) {
+    plant.lock().unwrap_or_else(|p| p.into_inner()).line_state()
+}
+
+/// The CSV record, if asked for.
+struct Record(Option<std::io::BufWriter<std::fs::File>>);
+
+impl Record {
+    fn line(&mut self, t: f64, kind: &str, value: f64, true_c: f64) {
+        if let Some(w) = self.0.as_mut() {
+            let _ = writeln!(w, "{t:.3},{kind},{value:.4},{true_c:.4}");
+        }
+    }
+}
+
+async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> Result<(), String> {
+    let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())
+        .map_err(|e| e.to_string())?;
+    let disc = discovery::read(|k| std::env::var(k).ok()).map_err(|e| e.to_string())?;
+    let participant = disc
+        .participant(domain, None)
+        .map_err(|e| format!("the DDS participant: {e}"))?;
+    let context = Context::from_domain_participant(participant)
+        .map_err(|e| format!("the DDS participant: {e}"))?;
+    let name = NodeName::new("/", "sim_heater").map_err(|e| e.to_string())?;
+    let mut node = context
+        .new_node(name, NodeOptions::new().enable_rosout(false))
+        .map_err(|e| format!("node: {e}"))?;
+    let spinner = node.spinner().map_err(|e| format!("spinner: {e}"))?;
+    tokio::spawn(async move {
+        let _ = spinner.spin().await;
+    });
+    let reliable = QosProfile::publisher_default().history(History::KeepLast { depth: 100 });
+    let edges_topic = format!("{}/{}/edges", o.node.trim_end_matches('/'), o.channel);
+    let edges_t = make_topic(&node, &edges_topic, msg::OutputEdge::type_name(), &reliable)?;
+    let fault_t = make_topic(
+        &node,
+        "/sim_heater/fault",
+        msg::StringMsg::type_name(),
+        &reliable,
+    )?;
+    let out_qos = if o.reliable {
+        reliable.clone()
+    } else {
+        QosProfile::publisher_default()
+            .history(History::KeepLast { depth: 10 })
+            .reliability(Reliability::BestEffort)
+    };
+    let temp_t = make_topic(&node, &o.topic, msg::Temperature::type_name(), &out_qos)?;
+    let edges = node
+        .create_subscription::<msg::OutputEdge>(&edges_t, Some(reliable.clone()))
+        .map_err(|e| format!("subscription {edges_topic}: {e}"))?;
+    let faults = node
+        .create_subscription::<msg::StringMsg>(&fault_t, Some(reliable.clone()))
+        .map_err(|e| format!("subscription /sim_heater/fault: {e}"))?;
+    let publisher = node
+        .create_publisher::<msg::Temperature>(&temp_t, Some(out_qos))
+        .map_err(|e| format!("publisher {}: {e}", o.topic))?;
+    let setpoint_topic = format!("{}/{}/setpoint", o.node.trim_end_matches('/'), o.channel);
+    let setpoints = match o.setpoint {
+        Some(_) => {
+            let t = make_topic(&node, &setpoint_topic, msg::Float64::type_name(), &reliable)?;
+            Some(
+                node.create_publisher::<msg::Float64>(&t, Some(reliable.clone()))
+                    .map_err(|e| format!("publisher {setpoint_topic}: {e}"))?,
+            )
+        }
+        None => None,
+    };
+
+    let start = clock::monotonic_ns();
+    let plant = Arc::new(Mutex::new(Plant::new(params, start, 0x5eed)));
+    let record = Arc::new(Mutex::new(Record(match &o.record {
+        Some(p) => Some(std::io::BufWriter::new(
+            std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?,
+        )),
+        None => None,
+    })));
+    let secs = move |t: u64| t.saturating_sub(start) as f64 / 1e9;
+    eprintln!(
+        "sim-heater: {} °C/s at 100 %, tau {} s, dead time {} s, ambient {} °C; edges from \
+         {edges_topic}, temperature on {} at {} Hz",
+        params.rate_c_per_s, params.tau_s, params.dead_time_s, params.ambient_c, o.topic, o.rate_hz
+    );
+    {
+        let (plant, record) = (Arc::clone(&plant), Arc::clone(&record));
+        tokio::spawn(async move {
+            let stream = edges.async_stream();
+            futures::pin_mut!(stream);
+            while let Some(Ok((e, _))) = stream.next().await {
+                let now = clock::monotonic_ns();
+                let mut p = plant.lock().unwrap_or_else(|p| p.into_inner());
+                p.line(now, e.level);
+                let t = p.temperature();
+                drop(p);
+                record.lock().unwrap_or_else(|p| p.into_inner()).line(
+                    secs(now),
+                    "line",
+                    f64::from(u8::from(e.level)),
+                    t,
+                );
+            }
+        });
+    }
+    {
+        let plant = Arc::clone(&plant);
+        tokio::spawn(async move {
+            let stream = faults.async_stream();
+            futures::pin_mut!(stream);
+            while let Some(Ok((m, _))) = stream.next().await {
+                match PlantFault::parse(m.data.trim()) {
+                    Some(f) => {
+                        eprintln!("sim-heater: fault {}", m.data.trim());
+                        plant.lock().unwrap_or_else(|p| p.into_inner()).set_fault(f);
+                    }
+                    None => eprintln!("sim-heater: unknown fault {:?} ignored", m.data),
+                }
+            }
+        });
+    }
+    let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / o.rate_hz));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let fault_at = start + (o.fault_after * 1e9) as u64;
+    let end = (o.duration > 0.0).then(|| start + (o.duration * 1e9) as u64);
+    let mut injected = fault == PlantFault::None;
+    let mut next_setpoint = start;
+    let every = (o.print_every * 1e9) as u64;
+    let mut next_print = start + every;
+    let mut last_print = start;
+    let mut on_since: Option<u64> = None;
+    let mut on_ns = 0u64;
+    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(|e| format!("SIGTERM: {e}"))?;
+    loop {
+        // SIGINT and SIGTERM end the run with the record flushed.
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = tokio::signal::ctrl_c() => break,
+            _ = term.recv() => break,
+        }
+        let now = clock::monotonic_ns();
+        if end.is_some_and(|e| now >= e) {
+            break;
+        }
+        let mut p = plant.lock().unwrap_or_else(|p| p.into_inner());
+        if !injected && now >= fault_at {
+            injected = true;
+            eprintln!("sim-heater: fault {}", o.fault);
+            p.set_fault(fault);
+        }
+        let reading = p.reading(now);
+        let true_c = p.temperature();
+        drop(p);
+        if let (Some(sp), Some(pubr)) = (o.setpoint, setpoints.as_ref()) {
+            if now >= next_setpoint {
+                next_setpoint = now + 1_000_000_000;
+                let _ = pubr.publish(msg::Float64 { data: sp });
+            }
+        }
+        if every > 0 {
+            // The line's on time since the last line printed, from the edges recorded.
+            let (level, since) = plant_line(&plant);
+            match (level, on_since) {
+                (true, None) => on_since = Some(since.max(last_print)),
+                (false, Some(s)) => {
+                    on_ns += since.saturating_sub(s);
+                    on_since = None;
+                }
+                _ => {}
+            }
+            if now >= next_print {
+                if let Some(s) = on_since {
+                    on_ns += now.saturating_sub(s);
+                    on_since = Some(now);
+                }
+                println!(
+                    "t={:7.1} s  temperature {:7.2} °C  line on {:5.1} %",
+                    secs(now),
+                    reading.unwrap_or(f64::NAN),
+                    on_ns as f64 / now.saturating_sub(last_print).max(1) as f64 * 100.0
+                );
+                on_ns = 0;
+                last_print = now;
+                next_print = now + every;
+            }
+        }
+        if let Some(c) = reading {
+            record
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .line(secs(now), "reading", c, true_c);
+            let m = msg::Temperature {
+                header: Header {
+                    stamp: Time::from_nanos(clock::wall_ns()),
+                    frame_id: "sim_heater".into(),
+                },
+                temperature: c,
+                variance: (o.noise * o.noise) / 3.0,
+            };
+            let _ = publisher.publish(m);
+        }
+    }
+    if let Some(w) = record.lock().unwrap_or_else(|p| p.into_inner()).0.as_mut() {
+        let _ = w.flush();
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn opts() -> SimHeaterOptions {
+        let m = command()
+            .try_get_matches_from(["sim-heater"])
+            .expect("defaults parse");
+        options(&m).expect("defaults are options")
+    }
+
+    #[test]
+    fn bad_options_are_refused_with_the_reason() {
+        assert!(check(&opts()).is_ok());
+        let bad = SimHeaterOptions { tau: 0.0, ..opts() };
+        assert_eq!(check(&bad).unwrap_err(), "--tau 0 is outside 0.1..100000");
+        let bad = SimHeaterOptions {
+            noise: f64::NAN,
+            ..opts()
+        };
+        assert!(check(&bad).unwrap_err().starts_with("--noise NaN"));
+        let bad = SimHeaterOptions {
+            fault: "melted".into(),
+            ..opts()
+        };
+        assert!(check(&bad).unwrap_err().starts_with("--fault melted"));
+    }
+}
