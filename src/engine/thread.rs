@@ -499,6 +499,15 @@ pub fn spawn<O: Output>(
     })
 }
 
+/// Writes every slot of a new ring buffer once and takes it back, so that its pages are
+/// resident before the output thread starts: a slot used for the first time hours into a run
+/// would otherwise cost a page fault on the thread, and the resident size would creep up by one
+/// page at a time until the whole ring had been used once.
+fn prefault<T: Copy>(tx: &mut rtrb::Producer<T>, rx: &mut rtrb::Consumer<T>, filler: T) {
+    while tx.push(filler).is_ok() {}
+    while rx.pop().is_ok() {}
+}
+
 /// Starts the output thread like [`spawn`], but with `run` as the loop that puts it to sleep
 /// between wake-ups. `run` calls [`OutputThread::work`] at every wake-up until it returns
 /// `Ok(false)` (stop requested) and then returns `Ok(())`; the thread then drives every line
@@ -522,8 +531,14 @@ where
     let flags = EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK;
     let req_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
     let rep_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
-    let (req_tx, req_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
-    let (rep_tx, rep_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
+    let (mut req_tx, mut req_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
+    let (mut rep_tx, mut rep_rx) = rtrb::RingBuffer::new(opts.queue_capacity.max(16));
+    let filler = Request {
+        channel: 0,
+        input: Input::Enable(false),
+    };
+    prefault(&mut req_tx, &mut req_rx, filler);
+    prefault(&mut rep_tx, &mut rep_rx, Report::OutputFault { channel: 0 });
     let dropped = Arc::new(AtomicU64::new(0));
     let stop = Arc::new(AtomicBool::new(false));
     let fault = Arc::new(Mutex::new(None));
