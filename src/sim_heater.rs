@@ -102,13 +102,41 @@ pub fn options(m: &clap::ArgMatches) -> Result<SimHeaterOptions, clap::Error> {
     SimHeaterOptions::from_arg_matches(m)
 }
 
-/// Why the options are refused.
-fn check(o: &SimHeaterOptions) -> Result<(PlantParams, PlantFault), String> {
-    let within = |name: &str, v: f64, lo: f64, hi: f64| {
-        if (lo..=hi).contains(&v) {
+/// Why the simulated heater's options are refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum OptionError {
+    /// A value outside its range.
+    #[error("--{option} {value} is outside {lo}..{hi}")]
+    OutOfRange {
+        /// The option, without its dashes.
+        option: &'static str,
+        /// The value given.
+        value: f64,
+        /// The lowest value accepted.
+        lo: f64,
+        /// The highest value accepted.
+        hi: f64,
+    },
+    /// `--fault` names no fault.
+    #[error(
+        "--fault {0}: expected none, heater_disconnected, heater_stuck_on, sensor_stuck, \
+         sensor_silent or sensor_shorted"
+    )]
+    UnknownFault(String),
+}
+
+/// The plant and the fault the options describe, or why they are refused.
+fn check(o: &SimHeaterOptions) -> Result<(PlantParams, PlantFault), OptionError> {
+    let within = |option: &'static str, value: f64, lo: f64, hi: f64| {
+        if (lo..=hi).contains(&value) {
             Ok(())
         } else {
-            Err(format!("--{name} {v} is outside {lo}..{hi}"))
+            Err(OptionError::OutOfRange {
+                option,
+                value,
+                lo,
+                hi,
+            })
         }
     };
     within("rate-hz", o.rate_hz, 0.1, 1000.0)?;
@@ -123,13 +151,8 @@ fn check(o: &SimHeaterOptions) -> Result<(PlantParams, PlantFault), String> {
     if let Some(sp) = o.setpoint {
         within("setpoint", sp, -273.15, 3000.0)?;
     }
-    let fault = PlantFault::parse(&o.fault).ok_or_else(|| {
-        format!(
-            "--fault {}: expected none, heater_disconnected, heater_stuck_on, sensor_stuck, \
-             sensor_silent or sensor_shorted",
-            o.fault
-        )
-    })?;
+    let fault =
+        PlantFault::parse(&o.fault).ok_or_else(|| OptionError::UnknownFault(o.fault.clone()))?;
     Ok((
         PlantParams {
             rate_c_per_s: o.heat_rate,
@@ -407,16 +430,25 @@ mod tests {
     fn bad_options_are_refused_with_the_reason() {
         assert!(check(&opts()).is_ok());
         let bad = SimHeaterOptions { tau: 0.0, ..opts() };
-        assert_eq!(check(&bad).unwrap_err(), "--tau 0 is outside 0.1..100000");
+        assert_eq!(
+            check(&bad).unwrap_err().to_string(),
+            "--tau 0 is outside 0.1..100000"
+        );
         let bad = SimHeaterOptions {
             noise: f64::NAN,
             ..opts()
         };
-        assert!(check(&bad).unwrap_err().starts_with("--noise NaN"));
+        assert!(check(&bad)
+            .unwrap_err()
+            .to_string()
+            .starts_with("--noise NaN"));
         let bad = SimHeaterOptions {
             fault: "melted".into(),
             ..opts()
         };
-        assert!(check(&bad).unwrap_err().starts_with("--fault melted"));
+        assert!(check(&bad)
+            .unwrap_err()
+            .to_string()
+            .starts_with("--fault melted"));
     }
 }

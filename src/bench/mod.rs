@@ -63,9 +63,8 @@ const PID_SETPOINT_C: f64 = 50.0;
 const PID_KP: f64 = 10.0;
 
 /// Parses `--phase`.
-fn phase(s: &str) -> Result<Phase, String> {
+fn phase(s: &str) -> Result<Phase, pwm_actuator::core::config::UnknownName> {
     s.parse()
-        .map_err(|e: pwm_actuator::core::config::UnknownName| e.to_string())
 }
 
 impl Default for BenchOptions {
@@ -134,33 +133,57 @@ pub fn command() -> clap::Command {
         )
 }
 
+/// A value that is not a number of the option's type; holds the text as given.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("`{0}` is not a valid number")]
+pub struct NotANumber(String);
+
 /// A number, or why not.
-fn number<T: std::str::FromStr>(v: &str) -> Result<T, String> {
-    v.parse()
-        .map_err(|_| format!("`{v}` is not a valid number"))
+fn number<T: std::str::FromStr>(v: &str) -> Result<T, NotANumber> {
+    v.parse().map_err(|_| NotANumber(v.to_string()))
+}
+
+/// An option's value outside the range the benchmark accepts.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("--{option} {value} {accepted}")]
+pub struct OutOfRange {
+    /// The option, without its dashes.
+    pub option: &'static str,
+    /// The value given.
+    pub value: f64,
+    /// What it must be, as a phrase.
+    pub accepted: &'static str,
 }
 
 impl BenchOptions {
     /// Checks the ranges clap does not know.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), OutOfRange> {
         let o = self;
+        let out = |option, value, accepted| {
+            Err(OutOfRange {
+                option,
+                value,
+                accepted,
+            })
+        };
         if o.max_simultaneous_on > 256 {
-            return Err(format!(
-                "--max-simultaneous-on {} is outside 0..256",
-                o.max_simultaneous_on
-            ));
+            return out(
+                "max-simultaneous-on",
+                o.max_simultaneous_on as f64,
+                "is outside 0..256",
+            );
         }
         if o.channels == 0 || o.channels > 256 {
-            return Err(format!("--channels {} is outside 1..256", o.channels));
+            return out("channels", o.channels as f64, "is outside 1..256");
         }
         if !(o.seconds > 0.0 && o.seconds <= 3600.0) {
-            return Err(format!("--seconds {} is outside (0, 3600]", o.seconds));
+            return out("seconds", o.seconds, "is outside (0, 3600]");
         }
         if !(0.0..=100.0).contains(&o.duty_percent) {
-            return Err(format!("--duty {} is outside 0..100", o.duty_percent));
+            return out("duty", o.duty_percent, "is outside 0..100");
         }
         if !(o.offset_ms >= 0.0 && o.offset_ms.is_finite()) {
-            return Err(format!("--offset-ms {} must be >= 0", o.offset_ms));
+            return out("offset-ms", o.offset_ms, "must be >= 0");
         }
         Ok(())
     }
@@ -648,7 +671,7 @@ mod tests {
             .map_err(|e| e.render().to_string())?;
         let o = <BenchOptions as clap::FromArgMatches>::from_arg_matches(&m)
             .map_err(|e| e.render().to_string())?;
-        o.validate()?;
+        o.validate().map_err(|e| e.to_string())?;
         Ok(o)
     }
 

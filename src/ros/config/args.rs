@@ -30,10 +30,106 @@ pub const MAX_YAML_NODES: u64 = 100_000;
 /// Deepest nesting of YAML mappings and sequences in a parameter file or a `-p` value.
 pub const MAX_YAML_DEPTH: usize = 64;
 
+/// What is wrong with the YAML of a parameter file or of a `-p` value.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum YamlError {
+    /// The text does not parse as YAML.
+    #[error("not valid YAML: {0}")]
+    Syntax(#[source] yaml_rust2::ScanError),
+    /// Mappings and sequences nested deeper than [`MAX_YAML_DEPTH`].
+    #[error("mappings and sequences nested deeper than {MAX_YAML_DEPTH} levels")]
+    TooDeep,
+    /// More than [`MAX_YAML_NODES`] nodes with every alias expanded.
+    #[error("more than {MAX_YAML_NODES} nodes with its aliases expanded (an alias bomb?)")]
+    TooManyNodes,
+    /// A parameter file larger than [`MAX_PARAMS_FILE_BYTES`]; its size in bytes where known.
+    #[error("the file is larger than 1 MiB{}", .0.map_or_else(String::new, |b| format!(" ({b} bytes)")))]
+    FileTooLarge(Option<u64>),
+    /// Nothing after `:=`.
+    #[error("no value after `:=` (for an empty string write `''`)")]
+    NoValue,
+    /// A `-p` value of more than one YAML document.
+    #[error("more than one YAML document")]
+    SeveralDocuments,
+    /// A real that is not a number YAML can read as one.
+    #[error("not a number")]
+    NotANumber,
+    /// A YAML null where a value is expected.
+    #[error("no value (YAML null; for an empty string write `''`)")]
+    Null,
+    /// A mapping where a value is expected.
+    #[error("a mapping is not a parameter value")]
+    Mapping,
+    /// An alias or a value YAML itself could not type.
+    #[error("unsupported YAML value")]
+    Unsupported,
+    /// `[]`: a parameter array needs an element type.
+    #[error("an empty array has no element type")]
+    EmptyArray,
+    /// An array of numbers with an element that is not one.
+    #[error("array element is not a number")]
+    ArrayElementNotANumber,
+    /// An array mixing bools, numbers and strings.
+    #[error("array elements must all be of one type (bool, number or string)")]
+    MixedArray,
+    /// The top level of a parameter file is not a mapping of node names.
+    #[error("the top level must map node names to `ros__parameters`")]
+    TopLevel,
+    /// `ros__parameters` at the top level.
+    #[error("`ros__parameters` must be under a node name (or `/**`)")]
+    ParametersWithoutNode,
+    /// `ros__parameters` holding something other than a mapping.
+    #[error("`ros__parameters` of `{node}` must be a mapping")]
+    ParametersNotMapping {
+        /// The node pattern.
+        node: String,
+    },
+    /// A node name key that is not a string.
+    #[error("node name {key} under `/{path}` is not a string")]
+    NodeNameNotString {
+        /// The key as YAML shows it.
+        key: String,
+        /// The node path above it.
+        path: String,
+    },
+    /// A value outside `ros__parameters`.
+    #[error(
+        "`{key}` under `/{path}` holds a value, but only node names and `ros__parameters` may \
+         appear outside `ros__parameters`"
+    )]
+    ValueOutsideParameters {
+        /// The key holding the value.
+        key: String,
+        /// The node path above it.
+        path: String,
+    },
+    /// A parameter name key that is not a string, integer or bool.
+    #[error("parameter name {0} is not a string")]
+    ParameterNameNotString(String),
+    /// A problem inside the parameters of one node section.
+    #[error("under `{node}`: {source}")]
+    UnderNode {
+        /// The node pattern.
+        node: String,
+        /// The problem.
+        #[source]
+        source: Box<YamlError>,
+    },
+    /// A problem with the value of one parameter.
+    #[error("`{name}`: {source}")]
+    InParameter {
+        /// The parameter's name.
+        name: String,
+        /// The problem.
+        #[source]
+        source: Box<YamlError>,
+    },
+}
+
 /// Checks the bounds of a YAML text before it is loaded: at most [`MAX_YAML_NODES`] nodes with
 /// every alias expanded, and at most [`MAX_YAML_DEPTH`] levels. Walks the parser's events
 /// without building anything, so a text that breaks a bound costs no more than its size.
-fn check_yaml_bounds(text: &str) -> Result<(), String> {
+fn check_yaml_bounds(text: &str) -> Result<(), YamlError> {
     let mut parser = Parser::new_from_str(text);
     // Open collections: (anchor id, node count when it opened).
     let mut open: Vec<(usize, u64)> = Vec::new();
@@ -41,9 +137,7 @@ fn check_yaml_bounds(text: &str) -> Result<(), String> {
     let mut sizes: HashMap<usize, u64> = HashMap::new();
     let mut nodes: u64 = 0;
     loop {
-        let (event, _) = parser
-            .next_token()
-            .map_err(|e| format!("not valid YAML: {e}"))?;
+        let (event, _) = parser.next_token().map_err(YamlError::Syntax)?;
         match event {
             Event::StreamEnd => return Ok(()),
             Event::Scalar(_, _, anchor, _) => {
@@ -56,9 +150,7 @@ fn check_yaml_bounds(text: &str) -> Result<(), String> {
                 nodes += 1;
                 open.push((anchor, nodes));
                 if open.len() > MAX_YAML_DEPTH {
-                    return Err(format!(
-                        "mappings and sequences nested deeper than {MAX_YAML_DEPTH} levels"
-                    ));
+                    return Err(YamlError::TooDeep);
                 }
             }
             Event::SequenceEnd | Event::MappingEnd => {
@@ -74,9 +166,7 @@ fn check_yaml_bounds(text: &str) -> Result<(), String> {
             _ => {}
         }
         if nodes > MAX_YAML_NODES {
-            return Err(format!(
-                "more than {MAX_YAML_NODES} nodes with its aliases expanded (an alias bomb?)"
-            ));
+            return Err(YamlError::TooManyNodes);
         }
     }
 }
@@ -136,7 +226,7 @@ pub enum ArgsError {
         /// The file.
         path: PathBuf,
         /// What is wrong with it.
-        reason: String,
+        reason: YamlError,
     },
 }
 
@@ -433,7 +523,7 @@ pub fn parse_assignment(arg: &str) -> Result<ParamAssignment, ArgsError> {
             "`{name}` is not a parameter name (letters, digits, `_`, separated by `.`)"
         )));
     }
-    let value = parse_yaml_value(text).map_err(bad)?;
+    let value = parse_yaml_value(text).map_err(|e| bad(e.to_string()))?;
     Ok(ParamAssignment {
         node: node.map(str::to_string),
         name: name.to_string(),
@@ -444,36 +534,36 @@ pub fn parse_assignment(arg: &str) -> Result<ParamAssignment, ArgsError> {
 /// Types the text after `:=` as YAML does: `500` integer, `500.0` double, `true` bool,
 /// `[1, 2]` integer array, anything else a string. An empty value is refused (write `''` for
 /// an empty string).
-pub fn parse_yaml_value(text: &str) -> Result<ParameterValue, String> {
+pub fn parse_yaml_value(text: &str) -> Result<ParameterValue, YamlError> {
     check_yaml_bounds(text)?;
-    let docs = YamlLoader::load_from_str(text).map_err(|e| format!("not valid YAML: {e}"))?;
+    let docs = YamlLoader::load_from_str(text).map_err(YamlError::Syntax)?;
     match docs.as_slice() {
-        [] => Err("no value after `:=` (for an empty string write `''`)".into()),
+        [] => Err(YamlError::NoValue),
         [doc] => yaml_to_value(doc),
-        _ => Err("more than one YAML document".into()),
+        _ => Err(YamlError::SeveralDocuments),
     }
 }
 
 /// Converts a YAML scalar or sequence to a parameter value.
-pub fn yaml_to_value(y: &Yaml) -> Result<ParameterValue, String> {
+pub fn yaml_to_value(y: &Yaml) -> Result<ParameterValue, YamlError> {
     match y {
         Yaml::Boolean(b) => Ok(ParameterValue::Boolean(*b)),
         Yaml::Integer(i) => Ok(ParameterValue::Integer(*i)),
         Yaml::Real(_) => y
             .as_f64()
             .map(ParameterValue::Double)
-            .ok_or_else(|| "not a number".to_string()),
+            .ok_or(YamlError::NotANumber),
         Yaml::String(s) => Ok(ParameterValue::String(s.clone())),
         Yaml::Array(items) => array_to_value(items),
-        Yaml::Null => Err("no value (YAML null; for an empty string write `''`)".into()),
-        Yaml::Hash(_) => Err("a mapping is not a parameter value".into()),
-        Yaml::Alias(_) | Yaml::BadValue => Err("unsupported YAML value".into()),
+        Yaml::Null => Err(YamlError::Null),
+        Yaml::Hash(_) => Err(YamlError::Mapping),
+        Yaml::Alias(_) | Yaml::BadValue => Err(YamlError::Unsupported),
     }
 }
 
-fn array_to_value(items: &[Yaml]) -> Result<ParameterValue, String> {
+fn array_to_value(items: &[Yaml]) -> Result<ParameterValue, YamlError> {
     if items.is_empty() {
-        return Err("an empty array has no element type".into());
+        return Err(YamlError::EmptyArray);
     }
     if items.iter().all(|y| matches!(y, Yaml::Boolean(_))) {
         return Ok(ParameterValue::BooleanArray(
@@ -498,7 +588,7 @@ fn array_to_value(items: &[Yaml]) -> Result<ParameterValue, String> {
             })
             .collect();
         if v.len() != items.len() {
-            return Err("array element is not a number".into());
+            return Err(YamlError::ArrayElementNotANumber);
         }
         return Ok(ParameterValue::DoubleArray(v));
     }
@@ -510,7 +600,7 @@ fn array_to_value(items: &[Yaml]) -> Result<ParameterValue, String> {
                 .collect(),
         ));
     }
-    Err("array elements must all be of one type (bool, number or string)".into())
+    Err(YamlError::MixedArray)
 }
 
 /// Parses `LEVEL` or `LOGGER:=LEVEL`.
@@ -557,11 +647,10 @@ pub fn load_params_file(path: &Path) -> Result<Vec<FileSection>, ArgsError> {
         let size = std::fs::metadata(path)
             .ok()
             .map(|m| m.len())
-            .filter(|l| *l > MAX_PARAMS_FILE_BYTES)
-            .map_or_else(String::new, |l| format!(" ({l} bytes)"));
+            .filter(|l| *l > MAX_PARAMS_FILE_BYTES);
         return Err(ArgsError::BadParamsFile {
             path: path.to_path_buf(),
-            reason: format!("the file is larger than 1 MiB{size}"),
+            reason: YamlError::FileTooLarge(size),
         });
     }
     let text = String::from_utf8(bytes).map_err(|e| {
@@ -578,15 +667,15 @@ pub fn load_params_file(path: &Path) -> Result<Vec<FileSection>, ArgsError> {
 
 /// Parses the text of a ROS 2 parameter file: node names (`/**`, `node`, `/ns/node`, or nested
 /// `ns: node:`) holding `ros__parameters` mappings.
-pub fn parse_params_yaml(text: &str) -> Result<Vec<FileSection>, String> {
+pub fn parse_params_yaml(text: &str) -> Result<Vec<FileSection>, YamlError> {
     check_yaml_bounds(text)?;
-    let docs = YamlLoader::load_from_str(text).map_err(|e| format!("not valid YAML: {e}"))?;
+    let docs = YamlLoader::load_from_str(text).map_err(YamlError::Syntax)?;
     let mut sections = Vec::new();
     for doc in &docs {
         match doc {
             Yaml::Hash(h) => walk_nodes(&mut Vec::new(), h, &mut sections)?,
             Yaml::Null => {}
-            _ => return Err("the top level must map node names to `ros__parameters`".into()),
+            _ => return Err(YamlError::TopLevel),
         }
     }
     Ok(sections)
@@ -596,25 +685,27 @@ fn walk_nodes(
     path: &mut Vec<String>,
     h: &yaml_rust2::yaml::Hash,
     out: &mut Vec<FileSection>,
-) -> Result<(), String> {
+) -> Result<(), YamlError> {
     for (k, v) in h {
-        let key = k.as_str().ok_or_else(|| {
-            format!(
-                "node name {k:?} under `/{}` is not a string",
-                path.join("/")
-            )
+        let key = k.as_str().ok_or_else(|| YamlError::NodeNameNotString {
+            key: format!("{k:?}"),
+            path: path.join("/"),
         })?;
         if key == "ros__parameters" {
             let node = normalise_node_pattern(path);
             if path.is_empty() {
-                return Err("`ros__parameters` must be under a node name (or `/**`)".into());
+                return Err(YamlError::ParametersWithoutNode);
             }
             let mut params = Vec::new();
             match v {
-                Yaml::Hash(p) => flatten_params("", p, &mut params)
-                    .map_err(|e| format!("under `{node}`: {e}"))?,
+                Yaml::Hash(p) => {
+                    flatten_params("", p, &mut params).map_err(|e| YamlError::UnderNode {
+                        node: node.clone(),
+                        source: Box::new(e),
+                    })?
+                }
                 Yaml::Null => {}
-                _ => return Err(format!("`ros__parameters` of `{node}` must be a mapping")),
+                _ => return Err(YamlError::ParametersNotMapping { node }),
             }
             out.push(FileSection { node, params });
         } else {
@@ -625,11 +716,10 @@ fn walk_nodes(
                     path.pop();
                 }
                 _ => {
-                    return Err(format!(
-                        "`{key}` under `/{}` holds a value, but only node names and \
-                         `ros__parameters` may appear outside `ros__parameters`",
-                        path.join("/")
-                    ))
+                    return Err(YamlError::ValueOutsideParameters {
+                        key: key.to_string(),
+                        path: path.join("/"),
+                    })
                 }
             }
         }
@@ -651,13 +741,13 @@ fn flatten_params(
     prefix: &str,
     h: &yaml_rust2::yaml::Hash,
     out: &mut Vec<(String, ParameterValue)>,
-) -> Result<(), String> {
+) -> Result<(), YamlError> {
     for (k, v) in h {
         let key = match k {
             Yaml::String(s) => s.clone(),
             Yaml::Integer(i) => i.to_string(),
             Yaml::Boolean(b) => b.to_string(),
-            other => return Err(format!("parameter name {other:?} is not a string")),
+            other => return Err(YamlError::ParameterNameNotString(format!("{other:?}"))),
         };
         let name = if prefix.is_empty() {
             key
@@ -667,7 +757,10 @@ fn flatten_params(
         match v {
             Yaml::Hash(inner) => flatten_params(&name, inner, out)?,
             leaf => {
-                let value = yaml_to_value(leaf).map_err(|e| format!("`{name}`: {e}"))?;
+                let value = yaml_to_value(leaf).map_err(|e| YamlError::InParameter {
+                    name: name.clone(),
+                    source: Box::new(e),
+                })?;
                 out.push((name, value));
             }
         }
@@ -1111,7 +1204,7 @@ other_node:
             ("node:\n  ros__parameters:\n    a: [1, x]\n", "one type"),
             ("node: [", "not valid YAML"),
         ] {
-            let e = parse_params_yaml(text).unwrap_err();
+            let e = parse_params_yaml(text).unwrap_err().to_string();
             assert!(e.contains(why), "{text:?}: {e}");
         }
         assert!(parse_params_yaml("").unwrap().is_empty());
@@ -1134,7 +1227,8 @@ other_node:
         let bomb = alias_bomb(6, 10);
         assert!(bomb.len() < 600, "{}", bomb.len());
         let e = parse_params_yaml(&bomb).unwrap_err();
-        assert!(e.contains("more than 100000 nodes"), "{e}");
+        assert_eq!(e, YamlError::TooManyNodes);
+        assert!(e.to_string().contains("more than 100000 nodes"), "{e}");
         // A few aliases are fine.
         let small =
             parse_params_yaml("/**:\n  ros__parameters:\n    a: &v 5\n    b: *v\n").unwrap();
@@ -1154,9 +1248,7 @@ other_node:
                 vec![format!("*a{l}"); 10].join(",")
             ))
         );
-        assert!(parse_yaml_value(&inline)
-            .unwrap_err()
-            .contains("more than 100000 nodes"));
+        assert_eq!(parse_yaml_value(&inline), Err(YamlError::TooManyNodes));
         // Nesting.
         let deep = format!(
             "/**:\n  ros__parameters:\n    a: {}1{}\n",
@@ -1164,7 +1256,8 @@ other_node:
             "]".repeat(100)
         );
         let e = parse_params_yaml(&deep).unwrap_err();
-        assert!(e.contains("nested deeper than 64"), "{e}");
+        assert_eq!(e, YamlError::TooDeep);
+        assert!(e.to_string().contains("nested deeper than 64"), "{e}");
         // Size, checked before the file is parsed.
         let tmp = tempfile::tempdir().unwrap();
         let dir = tmp.path();

@@ -190,31 +190,55 @@ impl CliError {
     }
 }
 
-fn parse_output(v: &str) -> Result<String, String> {
+/// Why an option's value does not parse; each holds the text as given.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ValueError {
+    /// Not an output backend's name.
+    #[error("`{0}` is not one of: sim|gpio")]
+    NotAnOutput(String),
+    /// Not an integer.
+    #[error("`{0}` is not an integer")]
+    NotAnInteger(String),
+    /// Not a number.
+    #[error("`{0}` is not a number")]
+    NotANumber(String),
+    /// A `--line` value without `=`.
+    #[error("`{0}`: expected CH=[CHIP:]OFFSET, e.g. pw01=17")]
+    NotALineAssignment(String),
+    /// A `--line` value whose channel is not a channel name.
+    #[error("`{0}` is not a channel name (pw01, pw02, ...)")]
+    NotAChannel(String),
+    /// A `--line` value whose line is not `[CHIP:]OFFSET`.
+    #[error("`{0}` is not a line: expected [CHIP:]OFFSET, e.g. 17")]
+    NotALine(String),
+}
+
+fn parse_output(v: &str) -> Result<String, ValueError> {
     match v {
         "sim" | "gpio" => Ok(v.to_string()),
-        _ => Err(format!("`{v}` is not one of: sim|gpio")),
+        _ => Err(ValueError::NotAnOutput(v.to_string())),
     }
 }
 
-fn parse_integer(v: &str) -> Result<i64, String> {
-    v.parse().map_err(|_| format!("`{v}` is not an integer"))
+fn parse_integer(v: &str) -> Result<i64, ValueError> {
+    v.parse()
+        .map_err(|_| ValueError::NotAnInteger(v.to_string()))
 }
 
-fn parse_number(v: &str) -> Result<f64, String> {
-    v.parse().map_err(|_| format!("`{v}` is not a number"))
+fn parse_number(v: &str) -> Result<f64, ValueError> {
+    v.parse().map_err(|_| ValueError::NotANumber(v.to_string()))
 }
 
 /// Parses `CH=[CHIP:]OFFSET`.
-fn parse_line(v: &str) -> Result<(String, Option<String>, i64), String> {
+fn parse_line(v: &str) -> Result<(String, Option<String>, i64), ValueError> {
     let (ch, rest) = v
         .split_once('=')
-        .ok_or_else(|| format!("`{v}`: expected CH=[CHIP:]OFFSET, e.g. pw01=17"))?;
+        .ok_or_else(|| ValueError::NotALineAssignment(v.to_string()))?;
     if channel_of(&format!("{ch}.x")).is_none() {
-        return Err(format!("`{ch}` is not a channel name (pw01, pw02, ...)"));
+        return Err(ValueError::NotAChannel(ch.to_string()));
     }
-    let (chip, offset) = parse_line_addr(rest)
-        .ok_or_else(|| format!("`{rest}` is not a line: expected [CHIP:]OFFSET, e.g. 17"))?;
+    let (chip, offset) =
+        parse_line_addr(rest).ok_or_else(|| ValueError::NotALine(rest.to_string()))?;
     Ok((ch.to_string(), chip.map(str::to_string), i64::from(offset)))
 }
 

@@ -130,7 +130,23 @@ pub enum SecurityError {
         /// What was asked, as [`SecurityRequest`] describes it.
         asked: String,
         /// What is missing.
-        reason: String,
+        reason: EnclaveMissing,
+    },
+}
+
+/// Why the enclave cannot be loaded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum EnclaveMissing {
+    /// The keystore variable is not set.
+    #[error("{KEYSTORE_ENV} is not set")]
+    NoKeystore,
+    /// The enclave's directory lacks these files.
+    #[error("{} lacks {}", shown(&.dir.to_string_lossy()), .files.join(", "))]
+    Files {
+        /// The enclave's directory.
+        dir: PathBuf,
+        /// The files it lacks, by name.
+        files: Vec<&'static str>,
     },
 }
 
@@ -168,12 +184,15 @@ pub fn decide(req: &SecurityRequest) -> Result<SecurityDecision, SecurityError> 
     decide_with(req, SUPPORTED, |p| p.is_file())
 }
 
-/// The missing enclave files for `req`, as a reason; `Ok(dir)` when all are there.
-fn find_enclave(req: &SecurityRequest, exists: impl Fn(&Path) -> bool) -> Result<PathBuf, String> {
+/// The enclave's directory for `req` when all its files are there; what is missing otherwise.
+fn find_enclave(
+    req: &SecurityRequest,
+    exists: impl Fn(&Path) -> bool,
+) -> Result<PathBuf, EnclaveMissing> {
     let Some(dir) = req.enclave_dir() else {
-        return Err(format!("{KEYSTORE_ENV} is not set"));
+        return Err(EnclaveMissing::NoKeystore);
     };
-    let missing: Vec<&str> = ENCLAVE_FILES
+    let missing: Vec<&'static str> = ENCLAVE_FILES
         .iter()
         .copied()
         .filter(|f| !exists(&dir.join(f)))
@@ -181,11 +200,10 @@ fn find_enclave(req: &SecurityRequest, exists: impl Fn(&Path) -> bool) -> Result
     if missing.is_empty() {
         Ok(dir)
     } else {
-        Err(format!(
-            "{} lacks {}",
-            shown(&dir.to_string_lossy()),
-            missing.join(", ")
-        ))
+        Err(EnclaveMissing::Files {
+            dir,
+            files: missing,
+        })
     }
 }
 
