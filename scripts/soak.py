@@ -43,7 +43,6 @@ from __future__ import annotations
 import argparse
 import atexit
 import csv
-import fcntl
 import json
 import os
 import random
@@ -62,11 +61,11 @@ from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from proclib import cpu_seconds, proc_status, take_domain
 from std_msgs.msg import Bool, Float64
 
 REPO = Path(__file__).resolve().parents[1]
 NODE = "/pwm_actuator"
-DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "pwm_actuator-ros-domains"
 CHANNELS = ("pw01", "pw02", "pw03", "pw04")
 #: Per channel: period ms, minimum on ms, minimum off ms, the other parameters.
 LOAD = {
@@ -81,35 +80,6 @@ RATE_HZ = {"pw01": 10.0, "pw02": 2.0, "pw03": 10.0, "pw04": 10.0}
 SAMPLE_S = 10.0
 TOGGLE_S = 5.0
 PARAMS_S = 30.0
-
-
-def take_domain() -> tuple[int, int]:
-    DOMAIN_LOCK_DIR.mkdir(parents=True, exist_ok=True)
-    for d in range(101, 0, -1):
-        fd = os.open(DOMAIN_LOCK_DIR / f"{d}.lock", os.O_RDWR | os.O_CREAT, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return d, fd
-        except BlockingIOError:
-            os.close(fd)
-    sys.exit("soak: every ROS domain id 1..101 is held by a test run")
-
-
-def rss_kib(pid: int) -> tuple[int, int, int]:
-    """VmRSS, RssAnon (heap, stacks) and RssFile (the binary's and libraries' pages), kB."""
-    got = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        key, _, value = line.partition(":")
-        if key in ("VmRSS", "RssAnon", "RssFile"):
-            got[key] = int(value.split()[0])
-    if len(got) != 3:
-        raise RuntimeError(f"no VmRSS for pid {pid}")
-    return got["VmRSS"], got["RssAnon"], got["RssFile"]
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def find_node_pid(root: int, exe: str, timeout_s: float = 20.0) -> int:
@@ -346,7 +316,7 @@ def main() -> int:
         warmup_min = 5.0 if a.minutes >= 15 else a.minutes / 3
     rng = random.Random(a.seed)
 
-    domain, lock = take_domain()
+    domain, lock = take_domain("soak")
     env = dict(os.environ)
     env.update(
         ROS_DOMAIN_ID=str(domain),
@@ -411,7 +381,8 @@ def main() -> int:
             break
         if now >= next_sample:
             try:
-                rss, anon, file_ = rss_kib(pid)
+                st = proc_status(pid, ("VmRSS", "RssAnon", "RssFile"))
+                rss, anon, file_ = st["VmRSS"], st["RssAnon"], st["RssFile"]
                 s = (now - t0, rss, cpu_seconds(pid) - cpu0, anon, file_)
             except (OSError, RuntimeError):  # it exited since the poll
                 alive = False

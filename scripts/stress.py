@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import atexit
 import csv
-import fcntl
 import json
 import os
 import random
@@ -43,6 +42,7 @@ from pwm_actuator_msgs.msg import ChannelParams, ChannelStatus, OutputEdge
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
+from proclib import cpu_seconds, proc_status, take_domain
 from std_msgs.msg import Bool, Float64, UInt16
 
 REPO = Path(__file__).resolve().parents[1]
@@ -61,7 +61,6 @@ NODE_ARGS = [
     "-p", "pw04.period_ms:=200", "-p", "pw04.min_on_ms:=30", "-p", "pw04.enable:=true",
     "-p", "split:=z:pw03:pw04",
 ]
-DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "pwm_actuator-ros-domains"
 
 SLOW_SUBSCRIBER = r"""
 import sys, time, rclpy
@@ -83,32 +82,6 @@ while time.monotonic() < end:
     rclpy.spin_once(n, timeout_sec=0.1)
 print(got[0], flush=True)
 """
-
-
-def take_domain() -> tuple[int, int]:
-    DOMAIN_LOCK_DIR.mkdir(parents=True, exist_ok=True)
-    for d in range(101, 0, -1):
-        fd = os.open(DOMAIN_LOCK_DIR / f"{d}.lock", os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return d, fd
-        except BlockingIOError:
-            os.close(fd)
-    sys.exit("stress: every ROS domain id 1..101 is held by a test run")
-
-
-def proc_status(pid: int) -> dict[str, int]:
-    out = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        k, _, v = line.partition(":")
-        if k in ("VmRSS", "VmHWM"):
-            out[k] = int(v.split()[0])
-    return out
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -245,7 +218,7 @@ def main() -> int:
     a = ap.parse_args()
     rng = random.Random(a.seed)
 
-    domain, lock = take_domain()
+    domain, lock = take_domain("stress")
     env = dict(os.environ)
     env.update(
         ROS_DOMAIN_ID=str(domain),
@@ -277,7 +250,7 @@ def main() -> int:
     rclpy.init()
     n = Node("stress_driver")
     time.sleep(2.0)
-    rss_start = proc_status(node.pid)["VmRSS"]
+    rss_start = proc_status(node.pid, ("VmRSS", "VmHWM"))["VmRSS"]
     cpu0, t0 = cpu_seconds(node.pid), time.monotonic()
     sent = {"malformed": 0, "parameters": 0, "flood": 0}
     refused_by_rmw = 0
@@ -305,7 +278,7 @@ def main() -> int:
                     refused_by_rmw += 1
         rclpy.spin_once(n, timeout_sec=0)
     crashes += 0 if alive() else 1
-    rss_phase["after_malformed"] = proc_status(node.pid)["VmRSS"] if alive() else -1
+    rss_phase["after_malformed"] = proc_status(node.pid, ("VmRSS", "VmHWM"))["VmRSS"] if alive() else -1
 
     # 2. Parameter extremes.
     cli = n.create_client(SetParameters, f"{NODE}/set_parameters")
@@ -344,7 +317,7 @@ def main() -> int:
         for p in reenable:
             p.publish(Bool(data=True))
         rclpy.spin_once(n, timeout_sec=0.1)
-    rss_phase["after_parameters"] = proc_status(node.pid)["VmRSS"]
+    rss_phase["after_parameters"] = proc_status(node.pid, ("VmRSS", "VmHWM"))["VmRSS"]
     time.sleep(2)
     flood_start_ns = time.monotonic_ns()
     duty = {ch: by_topic[(ch, "duty")] for ch in ("pw01", "pw02")}
@@ -367,12 +340,12 @@ def main() -> int:
             rclpy.spin_once(n, timeout_sec=0)
     slow_got = slow.communicate(timeout=60)[0].strip()
     crashes += 0 if alive() else 1
-    rss_phase["after_flood"] = proc_status(node.pid)["VmRSS"] if alive() else -1
+    rss_phase["after_flood"] = proc_status(node.pid, ("VmRSS", "VmHWM"))["VmRSS"] if alive() else -1
 
     # Idle, then the end figures.
     time.sleep(3)
     cpu1, t1 = cpu_seconds(node.pid), time.monotonic()
-    st = proc_status(node.pid) if alive() else {"VmRSS": -1, "VmHWM": -1}
+    st = proc_status(node.pid, ("VmRSS", "VmHWM")) if alive() else {"VmRSS": -1, "VmHWM": -1}
     stop_ns = time.monotonic_ns()
     node.send_signal(signal.SIGINT)
     try:
