@@ -421,6 +421,20 @@ fn late_run(
     Ok(())
 }
 
+/// `p` without what acts over time rather than per period: the watchdog, the maximum on time,
+/// the slew limit, the dead band and the average cap (the power limits stay), so a constant
+/// command gives the same pulse every period.
+fn steady(p: ChannelParams) -> ChannelParams {
+    ChannelParams {
+        command_timeout_ms: 0,
+        max_on_ms: 0,
+        duty_slew_pct_per_s: 0.0,
+        duty_deadband_pct: 0.0,
+        avg_duty_limit_pct: 100.0,
+        ..p
+    }
+}
+
 proptest! {
     /// Levels alternate, and no pulse or break ending in a governed edge is shorter than the
     /// minimum in force (000, 002, 003: "no pulse and no break shorter than its minimum"),
@@ -485,15 +499,7 @@ proptest! {
         pct in arb_percent().prop_filter("finite", |v| v.is_finite()),
         n in 1u64..20,
     ) {
-        // The power limits stay; the maximum on time, slew and dead band act over time.
-        let params = ChannelParams {
-            command_timeout_ms: 0,
-            max_on_ms: 0,
-            duty_slew_pct_per_s: 0.0,
-            duty_deadband_pct: 0.0,
-            avg_duty_limit_pct: 100.0,
-            ..start
-        };
+        let params = steady(start);
         let cfg = params.validate().unwrap();
         let mut b = Bench::new(params);
         b.duty(pct).enable();
@@ -924,14 +930,7 @@ proptest! {
         pct in 0.0..=100.0f64,
         n in 2u64..40,
     ) {
-        let params = ChannelParams {
-            command_timeout_ms: 0,
-            max_on_ms: 0,
-            duty_slew_pct_per_s: 0.0,
-            duty_deadband_pct: 0.0,
-            avg_duty_limit_pct: 100.0,
-            ..start
-        };
+        let params = steady(start);
         let Some(params) = with_time_base(params, tb) else { return Ok(()) };
         let cfg = params.validate().unwrap();
         let (tick, period) = (cfg.tick, cfg.period);
