@@ -236,27 +236,40 @@ EOF
 }
 
 # 5. The rclpy suite, with the venv's python and the built messages.
+# run_pytest DISTRO JUNIT ARGS...: pytest over tests/rclpy with DISTRO's venv and messages
+# (scripts/env.sh) against the release binary, results in JUNIT and added to the totals. Returns
+# pytest's status: 0 all passed, 1 some failed, 5 no test collected (a failure here too). No
+# result file at all (pytest did not start) counts as one failed test, so it never looks clean.
 # shellcheck disable=SC2317  # called through run_step
-rclpy_suite() {
-    local junit="$LOG_DIR/rclpy-junit.xml" rc
+run_pytest() {
+    local distro="$1" junit="$2" rc ws
+    shift 2
+    junit_skipped=0
+    ws="$REPO/.ros-ws"
+    [[ "$distro" == jazzy ]] || ws="$REPO/.ros-ws-$distro"
     rm -f "$junit"
     (
         # shellcheck source=scripts/env.sh
-        PWM_DISTRO=jazzy source "$REPO/scripts/env.sh"
+        PWM_DISTRO="$distro" source "$REPO/scripts/env.sh"
         # ROS logs of the run stay in the checkout (git-ignored), not in ~/.ros.
-        export ROS_HOME="$REPO/.ros-ws/ros_home"
+        export ROS_HOME="$ws/ros_home"
         export PWM_ACTUATOR_NODE="${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}"
-        exec python -m pytest tests/rclpy -v -ra --junitxml="$junit" "${pytest_extra[@]}"
+        exec python -m pytest tests/rclpy -v -ra --junitxml="$junit" "$@"
     ) </dev/null
     rc=$?
-    # pytest: 0 all passed, 1 some failed, 5 no test collected (which is a failure here too).
     if ((rc == 5)); then
-        echo "test: pytest collected no tests" >&2
+        echo "test: pytest ($distro) collected no tests" >&2
     fi
     if [[ -f "$junit" ]]; then
         add_junit_counts "$junit"
+    else
+        failed=$((failed + 1))
     fi
     return "$rc"
+}
+# shellcheck disable=SC2317  # called through run_step
+rclpy_suite() {
+    run_pytest jazzy "$LOG_DIR/rclpy-junit.xml" "${pytest_extra[@]}"
 }
 if ((release_ok)); then
     run_step "rclpy tests" rclpy_suite
@@ -273,29 +286,11 @@ fi
 # that skips, since none of them has a reason to.
 # shellcheck disable=SC2317  # called through run_step
 kilted_smoke() {
-    local junit="$LOG_DIR/rclpy-kilted-junit.xml" rc
-    rm -f "$junit"
-    (
-        # shellcheck source=scripts/env.sh
-        PWM_DISTRO=kilted source "$REPO/scripts/env.sh"
-        # ROS logs of the run stay in the checkout (git-ignored), not in ~/.ros.
-        export ROS_HOME="$REPO/.ros-ws-kilted/ros_home"
-        export PWM_ACTUATOR_NODE="${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}"
-        exec python -m pytest tests/rclpy -m smoke -v -ra --junitxml="$junit"
-    ) </dev/null
-    rc=$?
-    if ((rc == 5)); then
-        echo "test: pytest -m smoke collected no tests" >&2
-    fi
-    if [[ -f "$junit" ]]; then
-        add_junit_counts "$junit"
-        if ((junit_skipped && rc == 0)); then
-            echo "test: $junit_skipped Kilted smoke test(s) skipped; they must run" >&2
-            rc=1
-        fi
-    else
-        # No result at all (pytest did not start): one failure, so it can never look clean.
-        failed=$((failed + 1))
+    local rc=0
+    run_pytest kilted "$LOG_DIR/rclpy-kilted-junit.xml" -m smoke || rc=$?
+    if ((junit_skipped && rc == 0)); then
+        echo "test: $junit_skipped Kilted smoke test(s) skipped; they must run" >&2
+        rc=1
     fi
     return "$rc"
 }
