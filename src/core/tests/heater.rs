@@ -444,6 +444,12 @@ proptest! {
         h.temp_max_c = 3000.0;
         let mut r = Rig::new(params(h), plant, 1);
         let sp = plant.ambient_c + fraction * plant.rate_c_per_s * plant.tau_s;
+        // Detectable at all: from the setpoint, the stuck heater's rise over the window (less
+        // its dead time) exceeds the limit with a margin. A weak heater near its full-power
+        // temperature rises too little to tell from a healthy one (docs/heater.md).
+        let full = plant.ambient_c + plant.rate_c_per_s * plant.tau_s;
+        let window = h.stuck_on_time_s - plant.dead_time_s;
+        prop_assume!((full - sp) * (1.0 - (-window / plant.tau_s).exp()) > 1.2 * h.stuck_on_rise_c);
         r.setpoint(sp).enable().secs(60.0);
         r.plant.set_fault(PlantFault::HeaterStuckOn);
         let stuck = r.now;
