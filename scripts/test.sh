@@ -115,7 +115,8 @@ vendor_tests() {
         --target-dir "$REPO/target/vendor-rustdds" -- \
         data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
         reply_written_before_its_reader_matched_goes_to_it_on_match cache_cleaning_ acknowledged_samples_beyond_depth_go_on_insert \
-        unanswered_nack_is_repeated_until_the_samples_come 2>&1 |
+        unanswered_nack_is_repeated_until_the_samples_come \
+        endpoints_announce_their_user_data_in_sedp 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"
 }
