@@ -115,7 +115,8 @@ vendor_tests() {
         --target-dir "$REPO/target/vendor-rustdds" -- \
         data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
         reply_written_before_its_reader_matched_goes_to_it_on_match cache_cleaning_ acknowledged_samples_beyond_depth_go_on_insert \
-        unanswered_nack_is_repeated_until_the_samples_come 2>&1 |
+        unanswered_nack_is_repeated_until_the_samples_come \
+        endpoints_announce_their_user_data_in_sedp 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"
 }
@@ -123,6 +124,21 @@ run_step "rustdds patch tests" vendor_tests
 read -r v_pass v_fail < <(awk '/^test result: /{for(i=1;i<=NF;i++){if($(i+1)~/^passed;?$/)p+=$i; if($(i+1)~/^failed;?$/)f+=$i}} END{print p+0, f+0}' "$LOG_DIR/vendor-test.log")
 printf 'rustdds patch tests: %d passed, %d failed\n' "$v_pass" "$v_fail"
 passed=$((passed + v_pass)) failed=$((failed + v_fail))
+
+# 4a'. The type hashes the node computes against the .json files rosidl wrote
+# (tests/type_hashes.rs): ignored by `cargo test` above, which must not need the venv, and
+# counted as skipped there; run here, after setup made the venv.
+# shellcheck disable=SC2317  # called through run_step
+type_hash_tests() {
+    cargo test --locked --test type_hashes -- --ignored 2>&1 | tee "$LOG_DIR/type-hashes.log"
+    return "${PIPESTATUS[0]}"
+}
+run_step "type hashes against rosidl" type_hash_tests
+read -r t_pass t_fail < <(awk '/^test result: /{for(i=1;i<=NF;i++){if($(i+1)~/^passed;?$/)p+=$i; if($(i+1)~/^failed;?$/)f+=$i}} END{print p+0, f+0}' "$LOG_DIR/type-hashes.log")
+((t_pass + t_fail == 0)) && t_fail=1 # it did not run: count it as failed
+printf 'type hashes against rosidl: %d passed, %d failed\n' "$t_pass" "$t_fail"
+passed=$((passed + t_pass)) failed=$((failed + t_fail))
+skipped=$((skipped - 1)) # the ignored type_hashes test, counted above
 
 # 4b. Real kernel GPIO lines: in a QEMU guest with a gpio-sim chip (scripts/gpio-vm.sh), the
 # GPIO backend's integration test (ignored by `cargo test` above, counted as skipped there) and

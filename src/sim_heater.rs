@@ -16,6 +16,7 @@ use pwm_actuator::core::heater::{Plant, PlantFault, PlantParams};
 use pwm_actuator::ros::config::discovery;
 use pwm_actuator::ros::config::start::domain_id_from;
 use pwm_actuator::ros::interface::msg::{self, Header, RosMessage};
+use pwm_actuator::ros::interface::type_hash;
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::qos::{History, Reliability};
 use ros2_client::{Context, NodeName, NodeOptions, QosProfile};
@@ -226,6 +227,8 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
     let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())
         .map_err(|e| e.to_string())?;
     let disc = discovery::read(|k| std::env::var(k).ok()).map_err(|e| e.to_string())?;
+    // Its endpoints announce their type hashes, as the node's do.
+    type_hash::announce().map_err(|e| e.to_string())?;
     let participant = disc
         .participant(domain, None)
         .map_err(|e| format!("the DDS participant: {e}"))?;

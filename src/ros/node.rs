@@ -28,13 +28,13 @@ use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
 use crate::ros::inbound::lifecycle;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::inbound::param_services;
-use crate::ros::interface::qos;
+use crate::ros::interface::{qos, type_hash};
 use crate::ros::outbound::diagnostics::ChannelHealth;
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use crate::ros::wire::name_clash::{self, NameClash};
 use crate::service::WatchdogPinger;
-use log::{error, info, warn};
+use log::{debug, error, info, warn};
 use ros2_client::{Context, NodeName, NodeOptions};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -320,6 +320,11 @@ async fn serve(
 
     // Before any reader exists: what the node keeps of an input is bounded by its size.
     rustdds::set_max_received_sample_size(qos::MAX_SAMPLE_BYTES);
+    // Before any endpoint exists: each announces the type hash of its type (REP-2016).
+    match type_hash::announce() {
+        Ok(n) => debug!("type hashes announced for {n} endpoint types"),
+        Err(e) => warn!("endpoints announce no type hash: {e}"),
+    }
     let participant = disc
         .participant(domain, secure.as_deref())
         .map_err(|e| ros_err("the DDS participant")(e.into()))?;

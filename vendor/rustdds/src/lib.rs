@@ -235,6 +235,8 @@ pub use serialization::{
 pub use messages::submessages::elements::serialized_payload::SerializedPayload;
 // pwm_actuator: the bound on received sample size (see README.pwm_actuator.md).
 pub use rtps::reader::{received_samples_too_large, set_max_received_sample_size};
+// pwm_actuator: USER_DATA announced by the endpoints of a type (README.pwm_actuator.md).
+pub use dds::qos::set_user_data_for_type;
 pub use structure::{
   duration::Duration, entity::RTPSEntity, guid::GUID, rpc::SampleIdentity,
   sequence_number::SequenceNumber, time::Timestamp,

@@ -492,7 +492,8 @@ impl InnerPublisher {
     let writer_qos = self
       .default_datawriter_qos
       .modify_by(&topic.qos())
-      .modify_by(&optional_qos.unwrap_or_else(QosPolicies::qos_none));
+      .modify_by(&optional_qos.unwrap_or_else(QosPolicies::qos_none))
+      .with_user_data_of_type(topic.get_type().name()); // pwm_actuator: set_user_data_for_type
 
     let entity_id =
       self.unwrap_or_new_entity_id(entity_id_opt, EntityKind::WRITER_WITH_KEY_USER_DEFINED)?;
@@ -1147,7 +1148,8 @@ impl InnerSubscriber {
     let qos = self
       .qos
       .modify_by(&topic.qos())
-      .modify_by(&optional_qos.unwrap_or_else(QosPolicies::qos_none));
+      .modify_by(&optional_qos.unwrap_or_else(QosPolicies::qos_none))
+      .with_user_data_of_type(topic.get_type().name()); // pwm_actuator: set_user_data_for_type
 
     let entity_id =
       self.unwrap_or_new_entity_id(entity_id_opt, EntityKind::READER_WITH_KEY_USER_DEFINED)?;

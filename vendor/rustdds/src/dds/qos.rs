@@ -210,10 +210,34 @@ impl QosPolicyBuilder {
       // (drop glue) which is incompatible with `const fn`, and the built-in QoS
       // policies never need it. Set it via `QosPolicies::with_data_representation`.
       data_representation: None,
+      // USER_DATA holds a `Vec` too: `QosPolicies::with_user_data`.
+      user_data: None,
       #[cfg(feature = "security")]
       property: None,
     }
   }
+}
+
+// pwm_actuator: USER_DATA by type name, see `set_user_data_for_type`.
+static USER_DATA_BY_TYPE: std::sync::RwLock<BTreeMap<String, policy::UserData>> =
+  std::sync::RwLock::new(BTreeMap::new());
+
+/// Sets the USER_DATA QoS policy that every DataWriter and DataReader of the
+/// type named `type_name` (the DDS type name, e.g.
+/// `std_msgs::msg::dds_::Float64_`) announces when its own QoS (the
+/// publisher's or subscriber's default, modified by the topic's and the
+/// endpoint's) has none.
+///
+/// For endpoints that a library creates on the application's behalf with QoS
+/// the application cannot reach: ROS 2 announces each endpoint's type hash in
+/// its USER_DATA, and the hash depends only on the type. Process-wide; applies
+/// to endpoints created after the call. Setting a type again replaces its
+/// value.
+pub fn set_user_data_for_type(type_name: &str, user_data: policy::UserData) {
+  let mut map = USER_DATA_BY_TYPE
+    .write()
+    .unwrap_or_else(std::sync::PoisonError::into_inner);
+  map.insert(type_name.to_string(), user_data);
 }
 
 /// Describes a set of RTPS/DDS QoS policies
@@ -235,6 +259,7 @@ pub struct QosPolicies {
   pub(crate) resource_limits: Option<policy::ResourceLimits>,
   pub(crate) lifespan: Option<policy::Lifespan>,
   pub(crate) data_representation: Option<policy::DataRepresentation>,
+  pub(crate) user_data: Option<policy::UserData>,
   #[cfg(feature = "security")]
   pub(crate) property: Option<policy::Property>,
 }
@@ -333,6 +358,36 @@ impl QosPolicies {
     self
   }
 
+  pub fn user_data(&self) -> Option<policy::UserData> {
+    self.user_data.clone()
+  }
+
+  /// Set the USER_DATA QoS policy (DDS v1.4 Section 2.2.3.1).
+  ///
+  /// A DataWriter or DataReader announces it in its discovery data
+  /// (`PID_USER_DATA` in SEDP). Not part of [`QosPolicyBuilder`] because it
+  /// holds a `Vec` (incompatible with the `const` builder used for built-in
+  /// QoS). An endpoint whose QoS has none announces the one set for its type
+  /// with [`crate::set_user_data_for_type`], if any.
+  #[must_use]
+  pub fn with_user_data(mut self, user_data: policy::UserData) -> Self {
+    self.user_data = Some(user_data);
+    self
+  }
+
+  /// These policies, with USER_DATA set for `type_name` by
+  /// [`set_user_data_for_type`] if they have none.
+  #[must_use]
+  pub(crate) fn with_user_data_of_type(mut self, type_name: &str) -> Self {
+    if self.user_data.is_none() {
+      let map = USER_DATA_BY_TYPE
+        .read()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+      self.user_data = map.get(type_name).cloned();
+    }
+    self
+  }
+
   #[cfg(feature = "security")]
   pub fn property(&self) -> Option<policy::Property> {
     self.property.clone()
@@ -362,6 +417,7 @@ impl QosPolicies {
         .data_representation
         .clone()
         .or(self.data_representation.clone()),
+      user_data: other.user_data.clone().or(self.user_data.clone()),
       #[cfg(feature = "security")]
       property: other.property.clone().or(self.property.clone()),
     }
@@ -566,6 +622,9 @@ impl QosPolicies {
       resource_limits,
       lifespan,
       data_representation,
+      // Written by DiscoveredWriterData / DiscoveredReaderData, which carry it
+      // for an endpoint (and only for one: not in topic discovery data).
+      user_data: _,
       #[cfg(feature = "security")]
         property: _, // TODO: properties to parameter list?
     } = self;
@@ -738,6 +797,9 @@ impl QosPolicies {
       resource_limits,
       lifespan,
       data_representation,
+      // Read by DiscoveredWriterData / DiscoveredReaderData into their
+      // `user_data`.
+      user_data: None,
       #[cfg(feature = "security")]
       property,
     })
@@ -793,11 +855,17 @@ pub mod policy {
   #[cfg(feature = "security")]
   use crate::serialization::speedy_pl_cdr_helpers::*;
 
-  /*
+  /// DDS 2.2.3.1 USER_DATA
+  ///
+  /// Bytes the application attaches to a DataWriter or DataReader, announced
+  /// in its discovery data and not interpreted by DDS. ROS 2 puts the type
+  /// hash there (`typehash=RIHS01_<64 hex digits>;`).
+  #[derive(Clone, Debug, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
   pub struct UserData {
     pub value: Vec<u8>,
   }
 
+  /*
   pub struct TopicData {
     pub value: Vec<u8>,
   }

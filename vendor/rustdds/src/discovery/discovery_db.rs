@@ -670,7 +670,12 @@ impl DiscoveryDB {
       reader_proxy: ReaderProxy::from(reader_proxy),
       subscription_topic_data: subscription_data,
       content_filter,
-      user_data: Vec::new(),
+      user_data: reader
+        .qos_policy
+        .user_data
+        .clone()
+        .map(|u| u.value)
+        .unwrap_or_default(),
     }
   }
 
@@ -1174,5 +1179,134 @@ mod tests {
     ));
     assert_eq!(discoverydb.get_local_topic_readers(&topic).len(), 2);
     assert_eq!(discoverydb.get_all_local_topic_readers().count(), 2);
+  }
+
+  // pwm_actuator: USER_DATA in SEDP (README.pwm_actuator.md, the sixth change).
+
+  /// The PID_USER_DATA parameters of a parameter list serialized little-endian, each as its
+  /// parameter value (the CDR `sequence<octet>`: length, octets, padding).
+  fn user_data_parameters(pl_cdr_le: &[u8]) -> Vec<Vec<u8>> {
+    // {pid u16, length u16, value}* until PID_SENTINEL.
+    let mut found = Vec::new();
+    let mut i = 0;
+    while i + 4 <= pl_cdr_le.len() {
+      let pid = u16::from_le_bytes([pl_cdr_le[i], pl_cdr_le[i + 1]]);
+      let len = u16::from_le_bytes([pl_cdr_le[i + 2], pl_cdr_le[i + 3]]) as usize;
+      if pid == 0x0001 {
+        // PID_SENTINEL
+        break;
+      }
+      if pid == 0x002c {
+        // PID_USER_DATA (RTPS 2.5 Table 9.13)
+        found.push(pl_cdr_le[i + 4..i + 4 + len].to_vec());
+      }
+      i += 4 + len;
+    }
+    found
+  }
+
+  /// `octets` as the value of PID_USER_DATA, little-endian: the length, the octets, zeros to
+  /// a multiple of 4 (as Fast DDS writes a ROS 2 endpoint's `typehash=...;`).
+  fn sequence_of_octets_le(octets: &[u8]) -> Vec<u8> {
+    let mut v = (octets.len() as u32).to_le_bytes().to_vec();
+    v.extend_from_slice(octets);
+    while v.len() % 4 != 0 {
+      v.push(0);
+    }
+    v
+  }
+
+  #[test]
+  fn endpoints_announce_their_user_data_in_sedp() {
+    use crate::{
+      dds::qos::{policy::UserData, set_user_data_for_type},
+      serialization::{
+        pl_cdr_adapters::{PlCdrDeserialize, PlCdrSerialize},
+        CDRDeserializerAdapter,
+      },
+      RepresentationIdentifier,
+    };
+
+    // 81 octets: not a multiple of 4, so the value is padded.
+    let hash = b"typehash=RIHS01_0123456789abcdef0123456789abcdef0123456789abcdef0123456789abcdef;";
+    let own = b"own=1;";
+    let type_name = "user_data_test::msg::dds_::Typed_";
+    set_user_data_for_type(type_name, UserData { value: hash.to_vec() });
+
+    let dp = DomainParticipant::new(test_domain_id(0)).unwrap();
+    let typed = dp
+      .create_topic(
+        "user_data_typed".to_string(),
+        type_name.to_string(),
+        &QosPolicies::qos_none(),
+        TopicKind::WithKey,
+      )
+      .unwrap();
+    let other = dp
+      .create_topic(
+        "user_data_other".to_string(),
+        "user_data_test::msg::dds_::Other_".to_string(),
+        &QosPolicies::qos_none(),
+        TopicKind::WithKey,
+      )
+      .unwrap();
+    let publisher = dp.create_publisher(&QosPolicies::qos_none()).unwrap();
+    let subscriber = dp.create_subscriber(&QosPolicies::qos_none()).unwrap();
+    type W = CDRSerializerAdapter<RandomData, LittleEndian>;
+    type R = CDRDeserializerAdapter<RandomData>;
+
+    // The type's USER_DATA, an endpoint's own QoS before it, none for another type.
+    let w_typed = publisher
+      .create_datawriter::<RandomData, W>(&typed, None)
+      .unwrap();
+    let own_qos = QosPolicies::qos_none().with_user_data(UserData { value: own.to_vec() });
+    let w_own = publisher
+      .create_datawriter::<RandomData, W>(&typed, Some(own_qos))
+      .unwrap();
+    let w_other = publisher
+      .create_datawriter::<RandomData, W>(&other, None)
+      .unwrap();
+    let r_typed = subscriber
+      .create_datareader::<RandomData, R>(&typed, None)
+      .unwrap();
+    let r_other = subscriber
+      .create_datareader::<RandomData, R>(&other, None)
+      .unwrap();
+
+    let pl_cdr_le = RepresentationIdentifier::PL_CDR_LE;
+    let writer = |w: &DiscoveredWriterData, expected: &[u8]| {
+      assert_eq!(w.user_data, expected);
+      let bytes = w.to_pl_cdr_bytes(pl_cdr_le).unwrap();
+      let params = user_data_parameters(&bytes);
+      if expected.is_empty() {
+        assert!(params.is_empty(), "no PID_USER_DATA expected: {params:x?}");
+      } else {
+        assert_eq!(params, vec![sequence_of_octets_le(expected)]);
+      }
+      // and read back as announced
+      let back = DiscoveredWriterData::from_pl_cdr_bytes(&bytes, pl_cdr_le).unwrap();
+      assert_eq!(back.user_data, expected);
+    };
+    writer(&DiscoveredWriterData::new(&w_typed, &typed, &dp, None), hash);
+    writer(&DiscoveredWriterData::new(&w_own, &typed, &dp, None), own);
+    writer(&DiscoveredWriterData::new(&w_other, &other, &dp, None), b"");
+
+    let db = dp.discovery_db();
+    let db = db.read().unwrap();
+    let reader = |guid: GUID, expected: &[u8]| {
+      let r = db.get_local_topic_reader(guid).unwrap();
+      assert_eq!(r.user_data, expected);
+      let bytes = r.to_pl_cdr_bytes(pl_cdr_le).unwrap();
+      let params = user_data_parameters(&bytes);
+      if expected.is_empty() {
+        assert!(params.is_empty(), "no PID_USER_DATA expected: {params:x?}");
+      } else {
+        assert_eq!(params, vec![sequence_of_octets_le(expected)]);
+      }
+      let back = DiscoveredReaderData::from_pl_cdr_bytes(&bytes, pl_cdr_le).unwrap();
+      assert_eq!(back.user_data, expected);
+    };
+    reader(r_typed.guid(), hash);
+    reader(r_other.guid(), b"");
   }
 }

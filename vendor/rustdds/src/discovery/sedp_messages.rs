@@ -287,6 +287,7 @@ impl SubscriptionBuiltinTopicData {
       resource_limits: None, // nor Resource Limits, see Figure 8.30 in RTPS spec 2.5
       lifespan: self.lifespan,
       data_representation: self.data_representation.clone(),
+      user_data: None, // in DiscoveredReaderData::user_data
 
       #[cfg(feature = "security")]
       property: None, // TODO: no property QoS?
@@ -418,11 +419,7 @@ impl PlCdrDeserialize for DiscoveredReaderData {
 
     let qos = QosPolicies::from_parameter_list(ctx, &pl_map)?;
 
-    let user_data = pl_map
-      .get(&ParameterId::PID_USER_DATA)
-      .and_then(|v| v.first())
-      .map(|p| p.value.clone())
-      .unwrap_or_default();
+    let user_data = user_data_from_pl_map(&pl_map, ctx);
 
     Ok(DiscoveredReaderData {
       reader_proxy: ReaderProxy::new(
@@ -498,7 +495,7 @@ impl ParameterListable for DiscoveredReaderData {
           security_info,
         },
       content_filter,
-      user_data: _,
+      user_data,
     } = self;
 
     let mut pl = ParameterList::new();
@@ -572,6 +569,9 @@ impl ParameterListable for DiscoveredReaderData {
       content_filter,
       ContentFilterProperty
     );
+    if !user_data.is_empty() {
+      emit!(PID_USER_DATA, user_data, Vec<u8>);
+    }
 
     #[cfg(feature = "security")]
     emit_option!(
@@ -736,6 +736,7 @@ impl PublicationBuiltinTopicData {
       resource_limits: None, // nor Resource Limits, see Figure 8.30 in RTPS spec 2.5
       lifespan: self.lifespan,
       data_representation: self.data_representation.clone(),
+      user_data: None, // in DiscoveredWriterData::user_data
       #[cfg(feature = "security")]
       property: None, // TODO: no property Qos?
     }
@@ -810,7 +811,7 @@ impl DiscoveredWriterData {
       last_updated: Instant::now(),
       writer_proxy,
       publication_topic_data,
-      user_data: Vec::new(),
+      user_data: writer.qos().user_data.map(|u| u.value).unwrap_or_default(),
     }
   }
 }
@@ -877,11 +878,7 @@ impl PlCdrDeserialize for DiscoveredWriterData {
 
     let qos = QosPolicies::from_parameter_list(ctx, &pl_map)?;
 
-    let user_data = pl_map
-      .get(&ParameterId::PID_USER_DATA)
-      .and_then(|v| v.first())
-      .map(|p| p.value.clone())
-      .unwrap_or_default();
+    let user_data = user_data_from_pl_map(&pl_map, ctx);
 
     Ok(DiscoveredWriterData {
       last_updated: Instant::now(),
@@ -956,7 +953,7 @@ impl ParameterListable for DiscoveredWriterData {
           #[cfg(feature = "security")]
           security_info,
         },
-      user_data: _,
+      user_data,
     } = self;
 
     let mut pl = ParameterList::new();
@@ -1025,6 +1022,9 @@ impl ParameterListable for DiscoveredWriterData {
         StringWithNul
       );
     }
+    if !user_data.is_empty() {
+      emit!(PID_USER_DATA, user_data, Vec<u8>);
+    }
 
     #[cfg(feature = "security")]
     emit_option!(
@@ -1035,6 +1035,26 @@ impl ParameterListable for DiscoveredWriterData {
 
     Ok(pl)
   }
+}
+
+/// The octets of an endpoint's USER_DATA (`PID_USER_DATA`, a CDR
+/// `sequence<octet>`: length, then the octets), empty when there is none. A
+/// value that does not decode is dropped with a warning rather than the whole
+/// discovery record: the octets are opaque to DDS.
+fn user_data_from_pl_map(
+  pl_map: &std::collections::BTreeMap<ParameterId, Vec<&Parameter>>,
+  ctx: speedy::Endianness,
+) -> Vec<u8> {
+  let Some(p) = pl_map
+    .get(&ParameterId::PID_USER_DATA)
+    .and_then(|v| v.first())
+  else {
+    return Vec::new();
+  };
+  Vec::<u8>::read_from_buffer_with_ctx(ctx, &p.value).unwrap_or_else(|e| {
+    warn!("PID_USER_DATA does not decode ({e}), ignored: {:x?}", p.value);
+    Vec::new()
+  })
 }
 
 // =======================================================================
@@ -1097,6 +1117,7 @@ impl HasQoSPolicy for TopicBuiltinTopicData {
       resource_limits: self.resource_limits,
       lifespan: self.lifespan,
       data_representation: None, // Topic-level DATA_REPRESENTATION not tracked
+      user_data: None,           // an endpoint's policy, not a topic's
       #[cfg(feature = "security")]
       property: None, // TODO: no property Qos?
     }
