@@ -9,6 +9,7 @@
 //! - [`checks`]: `not_heating` (Klipper's `verify_heater`) and `stuck_on`.
 //! - [`plant`]: a first-order-plus-dead-time heater, for the tests and the simulated heater.
 
+pub mod autotune;
 pub mod checks;
 pub mod pid;
 pub mod plant;
