@@ -69,14 +69,7 @@ pub struct Goal {
     pub noise_band_c: f64,
 }
 
-/// The channel's limits on a run.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Limits {
-    /// A reading above `target + max_overshoot_c` aborts, °C.
-    pub max_overshoot_c: f64,
-    /// No complete cycle within this aborts, ns.
-    pub timeout: Nanos,
-}
+pub use super::super::config::heater::AutotuneLimits as Limits;
 
 /// Why a goal is refused before it starts.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
@@ -362,6 +355,50 @@ pub struct Estimate {
     pub on_fraction: f64,
 }
 
+/// TCONT_CP's sizing rules (003) with the new gains, for the channel as configured.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TuneSizing {
+    /// `period_ms <= TI/5` holds with the new gains (TI = `pid_kp / pid_ki`).
+    pub period_ok: bool,
+    /// `min_on_ms` and `min_off_ms` are at most a tenth of the period.
+    pub min_times_ok: bool,
+    /// The longest period the new gains allow, TI/5, ms (whole milliseconds, rounded down).
+    pub recommended_period_ms: u64,
+    /// The rules broken, as the diagnostics name them.
+    pub broken: [Option<super::Sizing>; 3],
+}
+
+/// How a run ended: why, and what it found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Outcome {
+    /// Why it stopped.
+    pub stop: Stop,
+    /// Where it stood.
+    pub progress: Progress,
+    /// The estimate (only when converged).
+    pub estimate: Option<Estimate>,
+    /// The gains by the rule (only when converged).
+    pub gains: Option<Gains>,
+    /// The sizing rules with those gains (only when converged).
+    pub sizing: Option<TuneSizing>,
+}
+
+/// What a channel reports of a run, with the caller's ticket in the event.
+#[derive(Debug, Clone, Copy, PartialEq)]
+// Reports travel by value in the channel's events through the wait-free ring buffer: boxing
+// the outcome would allocate on the output thread.
+#[allow(clippy::large_enum_variant)]
+pub enum Report {
+    /// The goal was refused; nothing changed.
+    Refused(GoalRefusal),
+    /// The run started: the relay drives the duty.
+    Started,
+    /// A phase change or a complete cycle.
+    Progress(Progress),
+    /// The run ended; the line is commanded to 0 % (under `pid` the setpoint is cleared).
+    Finished(Outcome),
+}
+
 /// A run (see the module documentation).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Autotune {
@@ -553,7 +590,7 @@ impl Autotune {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::super::plant::{Plant, PlantParams};
     use super::super::Pid;
     use super::*;
