@@ -56,6 +56,7 @@ impl Channel {
             self.cfg.heater.autotune,
             now,
             reading.unwrap_or(goal.target_c),
+            self.cfg.period,
         );
         self.heat.autotune = Some((ticket, run));
         self.last_command_at = now;
@@ -92,15 +93,15 @@ impl Channel {
         let (before, out) = (run.progress(), run.output_pct());
         let stop = run.reading(now, celsius);
         self.heat.autotune = Some((ticket, run));
-        if let Some(stop) = stop {
-            self.finish_autotune(now, stop, emit);
-            return;
-        }
         if run.progress() != before {
             emit(Event::Autotune {
                 ticket,
                 report: Report::Progress(run.progress()),
             });
+        }
+        if let Some(stop) = stop {
+            self.finish_autotune(now, stop, emit);
+            return;
         }
         if run.output_pct() != out {
             self.take_command(now, Command::Percent(run.output_pct()), false, emit);

@@ -45,7 +45,8 @@ pub const CONVERGE_CYCLES: usize = 4;
 /// Most cycles a run takes (the approach included) before it is rejected as not converged.
 pub const MAX_CYCLES: usize = 12;
 /// How far the agreeing cycles may spread: (largest − smallest) / mean of the period, of
-/// the amplitude and of the on fraction.
+/// the amplitude and of the on fraction; widened by twice the relay's time grid over the
+/// period (see [`Autotune::new`]).
 pub const MAX_SPREAD: f64 = 0.1;
 /// The relay must be on for at least this fraction of a cycle, and off for as much.
 pub const MIN_ON_FRACTION: f64 = 0.1;
@@ -178,6 +179,8 @@ pub enum Stop {
     NotConverged {
         /// The smallest spread seen over any [`CONVERGE_CYCLES`] cycles.
         spread: f64,
+        /// The spread allowed ([`MAX_SPREAD`] and the relay's time grid).
+        allowed: f64,
     },
     /// The relay was on for too small or too large a part of the cycles.
     Asymmetric {
@@ -246,13 +249,13 @@ impl std::fmt::Display for Stop {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             Stop::Converged => write!(f, "converged: {CONVERGE_CYCLES} cycles agree"),
-            Stop::NotConverged { spread } => write!(
+            Stop::NotConverged { spread, allowed } => write!(
                 f,
                 "not_converged: no {CONVERGE_CYCLES} cycles agreed within {MAX_CYCLES} \
                  (best spread {:.0} %, at most {:.0} %); a noisy sensor or a disturbed \
                  heater: widen the noise band",
                 spread * 100.0,
-                MAX_SPREAD * 100.0
+                allowed * 100.0
             ),
             Stop::Asymmetric { on_fraction } => write!(
                 f,
@@ -415,6 +418,8 @@ pub struct Autotune {
     high: f64,
     /// When the last cycle ended (or the run started): the timeout counts from it.
     since: Nanos,
+    /// The relay's time grid, ns.
+    grid: Nanos,
     cycles: [Cycle; MAX_CYCLES],
     n: usize,
     best_spread: f64,
@@ -439,8 +444,11 @@ fn spread(values: impl Iterator<Item = f64> + Clone) -> f64 {
 
 impl Autotune {
     /// A run of `goal` starting at `now` with the first reading `celsius`: the relay starts
-    /// on below `target + noise_band`, off above.
-    pub fn new(goal: Goal, limits: Limits, now: Nanos, celsius: f64) -> Autotune {
+    /// on below `target + noise_band`, off above. `grid` (ns) is how finely the relay's
+    /// switching reaches the heater: a channel's new duty takes effect at its next period
+    /// start, so each switch lands up to a period late and the cycles may spread by twice the
+    /// period more than [`MAX_SPREAD`]; 0 when the line follows at once.
+    pub fn new(goal: Goal, limits: Limits, now: Nanos, celsius: f64, grid: Nanos) -> Autotune {
         Autotune {
             goal,
             limits,
@@ -451,6 +459,7 @@ impl Autotune {
             low: f64::INFINITY,
             high: f64::NEG_INFINITY,
             since: now,
+            grid,
             cycles: [Cycle::default(); MAX_CYCLES],
             n: 0,
             best_spread: f64::INFINITY,
@@ -554,7 +563,9 @@ impl Autotune {
         .into_iter()
         .fold(0.0, f64::max);
         self.best_spread = self.best_spread.min(s);
-        if s <= MAX_SPREAD {
+        let mean_period = last.iter().map(|c| c.period_s).sum::<f64>() / CONVERGE_CYCLES as f64;
+        let allowed = MAX_SPREAD + 2.0 * self.grid as f64 / 1e9 / mean_period;
+        if s <= allowed {
             let k = CONVERGE_CYCLES as f64;
             let mean = |f: fn(&Cycle) -> f64| last.iter().map(f).sum::<f64>() / k;
             let est = Estimate {
@@ -583,6 +594,7 @@ impl Autotune {
             }
             return Some(Stop::NotConverged {
                 spread: self.best_spread,
+                allowed,
             });
         }
         None
@@ -651,21 +663,21 @@ pub(crate) mod tests {
         seed: u64,
         every: Nanos,
         until: Nanos,
-    ) -> (Autotune, Option<Stop>) {
+    ) -> (Autotune, Option<Stop>, Nanos) {
         let mut p = Plant::new(plant, 0, seed);
         let first = p.reading(0).unwrap();
-        let mut at = Autotune::new(goal, limits(), 0, first);
+        let mut at = Autotune::new(goal, limits(), 0, first, 0);
         p.line(0, at.output_pct() > 0.0);
         let mut t = 0;
         while t < until {
             t += every;
             let c = p.reading(t).unwrap();
             if let Some(stop) = at.reading(t, c) {
-                return (at, Some(stop));
+                return (at, Some(stop), t);
             }
             p.line(t, at.output_pct() > 0.0);
         }
-        (at, None)
+        (at, None, t)
     }
 
     fn plants() -> Vec<PlantParams> {
@@ -698,19 +710,22 @@ pub(crate) mod tests {
                 amplitude_pct: 100.0,
                 noise_band_c: 0.5,
             };
-            let (at, stop) = run(plant, goal, 1, 100 * MS, 100_000 * S);
+            let (at, stop, took) = run(plant, goal, 1, 100 * MS, 100_000 * S);
             assert_eq!(stop, Some(Stop::Converged), "{plant:?}");
             let est = at.estimate().unwrap();
             let (ku, tu) = describing_function(&plant, target, 100.0, 0.5);
             let (ku_true, tu_true) = ultimate(&plant);
             println!(
                 "L/tau {:.2}: Ku {:.3} (DF {ku:.3}, true {ku_true:.3}), Tu {:.1} s (DF {tu:.1}, \
-                 true {tu_true:.1}), cycles {}",
+                 true {tu_true:.1}), cycles {}, {:.2} tau",
                 plant.dead_time_s / plant.tau_s,
                 est.ku,
                 est.tu_s,
-                at.progress().cycles
+                at.progress().cycles,
+                took as f64 / 1e9 / plant.tau_s
             );
+            // The approach (under a time constant to 40 % of the rise) and five cycles.
+            assert!((took as f64 / 1e9) < plant.tau_s + plant.dead_time_s + 6.0 * est.tu_s);
             assert!(
                 (est.ku / ku - 1.0).abs() < 0.1,
                 "Ku {} vs {ku}: {plant:?}",
@@ -738,7 +753,7 @@ pub(crate) mod tests {
             amplitude_pct: 100.0,
             noise_band_c: 0.5,
         };
-        let (at, stop) = run(plant, goal, 1, 100 * MS, 100_000 * S);
+        let (at, stop, _) = run(plant, goal, 1, 100 * MS, 100_000 * S);
         assert_eq!(stop, Some(Stop::Converged));
         let est = at.estimate().unwrap();
         assert!(est.on_fraction < 0.4, "{est:?}");
@@ -750,7 +765,7 @@ pub(crate) mod tests {
             target_c: plant.ambient_c + 0.04 * plant.rate_c_per_s * plant.tau_s,
             ..goal
         };
-        let (_, stop) = run(plant, goal, 1, 100 * MS, 100_000 * S);
+        let (_, stop, _) = run(plant, goal, 1, 100 * MS, 100_000 * S);
         assert!(matches!(stop, Some(Stop::Asymmetric { .. })), "{stop:?}");
     }
 
@@ -801,7 +816,7 @@ pub(crate) mod tests {
                 amplitude_pct: 100.0,
                 noise_band_c: 0.5,
             };
-            let (at, _) = run(plant, goal, 1, 100 * MS, 100_000 * S);
+            let (at, _, _) = run(plant, goal, 1, 100 * MS, 100_000 * S);
             let est = at.estimate().unwrap();
             let gains = Rule::TyreusLuyben.gains(est.ku, est.tu_s);
             let settle = (40.0 * est.tu_s) as u64;
@@ -836,7 +851,8 @@ pub(crate) mod tests {
                         amplitude_pct: 100.0,
                         noise_band_c: band,
                     };
-                    let (at, stop) = run(plant, goal, seed + 10 * i as u64, 100 * MS, 100_000 * S);
+                    let (at, stop, _) =
+                        run(plant, goal, seed + 10 * i as u64, 100 * MS, 100_000 * S);
                     let stop = stop.expect("every run ends");
                     match stop {
                         Stop::Converged => {
@@ -876,7 +892,7 @@ pub(crate) mod tests {
             noise_band_c: 0.1,
         };
         for seed in 1..6 {
-            let (at, stop) = run(plant, goal, seed, 100 * MS, 100_000 * S);
+            let (at, stop, _) = run(plant, goal, seed, 100 * MS, 100_000 * S);
             assert!(
                 matches!(
                     stop,
@@ -907,7 +923,7 @@ pub(crate) mod tests {
             amplitude_pct: 100.0,
             noise_band_c: 0.5,
         };
-        let (_, stop) = run(plant, goal, 1, 100 * MS, 100_000 * S);
+        let (_, stop, _) = run(plant, goal, 1, 100 * MS, 100_000 * S);
         match stop {
             Some(Stop::Overshoot { celsius, limit_c }) => {
                 assert_eq!(limit_c, 80.0);
@@ -926,11 +942,11 @@ pub(crate) mod tests {
             amplitude_pct: 100.0,
             noise_band_c: 0.5,
         };
-        let (at, stop) = run(plant, goal, 1, 100 * MS, 100_000 * S);
+        let (at, stop, _) = run(plant, goal, 1, 100 * MS, 100_000 * S);
         assert_eq!(stop, Some(Stop::Timeout { timeout_s: 1200.0 }));
         assert_eq!(at.progress().phase, Phase::Approach);
         // A tick alone ends it too, without readings.
-        let mut at = Autotune::new(goal, limits(), 5 * S, 20.0);
+        let mut at = Autotune::new(goal, limits(), 5 * S, 20.0, 0);
         assert_eq!(at.tick(1204 * S), None);
         assert!(at.tick(1205 * S).is_some());
     }
@@ -944,7 +960,7 @@ pub(crate) mod tests {
             amplitude_pct: 100.0,
             noise_band_c: 0.5,
         };
-        let (at, _) = run(plant, goal, 1, 100 * MS, 100_000 * S);
+        let (at, _, _) = run(plant, goal, 1, 100 * MS, 100_000 * S);
         let pr = at.progress();
         assert_eq!(pr.phase, Phase::Relay);
         assert_eq!(pr.cycles as usize, CONVERGE_CYCLES + 1);

@@ -115,6 +115,8 @@ fn a_run_through_the_channel_converges_and_its_gains_hold_the_setpoint() {
         cycles.windows(2).all(|w| w[0] <= w[1]) && cycles.len() >= 6,
         "{cycles:?}"
     );
+    // The last cycle is reported before the end.
+    assert_eq!(cycles.last(), Some(&o.progress.cycles));
     // The run leaves the old gains, the line commanded to 0 % and no setpoint.
     assert_eq!(r.ch.config().heater.gains, old);
     assert_eq!(r.ch.status(r.now).duty_commanded, 0.0);
