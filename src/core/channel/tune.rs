@@ -68,7 +68,8 @@ impl Channel {
             ticket,
             report: Report::Progress(run.progress()),
         });
-        self.take_command(now, Command::Percent(run.output_pct()), false, emit);
+        // The goal counts as a command: it feeds the watchdog and clears a trip.
+        self.take_command(now, Command::Percent(run.output_pct()), true, emit);
     }
 
     /// Cancels the run with `ticket` at `now` (another ticket is ignored).

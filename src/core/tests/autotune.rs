@@ -383,3 +383,25 @@ fn goals_commands_and_setpoints_are_refused_with_a_reason() {
     start(&mut r, goal(60.0));
     assert_eq!(refused(&r), Some(GoalRefusal::NoFeedback));
 }
+
+#[test]
+fn a_goal_clears_a_tripped_watchdog_like_a_command() {
+    let mut p = params(heater(&plant()));
+    p.command_timeout_ms = 2000;
+    // Under pid with no setpoint the watchdog trips.
+    let mut r = rig(p);
+    r.secs(3.0);
+    assert!(r
+        .notes
+        .iter()
+        .any(|(_, e)| *e == Event::Watchdog { tripped: true }));
+    let t = r.now;
+    start(&mut r, goal(60.0));
+    r.secs(2.0);
+    assert!(
+        r.edges.iter().any(|(at, l)| *at >= t && *l == Level::High),
+        "the relay's duty reaches the line"
+    );
+    let (_, o) = until_done(&mut r, 5000);
+    assert_eq!(o.stop, Stop::Converged, "{o:?}");
+}
