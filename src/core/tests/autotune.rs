@@ -405,3 +405,41 @@ fn a_goal_clears_a_tripped_watchdog_like_a_command() {
     let (_, o) = until_done(&mut r, 5000);
     assert_eq!(o.stop, Stop::Converged, "{o:?}");
 }
+
+/// A slow bed (time constant 300 s, dead time 60 s): its relay swings about 10 °C below the
+/// band, long enough that `not_heating` with Klipper's defaults latches during the run — the
+/// check stays armed. Sized for the plant (`runaway_gain_time_s` above the dead time,
+/// `runaway_max_error` for the dips, docs/autotune.md), the run converges in about 25 min.
+#[test]
+fn a_slow_bed_needs_its_runaway_settings_sized_for_the_run() {
+    let bed = PlantParams {
+        rate_c_per_s: 0.5,
+        tau_s: 300.0,
+        dead_time_s: 60.0,
+        ambient_c: 20.0,
+        noise_c: 0.05,
+    };
+    let g = Goal {
+        target_c: 80.0,
+        amplitude_pct: 100.0,
+        noise_band_c: 0.5,
+    };
+    let run = |gain_time_s: f64, max_error: f64| {
+        let mut p = params(heater(&bed));
+        p.heater.runaway_gain_time_s = gain_time_s;
+        p.heater.runaway_max_error = max_error;
+        let mut r = Rig::new(p, bed, 3);
+        r.secs(1.0).enable().secs(1.0);
+        start(&mut r, g);
+        until_done(&mut r, 20_000)
+    };
+    let (_, o) = run(120.0, 120.0);
+    assert!(
+        matches!(o.stop, Stop::HeaterFault(HeaterFault::NotHeating { target_c, .. }) if target_c == 80.0),
+        "{o:?}"
+    );
+    let (t, o) = run(120.0, 3000.0);
+    assert_eq!(o.stop, Stop::Converged, "{o:?}");
+    println!("bed: converged after {} s, {:?}", t / S, o.estimate);
+    assert!(t < 30 * 60 * S, "{t}");
+}
