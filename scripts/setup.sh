@@ -224,7 +224,8 @@ fi
 # ---------------------------------------------------------------------------------------------
 msg_files=("$MSG_PKG_DIR/package.xml" "$MSG_PKG_DIR/CMakeLists.txt")
 while IFS= read -r -d '' f; do msg_files+=("$f"); done \
-    < <(find "$MSG_PKG_DIR" -maxdepth 1 -name '*.msg' -print0 | LC_ALL=C sort -z)
+    < <(find "$MSG_PKG_DIR" -maxdepth 2 \( -name '*.msg' -o -name '*.action' \) -print0 |
+        LC_ALL=C sort -z)
 ((${#msg_files[@]} > 2)) || die "no .msg files in $MSG_PKG_DIR"
 msgs_key="$(hash_of "${msg_files[@]}" -- "$venv_key")"
 

@@ -231,3 +231,28 @@ fn the_msg_parser_sees_differences() {
         vec![("s".to_string(), Shape::Seq(Some(Box::new(Shape::Str))))]
     );
 }
+
+#[test]
+fn the_autotune_action_matches_its_action_file() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("msg/action/Autotune.action");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let parts: Vec<&str> = text.split("\n---\n").collect();
+    assert_eq!(parts.len(), 3, "goal, result and feedback");
+    let parse = |i: usize| {
+        parse_msg(parts[i], &nested).unwrap_or_else(|e| panic!("Autotune.action part {i}: {e}"))
+    };
+    assert_eq!(fields(shape_of(&AutotuneGoal::default())), parse(0), "goal");
+    assert_eq!(
+        fields(shape_of(&AutotuneResult {
+            sizing: vec!["x".into()],
+            ..AutotuneResult::default()
+        })),
+        parse(1),
+        "result"
+    );
+    assert_eq!(
+        fields(shape_of(&AutotuneFeedback::default())),
+        parse(2),
+        "feedback"
+    );
+}

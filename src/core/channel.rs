@@ -45,6 +45,7 @@ mod heat;
 mod line;
 mod placement;
 mod report;
+mod tune;
 mod watchdog;
 
 pub use report::{Event, Protections, Status};
@@ -395,6 +396,10 @@ impl Channel {
             emit(Event::Refused(crate::core::heater::Refusal::DutyUnderPid));
             return;
         }
+        if self.heat.autotune.is_some() {
+            emit(Event::Refused(crate::core::heater::Refusal::Autotuning));
+            return;
+        }
         self.take_command(now, command, true, emit);
     }
 
@@ -458,6 +463,9 @@ impl Channel {
         if enable == self.enabled {
             return;
         }
+        if !enable {
+            self.finish_autotune(now, crate::core::heater::autotune::Stop::Disabled, emit);
+        }
         if enable && !self.heat_before_enable(now, emit) {
             return;
         }
@@ -511,7 +519,7 @@ impl Channel {
     /// takes effect at once, since it guards safety, not timing.
     pub fn set_config(&mut self, now: Nanos, cfg: ChannelConfig, emit: &mut dyn FnMut(Event)) {
         // The heater loop and its checks take their settings at once: they guard the load.
-        self.heat_config(now, cfg.heater);
+        self.heat_config(now, cfg.heater, emit);
         self.cfg.command_timeout = cfg.command_timeout;
         self.cfg.params.command_timeout_ms = cfg.params.command_timeout_ms;
         // The fault value guards safety too: in force at once.

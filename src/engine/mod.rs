@@ -47,6 +47,17 @@ pub enum Input {
     /// Clears the channel's heater fault if its condition is gone; the answer comes back as
     /// the core's `FaultReset` event with this ticket.
     ResetFault(u32),
+    /// Starts an autotune of the channel; the answers come back as the core's `Autotune`
+    /// events with this ticket (see
+    /// [`Channel::start_autotune`](crate::core::Channel::start_autotune)).
+    Autotune {
+        /// The caller's number for the run.
+        ticket: u32,
+        /// What is asked.
+        goal: crate::core::heater::autotune::Goal,
+    },
+    /// Cancels the channel's autotune with this ticket.
+    AutotuneCancel(u32),
     /// Whether a heater fault of any channel latches the e-stop of every channel
     /// (`heater_fault_latches_estop`); the request's channel is ignored. Sent at start-up.
     HeaterEstop(bool),

@@ -22,6 +22,7 @@ use crate::ros::config::params::{self, ParamError, ParamStore, StartupConfig};
 use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
 use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
+use crate::ros::inbound::autotune;
 use crate::ros::inbound::estop::{self, EStop};
 use crate::ros::inbound::heater::{self, HeaterChannel};
 use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
@@ -421,6 +422,7 @@ async fn serve(
         })
         .collect();
     tasks.extend(heater::listen_heaters(&mut ep, &inputs, &heaters)?);
+    tasks.extend(autotune::serve_autotune(&mut ep, &inputs, &heaters)?);
     if cfg.settings.heater_fault_latches_estop {
         let _ = inputs.send(0, Input::HeaterEstop(true));
     }

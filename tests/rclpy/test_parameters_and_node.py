@@ -104,6 +104,8 @@ CHANNEL_PARAMS = (
     "runaway_heating_gain_c",
     "stuck_on_rise_c",
     "stuck_on_time_s",
+    "autotune_max_overshoot_c",
+    "autotune_timeout_s",
 )
 
 

@@ -42,6 +42,7 @@ impl Channel {
             return;
         }
         if latched {
+            self.finish_autotune(now, crate::core::heater::autotune::Stop::EStop, emit);
             self.estop = true;
             self.fault_until = None;
             self.set_enable(now, false, emit);
@@ -70,6 +71,9 @@ impl Channel {
     pub fn set_live(&mut self, now: Nanos, live: bool, emit: &mut dyn FnMut(Event)) {
         if live == self.live {
             return;
+        }
+        if !live {
+            self.finish_autotune(now, crate::core::heater::autotune::Stop::Deactivated, emit);
         }
         self.live = live;
         if !live {

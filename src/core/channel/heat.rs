@@ -121,7 +121,7 @@ impl Channel {
     fn pid_sample(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         let sample = self.sample();
         self.heat.next_sample = Some(t.saturating_add(sample));
-        if self.watchdog_tripped || self.heat.fault.is_some() {
+        if self.watchdog_tripped || self.heat.fault.is_some() || self.heat.autotune.is_some() {
             return;
         }
         let (Some((setpoint, _)), Some((reading, _))) = (self.heat.setpoint, self.heat.reading)
@@ -153,9 +153,12 @@ impl Channel {
         let Some((temp, _)) = self.heat.reading.filter(|(c, _)| c.is_finite()) else {
             return;
         };
+        self.autotune_tick(t, emit);
         let runs = self.pid_on() && self.enabled && self.heat.fault.is_none();
-        let target = match self.heat.setpoint {
-            Some((sp, _)) if runs => sp,
+        let target = match (self.autotune_target(), self.heat.setpoint) {
+            // An autotune's target is the check's while it runs.
+            (Some(target), _) => target,
+            (None, Some((sp, _))) if runs => sp,
             _ => 0.0,
         };
         let runaway = self.cfg.heater.runaway;
@@ -214,8 +217,10 @@ impl Channel {
                     window_s: p.stuck_on_time_s,
                 };
                 self.latch_heater_fault(now, fault, emit);
+                return;
             }
         }
+        self.autotune_reading(now, celsius, emit);
         self.feed_watchdog(now, emit);
     }
 
@@ -225,6 +230,8 @@ impl Channel {
         let p = self.cfg.heater.params;
         let refusal = if !self.pid_on() {
             Some(Refusal::SetpointUnderOpen)
+        } else if self.heat.autotune.is_some() {
+            Some(Refusal::Autotuning)
         } else if !celsius.is_finite() {
             Some(Refusal::SetpointNotFinite(celsius))
         } else if celsius < p.temp_min_c || celsius > p.temp_max_c {
@@ -276,6 +283,11 @@ impl Channel {
         if self.heat.fault.is_some() {
             return;
         }
+        self.finish_autotune(
+            now,
+            crate::core::heater::autotune::Stop::HeaterFault(fault),
+            emit,
+        );
         self.heat.fault = Some(fault);
         self.heat.next_sample = None;
         self.fault_until = None;
@@ -359,10 +371,18 @@ impl Channel {
     /// New heater settings at `now`, in force at once: a gain change is bumpless, a switch
     /// from `open` to `pid` starts the loop from the duty in force, one back to `open` keeps
     /// the loop's last duty until a command.
-    pub(super) fn heat_config(&mut self, now: Nanos, new: HeaterConfig) {
+    pub(super) fn heat_config(
+        &mut self,
+        now: Nanos,
+        new: HeaterConfig,
+        emit: &mut dyn FnMut(Event),
+    ) {
         let old = self.cfg.heater;
         if old == new {
             return;
+        }
+        if old.params.control != new.params.control || old.params.feedback != new.params.feedback {
+            self.finish_autotune(now, crate::core::heater::autotune::Stop::Reconfigured, emit);
         }
         self.cfg.heater = new;
         self.cfg.params.heater = new.params;

@@ -8,6 +8,9 @@ use super::Channel;
 
 /// Something the channel did or noticed, in the order it happened.
 #[derive(Debug, Clone, Copy, PartialEq)]
+// Events travel by value through the wait-free ring buffer: boxing an autotune's outcome
+// would allocate on the output thread.
+#[allow(clippy::large_enum_variant)]
 pub enum Event {
     /// The output changes to `level` at scheduled time `at` (ns).
     Edge {
@@ -60,6 +63,13 @@ pub enum Event {
         ticket: u32,
         /// Cleared, or why not.
         result: Result<(), ResetRefusal>,
+    },
+    /// A report of the autotune run started with `ticket`.
+    Autotune {
+        /// The caller's number for the run.
+        ticket: u32,
+        /// What happened.
+        report: super::super::heater::autotune::Report,
     },
     /// The channel was polled so late that `edges` scheduled edges fell in the past together;
     /// they were merged so that no zero-width pulse reaches the output.

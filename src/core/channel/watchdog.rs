@@ -26,6 +26,7 @@ impl Channel {
     /// runs at it from now, re-timing the running step as TCONT_CP does a new command, so the
     /// minimum times hold; without one the output goes off at once, duty 0 until a command.
     pub(super) fn trip(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
+        self.finish_autotune(t, crate::core::heater::autotune::Stop::Watchdog, emit);
         self.watchdog_tripped = true;
         emit(Event::Watchdog { tripped: true });
         if self.cfg.fault_duty > 0.0 && self.enabled && self.cfg.period > 0 {

@@ -103,6 +103,10 @@ pub struct HeaterParams {
     pub stuck_on_rise_c: f64,
     /// `stuck_on`'s window, s.
     pub stuck_on_time_s: f64,
+    /// An autotune aborts on a reading above its target plus this, °C (20).
+    pub autotune_max_overshoot_c: f64,
+    /// An autotune aborts when no relay cycle completes within this, s (1200).
+    pub autotune_timeout_s: f64,
 }
 
 impl Default for HeaterParams {
@@ -124,6 +128,8 @@ impl Default for HeaterParams {
             runaway_heating_gain_c: 2.0,
             stuck_on_rise_c: 0.0,
             stuck_on_time_s: 30.0,
+            autotune_max_overshoot_c: 20.0,
+            autotune_timeout_s: 1200.0,
         }
     }
 }
@@ -162,6 +168,15 @@ pub enum HeaterConfigError {
     PidWithoutFeedback,
 }
 
+/// The channel's limits on an autotune run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AutotuneLimits {
+    /// A reading above `target + max_overshoot_c` aborts, °C.
+    pub max_overshoot_c: f64,
+    /// No complete cycle within this aborts, ns.
+    pub timeout: Nanos,
+}
+
 /// The validated heater settings the channel runs on.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeaterConfig {
@@ -175,6 +190,8 @@ pub struct HeaterConfig {
     pub runaway: Runaway,
     /// `stuck_on`'s window, ns.
     pub stuck_window: Nanos,
+    /// The autotune's limits.
+    pub autotune: AutotuneLimits,
     /// The parameters this was made from.
     pub params: HeaterParams,
 }
@@ -251,6 +268,18 @@ impl HeaterParams {
         )?;
         range("stuck_on_rise_c", self.stuck_on_rise_c, 0.0, MAX_DELTA_C)?;
         range("stuck_on_time_s", self.stuck_on_time_s, 1.0, MAX_TIME_S)?;
+        range(
+            "autotune_max_overshoot_c",
+            self.autotune_max_overshoot_c,
+            0.1,
+            MAX_DELTA_C,
+        )?;
+        range(
+            "autotune_timeout_s",
+            self.autotune_timeout_s,
+            1.0,
+            MAX_TIME_S,
+        )?;
         if self.control == Control::Pid && !self.feedback {
             return Err(HeaterConfigError::PidWithoutFeedback);
         }
@@ -270,6 +299,10 @@ impl HeaterParams {
                 heating_gain_c: self.runaway_heating_gain_c,
             },
             stuck_window: seconds(self.stuck_on_time_s),
+            autotune: AutotuneLimits {
+                max_overshoot_c: self.autotune_max_overshoot_c,
+                timeout: seconds(self.autotune_timeout_s),
+            },
             params: *self,
         })
     }

@@ -7,8 +7,10 @@
 //!
 //! - [`pid`]: the loop.
 //! - [`checks`]: `not_heating` (Klipper's `verify_heater`) and `stuck_on`.
+//! - [`autotune`]: the relay autotune.
 //! - [`plant`]: a first-order-plus-dead-time heater, for the tests and the simulated heater.
 
+pub mod autotune;
 pub mod checks;
 pub mod pid;
 pub mod plant;
@@ -130,6 +132,9 @@ pub enum Refusal {
     /// A setpoint while `control` is `open`.
     #[error("setpoint refused: control is open (set control pid)")]
     SetpointUnderOpen,
+    /// A duty command or a setpoint while an autotune runs.
+    #[error("refused: an autotune is running on this channel (cancel it first)")]
+    Autotuning,
     /// A setpoint that is NaN or infinite.
     #[error("setpoint {0} refused: not a finite number")]
     SetpointNotFinite(f64),
@@ -267,6 +272,8 @@ pub(crate) struct Heat {
     pub(crate) fault: Option<HeaterFault>,
     /// The rise `stuck_on` saw at the last reading.
     pub(crate) rise: Rise,
+    /// The autotune run, with its ticket.
+    pub(crate) autotune: Option<(u32, autotune::Autotune)>,
 }
 
 impl Heat {
@@ -289,6 +296,7 @@ impl Heat {
                 rise_c: 0.0,
                 off_whole_window: false,
             },
+            autotune: None,
         }
     }
 }

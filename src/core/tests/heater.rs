@@ -12,22 +12,22 @@ use proptest::prelude::*;
 const S: Nanos = 1_000_000_000;
 
 /// A channel, its plant and the sensor's reading clock, run together in virtual time.
-struct Rig {
-    ch: Channel,
-    plant: Plant,
-    now: Nanos,
-    next_reading: Nanos,
-    reading_every: Nanos,
+pub(super) struct Rig {
+    pub(super) ch: Channel,
+    pub(super) plant: Plant,
+    pub(super) now: Nanos,
+    pub(super) next_reading: Nanos,
+    pub(super) reading_every: Nanos,
     /// Every event except edges and plans, with its instant.
-    notes: Vec<(Nanos, Event)>,
+    pub(super) notes: Vec<(Nanos, Event)>,
     /// Line changes: (instant, level).
-    edges: Vec<(Nanos, Level)>,
+    pub(super) edges: Vec<(Nanos, Level)>,
     /// The highest and lowest true temperature after `watch_from`.
-    watch_from: Nanos,
-    band: (f64, f64),
+    pub(super) watch_from: Nanos,
+    pub(super) band: (f64, f64),
 }
 
-fn heater(plant: &PlantParams) -> HeaterParams {
+pub(super) fn heater(plant: &PlantParams) -> HeaterParams {
     // SIMC tuning (Skogestad) with tc = dead time: kp = tau / (K·2L), TI = min(tau, 8L),
     // K = rate·tau / 100 °C per %.
     let k = plant.rate_c_per_s * plant.tau_s / 100.0;
@@ -46,7 +46,7 @@ fn heater(plant: &PlantParams) -> HeaterParams {
     }
 }
 
-fn params(h: HeaterParams) -> ChannelParams {
+pub(super) fn params(h: HeaterParams) -> ChannelParams {
     ChannelParams {
         period_ms: 1000,
         heater: h,
@@ -55,7 +55,7 @@ fn params(h: HeaterParams) -> ChannelParams {
 }
 
 impl Rig {
-    fn new(p: ChannelParams, plant: PlantParams, seed: u64) -> Rig {
+    pub(super) fn new(p: ChannelParams, plant: PlantParams, seed: u64) -> Rig {
         Rig {
             ch: Channel::new(p.validate().expect("valid test parameters"), 0),
             plant: Plant::new(plant, 0, seed),
@@ -69,7 +69,7 @@ impl Rig {
         }
     }
 
-    fn act(&mut self, f: impl FnOnce(&mut Channel, Nanos, &mut dyn FnMut(Event))) {
+    pub(super) fn act(&mut self, f: impl FnOnce(&mut Channel, Nanos, &mut dyn FnMut(Event))) {
         let (now, plant, notes, edges) =
             (self.now, &mut self.plant, &mut self.notes, &mut self.edges);
         f(&mut self.ch, now, &mut |e| match e {
@@ -83,7 +83,7 @@ impl Rig {
     }
 
     /// Runs every deadline and reading up to `t`.
-    fn run_to(&mut self, t: Nanos) -> &mut Self {
+    pub(super) fn run_to(&mut self, t: Nanos) -> &mut Self {
         loop {
             let due = self.ch.poll_at().unwrap_or(Nanos::MAX);
             let next = due.min(self.next_reading);
@@ -109,21 +109,21 @@ impl Rig {
         self
     }
 
-    fn secs(&mut self, s: f64) -> &mut Self {
+    pub(super) fn secs(&mut self, s: f64) -> &mut Self {
         self.run_to(self.now + (s * 1e9) as Nanos)
     }
 
-    fn enable(&mut self) -> &mut Self {
+    pub(super) fn enable(&mut self) -> &mut Self {
         self.act(|ch, now, emit| ch.set_enable(now, true, emit));
         self
     }
 
-    fn setpoint(&mut self, c: f64) -> &mut Self {
+    pub(super) fn setpoint(&mut self, c: f64) -> &mut Self {
         self.act(|ch, now, emit| ch.set_setpoint(now, c, emit));
         self
     }
 
-    fn faults(&self) -> Vec<(Nanos, HeaterFault)> {
+    pub(super) fn faults(&self) -> Vec<(Nanos, HeaterFault)> {
         self.notes
             .iter()
             .filter_map(|(t, e)| match e {
@@ -133,11 +133,11 @@ impl Rig {
             .collect()
     }
 
-    fn first_fault(&self) -> Option<(Nanos, HeaterFault)> {
+    pub(super) fn first_fault(&self) -> Option<(Nanos, HeaterFault)> {
         self.faults().first().copied()
     }
 
-    fn reset(&mut self) -> Result<(), ResetRefusal> {
+    pub(super) fn reset(&mut self) -> Result<(), ResetRefusal> {
         self.act(|ch, now, emit| ch.reset_heater_fault(now, 7, emit));
         match self.notes.last() {
             Some((_, Event::FaultReset { ticket: 7, result })) => *result,
@@ -146,7 +146,7 @@ impl Rig {
     }
 
     /// No rise of the line after `t`.
-    fn no_rise_after(&self, t: Nanos) -> bool {
+    pub(super) fn no_rise_after(&self, t: Nanos) -> bool {
         !self
             .edges
             .iter()

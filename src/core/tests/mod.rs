@@ -1,6 +1,7 @@
 //! Virtual-time tests of the channel core: rule by rule against the seeds, then properties over
 //! random input sequences.
 
+mod autotune;
 mod bank;
 mod harness;
 mod heater;

@@ -1,11 +1,12 @@
 //! ROS → output thread: commands, enables and parameter changes ([`inputs`]), the e-stop
-//! ([`estop`]), the heater loop's readings, setpoints and fault resets ([`heater`]), the managed node ([`lifecycle`]), the parameter services ([`param_services`]),
+//! ([`estop`]), the heater loop's readings, setpoints and fault resets ([`heater`]), its autotune action ([`autotune`]), the managed node ([`lifecycle`]), the parameter services ([`param_services`]),
 //! and what the callbacks share with the report side ([`node_state`], the notes of
 //! [`inputs`]).
 //!
 //! Layer 4 of the ROS shell: may import [`interface`](super::interface),
 //! [`config`](super::config) and [`wire`](super::wire); never the outbound side.
 
+pub mod autotune;
 pub mod estop;
 pub mod heater;
 pub mod inputs;

@@ -76,7 +76,18 @@ pub struct NodeState {
     /// one lock here, held for a copy by the report thread and the reset service only.
     resets: Box<[std::sync::Mutex<Option<ResetAnswer>>]>,
     next_ticket: std::sync::atomic::AtomicU32,
+    /// Per channel, the reports of autotune runs the action has not taken yet (a lock held
+    /// for a push by the report thread and a drain by the action task).
+    autotunes: Box<[AutotuneMailbox]>,
 }
+
+/// One channel's autotune reports waiting for the action, with their tickets.
+type AutotuneMailbox = std::sync::Mutex<std::collections::VecDeque<(u32, AutotuneReport)>>;
+
+pub use crate::core::heater::autotune::Report as AutotuneReport;
+
+/// How many autotune reports wait per channel at most.
+pub const AUTOTUNE_REPORTS: usize = 64;
 
 /// The answer to a `~/<ch>/reset_fault`: its ticket, and cleared or why not.
 pub type ResetAnswer = (u32, Result<(), String>);
@@ -97,6 +108,9 @@ impl NodeState {
             heater_estop: AtomicBool::new(false),
             resets: (0..channels).map(|_| std::sync::Mutex::new(None)).collect(),
             next_ticket: std::sync::atomic::AtomicU32::new(1),
+            autotunes: (0..channels)
+                .map(|_| std::sync::Mutex::new(std::collections::VecDeque::new()))
+                .collect(),
         }
     }
 
@@ -108,6 +122,39 @@ impl NodeState {
     /// A fresh ticket for a `~/<ch>/reset_fault` request.
     pub fn reset_ticket(&self) -> u32 {
         self.next_ticket.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Files a report of the autotune with `ticket` of `channel` for its action to take. At
+    /// most [`AUTOTUNE_REPORTS`] wait; beyond, the oldest progress report goes (a run's end
+    /// is never dropped for one).
+    pub fn file_autotune(&self, channel: usize, ticket: u32, report: AutotuneReport) {
+        if let Some(slot) = self.autotunes.get(channel) {
+            let mut q = crate::output::safety::lock_ignore_poison(slot);
+            if q.len() >= AUTOTUNE_REPORTS {
+                if let Some(i) = q
+                    .iter()
+                    .position(|(_, r)| matches!(r, AutotuneReport::Progress(_)))
+                {
+                    q.remove(i);
+                } else {
+                    q.pop_front();
+                }
+            }
+            q.push_back((ticket, report));
+        }
+    }
+
+    /// Takes the reports of the autotune with `ticket` of `channel` that have come, oldest
+    /// first (reports of other tickets are dropped: one run per channel at a time).
+    pub fn take_autotune(&self, channel: usize, ticket: u32) -> Vec<AutotuneReport> {
+        let Some(slot) = self.autotunes.get(channel) else {
+            return Vec::new();
+        };
+        crate::output::safety::lock_ignore_poison(slot)
+            .drain(..)
+            .filter(|(t, _)| *t == ticket)
+            .map(|(_, r)| r)
+            .collect()
     }
 
     /// Records the output thread's answer to the reset with `ticket` of `channel`.

@@ -364,6 +364,72 @@ pub struct ChannelParams {
 }
 ros_message!(ChannelParams, "pwm_actuator_msgs", "ChannelParams");
 
+/// The goal of `pwm_actuator_msgs/action/Autotune` (msg/action/Autotune.action).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct AutotuneGoal {
+    /// The temperature the relay oscillates around, °C.
+    pub target_c: f64,
+    /// The relay's on output, % duty; 0 = the channel's `max_duty_pct`.
+    pub amplitude_pct: f64,
+    /// The hysteresis on each side of the target, °C.
+    pub noise_band_c: f64,
+    /// On success, set the gains as parameters.
+    pub apply: bool,
+}
+impl Message for AutotuneGoal {}
+
+/// The result of `pwm_actuator_msgs/action/Autotune`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct AutotuneResult {
+    /// Why it stopped (`converged`, `canceled`, ...).
+    pub stop: String,
+    /// The same in words, with the figures.
+    pub message: String,
+    /// Gains were found.
+    pub converged: bool,
+    /// Ultimate gain, % per °C.
+    pub ku: f64,
+    /// Ultimate period, s.
+    pub tu_s: f64,
+    /// % per °C.
+    pub pid_kp: f64,
+    /// % per °C·s.
+    pub pid_ki: f64,
+    /// % per °C/s.
+    pub pid_kd: f64,
+    /// The derivative's filter, s.
+    pub pid_d_filter_s: f64,
+    /// The rule that gave the gains.
+    pub rule: String,
+    /// The gains were set as parameters.
+    pub applied: bool,
+    /// `period_ms <= TI/5` with the new gains.
+    pub period_ok: bool,
+    /// The minimum times are at most a tenth of the period.
+    pub min_times_ok: bool,
+    /// TI/5, ms.
+    pub recommended_period_ms: u32,
+    /// The sizing rules broken.
+    pub sizing: Vec<String>,
+    /// Complete relay cycles, the approach included.
+    pub cycles: u32,
+}
+impl Message for AutotuneResult {}
+
+/// The feedback of `pwm_actuator_msgs/action/Autotune`.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct AutotuneFeedback {
+    /// `approach` or `relay`.
+    pub phase: String,
+    /// Complete relay cycles, the approach included.
+    pub cycles: u32,
+    /// The last cycle's half peak-to-peak amplitude, °C.
+    pub amplitude_c: f64,
+    /// The last cycle's period, s.
+    pub period_s: f64,
+}
+impl Message for AutotuneFeedback {}
+
 #[cfg(test)]
 mod tests {
     use super::*;

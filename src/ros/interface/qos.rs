@@ -76,6 +76,25 @@ pub fn services() -> QosProfile {
     QosProfile::publisher_default().history(History::KeepLast { depth: 10 })
 }
 
+/// An action server's endpoints as ROS 2's defaults: its three services as
+/// [`services`], volatile; feedback reliable, volatile, keep last 10; the status
+/// transient-local keep last 1 (`rcl_action_qos_profile_status_default`), which action
+/// clients ask for.
+pub fn action_server() -> ros2_client::action::ActionServerQosPolicies {
+    let service = services().durability(Durability::Volatile);
+    ros2_client::action::ActionServerQosPolicies {
+        goal_service: service.clone(),
+        result_service: service.clone(),
+        cancel_service: service,
+        feedback_publisher: QosProfile::publisher_default()
+            .history(History::KeepLast { depth: 10 })
+            .durability(Durability::Volatile),
+        status_publisher: QosProfile::publisher_default()
+            .history(History::KeepLast { depth: 1 })
+            .durability(Durability::TransientLocal),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

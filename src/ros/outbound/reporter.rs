@@ -393,6 +393,29 @@ impl Reporter {
                 self.state
                     .answer_reset(ch, ticket, result.map_err(|e| e.to_string()));
             }
+            Event::Autotune { ticket, report } => {
+                use crate::core::heater::autotune::Report;
+                match &report {
+                    Report::Refused(r) => warn!("{name}: autotune refused: {r}"),
+                    Report::Started => info!("{name}: autotune started"),
+                    Report::Progress(p) => info!(
+                        "{name}: autotune {}: {} cycles, last amplitude {:.2} °C, period {:.1} s",
+                        p.phase.as_str(),
+                        p.cycles,
+                        p.amplitude_c,
+                        p.period_s
+                    ),
+                    Report::Finished(o) => match (o.estimate, o.gains) {
+                        (Some(e), Some(g)) => info!(
+                            "{name}: autotune {}: Ku {:.4} %/°C, Tu {:.2} s; pid_kp {:.4} \
+                             pid_ki {:.5} pid_kd {:.4}",
+                            o.stop, e.ku, e.tu_s, g.kp, g.ki, g.kd
+                        ),
+                        _ => warn!("{name}: autotune ended without gains: {}", o.stop),
+                    },
+                }
+                self.state.file_autotune(ch, ticket, report);
+            }
             Event::Plan(_) | Event::Edge { .. } => {}
         }
     }

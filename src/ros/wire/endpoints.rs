@@ -189,6 +189,32 @@ pub struct ServiceMaker<'a> {
 }
 
 impl ServiceMaker<'_> {
+    /// Creates the action server `name` (resolved as a node's service name, e.g.
+    /// `~/pw01/autotune`) of type `package/action/type_name`, with ROS 2's default QoS for
+    /// actions.
+    pub fn action_server<G, R, F>(
+        &mut self,
+        name: &str,
+        package: &str,
+        type_name: &str,
+    ) -> Result<ros2_client::action::ActionServer<G, R, F>, EndpointError>
+    where
+        G: Message + Clone + 'static,
+        R: Message + Clone + 'static,
+        F: Message + 'static,
+    {
+        let full = self.id.resolve(name, NameKind::Service, self.remaps)?;
+        debug!("action {full}");
+        self.node
+            .create_action_server(
+                ServiceMapping::Enhanced,
+                &to_ros_name(&full)?,
+                &ros2_client::ActionTypeName::new(package, type_name),
+                crate::ros::interface::qos::action_server(),
+            )
+            .map_err(create_err(format!("action {full}")))
+    }
+
     /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
     /// of type `package/type_name` and the task that answers each request with `handler`.
     pub fn serve<Req, Resp>(

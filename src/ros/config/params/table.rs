@@ -897,6 +897,30 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
+            description: "An autotune (~/<ch>/autotune) aborts on a reading above its target \
+                          plus this, °C.",
+            range: Range::Double(0.1, MAX_DELTA_C),
+            core: Some(|c, v| {
+                c.heater.autotune_max_overshoot_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("autotune_max_overshoot_c", Double, || {
+                V::Double(heater_defaults().autotune_max_overshoot_c)
+            })
+        },
+        Decl {
+            description: "An autotune aborts when no relay cycle completes within this, s \
+                          (the approach to the target counts as the first).",
+            range: Range::Double(1.0, MAX_TIME_S),
+            core: Some(|c, v| {
+                c.heater.autotune_timeout_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("autotune_timeout_s", Double, || {
+                V::Double(heater_defaults().autotune_timeout_s)
+            })
+        },
+        Decl {
             description: "Invert the electrical level of the output line.",
             constraints: "start-up only",
             read_only: Some(

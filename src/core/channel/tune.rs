@@ -1,0 +1,182 @@
+//! The autotune inside the channel: the relay's duty takes the path of a duty command (limits,
+//! protections, minimum times, the line's promises), the heater checks stay armed with the
+//! run's target as `not_heating`'s, and anything that stops the channel — a heater fault, the
+//! e-stop, the lines held, a disable, the watchdog, a change of `control` or feedback — ends
+//! the run with the reason. Every end commands 0 %: the line stays off until told otherwise.
+
+use super::super::command::Command;
+use super::super::heater::autotune::{
+    Autotune, Goal, GoalRefusal, Outcome, Report, Rule, Stop, TuneSizing,
+};
+use super::super::heater::{sizing, Control, Gains, HeaterParams};
+use super::{Channel, Event, Nanos};
+
+impl Channel {
+    /// Whether an autotune runs, and its target (°C).
+    pub fn autotune_target(&self) -> Option<f64> {
+        self.heat.autotune.map(|(_, a)| a.goal().target_c)
+    }
+
+    /// Starts an autotune of `goal` at `now`, answered with [`Event::Autotune`] and `ticket`:
+    /// refused unless the channel has feedback and a reading, runs (enabled, no e-stop, lines
+    /// live), has no heater fault latched and no other run, and the goal is within the
+    /// channel's limits (target within `temp_min_c..=temp_max_c`, amplitude within
+    /// `max_duty_pct`).
+    pub fn start_autotune(
+        &mut self,
+        now: Nanos,
+        ticket: u32,
+        goal: Goal,
+        emit: &mut dyn FnMut(Event),
+    ) {
+        let p = self.cfg.heater.params;
+        let refusal = if !p.feedback {
+            Some(GoalRefusal::NoFeedback)
+        } else if self.heat.fault.is_some() {
+            Some(GoalRefusal::Fault)
+        } else if !self.enabled || self.estop || !self.live {
+            Some(GoalRefusal::NotRunning)
+        } else if self.heat.autotune.is_some() {
+            Some(GoalRefusal::Busy)
+        } else {
+            goal.check(p.temp_min_c, p.temp_max_c, self.cfg.max_duty * 100.0)
+                .err()
+        };
+        let reading = self.heat.reading.map(|(c, _)| c).filter(|c| c.is_finite());
+        let refusal = refusal.or(reading.is_none().then_some(GoalRefusal::NoReading));
+        if let Some(r) = refusal {
+            emit(Event::Autotune {
+                ticket,
+                report: Report::Refused(r),
+            });
+            return;
+        }
+        let run = Autotune::new(
+            goal,
+            self.cfg.heater.autotune,
+            now,
+            reading.unwrap_or(goal.target_c),
+            self.cfg.period,
+        );
+        self.heat.autotune = Some((ticket, run));
+        self.last_command_at = now;
+        emit(Event::Autotune {
+            ticket,
+            report: Report::Started,
+        });
+        emit(Event::Autotune {
+            ticket,
+            report: Report::Progress(run.progress()),
+        });
+        // The goal counts as a command: it feeds the watchdog and clears a trip.
+        self.take_command(now, Command::Percent(run.output_pct()), true, emit);
+    }
+
+    /// Cancels the run with `ticket` at `now` (another ticket is ignored).
+    pub fn cancel_autotune(&mut self, now: Nanos, ticket: u32, emit: &mut dyn FnMut(Event)) {
+        if self.heat.autotune.is_some_and(|(t, _)| t == ticket) {
+            self.finish_autotune(now, Stop::Canceled, emit);
+        }
+    }
+
+    /// A reading (finite, in range) at `now` while a run goes: moves the relay; readings
+    /// feed the watchdog while the run sets the duty.
+    pub(super) fn autotune_reading(
+        &mut self,
+        now: Nanos,
+        celsius: f64,
+        emit: &mut dyn FnMut(Event),
+    ) {
+        let Some((ticket, mut run)) = self.heat.autotune else {
+            return;
+        };
+        self.last_command_at = now;
+        let (before, out) = (run.progress(), run.output_pct());
+        let stop = run.reading(now, celsius);
+        self.heat.autotune = Some((ticket, run));
+        if run.progress() != before {
+            emit(Event::Autotune {
+                ticket,
+                report: Report::Progress(run.progress()),
+            });
+        }
+        if let Some(stop) = stop {
+            self.finish_autotune(now, stop, emit);
+            return;
+        }
+        if run.output_pct() != out {
+            self.take_command(now, Command::Percent(run.output_pct()), false, emit);
+        }
+    }
+
+    /// The run's timeout, checked at `not_heating`'s tick.
+    pub(super) fn autotune_tick(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
+        let Some((ticket, mut run)) = self.heat.autotune else {
+            return;
+        };
+        let stop = run.tick(now);
+        self.heat.autotune = Some((ticket, run));
+        if let Some(stop) = stop {
+            self.finish_autotune(now, stop, emit);
+        }
+    }
+
+    /// Ends a run, if one goes, for `stop` at `now`.
+    pub(super) fn finish_autotune(&mut self, now: Nanos, stop: Stop, emit: &mut dyn FnMut(Event)) {
+        let Some((ticket, run)) = self.heat.autotune.take() else {
+            return;
+        };
+        let estimate = run.estimate().filter(|_| stop == Stop::Converged);
+        let gains = estimate.map(|e| Rule::TyreusLuyben.gains(e.ku, e.tu_s));
+        let sizing = gains.map(|g| self.tune_sizing(g));
+        if self.pid_on() {
+            // The loop holds 0 % until a new setpoint.
+            self.heat.setpoint = None;
+            self.heat.pid.start_from(0.0);
+            self.heat.last_sample = None;
+        }
+        self.take_command(now, Command::Percent(0.0), false, emit);
+        emit(Event::Autotune {
+            ticket,
+            report: Report::Finished(Outcome {
+                stop,
+                progress: run.progress(),
+                estimate,
+                gains,
+                sizing,
+            }),
+        });
+    }
+
+    /// TCONT_CP's sizing rules (003) for `gains` with the channel's period and minima.
+    fn tune_sizing(&self, gains: Gains) -> TuneSizing {
+        let ms = |ns: Nanos| ns as f64 / super::super::NS_PER_MS as f64;
+        let h = HeaterParams {
+            control: Control::Pid,
+            pid_kp: gains.kp,
+            pid_ki: gains.ki,
+            ..self.cfg.heater.params
+        };
+        let (period, min_on, min_off) = (
+            ms(self.cfg.period),
+            ms(self.cfg.min_on),
+            ms(self.cfg.min_off),
+        );
+        let mut rules = sizing(&h, period, min_on, min_off);
+        let broken = [rules.next(), rules.next(), rules.next()];
+        let ti_ms = if gains.ki > 0.0 {
+            gains.kp / gains.ki * 1000.0
+        } else {
+            f64::INFINITY
+        };
+        TuneSizing {
+            period_ok: period <= ti_ms / 5.0,
+            min_times_ok: min_on <= 0.1 * period && min_off <= 0.1 * period,
+            recommended_period_ms: (ti_ms / 5.0)
+                .floor()
+                .min(super::super::config::MAX_PERIOD_MS as f64)
+                as u64,
+            broken,
+        }
+    }
+}

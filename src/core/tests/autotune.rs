@@ -1,0 +1,445 @@
+//! The autotune through a channel in virtual time: the relay's duty takes the path of a duty
+//! command to a first-order-plus-dead-time plant, the run converges, its gains hold the
+//! setpoint, the protections act on the line throughout, and every abort path ends the run
+//! with its reason, the line off and the old gains in force.
+
+use super::heater::{heater, params, Rig};
+use crate::core::heater::autotune::{Goal, GoalRefusal, Outcome, Report, Stop};
+use crate::core::heater::{HeaterFault, PlantFault, PlantParams, Refusal};
+use crate::core::{Channel, ChannelParams, Command, Event, Level, Nanos};
+
+const S: Nanos = 1_000_000_000;
+
+fn plant() -> PlantParams {
+    PlantParams {
+        rate_c_per_s: 2.0,
+        tau_s: 60.0,
+        dead_time_s: 3.0,
+        ambient_c: 20.0,
+        noise_c: 0.05,
+    }
+}
+
+fn goal(amplitude_pct: f64) -> Goal {
+    Goal {
+        target_c: 68.0,
+        amplitude_pct,
+        noise_band_c: 0.5,
+    }
+}
+
+/// A channel under `pid` with `p`, enabled, its plant at ambient, readings flowing.
+fn rig(p: ChannelParams) -> Rig {
+    let mut r = Rig::new(p, plant(), 3);
+    r.secs(1.0).enable().secs(1.0);
+    r
+}
+
+fn start(r: &mut Rig, g: Goal) {
+    r.act(|ch, now, emit| ch.start_autotune(now, 5, g, emit));
+}
+
+fn reports(r: &Rig) -> Vec<Report> {
+    r.notes
+        .iter()
+        .filter_map(|(_, e)| match e {
+            Event::Autotune { ticket: 5, report } => Some(*report),
+            _ => None,
+        })
+        .collect()
+}
+
+fn outcome(r: &Rig) -> Option<(Nanos, Outcome)> {
+    r.notes.iter().find_map(|(t, e)| match e {
+        Event::Autotune {
+            report: Report::Finished(o),
+            ..
+        } => Some((*t, *o)),
+        _ => None,
+    })
+}
+
+/// Runs until the run ends (at most `limit_s`).
+fn until_done(r: &mut Rig, limit_s: u64) -> (Nanos, Outcome) {
+    for _ in 0..limit_s {
+        r.secs(1.0);
+        if let Some(o) = outcome(r) {
+            return o;
+        }
+    }
+    panic!("no end within {limit_s} s: {:?}", reports(r).last());
+}
+
+/// The longest run of the line high.
+fn longest_high(r: &Rig) -> Nanos {
+    let mut longest = 0;
+    let mut rose = None;
+    for &(at, level) in &r.edges {
+        match level {
+            Level::High => rose = rose.or(Some(at)),
+            Level::Low => {
+                if let Some(t) = rose.take() {
+                    longest = longest.max(at - t);
+                }
+            }
+        }
+    }
+    longest
+}
+
+#[test]
+fn a_run_through_the_channel_converges_and_its_gains_hold_the_setpoint() {
+    let p = params(heater(&plant()));
+    let mut r = rig(p);
+    let old = r.ch.config().heater.gains;
+    start(&mut r, goal(60.0));
+    let (_, o) = until_done(&mut r, 5000);
+    assert_eq!(o.stop, Stop::Converged, "{o:?}");
+    let est = o.estimate.unwrap();
+    // The describing function for the averaged 60 % relay (see autotune's tests), with the
+    // period's time-proportioning as extra delay: within 10 %.
+    let (ku, tu) =
+        crate::core::heater::autotune::tests::describing_function(&plant(), 68.0, 60.0, 0.5);
+    println!("through the channel: {est:?}; DF Ku {ku:.3} Tu {tu:.1}");
+    assert!((est.ku / ku - 1.0).abs() < 0.1, "{} vs {ku}", est.ku);
+    assert!((est.tu_s / tu - 1.0).abs() < 0.1, "{} vs {tu}", est.tu_s);
+    // Progress: the approach, then every cycle, counted up.
+    let cycles: Vec<u32> = reports(&r)
+        .iter()
+        .filter_map(|rep| match rep {
+            Report::Progress(p) => Some(p.cycles),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        cycles.windows(2).all(|w| w[0] <= w[1]) && cycles.len() >= 6,
+        "{cycles:?}"
+    );
+    // The last cycle is reported before the end.
+    assert_eq!(cycles.last(), Some(&o.progress.cycles));
+    // The run leaves the old gains, the line commanded to 0 % and no setpoint.
+    assert_eq!(r.ch.config().heater.gains, old);
+    assert_eq!(r.ch.status(r.now).duty_commanded, 0.0);
+    let s = o.sizing.unwrap();
+    assert!(s.period_ok && s.min_times_ok, "{s:?}");
+    assert!(s.recommended_period_ms >= 1000, "{s:?}");
+    // The gains in force (as `apply` does through the parameters): the loop settles.
+    let g = o.gains.unwrap();
+    let mut p2 = p;
+    p2.heater.pid_kp = g.kp;
+    p2.heater.pid_ki = g.ki;
+    p2.heater.pid_kd = g.kd;
+    r.act(|ch, now, emit| ch.set_config(now, p2.validate().unwrap(), emit));
+    r.secs(30.0);
+    let from = r.now;
+    r.setpoint(68.0).secs(0.0);
+    r.watch_from = from;
+    r.secs(40.0 * est.tu_s);
+    let overshoot = r.band.1 - 68.0;
+    r.band = (f64::INFINITY, f64::NEG_INFINITY);
+    r.secs(10.0 * est.tu_s);
+    println!(
+        "settled within {:?} of 68 °C, overshoot {overshoot:.2} °C",
+        r.band
+    );
+    assert!(r.band.0 > 67.0 && r.band.1 < 69.0, "{:?}", r.band);
+    assert!(overshoot < 2.0, "{overshoot}");
+    assert!(r.faults().is_empty());
+}
+
+#[test]
+fn the_relay_goes_through_max_on_and_the_minimum_times() {
+    let mut p = params(heater(&plant()));
+    p.max_on_ms = 4000;
+    p.min_on_ms = 50;
+    let mut r = rig(p);
+    start(&mut r, goal(100.0));
+    let (_, o) = until_done(&mut r, 5000);
+    // 100 % relay: the line would stay high for the whole on half; max_on_ms cuts it.
+    assert!(longest_high(&r) <= 4 * S, "{}", longest_high(&r));
+    assert!(
+        matches!(o.stop, Stop::Converged | Stop::NotConverged { .. }),
+        "{o:?}"
+    );
+    // No pulse below min_on.
+    let mut rose = None;
+    for &(at, level) in &r.edges {
+        match level {
+            Level::High => rose = Some(at),
+            Level::Low => {
+                if let Some(t) = rose.take() {
+                    assert!(at - t >= 50_000_000, "{}", at - t);
+                }
+            }
+        }
+    }
+}
+
+/// Starts a run, lets it go `after_s`, applies `stop`, and checks: the run ended with
+/// `expect`, the line is low and never rises afterwards (without a new enable), the duty
+/// commanded is 0 % and the gains are the old ones.
+fn aborts(
+    p: ChannelParams,
+    after_s: f64,
+    stop: impl FnOnce(&mut Rig),
+    expect: impl Fn(&Stop) -> bool,
+) {
+    let mut r = rig(p);
+    let old = r.ch.config().heater.gains;
+    start(&mut r, goal(60.0));
+    r.secs(after_s);
+    assert!(outcome(&r).is_none(), "{:?}", outcome(&r));
+    stop(&mut r);
+    r.secs(2.0);
+    let (t, o) = outcome(&r).expect("the run ended");
+    assert!(expect(&o.stop), "{o:?}");
+    assert_eq!(o.gains, None);
+    assert_eq!(r.ch.config().heater.gains, old);
+    assert_eq!(r.ch.status(r.now).duty_commanded, 0.0);
+    r.secs(120.0);
+    assert!(r.no_rise_after(t), "the line rose after the end");
+    assert!(r.ch.autotune_target().is_none());
+}
+
+#[test]
+fn a_cancel_ends_the_run_with_the_line_off() {
+    aborts(
+        params(heater(&plant())),
+        100.0,
+        |r| r.act(|ch, now, emit| ch.cancel_autotune(now, 5, emit)),
+        |s| *s == Stop::Canceled,
+    );
+    // A cancel with another ticket is ignored.
+    let mut r = rig(params(heater(&plant())));
+    start(&mut r, goal(60.0));
+    r.act(|ch, now, emit| ch.cancel_autotune(now, 6, emit));
+    r.secs(5.0);
+    assert!(outcome(&r).is_none());
+}
+
+#[test]
+fn the_estop_deactivate_disable_and_reconfigure_end_the_run() {
+    let p = params(heater(&plant()));
+    aborts(
+        p,
+        100.0,
+        |r| r.act(|ch, now, emit| ch.set_estop(now, true, emit)),
+        |s| *s == Stop::EStop,
+    );
+    aborts(
+        p,
+        100.0,
+        |r| r.act(|ch, now, emit| ch.set_live(now, false, emit)),
+        |s| *s == Stop::Deactivated,
+    );
+    aborts(
+        p,
+        100.0,
+        |r| r.act(|ch, now, emit| ch.set_enable(now, false, emit)),
+        |s| *s == Stop::Disabled,
+    );
+    let mut open = p;
+    open.heater.control = crate::core::heater::Control::Open;
+    aborts(
+        p,
+        100.0,
+        |r| r.act(|ch, now, emit| ch.set_config(now, open.validate().unwrap(), emit)),
+        |s| *s == Stop::Reconfigured,
+    );
+}
+
+#[test]
+fn heater_faults_end_the_run_and_the_checks_stay_armed() {
+    let p = params(heater(&plant()));
+    // A NaN reading: temperature_out_of_range.
+    aborts(
+        p,
+        100.0,
+        |r| r.act(|ch, now, emit| ch.feedback(now, f64::NAN, emit)),
+        |s| matches!(s, Stop::HeaterFault(HeaterFault::OutOfRange { .. })),
+    );
+    // The heater falls off during the run: not_heating, against the run's target.
+    aborts(
+        p,
+        30.0,
+        |r| {
+            r.plant.set_fault(PlantFault::HeaterDisconnected);
+            r.secs(600.0);
+        },
+        |s| matches!(s, Stop::HeaterFault(HeaterFault::NotHeating { target_c, .. }) if *target_c == 68.0),
+    );
+    // A silent sensor: sensor_timeout.
+    let mut timeout = p;
+    timeout.heater.feedback_timeout_ms = 3000;
+    aborts(
+        timeout,
+        100.0,
+        |r| {
+            r.plant.set_fault(PlantFault::SensorSilent);
+            r.secs(5.0);
+        },
+        |s| matches!(s, Stop::HeaterFault(HeaterFault::SensorTimeout { .. })),
+    );
+}
+
+#[test]
+fn the_watchdog_ends_the_run_when_readings_stop() {
+    let mut p = params(heater(&plant()));
+    p.command_timeout_ms = 5000;
+    // Readings feed the watchdog while the run goes (the setpoint does not come).
+    let mut r = rig(p);
+    r.setpoint(30.0);
+    start(&mut r, goal(60.0));
+    r.secs(200.0);
+    assert_eq!(outcome(&r).map(|o| o.1.stop), Some(Stop::Converged));
+    aborts(
+        p,
+        20.0,
+        |r| {
+            r.plant.set_fault(PlantFault::SensorSilent);
+            r.secs(6.0);
+        },
+        |s| *s == Stop::Watchdog,
+    );
+}
+
+#[test]
+fn overshoot_and_timeout_end_the_run_through_the_channel() {
+    let mut p = params(heater(&plant()));
+    p.heater.autotune_max_overshoot_c = 1.0;
+    let mut r = rig(p);
+    start(&mut r, goal(100.0));
+    let (_, o) = until_done(&mut r, 2000);
+    assert!(
+        matches!(o.stop, Stop::Overshoot { limit_c, .. } if limit_c == 69.0),
+        "{o:?}"
+    );
+    let mut p = params(heater(&plant()));
+    p.heater.autotune_timeout_s = 60.0;
+    let mut r = rig(p);
+    start(&mut r, goal(60.0));
+    let (t, o) = until_done(&mut r, 2000);
+    assert_eq!(o.stop, Stop::Timeout { timeout_s: 60.0 });
+    assert!(t <= 63 * S + r.edges.first().map_or(0, |e| e.0), "{t}");
+}
+
+#[test]
+fn goals_commands_and_setpoints_are_refused_with_a_reason() {
+    let p = params(heater(&plant()));
+    let refused = |r: &Rig| {
+        reports(r).iter().rev().find_map(|rep| match rep {
+            Report::Refused(x) => Some(*x),
+            _ => None,
+        })
+    };
+    // Disabled.
+    let mut r = Rig::new(p, plant(), 3);
+    r.secs(1.0);
+    start(&mut r, goal(60.0));
+    assert_eq!(refused(&r), Some(GoalRefusal::NotRunning));
+    // Above max_duty_pct.
+    let mut q = p;
+    q.max_duty_pct = 50.0;
+    let mut r = rig(q);
+    start(&mut r, goal(60.0));
+    assert!(matches!(refused(&r), Some(GoalRefusal::Amplitude { .. })));
+    // Twice.
+    let mut r = rig(p);
+    start(&mut r, goal(60.0));
+    start(&mut r, goal(60.0));
+    assert_eq!(refused(&r), Some(GoalRefusal::Busy));
+    // Setpoints while it runs; under open, duty commands.
+    r.setpoint(50.0);
+    assert!(r
+        .notes
+        .iter()
+        .any(|(_, e)| *e == Event::Refused(Refusal::Autotuning)));
+    let mut open = p;
+    open.heater.control = crate::core::heater::Control::Open;
+    let mut r = rig(open);
+    start(&mut r, goal(60.0));
+    r.act(|ch, now, emit| ch.command(now, Command::Percent(10.0), emit));
+    assert!(r
+        .notes
+        .iter()
+        .any(|(_, e)| *e == Event::Refused(Refusal::Autotuning)));
+    r.secs(100.0);
+    assert!(
+        outcome(&r).is_none_or(|(_, o)| o.stop == Stop::Converged),
+        "a run under open goes on"
+    );
+    // No feedback.
+    let mut r = Rig::new(ChannelParams::default(), plant(), 3);
+    r.ch = Channel::new(
+        ChannelParams {
+            period_ms: 1000,
+            ..ChannelParams::default()
+        }
+        .validate()
+        .unwrap(),
+        0,
+    );
+    r.enable();
+    start(&mut r, goal(60.0));
+    assert_eq!(refused(&r), Some(GoalRefusal::NoFeedback));
+}
+
+#[test]
+fn a_goal_clears_a_tripped_watchdog_like_a_command() {
+    let mut p = params(heater(&plant()));
+    p.command_timeout_ms = 2000;
+    // Under pid with no setpoint the watchdog trips.
+    let mut r = rig(p);
+    r.secs(3.0);
+    assert!(r
+        .notes
+        .iter()
+        .any(|(_, e)| *e == Event::Watchdog { tripped: true }));
+    let t = r.now;
+    start(&mut r, goal(60.0));
+    r.secs(2.0);
+    assert!(
+        r.edges.iter().any(|(at, l)| *at >= t && *l == Level::High),
+        "the relay's duty reaches the line"
+    );
+    let (_, o) = until_done(&mut r, 5000);
+    assert_eq!(o.stop, Stop::Converged, "{o:?}");
+}
+
+/// A slow bed (time constant 300 s, dead time 60 s): its relay swings about 10 °C below the
+/// band, long enough that `not_heating` with Klipper's defaults latches during the run — the
+/// check stays armed. Sized for the plant (`runaway_gain_time_s` above the dead time,
+/// `runaway_max_error` for the dips, docs/autotune.md), the run converges in about 25 min.
+#[test]
+fn a_slow_bed_needs_its_runaway_settings_sized_for_the_run() {
+    let bed = PlantParams {
+        rate_c_per_s: 0.5,
+        tau_s: 300.0,
+        dead_time_s: 60.0,
+        ambient_c: 20.0,
+        noise_c: 0.05,
+    };
+    let g = Goal {
+        target_c: 80.0,
+        amplitude_pct: 100.0,
+        noise_band_c: 0.5,
+    };
+    let run = |gain_time_s: f64, max_error: f64| {
+        let mut p = params(heater(&bed));
+        p.heater.runaway_gain_time_s = gain_time_s;
+        p.heater.runaway_max_error = max_error;
+        let mut r = Rig::new(p, bed, 3);
+        r.secs(1.0).enable().secs(1.0);
+        start(&mut r, g);
+        until_done(&mut r, 20_000)
+    };
+    let (_, o) = run(120.0, 120.0);
+    assert!(
+        matches!(o.stop, Stop::HeaterFault(HeaterFault::NotHeating { target_c, .. }) if target_c == 80.0),
+        "{o:?}"
+    );
+    let (t, o) = run(120.0, 3000.0);
+    assert_eq!(o.stop, Stop::Converged, "{o:?}");
+    println!("bed: converged after {} s, {:?}", t / S, o.estimate);
+    assert!(t < 30 * 60 * S, "{t}");
+}
