@@ -1,8 +1,10 @@
-//! The ROS interface's types: the messages the node exchanges ([`msg`]), their QoS ([`qos`])
-//! and the managed node's state graph ([`lifecycle`]).
+//! The ROS interface's types: the messages the node exchanges ([`msg`]), their QoS ([`qos`]),
+//! the managed node's state graph ([`lifecycle`]) and the
+//! message definitions written into MCAP traces ([`schema`]).
 //!
 //! Layer 1 of the ROS shell: imports nothing else of it.
 
 pub mod lifecycle;
 pub mod msg;
 pub mod qos;
+pub mod schema;
