@@ -235,6 +235,10 @@ def test_mcap_after_sigterm_matches_the_csv_edge_for_edge(ros, node_process, tmp
     assert diagnostics, "no /diagnostics in the trace"
     names = {s.name for a in diagnostics for s in a.status}
     assert {"pwm_actuator: pw01", "pwm_actuator: pw02"} <= names, names
+    # Nothing was lost on the way to the writer, as the node's own status says.
+    node_kv = {kv.key: kv.value for s in diagnostics[-1].status if s.name == "pwm_actuator: node"
+               for kv in s.values}  # fmt: skip
+    assert node_kv.get("trace_messages_dropped") == "0", node_kv
     size = len(data)
     print(
         f"MCAP: {size} bytes, {len(messages)} messages "

@@ -95,9 +95,19 @@ impl McapTrace {
     /// Creates (truncates) every file of `paths`, writes its header, schemas and channels and
     /// flushes them (a valid, empty trace from the start), and starts the writer thread.
     pub fn create(paths: &[PathBuf], topics: Vec<Topic>) -> Result<McapTrace, TraceError> {
+        McapTrace::create_with(paths, topics, FLUSH_PERIOD, MAX_CHUNKS_PER_FILE)
+    }
+
+    /// [`McapTrace::create`] with another flush period and number of chunks per file.
+    fn create_with(
+        paths: &[PathBuf],
+        topics: Vec<Topic>,
+        flush_period: Duration,
+        max_chunks: u64,
+    ) -> Result<McapTrace, TraceError> {
         let mut files = Vec::with_capacity(paths.len());
         for path in paths {
-            files.push(TraceFile::create(path.clone(), &topics)?);
+            files.push(TraceFile::create(path.clone(), &topics, max_chunks)?);
         }
         let (tx, rx) = mpsc::sync_channel(QUEUE_CAPACITY);
         let dropped = Arc::new(AtomicU64::new(0));
@@ -105,7 +115,7 @@ impl McapTrace {
         let n = topics.len();
         let join = std::thread::Builder::new()
             .name("pwm-mcap".into())
-            .spawn(move || writer_loop(files, topics, rx, d))
+            .spawn(move || writer_loop(files, topics, rx, d, flush_period))
             .map_err(TraceError::Spawn)?;
         Ok(McapTrace {
             tx: Some(tx),
@@ -185,6 +195,8 @@ struct TraceFile {
     /// Messages written since the last flush.
     unflushed: bool,
     chunks: u64,
+    /// Chunks after which the file is closed and the next one begun.
+    max_chunks: u64,
     /// Set after the first error: the file is left as it is from then on.
     failed: bool,
 }
@@ -215,7 +227,7 @@ pub fn rotated_path(base: &Path, rotations: u32) -> PathBuf {
 }
 
 impl TraceFile {
-    fn create(path: PathBuf, topics: &[Topic]) -> Result<TraceFile, TraceError> {
+    fn create(path: PathBuf, topics: &[Topic], max_chunks: u64) -> Result<TraceFile, TraceError> {
         let mut f = TraceFile {
             base: path.clone(),
             path,
@@ -225,6 +237,7 @@ impl TraceFile {
             sequences: vec![0; topics.len()],
             unflushed: false,
             chunks: 0,
+            max_chunks,
             failed: false,
         };
         f.open(topics)?;
@@ -263,7 +276,8 @@ impl TraceFile {
         w.flush().map_err(|e| mcap_io(&self.path, e))?;
         self.writer = Some(w);
         self.channels = channels;
-        self.chunks = 0;
+        // The flush above closed the chunk that holds the schemas and channels.
+        self.chunks = 1;
         self.unflushed = false;
         Ok(())
     }
@@ -282,7 +296,7 @@ impl TraceFile {
         if self.failed {
             return;
         }
-        if self.chunks >= MAX_CHUNKS_PER_FILE {
+        if self.chunks >= self.max_chunks {
             self.rotate(topics);
         }
         let Some(w) = self.writer.as_mut() else {
@@ -351,8 +365,9 @@ impl TraceFile {
         self.rotations += 1;
         self.path = rotated_path(&self.base, self.rotations);
         log::info!(
-            "MCAP trace: {} holds {MAX_CHUNKS_PER_FILE} chunks; going on in {}",
+            "MCAP trace: {} holds {} chunks; going on in {}",
             rotated_path(&self.base, self.rotations - 1).display(),
+            self.max_chunks,
             self.path.display()
         );
         self.sequences.iter_mut().for_each(|s| *s = 0);
@@ -367,11 +382,12 @@ fn writer_loop(
     topics: Vec<Topic>,
     rx: mpsc::Receiver<Item>,
     dropped: Arc<AtomicU64>,
+    flush_period: Duration,
 ) {
     let mut last_flush = Instant::now();
     let mut reported_dropped = 0;
     loop {
-        let wait = FLUSH_PERIOD.saturating_sub(last_flush.elapsed());
+        let wait = flush_period.saturating_sub(last_flush.elapsed());
         match rx.recv_timeout(wait) {
             Ok(item) => {
                 for f in &mut files {
@@ -381,7 +397,7 @@ fn writer_loop(
             Err(RecvTimeoutError::Timeout) => {}
             Err(RecvTimeoutError::Disconnected) => break,
         }
-        if last_flush.elapsed() >= FLUSH_PERIOD {
+        if last_flush.elapsed() >= flush_period {
             files.iter_mut().for_each(TraceFile::flush);
             last_flush = Instant::now();
             let d = dropped.load(Ordering::Relaxed);
@@ -604,6 +620,48 @@ mod tests {
         };
         assert_eq!(read, 10);
         trace.finish();
+    }
+
+    #[test]
+    fn a_full_file_is_closed_whole_and_the_trace_goes_on_in_the_next() {
+        let tmp = tempfile::tempdir().unwrap();
+        let path = tmp.path().join("run.mcap");
+        let period = Duration::from_millis(20);
+        let trace =
+            McapTrace::create_with(std::slice::from_ref(&path), topics(), period, 3).unwrap();
+        // One message per flush period: a chunk each, three chunks a file.
+        let sent = 10;
+        for s in 1..=sent {
+            trace.record(0, s, &edge(s as u64, true));
+            std::thread::sleep(period * 3);
+        }
+        trace.finish();
+        let mut total = 0;
+        let mut files = 0;
+        for k in 0.. {
+            let p = rotated_path(&path, k);
+            if !p.exists() {
+                break;
+            }
+            files += 1;
+            let bytes = std::fs::read(&p).unwrap();
+            assert!(
+                bytes.ends_with(mcap::MAGIC),
+                "{} is not closed",
+                p.display()
+            );
+            let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
+            assert!(summary.chunk_indexes.len() <= 3, "{}", p.display());
+            assert_eq!(summary.channels.len(), 3, "every file has every channel");
+            let seqs: Vec<u32> = mcap::MessageStream::new(&bytes)
+                .unwrap()
+                .map(|m| m.unwrap().sequence)
+                .collect();
+            assert_eq!(seqs, (1..=seqs.len() as u32).collect::<Vec<_>>());
+            total += seqs.len();
+        }
+        assert!(files >= 3, "{files} file(s)");
+        assert_eq!(total, sent as usize);
     }
 
     #[test]

@@ -539,6 +539,7 @@ impl Reporter {
         self.node.estop_latched = self.state.estop_latched();
         self.node.estop_latches = self.state.estop_latches();
         self.node.counters = self.counters;
+        self.node.trace_dropped = self.mcap.as_ref().map_or(0, McapTrace::dropped);
     }
 
     /// The levels of every status `/diagnostics` carries, in its order.
