@@ -345,6 +345,11 @@ fn pump(reporter: Reporter, mut reports: Reports, quit: Arc<AtomicBool>, sig: Ar
         |r| reporter.borrow_mut().handle(r),
         |r| reporter.borrow_mut().after_batch(r.dropped()),
     );
+    // What the output thread reported before the stop (the lines going off under the stop's
+    // hold) is still published and traced.
+    while let Some(r) = reports.try_recv() {
+        reporter.borrow_mut().handle(r);
+    }
     if ended {
         sig.stop.notify_one();
     }
