@@ -108,5 +108,5 @@ pub use open::{open, open_deferred, AnyError, AnyOutput, Backend, OpenError, Out
 pub use safety::{install_panic_hook, EmergencyRegistry, PANIC_EXIT_CODE};
 pub use sim::{SimOutput, SimProbe};
 pub use slot::LineSlot;
-pub use trace::{read_csv, CsvReadError, CsvRow, EdgeRecord, TraceError, TraceSpec};
+pub use trace::{read_csv, CsvReadError, CsvRow, EdgeRecord, TraceError, TraceFormat, TraceSpec};
 pub use traced::Traced;

@@ -35,7 +35,8 @@ pub enum Backend {
 pub struct OutputSpec {
     /// The backend and its lines.
     pub backend: Backend,
-    /// Trace files (`.vcd`, `.csv`) of what is written to the lines; may be empty.
+    /// Trace files (`.vcd`, `.csv`; `.mcap` ones are accepted and left to the ROS side) of
+    /// what is written to the lines; may be empty.
     pub trace: Vec<PathBuf>,
     /// A write fault to inject (`PWM_ACTUATOR_FAULT`, exit-path tests): writes that fail after
     /// a count, or that hang after a time. `None` in normal operation; other faults are not
@@ -176,7 +177,10 @@ pub fn open_deferred(spec: &OutputSpec) -> Result<(AnyOutput, Option<LineSlot>),
 }
 
 fn build(spec: &OutputSpec, deferred: bool) -> Result<(AnyOutput, Option<LineSlot>), OpenError> {
-    let trace = TraceSpec::from_paths(&spec.trace).map_err(OpenError::Trace)?;
+    // MCAP files are checked here with the others but written by the ROS side.
+    let trace = TraceSpec::from_paths(&spec.trace)
+        .map_err(OpenError::Trace)?
+        .line_traces();
     let recorder = |names: Vec<String>| {
         for f in trace.files() {
             log::info!(

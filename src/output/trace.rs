@@ -1,5 +1,6 @@
 //! Trace files of the simulated sink: every edge with its actual and scheduled time, as CSV and
-//! as IEEE 1364 VCD (viewable in GTKWave or Surfer).
+//! as IEEE 1364 VCD (viewable in GTKWave or Surfer). A trace spec may also name MCAP files
+//! (`.mcap`): those are written by the ROS side from what the node publishes, not here.
 //!
 //! Writers here do buffered file I/O and allocate: they must never run on the output thread.
 //! The simulated sink ([`super::sim`]) hands them records from a background thread or from an
@@ -20,8 +21,8 @@ pub const CSV_HEADER: &str = "t_ns,channel,level,scheduled_ns";
 /// Errors of the trace layer.
 #[derive(Debug, thiserror::Error)]
 pub enum TraceError {
-    /// A trace path has an extension other than `.vcd` or `.csv`.
-    #[error("trace file {path}: unknown extension, expected .vcd or .csv")]
+    /// A trace path has an extension other than `.vcd`, `.csv` or `.mcap`.
+    #[error("trace file {path}: unknown extension, expected .vcd, .csv or .mcap")]
     UnknownExtension {
         /// The offending path.
         path: PathBuf,
@@ -89,6 +90,9 @@ pub enum TraceFormat {
     Vcd,
     /// `.csv`: one row per edge, header [`CSV_HEADER`].
     Csv,
+    /// `.mcap`: the ROS messages the node publishes about its edges, status and diagnostics,
+    /// written by the ROS side (not by [`TraceWriter`]).
+    Mcap,
 }
 
 impl TraceFormat {
@@ -99,6 +103,8 @@ impl TraceFormat {
             Some(TraceFormat::Vcd)
         } else if ext.eq_ignore_ascii_case("csv") {
             Some(TraceFormat::Csv)
+        } else if ext.eq_ignore_ascii_case("mcap") {
+            Some(TraceFormat::Mcap)
         } else {
             None
         }
@@ -114,14 +120,14 @@ pub struct TraceFile {
     pub format: TraceFormat,
 }
 
-/// The set of trace files of a simulated sink (any number, any mix of VCD and CSV).
+/// The set of trace files of a run (any number, any mix of VCD, CSV and MCAP).
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct TraceSpec {
     files: Vec<TraceFile>,
 }
 
 impl TraceSpec {
-    /// Builds the spec from paths ending in `.vcd` or `.csv` (case-insensitive). Any other
+    /// Builds the spec from paths ending in `.vcd`, `.csv` or `.mcap` (case-insensitive). Any other
     /// extension, or a path given twice, is an error naming the path. An empty slice gives an
     /// empty spec (no trace).
     pub fn from_paths(paths: &[PathBuf]) -> Result<TraceSpec, TraceError> {
@@ -148,6 +154,27 @@ impl TraceSpec {
     /// `true` when no file is to be written.
     pub fn is_empty(&self) -> bool {
         self.files.is_empty()
+    }
+
+    /// The files of one format, in the order given.
+    pub fn of_format(&self, format: TraceFormat) -> Vec<PathBuf> {
+        self.files
+            .iter()
+            .filter(|f| f.format == format)
+            .map(|f| f.path.clone())
+            .collect()
+    }
+
+    /// The files the output side writes: the VCD and CSV ones (MCAP files are the ROS side's).
+    pub fn line_traces(&self) -> TraceSpec {
+        TraceSpec {
+            files: self
+                .files
+                .iter()
+                .filter(|f| f.format != TraceFormat::Mcap)
+                .cloned()
+                .collect(),
+        }
     }
 }
 
@@ -468,7 +495,8 @@ impl TraceWriter {
     ) -> Result<TraceWriter, TraceError> {
         validate_channel_names(channel_names)?;
         let mut targets = Vec::with_capacity(spec.files.len());
-        for file in &spec.files {
+        // MCAP files are written by the ROS side.
+        for file in spec.files.iter().filter(|f| f.format != TraceFormat::Mcap) {
             let out = File::create(&file.path).map_err(|source| TraceError::Create {
                 path: file.path.clone(),
                 source,
@@ -495,6 +523,10 @@ impl TraceWriter {
                     .and_then(|mut t| t.flush().map(|()| SinkKind::Csv(t))),
                 TraceFormat::Vcd => VcdTrace::new(out, channel_names, start_ns)
                     .and_then(|mut t| t.flush().map(|()| SinkKind::Vcd(t))),
+                TraceFormat::Mcap => Err(io::Error::new(
+                    io::ErrorKind::InvalidInput,
+                    "MCAP traces are written by the ROS side, not by the edge recorder",
+                )),
             };
             let kind = kind.map_err(|source| TraceError::Create {
                 path: path.clone(),
@@ -589,6 +621,24 @@ mod tests {
         );
         assert_eq!(spec.files()[2].path, PathBuf::from("dir/c.csv"));
         assert!(TraceSpec::from_paths(&[]).unwrap().is_empty());
+    }
+
+    #[test]
+    fn spec_accepts_mcap_and_keeps_it_from_the_line_traces() {
+        let paths: Vec<PathBuf> = ["a.csv", "run.mcap", "b.MCAP", "c.vcd"]
+            .iter()
+            .map(PathBuf::from)
+            .collect();
+        let spec = TraceSpec::from_paths(&paths).unwrap();
+        assert_eq!(
+            spec.of_format(TraceFormat::Mcap),
+            [PathBuf::from("run.mcap"), PathBuf::from("b.MCAP")]
+        );
+        let lines = spec.line_traces();
+        let kept: Vec<&Path> = lines.files().iter().map(|f| f.path.as_path()).collect();
+        assert_eq!(kept, [Path::new("a.csv"), Path::new("c.vcd")]);
+        let only_mcap = TraceSpec::from_paths(&[PathBuf::from("x.mcap")]).unwrap();
+        assert!(only_mcap.line_traces().is_empty());
     }
 
     #[test]

@@ -12,7 +12,10 @@ use crate::core::ChannelConfig;
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
-use crate::output::{self, install_panic_hook, AnyOutput, Backend, LineSlot, OpenError, Output};
+use crate::output::{
+    self, install_panic_hook, AnyOutput, Backend, LineSlot, OpenError, Output, TraceFormat,
+    TraceSpec,
+};
 use crate::ros::config::args::{self, ArgsError, RosArgs};
 use crate::ros::config::cli::{self, CliError, DEMO_ORIGIN, EXIT_FAILURE, EXIT_USAGE};
 use crate::ros::config::discovery::{self, Discovery, DiscoveryError};
@@ -29,8 +32,10 @@ use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
 use crate::ros::inbound::lifecycle;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::inbound::param_services;
+use crate::ros::interface::msg::{self, RosMessage};
 use crate::ros::interface::{qos, type_hash};
 use crate::ros::outbound::diagnostics::ChannelHealth;
+use crate::ros::outbound::mcap_trace::{self, McapTrace};
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use crate::ros::wire::name_clash::{self, NameClash};
@@ -263,6 +268,50 @@ fn channel_health(cfg: &StartupConfig, hardware_ids: &[String]) -> Vec<ChannelHe
         .collect()
 }
 
+/// The MCAP trace files of `--trace` / `trace`, if any: every channel's edges and status and
+/// `/diagnostics`, under the names the node publishes them on (the order
+/// [`Reporter::record_to`] expects).
+fn mcap_trace(
+    cfg: &StartupConfig,
+    ep: &Endpoints<'_>,
+    names: &[String],
+) -> Result<Option<McapTrace>, NodeError> {
+    let trace_err = |e| NodeError::Output(OpenError::Trace(e));
+    let paths = TraceSpec::from_paths(&cfg.output.trace)
+        .map_err(trace_err)?
+        .of_format(TraceFormat::Mcap);
+    if paths.is_empty() {
+        return Ok(None);
+    }
+    let mut topics = Vec::with_capacity(2 * names.len() + 1);
+    for name in names {
+        topics.push(mcap_trace::Topic {
+            name: ep.topic_name(&format!("~/{name}/edges"))?,
+            package: msg::OutputEdge::PACKAGE,
+            type_name: msg::OutputEdge::NAME,
+        });
+        topics.push(mcap_trace::Topic {
+            name: ep.topic_name(&format!("~/{name}/status"))?,
+            package: msg::ChannelStatus::PACKAGE,
+            type_name: msg::ChannelStatus::NAME,
+        });
+    }
+    topics.push(mcap_trace::Topic {
+        name: ep.topic_name("/diagnostics")?,
+        package: msg::DiagnosticArray::PACKAGE,
+        type_name: msg::DiagnosticArray::NAME,
+    });
+    for p in &paths {
+        info!(
+            "recording edges, status and /diagnostics as ROS messages to {}",
+            p.display()
+        );
+    }
+    McapTrace::create(&paths, topics)
+        .map(Some)
+        .map_err(trace_err)
+}
+
 /// Starts the output thread on the opened output.
 fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeError> {
     let configs: Vec<ChannelConfig> = cfg.channels.iter().map(|c| c.config).collect();
@@ -297,6 +346,11 @@ fn pump(reporter: Reporter, mut reports: Reports, quit: Arc<AtomicBool>, sig: Ar
         |r| reporter.borrow_mut().handle(r),
         |r| reporter.borrow_mut().after_batch(r.dropped()),
     );
+    // What the output thread reported before the stop (the lines going off under the stop's
+    // hold) is still published and traced.
+    while let Some(r) = reports.try_recv() {
+        reporter.borrow_mut().handle(r);
+    }
     if ended {
         sig.stop.notify_one();
     }
@@ -367,6 +421,7 @@ async fn serve(
         remaps,
     };
     let (pubs, diagnostics) = ChannelPubs::create(&mut ep, &names)?;
+    let mcap = mcap_trace(&cfg, &ep, &names)?;
     let param_events = node
         .create_publisher(&context.get_parameter_events_topic(), None)
         .map_err(ros_err("publisher /parameter_events"))?;
@@ -381,7 +436,7 @@ async fn serve(
     let health = channel_health(&cfg, &hardware_ids);
     let stop_signal = Arc::new(StopSignal::default());
     let node_state = Arc::new(NodeState::from_store(&store));
-    let reporter = Reporter::new(
+    let mut reporter = Reporter::new(
         id.name.clone(),
         health,
         pubs,
@@ -392,6 +447,9 @@ async fn serve(
         Arc::clone(&stop_signal),
         Arc::clone(&node_state),
     );
+    if let Some(mcap) = mcap {
+        reporter.record_to(mcap);
+    }
     let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
         fqn.clone(),
@@ -609,7 +667,7 @@ mod tests {
         }));
         assert_eq!(
             chain(&e),
-            "trace: trace file x.txt: unknown extension, expected .vcd or .csv"
+            "trace: trace file x.txt: unknown extension, expected .vcd, .csv or .mcap"
         );
     }
 }

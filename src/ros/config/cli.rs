@@ -82,9 +82,13 @@ pub struct Flags {
     #[arg(help = "Output backend (default sim) [output]")]
     #[arg(long, value_name = "sim|gpio", value_parser = parse_output, allow_hyphen_values = true)]
     pub output: Option<String>,
-    /// Trace of every edge written (sim or gpio output), FILE.vcd or FILE.csv; repeatable; sets
-    /// the start-up value of `trace`.
-    #[arg(help = "Trace of every edge written, FILE.vcd or FILE.csv; repeatable [trace]")]
+    /// Trace of every edge written (sim or gpio output), FILE.vcd or FILE.csv, or of every
+    /// edge, status and diagnostics message as ROS 2 messages, FILE.mcap; repeatable; sets the
+    /// start-up value of `trace`.
+    #[arg(
+        help = "Trace: FILE.vcd or FILE.csv (every edge written), FILE.mcap (edges, status and \
+                /diagnostics as ROS 2 messages); repeatable [trace]"
+    )]
     #[arg(long, value_name = "FILE", action = ArgAction::Append, allow_hyphen_values = true)]
     pub trace: Vec<String>,
     /// GPIO line of a channel, e.g. pw01=17 or pw02=/dev/gpiochip1:4; repeatable; sets the start-up

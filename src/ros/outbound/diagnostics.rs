@@ -256,6 +256,8 @@ pub struct NodeHealth {
     pub last_drop: Option<Nanos>,
     /// When `samples_too_large` last rose, monotonic ns.
     pub last_too_large: Option<Nanos>,
+    /// Messages the MCAP trace could not record (its queue was full); 0 without one.
+    pub trace_dropped: u64,
 }
 
 impl Default for NodeHealth {
@@ -269,6 +271,7 @@ impl Default for NodeHealth {
             counters: NodeCounters::default(),
             last_drop: None,
             last_too_large: None,
+            trace_dropped: 0,
         }
     }
 }
@@ -335,6 +338,7 @@ impl NodeHealth {
                 "samples_too_large",
                 self.counters.samples_too_large.to_string(),
             ),
+            ("trace_messages_dropped", self.trace_dropped.to_string()),
         ];
         DiagnosticStatus {
             level: self.level(now),
@@ -1130,6 +1134,12 @@ mod tests {
         assert_eq!(kv(&d, "lifecycle_state"), "unmanaged");
         assert_eq!(kv(&d, "estop_latched"), "false");
         assert_eq!(kv(&d, "reports_dropped"), "0");
+        assert_eq!(kv(&d, "trace_messages_dropped"), "0");
+        n.trace_dropped = 5;
+        assert_eq!(
+            kv(&n.to_status("pwm_actuator", 0), "trace_messages_dropped"),
+            "5"
+        );
 
         n.counters.reports_dropped = 12;
         n.last_drop = Some(1_000);

@@ -29,6 +29,7 @@ use crate::ros::outbound::diagnostics::{
 };
 use crate::ros::outbound::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
 use crate::ros::outbound::frequency::{FrequencyReport, FrequencyStatus};
+use crate::ros::outbound::mcap_trace::McapTrace;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{debug, error, info, warn};
 use ros2_client::builtin_interfaces::Time;
@@ -173,6 +174,8 @@ pub struct Reporter {
     node: NodeHealth,
     next_run: Nanos,
     last_run: Nanos,
+    /// The MCAP trace of what is published, if any.
+    mcap: Option<McapTrace>,
 }
 
 impl Reporter {
@@ -230,11 +233,24 @@ impl Reporter {
             node: NodeHealth::default(),
             next_run: now + DIAGNOSTICS_RUN_NS,
             last_run: now,
+            mcap: None,
         };
         for ch in 0..n {
             r.publish_e1(ch, false);
         }
         r
+    }
+
+    /// Records from now on every edge, status and `/diagnostics` message published, as
+    /// published, to `trace`, whose topics are each channel's edges and status (in channel
+    /// order), then `/diagnostics`.
+    pub fn record_to(&mut self, trace: McapTrace) {
+        self.mcap = Some(trace);
+    }
+
+    /// The MCAP trace's topic of channel `ch`'s edges; its status is the next one.
+    fn mcap_edges_topic(ch: usize) -> usize {
+        2 * ch
     }
 
     /// Publishes E1 = `e1` for `channel` (latched).
@@ -296,6 +312,9 @@ impl Reporter {
             seq: e.seq,
             lateness_ns: e.lateness_ns(),
         };
+        if let Some(t) = &self.mcap {
+            t.record(Self::mcap_edges_topic(ch), e.wall_ns, &m);
+        }
         if self.pubs[ch].edges.publish(m).is_err() {
             self.health[ch].publish_failures += 1;
         }
@@ -422,6 +441,9 @@ impl Reporter {
 
     fn publish_status(&mut self, ch: usize, s: &Status) {
         let m = status_msg(ch, s, clock::monotonic_ns(), clock::wall_ns());
+        if let Some(t) = &self.mcap {
+            t.record(Self::mcap_edges_topic(ch) + 1, m.stamp.to_nanos(), &m);
+        }
         if self.pubs[ch].status.publish(m).is_err() {
             self.health[ch].publish_failures += 1;
         }
@@ -540,6 +562,7 @@ impl Reporter {
         self.node.estop_latched = self.state.estop_latched();
         self.node.estop_latches = self.state.estop_latches();
         self.node.counters = self.counters;
+        self.node.trace_dropped = self.mcap.as_ref().map_or(0, McapTrace::dropped);
     }
 
     /// The levels of every status `/diagnostics` carries, in its order.
@@ -571,6 +594,9 @@ impl Reporter {
             },
             status,
         };
+        if let Some(t) = &self.mcap {
+            t.record(2 * self.names.len(), arr.header.stamp.to_nanos(), &arr);
+        }
         if let Err(e) = self.diagnostics.publish(arr) {
             debug!("cannot publish /diagnostics: {e}");
         }

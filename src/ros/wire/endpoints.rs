@@ -160,6 +160,12 @@ impl Endpoints<'_> {
         Ok(listen(full, sub, on_msg))
     }
 
+    /// The resolved name of the topic `name` (a node's topic name, remapped as the node's
+    /// endpoints are), e.g. `~/pw01/edges` → `/pwm_actuator/pw01/edges`.
+    pub fn topic_name(&self, name: &str) -> Result<String, EndpointError> {
+        Ok(self.id.resolve(name, NameKind::Topic, self.remaps)?)
+    }
+
     /// The service maker over the same node, identity and rules.
     pub fn services(&mut self) -> ServiceMaker<'_> {
         ServiceMaker {

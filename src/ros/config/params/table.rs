@@ -190,8 +190,9 @@ pub(super) fn node_decls() -> Vec<Decl> {
             ..Decl::new("managed", Bool, || V::Boolean(false))
         },
         Decl {
-            description: "Trace file(s) of what is written to the lines (any output), \
-                          comma-separated; .vcd and/or .csv. Empty: no trace.",
+            description: "Trace file(s), comma-separated: .vcd and .csv hold what is written \
+                          to the lines (any output); .mcap holds every edge, status and \
+                          /diagnostics message as ROS 2 messages. Empty: no trace.",
             constraints: "start-up only",
             read_only: Some(START_UP),
             node: Some(|n, v| {
