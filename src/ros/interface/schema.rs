@@ -4,7 +4,8 @@
 //! 80 `=` and a line `MSG: <package>/<Type>`.
 //!
 //! The texts are the `.msg` files themselves: this repository's `msg/` and, for the standard
-//! types, copies of ROS 2 Jazzy's files in `definitions/` (byte for byte as installed).
+//! types, ROS 2 Jazzy's files in `interfaces/` (byte for byte as installed; the type hashes
+//! are computed from the same files).
 
 /// One message type: its package, name, `.msg` text and the types its fields use.
 struct Definition {
@@ -19,31 +20,46 @@ const DEFINITIONS: &[Definition] = &[
     Definition {
         package: "builtin_interfaces",
         name: "Time",
-        text: include_str!("definitions/builtin_interfaces_Time.msg"),
+        text: include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/interfaces/builtin_interfaces/msg/Time.msg"
+        )),
         uses: &[],
     },
     Definition {
         package: "std_msgs",
         name: "Header",
-        text: include_str!("definitions/std_msgs_Header.msg"),
+        text: include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/interfaces/std_msgs/msg/Header.msg"
+        )),
         uses: &["builtin_interfaces/Time"],
     },
     Definition {
         package: "diagnostic_msgs",
         name: "KeyValue",
-        text: include_str!("definitions/diagnostic_msgs_KeyValue.msg"),
+        text: include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/interfaces/diagnostic_msgs/msg/KeyValue.msg"
+        )),
         uses: &[],
     },
     Definition {
         package: "diagnostic_msgs",
         name: "DiagnosticStatus",
-        text: include_str!("definitions/diagnostic_msgs_DiagnosticStatus.msg"),
+        text: include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/interfaces/diagnostic_msgs/msg/DiagnosticStatus.msg"
+        )),
         uses: &["diagnostic_msgs/KeyValue"],
     },
     Definition {
         package: "diagnostic_msgs",
         name: "DiagnosticArray",
-        text: include_str!("definitions/diagnostic_msgs_DiagnosticArray.msg"),
+        text: include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/interfaces/diagnostic_msgs/msg/DiagnosticArray.msg"
+        )),
         uses: &["diagnostic_msgs/DiagnosticStatus", "std_msgs/Header"],
     },
     Definition {
@@ -139,9 +155,10 @@ mod tests {
                 "MSG: builtin_interfaces/Time",
             ]
         );
-        assert!(text.starts_with(include_str!(
-            "definitions/diagnostic_msgs_DiagnosticArray.msg"
-        )));
+        assert!(text.starts_with(include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/interfaces/diagnostic_msgs/msg/DiagnosticArray.msg"
+        ))));
         // Each MSG line follows a separator line.
         let lines: Vec<&str> = text.lines().collect();
         for (i, l) in lines.iter().enumerate() {
