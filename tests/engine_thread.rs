@@ -397,8 +397,12 @@ fn a_lagging_reader_loses_reports_but_never_stalls_the_thread() {
     let mut e = engine::spawn(cfgs, sim, opts).unwrap();
     send(&mut e.requests, 0, Input::Command(Command::Percent(50.0)));
     send(&mut e.requests, 0, Input::Enable(true));
-    std::thread::sleep(Duration::from_millis(400));
-    // ~160 edges with their status reports went into a 16-entry queue nobody read.
+    // 400 edges a second with their status reports go into a 16-entry queue nobody reads; the
+    // thread must keep writing (a loaded machine may take longer than the nominal 0.25 s).
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while probe.edge_count() <= 100 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(50));
+    }
     assert!(
         probe.edge_count() > 100,
         "edges kept coming: {}",

@@ -249,12 +249,17 @@ impl NodeProc {
         (status, self.log())
     }
 
-    /// Waits for the process to exit by itself (killing it after `timeout`).
+    /// Waits for the process to exit by itself (killing it after `timeout`); the log then
+    /// holds everything it wrote.
     pub fn wait_exit(&mut self, timeout: Duration) -> ExitStatus {
         let mut child = self.child.take().expect("the node was started");
         let end = Instant::now() + timeout;
         loop {
             if let Ok(Some(s)) = child.try_wait() {
+                // The log is complete once the reader has seen stderr's end.
+                if let Some(reader) = self.reader.take() {
+                    let _ = reader.join();
+                }
                 return s;
             }
             if Instant::now() > end {
