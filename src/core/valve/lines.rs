@@ -7,6 +7,8 @@
 //!
 //! Every edge leaves through [`Lines::write`]; the output thread reports the time each edge
 //! really reached the line ([`Lines::written`]), and the pause and the minimum count from those.
+//! No line rises before the last fall's real time is reported: a fall and a rise are never
+//! written in one batch, where a late wake-up would put them on the lines together.
 
 use super::{Dir, ValveEvent};
 use crate::core::board::Seat;
@@ -32,6 +34,9 @@ pub(super) struct Lines {
     pub(super) line: [LineState; 2],
     /// The real time the last fall of either line reached it.
     fell: Option<Nanos>,
+    /// The last fall's real time is not reported yet: no rise until it is, so the pause counts
+    /// from the line and never from the schedule.
+    unconfirmed: bool,
     pause: Nanos,
     min_pulse: Nanos,
     /// An end switch holds the drive in that direction.
@@ -44,6 +49,7 @@ impl Lines {
         Lines {
             line: [LineState::default(); 2],
             fell: None,
+            unconfirmed: false,
             pause,
             min_pulse,
             blocked: [false; 2],
@@ -74,7 +80,7 @@ impl Lines {
     /// The earliest instant at or after `at` line `d` may rise, or `None` while it may not rise
     /// at all (the other line high, its end switch active, the board refusing).
     pub(super) fn earliest_rise(&self, d: Dir, at: Nanos) -> Option<Nanos> {
-        if self.line[d.other().index()].high || self.blocked[d.index()] {
+        if self.line[d.other().index()].high || self.blocked[d.index()] || self.unconfirmed {
             return None;
         }
         if let Some(seat) = &self.seats[d.index()] {
@@ -140,6 +146,7 @@ impl Lines {
         };
         if !high {
             self.fell = Some(at);
+            self.unconfirmed = true;
         }
         emit(ValveEvent::Edge { dir: d, level, at });
     }
@@ -157,6 +164,7 @@ impl Lines {
         l.sched = actual;
         if !l.high {
             self.fell = Some(actual);
+            self.unconfirmed = false;
         }
         Some(late)
     }

@@ -395,7 +395,8 @@ impl Valve {
         }
     }
 
-    /// A move waits for its rise that only the board or an end switch holds.
+    /// A move waits for its rise that the board, an end switch or a fall not yet reported holds
+    /// (call [`Valve::poll`] after the next write).
     pub fn rise_waiting(&self) -> bool {
         self.mv.is_some_and(|m| {
             !m.started && self.live && !self.estop && self.lines.earliest_rise(m.dir, 0).is_none()

@@ -264,6 +264,8 @@ impl Reporter {
                     self.publish_status(channel, &status);
                 }
             }
+            // The node makes no valve yet (no `valve` start-up parameter): none reports.
+            Report::Valve { .. } => {}
             Report::OutputFault { channel } => {
                 if let Some(h) = self.health.get_mut(channel) {
                     h.output_fault = true;
