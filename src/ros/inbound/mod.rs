@@ -1,5 +1,5 @@
 //! ROS → output thread: commands, enables and parameter changes ([`inputs`]), the e-stop
-//! ([`estop`]), the heater loop's readings, setpoints and fault resets ([`heater`]), the managed node ([`lifecycle`]), the parameter services ([`param_services`]),
+//! ([`estop`]), the heater loop's readings, setpoints and fault resets ([`heater`]), the valves' positions ([`valve`]), the managed node ([`lifecycle`]), the parameter services ([`param_services`]),
 //! and what the callbacks share with the report side ([`node_state`], the notes of
 //! [`inputs`]).
 //!
@@ -12,3 +12,4 @@ pub mod inputs;
 pub mod lifecycle;
 pub mod node_state;
 pub mod param_services;
+pub mod valve;
