@@ -35,6 +35,7 @@ use crate::ros::inbound::valve as valve_inputs;
 use crate::ros::interface::qos;
 use crate::ros::outbound::diagnostics::ChannelHealth;
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
+use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use crate::ros::wire::name_clash::{self, NameClash};
 use crate::service::WatchdogPinger;
@@ -380,6 +381,18 @@ async fn serve(
         remaps,
     };
     let (pubs, diagnostics) = ChannelPubs::create(&mut ep, &names)?;
+    let valve_outs: Vec<(String, String, String, ValveConfig)> = valves
+        .iter()
+        .map(|(v, c)| {
+            (
+                v.name.clone(),
+                names[v.open].clone(),
+                names[v.close].clone(),
+                *c,
+            )
+        })
+        .collect();
+    let valve_pubs = ValveOut::create(&mut ep, &valve_outs)?;
     let param_events = node
         .create_publisher(&context.get_parameter_events_topic(), None)
         .map_err(ros_err("publisher /parameter_events"))?;
@@ -394,7 +407,7 @@ async fn serve(
     let health = channel_health(&cfg, &hardware_ids);
     let stop_signal = Arc::new(StopSignal::default());
     let node_state = Arc::new(NodeState::from_store(&store));
-    let reporter = Reporter::new(
+    let mut reporter = Reporter::new(
         id.name.clone(),
         health,
         pubs,
@@ -405,6 +418,7 @@ async fn serve(
         Arc::clone(&stop_signal),
         Arc::clone(&node_state),
     );
+    reporter.set_valves(valve_pubs);
     let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
         fqn.clone(),

@@ -1,6 +1,6 @@
 //! Output thread → ROS: the reporter on the report thread ([`reporter`]): edges, E1, status,
 //! `/diagnostics` ([`diagnostics`]), the command-rate check ([`frequency`]) and the console
-//! ([`console`]).
+//! ([`console`]), the valves' state and diagnostics ([`valve`]).
 //!
 //! Layer 5 of the ROS shell: may import every layer before it.
 
@@ -8,3 +8,4 @@ pub mod console;
 pub mod diagnostics;
 pub mod frequency;
 pub mod reporter;
+pub mod valve;

@@ -29,6 +29,7 @@ use crate::ros::outbound::diagnostics::{
 };
 use crate::ros::outbound::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
 use crate::ros::outbound::frequency::{FrequencyReport, FrequencyStatus};
+use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{debug, error, info, warn};
 use ros2_client::builtin_interfaces::Time;
@@ -173,6 +174,8 @@ pub struct Reporter {
     node: NodeHealth,
     next_run: Nanos,
     last_run: Nanos,
+    /// The valves, in the order the output thread numbers them.
+    valves: Vec<ValveOut>,
 }
 
 impl Reporter {
@@ -230,11 +233,17 @@ impl Reporter {
             node: NodeHealth::default(),
             next_run: now + DIAGNOSTICS_RUN_NS,
             last_run: now,
+            valves: Vec::new(),
         };
         for ch in 0..n {
             r.publish_e1(ch, false);
         }
         r
+    }
+
+    /// The valves whose snapshots are published and judged on `/diagnostics`.
+    pub fn set_valves(&mut self, valves: Vec<ValveOut>) {
+        self.valves = valves;
     }
 
     /// Publishes E1 = `e1` for `channel` (latched).
@@ -264,8 +273,11 @@ impl Reporter {
                     self.publish_status(channel, &status);
                 }
             }
-            // The node makes no valve yet (no `valve` start-up parameter): none reports.
-            Report::Valve { .. } => {}
+            Report::Valve { valve, status, .. } => {
+                if let Some(v) = self.valves.get_mut(valve) {
+                    v.on_status(status);
+                }
+            }
             Report::OutputFault { channel } => {
                 if let Some(h) = self.health.get_mut(channel) {
                     h.output_fault = true;
@@ -540,6 +552,7 @@ impl Reporter {
             .iter()
             .map(|h| h.to_status(&self.node_name, now, self.counters))
             .chain(self.rate_statuses.iter().cloned())
+            .chain(self.valves.iter().map(|v| v.to_status(&self.node_name)))
             .chain(std::iter::once(self.node.to_status(&self.node_name, now)))
             .collect();
         let levels = status.iter().map(|d| d.level).collect();
