@@ -33,10 +33,15 @@ use super::{Level, Nanos};
 use lines::Lines;
 use std::sync::Arc;
 
-/// The share of the run time by which a real travel time may differ from the configured one,
-/// as OSCAT `ACTUATOR_3P` reports an error when open and close run times differ by more than
-/// 10 %. The uncertainty of the estimate is this share of the run time since the last reference.
+/// The share by which a real travel time may differ from the configured one, as OSCAT
+/// `ACTUATOR_3P` reports an error when open and close run times differ by more than 10 %. A
+/// travel time 10 % short moves the valve 1/0.9 − 1 = 11.1 % further than estimated, so the
+/// uncertainty grows by [`UNCERTAINTY_RATE`] of the run time since the last reference.
 pub const TRAVEL_TOLERANCE: f64 = 0.10;
+
+/// The estimate's error per unit of run time over the travel time, at worst:
+/// `TRAVEL_TOLERANCE / (1 - TRAVEL_TOLERANCE)`.
+pub const UNCERTAINTY_RATE: f64 = TRAVEL_TOLERANCE / (1.0 - TRAVEL_TOLERANCE);
 
 /// A reference move drives this share of the travel time (Siemens `PID_3Step`'s virtual
 /// actuator limit, 150 %); no move is ever longer.
@@ -509,13 +514,14 @@ impl Valve {
     }
 
     /// The uncertainty of the estimate, percent: 100 while unreferenced, else
-    /// [`TRAVEL_TOLERANCE`] of the run time since the last reference over the mean travel time.
+    /// [`UNCERTAINTY_RATE`] of the run time since the last reference over the shorter travel
+    /// time (the worst case).
     pub fn uncertainty_pct(&self) -> f64 {
         if !self.referenced {
             return 100.0;
         }
-        let mean = (self.cfg.travel[0] + self.cfg.travel[1]) as f64 / 2.0;
-        (TRAVEL_TOLERANCE * self.run_since_ref as f64 / mean * 100.0).min(100.0)
+        let shorter = self.cfg.travel[0].min(self.cfg.travel[1]) as f64;
+        (UNCERTAINTY_RATE * self.run_since_ref as f64 / shorter * 100.0).min(100.0)
     }
 
     /// A snapshot at `now`.

@@ -155,7 +155,12 @@ fn reference_at_start_closes_for_150_percent_of_the_travel_time() {
     assert!(st.referenced);
     assert!(close(st.position_pct, 40.0, 1e-9));
     assert_eq!(st.run_since_reference, 40 * S);
-    assert!(close(st.uncertainty_pct, 0.1 * 40.0 / 90.0 * 100.0, 1e-9));
+    // 40 s of run over the shorter travel, 80 s, at 1/0.9 - 1.
+    assert!(close(
+        st.uncertainty_pct,
+        (1.0 / 0.9 - 1.0) * 40.0 / 80.0 * 100.0,
+        1e-9
+    ));
 }
 
 /// Beckhoff `FB_BA_Anlg3Pnt`, OSCAT `ACTUATOR_3P`: a command to an end drives on past the

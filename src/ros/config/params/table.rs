@@ -250,8 +250,9 @@ pub(super) fn valve_decls() -> Vec<Decl> {
         },
         Decl {
             description: "Diagnostics warn above this uncertainty of the position estimate, \
-                          percent (10 % of the run time since the last reference over the \
-                          travel time; 100 while unreferenced).",
+                          percent (11.1 % of the run time since the last reference over the \
+                          shorter travel time, for travel times up to 10 % off; 100 while \
+                          unreferenced).",
             range: Range::Double(0.0, 100.0),
             ..Decl::new("max_uncertainty_pct", Double, || {
                 V::Double(valve_defaults().max_uncertainty_pct)
