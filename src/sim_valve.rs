@@ -5,8 +5,8 @@
 //! with the time each write returned) and moves a true position with its own travel times —
 //! which may differ from the ones the node is configured with — between hard end stops, and
 //! publishes it as `std_msgs/Float64` (percent, 0 = closed) at a fixed rate. With `--record` it
-//! writes every edge and every published position to a CSV file (`t_s,kind,value`) for the
-//! pictures of docs/valve.md.
+//! writes every edge and every published position to a CSV file (`t_s,kind,value`, wall-clock
+//! seconds; kind `open`, `close` or `true`) for the picture of docs/valve.md.
 
 use clap::{ArgAction, Args, FromArgMatches};
 use futures::StreamExt;
@@ -226,7 +226,9 @@ async fn serve(o: SimValveOptions) -> Result<(), String> {
         o.travel_close_ms,
     )));
     let start_wall = clock::wall_ns();
-    let secs = move |t: i64| (t - start_wall) as f64 / 1e9;
+    // Wall-clock seconds, as the node's messages are stamped, so a record and a ROS recording
+    // line up.
+    let secs = |t: i64| t as f64 / 1e9;
     let record = Arc::new(Mutex::new(Record(match &o.record {
         Some(p) => Some(std::io::BufWriter::new(
             std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?,
