@@ -38,8 +38,9 @@ PARAMS = [
     f"mix.travel_close_ms:={TRAVEL_MS}", "mix.min_pulse_ms:=200", "mix.reversal_pause_ms:=400",
     "mix.deadband_pct:=0.5", "mix.end_overrun_pct:=10.0",
 ]  # fmt: skip
-#: (seconds after the reference ended, target %): a move, three 1.5 % steps (60 ms each, below
-#: the 200 ms minimum pulse) that go out together, a reversal, an end move.
+#: (seconds after the reference ended, target %): a move, four 1.5 % steps (60 ms each, below
+#: the 200 ms minimum pulse) that wait until the fourth sends all 6 % in one move, a reversal,
+#: an end move.
 SCRIPT = [(0.5, 50.0), (3.5, 51.5), (4.0, 53.0), (4.5, 54.5), (5.0, 56.0), (5.3, 30.0), (7.5, 0.0)]
 TAIL_S = 6.0
 
