@@ -275,9 +275,9 @@ verify() {
         python - <<'EOF'
 import rclpy
 from rclpy.context import Context
-from pwm_actuator_msgs.msg import ChannelParams, ChannelStatus, OutputEdge
+from pwm_actuator_msgs.msg import ChannelParams, ChannelStatus, OutputEdge, ValveState
 
-for cls in (ChannelParams, ChannelStatus, OutputEdge):
+for cls in (ChannelParams, ChannelStatus, OutputEdge, ValveState):
     # Serialising needs the generated C type support, not just the Python module.
     from rclpy.serialization import deserialize_message, serialize_message
     assert deserialize_message(serialize_message(cls()), cls) == cls()

@@ -10,6 +10,7 @@
 mod bench;
 mod safe_off_cmd;
 mod sim_heater;
+mod sim_valve;
 
 use clap::error::ErrorKind;
 use clap::FromArgMatches;
@@ -30,6 +31,8 @@ enum Invocation {
     SafeOff(Vec<String>),
     /// Run the simulated heater.
     SimHeater(Box<sim_heater::SimHeaterOptions>),
+    /// Run the simulated valve.
+    SimValve(Box<sim_valve::SimValveOptions>),
     /// Already answered (help, or a subcommand's usage error): exit with this code.
     Exit(u8),
 }
@@ -44,6 +47,7 @@ fn command() -> clap::Command {
         .subcommand(bench::command())
         .subcommand(safe_off_cmd::command())
         .subcommand(sim_heater::command())
+        .subcommand(sim_valve::command())
         .args_conflicts_with_subcommands(true)
         .disable_help_subcommand(true)
 }
@@ -90,6 +94,13 @@ fn invocation(args: &[String]) -> Invocation {
                     Invocation::Exit(2)
                 }
             },
+            Some(("sim-valve", sub)) => match sim_valve::options(sub) {
+                Ok(o) => Invocation::SimValve(Box::new(o)),
+                Err(e) => {
+                    let _ = e.print();
+                    Invocation::Exit(2)
+                }
+            },
             _ if m.get_flag("help") => {
                 println!("{}", cmd.render_help().to_string().trim_end());
                 Invocation::Exit(0)
@@ -102,10 +113,9 @@ fn invocation(args: &[String]) -> Invocation {
             Invocation::Exit(0)
         }
         Err(e)
-            if split
-                .app
-                .first()
-                .is_some_and(|a| a == "bench" || a == "safe-off" || a == "sim-heater") =>
+            if split.app.first().is_some_and(|a| {
+                a == "bench" || a == "safe-off" || a == "sim-heater" || a == "sim-valve"
+            }) =>
         {
             let _ = e.print();
             Invocation::Exit(2)
@@ -131,6 +141,7 @@ fn main() -> ExitCode {
         Invocation::Bench(opts) => bench::run(opts),
         Invocation::SafeOff(node_args) => pwm_actuator::safe_off::run(&node_args),
         Invocation::SimHeater(opts) => sim_heater::run(*opts),
+        Invocation::SimValve(opts) => sim_valve::run(*opts),
         Invocation::Exit(code) => return ExitCode::from(code),
     };
     ExitCode::from(u8::try_from(code).unwrap_or(1))
@@ -146,5 +157,6 @@ mod tests {
         super::bench::command().debug_assert();
         super::safe_off_cmd::command().debug_assert();
         super::sim_heater::command().debug_assert();
+        super::sim_valve::command().debug_assert();
     }
 }

@@ -118,6 +118,27 @@ fn own_messages_match_their_msg_files() {
             ..ChannelParams::default()
         }),
     );
+    check_file(
+        ValveState::NAME,
+        shape_of(&ValveState {
+            stamp: t(),
+            name: String::new(),
+            position_pct: 0.0,
+            target_pct: 0.0,
+            motion: String::new(),
+            activity: String::new(),
+            referenced: false,
+            run_since_reference_s: 0.0,
+            uncertainty_pct: 0.0,
+            recalibration_due: false,
+            timed_out: false,
+            estop: false,
+            open_switch: false,
+            close_switch: false,
+            moves: 0,
+        }),
+    );
+    assert_eq!(ValveState::PACKAGE, MSG_PACKAGE);
     assert_eq!(OutputEdge::PACKAGE, MSG_PACKAGE);
     assert_eq!(ChannelStatus::PACKAGE, MSG_PACKAGE);
     assert_eq!(ChannelParams::PACKAGE, MSG_PACKAGE);
@@ -136,7 +157,12 @@ fn every_msg_file_is_mirrored() {
     stems.sort();
     assert_eq!(
         stems,
-        [ChannelParams::NAME, ChannelStatus::NAME, OutputEdge::NAME],
+        [
+            ChannelParams::NAME,
+            ChannelStatus::NAME,
+            OutputEdge::NAME,
+            ValveState::NAME
+        ],
         "a .msg file without a Rust mirror (or the reverse)"
     );
 }

@@ -12,6 +12,7 @@ pub mod config;
 pub mod heater;
 pub mod interlock;
 pub mod plan;
+pub mod valve;
 
 pub use bank::{Bank, Phase};
 pub use board::LineBoard;
@@ -23,6 +24,7 @@ pub use config::{
 };
 pub use interlock::{split_command, Interlocks, PairError};
 pub use plan::{Plan, Rule};
+pub use valve::{Valve, ValveConfig, ValveEvent, ValveParams, ValveStatus};
 
 /// Nanoseconds of a monotonic clock (an instant) or a duration in nanoseconds.
 pub type Nanos = u64;

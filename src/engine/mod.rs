@@ -8,7 +8,9 @@
 //! channel cores, writes edges to the [`Output`](crate::output::Output) and sends reports back
 //! through a second ring buffer that never blocks it (a full buffer drops and counts).
 
+use crate::core::valve::Dir;
 use crate::core::{Bank, ChannelConfig, Command, Event, Level, Nanos, Status};
+use crate::core::{ValveConfig, ValveStatus};
 
 /// An input for one channel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -61,6 +63,40 @@ pub enum Input {
     /// Whether a heater fault of any channel latches the e-stop of every channel
     /// (`heater_fault_latches_estop`); the request's channel is ignored. Sent at start-up.
     HeaterEstop(bool),
+    /// Makes a three-point valve of the request's channel (its opening line) and channel
+    /// `close` (its closing line); valves are numbered 0, 1, ... in the order made. Sent once
+    /// at start-up; a channel already in a valve or a split-range pair refuses it. The two
+    /// channels then follow only the valve: their own inputs are ignored.
+    AddValve {
+        /// The closing line's channel.
+        close: usize,
+        /// The valve's settings.
+        config: ValveConfig,
+    },
+    /// A position command for valve `valve`, percent (0 = closed); the request's channel is
+    /// ignored.
+    ValvePosition {
+        /// Valve index.
+        valve: usize,
+        /// Target, percent.
+        pct: f64,
+    },
+    /// New settings for valve `valve`; the request's channel is ignored.
+    ValveConfig {
+        /// Valve index.
+        valve: usize,
+        /// The settings.
+        config: ValveConfig,
+    },
+    /// The end switch of direction `dir` of valve `valve` became `active`.
+    ValveSwitch {
+        /// Valve index.
+        valve: usize,
+        /// Which end.
+        dir: Dir,
+        /// Whether it is active.
+        active: bool,
+    },
 }
 
 /// An input addressed to a channel.
@@ -117,6 +153,15 @@ pub enum Report {
         channel: usize,
         /// The snapshot.
         status: Status,
+        /// Monotonic ns at which it was taken.
+        at_ns: Nanos,
+    },
+    /// A valve's snapshot, taken at monotonic time `at_ns`, after anything changed.
+    Valve {
+        /// Valve index.
+        valve: usize,
+        /// The snapshot.
+        status: ValveStatus,
         /// Monotonic ns at which it was taken.
         at_ns: Nanos,
     },

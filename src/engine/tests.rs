@@ -642,3 +642,189 @@ fn a_heater_fault_stops_the_heartbeat_and_can_latch_the_estop_of_every_channel()
     );
     assert!(LINES.with(|l| !l.borrow().high.iter().any(|h| *h)));
 }
+
+/// The settings of the valves below: short travel times so a test covers many moves.
+fn valve_params() -> crate::core::ValveParams {
+    crate::core::ValveParams {
+        travel_open_ms: 2_000,
+        travel_close_ms: 1_600,
+        deadband_pct: 0.5,
+        min_pulse_ms: 40,
+        reversal_pause_ms: 60,
+        end_overrun_pct: 10.0,
+        reference_at_start: true,
+        recalibrate_after_s: 0,
+        ..crate::core::ValveParams::default()
+    }
+}
+
+/// A bench of four channels with a valve on lines 2 (open) and 3 (close), whose lines the
+/// output checks as a pair.
+fn valve_bench(held: bool) -> Bench {
+    let chans = [params(100, 0, None); 4];
+    let mut b = Bench::new(&chans, &[(0, 1)], held);
+    LINES.with(|l| l.borrow_mut().pairs.push((2, 3)));
+    let config = valve_params().validate().unwrap();
+    b.send(2, Input::AddValve { close: 3, config });
+    b.wake();
+    b
+}
+
+/// The valve's drive as written: the integral of the high spans of its lines (from the end of
+/// each rise's write to the end of the fall's, the times the worker reports to the valve) over
+/// the travel times, clamped to the stroke, in the order they came.
+fn integral_of_the_lines(p: &crate::core::ValveParams) -> f64 {
+    let edges = LINES.with(|l| l.borrow().edges.clone());
+    let mut all: Vec<(Nanos, usize, bool)> = [2usize, 3]
+        .iter()
+        .flat_map(|&i| edges[i].iter().map(move |&(t, h)| (t, i, h)))
+        .collect();
+    all.sort_by_key(|&(t, i, h)| (t, h, i));
+    let mut rose = [0; 4];
+    let mut pos = 0.0f64;
+    for (t, i, h) in all {
+        if h {
+            rose[i] = t;
+        } else {
+            let (travel, sign) = if i == 2 {
+                (p.travel_open_ms, 1.0)
+            } else {
+                (p.travel_close_ms, -1.0)
+            };
+            let ran = (t - rose[i]) as f64 / (travel as f64 * 1e6);
+            pos = (pos + sign * ran * 100.0).clamp(0.0, 100.0);
+        }
+    }
+    pos
+}
+
+/// The valve lines as written: a rise of either comes at least the reversal pause after the
+/// last fall of either, and every rise is followed by a fall (none left high at the end).
+fn valve_pause_held(pause: Nanos) -> Result<(), String> {
+    let edges = LINES.with(|l| l.borrow().edges.clone());
+    let mut all: Vec<(Nanos, usize, bool)> = [2usize, 3]
+        .iter()
+        .flat_map(|&i| edges[i].iter().map(move |&(t, h)| (t, i, h)))
+        .collect();
+    all.sort_by_key(|&(t, i, h)| (t, h, i));
+    let mut fell: Option<Nanos> = None;
+    for (t, i, h) in all {
+        if h {
+            if let Some(f) = fell.filter(|&f| t < f + pause) {
+                return Err(format!("line {i} rose at {t}, {} ns after a fall", t - f));
+            }
+        } else {
+            fell = Some(t);
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn a_valve_references_then_follows_its_position_on_the_real_lines() {
+    let mut b = valve_bench(false);
+    let t = now();
+    // The reference: 150 % of the closing travel, 2.4 s.
+    b.run_to(t + 3_000 * MS, 0);
+    let st = b.worker.valve(0).unwrap().status(now());
+    assert!(st.referenced, "{st:?}");
+    b.send(
+        0,
+        Input::ValvePosition {
+            valve: 0,
+            pct: 40.0,
+        },
+    );
+    b.wake();
+    b.run_to(now() + 2_000 * MS, 0);
+    let est = b.worker.valve(0).unwrap().estimate(now());
+    let p = valve_params();
+    assert!((est - integral_of_the_lines(&p)).abs() < 1e-9);
+    // 40 % of 2 s, plus the write's time, which the real edges carry.
+    assert!((est - 40.0).abs() < 0.01, "{est}");
+    assert_eq!(violations(), Vec::<String>::new());
+}
+
+#[test]
+fn a_valve_channel_ignores_its_own_inputs_and_shut_down_drops_the_valve_lines() {
+    let mut b = valve_bench(false);
+    // The channel inputs of the closing line while the reference closes: no rise on line 2.
+    b.send(2, Input::Command(Command::Percent(100.0)));
+    b.send(2, Input::Enable(true));
+    b.wake();
+    b.run_to(now() + 500 * MS, 0);
+    assert!(LINES.with(|l| l.borrow().edges[2].is_empty()));
+    assert!(LINES.with(|l| l.borrow().high[3]), "the reference closes");
+    let (_out, r) = b.worker.shut_down();
+    assert!(r.is_ok());
+    // Written as an edge of its own, before the blanket off (which records no edge).
+    let last = LINES.with(|l| l.borrow().edges[3].last().copied());
+    assert_eq!(last.map(|(_, high)| high), Some(false));
+}
+
+#[derive(Debug, Clone)]
+enum ValveOp {
+    Position(f64),
+    Duty(usize, f64),
+    Enable(usize, bool),
+    Live(bool),
+    EStop(bool),
+    Switch(bool, bool),
+}
+
+fn arb_valve_op() -> impl Strategy<Value = ValveOp> {
+    prop_oneof![
+        8 => prop_oneof![Just(0.0), Just(100.0), 0.0..100.0f64].prop_map(ValveOp::Position),
+        2 => (0usize..4, 0.0..100.0f64).prop_map(|(c, d)| ValveOp::Duty(c, d)),
+        2 => (0usize..4, any::<bool>()).prop_map(|(c, on)| ValveOp::Enable(c, on)),
+        1 => any::<bool>().prop_map(ValveOp::Live),
+        1 => prop::bool::weighted(0.3).prop_map(ValveOp::EStop),
+        1 => (any::<bool>(), any::<bool>()).prop_map(|(o, a)| ValveOp::Switch(o, a)),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 200, ..ProptestConfig::default() })]
+
+    /// Through the output thread's work, woken late at random, with commands to the valve's own
+    /// channels, e-stops, holds and end switches: the valve's lines are never high together, a
+    /// rise comes at least the reversal pause after the last real fall, and — without end
+    /// switches, which set the position — the estimate equals the integral of the real
+    /// drive times over the travel times.
+    #[test]
+    fn a_valve_never_drives_both_lines_nor_reverses_within_the_pause(
+        held in any::<bool>(),
+        ops in prop::collection::vec(((0u64..800).prop_map(|ms| ms * MS), arb_valve_op()), 1..60),
+        late in prop::collection::vec(prop_oneof![3 => Just(0u64), 1 => 0u64..5 * MS], 60),
+    ) {
+        let mut b = valve_bench(held);
+        let mut switched = false;
+        for (k, (dt, op)) in ops.into_iter().enumerate() {
+            let t = now() + dt;
+            b.run_to(t, late[k]);
+            match op {
+                ValveOp::Position(pct) => b.send(0, Input::ValvePosition { valve: 0, pct }),
+                ValveOp::Duty(c, d) => b.send(c, Input::Command(Command::Percent(d))),
+                ValveOp::Enable(c, on) => b.send(c, Input::Enable(on)),
+                ValveOp::Live(on) => b.send(0, Input::Live(on)),
+                ValveOp::EStop(on) => b.send(0, Input::EStop(on)),
+                ValveOp::Switch(open, active) => {
+                    switched = true;
+                    let dir = if open { crate::core::valve::Dir::Open } else { crate::core::valve::Dir::Close };
+                    b.send(0, Input::ValveSwitch { valve: 0, dir, active });
+                }
+            }
+            b.wake();
+        }
+        let t = now() + 5_000 * MS;
+        b.run_to(t, 0);
+        prop_assert_eq!(violations(), Vec::<String>::new());
+        let p = valve_params();
+        valve_pause_held(p.reversal_pause_ms * MS).map_err(TestCaseError::fail)?;
+        if !switched {
+            let est = b.worker.valve(0).unwrap().estimate(now());
+            let integral = integral_of_the_lines(&p);
+            prop_assert!((est - integral).abs() < 1e-6, "estimate {} vs lines {}", est, integral);
+        }
+    }
+}

@@ -7,6 +7,7 @@
 use super::safety::{SafetySlot, Wanted};
 use super::{EdgeReport, Input, Report, Request};
 use crate::clock;
+use crate::core::valve::{self, Dir, Valve, ValveEvent};
 use crate::core::{Bank, Channel, ChannelConfig, Event, Interlocks, Level, LineBoard, Nanos};
 use crate::output::{LineChange, Output, OutputError};
 use rtrb::{Consumer, Producer};
@@ -45,6 +46,13 @@ pub(crate) struct Worker<O: Output> {
     heater_faulted: Vec<bool>,
     /// A heater fault latches the e-stop of every channel (`heater_fault_latches_estop`).
     heater_estop: bool,
+    /// The three-point valves, their lines (open, close), and which were touched since their
+    /// last snapshot. Reserved for one valve per two channels: adding one never allocates.
+    valves: Vec<Valve>,
+    valve_lines: Vec<[usize; 2]>,
+    valve_touched: Vec<bool>,
+    /// For each channel's line, the valve and direction it drives, if it belongs to a valve.
+    owner: Vec<Option<(usize, Dir)>>,
 }
 
 /// The heartbeat line: toggled every half period on an absolute grid while the thread runs.
@@ -104,6 +112,10 @@ impl<O: Output> Worker<O> {
             clock: clock::monotonic_ns,
             heater_faulted: vec![false; n],
             heater_estop: false,
+            valves: Vec::with_capacity(n / 2),
+            valve_lines: Vec::with_capacity(n / 2),
+            valve_touched: Vec::with_capacity(n / 2),
+            owner: vec![None; n],
         }
     }
 
@@ -112,6 +124,12 @@ impl<O: Output> Worker<O> {
     pub(crate) fn with_clock(mut self, clock: fn() -> Nanos) -> Self {
         self.clock = clock;
         self
+    }
+
+    /// Valve `k`, for tests that compare its estimate with the lines.
+    #[cfg(test)]
+    pub(crate) fn valve(&self, k: usize) -> Option<&Valve> {
+        self.valves.get(k)
     }
 
     /// Toggles output line `line` every `half` ns from `now + half` on (a half period of at
@@ -129,6 +147,16 @@ impl<O: Output> Worker<O> {
     /// The earliest deadline of any channel or of the heartbeat, monotonic ns.
     pub(crate) fn next_deadline(&self) -> Option<Nanos> {
         let channels = self.channels.iter().filter_map(Channel::poll_at).min();
+        let valves = self
+            .valves
+            .iter()
+            .filter_map(Valve::poll_at)
+            .chain(valve::exercise_next(&self.valves))
+            .min();
+        let channels = match (channels, valves) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
         let heartbeat = self.heartbeat.as_ref().filter(|_| self.heartbeat_runs());
         match (heartbeat, channels) {
             (Some(hb), Some(c)) => Some(hb.next.min(c)),
@@ -177,6 +205,7 @@ impl<O: Output> Worker<O> {
             }
         }
         self.retry_rises(now);
+        self.run_valves(now);
         if let Some(r) = self.sync_heater_faults(now) {
             taken = Some(r);
         }
@@ -329,14 +358,16 @@ impl<O: Output> Worker<O> {
         self.across(|channels, _, bank, emit| bank.after(channels, now, emit));
     }
 
-    /// Latches or releases the e-stop of every channel at `now`.
+    /// Latches or releases the e-stop of every channel and valve at `now`.
     fn estop(&mut self, now: Nanos, latched: bool) {
+        self.each_valve(now, |v, now, emit| v.set_estop(now, latched, emit));
         self.each_channel(now, |ch, now, emit| ch.set_estop(now, latched, emit));
         self.heartbeat_gate(now);
     }
 
     /// Lets every line follow its channel, or holds every line inactive, at `now`.
     pub(crate) fn set_live(&mut self, now: Nanos, live: bool) {
+        self.each_valve(now, |v, now, emit| v.set_live(now, live, emit));
         self.each_channel(now, |ch, now, emit| ch.set_live(now, live, emit));
         self.heartbeat_gate(now);
     }
@@ -387,7 +418,28 @@ impl<O: Output> Worker<O> {
                 self.heater_estop = on;
                 return;
             }
+            Input::AddValve { close, config } => {
+                return self.add_valve(now, req.channel, close, config);
+            }
+            Input::ValvePosition { valve, pct } => {
+                // NaN and infinities are refused by the valve; the target in force stays.
+                return self.on_valve(valve, now, |v, now, emit| {
+                    let _ = v.command(now, pct, emit);
+                });
+            }
+            Input::ValveConfig { valve, config } => {
+                return self.on_valve(valve, now, |v, now, emit| v.set_config(now, config, emit));
+            }
+            Input::ValveSwitch { valve, dir, active } => {
+                return self.on_valve(valve, now, |v, now, emit| {
+                    v.set_switch(now, dir, active, emit)
+                });
+            }
             _ => {}
+        }
+        if self.owner.get(req.channel).is_some_and(Option::is_some) {
+            // A valve's line follows the valve only.
+            return;
         }
         self.bank.before(&mut self.channels, req.channel, now);
         let Some(ch) = self.channels.get_mut(req.channel) else {
@@ -407,7 +459,8 @@ impl<O: Output> Worker<O> {
             Input::Pair(partner) => {
                 // Refused pairs (unknown channel, already paired) are checked by the caller at
                 // start-up; here they are ignored rather than stop the thread.
-                if self.interlocks.pair(req.channel, partner).is_ok() {
+                let valve_line = self.owner.get(partner).is_some_and(Option::is_some);
+                if !valve_line && self.interlocks.pair(req.channel, partner).is_ok() {
                     self.board.pair(req.channel, partner);
                 }
             }
@@ -416,7 +469,14 @@ impl<O: Output> Worker<O> {
             Input::ResetFault(ticket) => ch.reset_heater_fault(now, ticket, emit),
             Input::Autotune { ticket, goal } => ch.start_autotune(now, ticket, goal, emit),
             Input::AutotuneCancel(ticket) => ch.cancel_autotune(now, ticket, emit),
-            Input::EStop(_) | Input::Live(_) | Input::Bank(_) | Input::HeaterEstop(_) => {}
+            Input::EStop(_)
+            | Input::Live(_)
+            | Input::Bank(_)
+            | Input::HeaterEstop(_)
+            | Input::AddValve { .. }
+            | Input::ValvePosition { .. }
+            | Input::ValveConfig { .. }
+            | Input::ValveSwitch { .. } => {}
         }
         self.pushed |= sink.pushed;
         self.touched[req.channel] = true;
@@ -445,8 +505,15 @@ impl<O: Output> Worker<O> {
                     // The heartbeat line: not a channel, nothing to report.
                     continue;
                 }
-                // The minimum of the phase this edge begins counts from when it reached the line.
-                self.channels[c.line].edge_written(actual_ns);
+                if let Some((v, dir)) = self.owner[c.line] {
+                    // The valve's estimate, pause and minimum count from the real write.
+                    self.valves[v].edge_written(dir, c.level, actual_ns);
+                    self.valve_touched[v] = true;
+                } else {
+                    // The minimum of the phase this edge begins counts from when it reached
+                    // the line.
+                    self.channels[c.line].edge_written(actual_ns);
+                }
                 self.seq[c.line] += 1;
                 self.push(Report::Edge(EdgeReport {
                     channel: c.line,
@@ -463,9 +530,109 @@ impl<O: Output> Worker<O> {
         Ok(())
     }
 
+    /// Makes valve number `self.valves.len()` on lines `open` and `close` at `now`, unless a
+    /// line does not exist, is the other, or already belongs to a valve or a split-range pair
+    /// (the caller checks at start-up; here such a valve is ignored rather than stop the
+    /// thread), or the reserved room is full.
+    fn add_valve(&mut self, now: Nanos, open: usize, close: usize, config: valve::ValveConfig) {
+        let n = self.channels.len();
+        let free =
+            |i: usize| i < n && self.owner[i].is_none() && self.interlocks.partner(i).is_none();
+        if open == close
+            || !free(open)
+            || !free(close)
+            || self.valves.len() == self.valves.capacity()
+        {
+            return;
+        }
+        // The channels are switched off for good: from now on only the valve moves the lines.
+        for i in [open, close] {
+            let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
+            self.channels[i].set_enable(now, false, &mut |e| sink.event(e));
+            self.pushed |= sink.pushed;
+        }
+        let mut v = Valve::new(config, now);
+        v.seat_on(&self.board, open, close);
+        let k = self.valves.len();
+        self.owner[open] = Some((k, Dir::Open));
+        self.owner[close] = Some((k, Dir::Close));
+        self.valves.push(v);
+        self.valve_lines.push([open, close]);
+        self.valve_touched.push(true);
+        let (live, latched) = (self.seen.live, self.seen.estop_epoch % 2 == 1);
+        self.on_valve(k, now, |v, now, emit| {
+            v.set_estop(now, latched, emit);
+            v.set_live(now, live, emit);
+        });
+    }
+
+    /// Runs `f` on valve `k` at `now`, routing its edges to the write batch.
+    fn on_valve(
+        &mut self,
+        k: usize,
+        now: Nanos,
+        f: impl FnOnce(&mut Valve, Nanos, &mut dyn FnMut(ValveEvent)),
+    ) {
+        let (Some(v), Some(&lines)) = (self.valves.get_mut(k), self.valve_lines.get(k)) else {
+            return;
+        };
+        let changes = &mut self.changes;
+        f(v, now, &mut |e| valve_edge(changes, lines, e));
+        self.valve_touched[k] = true;
+    }
+
+    /// Runs `f` on every valve at `now`.
+    fn each_valve(
+        &mut self,
+        now: Nanos,
+        f: impl Fn(&mut Valve, Nanos, &mut dyn FnMut(ValveEvent)),
+    ) {
+        for k in 0..self.valves.len() {
+            self.on_valve(k, now, &f);
+        }
+    }
+
+    /// The valves' due deadlines, rises the board or an unreported fall held, and the exercise
+    /// strokes (one valve at a time), at `now`.
+    fn run_valves(&mut self, now: Nanos) {
+        for k in 0..self.valves.len() {
+            let v = &self.valves[k];
+            if v.poll_at().is_some_and(|t| t <= now) || v.rise_waiting() {
+                self.on_valve(k, now, |v, now, emit| v.poll(now, emit));
+            }
+        }
+        if valve::exercise_next(&self.valves).is_some_and(|t| t <= now) {
+            let (changes, lines, touched) = (
+                &mut self.changes,
+                &self.valve_lines,
+                &mut self.valve_touched,
+            );
+            valve::exercise_turn(&mut self.valves, now, &mut |k, e| {
+                valve_edge(changes, lines[k], e);
+                touched[k] = true;
+            });
+        }
+    }
+
     /// Sends a status snapshot for every channel touched since the last one. Called before the
     /// edge reports of a write, so a reader sees the state an edge belongs to before the edge.
     fn report_status(&mut self, now: Nanos) {
+        for v in 0..self.valves.len() {
+            if std::mem::take(&mut self.valve_touched[v]) {
+                let status = self.valves[v].status(now);
+                let sent = push_report(
+                    &mut self.reports,
+                    &self.dropped,
+                    Report::Valve {
+                        valve: v,
+                        status,
+                        at_ns: now,
+                    },
+                );
+                self.pushed |= sent;
+                self.valve_touched[v] = !sent;
+            }
+        }
         for i in 0..self.channels.len() {
             if std::mem::take(&mut self.touched[i]) {
                 let status = self.channels[i].status(now);
@@ -491,7 +658,8 @@ impl<O: Output> Worker<O> {
     pub(crate) fn shut_down(mut self) -> (O, Result<(), O::Error>) {
         let now = (self.clock)();
         for (i, ch) in self.channels.iter().enumerate() {
-            if ch.level() == Level::High {
+            // A valve's lines are on the board, not in their channels.
+            if ch.level() == Level::High || self.board.is_high(i) {
                 self.changes.push(LineChange {
                     line: i,
                     level: Level::Low,
@@ -527,6 +695,18 @@ fn push_report(reports: &mut Producer<Report>, dropped: &AtomicU64, report: Repo
         return false;
     }
     true
+}
+
+/// Puts a valve's edge into the write batch on its line. The valve never writes a fall and a
+/// rise of one line in one batch (a rise waits for the fall's reported write), so each line
+/// appears at most once.
+fn valve_edge(changes: &mut Vec<LineChange>, lines: [usize; 2], e: ValveEvent) {
+    let ValveEvent::Edge { dir, level, at } = e;
+    changes.push(LineChange {
+        line: lines[dir.index()],
+        level,
+        scheduled_ns: at,
+    });
 }
 
 /// Routes a channel's core events: edges to the write batch, the rest to the report queue.

@@ -8,7 +8,9 @@
 //! before the process exits.
 
 use crate::clock;
+use crate::core::config::ShortStr;
 use crate::core::ChannelConfig;
+use crate::core::ValveConfig;
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
@@ -25,6 +27,7 @@ use crate::ros::config::params::{self, ParamError, ParamStore, StartupConfig};
 use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
 use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
+use crate::ros::config::valve::{self, ValveError, ValveSpec};
 use crate::ros::inbound::autotune;
 use crate::ros::inbound::estop::{self, EStop};
 use crate::ros::inbound::heater::{self, HeaterChannel};
@@ -32,11 +35,13 @@ use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
 use crate::ros::inbound::lifecycle;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::inbound::param_services;
+use crate::ros::inbound::valve as valve_inputs;
 use crate::ros::interface::msg::{self, RosMessage};
 use crate::ros::interface::{qos, type_hash};
 use crate::ros::outbound::diagnostics::ChannelHealth;
 use crate::ros::outbound::mcap_trace::{self, McapTrace};
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
+use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use crate::ros::wire::name_clash::{self, NameClash};
 use crate::service::WatchdogPinger;
@@ -96,6 +101,7 @@ config_from!(
     NameError,
     ParamError,
     SplitError,
+    ValveError,
     DiscoveryError,
     SecurityError,
     FaultSpecError
@@ -180,6 +186,20 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
     let cfg = StartupConfig::from_store(&su.store)?;
     let channel_names: Vec<String> = cfg.channels.iter().map(|c| c.name.clone()).collect();
     let splits = split::parse(&cfg.settings.split, &channel_names)?;
+    let valves = valve::parse(&cfg.settings.valve, &channel_names, &splits)?
+        .into_iter()
+        .map(|v| {
+            let config = su
+                .store
+                .valve_params(&v.name)
+                .validate()
+                .map_err(|source| ValveError::Settings {
+                    name: ShortStr::new(&v.name),
+                    source,
+                })?;
+            Ok((v, config))
+        })
+        .collect::<Result<Vec<_>, ValveError>>()?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("pwm-ros")
@@ -191,7 +211,7 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         parsed.ros,
         su.store,
         cfg,
-        splits,
+        (splits, valves),
         (domain, disc, secure),
     ))
 }
@@ -361,7 +381,7 @@ async fn serve(
     ros: RosArgs,
     store: ParamStore,
     cfg: StartupConfig,
-    splits: Vec<split::SplitPair>,
+    (splits, valves): (Vec<split::SplitPair>, Vec<(ValveSpec, ValveConfig)>),
     (domain, disc, secure): (u16, Discovery, Option<PathBuf>),
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
@@ -422,6 +442,18 @@ async fn serve(
     };
     let (pubs, diagnostics) = ChannelPubs::create(&mut ep, &names)?;
     let mcap = mcap_trace(&cfg, &ep, &names)?;
+    let valve_outs: Vec<(String, String, String, ValveConfig)> = valves
+        .iter()
+        .map(|(v, c)| {
+            (
+                v.name.clone(),
+                names[v.open].clone(),
+                names[v.close].clone(),
+                *c,
+            )
+        })
+        .collect();
+    let valve_pubs = ValveOut::create(&mut ep, &valve_outs)?;
     let param_events = node
         .create_publisher(&context.get_parameter_events_topic(), None)
         .map_err(ros_err("publisher /parameter_events"))?;
@@ -450,6 +482,7 @@ async fn serve(
     if let Some(mcap) = mcap {
         reporter.record_to(mcap);
     }
+    reporter.set_valves(valve_pubs);
     let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
         fqn.clone(),
@@ -468,6 +501,7 @@ async fn serve(
     };
     tasks.extend(inputs::listen_channels(&mut ep, &inputs, &names)?);
     tasks.extend(inputs::listen_splits(&mut ep, &inputs, &splits)?);
+    tasks.extend(valve_inputs::listen_valves(&mut ep, &inputs, &valves)?);
     let heaters: Vec<HeaterChannel> = cfg
         .channels
         .iter()

@@ -15,3 +15,4 @@ pub mod params;
 pub mod security;
 pub mod split;
 pub mod start;
+pub mod valve;

@@ -10,6 +10,7 @@ use crate::ros::config::names::{NameError, NodeIdentity};
 use crate::ros::config::params::{show_value, ParamError, StartValue};
 use crate::ros::config::security::SecurityError;
 use crate::ros::config::split::SplitError;
+use crate::ros::config::valve::ValveError;
 use log::info;
 
 /// Highest `ROS_DOMAIN_ID` accepted (the DDS port mapping's limit).
@@ -41,6 +42,9 @@ pub enum ConfigError {
     /// The `split` parameter is refused.
     #[error(transparent)]
     Split(#[from] SplitError),
+    /// The `valve` parameter or a valve's settings are refused.
+    #[error(transparent)]
+    Valve(#[from] ValveError),
     /// A discovery setting that cannot be honoured.
     #[error(transparent)]
     Discovery(#[from] DiscoveryError),

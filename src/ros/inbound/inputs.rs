@@ -129,7 +129,8 @@ impl Inputs {
         &self.safety
     }
 
-    fn name(&self, channel: usize) -> &str {
+    /// Channel `channel`'s name (`pw01`, ...), `?` beyond the channels.
+    pub(crate) fn name(&self, channel: usize) -> &str {
         self.names.get(channel).map_or("?", String::as_str)
     }
 

@@ -1,5 +1,7 @@
 //! ROS → output thread: commands, enables and parameter changes ([`inputs`]), the e-stop
-//! ([`estop`]), the heater loop's readings, setpoints and fault resets ([`heater`]), its autotune action ([`autotune`]), the managed node ([`lifecycle`]), the parameter services ([`param_services`]),
+//! ([`estop`]), the heater loop's readings, setpoints and fault resets ([`heater`]), its
+//! autotune action ([`autotune`]), the valves' positions ([`valve`]), the managed node
+//! ([`lifecycle`]), the parameter services ([`param_services`]),
 //! and what the callbacks share with the report side ([`node_state`], the notes of
 //! [`inputs`]).
 //!
@@ -13,3 +15,4 @@ pub mod inputs;
 pub mod lifecycle;
 pub mod node_state;
 pub mod param_services;
+pub mod valve;

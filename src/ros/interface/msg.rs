@@ -241,6 +241,43 @@ pub struct OutputEdge {
 }
 ros_message!(OutputEdge, "pwm_actuator_msgs", "OutputEdge");
 
+/// `pwm_actuator_msgs/ValveState` (msg/ValveState.msg): what a three-point valve is doing.
+/// Positions in percent of the stroke, 0 = closed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ValveState {
+    /// Wall-clock time of the snapshot.
+    pub stamp: Time,
+    /// The valve's name.
+    pub name: String,
+    /// The estimated position, percent.
+    pub position_pct: f64,
+    /// The target, percent; NaN before the first command.
+    pub target_pct: f64,
+    /// `stopped`, `opening` or `closing`.
+    pub motion: String,
+    /// `tracking`, `referencing`, `recalibrating` or `exercising`.
+    pub activity: String,
+    /// The estimate was set at a reference.
+    pub referenced: bool,
+    /// Drive time since the last reference, s.
+    pub run_since_reference_s: f64,
+    /// The estimate's uncertainty, percent.
+    pub uncertainty_pct: f64,
+    /// A recalibration is due.
+    pub recalibration_due: bool,
+    /// The command timeout acted.
+    pub timed_out: bool,
+    /// The e-stop is latched.
+    pub estop: bool,
+    /// The open end switch is active.
+    pub open_switch: bool,
+    /// The close end switch is active.
+    pub close_switch: bool,
+    /// Moves completed since start.
+    pub moves: u64,
+}
+ros_message!(ValveState, "pwm_actuator_msgs", "ValveState");
+
 /// `pwm_actuator_msgs/ChannelStatus` (msg/ChannelStatus.msg). Times in ms, duties in percent.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ChannelStatus {

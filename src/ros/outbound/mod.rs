@@ -1,6 +1,7 @@
 //! Output thread → ROS: the reporter on the report thread ([`reporter`]): edges, E1, status,
 //! `/diagnostics` ([`diagnostics`]), the command-rate check ([`frequency`]) and the console
-//! ([`console`]); the MCAP trace of what it publishes ([`mcap_trace`]).
+//! ([`console`]), the valves' state and diagnostics ([`valve`]); the MCAP trace of what it
+//! publishes ([`mcap_trace`]).
 //!
 //! Layer 5 of the ROS shell: may import every layer before it.
 
@@ -9,3 +10,4 @@ pub mod diagnostics;
 pub mod frequency;
 pub mod mcap_trace;
 pub mod reporter;
+pub mod valve;

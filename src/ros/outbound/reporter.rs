@@ -30,6 +30,7 @@ use crate::ros::outbound::diagnostics::{
 use crate::ros::outbound::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
 use crate::ros::outbound::frequency::{FrequencyReport, FrequencyStatus};
 use crate::ros::outbound::mcap_trace::McapTrace;
+use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{debug, error, info, warn};
 use ros2_client::builtin_interfaces::Time;
@@ -176,6 +177,8 @@ pub struct Reporter {
     last_run: Nanos,
     /// The MCAP trace of what is published, if any.
     mcap: Option<McapTrace>,
+    /// The valves, in the order the output thread numbers them.
+    valves: Vec<ValveOut>,
 }
 
 impl Reporter {
@@ -234,6 +237,7 @@ impl Reporter {
             next_run: now + DIAGNOSTICS_RUN_NS,
             last_run: now,
             mcap: None,
+            valves: Vec::new(),
         };
         for ch in 0..n {
             r.publish_e1(ch, false);
@@ -251,6 +255,11 @@ impl Reporter {
     /// The MCAP trace's topic of channel `ch`'s edges; its status is the next one.
     fn mcap_edges_topic(ch: usize) -> usize {
         2 * ch
+    }
+
+    /// The valves whose snapshots are published and judged on `/diagnostics`.
+    pub fn set_valves(&mut self, valves: Vec<ValveOut>) {
+        self.valves = valves;
     }
 
     /// Publishes E1 = `e1` for `channel` (latched).
@@ -278,6 +287,11 @@ impl Reporter {
                 h.status = Some(status);
                 if changed {
                     self.publish_status(channel, &status);
+                }
+            }
+            Report::Valve { valve, status, .. } => {
+                if let Some(v) = self.valves.get_mut(valve) {
+                    v.on_status(status);
                 }
             }
             Report::OutputFault { channel } => {
@@ -584,6 +598,7 @@ impl Reporter {
             .iter()
             .map(|h| h.to_status(&self.node_name, now, self.counters))
             .chain(self.rate_statuses.iter().cloned())
+            .chain(self.valves.iter().map(|v| v.to_status(&self.node_name)))
             .chain(std::iter::once(self.node.to_status(&self.node_name, now)))
             .collect();
         let levels = status.iter().map(|d| d.level).collect();

@@ -58,6 +58,7 @@ says which).
 pub fn reference_markdown() -> String {
     let node = table::node_decls();
     let channel = table::channel_decls();
+    let valve = table::valve_decls();
     let mut page = String::new();
     page.push_str("# Parameters\n\n");
     let _ = writeln!(
@@ -66,12 +67,27 @@ pub fn reference_markdown() -> String {
          Do not edit: a test fails while this page differs from the table. -->\n"
     );
     page.push_str(INTRO);
-    summary(&mut page, "Node parameters", "Set once per node.", &node);
+    summary(
+        &mut page,
+        "Node parameters",
+        "Set once per node.",
+        &node,
+        "",
+    );
     summary(
         &mut page,
         "Channel parameters",
         "Set per channel as `pwNN.<name>`: `pw01.period_ms`, `pw02.profile`, ...",
         &channel,
+        "",
+    );
+    summary(
+        &mut page,
+        "Valve parameters",
+        "Set per valve of the `valve` parameter as `NAME.<name>`: `mix.travel_open_ms`, ... \
+         ([valve.md](valve.md) says what each does and where it comes from).",
+        &valve,
+        "NAME.",
     );
     page.push_str("\n## Details\n");
     for d in &node {
@@ -80,19 +96,25 @@ pub fn reference_markdown() -> String {
     for d in &channel {
         details(&mut page, d, &format!("pwNN.{}", d.suffix));
     }
+    for d in &valve {
+        details_titled(&mut page, d, &format!("NAME.{}", d.suffix), true);
+    }
     page
 }
 
 /// A section with one summary row per parameter.
-fn summary(page: &mut String, title: &str, lead: &str, decls: &[Decl]) {
+fn summary(page: &mut String, title: &str, lead: &str, decls: &[Decl], prefix: &str) {
     let _ = writeln!(page, "\n## {title}\n\n{lead}\n");
     page.push_str("| parameter | type | default | range | changes |\n");
     page.push_str("|---|---|---|---|---|\n");
     for d in decls {
         let _ = writeln!(
             page,
-            "| [`{name}`](#{name}) | {ty} | `{default}` | {range} | {changes} |",
+            "| [`{prefix}{name}`](#{anchor}) | {ty} | `{default}` | {range} | {changes} |",
             name = d.suffix,
+            anchor = format!("{prefix}{}", d.suffix)
+                .replace('.', "")
+                .to_lowercase(),
             ty = type_name(d.ptype),
             default = show_value(&(d.default)()),
             range = cell(&range_text(d)),
@@ -107,7 +129,13 @@ fn summary(page: &mut String, title: &str, lead: &str, decls: &[Decl]) {
 
 /// One parameter's description and rules; `name` is how it is set (`pwNN.` for a channel's).
 fn details(page: &mut String, d: &Decl, name: &str) {
-    let _ = writeln!(page, "\n### {}\n", d.suffix);
+    details_titled(page, d, name, false);
+}
+
+/// [`details`], titled with the name as set (`titled`) rather than the bare suffix.
+fn details_titled(page: &mut String, d: &Decl, name: &str, titled: bool) {
+    let title = if titled { name } else { d.suffix };
+    let _ = writeln!(page, "\n### {title}\n");
     let _ = writeln!(
         page,
         "`{name}`, {ty}, default `{default}`.\n\n{description}\n",
@@ -226,12 +254,14 @@ mod tests {
             let row = (cells[1], cells[2].trim_matches('`'), cells[4]);
             assert!(rows.insert(name.clone(), row).is_none(), "{name} twice");
         }
-        let declared: Vec<Decl> = table::node_decls()
+        let declared: Vec<(Decl, &str)> = table::node_decls()
             .into_iter()
             .chain(table::channel_decls())
+            .map(|d| (d, ""))
+            .chain(table::valve_decls().into_iter().map(|d| (d, "NAME.")))
             .collect();
-        for d in &declared {
-            let Some((ty, default, changes)) = rows.remove(d.suffix) else {
+        for (d, prefix) in &declared {
+            let Some((ty, default, changes)) = rows.remove(&format!("{prefix}{}", d.suffix)) else {
                 panic!("{} is declared but not on the page", d.suffix);
             };
             assert_eq!(ty, type_name(d.ptype), "{}: type", d.suffix);
@@ -246,7 +276,7 @@ mod tests {
             let start_up = changes.starts_with("start-up only");
             assert_eq!(start_up, d.read_only.is_some(), "{}: changes", d.suffix);
             assert!(
-                PAGE.contains(&format!("\n### {}\n", d.suffix)),
+                PAGE.contains(&format!("\n### {prefix}{}\n", d.suffix)),
                 "{}: no details section",
                 d.suffix
             );

@@ -31,6 +31,8 @@ pub struct NodeSettings {
     pub command_hz_tolerance: f64,
     /// `split`: the split-range pairs, as written (parsed against the channels at start-up).
     pub split: String,
+    /// `valve`: the three-point valves, as written (parsed against the channels at start-up).
+    pub valve: String,
     /// `heartbeat_line`: the heartbeat line's offset, if there is one.
     pub heartbeat_line: Option<u32>,
     /// `heartbeat_chip`: the heartbeat line's chip.

@@ -53,6 +53,12 @@ pub fn start_up(values: &[StartValue]) -> Result<StartUp, ParamError> {
         }
     }
     let mut store = ParamStore::new(channels);
+    // The valves' parameters exist once the `valve` parameter names them (its last value).
+    if let Some(v) = values.iter().rev().find(|v| v.name == "valve") {
+        if let ParameterValue::String(text) = &v.value {
+            store.declare_valves(&crate::ros::config::valve::names(text));
+        }
+    }
     let mut ignored = Vec::new();
     let mut warnings = Vec::new();
     let items: Vec<(String, ParameterValue)> = values

@@ -73,6 +73,28 @@ impl ParamStore {
         }
     }
 
+    /// Declares the parameters of each valve in `names` (`NAME.travel_open_ms`, ...), each at
+    /// its default. Names are checked by the `valve` parameter's parser; one that would
+    /// collide with a declared parameter is skipped.
+    pub fn declare_valves(&mut self, names: &[String]) {
+        for valve in names {
+            for d in table::valve_decls() {
+                let name = format!("{valve}.{}", d.suffix);
+                if self.decls.contains_key(&name) {
+                    continue;
+                }
+                let desc = make(name.clone(), &d);
+                self.values.insert(name.clone(), desc.default.clone());
+                self.decls.insert(name, desc);
+            }
+        }
+    }
+
+    /// Valve `valve`'s settings from its parameters (see [`ParamStore::declare_valves`]).
+    pub fn valve_params(&self, valve: &str) -> crate::core::ValveParams {
+        table::valve_params(|suffix| self.values.get(&format!("{valve}.{suffix}")).cloned())
+    }
+
     /// Number of channels.
     pub fn channels(&self) -> usize {
         self.channels

@@ -23,6 +23,11 @@ use crate::core::heater::{
     Control, HeaterParams, MAX_DELTA_C, MAX_GAIN, MAX_RUNAWAY_ERROR, MAX_TEMP_C, MAX_TIME_S,
     MIN_TEMP_C,
 };
+use crate::core::valve::{
+    OnTimeout, ValveParams, MAX_COMMAND_TIMEOUT_MS, MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT,
+    MAX_EXERCISE_EVERY_H, MAX_RECALIBRATE_AFTER_S, MAX_REVERSAL_PAUSE_MS, MAX_TRAVEL_MS,
+    MIN_TRAVEL_MS,
+};
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::ros::interface::msg;
 use std::str::FromStr;
@@ -154,6 +159,153 @@ fn heater_defaults() -> HeaterParams {
     HeaterParams::default()
 }
 
+fn valve_defaults() -> ValveParams {
+    ValveParams::default()
+}
+
+/// Why a valve parameter cannot change while running.
+const VALVE_START_UP: &str = "a valve's settings are read at start-up only; restart the node";
+
+/// The parameters of each valve `NAME` (declared as `NAME.<suffix>` for every valve of the
+/// `valve` parameter), read at start-up. The vendor practice behind each is in docs/valve.md.
+pub(super) fn valve_decls() -> Vec<Decl> {
+    use ParamType::*;
+    let travel = Range::Integer(MIN_TRAVEL_MS as i64, MAX_TRAVEL_MS as i64);
+    vec![
+        Decl {
+            description: "Travel time from fully closed to fully open, ms (Siemens PID_3Step \
+                          TransitTime, OSCAT ACTUATOR_3P T_RUN).",
+            range: travel,
+            ..Decl::new("travel_open_ms", Integer, || {
+                V::Integer(valve_defaults().travel_open_ms as i64)
+            })
+        },
+        Decl {
+            description: "Travel time from fully open to fully closed, ms (Beckhoff \
+                          FB_BA_Anlg3Pnt keeps the two apart).",
+            range: travel,
+            ..Decl::new("travel_close_ms", Integer, || {
+                V::Integer(valve_defaults().travel_close_ms as i64)
+            })
+        },
+        Decl {
+            description: "Dead band, percent of the stroke: no move for a smaller difference \
+                          between target and estimate (Beckhoff fHys).",
+            range: Range::Double(0.0, MAX_DEADBAND_PCT),
+            ..Decl::new("deadband_pct", Double, || {
+                V::Double(valve_defaults().deadband_pct)
+            })
+        },
+        Decl {
+            description: "Minimum pulse, ms: a shorter move is accumulated until it reaches \
+                          this, a started move lasts at least this (Schneider SERVO).",
+            constraints: "at most the shorter travel time",
+            range: Range::Integer(0, MAX_TRAVEL_MS as i64),
+            checked: Checked::Core,
+            ..Decl::new("min_pulse_ms", Integer, || {
+                V::Integer(valve_defaults().min_pulse_ms as i64)
+            })
+        },
+        Decl {
+            description: "Reversal pause, ms: both lines are low at least this long, counted \
+                          from the real fall, before a line rises.",
+            range: Range::Integer(0, MAX_REVERSAL_PAUSE_MS as i64),
+            ..Decl::new("reversal_pause_ms", Integer, || {
+                V::Integer(valve_defaults().reversal_pause_ms as i64)
+            })
+        },
+        Decl {
+            description: "Overrun at an end, percent of the travel time: a move to 0 % or \
+                          100 % drives on past the estimated end by this, then stops (OSCAT \
+                          ACTUATOR_3P).",
+            range: Range::Double(0.0, MAX_END_OVERRUN_PCT),
+            ..Decl::new("end_overrun_pct", Double, || {
+                V::Double(valve_defaults().end_overrun_pct)
+            })
+        },
+        Decl {
+            description: "Reference at start: drive closed for 150 % of the travel time and \
+                          take 0 % (Siemens PID_3Step's virtual actuator limit).",
+            ..Decl::new("reference_at_start", Bool, || {
+                V::Boolean(valve_defaults().reference_at_start)
+            })
+        },
+        Decl {
+            description: "Recalibration: after this much accumulated run time since the last \
+                          reference, the next command within 5 % of an end goes to the end \
+                          with an overrun covering the uncertainty, s (OSCAT T_CAL). 0: never.",
+            range: Range::Integer(0, MAX_RECALIBRATE_AFTER_S as i64),
+            ..Decl::new("recalibrate_after_s", Integer, || {
+                V::Integer(valve_defaults().recalibrate_after_s as i64)
+            })
+        },
+        Decl {
+            description: "Exercise stroke: a valve idle this long closes fully, opens fully and \
+                          returns, one valve at a time, h (OSCAT T_DIAG, ACTUATOR_2P \
+                          self-activation). 0: never.",
+            range: Range::Integer(0, MAX_EXERCISE_EVERY_H as i64),
+            ..Decl::new("exercise_every_h", Integer, || {
+                V::Integer(valve_defaults().exercise_every_h as i64)
+            })
+        },
+        Decl {
+            description: "Diagnostics warn above this uncertainty of the position estimate, \
+                          percent (11.1 % of the run time since the last reference over the \
+                          shorter travel time, for travel times up to 10 % off; 100 while \
+                          unreferenced).",
+            range: Range::Double(0.0, 100.0),
+            ..Decl::new("max_uncertainty_pct", Double, || {
+                V::Double(valve_defaults().max_uncertainty_pct)
+            })
+        },
+        Decl {
+            description: "Command timeout, ms: no position command for this long triggers \
+                          on_timeout. 0: off.",
+            range: Range::Integer(0, MAX_COMMAND_TIMEOUT_MS as i64),
+            ..Decl::new("command_timeout_ms", Integer, || {
+                V::Integer(valve_defaults().command_timeout_ms as i64)
+            })
+        },
+        Decl {
+            description: "What a command timeout does: stop (where it is), close or open.",
+            choices: Some(|s| spelled::<OnTimeout>(s, false)),
+            ..Decl::new("on_timeout", String, || {
+                V::String(valve_defaults().on_timeout.as_str().to_string())
+            })
+        },
+    ]
+    .into_iter()
+    .map(|decl| Decl {
+        read_only: Some(VALVE_START_UP),
+        ..decl
+    })
+    .collect()
+}
+
+/// A valve's settings from its parameters' values (`get` answers `suffix` with the value in
+/// force); an unknown spelling falls back to the default (the store refused it already).
+pub(super) fn valve_params(get: impl Fn(&str) -> Option<V>) -> ValveParams {
+    let d = valve_defaults();
+    let int_or = |k: &str, or: u64| get(k).map_or(or, |v| ms(&v));
+    let dbl_or = |k: &str, or: f64| get(k).map_or(or, |v| double(&v));
+    ValveParams {
+        travel_open_ms: int_or("travel_open_ms", d.travel_open_ms),
+        travel_close_ms: int_or("travel_close_ms", d.travel_close_ms),
+        deadband_pct: dbl_or("deadband_pct", d.deadband_pct),
+        min_pulse_ms: int_or("min_pulse_ms", d.min_pulse_ms),
+        reversal_pause_ms: int_or("reversal_pause_ms", d.reversal_pause_ms),
+        end_overrun_pct: dbl_or("end_overrun_pct", d.end_overrun_pct),
+        reference_at_start: get("reference_at_start").map_or(d.reference_at_start, |v| boolean(&v)),
+        recalibrate_after_s: int_or("recalibrate_after_s", d.recalibrate_after_s),
+        exercise_every_h: int_or("exercise_every_h", d.exercise_every_h),
+        max_uncertainty_pct: dbl_or("max_uncertainty_pct", d.max_uncertainty_pct),
+        command_timeout_ms: int_or("command_timeout_ms", d.command_timeout_ms),
+        on_timeout: get("on_timeout")
+            .and_then(|v| text(&v).parse().ok())
+            .unwrap_or(d.on_timeout),
+    }
+}
+
 /// The node-level parameters.
 pub(super) fn node_decls() -> Vec<Decl> {
     use ParamType::*;
@@ -280,6 +432,17 @@ pub(super) fn node_decls() -> Vec<Decl> {
             read_only: Some(START_UP),
             node: Some(|n, v| n.split = text(v).to_string()),
             ..Decl::new("split", String, || V::String(std::string::String::new()))
+        },
+        Decl {
+            description: "Three-point valves, comma-separated NAME:OPEN:CLOSE: channel OPEN \
+                          drives the actuator open, CLOSE drives it closed, never both; \
+                          ~/valve/NAME/position (std_msgs/Float64, 0..100 %, 0 = closed) sets \
+                          the target; the valve's settings are the parameters NAME.* below. \
+                          Empty: none.",
+            constraints: "each channel in one valve or split pair at most; NAME not a channel's",
+            read_only: Some(START_UP),
+            node: Some(|n, v| n.valve = text(v).to_string()),
+            ..Decl::new("valve", String, || V::String(std::string::String::new()))
         },
         Decl {
             description: "Heartbeat line: offset on heartbeat_chip (with output sim, a simulated \

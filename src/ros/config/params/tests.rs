@@ -541,3 +541,34 @@ fn twincat_ba_limits_a_minimum_of_any_size_to_the_period_002() {
     assert_eq!(a.changes.len(), 2);
     assert!(live(&s, "pw01.min_on_ms", V::Integer(-1)).is_err());
 }
+
+#[test]
+fn a_valves_parameters_exist_once_the_valve_parameter_names_it() {
+    let su = start_up(&[
+        sv("valve", V::String("mix:pw01:pw02".into())),
+        sv("mix.travel_open_ms", V::Integer(45_000)),
+        sv("mix.on_timeout", V::String("close".into())),
+        sv("other.travel_open_ms", V::Integer(45_000)),
+    ])
+    .unwrap();
+    let p = su.store.valve_params("mix");
+    assert_eq!(p.travel_open_ms, 45_000);
+    assert_eq!(p.on_timeout, crate::core::valve::OnTimeout::Close);
+    assert_eq!(p.travel_close_ms, 60_000, "the default");
+    assert!(su.store.descriptor("mix.min_pulse_ms").unwrap().read_only);
+    assert_eq!(su.ignored, ["other.travel_open_ms (-p)"], "no such valve");
+    // Out of its range, or not a spelling: refused at start-up.
+    for bad in [
+        sv("mix.travel_open_ms", V::Integer(10)),
+        sv("mix.on_timeout", V::String("hold".into())),
+        sv("mix.deadband_pct", V::Double(f64::NAN)),
+    ] {
+        assert!(
+            start_up(&[sv("valve", V::String("mix:pw01:pw02".into())), bad.clone()]).is_err(),
+            "{bad:?}"
+        );
+    }
+    // Without a valve, no valve parameters.
+    let su = start_up(&[sv("mix.travel_open_ms", V::Integer(45_000))]).unwrap();
+    assert!(su.store.descriptor("mix.travel_open_ms").is_none());
+}

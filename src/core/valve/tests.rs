@@ -1,0 +1,695 @@
+//! The valve in virtual time: each rule against the vendor practice it follows, then properties
+//! over random commands, latencies and settings, checked on the edges as really written.
+
+use super::*;
+use crate::core::NS_PER_MS;
+use proptest::prelude::*;
+
+const MS: Nanos = NS_PER_MS;
+const S: Nanos = 1_000 * MS;
+
+/// An edge as it reached the line: direction, level, the real write time.
+type Real = (Dir, Level, Nanos);
+
+/// A valve driven like the output thread drives it: every edge is written `latency` after the
+/// later of its scheduled time and the wake-up, and reported back with that time.
+struct Rig {
+    v: Valve,
+    now: Nanos,
+    latency: Nanos,
+    trace: Vec<Real>,
+    /// Set when a safety off or a switch wrote the last fall (no minimum pulse owed).
+    forced: Vec<bool>,
+}
+
+impl Rig {
+    fn new(p: ValveParams) -> Rig {
+        Rig::with(p, 0)
+    }
+
+    fn with(p: ValveParams, latency: Nanos) -> Rig {
+        let cfg = p.validate().expect("valid test parameters");
+        Rig {
+            v: Valve::new(cfg, 0),
+            now: 0,
+            latency,
+            trace: Vec::new(),
+            forced: Vec::new(),
+        }
+    }
+
+    /// Runs `f` at the current time and writes what it emitted.
+    fn act(&mut self, forced: bool, f: impl FnOnce(&mut Valve, Nanos, &mut dyn FnMut(ValveEvent))) {
+        let mut out = Vec::new();
+        let now = self.now;
+        f(&mut self.v, now, &mut |e| out.push(e));
+        for ValveEvent::Edge { dir, level, at } in out {
+            let actual = at.max(now) + self.latency;
+            self.v.edge_written(dir, level, actual);
+            self.trace.push((dir, level, actual));
+            self.forced.push(forced);
+        }
+    }
+
+    fn command(&mut self, pct: f64) {
+        self.act(false, |v, now, e| v.command(now, pct, e).expect("finite"));
+    }
+
+    /// Polls at every deadline up to `t`, then moves the clock to `t`.
+    fn run_to(&mut self, t: Nanos) {
+        let mut calls = 0;
+        while let Some(at) = self.v.poll_at().filter(|&at| at <= t) {
+            calls += 1;
+            assert!(calls < 100_000, "no progress at {at}: {:?}", self.v);
+            self.now = self.now.max(at);
+            self.act(false, |v, now, e| v.poll(now, e));
+        }
+        self.now = self.now.max(t);
+    }
+
+    fn run_for(&mut self, d: Nanos) {
+        self.run_to(self.now + d);
+    }
+
+    /// Runs until nothing is scheduled except the command timeout (or `limit` passes).
+    fn settle(&mut self) {
+        let limit = self.now + 10_000 * S;
+        while self.v.mv.is_some() || !self.v.legs.is_empty() {
+            let Some(at) = self.v.poll_at() else { break };
+            assert!(at <= limit, "settles");
+            self.run_to(at);
+        }
+    }
+
+    /// The drive pulses as written: (direction, real rise, real fall).
+    fn pulses(&self) -> Vec<(Dir, Nanos, Nanos)> {
+        let mut rose: [Option<Nanos>; 2] = [None; 2];
+        let mut out = Vec::new();
+        for &(d, l, t) in &self.trace {
+            if l.is_high() {
+                rose[d.index()] = Some(t);
+            } else if let Some(r) = rose[d.index()].take() {
+                out.push((d, r, t));
+            }
+        }
+        out
+    }
+}
+
+fn params() -> ValveParams {
+    ValveParams {
+        travel_open_ms: 100_000,
+        travel_close_ms: 80_000,
+        deadband_pct: 0.5,
+        min_pulse_ms: 500,
+        reversal_pause_ms: 1_000,
+        end_overrun_pct: 10.0,
+        reference_at_start: false,
+        recalibrate_after_s: 0,
+        exercise_every_h: 0,
+        max_uncertainty_pct: 10.0,
+        command_timeout_ms: 0,
+        on_timeout: OnTimeout::Stop,
+    }
+}
+
+/// The reference at start and a full overrun, so the valve is referenced at 0 %.
+fn referenced(p: ValveParams) -> Rig {
+    let mut r = Rig::new(ValveParams {
+        reference_at_start: true,
+        ..p
+    });
+    r.settle();
+    assert!(r.v.status(r.now).referenced);
+    // Past the pause after the reference.
+    r.run_for(10 * S);
+    r.trace.clear();
+    r.forced.clear();
+    r
+}
+
+fn close(a: f64, b: f64, tol: f64) -> bool {
+    (a - b).abs() <= tol
+}
+
+/// Siemens `PID_3Step`: the reference drives closed for 150 % of the travel time (the virtual
+/// actuator limit), then the position is 0 % and the valve is referenced.
+#[test]
+fn reference_at_start_closes_for_150_percent_of_the_travel_time() {
+    let mut r = Rig::new(ValveParams {
+        reference_at_start: true,
+        ..params()
+    });
+    r.run_to(0);
+    assert_eq!(r.v.status(0).activity, Activity::Referencing);
+    assert_eq!(r.v.status(0).uncertainty_pct, 100.0, "unreferenced");
+    r.command(40.0);
+    r.settle();
+    let p = r.pulses();
+    assert_eq!(p[0], (Dir::Close, 0, 120 * S), "80 s × 1.5 closing");
+    // Then to the target: 40 % of 100 s opening, after the pause.
+    assert_eq!(p[1].0, Dir::Open);
+    assert_eq!(p[1].1, 121 * S);
+    assert_eq!(p[1].2 - p[1].1, 40 * S);
+    let st = r.v.status(r.now);
+    assert!(st.referenced);
+    assert!(close(st.position_pct, 40.0, 1e-9));
+    assert_eq!(st.run_since_reference, 40 * S);
+    // 40 s of run over the shorter travel, 80 s, at 1/0.9 - 1.
+    assert!(close(
+        st.uncertainty_pct,
+        (1.0 / 0.9 - 1.0) * 40.0 / 80.0 * 100.0,
+        1e-9
+    ));
+}
+
+/// Beckhoff `FB_BA_Anlg3Pnt`, OSCAT `ACTUATOR_3P`: a command to an end drives on past the
+/// estimated end by the overrun, then stops; a repeated command there drives nothing.
+#[test]
+fn an_end_command_overruns_by_end_overrun_pct_then_stops() {
+    let mut r = referenced(params());
+    r.command(50.0);
+    r.settle();
+    r.command(0.0);
+    r.settle();
+    let p = r.pulses();
+    assert_eq!(p.len(), 2);
+    // 50 % of 80 s plus 10 % of 80 s.
+    assert_eq!(p[1].0, Dir::Close);
+    assert_eq!(p[1].2 - p[1].1, 48 * S);
+    assert_eq!(r.v.status(r.now).position_pct, 0.0);
+    r.command(0.0);
+    r.run_for(1_000 * S);
+    assert_eq!(r.pulses().len(), 2, "at the end: never driven again");
+    r.command(100.0);
+    r.settle();
+    let p = r.pulses();
+    assert_eq!(p[2].2 - p[2].1, 110 * S, "100 % + 10 % of 100 s opening");
+}
+
+/// Schneider `SERVO`: moves shorter than the minimum pulse are accumulated, not lost.
+#[test]
+fn short_moves_accumulate_until_the_minimum_pulse() {
+    let mut r = referenced(ValveParams {
+        deadband_pct: 0.0,
+        min_pulse_ms: 1_000,
+        ..params()
+    });
+    r.command(20.0);
+    r.settle();
+    let n = r.pulses().len();
+    // 0.3 % of 100 s is 300 ms: below the 1 s minimum, three times.
+    for k in 1..=3 {
+        r.command(20.0 + 0.3 * f64::from(k));
+        r.run_for(10 * S);
+        assert_eq!(r.pulses().len(), n, "no move below the minimum ({k})");
+    }
+    r.command(21.2);
+    r.settle();
+    let p = r.pulses();
+    assert_eq!(p.len(), n + 1);
+    assert_eq!(
+        p[n].2 - p[n].1,
+        1_200 * MS,
+        "the accumulated 1.2 % in one move"
+    );
+    assert!(close(r.v.estimate(r.now), 21.2, 1e-9));
+}
+
+/// The dead band (Beckhoff's hysteresis): no move for a smaller difference.
+#[test]
+fn no_move_within_the_dead_band() {
+    let mut r = referenced(ValveParams {
+        deadband_pct: 2.0,
+        min_pulse_ms: 0,
+        ..params()
+    });
+    r.command(30.0);
+    r.settle();
+    let n = r.pulses().len();
+    r.command(31.9);
+    r.run_for(100 * S);
+    assert_eq!(r.pulses().len(), n);
+    r.command(32.0);
+    r.settle();
+    assert_eq!(r.pulses().len(), n + 1);
+}
+
+/// A started move lasts at least the minimum pulse; the reversal waits for the pause after the
+/// real fall.
+#[test]
+fn a_reversal_runs_the_minimum_pulse_then_pauses() {
+    let mut r = referenced(ValveParams {
+        min_pulse_ms: 2_000,
+        reversal_pause_ms: 1_500,
+        ..params()
+    });
+    r.command(50.0);
+    r.settle();
+    r.run_for(10 * S);
+    r.command(60.0);
+    let rose = r.now;
+    r.run_for(300 * MS);
+    r.command(45.0);
+    r.settle();
+    let p = r.pulses();
+    let n = p.len();
+    assert_eq!(p[n - 2], (Dir::Open, rose, rose + 2 * S), "minimum pulse");
+    assert_eq!(p[n - 1].0, Dir::Close);
+    assert_eq!(
+        p[n - 1].1,
+        rose + 2 * S + 1_500 * MS,
+        "pause after the fall"
+    );
+    assert!(close(r.v.estimate(r.now), 45.0, 1e-9));
+}
+
+/// The estimate counts from the edges as really written: a rise written late moves the end of
+/// the move with it, a fall written late adds to the position.
+#[test]
+fn the_estimate_follows_the_real_write_times() {
+    let mut r = referenced(params());
+    r.latency = 7 * MS;
+    r.command(50.0);
+    r.settle();
+    let p = r.pulses();
+    assert_eq!(p[0].2 - p[0].1, 50 * S + 7 * MS, "fall written 7 ms late");
+    let want = (50.0 * 1e9 + 7e6) / 100e9 * 100.0;
+    assert!(close(r.v.estimate(r.now), want, 1e-9));
+}
+
+/// OSCAT `ACTUATOR_3P` (`T_CAL`): after the accumulated run time, the next command near an end
+/// goes to the end first with an overrun that covers the uncertainty, which resets it.
+#[test]
+fn recalibration_goes_to_the_end_first_and_resets_the_run_time() {
+    let mut r = referenced(ValveParams {
+        recalibrate_after_s: 100,
+        ..params()
+    });
+    for t in [60.0, 20.0, 70.0, 30.0] {
+        r.command(t);
+        r.settle();
+    }
+    let st = r.v.status(r.now);
+    assert!(st.recalibration_due, "{st:?}");
+    let u = st.uncertainty_pct;
+    assert!(u > 10.0, "{u}");
+    r.command(3.0);
+    r.run_for(10 * MS);
+    assert_eq!(r.v.status(r.now).activity, Activity::Recalibrating);
+    r.settle();
+    let p = r.pulses();
+    let n = p.len();
+    let to_end = p[n - 2];
+    assert_eq!(to_end.0, Dir::Close);
+    let want = (30.0 + 10.0 + u) / 100.0 * 80e9;
+    assert!(close((to_end.2 - to_end.1) as f64, want, 2.0), "{to_end:?}");
+    assert_eq!(p[n - 1].0, Dir::Open);
+    assert_eq!(p[n - 1].2 - p[n - 1].1, 3 * S);
+    let st = r.v.status(r.now);
+    assert!(!st.recalibration_due);
+    assert_eq!(st.run_since_reference, 3 * S);
+    // Far from an end, a due recalibration waits.
+    let mut r = referenced(ValveParams {
+        recalibrate_after_s: 10,
+        ..params()
+    });
+    r.command(50.0);
+    r.settle();
+    r.command(40.0);
+    r.settle();
+    assert_eq!(r.pulses().last().unwrap().0, Dir::Close);
+    assert!(r.v.status(r.now).recalibration_due);
+}
+
+/// OSCAT `ACTUATOR_2P`'s self-activation and `T_DIAG`: an idle valve makes one full stroke and
+/// returns; `ARE`/`ARX`: never two valves at once.
+#[test]
+fn exercise_strokes_one_valve_at_a_time_and_returns() {
+    let p = ValveParams {
+        exercise_every_h: 1,
+        ..params()
+    };
+    let cfg = p.validate().unwrap();
+    let mut valves = vec![Valve::new(cfg, 0), Valve::new(cfg, 0)];
+    let mut edges: Vec<(usize, Dir, Level, Nanos)> = Vec::new();
+    for (i, v) in valves.iter_mut().enumerate() {
+        v.command(0, 30.0, &mut |ValveEvent::Edge { dir, level, at }| {
+            edges.push((i, dir, level, at))
+        })
+        .unwrap();
+    }
+    let mut now = 0;
+    let mut written = 0;
+    let end = 2 * 3_600 * S;
+    while now < end {
+        let next = valves
+            .iter()
+            .filter_map(Valve::poll_at)
+            .chain(exercise_next(&valves))
+            .min()
+            .unwrap_or(end)
+            .min(end);
+        now = next;
+        for (i, v) in valves.iter_mut().enumerate() {
+            if v.poll_at().is_some_and(|t| t <= now) {
+                v.poll(now, &mut |ValveEvent::Edge { dir, level, at }| {
+                    edges.push((i, dir, level, at))
+                });
+            }
+        }
+        exercise_turn(
+            &mut valves,
+            now,
+            &mut |i, ValveEvent::Edge { dir, level, at }| edges.push((i, dir, level, at)),
+        );
+        // The writes, reported as on time.
+        for &(i, dir, level, at) in &edges[written..] {
+            valves[i].edge_written(dir, level, at);
+        }
+        written = edges.len();
+        let running = valves.iter().filter(|v| v.exercising()).count();
+        assert!(running <= 1, "two valves exercising at {now}");
+    }
+    for (i, valve) in valves.iter().enumerate() {
+        let mine: Vec<_> = edges.iter().filter(|e| e.0 == i).collect();
+        // The first move to 30 %, then close to the end, open to the end, back to 30 %.
+        let rises: Vec<Dir> = mine.iter().filter(|e| e.2.is_high()).map(|e| e.1).collect();
+        assert!(
+            rises.starts_with(&[Dir::Open, Dir::Close, Dir::Open, Dir::Close]),
+            "valve {i}: {rises:?}"
+        );
+        assert!(close(valve.estimate(now), 30.0, 1e-6));
+    }
+    // The two strokes did not overlap in time.
+    let span = |i: usize| {
+        let e: Vec<_> = edges.iter().filter(|e| e.0 == i).skip(2).collect();
+        (e.first().unwrap().3, e.last().unwrap().3)
+    };
+    let (a, b) = (span(0), span(1));
+    assert!(a.1 <= b.0 || b.1 <= a.0, "{a:?} {b:?} {edges:?}");
+}
+
+/// Beckhoff's limit switches: a switch stops the drive in its direction at once and sets the
+/// position; no drive towards it starts while it is active.
+#[test]
+fn an_end_switch_stops_the_drive_and_sets_the_position() {
+    let mut r = referenced(params());
+    r.command(100.0);
+    r.run_for(70 * S);
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Open, true, e));
+    let p = r.pulses();
+    assert_eq!(p.last().unwrap().2, r.now, "stopped at once");
+    let st = r.v.status(r.now);
+    assert_eq!(st.position_pct, 100.0);
+    assert!(st.referenced);
+    assert_eq!(st.run_since_reference, 0);
+    assert_eq!(st.motion, Motion::Stopped);
+    r.command(100.0);
+    r.run_for(100 * S);
+    assert_eq!(r.pulses().len(), p.len(), "no drive into an active switch");
+    r.command(50.0);
+    r.settle();
+    assert_eq!(r.pulses().last().unwrap().0, Dir::Close);
+    // The close switch cuts a move that the estimate thinks has further to go.
+    r.command(0.0);
+    r.run_for(10 * S);
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Close, true, e));
+    assert_eq!(r.v.status(r.now).position_pct, 0.0);
+    assert_eq!(r.v.status(r.now).motion, Motion::Stopped);
+}
+
+/// The e-stop drops both lines at once, whatever the minimum pulse; after the reset nothing
+/// moves until a fresh command.
+#[test]
+fn the_estop_drops_the_lines_and_nothing_moves_after_the_reset() {
+    let mut r = referenced(params());
+    r.command(80.0);
+    r.run_for(100 * MS);
+    r.act(true, |v, now, e| v.set_estop(now, true, e));
+    assert_eq!(r.trace.last().unwrap().1, Level::Low);
+    assert_eq!(r.v.status(r.now).motion, Motion::Stopped);
+    r.command(10.0);
+    r.run_for(10 * S);
+    r.act(false, |v, now, e| v.set_estop(now, false, e));
+    r.run_for(100 * S);
+    assert_eq!(r.pulses().len(), 1, "no move after the reset");
+    r.command(10.0);
+    r.settle();
+    assert_eq!(r.pulses().len(), 2);
+    assert!(close(r.v.estimate(r.now), 10.0, 1e-9));
+}
+
+/// Inactive lifecycle states hold both lines low; active again, the valve goes on to its target.
+#[test]
+fn held_lines_stay_low_and_the_move_resumes() {
+    let mut r = referenced(params());
+    r.command(60.0);
+    r.run_for(10 * S);
+    r.act(true, |v, now, e| v.set_live(now, false, e));
+    assert_eq!(r.v.status(r.now).motion, Motion::Stopped);
+    r.run_for(100 * S);
+    assert_eq!(r.pulses().len(), 1);
+    r.act(false, |v, now, e| v.set_live(now, true, e));
+    r.settle();
+    assert!(close(r.v.estimate(r.now), 60.0, 1e-9));
+}
+
+/// The command timeout: `close` closes to the end, `stop` stops where it is.
+#[test]
+fn the_command_timeout_acts() {
+    let mut r = referenced(ValveParams {
+        command_timeout_ms: 20_000,
+        on_timeout: OnTimeout::Close,
+        ..params()
+    });
+    r.command(50.0);
+    r.run_for(19 * S);
+    assert!(!r.v.status(r.now).timed_out);
+    r.run_for(2 * S);
+    r.settle();
+    let st = r.v.status(r.now);
+    assert!(st.timed_out);
+    assert_eq!(st.position_pct, 0.0);
+    assert_eq!(st.target_pct, 0.0);
+    let mut r = referenced(ValveParams {
+        command_timeout_ms: 20_000,
+        on_timeout: OnTimeout::Stop,
+        ..params()
+    });
+    r.command(90.0);
+    r.run_for(30 * S);
+    r.settle();
+    let st = r.v.status(r.now);
+    assert!(st.timed_out);
+    assert!(close(st.position_pct, st.target_pct, 1e-9));
+    assert!(st.position_pct < 35.0, "{st:?}");
+}
+
+/// The guard holds where the levels are written: the board refuses a rise while the paired line
+/// is high, whatever the valve's logic asks.
+#[test]
+fn the_board_pairs_the_valve_lines() {
+    let board = LineBoard::new(3);
+    let mut v = Valve::new(params().validate().unwrap(), 0);
+    v.seat_on(&board, 0, 1);
+    // Another writer holds the closing line high on the board.
+    board.set(1, Level::High);
+    let mut edges = Vec::new();
+    v.command(0, 50.0, &mut |e| edges.push(e)).unwrap();
+    assert!(edges.is_empty(), "no rise past the board");
+    assert!(v.rise_waiting());
+    board.set(1, Level::Low);
+    v.poll(5 * S, &mut |e| edges.push(e));
+    assert_eq!(
+        edges,
+        vec![ValveEvent::Edge {
+            dir: Dir::Open,
+            level: Level::High,
+            at: 5 * S
+        }]
+    );
+    assert!(board.is_high(0));
+}
+
+#[test]
+fn out_of_range_parameters_are_refused_with_their_name() {
+    let bad = [
+        ValveParams {
+            travel_open_ms: 10,
+            ..params()
+        },
+        ValveParams {
+            deadband_pct: f64::NAN,
+            ..params()
+        },
+        ValveParams {
+            min_pulse_ms: 90_000,
+            ..params()
+        },
+        ValveParams {
+            end_overrun_pct: 60.0,
+            ..params()
+        },
+    ];
+    let names: Vec<_> = bad
+        .iter()
+        .map(|p| match p.validate() {
+            Err(ValveConfigError::OutOfRange { name, .. }) => name,
+            Ok(_) => "accepted",
+        })
+        .collect();
+    assert_eq!(
+        names,
+        [
+            "travel_open_ms",
+            "deadband_pct",
+            "min_pulse_ms",
+            "end_overrun_pct"
+        ]
+    );
+    assert!(matches!(
+        Valve::new(params().validate().unwrap(), 0).command(0, f64::NAN, &mut |_| {}),
+        Err(crate::core::CommandError::NotANumber)
+    ));
+}
+
+fn arb_params() -> impl Strategy<Value = ValveParams> {
+    (
+        (5_000u64..120_000, 5_000u64..120_000),
+        (0.0f64..3.0, 0u64..3_000, 0u64..3_000),
+        (
+            0.0f64..20.0,
+            any::<bool>(),
+            prop_oneof![Just(0u64), 20u64..400],
+        ),
+    )
+        .prop_map(
+            |((open, close), (db, min_pulse, pause), (overrun, reference, recal))| ValveParams {
+                travel_open_ms: open,
+                travel_close_ms: close,
+                deadband_pct: db,
+                min_pulse_ms: min_pulse,
+                reversal_pause_ms: pause,
+                end_overrun_pct: overrun,
+                reference_at_start: reference,
+                recalibrate_after_s: recal,
+                exercise_every_h: 0,
+                max_uncertainty_pct: 10.0,
+                command_timeout_ms: 0,
+                on_timeout: OnTimeout::Stop,
+            },
+        )
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Op {
+    Command(f64),
+    EStop(bool),
+    Live(bool),
+}
+
+fn arb_ops() -> impl Strategy<Value = Vec<(Nanos, Op)>> {
+    let op = prop_oneof![
+        8 => prop_oneof![Just(0.0), Just(100.0), 0.0f64..100.0].prop_map(Op::Command),
+        1 => any::<bool>().prop_map(Op::EStop),
+        1 => any::<bool>().prop_map(Op::Live),
+    ];
+    prop::collection::vec(((0u64..60_000).prop_map(|ms| ms * MS), op), 1..40)
+}
+
+fn play(p: ValveParams, latency: Nanos, ops: &[(Nanos, Op)]) -> Rig {
+    let mut r = Rig::with(p, latency);
+    for &(dt, op) in ops {
+        r.run_for(dt);
+        match op {
+            Op::Command(pct) => r.command(pct),
+            Op::EStop(on) => r.act(on, |v, now, e| v.set_estop(now, on, e)),
+            Op::Live(on) => r.act(!on, |v, now, e| v.set_live(now, on, e)),
+        }
+    }
+    r.run_for(400 * S);
+    r
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(200))]
+
+    /// On the lines as written: never both high; a rise only after both were low for the
+    /// reversal pause (at least [`MIN_BREAK`]); every drive that no safety off cut lasts at
+    /// least the minimum pulse; the estimate is the integral of the real drive times over the
+    /// travel times, clamped to the stroke, as the pulses came.
+    #[test]
+    fn never_both_pause_held_minimum_held_estimate_is_the_integral(
+        p in arb_params(), latency in 0u64..5_000_000, ops in arb_ops(),
+    ) {
+        let r = play(p, latency, &ops);
+        let pause = (p.reversal_pause_ms * MS).max(MIN_BREAK);
+        let mut high = [false; 2];
+        let mut rose = [0; 2];
+        let mut fell: Option<Nanos> = None;
+        let mut pos = 0.0f64;
+        for (k, &(d, l, t)) in r.trace.iter().enumerate() {
+            let i = d.index();
+            if l.is_high() {
+                prop_assert!(!high[1 - i], "both lines high at {t}");
+                if let Some(f) = fell {
+                    prop_assert!(t >= f + pause, "rise {t} within the pause after {f}");
+                }
+                high[i] = true;
+                rose[i] = t;
+            } else {
+                prop_assert!(high[i], "a fall of a low line");
+                if !r.forced[k] {
+                    prop_assert!(t - rose[i] >= p.min_pulse_ms * MS, "pulse below the minimum");
+                }
+                high[i] = false;
+                fell = Some(t);
+                let travel = [p.travel_open_ms, p.travel_close_ms][i] as f64 * 1e6;
+                pos = (pos + d.sign() * (t - rose[i]) as f64 / travel * 100.0).clamp(0.0, 100.0);
+            }
+        }
+        prop_assert!(!high[0] || !high[1]);
+        let est = r.v.estimate(r.now);
+        prop_assert!((est - pos).abs() < 1e-6, "estimate {est} vs integral {pos}");
+    }
+
+    /// Schneider `SERVO`: small commands accumulate; once settled, the estimate is within one
+    /// minimum pulse (or the dead band) of the target, and so the displacement delivered equals
+    /// the displacement commanded within one minimum pulse.
+    #[test]
+    fn accumulated_short_moves_deliver_the_commanded_displacement(
+        p in arb_params(),
+        min_pulse in 50u64..3_000,
+        latency in 0u64..5_000_000,
+        steps in prop::collection::vec((-1.0f64..1.0, 0u64..20_000), 1..60),
+    ) {
+        let p = ValveParams {
+            deadband_pct: 0.0,
+            min_pulse_ms: min_pulse,
+            recalibrate_after_s: 0,
+            reference_at_start: true,
+            ..p
+        };
+        let mut r = Rig::with(p, latency);
+        r.command(50.0);
+        r.settle();
+        let start = r.v.estimate(r.now);
+        let mut target = 50.0;
+        for (dx, dt) in steps {
+            target = f64::clamp(target + dx, 10.0, 90.0);
+            r.command(target);
+            r.run_for(dt * MS);
+        }
+        r.settle();
+        // One minimum pulse of the faster direction, the larger displacement.
+        let travel = p.travel_open_ms.min(p.travel_close_ms) as f64;
+        let one_pulse = min_pulse as f64 / travel * 100.0;
+        let delivered = r.v.estimate(r.now) - start;
+        let commanded = target - 50.0;
+        prop_assert!(
+            (delivered - commanded).abs() <= one_pulse + 1e-9,
+            "delivered {delivered} vs commanded {commanded}, one pulse {one_pulse}"
+        );
+    }
+}
