@@ -73,6 +73,7 @@ const DEFINITIONS: &[Definition] = &[
     own!("ChannelParams"),
     own!("ChannelStatus"),
     own!("OutputEdge"),
+    own!("ValveState"),
     standard!("builtin_interfaces", "msg", "Duration"),
     standard!("builtin_interfaces", "msg", "Time"),
     standard!("diagnostic_msgs", "msg", "DiagnosticArray"),
