@@ -23,20 +23,48 @@ fn share_dirs() -> Vec<PathBuf> {
     ]
 }
 
-/// rosidl's hash of every type named in the `.json` file of `ros_type` (a service's request,
-/// response and event are in the service's file), by type name.
+/// The file name (without `.json`) rosidl writes the hash of `name` of kind `kind` in: a
+/// service's request, response and event are in the service's file, every type an action
+/// derives (goal, result, feedback, its services and their parts, the feedback message) in the
+/// action's.
+fn json_file_name(kind: &str, name: &str) -> String {
+    const SERVICE: &[&str] = &["_Request", "_Response", "_Event"];
+    const ACTION: &[&str] = &[
+        "_SendGoal_Request",
+        "_SendGoal_Response",
+        "_SendGoal_Event",
+        "_SendGoal",
+        "_GetResult_Request",
+        "_GetResult_Response",
+        "_GetResult_Event",
+        "_GetResult",
+        "_FeedbackMessage",
+        "_Goal",
+        "_Result",
+        "_Feedback",
+    ];
+    let suffixes = match kind {
+        "srv" => SERVICE,
+        "action" => ACTION,
+        _ => &[],
+    };
+    suffixes
+        .iter()
+        .find_map(|s| name.strip_suffix(s))
+        .unwrap_or(name)
+        .to_string()
+}
+
+/// rosidl's hash of every type named in the `.json` file of `ros_type` (see
+/// [`json_file_name`]), by type name.
 fn rosidl_hashes(ros_type: &str) -> BTreeMap<String, String> {
     let mut parts = ros_type.splitn(3, '/');
-    let (pkg, kind, mut name) = (
+    let (pkg, kind, name) = (
         parts.next().unwrap(),
         parts.next().unwrap(),
         parts.next().unwrap(),
     );
-    if kind == "srv" {
-        for suffix in ["_Request", "_Response", "_Event"] {
-            name = name.strip_suffix(suffix).unwrap_or(name);
-        }
-    }
+    let name = json_file_name(kind, name);
     let dirs = share_dirs();
     let path = dirs
         .iter()
@@ -86,4 +114,35 @@ fn every_computed_hash_is_rosidls() {
     println!("{compared} type hashes equal rosidl's");
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
     assert_eq!(compared, ours.len());
+    // The action and the types its topics carry are among them.
+    for t in [
+        "pwm_actuator_msgs/action/Autotune",
+        "pwm_actuator_msgs/action/Autotune_SendGoal_Request",
+        "pwm_actuator_msgs/action/Autotune_SendGoal_Response",
+        "pwm_actuator_msgs/action/Autotune_GetResult_Request",
+        "pwm_actuator_msgs/action/Autotune_GetResult_Response",
+        "pwm_actuator_msgs/action/Autotune_FeedbackMessage",
+        "action_msgs/srv/CancelGoal_Request",
+        "action_msgs/srv/CancelGoal_Response",
+        "action_msgs/msg/GoalStatusArray",
+    ] {
+        assert!(ours.contains_key(t), "{t} has no computed hash");
+    }
+}
+
+#[test]
+fn every_derived_type_is_looked_up_in_its_interfaces_file() {
+    assert_eq!(json_file_name("msg", "Float64"), "Float64");
+    assert_eq!(json_file_name("srv", "Trigger_Event"), "Trigger");
+    assert_eq!(
+        json_file_name("action", "Autotune_GetResult_Response"),
+        "Autotune"
+    );
+    assert_eq!(json_file_name("action", "Autotune_SendGoal"), "Autotune");
+    assert_eq!(
+        json_file_name("action", "Autotune_FeedbackMessage"),
+        "Autotune"
+    );
+    assert_eq!(json_file_name("action", "Autotune_Feedback"), "Autotune");
+    assert_eq!(json_file_name("action", "Autotune"), "Autotune");
 }

@@ -8,7 +8,11 @@ the message packages install in `share/<package>/{msg,srv}/` (the Jazzy wheels i
 `pwm_actuator_msgs` built by scripts/setup.sh). A service's request topic (`rq/<name>Request`)
 carries the hash of `<pkg>/srv/<Name>_Request` and its reply topic (`rr/<name>Reply`) that of
 `<pkg>/srv/<Name>_Response`, as rmw_fastrtps announces them; an rclpy service in the same test
-shows the same.
+shows the same. An action's endpoints are those of its two services
+(`<pkg>/action/<Name>_SendGoal_Request`/`_Response`, `..._GetResult_...`, hashes in
+`share/<pkg>/action/<Name>.json`), of `action_msgs/srv/CancelGoal`, its feedback topic
+(`<pkg>/action/<Name>_FeedbackMessage`) and its status topic (`action_msgs/msg/GoalStatusArray`);
+an rclpy action server of the same type in the same test shows the same hashes.
 """
 
 from __future__ import annotations
@@ -18,25 +22,35 @@ import os
 from functools import lru_cache
 from pathlib import Path
 
+from rclpy.action import ActionServer
 from rclpy.node import Node
 from std_srvs.srv import Trigger
+
+from pwm_actuator_msgs.action import Autotune
 
 from conftest import REPO_ROOT
 from helpers_rules import node_args
 
 NAME = "pwm_actuator"
 #: Every kind of endpoint the node has: the channels' topics, a split-range pair, a heater's
-#: feedback and setpoint, the e-stop, the lifecycle, the parameter services, the rosout and
-#: parameter events ros2-client makes for it.
+#: feedback, setpoint and autotune action, the e-stop, the lifecycle, the parameter services,
+#: the rosout and parameter events ros2-client makes for it.
 ARGS = ["--managed"] + node_args(
     channels=3,
     split="sp:pw01:pw02",
     pw03__feedback_topic="/heater/temperature",
     pw03__control="pid",
 )
+#: The DDS name space of the heater channel's autotune action's services and topics.
+ACTION = "pwm_actuator/pw03/autotune/_action"
 #: Endpoints that must be among those checked (DDS names: topics `rt/...`, service requests
 #: `rq/...Request`, replies `rr/...Reply`), by kind.
 REQUIRED_PUBLISHERS = {
+    f"rt/{ACTION}/feedback",
+    f"rt/{ACTION}/status",
+    f"rr/{ACTION}/send_goalReply",
+    f"rr/{ACTION}/get_resultReply",
+    f"rr/{ACTION}/cancel_goalReply",
     "rt/pwm_actuator/pw01/edges",
     "rt/pwm_actuator/pw01/status",
     "rt/pwm_actuator/pw01/e1",
@@ -50,6 +64,9 @@ REQUIRED_PUBLISHERS = {
     "rr/pwm_actuator/pw03/reset_faultReply",
 }
 REQUIRED_SUBSCRIPTIONS = {
+    f"rq/{ACTION}/send_goalRequest",
+    f"rq/{ACTION}/get_resultRequest",
+    f"rq/{ACTION}/cancel_goalRequest",
     "rt/pwm_actuator/pw01/duty",
     "rt/pwm_actuator/pw01/sv",
     "rt/pwm_actuator/pw01/enable",
@@ -74,15 +91,33 @@ def share_dirs() -> list[Path]:
     return [venv / "share", REPO_ROOT / ".ros-ws" / "install" / "pwm_actuator_msgs" / "share"]
 
 
+#: The suffixes of the types rosidl derives from a service or an action, which it writes in the
+#: `.json` file of the service or action (longest first).
+DERIVED_SUFFIXES = {
+    "srv": ("_Request", "_Response", "_Event"),
+    "action": (
+        "_SendGoal_Request", "_SendGoal_Response", "_SendGoal_Event", "_SendGoal",
+        "_GetResult_Request", "_GetResult_Response", "_GetResult_Event", "_GetResult",
+        "_FeedbackMessage", "_Goal", "_Result", "_Feedback",
+    ),
+}
+
+
+def json_file_name(kind: str, name: str) -> str:
+    """The name of the `.json` file (without suffix) that holds the hash of `name`."""
+    for suffix in DERIVED_SUFFIXES.get(kind, ()):
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
 @lru_cache(maxsize=None)
 def rosidl_hash(type_name: str) -> str:
     """The hash rosidl generated for `type_name` (`std_msgs/msg/Float64`,
-    `std_srvs/srv/Trigger_Request`), from the `type_hashes` of its `.json` file."""
+    `std_srvs/srv/Trigger_Request`, `pkg/action/Autotune_SendGoal_Request`), from the
+    `type_hashes` of its `.json` file."""
     pkg, kind, name = type_name.split("/")
-    if kind == "srv":
-        for suffix in ("_Request", "_Response", "_Event"):
-            if name.endswith(suffix):
-                name = name[: -len(suffix)]
+    name = json_file_name(kind, name)
     for share in share_dirs():
         path = share / pkg / kind / f"{name}.json"
         if path.exists():
@@ -119,8 +154,10 @@ def test_every_endpoint_announces_rosidls_type_hash(node_process, ros):
     proc = node_process(ARGS)
     ros.wait_for_node(NAME)
 
-    # The reference: an rclpy service of a type the node serves too.
+    # The references: an rclpy service and an rclpy action server of types the node serves too.
     ref = ros.node.create_service(Trigger, "/reference/trigger", lambda req, resp: resp)
+    ref_action = ActionServer(ros.node, Autotune, "/reference/autotune",
+                              lambda goal: Autotune.Result())
     try:
         def complete():
             pubs = endpoints_of(ros, "publishers")
@@ -148,6 +185,14 @@ def test_every_endpoint_announces_rosidls_type_hash(node_process, ros):
         types = {ros_type(e.topic_type) for d in (pubs, subs) for es in d.values() for e in es}
         print(f"endpoints checked: {checked}, types: {len(types)}")
         assert not wrong, "\n".join(wrong)
+        # Every required endpoint was among those compared (an endpoint without a hash shows
+        # INVALID, which is no rosidl hash).
+        for kind, required, endpoints in (("publishers", REQUIRED_PUBLISHERS, pubs),
+                                          ("subscriptions", REQUIRED_SUBSCRIPTIONS, subs)):
+            for topic in required:
+                assert endpoints[topic], f"{kind} {topic}"
+                for e in endpoints[topic]:
+                    assert str(e.topic_type_hash).startswith("RIHS01_"), (topic, e)
         assert checked["publishers"] >= len(REQUIRED_PUBLISHERS), checked
         assert checked["subscriptions"] >= len(REQUIRED_SUBSCRIPTIONS), checked
 
@@ -169,7 +214,33 @@ def test_every_endpoint_announces_rosidls_type_hash(node_process, ros):
             "std_srvs/srv/Trigger_Request")
         assert str(ours_rr.topic_type_hash) == str(ref_rr.topic_type_hash) == rosidl_hash(
             "std_srvs/srv/Trigger_Response")
+
+        # The action's: each topic of the node's action shows the hash of rclpy's same topic.
+        action_topics = (
+            ("send_goalRequest", "rq", False,
+             "pwm_actuator_msgs/action/Autotune_SendGoal_Request"),
+            ("send_goalReply", "rr", True,
+             "pwm_actuator_msgs/action/Autotune_SendGoal_Response"),
+            ("get_resultRequest", "rq", False,
+             "pwm_actuator_msgs/action/Autotune_GetResult_Request"),
+            ("get_resultReply", "rr", True,
+             "pwm_actuator_msgs/action/Autotune_GetResult_Response"),
+            ("cancel_goalRequest", "rq", False, "action_msgs/srv/CancelGoal_Request"),
+            ("cancel_goalReply", "rr", True, "action_msgs/srv/CancelGoal_Response"),
+            ("feedback", "rt", True, "pwm_actuator_msgs/action/Autotune_FeedbackMessage"),
+            ("status", "rt", True, "action_msgs/msg/GoalStatusArray"),
+        )
+        for suffix, prefix, publisher, type_name in action_topics:
+            theirs = ros.spin_until(
+                lambda p=prefix, s=suffix, pub=publisher: ref_endpoint(
+                    f"{p}/reference/autotune/_action/{s}", pub),
+                f"the reference action's {suffix}")
+            mine = (pubs if publisher else subs)[f"{prefix}/{ACTION}/{suffix}"][0]
+            assert ros_type(mine.topic_type) == ros_type(theirs.topic_type) == type_name
+            assert str(mine.topic_type_hash) == str(theirs.topic_type_hash) == rosidl_hash(
+                type_name), suffix
     finally:
+        ref_action.destroy()
         ros.node.destroy_service(ref)
     assert proc.is_running(), proc.output()
 

@@ -1,10 +1,11 @@
 //! REP-2016 type hashes (`RIHS01_<64 hex digits>`) of every interface the node uses, computed
-//! from their `.msg` and `.srv` definitions the way `rosidl_generator_type_description` does,
-//! and announced in each endpoint's USER_DATA (`typehash=RIHS01_...;`) as every ROS 2
-//! middleware does since Iron.
+//! from their `.msg`, `.srv` and `.action` definitions the way
+//! `rosidl_generator_type_description` does, and announced in each endpoint's USER_DATA
+//! (`typehash=RIHS01_...;`) as every ROS 2 middleware does since Iron.
 //!
-//! The definitions are compiled in: the node's own `msg/*.msg`, and the standard ones it uses
-//! (and those they reference) in `interfaces/<package>/{msg,srv}/`, as ROS 2 Jazzy ships them.
+//! The definitions are compiled in: the node's own `msg/*.msg` and `msg/action/*.action`, and
+//! the standard ones it uses (and those they reference) in `interfaces/<package>/{msg,srv}/`,
+//! as ROS 2 Jazzy ships them.
 //! The hash of a type is the SHA-256 of the canonical JSON of its `TypeDescription` (its
 //! fields, with type ids, capacities, string capacities and nested type names, then every type
 //! it references, sorted by name), without default values. A service has the type
@@ -14,6 +15,17 @@
 //! announces the request type's hash on a service's request topic and the response type's on
 //! its reply topic; so does this node.
 //!
+//! An action `<pkg>/action/<Name>` is expanded as `rosidl_parser`'s `Action` does: the messages
+//! `<Name>_Goal`, `<Name>_Result` and `<Name>_Feedback` of its three parts; the services
+//! `<Name>_SendGoal` (request: `unique_identifier_msgs/UUID goal_id`, `<Name>_Goal goal`;
+//! response: `bool accepted`, `builtin_interfaces/Time stamp`) and `<Name>_GetResult`
+//! (request: `goal_id`; response: `int8 status`, `<Name>_Result result`), each with its
+//! request, response and event; the message `<Name>_FeedbackMessage` (`goal_id`,
+//! `<Name>_Feedback feedback`); and the action type itself, whose fields `goal`, `result`,
+//! `feedback`, `send_goal_service`, `get_result_service` and `feedback_message` name them. The
+//! action's topics carry the request and response types of its two services, its feedback
+//! message, and `action_msgs`' `CancelGoal` and `GoalStatusArray`.
+//!
 //! `tests/rclpy/test_type_hashes.py` compares what every endpoint of the node announces with
 //! the hashes rosidl wrote in its `.json` files.
 
@@ -21,11 +33,11 @@ use sha2::{Digest, Sha256};
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt::Write as _;
 
-/// One interface definition: a `.msg` or `.srv` file.
+/// One interface definition: a `.msg`, `.srv` or `.action` file.
 struct Definition {
     /// ROS package, e.g. `std_msgs`.
     package: &'static str,
-    /// `msg` or `srv`.
+    /// `msg`, `srv` or `action`.
     kind: &'static str,
     /// Type name inside the package, e.g. `Float64`.
     name: &'static str,
@@ -67,6 +79,23 @@ macro_rules! own {
     };
 }
 
+/// An action of this node's package, `msg/action/<name>.action`.
+macro_rules! own_action {
+    ($name:literal) => {
+        Definition {
+            package: super::msg::MSG_PACKAGE,
+            kind: "action",
+            name: $name,
+            text: include_str!(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/msg/action/",
+                $name,
+                ".action"
+            )),
+        }
+    };
+}
+
 /// Every definition compiled in. A unit test checks that this is every file of `msg/` and
 /// `interfaces/`, and that every type they reference is here.
 const DEFINITIONS: &[Definition] = &[
@@ -74,6 +103,11 @@ const DEFINITIONS: &[Definition] = &[
     own!("ChannelStatus"),
     own!("OutputEdge"),
     own!("ValveState"),
+    own_action!("Autotune"),
+    standard!("action_msgs", "msg", "GoalInfo"),
+    standard!("action_msgs", "msg", "GoalStatus"),
+    standard!("action_msgs", "msg", "GoalStatusArray"),
+    standard!("action_msgs", "srv", "CancelGoal"),
     standard!("builtin_interfaces", "msg", "Duration"),
     standard!("builtin_interfaces", "msg", "Time"),
     standard!("diagnostic_msgs", "msg", "DiagnosticArray"),
@@ -114,6 +148,7 @@ const DEFINITIONS: &[Definition] = &[
     standard!("std_msgs", "msg", "String"),
     standard!("std_msgs", "msg", "UInt16"),
     standard!("std_srvs", "srv", "Trigger"),
+    standard!("unique_identifier_msgs", "msg", "UUID"),
 ];
 
 /// Why the definitions do not give a hash. The definitions are compiled in, so this is a
@@ -129,6 +164,16 @@ pub enum TypeHashError {
         line: String,
         /// What is wrong with it.
         why: &'static str,
+    },
+    /// A `.srv` or `.action` file without the sections (separated by `---`) it must have.
+    #[error("{type_name}: {found} sections separated by '---', not {expected}")]
+    Sections {
+        /// The service or action, e.g. `std_srvs/srv/Trigger`.
+        type_name: String,
+        /// How many it has.
+        found: usize,
+        /// How many it must have: 2 for a service, 3 for an action.
+        expected: usize,
     },
     /// A field names a type that has no definition here.
     #[error("{referenced_by} uses {type_name}, which has no definition")]
@@ -322,74 +367,178 @@ fn fields(type_name: &str, package: &str, body: &str) -> Result<Vec<Field>, Type
     Ok(out)
 }
 
-/// Every individual type the definitions give: one per `.msg`, four per `.srv` (the service,
-/// its request, response and event, and nothing else).
-fn individuals() -> Result<BTreeMap<String, Individual>, TypeHashError> {
-    let mut all = BTreeMap::new();
-    let mut add = |t: Individual| {
-        all.insert(t.type_name.clone(), t);
+/// The sections of a `.srv` or `.action` file, which lines of three dashes separate.
+fn sections(text: &str) -> Vec<String> {
+    let mut out = vec![String::new()];
+    for line in text.split_inclusive('\n') {
+        if line.trim() == "---" {
+            out.push(String::new());
+        } else {
+            out.last_mut().expect("never empty").push_str(line);
+        }
+    }
+    out
+}
+
+/// A field of a nested type.
+fn member(name: &str, type_name: &str) -> Field {
+    Field {
+        name: name.into(),
+        ty: nested(type_name),
+    }
+}
+
+/// A field of a primitive type.
+fn primitive_member(name: &str, type_id: u8) -> Field {
+    Field {
+        name: name.into(),
+        ty: scalar(type_id),
+    }
+}
+
+/// Individual types by type name.
+type Individuals = BTreeMap<String, Individual>;
+
+/// Adds the four types of the service `base` (`<pkg>/<kind>/<Name>`) with the given request
+/// and response fields: `<base>_Request`, `<base>_Response`, `<base>_Event` (rosidl_parser's
+/// `Service.event_message`) and the service itself.
+fn add_service(all: &mut Individuals, base: &str, request: Vec<Field>, response: Vec<Field>) {
+    let (req, resp, event) = (
+        format!("{base}_Request"),
+        format!("{base}_Response"),
+        format!("{base}_Event"),
+    );
+    let one_of = |t: &str| FieldType {
+        type_id: type_id::NESTED_TYPE + type_id::BOUNDED_SEQUENCE,
+        capacity: 1,
+        ..nested(t)
     };
+    let event_fields = vec![
+        member("info", "service_msgs/msg/ServiceEventInfo"),
+        Field {
+            name: "request".into(),
+            ty: one_of(&req),
+        },
+        Field {
+            name: "response".into(),
+            ty: one_of(&resp),
+        },
+    ];
+    let service_fields = vec![
+        member("request_message", &req),
+        member("response_message", &resp),
+        member("event_message", &event),
+    ];
+    for (type_name, fields) in [
+        (req, request),
+        (resp, response),
+        (event, event_fields),
+        (base.to_string(), service_fields),
+    ] {
+        all.insert(type_name.clone(), Individual { type_name, fields });
+    }
+}
+
+/// Adds the thirteen types of the action `base` (`<pkg>/action/<Name>`) whose goal, result and
+/// feedback have the given fields, as rosidl_parser's `Action` derives them.
+fn add_action(all: &mut Individuals, base: &str, parts: [Vec<Field>; 3]) {
+    const UUID: &str = "unique_identifier_msgs/msg/UUID";
+    let [goal, result, feedback] = parts;
+    let name = |suffix: &str| format!("{base}_{suffix}");
+    for (suffix, fields) in [("Goal", goal), ("Result", result), ("Feedback", feedback)] {
+        let type_name = name(suffix);
+        all.insert(type_name.clone(), Individual { type_name, fields });
+    }
+    add_service(
+        all,
+        &name("SendGoal"),
+        vec![member("goal_id", UUID), member("goal", &name("Goal"))],
+        vec![
+            primitive_member("accepted", type_id::BOOLEAN),
+            member("stamp", "builtin_interfaces/msg/Time"),
+        ],
+    );
+    add_service(
+        all,
+        &name("GetResult"),
+        vec![member("goal_id", UUID)],
+        vec![
+            primitive_member("status", type_id::INT8),
+            member("result", &name("Result")),
+        ],
+    );
+    let feedback_message = name("FeedbackMessage");
+    all.insert(
+        feedback_message.clone(),
+        Individual {
+            type_name: feedback_message.clone(),
+            fields: vec![
+                member("goal_id", UUID),
+                member("feedback", &name("Feedback")),
+            ],
+        },
+    );
+    all.insert(
+        base.to_string(),
+        Individual {
+            type_name: base.to_string(),
+            fields: vec![
+                member("goal", &name("Goal")),
+                member("result", &name("Result")),
+                member("feedback", &name("Feedback")),
+                member("send_goal_service", &name("SendGoal")),
+                member("get_result_service", &name("GetResult")),
+                member("feedback_message", &feedback_message),
+            ],
+        },
+    );
+}
+
+/// Every individual type the definitions give: one per `.msg`, four per `.srv` (the service,
+/// its request, response and event), thirteen per `.action` (see [`add_action`]).
+fn individuals() -> Result<Individuals, TypeHashError> {
+    let mut all = BTreeMap::new();
     for d in DEFINITIONS {
         let base = format!("{}/{}/{}", d.package, d.kind, d.name);
-        if d.kind == "msg" {
-            add(Individual {
-                fields: fields(&base, d.package, d.text)?,
+        let parts = sections(d.text);
+        let expected = match d.kind {
+            "msg" => 1,
+            "srv" => 2,
+            _ => 3,
+        };
+        if parts.len() != expected {
+            return Err(TypeHashError::Sections {
                 type_name: base,
+                found: parts.len(),
+                expected,
             });
-            continue;
         }
-        // A line of three dashes separates request and response.
-        let mut sides = d.text.split_inclusive('\n');
-        let request: String = sides.by_ref().take_while(|l| l.trim() != "---").collect();
-        let response: String = sides.collect();
-        let (req, resp, event) = (
-            format!("{base}_Request"),
-            format!("{base}_Response"),
-            format!("{base}_Event"),
-        );
-        add(Individual {
-            fields: fields(&req, d.package, &request)?,
-            type_name: req.clone(),
-        });
-        add(Individual {
-            fields: fields(&resp, d.package, &response)?,
-            type_name: resp.clone(),
-        });
-        // rosidl_parser's `Service.event_message`.
-        let one_of = |t: &str| FieldType {
-            type_id: type_id::NESTED_TYPE + type_id::BOUNDED_SEQUENCE,
-            capacity: 1,
-            ..nested(t)
+        let part = |i: usize, suffix: &str| -> Result<Vec<Field>, TypeHashError> {
+            fields(&format!("{base}{suffix}"), d.package, &parts[i])
         };
-        add(Individual {
-            type_name: event.clone(),
-            fields: vec![
-                Field {
-                    name: "info".into(),
-                    ty: nested("service_msgs/msg/ServiceEventInfo"),
-                },
-                Field {
-                    name: "request".into(),
-                    ty: one_of(&req),
-                },
-                Field {
-                    name: "response".into(),
-                    ty: one_of(&resp),
-                },
-            ],
-        });
-        let member = |name: &str, t: &str| Field {
-            name: name.into(),
-            ty: nested(t),
-        };
-        add(Individual {
-            type_name: base,
-            fields: vec![
-                member("request_message", &req),
-                member("response_message", &resp),
-                member("event_message", &event),
-            ],
-        });
+        match d.kind {
+            "msg" => {
+                all.insert(
+                    base.clone(),
+                    Individual {
+                        fields: part(0, "")?,
+                        type_name: base,
+                    },
+                );
+            }
+            "srv" => {
+                let (request, response) = (part(0, "_Request")?, part(1, "_Response")?);
+                add_service(&mut all, &base, request, response);
+            }
+            _ => {
+                let parts = [
+                    part(0, "_Goal")?,
+                    part(1, "_Result")?,
+                    part(2, "_Feedback")?,
+                ];
+                add_action(&mut all, &base, parts);
+            }
+        }
     }
     Ok(all)
 }
@@ -497,15 +646,20 @@ pub fn type_hashes() -> Result<BTreeMap<String, String>, TypeHashError> {
 }
 
 /// The DDS type name ros2-client gives the endpoints of a ROS type, for the types that are
-/// the type of a topic: every message, and a service's request and response
-/// (`std_msgs::msg::dds_::Float64_`, `std_srvs::srv::dds_::Trigger_Request_`). `None` for a
-/// service itself and its event.
+/// the type of a topic: every message, a service's request and response
+/// (`std_msgs::msg::dds_::Float64_`, `std_srvs::srv::dds_::Trigger_Request_`), and an
+/// action's services' requests and responses and its feedback message
+/// (`pkg::action::dds_::Autotune_SendGoal_Request_`, `pkg::action::dds_::Autotune_FeedbackMessage_`).
+/// `None` for a service or action itself, a service's event, and an action's goal, result and
+/// feedback, which no topic carries.
 pub fn dds_type_name(ros_type: &str) -> Option<String> {
     let (pkg, rest) = ros_type.split_once('/')?;
     let (kind, name) = rest.split_once('/')?;
+    let service_side = name.ends_with("_Request") || name.ends_with("_Response");
     let topic_type = match kind {
         "msg" => true,
-        "srv" => name.ends_with("_Request") || name.ends_with("_Response"),
+        "srv" => service_side,
+        "action" => service_side || name.ends_with("_FeedbackMessage"),
         _ => false,
     };
     topic_type.then(|| format!("{pkg}::{kind}::dds_::{name}_"))
@@ -519,7 +673,7 @@ pub fn user_data(hash: &str) -> Vec<u8> {
 
 /// Tells the DDS layer the USER_DATA of every endpoint type the definitions give, so each
 /// endpoint created afterwards (the node's, and those ros2-client makes for it: services,
-/// `/parameter_events`, `/rosout`, `ros_discovery_info`) announces its type hash. Returns how
+/// actions, `/parameter_events`, `/rosout`, `ros_discovery_info`) announces its type hash. Returns how
 /// many DDS types got one.
 pub fn announce() -> Result<usize, TypeHashError> {
     let mut n = 0;
@@ -537,15 +691,29 @@ pub fn announce() -> Result<usize, TypeHashError> {
 mod tests {
     use super::*;
 
+    /// How many individual types a definition gives: one per `.msg`, four per `.srv` (the service,
+    /// its request, response and event), thirteen per `.action` (goal, result, feedback, two
+    /// services of four, the feedback message, the action).
+    fn types_per_definition(kind: &str) -> usize {
+        match kind {
+            "msg" => 1,
+            "srv" => 4,
+            _ => 13,
+        }
+    }
+
     #[test]
     fn every_definition_file_is_compiled_in_and_nothing_else() {
         let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
         let mut on_disk = BTreeSet::new();
-        for entry in std::fs::read_dir(root.join("msg")).unwrap() {
-            let p = entry.unwrap().path();
-            if p.extension().is_some_and(|e| e == "msg") {
-                let name = p.file_stem().unwrap().to_str().unwrap().to_string();
-                on_disk.insert(format!("pwm_actuator_msgs/msg/{name}"));
+        for kind in ["msg", "action"] {
+            let dir = if kind == "msg" { "msg" } else { "msg/action" };
+            for entry in std::fs::read_dir(root.join(dir)).unwrap() {
+                let p = entry.unwrap().path();
+                if p.extension().is_some_and(|e| e == kind) {
+                    let name = p.file_stem().unwrap().to_str().unwrap().to_string();
+                    on_disk.insert(format!("pwm_actuator_msgs/{kind}/{name}"));
+                }
             }
         }
         for pkg in std::fs::read_dir(root.join("interfaces")).unwrap() {
@@ -578,10 +746,9 @@ mod tests {
     #[test]
     fn every_type_has_a_hash_and_every_referenced_type_a_definition() {
         let hashes = type_hashes().unwrap();
-        // A .msg gives one type, a .srv four: the service, its request, response and event.
         let expected: usize = DEFINITIONS
             .iter()
-            .map(|d| if d.kind == "msg" { 1 } else { 4 })
+            .map(|d| types_per_definition(d.kind))
             .sum();
         assert_eq!(hashes.len(), expected);
         for (name, h) in &hashes {
@@ -703,6 +870,94 @@ mod tests {
         ));
     }
 
+    /// An action gives rosidl_parser's thirteen types, with its derived members, and every
+    /// type of an action topic has the DDS name ros2-client uses (`Node::create_action_server`:
+    /// `<Name>_SendGoal`, `<Name>_GetResult` services, `<Name>_FeedbackMessage` topic).
+    #[test]
+    fn an_action_expands_as_rosidl_parsers_action() {
+        let all = individuals().unwrap();
+        let base = "pwm_actuator_msgs/action/Autotune";
+        let names: BTreeSet<&str> = all.keys().filter_map(|k| k.strip_prefix(base)).collect();
+        let expected: BTreeSet<&str> = [
+            "",
+            "_Goal",
+            "_Result",
+            "_Feedback",
+            "_SendGoal",
+            "_SendGoal_Request",
+            "_SendGoal_Response",
+            "_SendGoal_Event",
+            "_GetResult",
+            "_GetResult_Request",
+            "_GetResult_Response",
+            "_GetResult_Event",
+            "_FeedbackMessage",
+        ]
+        .into_iter()
+        .collect();
+        assert_eq!(names, expected);
+        let fields = |t: &str| -> Vec<(String, u8, String)> {
+            all[&format!("{base}{t}")]
+                .fields
+                .iter()
+                .map(|f| (f.name.clone(), f.ty.type_id, f.ty.nested_type_name.clone()))
+                .collect()
+        };
+        let f = |n: &str, id: u8, t: &str| (n.to_string(), id, t.to_string());
+        let uuid = "unique_identifier_msgs/msg/UUID";
+        assert_eq!(
+            fields("_SendGoal_Request"),
+            [f("goal_id", 1, uuid), f("goal", 1, &format!("{base}_Goal"))]
+        );
+        assert_eq!(
+            fields("_SendGoal_Response"),
+            [
+                f("accepted", 15, ""),
+                f("stamp", 1, "builtin_interfaces/msg/Time")
+            ]
+        );
+        assert_eq!(fields("_GetResult_Request"), [f("goal_id", 1, uuid)]);
+        assert_eq!(
+            fields("_GetResult_Response"),
+            [
+                f("status", 2, ""),
+                f("result", 1, &format!("{base}_Result"))
+            ]
+        );
+        assert_eq!(
+            fields("_FeedbackMessage"),
+            [
+                f("goal_id", 1, uuid),
+                f("feedback", 1, &format!("{base}_Feedback"))
+            ]
+        );
+        let members: Vec<String> = fields("").into_iter().map(|m| m.0).collect();
+        assert_eq!(
+            members,
+            [
+                "goal",
+                "result",
+                "feedback",
+                "send_goal_service",
+                "get_result_service",
+                "feedback_message"
+            ]
+        );
+        // The goal's fields are the first section of the file, the result's the second.
+        assert_eq!(fields("_Goal")[0].0, "target_c");
+        assert_eq!(fields("_Result")[0].0, "stop");
+        assert_eq!(fields("_Feedback")[0].0, "phase");
+    }
+
+    #[test]
+    fn sections_are_split_at_lines_of_three_dashes_only() {
+        assert_eq!(
+            sections("int8 a\n---\n# ---x\nint8 b\n --- \n"),
+            ["int8 a\n", "# ---x\nint8 b\n", ""]
+        );
+        assert_eq!(sections("int8 a"), ["int8 a"]);
+    }
+
     #[test]
     fn json_strings_escape_as_pythons_ensure_ascii() {
         let mut s = String::new();
@@ -721,6 +976,32 @@ mod tests {
             Some("std_srvs::srv::dds_::Trigger_Request_")
         );
         assert_eq!(dds_type_name("std_srvs/srv/Trigger"), None);
+        assert_eq!(
+            dds_type_name("p/action/A_SendGoal_Request").as_deref(),
+            Some("p::action::dds_::A_SendGoal_Request_")
+        );
+        assert_eq!(
+            dds_type_name("p/action/A_GetResult_Response").as_deref(),
+            Some("p::action::dds_::A_GetResult_Response_")
+        );
+        assert_eq!(
+            dds_type_name("p/action/A_FeedbackMessage").as_deref(),
+            Some("p::action::dds_::A_FeedbackMessage_")
+        );
+        for no_topic in [
+            "A",
+            "A_Goal",
+            "A_Result",
+            "A_Feedback",
+            "A_SendGoal",
+            "A_SendGoal_Event",
+        ] {
+            assert_eq!(
+                dds_type_name(&format!("p/action/{no_topic}")),
+                None,
+                "{no_topic}"
+            );
+        }
         assert_eq!(dds_type_name("std_srvs/srv/Trigger_Event"), None);
         assert_eq!(user_data("RIHS01_00"), b"typehash=RIHS01_00;");
     }
