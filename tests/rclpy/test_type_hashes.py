@@ -33,11 +33,12 @@ from helpers_rules import node_args
 
 NAME = "pwm_actuator"
 #: Every kind of endpoint the node has: the channels' topics, a split-range pair, a heater's
-#: feedback, setpoint and autotune action, the e-stop, the lifecycle, the parameter services,
-#: the rosout and parameter events ros2-client makes for it.
+#: feedback, setpoint and autotune action, a valve, the e-stop, the lifecycle, the parameter
+#: services, the rosout and parameter events ros2-client makes for it.
 ARGS = ["--managed"] + node_args(
-    channels=3,
+    channels=5,
     split="sp:pw01:pw02",
+    valve="mix:pw04:pw05",
     pw03__feedback_topic="/heater/temperature",
     pw03__control="pid",
 )
@@ -62,6 +63,7 @@ REQUIRED_PUBLISHERS = {
     "rr/pwm_actuator/reset_estopReply",
     "rr/pwm_actuator/change_stateReply",
     "rr/pwm_actuator/pw03/reset_faultReply",
+    "rt/pwm_actuator/valve/mix/state",
 }
 REQUIRED_SUBSCRIPTIONS = {
     f"rq/{ACTION}/send_goalRequest",
@@ -81,6 +83,7 @@ REQUIRED_SUBSCRIPTIONS = {
     "rq/pwm_actuator/reset_estopRequest",
     "rq/pwm_actuator/get_stateRequest",
     "rq/pwm_actuator/pw03/reset_faultRequest",
+    "rt/pwm_actuator/valve/mix/position",
 }
 
 
