@@ -158,6 +158,45 @@ fn bad_command_lines_exit_2_with_a_reason() {
 }
 
 #[test]
+fn bad_valve_end_switches_exit_2_with_a_reason() {
+    let gpio = [
+        "--output",
+        "gpio",
+        "--line",
+        "pw01=/dev/gpiochip_none:1",
+        "--line",
+        "pw02=/dev/gpiochip_none:2",
+    ];
+    let valve = |p: &str| {
+        let mut a: Vec<&str> = gpio.to_vec();
+        a.extend(["--ros-args", "-p", "valve:=mix:pw01:pw02", "-p"]);
+        a.push(p);
+        a.iter().map(|s| s.to_string()).collect::<Vec<String>>()
+    };
+    for (param, why) in [
+        (
+            "mix.close_limit_line:=/dev/gpiochip_none:2",
+            "close_limit_line /dev/gpiochip_none:2 is already the output line of pw02",
+        ),
+        (
+            "mix.open_limit_line:=x:y",
+            "`x:y` is not one of: empty or [CHIP:]OFFSET",
+        ),
+        ("mix.limit_debounce_ms:=1000", "outside 0..100"),
+    ] {
+        let args = valve(param);
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        assert_refused(&args, None, why);
+    }
+    // The simulated output has no GPIO chips.
+    assert_refused(
+        &ros_params(&["valve:=mix:pw01:pw02", "mix.close_limit_line:=gpiochip0:3"]),
+        None,
+        "end switch lines need --output gpio",
+    );
+}
+
+#[test]
 fn a_missing_gpio_chip_is_a_configuration_error_that_names_it() {
     let (code, _, err) = run(
         &[

@@ -95,6 +95,7 @@ pub trait EmergencyOff: Send + Sync {
 pub mod bindings;
 pub mod fault;
 pub mod gpio;
+pub mod gpio_input;
 pub mod open;
 pub mod safety;
 pub mod sim;

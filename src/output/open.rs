@@ -75,6 +75,9 @@ pub enum OpenError {
     /// The GPIO lines cannot be opened.
     #[error("cannot open the GPIO output: {0}")]
     Gpio(#[source] GpioError),
+    /// An end switch's input line cannot be requested.
+    #[error("cannot open an end switch line: {0}")]
+    Switch(#[source] super::gpio_input::InputError),
 }
 
 /// The error of an [`AnyOutput`]: the backend's own error, with its kind and line kept.

@@ -27,7 +27,7 @@ use crate::ros::config::params::{self, ParamError, ParamStore, StartupConfig};
 use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
 use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
-use crate::ros::config::valve::{self, ValveError, ValveSpec};
+use crate::ros::config::valve::{self, ValveError, ValveLimits, ValveSpec};
 use crate::ros::inbound::autotune;
 use crate::ros::inbound::estop::{self, EStop};
 use crate::ros::inbound::heater::{self, HeaterChannel};
@@ -200,6 +200,17 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
             Ok((v, config))
         })
         .collect::<Result<Vec<_>, ValveError>>()?;
+    let limits = valve_limits(&su.store, &valves)?;
+    let gpio_lines = match &cfg.output.backend {
+        Backend::Gpio { lines } => Some(lines.as_slice()),
+        Backend::Sim { .. } => None,
+    };
+    let named: Vec<(&str, &ValveLimits)> = valves
+        .iter()
+        .zip(&limits)
+        .map(|((v, _), l)| (v.name.as_str(), l))
+        .collect();
+    valve::check_limits(&named, gpio_lines)?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("pwm-ros")
@@ -211,9 +222,32 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         parsed.ros,
         su.store,
         cfg,
-        (splits, valves),
+        (splits, valves, limits),
         (domain, disc, secure),
     ))
+}
+
+/// The end switches of each valve, from its parameters `NAME.open_limit_line`, ...
+fn valve_limits(
+    store: &params::ParamStore,
+    valves: &[(ValveSpec, ValveConfig)],
+) -> Result<Vec<ValveLimits>, ValveError> {
+    valves
+        .iter()
+        .map(|(v, _)| {
+            let text = |suffix: &str| store.string(&format!("{}.{suffix}", v.name)).unwrap_or("");
+            Ok(ValveLimits {
+                open: valve::limit_line(&v.name, "open_limit_line", text("open_limit_line"))?,
+                close: valve::limit_line(&v.name, "close_limit_line", text("close_limit_line"))?,
+                active_low: store
+                    .bool(&format!("{}.limit_active_low", v.name))
+                    .unwrap_or(false),
+                debounce_ms: store
+                    .int(&format!("{}.limit_debounce_ms", v.name))
+                    .map_or(0, |ms| ms.max(0) as u64),
+            })
+        })
+        .collect()
 }
 
 /// Most "no such parameter" warnings written at start-up; the rest are counted in one line.
@@ -381,7 +415,11 @@ async fn serve(
     ros: RosArgs,
     store: ParamStore,
     cfg: StartupConfig,
-    (splits, valves): (Vec<split::SplitPair>, Vec<(ValveSpec, ValveConfig)>),
+    (splits, valves, limits): (
+        Vec<split::SplitPair>,
+        Vec<(ValveSpec, ValveConfig)>,
+        Vec<ValveLimits>,
+    ),
     (domain, disc, secure): (u16, Discovery, Option<PathBuf>),
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
@@ -391,6 +429,9 @@ async fn serve(
     let mut signals = StopSignals::catch();
     // The output first: configuration and hardware errors stop the node before it joins ROS.
     let (output, line_slot) = open_output(&cfg)?;
+    let specs: Vec<ValveSpec> = valves.iter().map(|(v, _)| v.clone()).collect();
+    let switches = valve_inputs::open_switches(&specs, &limits)
+        .map_err(|e| NodeError::Output(OpenError::Switch(e)))?;
     let hardware_ids = cfg.output.hardware_ids();
 
     // Before any reader exists: what the node keeps of an input is bounded by its size.
@@ -502,6 +543,7 @@ async fn serve(
     tasks.extend(inputs::listen_channels(&mut ep, &inputs, &names)?);
     tasks.extend(inputs::listen_splits(&mut ep, &inputs, &splits)?);
     tasks.extend(valve_inputs::listen_valves(&mut ep, &inputs, &valves)?);
+    valve_inputs::spawn_switch_readers(switches, &inputs);
     let heaters: Vec<HeaterChannel> = cfg
         .channels
         .iter()

@@ -549,6 +549,74 @@ def heartbeat_toggles_and_stops_on_sigstop():
             f"{len(resumed)} after SIGCONT, inactive at the end")
 
 
+def valve_close_switch_stops_the_drive():
+    """A valve on lines 0 (open) and 1 (close) with its close end switch on input line 2:
+    referencing at start drives closed; pulling the switch line up (active) ends the close
+    drive at once, no drive starts while it is active, and the node logs the valve referenced
+    at 0 %."""
+    l0, l1, sw = Line(0), Line(1), Line(2)
+    for l in (l0, l1, sw):
+        l.set_pull(False)
+    p = node([("pw01", 0), ("pw02", 1)],
+             ["valve:=mix:pw01:pw02", "mix.travel_open_ms:=20000",
+              "mix.travel_close_ms:=20000", "mix.reference_at_start:=true",
+              f"mix.close_limit_line:={CHIP}:2"])
+    try:
+        wait_level(p, l1, True)
+        require(sw.held(), "the switch line is not held by the node")
+        still = levels_for(l1, 0.3)
+        require(all(v for _, v, _ in still), "the close drive stopped before the switch")
+        require(not l0.level(), "the open line is on while referencing")
+        t0 = time.monotonic()
+        sw.set_pull(True)
+        fell = None
+        while time.monotonic() < t0 + 5.0:
+            t, v, _h = l1.sample()
+            if not v:
+                fell = t
+                break
+        require(fell is not None, "the close line still on 5 s after the switch became active")
+        after = sample_for([l0, l1], 1.0)
+        on = [(o, t) for o, xs in after.items() for t, v, h in xs if h and v]
+        require(not on, f"a line rose while the switch was active: line {on[:1]}")
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    require("valve mix close limit: active" in err, f"no switch line in the log: {err[-1500:]}")
+    require("valve mix: position 0.0 %, referenced" in err,
+            f"the valve is not reported referenced at 0 %: {err[-1500:]}")
+    ms = (fell - t0) * 1e3
+    # The kernel's software debounce (5 ms by default) delays the event; the rest is the
+    # reader thread, the request queue and the output thread. 100 ms is wide for TCG.
+    require(ms < 100.0, f"the close line fell {ms:.1f} ms after the pull")
+    return f"close line off {ms:.1f} ms after the pull (debounce 5 ms), referenced at 0 %"
+
+
+def bad_switch_line_is_a_configuration_error():
+    """An end switch line that cannot be requested (its chip does not exist, or the line is
+    held by someone else) stops the node at start-up with exit 2 naming the switch, before any
+    output is driven."""
+    outs = [("pw01", 0), ("pw02", 1)]
+    base = ["valve:=mix:pw01:pw02"]
+    p = node(outs, base + ["mix.open_limit_line:=/dev/gpiochip_none:3"])
+    code, err = stop(p)
+    require(code == 2, f"exit {code} for a missing switch chip: {err[-1000:]}")
+    require("valve mix open limit" in err and "gpiochip_none" in err,
+            f"the switch is not named: {err[-1000:]}")
+    holder = node([("pw01", 3)], channels=1)
+    try:
+        wait_held(holder, [Line(3)])
+        p = node(outs, base + [f"mix.close_limit_line:={CHIP}:3"])
+        code, err = stop(p)
+    finally:
+        holder.send_signal(signal.SIGTERM)
+        stop(holder)
+    require(code == 2, f"exit {code} for a busy switch line: {err[-1000:]}")
+    require("valve mix close limit) is busy" in err, f"the busy switch is not named: {err[-1000:]}")
+    return "exit 2 for a missing chip and for a busy line, the switch named"
+
+
 CHECKS = [
     duty_is_followed,
     active_low_inverts,
@@ -564,6 +632,8 @@ CHECKS = [
     missing_chip_is_a_configuration_error,
     two_channels_on_one_line_refused,
     heartbeat_toggles_and_stops_on_sigstop,
+    valve_close_switch_stops_the_drive,
+    bad_switch_line_is_a_configuration_error,
 ]
 
 

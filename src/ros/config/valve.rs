@@ -7,7 +7,10 @@
 
 use crate::core::config::ShortStr;
 use crate::core::valve::ValveConfigError;
+use crate::output::bindings::normalize_chip_path;
+use crate::output::gpio::{parse_line_addr, GpioLine};
 use crate::ros::config::split::SplitPair;
+use std::path::PathBuf;
 
 /// At most this many valves (each needs two channels of at most 99).
 pub const MAX_VALVES: usize = 49;
@@ -73,6 +76,39 @@ pub enum ValveError {
     /// More valves than channels allow.
     #[error("valve: more than {MAX_VALVES} valves")]
     TooMany,
+    /// A limit line that is not `[CHIP:]OFFSET`.
+    #[error("valve `{name}`: {param} `{value}` is not [CHIP:]OFFSET (e.g. 5 or gpiochip1:5)")]
+    LimitForm {
+        /// The valve.
+        name: ShortStr,
+        /// The parameter's suffix.
+        param: &'static str,
+        /// The value (its first 32 bytes).
+        value: ShortStr,
+    },
+    /// Limit lines with the simulated output.
+    #[error(
+        "valve `{name}`: end switch lines need --output gpio (the simulated output has no \
+         GPIO chips)"
+    )]
+    LimitNeedsGpio {
+        /// The valve.
+        name: ShortStr,
+    },
+    /// A limit line that is also an output line of the node, or a second limit line.
+    #[error("valve `{name}`: {param} {chip}:{offset} is already {what}")]
+    LimitLineTaken {
+        /// The valve.
+        name: ShortStr,
+        /// The parameter's suffix.
+        param: &'static str,
+        /// The chip (its first 32 bytes).
+        chip: ShortStr,
+        /// The offset.
+        offset: u32,
+        /// What holds it (`the output line of pw01`, `an end switch line`).
+        what: ShortStr,
+    },
     /// A valve's settings refused by the core.
     #[error("valve `{name}`: {source}")]
     Settings {
@@ -82,6 +118,103 @@ pub enum ValveError {
         #[source]
         source: ValveConfigError,
     },
+}
+
+/// Chip of a limit line given as a bare offset.
+pub const DEFAULT_LIMIT_CHIP: &str = "/dev/gpiochip0";
+
+/// An end switch's input line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LimitLine {
+    /// The chip path as given (`/dev/gpiochip0` when only an offset was given).
+    pub chip: PathBuf,
+    /// The line offset.
+    pub offset: u32,
+}
+
+/// A valve's end switches, from `NAME.open_limit_line`, `NAME.close_limit_line`,
+/// `NAME.limit_active_low` and `NAME.limit_debounce_ms`.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct ValveLimits {
+    /// The switch at the open end.
+    pub open: Option<LimitLine>,
+    /// The switch at the closed end.
+    pub close: Option<LimitLine>,
+    /// Both switches are active with their line electrically low.
+    pub active_low: bool,
+    /// Debounce period the kernel applies to both lines, ms.
+    pub debounce_ms: u64,
+}
+
+impl ValveLimits {
+    /// Whether the valve has a switch at all.
+    pub fn any(&self) -> bool {
+        self.open.is_some() || self.close.is_some()
+    }
+}
+
+/// The limit line of parameter `param` of valve `name` from its text (empty: none).
+pub fn limit_line(
+    name: &str,
+    param: &'static str,
+    text: &str,
+) -> Result<Option<LimitLine>, ValveError> {
+    let text = text.trim();
+    if text.is_empty() {
+        return Ok(None);
+    }
+    let (chip, offset) = parse_line_addr(text).ok_or(ValveError::LimitForm {
+        name: ShortStr::new(name),
+        param,
+        value: ShortStr::new(text),
+    })?;
+    Ok(Some(LimitLine {
+        chip: PathBuf::from(chip.unwrap_or(DEFAULT_LIMIT_CHIP)),
+        offset,
+    }))
+}
+
+/// Checks the valves' limit lines (`(valve name, limits)` in order) against the output:
+/// none under the simulated output (`outputs` = `None`), none on an output line of the node
+/// nor two on one line (chip paths compared after normalisation).
+pub fn check_limits(
+    limits: &[(&str, &ValveLimits)],
+    outputs: Option<&[GpioLine]>,
+) -> Result<(), ValveError> {
+    let mut seen: Vec<(PathBuf, u32)> = Vec::new();
+    for (name, l) in limits {
+        let Some(outputs) = outputs else {
+            if l.any() {
+                return Err(ValveError::LimitNeedsGpio {
+                    name: ShortStr::new(name),
+                });
+            }
+            continue;
+        };
+        let each = [("open_limit_line", &l.open), ("close_limit_line", &l.close)];
+        for (param, line) in each {
+            let Some(line) = line else { continue };
+            let chip = normalize_chip_path(&line.chip);
+            let taken = |what: String| ValveError::LimitLineTaken {
+                name: ShortStr::new(name),
+                param,
+                chip: ShortStr::new(&line.chip.to_string_lossy()),
+                offset: line.offset,
+                what: ShortStr::new(&what),
+            };
+            if let Some(o) = outputs
+                .iter()
+                .find(|o| o.offset == line.offset && normalize_chip_path(&o.chip) == chip)
+            {
+                return Err(taken(format!("the output line of {}", o.name)));
+            }
+            if seen.contains(&(chip.clone(), line.offset)) {
+                return Err(taken("an end switch line".into()));
+            }
+            seen.push((chip, line.offset));
+        }
+    }
+    Ok(())
 }
 
 fn entries(text: &str) -> impl Iterator<Item = &str> {
@@ -202,6 +335,72 @@ mod tests {
         assert_eq!(
             names("mix:pw01:pw02,9x:pw03:pw04,mix:a:b,pw07:x:y"),
             ["mix"]
+        );
+    }
+
+    fn out(name: &str, chip: &str, offset: u32) -> GpioLine {
+        GpioLine {
+            name: name.into(),
+            chip: chip.into(),
+            offset,
+            active_low: false,
+        }
+    }
+
+    #[test]
+    fn limit_lines_parse_as_chip_and_offset() {
+        assert_eq!(limit_line("m", "open_limit_line", " "), Ok(None));
+        let l = limit_line("m", "open_limit_line", "7").unwrap().unwrap();
+        assert_eq!((l.chip.to_str(), l.offset), (Some(DEFAULT_LIMIT_CHIP), 7));
+        let l = limit_line("m", "close_limit_line", "gpiochip1:4")
+            .unwrap()
+            .unwrap();
+        assert_eq!((l.chip.to_str(), l.offset), (Some("gpiochip1"), 4));
+        let e = limit_line("m", "close_limit_line", "x:y")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("close_limit_line `x:y` is not [CHIP:]OFFSET"),
+            "{e}"
+        );
+        assert!(limit_line("m", "open_limit_line", "-1").is_err());
+    }
+
+    #[test]
+    fn limit_lines_are_refused_on_outputs_twice_and_under_sim() {
+        let line = |t: &str| limit_line("m", "close_limit_line", t).unwrap();
+        let l = ValveLimits {
+            close: line("/dev/gpiochip0:2"),
+            ..ValveLimits::default()
+        };
+        let outputs = [
+            out("pw01", "/dev/gpiochip0", 0),
+            out("pw02", "gpiochip0", 2),
+        ];
+        let e = check_limits(&[("m", &l)], Some(&outputs))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is already the output line of pw02"), "{e}");
+        let e = check_limits(&[("m", &l)], None).unwrap_err().to_string();
+        assert!(e.contains("need --output gpio"), "{e}");
+        let none = ValveLimits::default();
+        assert_eq!(check_limits(&[("m", &none)], None), Ok(()));
+        let ok = ValveLimits {
+            open: line("5"),
+            close: line("gpiochip0:6"),
+            ..ValveLimits::default()
+        };
+        assert_eq!(check_limits(&[("m", &ok)], Some(&outputs)), Ok(()));
+        let twice = ValveLimits {
+            open: line("6"),
+            ..ValveLimits::default()
+        };
+        let e = check_limits(&[("m", &ok), ("n", &twice)], Some(&outputs))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("valve `n`") && e.contains("an end switch line"),
+            "{e}"
         );
     }
 

@@ -9,7 +9,7 @@ use crate::core::{ValveConfig, ValveStatus};
 use crate::ros::interface::msg::{self, DiagnosticStatus, KeyValue};
 use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
-use log::debug;
+use log::{debug, info};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::Publisher;
 
@@ -46,6 +46,22 @@ impl ValveOut {
 
     /// A snapshot came: it is published, and kept for the diagnostics.
     pub fn on_status(&mut self, status: ValveStatus) {
+        let was = self.last.map(|s| (s.referenced, s.switches));
+        if was.is_some_and(|w| w != (status.referenced, status.switches)) {
+            // Rare (a reference, an end switch): worth a line on the console.
+            info!(
+                "valve {}: position {:.1} %, {}, switches open {} close {}",
+                self.name,
+                status.position_pct,
+                if status.referenced {
+                    "referenced"
+                } else {
+                    "unreferenced"
+                },
+                on_off(status.switches[0]),
+                on_off(status.switches[1])
+            );
+        }
         self.last = Some(status);
         if let Err(e) = self.state.publish(state_msg(&self.name, &status)) {
             debug!("valve {}: cannot publish state: {e}", self.name);
@@ -61,6 +77,14 @@ impl ValveOut {
             self.last.as_ref(),
             self.max_uncertainty_pct,
         )
+    }
+}
+
+fn on_off(active: bool) -> &'static str {
+    if active {
+        "active"
+    } else {
+        "inactive"
     }
 }
 

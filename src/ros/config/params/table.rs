@@ -29,6 +29,8 @@ use crate::core::valve::{
     MIN_TRAVEL_MS,
 };
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
+use crate::output::gpio::parse_line_addr;
+use crate::output::gpio_input::MAX_DEBOUNCE_MS;
 use crate::ros::interface::msg;
 use std::str::FromStr;
 
@@ -163,6 +165,22 @@ fn valve_defaults() -> ValveParams {
     ValveParams::default()
 }
 
+/// Default debounce of the end switch lines, ms: longer than the bounce of common snap-action
+/// switches (1..5 ms), short beside any travel time.
+pub const DEFAULT_LIMIT_DEBOUNCE_MS: u64 = 5;
+
+/// Accepts an empty limit line or `[CHIP:]OFFSET`.
+fn limit_line_spelling(s: &str) -> Result<(), UnknownName> {
+    match s.trim() {
+        "" => Ok(()),
+        t if parse_line_addr(t).is_some() => Ok(()),
+        t => Err(UnknownName {
+            value: ShortStr::new(t),
+            accepted: "empty or [CHIP:]OFFSET (e.g. 5, gpiochip1:5)",
+        }),
+    }
+}
+
 /// Why a valve parameter cannot change while running.
 const VALVE_START_UP: &str = "a valve's settings are read at start-up only; restart the node";
 
@@ -271,6 +289,43 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             choices: Some(|s| spelled::<OnTimeout>(s, false)),
             ..Decl::new("on_timeout", String, || {
                 V::String(valve_defaults().on_timeout.as_str().to_string())
+            })
+        },
+        Decl {
+            description: "End switch at the open end: a GPIO input line [CHIP:]OFFSET (a bare \
+                          offset, quoted to stay a string, is on /dev/gpiochip0), read with \
+                          edge events. Active, it \
+                          stops the opening drive at once and sets the position to 100 %. \
+                          Empty: none.",
+            constraints: "output gpio only; not an output line of the node, not another \
+                          switch's line",
+            choices: Some(limit_line_spelling),
+            ..Decl::new("open_limit_line", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "End switch at the closed end, as open_limit_line: active, it stops \
+                          the closing drive at once and sets the position to 0 % (referenced).",
+            constraints: "output gpio only; not an output line of the node, not another \
+                          switch's line",
+            choices: Some(limit_line_spelling),
+            ..Decl::new("close_limit_line", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "Both end switches are active with their line electrically low \
+                          (normally closed contacts to ground with a pull-up).",
+            ..Decl::new("limit_active_low", Bool, || V::Boolean(false))
+        },
+        Decl {
+            description: "Debounce period of the end switch lines, ms (the kernel's: the chip's \
+                          own, or the GPIO character device's in software); a change is \
+                          reported once the line has been stable this long. 0: none.",
+            range: Range::Integer(0, MAX_DEBOUNCE_MS as i64),
+            ..Decl::new("limit_debounce_ms", Integer, || {
+                V::Integer(DEFAULT_LIMIT_DEBOUNCE_MS as i64)
             })
         },
     ]
