@@ -1322,10 +1322,14 @@ impl InnerSubscriber {
     )?;
 
     // Send reader ingredients to DP event loop, where the actual reader will be
-    // constructed
+    // constructed. A blocking send, as for writers: the channel is bounded (100)
+    // and a participant creating hundreds of readers at once on a loaded machine
+    // filled it, failing the creation with "sending on a full channel". No lock
+    // is held here (the Discovery DB guard above is scoped), so waiting for the
+    // event loop to drain it cannot deadlock.
     self
       .sender_add_reader
-      .try_send(new_reader)
+      .send(new_reader)
       .or_else(|e| create_error_poisoned!("Cannot add DataReader. Error: {}", e))?;
 
     // Return the DataReader to user
