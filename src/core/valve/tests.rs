@@ -686,7 +686,9 @@ proptest! {
         let travel = p.travel_open_ms.min(p.travel_close_ms) as f64;
         let one_pulse = min_pulse as f64 / travel * 100.0;
         let delivered = r.v.estimate(r.now) - start;
-        let commanded = target - 50.0;
+        // From where the first move really stopped: a late fall (the latency) leaves it a
+        // little past 50 %, which is not part of the short moves.
+        let commanded = target - start;
         prop_assert!(
             (delivered - commanded).abs() <= one_pulse + 1e-9,
             "delivered {delivered} vs commanded {commanded}, one pulse {one_pulse}"
