@@ -10,6 +10,7 @@
 mod bench;
 mod safe_off_cmd;
 mod sim_heater;
+mod sim_ros;
 mod sim_valve;
 
 use clap::error::ErrorKind;

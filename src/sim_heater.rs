@@ -9,17 +9,15 @@
 //! `sensor_shorted`). With `--record` it writes every reading and every edge to a CSV file
 //! (`t_s,kind,value,true_c`), for the pictures of docs/heater.md.
 
+use crate::sim_ros::{self, make_topic};
 use clap::{ArgAction, Args, FromArgMatches};
 use futures::StreamExt;
 use pwm_actuator::clock;
 use pwm_actuator::core::heater::{Plant, PlantFault, PlantParams};
-use pwm_actuator::ros::config::discovery;
-use pwm_actuator::ros::config::start::domain_id_from;
 use pwm_actuator::ros::interface::msg::{self, Header, RosMessage};
-use pwm_actuator::ros::interface::type_hash;
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::qos::{History, Reliability};
-use ros2_client::{Context, NodeName, NodeOptions, QosProfile};
+use ros2_client::QosProfile;
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -175,36 +173,7 @@ pub fn run(o: SimHeaterOptions) -> i32 {
             return 2;
         }
     };
-    let rt = match tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-    {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("sim-heater: cannot start the runtime: {e}");
-            return 1;
-        }
-    };
-    match rt.block_on(serve(o, params, fault)) {
-        Ok(()) => 0,
-        Err(e) => {
-            eprintln!("sim-heater: {e}");
-            1
-        }
-    }
-}
-
-/// The topic `name` (a full ROS name) of type `ty`.
-fn make_topic(
-    node: &ros2_client::Node,
-    name: &str,
-    ty: ros2_client::MessageTypeName,
-    qos: &QosProfile,
-) -> Result<rustdds::Topic, String> {
-    let ros_name = ros2_client::Name::parse(name).map_err(|e| format!("topic {name}: {e}"))?;
-    node.create_topic(&ros_name, ty, qos)
-        .map_err(|e| format!("topic {name}: {e}"))
+    sim_ros::block_on("sim-heater", serve(o, params, fault))
 }
 
 /// The plant's line as last told and since when (monotonic ns).
@@ -224,24 +193,7 @@ impl Record {
 }
 
 async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> Result<(), String> {
-    let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())
-        .map_err(|e| e.to_string())?;
-    let disc = discovery::read(|k| std::env::var(k).ok()).map_err(|e| e.to_string())?;
-    // Its endpoints announce their type hashes, as the node's do.
-    type_hash::announce().map_err(|e| e.to_string())?;
-    let participant = disc
-        .participant(domain, None)
-        .map_err(|e| format!("the DDS participant: {e}"))?;
-    let context = Context::from_domain_participant(participant)
-        .map_err(|e| format!("the DDS participant: {e}"))?;
-    let name = NodeName::new("/", "sim_heater").map_err(|e| e.to_string())?;
-    let mut node = context
-        .new_node(name, NodeOptions::new().enable_rosout(false))
-        .map_err(|e| format!("node: {e}"))?;
-    let spinner = node.spinner().map_err(|e| format!("spinner: {e}"))?;
-    tokio::spawn(async move {
-        let _ = spinner.spin().await;
-    });
+    let mut node = sim_ros::start_node("sim_heater")?;
     let reliable = QosProfile::publisher_default().history(History::KeepLast { depth: 100 });
     let edges_topic = format!("{}/{}/edges", o.node.trim_end_matches('/'), o.channel);
     let edges_t = make_topic(&node, &edges_topic, msg::OutputEdge::type_name(), &reliable)?;

@@ -8,14 +8,13 @@
 //! writes every edge and every published position to a CSV file (`t_s,kind,value`, wall-clock
 //! seconds; kind `open`, `close` or `true`) for the picture of docs/valve.md.
 
+use crate::sim_ros::{self, make_topic};
 use clap::{ArgAction, Args, FromArgMatches};
 use futures::StreamExt;
 use pwm_actuator::clock;
-use pwm_actuator::ros::config::discovery;
-use pwm_actuator::ros::config::start::domain_id_from;
 use pwm_actuator::ros::interface::msg::{self, RosMessage};
 use ros2_client::qos::History;
-use ros2_client::{Context, NodeName, NodeOptions, QosProfile};
+use ros2_client::QosProfile;
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -156,35 +155,7 @@ pub fn run(o: SimValveOptions) -> i32 {
         eprintln!("sim-valve: {e}");
         return 2;
     }
-    let rt = match tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-    {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("sim-valve: cannot start the runtime: {e}");
-            return 1;
-        }
-    };
-    match rt.block_on(serve(o)) {
-        Ok(()) => 0,
-        Err(e) => {
-            eprintln!("sim-valve: {e}");
-            1
-        }
-    }
-}
-
-fn make_topic(
-    node: &ros2_client::Node,
-    name: &str,
-    ty: ros2_client::MessageTypeName,
-    qos: &QosProfile,
-) -> Result<rustdds::Topic, String> {
-    let ros_name = ros2_client::Name::parse(name).map_err(|e| format!("topic {name}: {e}"))?;
-    node.create_topic(&ros_name, ty, qos)
-        .map_err(|e| format!("topic {name}: {e}"))
+    sim_ros::block_on("sim-valve", serve(o))
 }
 
 /// The CSV record, if asked for.
@@ -203,22 +174,7 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 }
 
 async fn serve(o: SimValveOptions) -> Result<(), String> {
-    let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())
-        .map_err(|e| e.to_string())?;
-    let disc = discovery::read(|k| std::env::var(k).ok()).map_err(|e| e.to_string())?;
-    let participant = disc
-        .participant(domain, None)
-        .map_err(|e| format!("the DDS participant: {e}"))?;
-    let context = Context::from_domain_participant(participant)
-        .map_err(|e| format!("the DDS participant: {e}"))?;
-    let name = NodeName::new("/", "sim_valve").map_err(|e| e.to_string())?;
-    let mut node = context
-        .new_node(name, NodeOptions::new().enable_rosout(false))
-        .map_err(|e| format!("node: {e}"))?;
-    let spinner = node.spinner().map_err(|e| format!("spinner: {e}"))?;
-    tokio::spawn(async move {
-        let _ = spinner.spin().await;
-    });
+    let mut node = sim_ros::start_node("sim_valve")?;
     let reliable = QosProfile::publisher_default().history(History::KeepLast { depth: 100 });
     let valve = Arc::new(Mutex::new(TrueValve::new(
         o.start_pct,
