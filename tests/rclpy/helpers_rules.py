@@ -26,6 +26,12 @@ from std_msgs.msg import Bool, Float64, UInt16
 
 #: Nanoseconds per millisecond.
 MS = 1_000_000
+
+
+def stamp_ns(stamp: Any) -> int:
+    """A builtin_interfaces/Time in nanoseconds."""
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
 #: Tolerance of written times (trace `t_ns`, edge stamps, lateness) against scheduled ones, ns.
 #: Timing accuracy is the benchmark's business; this only catches an edge written at a wrong
 #: moment, on a loaded 2-core machine.

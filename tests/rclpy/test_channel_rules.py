@@ -32,6 +32,7 @@ from helpers_rules import (
     mono_ns,
     node_args,
     pulses,
+    stamp_ns,
     t_on_ns,
     trace_edges,
     wait_trace,
@@ -183,7 +184,7 @@ def test_period_and_on_time_of_edges(node_process, ros):
         assert 0 <= m.lateness_ns <= WRITE_TOL_NS, m
         assert abs(m.lateness_ns - (row.t_ns - row.scheduled_ns)) <= WRITE_TOL_NS, (m, row)
     # Wall-clock stamps: period and on time within the tolerance.
-    stamps = [m.stamp.sec * 1_000_000_000 + m.stamp.nanosec for m in msgs]
+    stamps = [stamp_ns(m.stamp) for m in msgs]
     first_rise = 0 if msgs[0].level else 1  # the first message may precede matching
     for k in range(first_rise, n_edges - 2, 2):
         assert msgs[k].level and not msgs[k + 1].level

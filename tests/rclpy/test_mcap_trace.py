@@ -27,6 +27,8 @@ from mcap_ros2.decoder import DecoderFactory
 from pwm_actuator_msgs.msg import ChannelStatus, OutputEdge
 from std_msgs.msg import Float64
 
+from helpers_rules import stamp_ns
+
 NODE = "/pwm_actuator"
 CHANNELS = ("pw01", "pw02")
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -149,7 +151,7 @@ def compare_edges(
         assert record.sequence == k + 1
         assert msg.channel == channel
         assert int(msg.level) == level, f"edge {k} (seq {msg.seq}): level differs"
-        stamp = msg.stamp.sec * 1_000_000_000 + msg.stamp.nanosec
+        stamp = stamp_ns(msg.stamp)
         assert record.log_time == stamp and record.publish_time == stamp
         # The MCAP says when (wall clock) and how late; the CSV when it was scheduled and
         # written (monotonic): scheduled = stamp - lateness is the CSV's, a clock offset away.

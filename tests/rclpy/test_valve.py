@@ -19,7 +19,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from pwm_actuator_msgs.msg import ValveState
 from std_msgs.msg import Float64
 
-from helpers_rules import MS, NODE, diag_level, diag_values, node_args, trace_edges
+from helpers_rules import MS, NODE, diag_level, diag_values, node_args, stamp_ns, trace_edges
 
 TRAVEL_OPEN_MS = 2000
 TRAVEL_CLOSE_MS = 1600
@@ -89,9 +89,17 @@ def test_a_valve_references_follows_positions_and_keeps_its_lines_apart(node_pro
             what=f"the valve at {target} %",
         )
     assert last.referenced and last.activity == "tracking", last
-    start = len(diags.messages)
+    # The snapshot sent with the last fall is followed at once by one whose estimate counts the
+    # fall's real write time: once the valve has settled, the newest state is the one the
+    # diagnostics judge by, and a status stamped after it shows the same figures.
+    ros.spin_for(0.5)
+    last = states.messages[-1]
+    assert last.motion == "stopped" and last.target_pct == 55.0, last
+    settled = stamp_ns(last.stamp)
     status = diags.wait_for(
-        lambda a: any(s.name.endswith("valve mix") for s in a.status), start=start, timeout=10.0
+        lambda a: stamp_ns(a.header.stamp) > settled
+        and any(s.name.endswith("valve mix") for s in a.status),
+        timeout=10.0,
     )
     mine = [s for s in status.status if s.name.endswith("valve mix")][0]
     assert diag_level(mine) == OK, mine
