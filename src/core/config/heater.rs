@@ -1,7 +1,7 @@
 //! The heater settings of a channel (issue 22): the loop's mode and gains, the temperature
 //! limits and the checks' parameters, their ranges and validation. Off by default.
 
-use super::{Nanos, MAX_PERIOD_MS, MAX_TIMEOUT_MS, NS_PER_MS};
+use super::{Nanos, OutOfRange, MAX_PERIOD_MS, MAX_TIMEOUT_MS, NS_PER_MS};
 
 /// The gains of the loop.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -138,17 +138,8 @@ impl Default for HeaterParams {
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum HeaterConfigError {
     /// A value outside its range, or not a number.
-    #[error("{name} {value} is outside {min}..{max}")]
-    OutOfRange {
-        /// The parameter.
-        name: &'static str,
-        /// The refused value.
-        value: f64,
-        /// Lowest accepted.
-        min: f64,
-        /// Highest accepted.
-        max: f64,
-    },
+    #[error(transparent)]
+    OutOfRange(#[from] OutOfRange),
     /// `temp_min_c` not below `temp_max_c`.
     #[error("temp_min_c {min_c} is not below temp_max_c {max_c}")]
     TempLimits {
@@ -196,19 +187,6 @@ pub struct HeaterConfig {
     pub params: HeaterParams,
 }
 
-fn range(name: &'static str, value: f64, min: f64, max: f64) -> Result<(), HeaterConfigError> {
-    if (min..=max).contains(&value) {
-        Ok(())
-    } else {
-        Err(HeaterConfigError::OutOfRange {
-            name,
-            value,
-            min,
-            max,
-        })
-    }
-}
-
 fn seconds(s: f64) -> Nanos {
     (s * 1e9).round() as Nanos
 }
@@ -223,58 +201,58 @@ impl HeaterParams {
                 value_ms: self.pid_sample_ms,
             });
         }
-        range("pid_kp", self.pid_kp, 0.0, MAX_GAIN)?;
-        range("pid_ki", self.pid_ki, 0.0, MAX_GAIN)?;
-        range("pid_kd", self.pid_kd, 0.0, MAX_GAIN)?;
-        range("pid_d_filter_s", self.pid_d_filter_s, 0.0, MAX_TIME_S)?;
-        range("temp_min_c", self.temp_min_c, MIN_TEMP_C, MAX_TEMP_C)?;
-        range("temp_max_c", self.temp_max_c, MIN_TEMP_C, MAX_TEMP_C)?;
+        OutOfRange::check("pid_kp", self.pid_kp, 0.0, MAX_GAIN)?;
+        OutOfRange::check("pid_ki", self.pid_ki, 0.0, MAX_GAIN)?;
+        OutOfRange::check("pid_kd", self.pid_kd, 0.0, MAX_GAIN)?;
+        OutOfRange::check("pid_d_filter_s", self.pid_d_filter_s, 0.0, MAX_TIME_S)?;
+        OutOfRange::check("temp_min_c", self.temp_min_c, MIN_TEMP_C, MAX_TEMP_C)?;
+        OutOfRange::check("temp_max_c", self.temp_max_c, MIN_TEMP_C, MAX_TEMP_C)?;
         if self.temp_min_c >= self.temp_max_c {
             return Err(HeaterConfigError::TempLimits {
                 min_c: self.temp_min_c,
                 max_c: self.temp_max_c,
             });
         }
-        range(
+        OutOfRange::check(
             "feedback_timeout_ms",
             self.feedback_timeout_ms as f64,
             0.0,
             MAX_TIMEOUT_MS as f64,
         )?;
-        range(
+        OutOfRange::check(
             "runaway_hysteresis_c",
             self.runaway_hysteresis_c,
             0.0,
             MAX_DELTA_C,
         )?;
-        range(
+        OutOfRange::check(
             "runaway_max_error",
             self.runaway_max_error,
             0.0,
             MAX_RUNAWAY_ERROR,
         )?;
-        range(
+        OutOfRange::check(
             "runaway_gain_time_s",
             self.runaway_gain_time_s,
             1.0,
             MAX_TIME_S,
         )?;
         // Klipper: heating_gain "above=0".
-        range(
+        OutOfRange::check(
             "runaway_heating_gain_c",
             self.runaway_heating_gain_c,
             0.001,
             MAX_DELTA_C,
         )?;
-        range("stuck_on_rise_c", self.stuck_on_rise_c, 0.0, MAX_DELTA_C)?;
-        range("stuck_on_time_s", self.stuck_on_time_s, 1.0, MAX_TIME_S)?;
-        range(
+        OutOfRange::check("stuck_on_rise_c", self.stuck_on_rise_c, 0.0, MAX_DELTA_C)?;
+        OutOfRange::check("stuck_on_time_s", self.stuck_on_time_s, 1.0, MAX_TIME_S)?;
+        OutOfRange::check(
             "autotune_max_overshoot_c",
             self.autotune_max_overshoot_c,
             0.1,
             MAX_DELTA_C,
         )?;
-        range(
+        OutOfRange::check(
             "autotune_timeout_s",
             self.autotune_timeout_s,
             1.0,

@@ -21,6 +21,36 @@ pub use sizing::Sizing;
 /// Nanoseconds in one millisecond.
 pub const NS_PER_MS: Nanos = 1_000_000;
 
+/// A value outside its range, or not a number: the refusal of a heater or valve setting.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[error("{name} {value} is outside {min}..{max}")]
+pub struct OutOfRange {
+    /// The parameter.
+    pub name: &'static str,
+    /// The refused value.
+    pub value: f64,
+    /// Lowest accepted.
+    pub min: f64,
+    /// Highest accepted.
+    pub max: f64,
+}
+
+impl OutOfRange {
+    /// `Ok` when `value` lies within `min..=max` (NaN never does); the refusal otherwise.
+    pub fn check(name: &'static str, value: f64, min: f64, max: f64) -> Result<(), OutOfRange> {
+        if (min..=max).contains(&value) {
+            Ok(())
+        } else {
+            Err(OutOfRange {
+                name,
+                value,
+                min,
+                max,
+            })
+        }
+    }
+}
+
 /// Longest period accepted, in ms (one hour).
 pub const MAX_PERIOD_MS: u64 = 3_600_000;
 

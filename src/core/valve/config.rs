@@ -1,7 +1,7 @@
 //! The settings of one three-point valve: what a user states (milliseconds, percent, hours),
 //! their ranges, and the validated form in nanoseconds the valve runs on.
 
-use crate::core::config::named_enum;
+use crate::core::config::{named_enum, OutOfRange};
 use crate::core::{Nanos, NS_PER_MS};
 
 /// Shortest travel time accepted, ms.
@@ -107,17 +107,8 @@ impl Default for ValveParams {
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum ValveConfigError {
     /// A value outside its range, or not a number.
-    #[error("{name} {value} is outside {min}..{max}")]
-    OutOfRange {
-        /// The parameter.
-        name: &'static str,
-        /// The refused value.
-        value: f64,
-        /// Lowest accepted.
-        min: f64,
-        /// Highest accepted.
-        max: f64,
-    },
+    #[error(transparent)]
+    OutOfRange(#[from] OutOfRange),
 }
 
 /// The validated settings a valve runs on, in nanoseconds.
@@ -149,69 +140,56 @@ pub struct ValveConfig {
     pub params: ValveParams,
 }
 
-fn range(name: &'static str, value: f64, min: f64, max: f64) -> Result<(), ValveConfigError> {
-    if (min..=max).contains(&value) {
-        Ok(())
-    } else {
-        Err(ValveConfigError::OutOfRange {
-            name,
-            value,
-            min,
-            max,
-        })
-    }
-}
-
 impl ValveParams {
     /// Checks every value against its range (NaN never passes) and makes the nanosecond form.
     pub fn validate(self) -> Result<ValveConfig, ValveConfigError> {
         let travel = (MIN_TRAVEL_MS as f64, MAX_TRAVEL_MS as f64);
-        range(
+        OutOfRange::check(
             "travel_open_ms",
             self.travel_open_ms as f64,
             travel.0,
             travel.1,
         )?;
-        range(
+        OutOfRange::check(
             "travel_close_ms",
             self.travel_close_ms as f64,
             travel.0,
             travel.1,
         )?;
-        range("deadband_pct", self.deadband_pct, 0.0, MAX_DEADBAND_PCT)?;
+        OutOfRange::check("deadband_pct", self.deadband_pct, 0.0, MAX_DEADBAND_PCT)?;
         let shorter = self.travel_open_ms.min(self.travel_close_ms);
-        range(
+        OutOfRange::check(
             "min_pulse_ms",
             self.min_pulse_ms as f64,
             0.0,
             shorter as f64,
         )?;
-        range(
+        OutOfRange::check(
             "reversal_pause_ms",
             self.reversal_pause_ms as f64,
             0.0,
             MAX_REVERSAL_PAUSE_MS as f64,
         )?;
-        range(
+        OutOfRange::check(
             "end_overrun_pct",
             self.end_overrun_pct,
             0.0,
             MAX_END_OVERRUN_PCT,
         )?;
-        range(
+        OutOfRange::check(
             "recalibrate_after_s",
             self.recalibrate_after_s as f64,
             0.0,
             MAX_RECALIBRATE_AFTER_S as f64,
         )?;
-        range(
+        OutOfRange::check(
             "exercise_every_h",
             self.exercise_every_h as f64,
             0.0,
             MAX_EXERCISE_EVERY_H as f64,
         )?;
-        range("max_uncertainty_pct", self.max_uncertainty_pct, 0.0, 100.0)?;
-        range(
+        OutOfRange::check("max_uncertainty_pct", self.max_uncertainty_pct, 0.0, 100.0)?;
+        OutOfRange::check(
             "command_timeout_ms",
             self.command_timeout_ms as f64,
             0.0,

@@ -535,7 +535,7 @@ fn out_of_range_parameters_are_refused_with_their_name() {
     let names: Vec<_> = bad
         .iter()
         .map(|p| match p.validate() {
-            Err(ValveConfigError::OutOfRange { name, .. }) => name,
+            Err(ValveConfigError::OutOfRange(e)) => e.name,
             Ok(_) => "accepted",
         })
         .collect();
