@@ -5,22 +5,25 @@ is the user: an rclpy ActionClient sends the goal to ~/pw01/autotune.
 - with `apply` the run converges, feedback arrives for every cycle, the result carries Ku, Tu,
   the gains and the sizing, the gains are the parameters afterwards, and the loop with them
   takes a step of about 25 °C and settles within ±1 °C (overshoot printed, bounded at 3 °C);
-- a cancel mid-run ends the goal CANCELED, leaves the line off and the old gains in force.
+- a cancel mid-run ends the goal CANCELED; an e-stop, a disable and a heater fault
+  (`sensor_timeout`, the simulated sensor falling silent) end it ABORTED with the reason; each
+  leaves the line off and the old gains in force.
 """
 
 from __future__ import annotations
 
 import math
 
+import pytest
 from action_msgs.msg import GoalStatus
 from rclpy.action import ActionClient
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Temperature
-from std_msgs.msg import Float64
+from std_msgs.msg import Bool, Float64, String
 
 from pwm_actuator_msgs.action import Autotune
 
-from helpers_rules import MS, NODE, mono_ns
+from helpers_rules import MS, NODE, diag_values, mono_ns
 from test_channel_rules import close_trace, observe_until, start
 from test_heater import PARAMS, PLANT, TOPIC
 
@@ -77,7 +80,11 @@ def test_autotune_with_apply_sets_gains_that_settle_the_loop(
     # TCONT_CP: a 200 ms period keeps period <= TI/5 for TI = 2.2 Tu.
     assert r.period_ok and r.min_times_ok and r.recommended_period_ms >= 200, r
     assert not r.sizing, r
-    # Feedback: the approach, then each cycle counted up to the result's.
+    # Feedback: the approach, then each cycle counted up to the result's (the last feedback and
+    # the result travel on different topics: the feedback may come second).
+    ros.spin_until(
+        lambda: feedback and feedback[-1].cycles == r.cycles, "the last cycle's feedback", 5.0
+    )
     phases = [f.phase for f in feedback]
     assert phases[0] == "approach" and "relay" in phases, phases
     cycles = [f.cycles for f in feedback]
@@ -119,27 +126,73 @@ def test_autotune_with_apply_sets_gains_that_settle_the_loop(
     assert ch.status.messages[-1].heater_fault == "", ch.status.messages[-1]
 
 
-def test_a_cancel_mid_run_leaves_the_line_off_and_the_old_gains(
-    node_process, process_launcher, node_binary, ros
+def cancel(ros, handle, ch) -> None:
+    canceled = handle.cancel_goal_async()
+    ros.spin_until(canceled.done, "the cancel's answer", timeout=10)
+    assert len(canceled.result().goals_canceling) == 1, canceled.result()
+
+
+def estop(ros, handle, ch) -> None:
+    pub = ros.publisher(Bool, f"{NODE}/estop")
+    ros.wait_for_subscribers(pub, 1)
+    pub.publish(Bool(data=True))
+
+
+def disable(ros, handle, ch) -> None:
+    ch.enable(False)
+
+
+def sensor_silent(ros, handle, ch) -> None:
+    # The simulated heater stops publishing: sensor_timeout latches after feedback_timeout_ms.
+    pub = ros.publisher(String, "/sim_heater/fault")
+    ros.wait_for_subscribers(pub, 1)
+    pub.publish(String(data="sensor_silent"))
+
+
+#: Each way a run ends early: what ends it, the goal's status, the result's `stop`, and the
+#: heater fault latched afterwards.
+ENDS = {
+    "cancel": (cancel, GoalStatus.STATUS_CANCELED, "canceled", ""),
+    "estop": (estop, GoalStatus.STATUS_ABORTED, "estop", ""),
+    "disable": (disable, GoalStatus.STATUS_ABORTED, "disabled", ""),
+    "heater_fault": (sensor_silent, GoalStatus.STATUS_ABORTED, "heater_fault", "sensor_timeout"),
+}
+
+
+@pytest.mark.parametrize("how", list(ENDS))
+def test_a_run_ended_mid_way_leaves_the_line_off_and_the_old_gains(
+    how, node_process, process_launcher, node_binary, ros
 ):
+    end, want_status, want_stop, want_fault = ENDS[how]
     proc, ch, client = run(node_process, process_launcher, node_binary, ros)
     feedback: list = []
     handle = send(ros, client, True, feedback)
     ros.spin_until(
         lambda: any(f.phase == "relay" for f in feedback), "the relay cycling", timeout=60
     )
-    canceled = handle.cancel_goal_async()
-    ros.spin_until(canceled.done, "the cancel's answer", timeout=10)
-    assert len(canceled.result().goals_canceling) == 1, canceled.result()
+    # The channel's diagnostics say that the relay, not the loop, sets the duty.
+    d = ch.wait_diag(
+        lambda d: diag_values(d).get("autotune", "").startswith("relay"), "autotune running"
+    )
+    assert d.message.startswith("autotune running (relay, "), d
+    before_end = len(ch.status.messages)
+    end(ros, handle, ch)
     got = handle.get_result_async()
-    ros.spin_until(got.done, "the canceled goal's result", timeout=10)
+    ros.spin_until(got.done, "the ended goal's result", timeout=10)
     ended = mono_ns()
     status, r = got.result().status, got.result().result
-    assert status == GoalStatus.STATUS_CANCELED, (status, r)
-    assert r.stop == "canceled" and not r.converged and not r.applied, r
+    assert status == want_status, (status, r)
+    assert r.stop == want_stop and not r.converged and not r.applied, r
     assert r.pid_kp == 0.0 and r.ku == 0.0, r
-    s = ch.wait_status(lambda s: s.duty_commanded == 0.0 and not s.output, "0 % after the cancel")
-    assert s.heater_fault == "", s
+    # Every end leaves 0 % commanded (nothing switches on again by itself) and the line off.
+    s = ch.wait_status(
+        lambda s: s.duty_commanded == 0.0 and not s.output,
+        f"0 % and the line off after {how}",
+        start=before_end,
+    )
+    assert s.heater_fault == want_fault, s
+    start = len(ch.diagnostics.messages)
+    ch.wait_diag(lambda d: diag_values(d)["autotune"] == "", "no autotune after it", start=start)
     got_params = ros.get_parameters(NODE, ["pw01.pid_kp", "pw01.pid_ki", "pw01.pid_kd"])
     assert got_params == {"pw01.pid_kp": 2.0, "pw01.pid_ki": 0.05, "pw01.pid_kd": 0.0}, got_params
     # The line stays off: no rise on the trace after the end (the last pulse finishes within

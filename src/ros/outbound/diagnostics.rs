@@ -14,6 +14,7 @@
 //! Pure bookkeeping fed by engine reports; it does not publish and does not read clocks (times
 //! are passed in).
 
+use crate::core::heater::autotune::{Phase, Progress};
 use crate::core::{Command, Nanos, Status, NS_PER_MS};
 use crate::ros::interface::msg::{ChannelStatus, DiagnosticStatus, KeyValue};
 
@@ -370,6 +371,14 @@ pub fn frequency_status_name(node_name: &str, channel: &str) -> String {
     format!("{node_name}: {channel} command frequency")
 }
 
+/// An autotune's progress in a few words: `approach`, `relay, 3 cycles`.
+fn autotune_progress(p: &Progress) -> String {
+    match p.phase {
+        Phase::Approach => p.phase.as_str().to_string(),
+        Phase::Relay => format!("{}, {} cycles", p.phase.as_str(), p.cycles),
+    }
+}
+
 /// The name of the node's own status: `<node name>: node`.
 pub fn node_status_name(node_name: &str) -> String {
     format!("{node_name}: node")
@@ -406,6 +415,9 @@ pub struct ChannelHealth {
     pub clamped: u64,
     /// Messages that could not be published (a subscriber not keeping up).
     pub publish_failures: u64,
+    /// An autotune runs on the channel: its last progress (the relay, not the loop or a
+    /// command, sets the duty).
+    pub autotune: Option<Progress>,
 }
 
 impl ChannelHealth {
@@ -567,6 +579,11 @@ impl ChannelHealth {
                 ms(s.t_off)
             )
         };
+        // An autotune's relay sets the duty: said first, so the duty is not taken for the loop's.
+        let state = match &self.autotune {
+            Some(p) => format!("autotune running ({}); {state}", autotune_progress(p)),
+            None => state,
+        };
         // Sizing advice: the channel runs as set; a vendor recommends otherwise (WARN).
         let state = match s.sizing {
             Some(advice) => format!("{state}; sizing: {advice}"),
@@ -653,6 +670,12 @@ impl ChannelHealth {
                         h.fault.map_or(String::new(), |f| f.check().to_string()),
                     ),
                     ("heater_fault_lasts", h.fault_lasts.to_string()),
+                    (
+                        "autotune",
+                        self.autotune
+                            .as_ref()
+                            .map_or(String::new(), autotune_progress),
+                    ),
                     (
                         "sizing",
                         h.sizing
@@ -1053,6 +1076,43 @@ mod tests {
         assert_eq!(h.level(0), DiagnosticStatus::OK);
         let d = h.to_status("n", 0, NodeCounters::default());
         assert_eq!(kv(&d, "sizing_advice"), "");
+    }
+
+    #[test]
+    fn a_running_autotune_is_said_first_and_listed() {
+        let mut h = ChannelHealth::new("pw01", "sim");
+        let mut s = status();
+        s.heater.feedback = true;
+        h.status = Some(s);
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(kv(&d, "autotune"), "");
+        assert!(d.message.starts_with("enabled, 37.0 %"), "{}", d.message);
+
+        h.autotune = Some(Progress {
+            phase: Phase::Relay,
+            cycles: 3,
+            amplitude_c: 1.5,
+            period_s: 4.0,
+        });
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(d.level, DiagnosticStatus::OK);
+        assert_eq!(kv(&d, "autotune"), "relay, 3 cycles");
+        assert!(
+            d.message
+                .starts_with("autotune running (relay, 3 cycles); enabled, 37.0 %"),
+            "{}",
+            d.message
+        );
+        // A fault outranks it.
+        h.status = Some(Status {
+            estopped: true,
+            ..s
+        });
+        assert!(
+            h.message(0).starts_with("e-stop latched"),
+            "{}",
+            h.message(0)
+        );
     }
 
     #[test]

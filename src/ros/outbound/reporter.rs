@@ -427,7 +427,7 @@ impl Reporter {
                     .answer_reset(ch, ticket, result.map_err(|e| e.to_string()));
             }
             Event::Autotune { ticket, report } => {
-                use crate::core::heater::autotune::Report;
+                use crate::core::heater::autotune::{Phase, Progress, Report};
                 match &report {
                     Report::Refused(r) => warn!("{name}: autotune refused: {r}"),
                     Report::Started => info!("{name}: autotune started"),
@@ -446,6 +446,20 @@ impl Reporter {
                         ),
                         _ => warn!("{name}: autotune ended without gains: {}", o.stop),
                     },
+                }
+                // While a run lasts, the channel's diagnostics say so.
+                match &report {
+                    Report::Refused(_) => {}
+                    Report::Started => {
+                        self.health[ch].autotune = Some(Progress {
+                            phase: Phase::Approach,
+                            cycles: 0,
+                            amplitude_c: 0.0,
+                            period_s: 0.0,
+                        })
+                    }
+                    Report::Progress(p) => self.health[ch].autotune = Some(*p),
+                    Report::Finished(_) => self.health[ch].autotune = None,
                 }
                 self.state.file_autotune(ch, ticket, report);
             }
