@@ -8,7 +8,9 @@ and checks the node's CSV trace of the two lines.
   the travel times) and the state reports the same estimate;
 - on the trace: the two lines are never on together, and a line rises only after both were off
   for the reversal pause;
-- a refused `valve` or valve parameter stops the node with exit code 2 and the reason.
+- a refused `valve` or valve parameter stops the node with exit code 2 and the reason;
+- the e-stop and a lifecycle deactivate stop a moving valve with both lines off at once; after
+  the reset it waits for a fresh command, after activation it resumes; at exit both are off.
 """
 
 from __future__ import annotations
@@ -16,10 +18,22 @@ from __future__ import annotations
 import math
 
 from diagnostic_msgs.msg import DiagnosticArray
+from lifecycle_msgs.msg import Transition
 from pwm_actuator_msgs.msg import ValveState
-from std_msgs.msg import Float64
+from std_msgs.msg import Bool, Float64
+from std_srvs.srv import Trigger
 
-from helpers_rules import MS, NODE, diag_level, diag_values, node_args, stamp_ns, trace_edges
+from helpers_rules import (
+    MS,
+    NODE,
+    diag_level,
+    diag_values,
+    mono_ns,
+    node_args,
+    stamp_ns,
+    trace_edges,
+)
+from test_lifecycle import change
 
 TRAVEL_OPEN_MS = 2000
 TRAVEL_CLOSE_MS = 1600
@@ -39,6 +53,29 @@ VALVE = dict(
     # 10 % of the run time over the travel time grows past 20 % over this test's strokes.
     mix__max_uncertainty_pct=50.0,
 )
+
+
+def assert_lines_apart(open_edges, close_edges) -> int:
+    """Asserts on the trace that the two lines are never on together and that a line rises only
+    after both were off for the reversal pause; returns the number of rises."""
+    rows = sorted(
+        [(e.t_ns, "pw01", e.level) for e in open_edges]
+        + [(e.t_ns, "pw02", e.level) for e in close_edges]
+    )
+    high = {"pw01": 0, "pw02": 0}
+    fell = None
+    rises = 0
+    for t, ch, level in rows:
+        if level == 1 and high[ch] == 0:
+            rises += 1
+            other = "pw02" if ch == "pw01" else "pw01"
+            assert high[other] == 0, f"{ch} rose at {t} while {other} was on"
+            if fell is not None:
+                assert t - fell >= PAUSE_MS * MS, f"{ch} rose {(t - fell) / MS:.1f} ms after a fall"
+        if level == 0 and high[ch] == 1:
+            fell = t
+        high[ch] = level
+    return rises
 
 
 def drive_integral(open_edges, close_edges) -> float:
@@ -109,24 +146,8 @@ def test_a_valve_references_follows_positions_and_keeps_its_lines_apart(node_pro
     assert code == 0, proc.output()
     open_edges = trace_edges(proc, "pw01")
     close_edges = trace_edges(proc, "pw02")
-    rows = sorted(
-        [(e.t_ns, "pw01", e.level) for e in open_edges]
-        + [(e.t_ns, "pw02", e.level) for e in close_edges]
-    )
-    high = {"pw01": 0, "pw02": 0}
-    fell = None
-    rises = 0
-    for t, ch, level in rows:
-        if level == 1 and high[ch] == 0:
-            rises += 1
-            other = "pw02" if ch == "pw01" else "pw01"
-            assert high[other] == 0, f"{ch} rose at {t} while {other} was on"
-            if fell is not None:
-                assert t - fell >= PAUSE_MS * MS, f"{ch} rose {(t - fell) / MS:.1f} ms after a fall"
-        if level == 0 and high[ch] == 1:
-            fell = t
-        high[ch] = level
-    assert rises >= 7, rows
+    rises = assert_lines_apart(open_edges, close_edges)
+    assert rises >= 7, (open_edges, close_edges)
     # The state's estimate is the trace's drive times over the travel times (the trace records
     # each edge when its write returned, as the output thread reports it to the valve).
     integral = drive_integral(open_edges, close_edges)
@@ -143,3 +164,91 @@ def test_a_refused_valve_stops_the_node_with_the_reason(node_process):
         code = proc.wait_exit()
         assert code == 2, proc.output()
         assert reason in proc.output(), proc.output()
+
+
+def test_the_estop_and_deactivation_stop_a_moving_valve_and_leave_both_lines_off(
+    node_process, ros
+):
+    """docs/valve.md: the e-stop and a managed node's inactive states drive both lines off at
+    once and the valve stays where it is; after the e-stop's reset it waits for a fresh position
+    command, after activation it resumes its move; at exit both lines are off."""
+    proc = node_process(["--managed"] + node_args(**VALVE))
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    pub = ros.publisher(Float64, f"{NODE}/valve/mix/position")
+    estop = ros.publisher(Bool, f"{NODE}/estop")
+    ros.wait_for_subscribers(pub, 1)
+    ros.wait_for_subscribers(estop, 1)
+    assert change(ros, Transition.TRANSITION_CONFIGURE)
+    assert change(ros, Transition.TRANSITION_ACTIVATE)
+    # The reference at start runs once the node is active.
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+
+    def moving(target: float, motion: str) -> None:
+        start = len(states.messages)
+        pub.publish(Float64(data=target))
+        states.wait_for(
+            lambda s: s.target_pct == target and s.motion == motion,
+            start=start,
+            timeout=10.0,
+            what=f"the valve {motion} towards {target} %",
+        )
+        ros.spin_for(0.3)
+
+    # 1. The e-stop while opening: both lines off, the valve stops where it is.
+    moving(100.0, "opening")
+    start = len(states.messages)
+    pressed = mono_ns()
+    estop.publish(Bool(data=True))
+    stopped = states.wait_for(lambda s: s.estop and s.motion == "stopped", start=start, timeout=5.0)
+    assert 0.0 < stopped.position_pct < 100.0, stopped
+    # Latched: a position command is taken, nothing moves.
+    pub.publish(Float64(data=0.0))
+    ros.spin_for(0.6)
+    estop.publish(Bool(data=False))
+    ros.spin_for(0.3)
+    response = ros.call(Trigger, f"{NODE}/reset_estop", Trigger.Request())
+    assert response.success, response
+    # Released: nothing moves before a fresh command.
+    ros.spin_for(0.6)
+    assert all(s.motion == "stopped" for s in states.messages[start:]), states.messages[start:]
+    fresh = mono_ns()
+
+    # 2. Deactivation while opening: both lines off; activation resumes the move to the target.
+    moving(90.0, "opening")
+    start = len(states.messages)
+    deactivated = mono_ns()
+    assert change(ros, Transition.TRANSITION_DEACTIVATE)
+    held = states.wait_for(lambda s: s.motion == "stopped", start=start, timeout=5.0)
+    assert held.position_pct < 90.0 - 1.0, held
+    ros.spin_for(0.6)
+    activated = mono_ns()
+    assert change(ros, Transition.TRANSITION_ACTIVATE)
+    states.wait_for(
+        lambda s: s.motion == "stopped" and abs(s.position_pct - 90.0) <= 3.0,
+        start=start,
+        timeout=10.0,
+        what="the valve at 90 % after activation",
+    )
+
+    code = proc.terminate()
+    assert code == 0, proc.output()
+    open_edges = trace_edges(proc, "pw01")
+    close_edges = trace_edges(proc, "pw02")
+    assert_lines_apart(open_edges, close_edges)
+    edges = sorted(open_edges + close_edges, key=lambda e: e.t_ns)
+
+    def level_at(line_edges, t_ns: int) -> int:
+        before = [e for e in line_edges if e.t_ns <= t_ns]
+        return before[-1].level if before else 0
+
+    for what, t_off, t_on in (("e-stop", pressed, fresh), ("deactivate", deactivated, activated)):
+        # On when it came, off within half a second (milliseconds in practice) ...
+        assert level_at(open_edges, t_off) == 1, (what, open_edges)
+        falls = [e for e in open_edges if e.level == 0 and e.t_ns > t_off]
+        assert falls and falls[0].t_ns <= t_off + 500 * MS, (what, falls[:1], t_off)
+        # ... and no line rose until the fresh command or the activation.
+        rises = [e for e in edges if e.level == 1 and t_off < e.t_ns < t_on]
+        assert not rises, (what, rises)
+    # The move resumed after activation, and every exit leaves both lines off.
+    assert any(e.level == 1 and e.t_ns > activated for e in open_edges), open_edges
+    assert open_edges[-1].level == 0 and close_edges[-1].level == 0
