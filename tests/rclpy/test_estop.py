@@ -59,10 +59,11 @@ def test_the_estop_latches_off_at_once_and_nothing_runs_again_before_a_fresh_ena
 
     estop.publish(Bool(data=False))
     ros.spin_for(0.3)
+    before_reset = len(ch.status.messages)
     response = reset(ros)
     assert response.success, response
     released = mono_ns()
-    ch.wait_status(lambda s: not s.enabled, "disabled by the reset")
+    ch.wait_status(lambda s: not s.enabled, "disabled by the reset", start=before_reset)
     observe_until(ch, released + 800 * MS)
     again = ch.enable(True)
     observe_until(ch, again.confirmed_ns + 500 * MS)

@@ -196,9 +196,10 @@ def test_each_fault_latches_its_check_with_the_line_off(
         ch.wait_status(
             lambda s: 0.0 <= s.temperature_age_ms < 500.0, "fresh readings", start=len(ch.status.messages)
         )
+        before_reset = len(ch.status.messages)
         r = reset(ros)
         assert r.success, r.message
-        s = ch.wait_status(lambda s: s.heater_fault == "", "the fault cleared")
+        s = ch.wait_status(lambda s: s.heater_fault == "", "the fault cleared", start=before_reset)
         assert not s.enabled, s
         observe_until(ch, mono_ns() + 1_000 * MS)
 

@@ -206,8 +206,23 @@ def test_avg_duty_caps_the_on_time_of_every_window(node_process, ros):
     slack = 3 * REAL_EDGE_SLACK_NS  # at most three pulses begin in a 2 s window here
     for name, spans in (("scheduled", scheduled), ("written", written)):
         most, end = most_on_in_a_window(spans, window)
-        print(f"{name}: at most {most / MS:.3f} ms on in a 2 s window (ends {end})")
-        assert most <= 500 * MS + slack, (
+        # The core ends a capped pulse early by the lateness it has seen on earlier falls; a
+        # fall written later than the one before it (a preempted wake-up) could not be
+        # foreseen, and that jump is the written window's allowance. A steady lateness the
+        # core should have counted gets none.
+        jumps = 0
+        if name == "written":
+            late = [f.t_ns - f.scheduled_ns for _, f in runs]
+            jumps = sum(
+                max(0, late[k] - late[k - 1])
+                for k in range(1, len(runs))
+                if end - window < runs[k][1].t_ns <= end
+            )
+        print(
+            f"{name}: at most {most / MS:.3f} ms on in a 2 s window (ends {end}); "
+            f"unforeseen fall lateness {jumps / MS:.3f} ms"
+        )
+        assert most <= 500 * MS + slack + jumps, (
             f"{most / MS:.3f} ms on in the 2 s window ending at {end} ({name})"
         )
     # Four whole windows from the first rise: at most 4 x 500 ms, and not much less.
@@ -431,9 +446,9 @@ def test_max_simultaneous_on_delays_a_pulse_then_skips_what_cannot_fit(node_proc
     late = (a, b)[waiting]
     late.wait_status(lambda s: "delayed" in s.protections, "the slot limit acting")
     assert not late.e1_state(), "delayed, not lost: no E1"
-    switch_ns = mono_ns()
-    a.duty(60.0)
-    b.duty(60.0)
+    sent = (a.duty(60.0), b.duty(60.0))
+    # Both commands in force from the later confirmation on.
+    switch_ns = max(s.confirmed_ns for s in sent)
     late.wait_e1(True, "a skipped pulse")
     d = late.wait_diag(lambda d: int(diag_values(d).get("skipped_pulses", "0")) > 0,
                        "skips counted")

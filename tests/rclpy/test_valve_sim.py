@@ -81,15 +81,26 @@ def test_two_hundred_random_positions_stay_within_the_reported_uncertainty(
             ros.spin_for(rng.uniform(0.05, 0.4))
             continue
         # Let it stand, then compare the estimate with the true position.
-        state = states.wait_for(
+        states.wait_for(
             lambda s, t=target: s.target_pct == t and s.motion == "stopped"
             and s.activity == "tracking" and abs(s.position_pct - t) < 5.0,
             start=start,
             timeout=20.0,
             what=f"the valve standing at {target:.1f} %",
         )
+        # The snapshot sent with the last fall is followed at once by one that counts the
+        # fall's real write time, and the simulated valve stops once it has seen the fall: the
+        # newest state, and the truth once two samples in a row agree.
+        ros.spin_for(0.3)
+        state = states.messages[-1]
+        assert state.target_pct == target and state.motion == "stopped", state
         n = len(truth.messages)
-        truth.wait_for(lambda m: True, start=n + 2, timeout=5.0)
+        truth.wait_for(
+            lambda m: truth.messages[-2].data == truth.messages[-1].data,
+            start=n + 2,
+            timeout=5.0,
+            what="the simulated valve standing",
+        )
         true_pct = truth.messages[-1].data
         error = abs(true_pct - state.position_pct)
         worst = max(worst, error)

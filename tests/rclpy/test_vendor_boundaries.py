@@ -199,12 +199,15 @@ def test_the_watchdog_switches_off_a_line_held_on(node_process, ros):
                spin=ch.ros.spin_once)
     last = ch.duty(99.0)
     off = ch.enable(False)
+    after_disable = len(ch.status.messages)
     assert off.reply.output, "hold keeps the line high after the disable"
     edges = wait_trace(proc, lambda es: es[-1].level == 0, "the watchdog's off edge",
                        spin=ch.ros.spin_once, timeout=10.0)
     fall = edges[-1]
     assert last.first_publish_ns + 600 * MS <= fall.scheduled_ns <= last.confirmed_ns + 600 * MS
-    ch.wait_status(lambda s: s.watchdog_tripped and not s.output, "tripped, output off")
+    ch.wait_status(
+        lambda s: s.watchdog_tripped and not s.output, "tripped, output off", start=after_disable
+    )
     close_trace(proc)
 
 
