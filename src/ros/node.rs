@@ -483,14 +483,13 @@ async fn serve(
     };
     let (pubs, diagnostics) = ChannelPubs::create(&mut ep, &names)?;
     let mcap = mcap_trace(&cfg, &ep, &names)?;
-    let valve_outs: Vec<(String, String, String, ValveConfig)> = valves
+    let valve_outs: Vec<(String, String, String)> = valves
         .iter()
-        .map(|(v, c)| {
+        .map(|(v, _)| {
             (
                 v.name.clone(),
                 names[v.open].clone(),
                 names[v.close].clone(),
-                *c,
             )
         })
         .collect();

@@ -10,7 +10,8 @@ and checks the node's CSV trace of the two lines.
   for the reversal pause;
 - a refused `valve` or valve parameter stops the node with exit code 2 and the reason;
 - the e-stop and a lifecycle deactivate stop a moving valve with both lines off at once; after
-  the reset it waits for a fresh command, after activation it resumes; at exit both are off.
+  the reset it waits for a fresh command, after activation it resumes; at exit both are off;
+- the motion settings change while running (set_parameters), the travel times do not.
 """
 
 from __future__ import annotations
@@ -252,3 +253,63 @@ def test_the_estop_and_deactivation_stop_a_moving_valve_and_leave_both_lines_off
     # The move resumed after activation, and every exit leaves both lines off.
     assert any(e.level == 1 and e.t_ns > activated for e in open_edges), open_edges
     assert open_edges[-1].level == 0 and close_edges[-1].level == 0
+
+
+def test_the_motion_settings_change_while_running_the_travel_times_do_not(node_process, ros):
+    """docs/valve.md: `ros2 param set` on a valve's motion settings acts at once (a wide dead
+    band holds the valve, a narrow one moves it to the target in force, a lowered
+    `max_uncertainty_pct` warns); a change the core refuses, or one of the travel times, is
+    refused with the reason and changes nothing."""
+    proc = node_process(node_args(**VALVE))
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    diags = ros.subscribe(DiagnosticArray, "/diagnostics")
+    pub = ros.publisher(Float64, f"{NODE}/valve/mix/position")
+    ros.wait_for_subscribers(pub, 1)
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+
+    def set_one(name: str, value):
+        return ros.set_parameters(NODE, {name: value})[name]
+
+    # A 20 % dead band: a 10 % step does not move the valve.
+    r = set_one("mix.deadband_pct", 20.0)
+    assert r.successful, r.reason
+    moves = states.messages[-1].moves
+    start = len(states.messages)
+    pub.publish(Float64(data=10.0))
+    states.wait_for(lambda s: s.target_pct == 10.0, start=start, timeout=5.0)
+    ros.spin_for(1.0)
+    assert all(s.motion == "stopped" and s.moves == moves for s in states.messages[start:])
+    # Back to 0.5 %: the valve goes to the target in force without a new command.
+    start = len(states.messages)
+    r = set_one("mix.deadband_pct", 0.5)
+    assert r.successful, r.reason
+    states.wait_for(
+        lambda s: s.motion == "stopped" and s.moves > moves and abs(s.position_pct - 10.0) <= 3.5,
+        start=start,
+        timeout=10.0,
+        what="the valve at 10 % once the dead band narrowed",
+    )
+    # A lower uncertainty limit than the estimate's: the diagnostics warn.
+    r = set_one("mix.max_uncertainty_pct", 0.0)
+    assert r.successful, r.reason
+    start = len(diags.messages)
+    status = diags.wait_for(
+        lambda a: any(
+            s.name.endswith("valve mix") and "above max_uncertainty_pct 0 %" in s.message
+            for s in a.status
+        ),
+        start=start,
+        timeout=10.0,
+    )
+    mine = [s for s in status.status if s.name.endswith("valve mix")][0]
+    assert diag_level(mine) == 1, mine
+
+    # Refused, with the reason, and nothing changes: a minimum pulse above the closing travel
+    # time (the core's check of the valve's settings together), and the travel times.
+    r = set_one("mix.min_pulse_ms", TRAVEL_CLOSE_MS + 100)
+    assert not r.successful and r.reason.startswith("valve mix: min_pulse_ms"), r.reason
+    r = set_one("mix.travel_open_ms", 3000)
+    assert not r.successful and "restart the node" in r.reason, r.reason
+    got = ros.get_parameters(NODE, ["mix.min_pulse_ms", "mix.travel_open_ms"])
+    assert got == {"mix.min_pulse_ms": MIN_PULSE_MS, "mix.travel_open_ms": TRAVEL_OPEN_MS}, got
+    assert proc.terminate() == 0, proc.output()

@@ -244,6 +244,8 @@ pub struct ValveStatus {
     pub run_since_reference: Nanos,
     /// How far the true position may be from the estimate, percent (100 when unreferenced).
     pub uncertainty_pct: f64,
+    /// The uncertainty the diagnostics accept (`max_uncertainty_pct` in force), percent.
+    pub max_uncertainty_pct: f64,
     /// A recalibration is due.
     pub recalibration_due: bool,
     /// The command timeout acted and no command came since.
@@ -549,6 +551,7 @@ impl Valve {
             referenced: self.referenced,
             run_since_reference: self.run_since_ref,
             uncertainty_pct: self.uncertainty_pct(),
+            max_uncertainty_pct: self.cfg.max_uncertainty_pct,
             recalibration_due: self.recalibration_due(),
             timed_out: self.timed_out,
             estop: self.estop,

@@ -209,19 +209,30 @@ impl Inputs {
                 return Err(e.into());
             }
         };
-        // The output thread first: if it cannot take the new configurations, nothing changes.
-        let mut sent = Vec::new();
-        for (ch, cfg) in &accepted.configs {
-            if let Err(source) = lock(&self.requests).send(Request {
-                channel: *ch,
-                input: Input::Config(*cfg),
-            }) {
+        // The output thread first: if it cannot take the new configurations, nothing changes
+        // (what it took is given the settings in force again).
+        let mut sent: Vec<Request> = Vec::new();
+        let new = accepted
+            .configs
+            .iter()
+            .map(|&(channel, cfg)| Request {
+                channel,
+                input: Input::Config(cfg),
+            })
+            .chain(
+                accepted
+                    .valve_configs
+                    .iter()
+                    .map(|&(valve, config)| Request {
+                        channel: 0,
+                        input: Input::ValveConfig { valve, config },
+                    }),
+            );
+        for req in new {
+            if let Err(source) = lock(&self.requests).send(req) {
                 for done in sent {
-                    if let Ok(old) = store.channel_config(done) {
-                        let _ = lock(&self.requests).send(Request {
-                            channel: done,
-                            input: Input::Config(old),
-                        });
+                    if let Some(old) = in_force(&store, &done) {
+                        let _ = lock(&self.requests).send(old);
                     }
                 }
                 drop(store);
@@ -229,7 +240,7 @@ impl Inputs {
                 self.refused(&items, door, &e.to_string());
                 return Err(e);
             }
-            sent.push(*ch);
+            sent.push(req);
         }
         let before = store.node_settings();
         let changed = store.commit(&accepted);
@@ -341,6 +352,20 @@ impl Inputs {
             warn!("cannot publish /parameter_events: {e}");
         }
     }
+}
+
+/// The request that gives the output thread back the settings in force for what `req` changed
+/// (a channel's or a valve's configuration).
+fn in_force(store: &ParamStore, req: &Request) -> Option<Request> {
+    let input = match req.input {
+        Input::Config(_) => Input::Config(store.channel_config(req.channel).ok()?),
+        Input::ValveConfig { valve, .. } => Input::ValveConfig {
+            valve,
+            config: store.valve_config(valve)?,
+        },
+        _ => return None,
+    };
+    Some(Request { input, ..*req })
 }
 
 /// The inputs of each channel, `~/<ch>/duty`, `~/<ch>/sv`, `~/<ch>/fraction` (004's i_rIput,

@@ -5,7 +5,7 @@
 
 use crate::clock;
 use crate::core::valve::{Activity, Motion};
-use crate::core::{ValveConfig, ValveStatus};
+use crate::core::ValveStatus;
 use crate::ros::interface::msg::{self, DiagnosticStatus, KeyValue};
 use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
@@ -19,24 +19,22 @@ pub struct ValveOut {
     name: String,
     /// The channels of its lines, `pw01/pw02` (open/close), for the diagnostics' hardware id.
     lines: String,
-    max_uncertainty_pct: f64,
     state: Publisher<msg::ValveState>,
     last: Option<ValveStatus>,
 }
 
 impl ValveOut {
     /// The publisher of `~/valve/<name>/state` for each valve, `(name, open channel name, close
-    /// channel name, settings)` in the order the valves were made.
+    /// channel name)` in the order the valves were made.
     pub fn create(
         ep: &mut Endpoints<'_>,
-        valves: &[(String, String, String, ValveConfig)],
+        valves: &[(String, String, String)],
     ) -> Result<Vec<ValveOut>, EndpointError> {
         let mut out = Vec::with_capacity(valves.len());
-        for (name, open, close, cfg) in valves {
+        for (name, open, close) in valves {
             out.push(ValveOut {
                 name: name.clone(),
                 lines: format!("{open}/{close}"),
-                max_uncertainty_pct: cfg.max_uncertainty_pct,
                 state: ep.publisher(&format!("~/valve/{name}/state"), qos::status())?,
                 last: None,
             });
@@ -70,13 +68,7 @@ impl ValveOut {
 
     /// The valve's `/diagnostics` status.
     pub fn to_status(&self, node_name: &str) -> DiagnosticStatus {
-        diagnostic(
-            node_name,
-            &self.name,
-            &self.lines,
-            self.last.as_ref(),
-            self.max_uncertainty_pct,
-        )
+        diagnostic(node_name, &self.name, &self.lines, self.last.as_ref())
     }
 }
 
@@ -132,7 +124,6 @@ pub fn diagnostic(
     name: &str,
     lines: &str,
     last: Option<&ValveStatus>,
-    max_uncertainty_pct: f64,
 ) -> DiagnosticStatus {
     let full = format!("{node_name}: valve {name}");
     let Some(s) = last else {
@@ -149,12 +140,12 @@ pub fn diagnostic(
             DiagnosticStatus::WARN,
             "unreferenced: the position is not known".to_string(),
         )
-    } else if s.uncertainty_pct > max_uncertainty_pct {
+    } else if s.uncertainty_pct > s.max_uncertainty_pct {
         (
             DiagnosticStatus::WARN,
             format!(
-                "uncertainty {:.1} % above max_uncertainty_pct {max_uncertainty_pct} %",
-                s.uncertainty_pct
+                "uncertainty {:.1} % above max_uncertainty_pct {} %",
+                s.uncertainty_pct, s.max_uncertainty_pct
             ),
         )
     } else if s.timed_out {
@@ -204,6 +195,7 @@ mod tests {
             referenced: true,
             run_since_reference: 30_000_000_000,
             uncertainty_pct: 5.0,
+            max_uncertainty_pct: 10.0,
             recalibration_due: false,
             timed_out: false,
             estop: false,
@@ -215,7 +207,7 @@ mod tests {
 
     #[test]
     fn diagnostics_warn_while_unreferenced_or_too_uncertain() {
-        let d = |s: Option<&ValveStatus>| diagnostic("n", "mix", "pw01/pw02", s, 10.0);
+        let d = |s: Option<&ValveStatus>| diagnostic("n", "mix", "pw01/pw02", s);
         assert_eq!(d(None).level, DiagnosticStatus::STALE);
         let ok = status();
         assert_eq!(d(Some(&ok)).level, DiagnosticStatus::OK);

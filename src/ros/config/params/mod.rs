@@ -26,6 +26,7 @@ pub use table::msg_fields;
 
 use super::logging::{escape_controls, shown};
 use crate::core::config::UnknownName;
+use crate::core::valve::ValveConfigError;
 use crate::core::ConfigError;
 use ros2_client::parameters::raw;
 use ros2_client::ParameterValue;
@@ -241,6 +242,15 @@ pub enum ParamError {
         /// The core's verdict.
         #[source]
         source: ConfigError,
+    },
+    /// A valve's settings together are refused by the core.
+    #[error("valve {valve}: {source}")]
+    Valve {
+        /// The valve's name.
+        valve: String,
+        /// The core's verdict.
+        #[source]
+        source: ValveConfigError,
     },
     /// `use_sim_time` set to true.
     #[error(

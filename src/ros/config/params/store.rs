@@ -5,7 +5,7 @@
 use super::table::{self, channel_decls, node_decls};
 use super::{channel_name, channel_of, check_choice, check_range, coerce, make, Descriptor};
 use super::{shown, NodeSettings, ParamError, MAX_CHANNELS};
-use crate::core::{ChannelConfig, ChannelParams};
+use crate::core::{ChannelConfig, ChannelParams, ValveConfig};
 use crate::ros::interface::msg;
 use ros2_client::parameters::raw;
 use ros2_client::ParameterValue;
@@ -34,6 +34,8 @@ pub struct Accepted {
     pub notes: Vec<String>,
     /// New configurations of channels whose timing settings changed: (index, config).
     pub configs: Vec<(usize, ChannelConfig)>,
+    /// New configurations of valves whose settings changed: (index, config).
+    pub valve_configs: Vec<(usize, ValveConfig)>,
 }
 
 /// Every parameter of the node with its current value.
@@ -42,6 +44,8 @@ pub struct ParamStore {
     decls: BTreeMap<String, Descriptor>,
     values: BTreeMap<String, ParameterValue>,
     channels: usize,
+    /// The valves' names, in the order they were declared (their index in the output thread).
+    valves: Vec<String>,
 }
 
 impl ParamStore {
@@ -70,6 +74,7 @@ impl ParamStore {
             decls,
             values,
             channels,
+            valves: Vec::new(),
         }
     }
 
@@ -78,6 +83,7 @@ impl ParamStore {
     /// collide with a declared parameter is skipped.
     pub fn declare_valves(&mut self, names: &[String]) {
         for valve in names {
+            self.valves.push(valve.clone());
             for d in table::valve_decls() {
                 let name = format!("{valve}.{}", d.suffix);
                 if self.decls.contains_key(&name) {
@@ -92,7 +98,20 @@ impl ParamStore {
 
     /// Valve `valve`'s settings from its parameters (see [`ParamStore::declare_valves`]).
     pub fn valve_params(&self, valve: &str) -> crate::core::ValveParams {
-        table::valve_params(|suffix| self.values.get(&format!("{valve}.{suffix}")).cloned())
+        Self::valve_params_in(&self.values, valve)
+    }
+
+    /// The validated settings in force of valve number `k` (in declaration order).
+    pub fn valve_config(&self, k: usize) -> Option<ValveConfig> {
+        let name = self.valves.get(k)?;
+        self.valve_params(name).validate().ok()
+    }
+
+    fn valve_params_in(
+        values: &BTreeMap<String, ParameterValue>,
+        valve: &str,
+    ) -> crate::core::ValveParams {
+        table::valve_params(|suffix| values.get(&format!("{valve}.{suffix}")).cloned())
     }
 
     /// Number of channels.
@@ -331,10 +350,27 @@ impl ParamStore {
                 configs.push((ch, config));
             }
         }
+        // A valve's settings are checked together, as a channel's.
+        let mut valve_configs = Vec::new();
+        for (k, valve) in self.valves.iter().enumerate() {
+            let prefix = format!("{valve}.");
+            if !changes.iter().any(|(n, _)| n.starts_with(&prefix)) {
+                continue;
+            }
+            let new = Self::valve_params_in(&working, valve);
+            let config = new.validate().map_err(|source| ParamError::Valve {
+                valve: valve.clone(),
+                source,
+            })?;
+            if Self::valve_params_in(&self.values, valve) != new {
+                valve_configs.push((k, config));
+            }
+        }
         Ok(Accepted {
             changes,
             notes,
             configs,
+            valve_configs,
         })
     }
 

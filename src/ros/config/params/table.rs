@@ -181,11 +181,19 @@ fn limit_line_spelling(s: &str) -> Result<(), UnknownName> {
     }
 }
 
-/// Why a valve parameter cannot change while running.
-const VALVE_START_UP: &str = "a valve's settings are read at start-up only; restart the node";
+/// Why a valve's end switch settings and its reference at start cannot change while running.
+const VALVE_START_UP: &str = "the end switch lines are requested, and the reference at start \
+                              runs, at start-up; restart the node";
+
+/// Why a valve's travel times cannot change while running.
+const VALVE_TRAVEL: &str = "the position estimate and the moves under way count in the travel \
+                            times; restart the node (it references the valve) to change them";
 
 /// The parameters of each valve `NAME` (declared as `NAME.<suffix>` for every valve of the
-/// `valve` parameter), read at start-up. The vendor practice behind each is in docs/valve.md.
+/// `valve` parameter). The motion settings change while running (checked whole, as a
+/// channel's); the travel times, the end switches and the reference at start are read at
+/// start-up. The vendor
+/// practice behind each is in docs/valve.md.
 pub(super) fn valve_decls() -> Vec<Decl> {
     use ParamType::*;
     let travel = Range::Integer(MIN_TRAVEL_MS as i64, MAX_TRAVEL_MS as i64);
@@ -194,6 +202,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             description: "Travel time from fully closed to fully open, ms (Siemens PID_3Step \
                           TransitTime, OSCAT ACTUATOR_3P T_RUN).",
             range: travel,
+            read_only: Some(VALVE_TRAVEL),
             ..Decl::new("travel_open_ms", Integer, || {
                 V::Integer(valve_defaults().travel_open_ms as i64)
             })
@@ -202,6 +211,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             description: "Travel time from fully open to fully closed, ms (Beckhoff \
                           FB_BA_Anlg3Pnt keeps the two apart).",
             range: travel,
+            read_only: Some(VALVE_TRAVEL),
             ..Decl::new("travel_close_ms", Integer, || {
                 V::Integer(valve_defaults().travel_close_ms as i64)
             })
@@ -244,6 +254,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
         Decl {
             description: "Reference at start: drive closed for 150 % of the travel time and \
                           take 0 % (Siemens PID_3Step's virtual actuator limit).",
+            read_only: Some(VALVE_START_UP),
             ..Decl::new("reference_at_start", Bool, || {
                 V::Boolean(valve_defaults().reference_at_start)
             })
@@ -300,6 +311,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             constraints: "output gpio only; not an output line of the node, not another \
                           switch's line",
             choices: Some(limit_line_spelling),
+            read_only: Some(VALVE_START_UP),
             ..Decl::new("open_limit_line", String, || {
                 V::String(std::string::String::new())
             })
@@ -310,6 +322,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             constraints: "output gpio only; not an output line of the node, not another \
                           switch's line",
             choices: Some(limit_line_spelling),
+            read_only: Some(VALVE_START_UP),
             ..Decl::new("close_limit_line", String, || {
                 V::String(std::string::String::new())
             })
@@ -317,6 +330,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
         Decl {
             description: "Both end switches are active with their line electrically low \
                           (normally closed contacts to ground with a pull-up).",
+            read_only: Some(VALVE_START_UP),
             ..Decl::new("limit_active_low", Bool, || V::Boolean(false))
         },
         Decl {
@@ -324,17 +338,12 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           own, or the GPIO character device's in software); a change is \
                           reported once the line has been stable this long. 0: none.",
             range: Range::Integer(0, MAX_DEBOUNCE_MS as i64),
+            read_only: Some(VALVE_START_UP),
             ..Decl::new("limit_debounce_ms", Integer, || {
                 V::Integer(DEFAULT_LIMIT_DEBOUNCE_MS as i64)
             })
         },
     ]
-    .into_iter()
-    .map(|decl| Decl {
-        read_only: Some(VALVE_START_UP),
-        ..decl
-    })
-    .collect()
 }
 
 /// A valve's settings from its parameters' values (`get` answers `suffix` with the value in

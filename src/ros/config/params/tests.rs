@@ -555,7 +555,13 @@ fn a_valves_parameters_exist_once_the_valve_parameter_names_it() {
     assert_eq!(p.travel_open_ms, 45_000);
     assert_eq!(p.on_timeout, crate::core::valve::OnTimeout::Close);
     assert_eq!(p.travel_close_ms, 60_000, "the default");
-    assert!(su.store.descriptor("mix.min_pulse_ms").unwrap().read_only);
+    assert!(!su.store.descriptor("mix.min_pulse_ms").unwrap().read_only);
+    assert!(
+        su.store
+            .descriptor("mix.open_limit_line")
+            .unwrap()
+            .read_only
+    );
     assert_eq!(su.ignored, ["other.travel_open_ms (-p)"], "no such valve");
     // Out of its range, or not a spelling: refused at start-up.
     for bad in [
@@ -571,4 +577,62 @@ fn a_valves_parameters_exist_once_the_valve_parameter_names_it() {
     // Without a valve, no valve parameters.
     let su = start_up(&[sv("mix.travel_open_ms", V::Integer(45_000))]).unwrap();
     assert!(su.store.descriptor("mix.travel_open_ms").is_none());
+}
+
+#[test]
+fn a_valves_motion_settings_change_while_running_checked_whole() {
+    let su = start_up(&[
+        sv("valve", V::String("mix:pw01:pw02,hot:pw03:pw04".into())),
+        sv("channels", V::Integer(4)),
+        sv("hot.travel_open_ms", V::Integer(30_000)),
+    ])
+    .unwrap();
+    let s = &su.store;
+    // A change goes to the valve it names, as its whole validated configuration.
+    let a = live(s, "hot.deadband_pct", V::Double(2.0)).unwrap();
+    assert!(a.configs.is_empty());
+    assert_eq!(a.valve_configs.len(), 1);
+    let (k, cfg) = a.valve_configs[0];
+    assert_eq!(k, 1, "hot is the second valve");
+    assert_eq!(cfg.deadband_pct, 2.0);
+    assert_eq!(
+        cfg.travel[0],
+        30_000 * crate::core::NS_PER_MS,
+        "the rest in force"
+    );
+    // The same value again: nothing to send.
+    let a = live(s, "hot.deadband_pct", V::Double(1.0)).unwrap();
+    assert!(a.changes.is_empty() && a.valve_configs.is_empty(), "{a:?}");
+    // Refused as a whole, with the core's reason: a minimum pulse above the travel time.
+    let e = live(s, "hot.min_pulse_ms", V::Integer(40_000)).unwrap_err();
+    assert!(
+        matches!(e, ParamError::Valve { ref valve, .. } if valve == "hot"),
+        "{e}"
+    );
+    assert!(e.to_string().starts_with("valve hot: "), "{e}");
+    // Several at once: all or none.
+    let two = [
+        item("mix.reversal_pause_ms", V::Integer(500)),
+        item("mix.min_pulse_ms", V::Integer(2_000)),
+    ];
+    let a = s.check(&two, Stage::Live).unwrap();
+    assert_eq!(
+        a.valve_configs[0].1.min_pulse,
+        2_000 * crate::core::NS_PER_MS
+    );
+    // The travel times, the end switches and the reference at start stay start-up only.
+    for (name, v) in [
+        ("mix.travel_open_ms", V::Integer(120_000)),
+        ("mix.open_limit_line", V::String("5".into())),
+        ("mix.limit_debounce_ms", V::Integer(20)),
+        ("mix.reference_at_start", V::Boolean(false)),
+    ] {
+        let e = live(s, name, v).unwrap_err();
+        assert!(matches!(e, ParamError::ReadOnly { .. }), "{name}: {e}");
+    }
+    assert_eq!(
+        s.valve_config(1).unwrap().travel[0],
+        30_000 * crate::core::NS_PER_MS
+    );
+    assert!(s.valve_config(2).is_none());
 }
