@@ -419,6 +419,41 @@ fn an_end_switch_stops_the_drive_and_sets_the_position() {
     assert_eq!(r.v.status(r.now).motion, Motion::Stopped);
 }
 
+/// Both end switches active at once (a wiring or switch fault): whatever the target, nothing
+/// drives either way while they are; once they release, the valve follows its target again.
+#[test]
+fn both_end_switches_active_hold_the_valve() {
+    let mut r = referenced(params());
+    r.command(50.0);
+    r.settle();
+    let before = r.pulses().len();
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Open, true, e));
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Close, true, e));
+    for target in [0.0, 100.0, 30.0, 70.0] {
+        r.command(target);
+        r.run_for(100 * S);
+    }
+    assert_eq!(
+        r.pulses().len(),
+        before,
+        "a drive with both switches active"
+    );
+    assert_eq!(r.v.status(r.now).switches, [true, true]);
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Open, false, e));
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Close, false, e));
+    r.command(20.0);
+    r.settle();
+    assert!(
+        r.pulses().len() > before,
+        "no drive after the switches released"
+    );
+    assert!(
+        close(r.v.estimate(r.now), 20.0, 1.0),
+        "{}",
+        r.v.estimate(r.now)
+    );
+}
+
 /// The e-stop drops both lines at once, whatever the minimum pulse; after the reset nothing
 /// moves until a fresh command.
 #[test]

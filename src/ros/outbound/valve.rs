@@ -1,5 +1,6 @@
 //! Output thread → ROS for the three-point valves: `~/valve/<NAME>/state` on every snapshot the
-//! output thread sends, and one `/diagnostics` status per valve — WARN while unreferenced, when
+//! output thread sends, and one `/diagnostics` status per valve — ERROR while both end switches
+//! are active (a wiring or switch fault: nothing drives either way), WARN while unreferenced, when
 //! the uncertainty of the estimate exceeds `NAME.max_uncertainty_pct`, or after a command
 //! timeout; OK otherwise; STALE before the first snapshot.
 
@@ -135,7 +136,14 @@ pub fn diagnostic(
             values: Vec::new(),
         };
     };
-    let (level, message) = if !s.referenced {
+    let (level, message) = if s.switches == [true, true] {
+        (
+            DiagnosticStatus::ERROR,
+            "both end switches active: a wiring or switch fault; no drive either way until one \
+             releases"
+                .to_string(),
+        )
+    } else if !s.referenced {
         (
             DiagnosticStatus::WARN,
             "unreferenced: the position is not known".to_string(),
@@ -225,6 +233,23 @@ mod tests {
         assert!(d(Some(&vague))
             .message
             .contains("above max_uncertainty_pct"));
+        let one = ValveStatus {
+            switches: [false, true],
+            ..ok
+        };
+        assert_eq!(
+            d(Some(&one)).level,
+            DiagnosticStatus::OK,
+            "at the closed end"
+        );
+        let both = ValveStatus {
+            switches: [true, true],
+            ..unref
+        };
+        assert_eq!(d(Some(&both)).level, DiagnosticStatus::ERROR);
+        assert!(d(Some(&both))
+            .message
+            .starts_with("both end switches active"));
         let m = state_msg("mix", &ok);
         assert_eq!(
             (m.motion.as_str(), m.run_since_reference_s),
