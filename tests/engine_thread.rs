@@ -64,7 +64,9 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
     send(&mut e.requests, 1, Input::Enable(true));
     std::thread::sleep(Duration::from_millis(300));
     send(&mut e.requests, 1, Input::Command(Command::Percent(70.0)));
-    std::thread::sleep(Duration::from_millis(200));
+    // Some 60 periods at 70 %: a late write may shift a pulse (the core counts the minimum
+    // break from the real fall), but not all of them, even on a loaded machine.
+    std::thread::sleep(Duration::from_millis(600));
     e.handle.shutdown().unwrap();
 
     // Collect the engine's own account of when each input was applied: the first edge of a

@@ -23,10 +23,10 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from std_msgs.msg import Bool, Float64
-from std_srvs.srv import Trigger
 
 from helpers_rules import NODE, ChannelClient, diag_level, diag_values, node_args
 from test_channel_rules import start
+from test_estop import release
 
 OK, WARN, ERROR = 0, 1, 2
 NODE_NAME = NODE.rsplit("/", 1)[-1]
@@ -201,9 +201,7 @@ def test_the_node_status_shows_lateness_lifecycle_and_the_estop(node_process, ro
     assert latched.message.startswith("e-stop latched"), latched.message
     assert diag_values(latched)["estop_latches"] == "1"
 
-    estop.publish(Bool(data=False))
-    ros.spin_for(0.3)
-    response = ros.call(Trigger, f"{NODE}/reset_estop", Trigger.Request())
+    response = release(ros, estop)
     assert response.success, response
     _, _, released = wait_status(
         ch,

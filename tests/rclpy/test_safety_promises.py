@@ -38,7 +38,7 @@ from helpers_rules import (
     trace_edges,
 )
 from test_channel_rules import close_all_traces, observe_until, start
-from test_estop import estop_publisher, reset
+from test_estop import estop_publisher, release, reset
 
 PAIR = ("pw01", "pw02")
 #: The bound within which the output thread must take a safety input, else the outputs are
@@ -322,9 +322,7 @@ def test_the_estop_reaches_the_line_at_once_while_a_huge_parameter_request_is_se
         ch.wait_status(lambda s: not s.enabled, "disabled by the e-stop",
                        start=len(ch.status.messages))
         ros.spin_until(lambda: listed.done() and got.done(), "parameter answers", 10.0)
-        estop.publish(Bool(data=False))
-        ros.spin_for(0.2)
-        assert reset(ros).success
+        assert release(ros, estop).success
         falls = [e for e in trace_edges(proc) if e.level == 0 and e.t_ns >= pressed]
         assert falls, trace_edges(proc)[-5:]
         delays.append((falls[0].t_ns - pressed) / MS)
