@@ -39,6 +39,10 @@ pub(super) struct Lines {
     unconfirmed: bool,
     pause: Nanos,
     min_pulse: Nanos,
+    /// The pause in force at the last fall and the minimum in force at the last rise: a
+    /// setting lowered afterwards does not shorten the break or the drive already under way.
+    pause_at_fall: Nanos,
+    min_at_rise: Nanos,
     /// An end switch holds the drive in that direction.
     pub(super) blocked: [bool; 2],
     seats: [Option<Seat>; 2],
@@ -52,6 +56,8 @@ impl Lines {
             unconfirmed: false,
             pause,
             min_pulse,
+            pause_at_fall: pause,
+            min_at_rise: min_pulse,
             blocked: [false; 2],
             seats: [None, None],
         }
@@ -61,9 +67,22 @@ impl Lines {
         self.seats = [Some(open), Some(close)];
     }
 
+    /// New pause and minimum pulse: a longer one acts at once, on the break or drive under way
+    /// too; a shorter one from the next fall or rise (what was promised at an edge holds).
     pub(super) fn set_timing(&mut self, pause: Nanos, min_pulse: Nanos) {
         self.pause = pause;
         self.min_pulse = min_pulse;
+    }
+
+    /// The pause the break under way keeps: the longer of the one in force at its fall and now.
+    fn pause_now(&self) -> Nanos {
+        self.pause.max(self.pause_at_fall)
+    }
+
+    /// The minimum the drive under way keeps: the longer of the one in force at its rise and
+    /// now.
+    fn min_pulse_now(&self) -> Nanos {
+        self.min_pulse.max(self.min_at_rise)
     }
 
     /// The line that is high, if one is.
@@ -90,7 +109,7 @@ impl Lines {
         }
         let after = self
             .fell
-            .map_or(0, |f| f.saturating_add(self.pause.max(MIN_BREAK)));
+            .map_or(0, |f| f.saturating_add(self.pause_now().max(MIN_BREAK)));
         Some(at.max(after))
     }
 
@@ -109,7 +128,7 @@ impl Lines {
     /// The earliest instant at or after `at` the high line `d` may fall: after its minimum pulse.
     pub(super) fn earliest_fall(&self, d: Dir, at: Nanos) -> Nanos {
         self.rose(d)
-            .map_or(at, |r| at.max(r.saturating_add(self.min_pulse)))
+            .map_or(at, |r| at.max(r.saturating_add(self.min_pulse_now())))
     }
 
     /// Lowers line `d` at `at` — only once it has run its minimum pulse unless `force` (a safety
@@ -144,9 +163,12 @@ impl Lines {
             since: Some(at),
             sched: at,
         };
-        if !high {
+        if high {
+            self.min_at_rise = self.min_pulse;
+        } else {
             self.fell = Some(at);
             self.unconfirmed = true;
+            self.pause_at_fall = self.pause;
         }
         emit(ValveEvent::Edge { dir: d, level, at });
     }

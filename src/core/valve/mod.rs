@@ -335,8 +335,19 @@ impl Valve {
         &self.cfg
     }
 
-    /// New settings at `now`; a running move continues under them.
+    /// New settings at `now`; a running move continues under them. A longer reversal pause or
+    /// minimum pulse acts at once, a shorter one from the next fall or rise (the break or drive
+    /// under way keeps the one in force at its edge); a new command timeout or exercise
+    /// interval counts from `now`.
     pub fn set_config(&mut self, now: Nanos, cfg: ValveConfig, emit: &mut dyn FnMut(ValveEvent)) {
+        // A new command timeout or exercise interval counts from the change: switching one on
+        // never makes the valve stroke at once for the time that passed before it.
+        if cfg.command_timeout != self.cfg.command_timeout {
+            self.last_command = now;
+        }
+        if cfg.exercise_every != self.cfg.exercise_every {
+            self.idle_since = self.idle_since.max(now);
+        }
         self.cfg = cfg;
         self.lines.set_timing(cfg.reversal_pause, cfg.min_pulse);
         self.step(now, emit);
@@ -457,7 +468,10 @@ impl Valve {
     ) {
         self.switches[dir.index()] = active;
         self.lines.blocked[dir.index()] = active;
-        if active && self.lines.driving() != Some(dir.other()) {
+        // Both ends at once cannot be: a wiring or switch fault. Nothing drives either way (each
+        // switch blocks its direction) and the position is not known any more.
+        let both = active && self.switches[dir.other().index()];
+        if active && (both || self.lines.driving() != Some(dir.other())) {
             if let Some(drive) = self.lines.fall(dir, now, true, emit) {
                 self.run_since_ref = self.run_since_ref.saturating_add(drive);
                 self.finish_move();
@@ -468,7 +482,12 @@ impl Valve {
             // The end is reached: a queued end move to it is done too.
             self.legs
                 .retain(|l| !matches!(l, Leg::End(d, _) if d == dir));
-            self.reach_end(dir, true);
+            if both {
+                self.referenced = false;
+                self.at_end = None;
+            } else {
+                self.reach_end(dir, true);
+            }
         }
         self.step(now, emit);
     }
@@ -777,6 +796,10 @@ impl Valve {
         let m = match leg {
             Leg::End(d, kind) => {
                 if self.switches[d.index()] {
+                    if self.switches[d.other().index()] {
+                        // Both switches: neither says where the valve is; nothing drives.
+                        return false;
+                    }
                     // Already at that end, by its switch.
                     self.reach_end(d, true);
                     return true;

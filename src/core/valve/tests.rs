@@ -409,6 +409,9 @@ fn an_end_switch_stops_the_drive_and_sets_the_position() {
     r.run_for(100 * S);
     assert_eq!(r.pulses().len(), p.len(), "no drive into an active switch");
     r.command(50.0);
+    r.run_for(S);
+    // Leaving the open end releases its switch.
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Open, false, e));
     r.settle();
     assert_eq!(r.pulses().last().unwrap().0, Dir::Close);
     // The close switch cuts a move that the estimate thinks has further to go.
@@ -420,9 +423,11 @@ fn an_end_switch_stops_the_drive_and_sets_the_position() {
 }
 
 /// Both end switches active at once (a wiring or switch fault): whatever the target, nothing
-/// drives either way while they are; once they release, the valve follows its target again.
+/// drives either way while they are, and the position is not known any more (no command to an
+/// end takes a switch's word for it); once they release, the valve follows its target again,
+/// unreferenced until an end switch references it.
 #[test]
-fn both_end_switches_active_hold_the_valve() {
+fn both_end_switches_active_hold_the_valve_and_lose_the_reference() {
     let mut r = referenced(params());
     r.command(50.0);
     r.settle();
@@ -438,20 +443,106 @@ fn both_end_switches_active_hold_the_valve() {
         before,
         "a drive with both switches active"
     );
-    assert_eq!(r.v.status(r.now).switches, [true, true]);
+    let st = r.v.status(r.now);
+    assert_eq!(st.switches, [true, true]);
+    assert!(!st.referenced && st.uncertainty_pct == 100.0, "{st:?}");
     r.act(true, |v, now, e| v.set_switch(now, Dir::Open, false, e));
     r.act(true, |v, now, e| v.set_switch(now, Dir::Close, false, e));
-    r.command(20.0);
+    let from = r.v.estimate(r.now);
+    r.command(from - 20.0);
     r.settle();
     assert!(
         r.pulses().len() > before,
         "no drive after the switches released"
     );
-    assert!(
-        close(r.v.estimate(r.now), 20.0, 1.0),
-        "{}",
-        r.v.estimate(r.now)
+    assert!(close(r.v.estimate(r.now), from - 20.0, 1.0));
+    assert!(!r.v.status(r.now).referenced);
+    r.command(0.0);
+    r.run_for(10 * S);
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Close, true, e));
+    let st = r.v.status(r.now);
+    assert!(st.referenced && st.position_pct == 0.0, "{st:?}");
+}
+
+/// Settings changed while running: a shorter reversal pause does not shorten the break under
+/// way, a shorter minimum pulse not the drive under way (both count from the real edge with the
+/// value in force then); a longer one acts at once.
+#[test]
+fn a_lowered_pause_or_minimum_keeps_the_break_and_drive_under_way() {
+    let slow = ValveParams {
+        min_pulse_ms: 5_000,
+        reversal_pause_ms: 4_000,
+        ..params()
+    };
+    let quick = ValveParams {
+        min_pulse_ms: 100,
+        reversal_pause_ms: 100,
+        ..params()
+    };
+    let set = |r: &mut Rig, p: ValveParams| {
+        let cfg = p.validate().unwrap();
+        r.act(false, |v, now, e| v.set_config(now, cfg, e));
+    };
+    let mut r = referenced(slow);
+    // A drive of 5 s minimum, retargeted 1 s in to where it stands: it still lasts 5 s.
+    r.command(50.0);
+    r.run_for(S);
+    set(&mut r, quick);
+    r.command(r.v.estimate(r.now));
+    r.run_for(10 * S);
+    let p = r.pulses();
+    let (_, rose, fell) = p[0];
+    assert!(fell - rose >= 5 * S, "a {} ms drive", (fell - rose) / MS);
+    // A reversal right after a fall under the 4 s pause: it waits the 4 s although the pause
+    // is lowered during the break.
+    set(&mut r, slow);
+    r.command(60.0);
+    r.settle();
+    r.command(40.0);
+    r.run_for(100 * MS);
+    set(&mut r, quick);
+    r.settle();
+    let p = r.pulses();
+    let (d1, _, fell) = p[p.len() - 2];
+    let (d2, rose, _) = p[p.len() - 1];
+    assert_eq!((d1, d2), (Dir::Open, Dir::Close));
+    assert!(rose - fell >= 4 * S, "a {} ms break", (rose - fell) / MS);
+    // The lowered values apply from the next edges: a 100 ms reversal now.
+    r.command(45.0);
+    r.settle();
+    let p = r.pulses();
+    let (_, _, fell) = p[p.len() - 2];
+    let (_, rose, _) = p[p.len() - 1];
+    assert!(rose - fell < S, "a {} ms break", (rose - fell) / MS);
+}
+
+/// A command timeout switched on while running counts from the change: no stroke at once for
+/// the time that passed before it.
+#[test]
+fn a_command_timeout_switched_on_counts_from_the_change() {
+    let mut r = referenced(params());
+    r.command(50.0);
+    r.settle();
+    r.run_for(3_600 * S);
+    let before = r.pulses().len();
+    let cfg = ValveParams {
+        command_timeout_ms: 60_000,
+        on_timeout: OnTimeout::Close,
+        ..params()
+    }
+    .validate()
+    .unwrap();
+    r.act(false, |v, now, e| v.set_config(now, cfg, e));
+    r.run_for(59 * S);
+    assert_eq!(
+        r.pulses().len(),
+        before,
+        "a stroke before the new timeout ran out"
     );
+    r.run_for(2 * S);
+    r.settle();
+    assert!(r.v.status(r.now).timed_out);
+    assert_eq!(r.pulses().last().unwrap().0, Dir::Close);
 }
 
 /// The e-stop drops both lines at once, whatever the minimum pulse; after the reset nothing
