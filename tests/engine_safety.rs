@@ -273,3 +273,31 @@ fn a_safety_input_not_taken_in_time_switches_the_outputs_off_by_the_emergency_ha
         Err(EngineError::OutputFault { .. })
     ));
 }
+
+/// A change that must reach the output thread together (a parameter change touching several
+/// channels and valves) is queued whole or not at all: with room for one request, two are
+/// refused and the room is untouched.
+#[test]
+fn send_all_queues_all_or_nothing() {
+    let (shared, mut e) = start(2, 50.0);
+    std::thread::sleep(Duration::from_millis(50));
+    shared.stall();
+    let command = |channel| Request {
+        channel,
+        input: Input::Command(Command::Percent(30.0)),
+    };
+    while e.requests.room() > 1 {
+        e.requests.send(command(0)).unwrap();
+    }
+    let two = [command(0), command(1)];
+    let r = e.requests.send_all(&two);
+    assert!(matches!(r, Err(EngineError::QueueFull { .. })), "{r:?}");
+    assert_eq!(e.requests.room(), 1, "nothing of a refused batch is queued");
+    let r = e.requests.send_all(&[command(1), command(2)]);
+    assert!(matches!(r, Err(EngineError::NoSuchChannel(2))), "{r:?}");
+    assert_eq!(e.requests.room(), 1);
+    e.requests.send_all(&two[..1]).unwrap();
+    assert_eq!(e.requests.room(), 0);
+    shared.release();
+    e.handle.shutdown().unwrap();
+}

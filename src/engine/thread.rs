@@ -258,6 +258,33 @@ impl Requests {
         Ok(())
     }
 
+    /// Queues all of `requests` or none: refused whole (nothing queued) when one names no
+    /// channel, the thread has stopped, or the queue lacks room for them all. For changes that
+    /// must reach the output thread together (a parameter change touching several channels
+    /// and valves).
+    pub fn send_all(&mut self, requests: &[Request]) -> Result<(), EngineError> {
+        if let Some(r) = requests.iter().find(|r| r.channel >= self.channels) {
+            return Err(EngineError::NoSuchChannel(r.channel));
+        }
+        if self.tx.is_abandoned() {
+            return Err(EngineError::Stopped);
+        }
+        if self.tx.slots() < requests.len() {
+            return Err(EngineError::QueueFull {
+                capacity: self.tx.buffer().capacity(),
+            });
+        }
+        for r in requests {
+            self.send(*r)?;
+        }
+        Ok(())
+    }
+
+    /// Requests the queue has room for now.
+    pub fn room(&self) -> usize {
+        self.tx.slots()
+    }
+
     /// Number of channels.
     pub fn channels(&self) -> usize {
         self.channels

@@ -209,10 +209,9 @@ impl Inputs {
                 return Err(e.into());
             }
         };
-        // The output thread first: if it cannot take the new configurations, nothing changes
-        // (what it took is given the settings in force again).
-        let mut sent: Vec<Request> = Vec::new();
-        let new = accepted
+        // The output thread first, all the new configurations or none: if it cannot take them,
+        // nothing changes.
+        let new: Vec<Request> = accepted
             .configs
             .iter()
             .map(|&(channel, cfg)| Request {
@@ -227,20 +226,13 @@ impl Inputs {
                         channel: 0,
                         input: Input::ValveConfig { valve, config },
                     }),
-            );
-        for req in new {
-            if let Err(source) = lock(&self.requests).send(req) {
-                for done in sent {
-                    if let Some(old) = in_force(&store, &done) {
-                        let _ = lock(&self.requests).send(old);
-                    }
-                }
-                drop(store);
-                let e = ChangeError::Engine { source };
-                self.refused(&items, door, &e.to_string());
-                return Err(e);
-            }
-            sent.push(req);
+            )
+            .collect();
+        if let Err(source) = lock(&self.requests).send_all(&new) {
+            drop(store);
+            let e = ChangeError::Engine { source };
+            self.refused(&items, door, &e.to_string());
+            return Err(e);
         }
         let before = store.node_settings();
         let changed = store.commit(&accepted);
@@ -352,20 +344,6 @@ impl Inputs {
             warn!("cannot publish /parameter_events: {e}");
         }
     }
-}
-
-/// The request that gives the output thread back the settings in force for what `req` changed
-/// (a channel's or a valve's configuration).
-fn in_force(store: &ParamStore, req: &Request) -> Option<Request> {
-    let input = match req.input {
-        Input::Config(_) => Input::Config(store.channel_config(req.channel).ok()?),
-        Input::ValveConfig { valve, .. } => Input::ValveConfig {
-            valve,
-            config: store.valve_config(valve)?,
-        },
-        _ => return None,
-    };
-    Some(Request { input, ..*req })
 }
 
 /// The inputs of each channel, `~/<ch>/duty`, `~/<ch>/sv`, `~/<ch>/fraction` (004's i_rIput,

@@ -4,8 +4,10 @@
 //!
 //! A change is checked whole: every value is coerced to its declared type, range-checked, and
 //! every channel it touches is rebuilt as a [`ChannelParams`] and validated by the core
-//! ([`ChannelParams::validate`]), so cross-parameter rules (`min_on_ms <= period_ms`, the
-//! minima fitting the period) hold whatever order the values arrive in. A refused change leaves
+//! ([`ChannelParams::validate`]), every valve it touches as a `ValveParams` (its
+//! `validate`), so cross-parameter rules (`min_on_ms <= period_ms`, the minima fitting the
+//! period, a valve's minimum pulse within its travel times) hold whatever order the values
+//! arrive in. A refused change leaves
 //! the store untouched and says why. Nothing here talks to ROS or to the engine.
 //!
 //! Type coercion, the same through every door: an integer parameter accepts a double that is a

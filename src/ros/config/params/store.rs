@@ -101,12 +101,6 @@ impl ParamStore {
         Self::valve_params_in(&self.values, valve)
     }
 
-    /// The validated settings in force of valve number `k` (in declaration order).
-    pub fn valve_config(&self, k: usize) -> Option<ValveConfig> {
-        let name = self.valves.get(k)?;
-        self.valve_params(name).validate().ok()
-    }
-
     fn valve_params_in(
         values: &BTreeMap<String, ParameterValue>,
         valve: &str,

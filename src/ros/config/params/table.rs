@@ -192,8 +192,7 @@ const VALVE_TRAVEL: &str = "the position estimate and the moves under way count 
 /// The parameters of each valve `NAME` (declared as `NAME.<suffix>` for every valve of the
 /// `valve` parameter). The motion settings change while running (checked whole, as a
 /// channel's); the travel times, the end switches and the reference at start are read at
-/// start-up. The vendor
-/// practice behind each is in docs/valve.md.
+/// start-up. The vendor practice behind each is in docs/valve.md.
 pub(super) fn valve_decls() -> Vec<Decl> {
     use ParamType::*;
     let travel = Range::Integer(MIN_TRAVEL_MS as i64, MAX_TRAVEL_MS as i64);
