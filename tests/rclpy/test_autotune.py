@@ -149,13 +149,18 @@ def sensor_silent(ros, handle, ch) -> None:
     pub.publish(String(data="sensor_silent"))
 
 
-#: Each way a run ends early: what ends it, the goal's status, the result's `stop`, and the
-#: heater fault latched afterwards.
+#: Each way a run ends early: what ends it, the goal's status, the result's `stop`, and what
+#: the channel's status shows afterwards besides 0 % and the line off.
 ENDS = {
-    "cancel": (cancel, GoalStatus.STATUS_CANCELED, "canceled", ""),
-    "estop": (estop, GoalStatus.STATUS_ABORTED, "estop", ""),
-    "disable": (disable, GoalStatus.STATUS_ABORTED, "disabled", ""),
-    "heater_fault": (sensor_silent, GoalStatus.STATUS_ABORTED, "heater_fault", "sensor_timeout"),
+    "cancel": (cancel, GoalStatus.STATUS_CANCELED, "canceled", lambda s: s.enabled),
+    "estop": (estop, GoalStatus.STATUS_ABORTED, "estop", lambda s: not s.enabled),
+    "disable": (disable, GoalStatus.STATUS_ABORTED, "disabled", lambda s: not s.enabled),
+    "heater_fault": (
+        sensor_silent,
+        GoalStatus.STATUS_ABORTED,
+        "heater_fault",
+        lambda s: s.heater_fault == "sensor_timeout",
+    ),
 }
 
 
@@ -163,7 +168,7 @@ ENDS = {
 def test_a_run_ended_mid_way_leaves_the_line_off_and_the_old_gains(
     how, node_process, process_launcher, node_binary, ros
 ):
-    end, want_status, want_stop, want_fault = ENDS[how]
+    end, want_status, want_stop, after = ENDS[how]
     proc, ch, client = run(node_process, process_launcher, node_binary, ros)
     feedback: list = []
     handle = send(ros, client, True, feedback)
@@ -175,22 +180,23 @@ def test_a_run_ended_mid_way_leaves_the_line_off_and_the_old_gains(
         lambda d: diag_values(d).get("autotune", "").startswith("relay"), "autotune running"
     )
     assert d.message.startswith("autotune running (relay, "), d
-    before_end = len(ch.status.messages)
     end(ros, handle, ch)
     got = handle.get_result_async()
     ros.spin_until(got.done, "the ended goal's result", timeout=10)
     ended = mono_ns()
+    after_end = len(ch.status.messages)
     status, r = got.result().status, got.result().result
     assert status == want_status, (status, r)
     assert r.stop == want_stop and not r.converged and not r.applied, r
     assert r.pid_kp == 0.0 and r.ku == 0.0, r
-    # Every end leaves 0 % commanded (nothing switches on again by itself) and the line off.
+    # Every end leaves 0 % commanded (nothing switches on again by itself) and the line off;
+    # only statuses sent after the result count (the relay's off half is 0 % too).
     s = ch.wait_status(
-        lambda s: s.duty_commanded == 0.0 and not s.output,
+        lambda s: s.duty_commanded == 0.0 and not s.output and after(s),
         f"0 % and the line off after {how}",
-        start=before_end,
+        start=after_end,
     )
-    assert s.heater_fault == want_fault, s
+    assert s.heater_fault == ("sensor_timeout" if how == "heater_fault" else ""), s
     start = len(ch.diagnostics.messages)
     ch.wait_diag(lambda d: diag_values(d)["autotune"] == "", "no autotune after it", start=start)
     got_params = ros.get_parameters(NODE, ["pw01.pid_kp", "pw01.pid_ki", "pw01.pid_kd"])

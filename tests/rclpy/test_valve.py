@@ -22,7 +22,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import Transition
 from pwm_actuator_msgs.msg import ValveState
 from std_msgs.msg import Bool, Float64
-from std_srvs.srv import Trigger
 
 from helpers_rules import (
     MS,
@@ -34,6 +33,7 @@ from helpers_rules import (
     stamp_ns,
     trace_edges,
 )
+from test_estop import release
 from test_lifecycle import change
 
 TRAVEL_OPEN_MS = 2000
@@ -205,9 +205,7 @@ def test_the_estop_and_deactivation_stop_a_moving_valve_and_leave_both_lines_off
     # Latched: a position command is taken, nothing moves.
     pub.publish(Float64(data=0.0))
     ros.spin_for(0.6)
-    estop.publish(Bool(data=False))
-    ros.spin_for(0.3)
-    response = ros.call(Trigger, f"{NODE}/reset_estop", Trigger.Request())
+    response = release(ros, estop)
     assert response.success, response
     # Released: nothing moves before a fresh command.
     ros.spin_for(0.6)
