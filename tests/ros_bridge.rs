@@ -142,13 +142,16 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
 
     // The report thread, as the node runs it: it owns the reporter.
     let mut reports = engine.reports;
+    // It hands the reporter back: its publishers must outlive the ERROR they were given, as
+    // in the node (a DDS writer dropped at once can take its last sample with it).
     let pump = std::thread::spawn(move || {
         let reporter = std::cell::RefCell::new(reporter);
-        reports.serve(
+        let ended = reports.serve(
             || false,
             |r| reporter.borrow_mut().handle(r),
             |r| reporter.borrow_mut().after_batch(r.dropped()),
-        )
+        );
+        (ended, reporter.into_inner())
     });
 
     // Make sure the observer hears /diagnostics (1 Hz) before the fault: the node publishes
@@ -177,6 +180,13 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     assert_eq!(kv(d, "output_fault"), "true");
     assert_eq!(d.hardware_id, "test:0");
 
+    // The output thread ends with the fault (the stop is asked for when the fault is
+    // reported, a moment before the thread is gone).
+    let result = engine.handle.shutdown();
+    assert!(
+        matches!(result, Err(EngineError::OutputFault { channel: 0, .. })),
+        "{result:?}"
+    );
     // The output thread is gone: a parameter change cannot reach it and changes nothing.
     let r = bridge.set_params(
         vec![("pw01.period_ms".into(), ParameterValue::Integer(200))],
@@ -188,14 +198,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         Some(50),
         "the store keeps the old value"
     );
-
-    let result = engine.handle.shutdown();
-    assert!(
-        matches!(result, Err(EngineError::OutputFault { channel: 0, .. })),
-        "{result:?}"
-    );
-    assert!(
-        pump.join().unwrap(),
-        "the report thread saw the output thread end"
-    );
+    let (ended, reporter) = pump.join().unwrap();
+    assert!(ended, "the report thread saw the output thread end");
+    drop(reporter);
 }

@@ -391,8 +391,15 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
 /// Moves reports from the output thread to ROS until `quit` is set or the output thread ends.
 /// A plain thread that owns the reporter: it sleeps on the engine's eventfd ([`Reports::wait`])
 /// or until the reporter's next periodic message, and publishes, which never waits for a
-/// subscriber.
-fn pump(reporter: Reporter, mut reports: Reports, quit: Arc<AtomicBool>, sig: Arc<StopSignal>) {
+/// subscriber. It hands the reporter back when it ends: its publishers must outlive the last
+/// messages they were given (a DDS writer dropped at once can take its last sample with it —
+/// the ERROR of an output fault), so the caller drops it late in the shutdown.
+fn pump(
+    reporter: Reporter,
+    mut reports: Reports,
+    quit: Arc<AtomicBool>,
+    sig: Arc<StopSignal>,
+) -> Reporter {
     // Both callbacks act on the reporter, one after the other on this thread.
     let reporter = std::cell::RefCell::new(reporter);
     let ended = reports.serve(
@@ -408,6 +415,7 @@ fn pump(reporter: Reporter, mut reports: Reports, quit: Arc<AtomicBool>, sig: Ar
     if ended {
         sig.stop.notify_one();
     }
+    reporter.into_inner()
 }
 
 async fn serve(
@@ -602,9 +610,13 @@ async fn serve(
         t.abort();
     }
     quit.store(true, Ordering::SeqCst);
-    if pump_thread.join().is_err() {
-        warn!("the report thread panicked");
-    }
+    let reporter = match pump_thread.join() {
+        Ok(r) => Some(r),
+        Err(_) => {
+            warn!("the report thread panicked");
+            None
+        }
+    };
     // Drives every output inactive, flushes the traces, joins the output thread.
     let fault_text = handle.fault();
     let result = handle.shutdown();
@@ -612,6 +624,9 @@ async fn serve(
         let _ = t.await;
     }
     drop(inputs);
+    // The reporter's publishers go with the node, after the shutdown: their last samples (the
+    // diagnostics of a fault) have had that long to leave.
+    drop(reporter);
     // Dropping the node tells its spinner to stop.
     drop(node);
     let _ = tokio::time::timeout(Duration::from_secs(1), spin_task).await;
