@@ -32,10 +32,12 @@ def stamp_ns(stamp: Any) -> int:
     """A builtin_interfaces/Time in nanoseconds."""
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
+
 #: Tolerance of written times (trace `t_ns`, edge stamps, lateness) against scheduled ones, ns.
 #: Timing accuracy is the benchmark's business; this only catches an edge written at a wrong
-#: moment, on a loaded 2-core machine.
-WRITE_TOL_NS = 20 * MS
+#: moment (a phase late: 74 ms and more in these tests), on a shared 2-core VM without
+#: real-time priority, where the output thread was seen waking 39 ms late once.
+WRITE_TOL_NS = 60 * MS
 #: QoS of `~/<ch>/e1`: reliable, transient local, keep last 1 (docs/interface.md), so a late subscriber
 #: gets the current state.
 E1_QOS = QoSProfile(

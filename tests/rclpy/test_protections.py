@@ -200,7 +200,9 @@ def test_avg_duty_caps_the_on_time_of_every_window(node_process, ros):
     assert not r.successful and "avg_window_s 0 is outside 1..86400 s" in r.reason, r.reason
     edges = close_trace(proc)
     runs = high_runs(edges)
-    assert len(runs) >= 8, edges
+    # Four windows' worth of pulses (a wake-up late past a whole short pulse merges it, as the
+    # log then says: one fewer).
+    assert len(runs) >= 6, edges
     scheduled = [(r.scheduled_ns, f.scheduled_ns) for r, f in runs]
     written = [(r.t_ns, f.t_ns) for r, f in runs]
     slack = 3 * REAL_EDGE_SLACK_NS  # at most three pulses begin in a 2 s window here
