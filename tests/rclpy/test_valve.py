@@ -99,15 +99,21 @@ def drive_integral(open_edges, close_edges) -> float:
     return pos
 
 
-def test_a_valve_references_follows_positions_and_keeps_its_lines_apart(node_process, ros):
+def start_referenced(node_process, ros):
+    """The node with the valve `mix`, logs of its state and /diagnostics, a publisher of its
+    position; returns once the reference at start has ended."""
     proc = node_process(node_args(**VALVE))
     states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
     diags = ros.subscribe(DiagnosticArray, "/diagnostics")
     pub = ros.publisher(Float64, f"{NODE}/valve/mix/position")
     ros.wait_for_subscribers(pub, 1)
-
-    # The reference: 150 % of 1.6 s closing.
     states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+    return proc, states, diags, pub
+
+
+def test_a_valve_references_follows_positions_and_keeps_its_lines_apart(node_process, ros):
+    # The reference: 150 % of 1.6 s closing.
+    proc, states, diags, pub = start_referenced(node_process, ros)
 
     one_pulse = MIN_PULSE_MS / min(TRAVEL_OPEN_MS, TRAVEL_CLOSE_MS) * 100.0
     last = states.messages[-1]
@@ -258,12 +264,7 @@ def test_the_motion_settings_change_while_running_the_travel_times_do_not(node_p
     band holds the valve, a narrow one moves it to the target in force, a lowered
     `max_uncertainty_pct` warns); a change the core refuses, or one of the travel times, is
     refused with the reason and changes nothing."""
-    proc = node_process(node_args(**VALVE))
-    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
-    diags = ros.subscribe(DiagnosticArray, "/diagnostics")
-    pub = ros.publisher(Float64, f"{NODE}/valve/mix/position")
-    ros.wait_for_subscribers(pub, 1)
-    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+    proc, states, diags, pub = start_referenced(node_process, ros)
 
     def set_one(name: str, value):
         return ros.set_parameters(NODE, {name: value})[name]
