@@ -1119,6 +1119,25 @@ impl Discovery {
       .dcps_participant_message
       .reader
       .forget_instances(|k| k.prefix() == prefix);
+    #[cfg(feature = "security")]
+    {
+      self
+        .dcps_participant_secure
+        .reader
+        .forget_instances(|k| k.0.prefix == prefix);
+      self
+        .dcps_publications_secure
+        .reader
+        .forget_instances(|k| k.0.prefix == prefix);
+      self
+        .dcps_subscriptions_secure
+        .reader
+        .forget_instances(|k| k.0.prefix == prefix);
+      self
+        .dcps_participant_message_secure
+        .reader
+        .forget_instances(|k| k.prefix() == prefix);
+    }
   }
 
   fn process_participant_dispose(&mut self, participant_guidp: GuidPrefix) {
