@@ -413,8 +413,34 @@ impl DiscoveryDB {
       } // match
     } // for
 
-    for (guid, _) in &to_remove {
+    for (guid, reason) in &to_remove {
+      // Its readers and writers are lost with it. A participant that leaves
+      // disposes each of its endpoints (ReaderLost / WriterLost); one whose
+      // lease expired never does, so say it here. Listeners that keep
+      // something per remote endpoint (ros2-client's graph) can then let go.
+      let readers: Vec<GUID> = self
+        .external_topic_readers
+        .range(guid.range())
+        .map(|(g, _)| *g)
+        .collect();
+      let writers: Vec<GUID> = self
+        .external_topic_writers
+        .range(guid.range())
+        .map(|(g, _)| *g)
+        .collect();
       self.remove_participant(*guid, false); // false = removed due to timeout
+      for reader in readers {
+        self.send_participant_status(DomainParticipantStatusEvent::ReaderLost {
+          guid: reader,
+          reason: reason.clone(),
+        });
+      }
+      for writer in writers {
+        self.send_participant_status(DomainParticipantStatusEvent::WriterLost {
+          guid: writer,
+          reason: reason.clone(),
+        });
+      }
     }
     self.empty_attic(inow);
 
@@ -1453,7 +1479,7 @@ mod tests {
   #[test]
   fn gone_participants_and_endpoints_leave_nothing_behind() {
     let (topic_sender, _topic_receiver) = std::sync::mpsc::sync_channel::<()>(4);
-    let (status_sender, _status_receiver) = sync_status_channel(64).unwrap();
+    let (status_sender, status_receiver) = sync_status_channel(64).unwrap();
     let mut db = DiscoveryDB::new(GUID::new_participant_guid(), topic_sender, status_sender);
 
     let left = discover_remote(&mut db, 1, 60_000);
@@ -1483,12 +1509,35 @@ mod tests {
     assert!(!db.topics.contains_key("own_1"));
     assert_eq!(db.topics["shared"].len(), 4);
 
-    // A participant whose lease expires: its endpoints wait in the attic for
-    // one more lease, then they and its topic records go.
+    // A participant whose lease expires: its endpoints are lost with it, and
+    // wait in the attic for one more lease, then they and its topic records go.
+    while status_receiver.try_recv().is_ok() {}
     std::thread::sleep(StdDuration::from_millis(400));
     let lost = db.participant_cleanup();
     assert_eq!(lost.len(), 1);
     assert_eq!(lost[0].0, killed);
+    let mut lost_endpoints = Vec::new();
+    while let Ok(event) = status_receiver.try_recv() {
+      match event {
+        DomainParticipantStatusEvent::ReaderLost {
+          guid,
+          reason: LostReason::Timeout { .. },
+        } => lost_endpoints.push(guid),
+        DomainParticipantStatusEvent::WriterLost {
+          guid,
+          reason: LostReason::Timeout { .. },
+        } => lost_endpoints.push(guid),
+        _ => {}
+      }
+    }
+    assert_eq!(
+      lost_endpoints,
+      vec![
+        remote_guid(killed, 1, EntityKind::READER_WITH_KEY_USER_DEFINED),
+        remote_guid(killed, 2, EntityKind::READER_WITH_KEY_USER_DEFINED),
+        remote_guid(killed, 3, EntityKind::WRITER_WITH_KEY_USER_DEFINED),
+      ]
+    );
     assert_eq!(db.external_topic_readers_attic.len(), 2);
     assert_eq!(db.external_topic_writers_attic.len(), 1);
     std::thread::sleep(StdDuration::from_millis(400));
