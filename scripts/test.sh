@@ -116,7 +116,10 @@ vendor_tests() {
         data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
         reply_written_before_its_reader_matched_goes_to_it_on_match cache_cleaning_ acknowledged_samples_beyond_depth_go_on_insert \
         unanswered_nack_is_repeated_until_the_samples_come \
-        endpoints_announce_their_user_data_in_sedp 2>&1 |
+        endpoints_announce_their_user_data_in_sedp gone_participants_and_endpoints_leave_nothing_behind \
+        a_participant_back_within_its_attic_time_gets_its_endpoints_back \
+        samples_of_a_lost_participant_leave_built_in_topic_caches \
+        gone_writers_and_forgotten_instances_leave_the_read_state 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"
 }
