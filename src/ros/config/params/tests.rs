@@ -449,6 +449,7 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
                 names: vec!["pw01".into(), "pw02".into(), "pw03".into()]
             },
             trace: vec![],
+            trace_limit: crate::output::TraceLimit::default(),
             fault: None,
         }
     );
@@ -494,6 +495,7 @@ fn gpio_needs_lines_and_takes_a_trace() {
                 }],
             },
             trace: vec![],
+            trace_limit: crate::output::TraceLimit::default(),
             fault: None,
         }
     );
