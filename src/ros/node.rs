@@ -41,6 +41,7 @@ use crate::ros::interface::{qos, type_hash};
 use crate::ros::outbound::diagnostics::ChannelHealth;
 use crate::ros::outbound::mcap_trace::{self, McapTrace};
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
+use crate::ros::outbound::traces::TraceReport;
 use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use crate::ros::wire::name_clash::{self, NameClash};
@@ -532,6 +533,7 @@ async fn serve(
     if let Some(mcap) = mcap {
         reporter.record_to(mcap);
     }
+    reporter.watch_traces(TraceReport::new(traces));
     reporter.set_valves(valve_pubs);
     let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
