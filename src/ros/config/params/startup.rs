@@ -182,7 +182,7 @@ impl StartupConfig {
         let output = OutputSpec {
             backend,
             trace: settings.trace.clone(),
-            trace_limit: TraceLimit::default(),
+            trace_limit: TraceLimit::from_mb(settings.trace_max_mb),
             fault: None,
         };
         Ok(StartupConfig {

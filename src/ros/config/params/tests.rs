@@ -515,6 +515,22 @@ fn gpio_needs_lines_and_takes_a_trace() {
         StartupConfig::from_store(&su.store).unwrap().output.trace,
         [std::path::PathBuf::from("a.vcd"), "b.csv".into()]
     );
+    // The traces' size limit: 256 MB unless set, in MB, 1 at least.
+    assert_eq!(
+        StartupConfig::from_store(&su.store)
+            .unwrap()
+            .output
+            .trace_limit
+            .max_bytes,
+        256_000_000
+    );
+    let su = start_up(&[sv("trace_max_mb", V::Integer(64))]).unwrap();
+    let limit = StartupConfig::from_store(&su.store)
+        .unwrap()
+        .output
+        .trace_limit;
+    assert_eq!(limit.max_bytes, 64_000_000);
+    assert!(start_up(&[sv("trace_max_mb", V::Integer(0))]).is_err());
 }
 
 #[test]
