@@ -622,12 +622,14 @@ impl Sink {
     }
 
     /// Closes the file written whole at `t_ns`, moves the older ones up (the oldest deleted)
-    /// and begins a new one.
+    /// and begins a new one. `full`: because the file reached its share of the limit (counted
+    /// as a rotation), not to keep a failed file beside the new one.
     fn rotate(
         &mut self,
         names: &[String],
         t_ns: Nanos,
         levels: &[Level],
+        full: bool,
     ) -> Result<(), TraceError> {
         if let Some(mut kind) = self.kind.take() {
             if let Err(e) = kind.finish(t_ns) {
@@ -643,7 +645,7 @@ impl Sink {
         }
         if let Some(slot) = &self.slot {
             slot.update(|s| {
-                s.rotations += 1;
+                s.rotations += u64::from(full);
                 s.files_dropped += u64::from(dropped);
             });
         }
@@ -668,7 +670,7 @@ impl Sink {
         if let Some(disk) = &self.disk {
             let full = kind.written() + RECORD_BYTES + longest > disk.limit.file_bytes();
             if full && disk.records > 0 {
-                if let Err(e) = self.rotate(names, t_ns, levels) {
+                if let Err(e) = self.rotate(names, t_ns, levels, true) {
                     self.lost += 1;
                     return Err(e);
                 }
@@ -731,7 +733,7 @@ impl Sink {
         } else if self.kind.is_none() && now >= disk.next_retry {
             // A file that holds records is kept whole: the new one comes after it.
             let result = if disk.records > 0 {
-                self.rotate(names, t_ns, levels)
+                self.rotate(names, t_ns, levels, false)
             } else {
                 self.begin(names, t_ns, levels)
             };
@@ -1450,6 +1452,12 @@ mod tests {
         w.check(RETRY_PERIOD_NS + CHECK_PERIOD_NS);
         let state = health.snapshot()[0].clone();
         assert_eq!(state.failing, None, "{state:?}");
+        // The directory went with the first file: the new one is alone, and no rotation.
+        assert_eq!(
+            (state.files, state.rotations, state.lost),
+            (1, 0, 2),
+            "{state:?}"
+        );
         w.write_records(&[rec(400, 1, true, 390)]).unwrap();
         w.flush().unwrap();
         let rows = read_csv(&std::fs::read_to_string(&csv).unwrap()).unwrap();

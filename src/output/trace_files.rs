@@ -262,7 +262,8 @@ pub struct TraceState {
     pub bytes: u64,
     /// Files it keeps now.
     pub files: u32,
-    /// Times the file written was closed at its share of the limit and a new one begun.
+    /// Times the file written was full (its share of the limit; for MCAP also its most
+    /// chunks), closed and a new one begun.
     pub rotations: u64,
     /// Files the rotation deleted (the oldest, each time the limit was reached).
     pub files_dropped: u64,

@@ -421,7 +421,7 @@ impl TraceFile {
         let record = MESSAGE_RECORD_BYTES + item.data.len() as u64;
         let too_big = self.handle.is_some() && self.projected(record) > self.limit.file_bytes();
         if self.messages > 0 && (self.chunks >= self.max_chunks || too_big) {
-            self.rotate(topics);
+            self.rotate(topics, true);
         } else if self.pending_bytes + record > CHUNK_SIZE {
             // Closed here rather than by the writer, so the count of the open chunk stays
             // true.
@@ -475,8 +475,8 @@ impl TraceFile {
         }
     }
 
-    /// Closes the file with its summary and footer.
-    fn finish(&mut self) {
+    /// Closes the file with its summary and footer; `false` if that failed (and was told).
+    fn finish(&mut self) -> bool {
         if let Some(mut w) = self.writer.take() {
             let r = w.finish().and_then(|_| {
                 use std::io::Write;
@@ -484,15 +484,18 @@ impl TraceFile {
             });
             if let Err(e) = r {
                 self.fail("cannot write", io_error(e));
+                return false;
             }
         }
+        true
     }
 
     /// Closes the file written whole, moves the older ones up (the oldest deleted) and goes
-    /// on in a new file at the path.
-    fn rotate(&mut self, topics: &[Topic]) {
-        self.finish();
-        if self.writer.is_none() && self.messages == 0 {
+    /// on in a new file at the path. `full`: because the file is full (its share of the limit,
+    /// or its most chunks; counted as a rotation), not to keep a failed file beside the new
+    /// one.
+    fn rotate(&mut self, topics: &[Topic], full: bool) {
+        if !self.finish() {
             return;
         }
         let dropped = match trace_files::shift_files(&self.base) {
@@ -504,7 +507,7 @@ impl TraceFile {
         };
         self.older = trace_files::older_sizes(&self.base);
         self.slot.update(|s| {
-            s.rotations += 1;
+            s.rotations += u64::from(full);
             s.files_dropped += u64::from(dropped);
         });
         log::debug!(
@@ -543,7 +546,7 @@ impl TraceFile {
             } else if self.writer.is_none() && now >= self.next_retry {
                 // A file that holds messages is kept: the new one comes after it.
                 let begun = if self.messages > 0 {
-                    self.rotate(topics);
+                    self.rotate(topics, false);
                     self.writer.is_some()
                 } else {
                     self.restart(topics)

@@ -253,11 +253,11 @@ fn log_news(state: &TraceState, told: &mut Told, now: Nanos) {
             .is_none_or(|at| now.saturating_sub(at) >= LOG_REPEAT_NS);
         if due {
             info!(
-                "trace {path}: closed at its share of {} MB and begun again ({} time(s) so far; \
-                 {} oldest file(s) deleted)",
-                mb(state.limit_bytes),
+                "trace {path}: the file written is full and goes on in a new one ({} rotation(s) \
+                 so far, {} oldest file(s) deleted; limit {} MB)",
                 state.rotations,
-                state.files_dropped
+                state.files_dropped,
+                mb(state.limit_bytes)
             );
             told.rotated_at = Some(now);
             told.rotations = state.rotations;
