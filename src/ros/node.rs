@@ -16,7 +16,7 @@ use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
 use crate::output::{
     self, install_panic_hook, AnyOutput, Backend, LineSlot, OpenError, Output, TraceFormat,
-    TraceSpec,
+    TraceHealth, TraceSpec,
 };
 use crate::ros::config::args::{self, ArgsError, RosArgs};
 use crate::ros::config::cli::{self, CliError, DEMO_ORIGIN, EXIT_FAILURE, EXIT_USAGE};
@@ -41,6 +41,7 @@ use crate::ros::interface::{qos, type_hash};
 use crate::ros::outbound::diagnostics::ChannelHealth;
 use crate::ros::outbound::mcap_trace::{self, McapTrace};
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
+use crate::ros::outbound::traces::TraceReport;
 use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use crate::ros::wire::name_clash::{self, NameClash};
@@ -329,6 +330,7 @@ fn mcap_trace(
     cfg: &StartupConfig,
     ep: &Endpoints<'_>,
     names: &[String],
+    health: &TraceHealth,
 ) -> Result<Option<McapTrace>, NodeError> {
     let trace_err = |e| NodeError::Output(OpenError::Trace(e));
     let paths = TraceSpec::from_paths(&cfg.output.trace)
@@ -361,7 +363,7 @@ fn mcap_trace(
             p.display()
         );
     }
-    McapTrace::create(&paths, topics)
+    McapTrace::create(&paths, topics, cfg.output.trace_limit, health)
         .map(Some)
         .map_err(trace_err)
 }
@@ -490,7 +492,8 @@ async fn serve(
         remaps,
     };
     let (pubs, diagnostics) = ChannelPubs::create(&mut ep, &names)?;
-    let mcap = mcap_trace(&cfg, &ep, &names)?;
+    let traces = output.trace_health();
+    let mcap = mcap_trace(&cfg, &ep, &names, &traces)?;
     let valve_outs: Vec<(String, String, String)> = valves
         .iter()
         .map(|(v, _)| {
@@ -530,6 +533,7 @@ async fn serve(
     if let Some(mcap) = mcap {
         reporter.record_to(mcap);
     }
+    reporter.watch_traces(TraceReport::new(traces));
     reporter.set_valves(valve_pubs);
     let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(

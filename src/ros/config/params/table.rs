@@ -31,6 +31,7 @@ use crate::core::valve::{
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::output::gpio::parse_line_addr;
 use crate::output::gpio_input::MAX_DEBOUNCE_MS;
+use crate::output::trace_files::{DEFAULT_TRACE_MAX_MB, MAX_TRACE_MAX_MB, MIN_TRACE_MAX_MB};
 use crate::ros::interface::msg;
 use std::str::FromStr;
 
@@ -419,6 +420,20 @@ pub(super) fn node_decls() -> Vec<Decl> {
                     .collect()
             }),
             ..Decl::new("trace", String, || V::String(std::string::String::new()))
+        },
+        Decl {
+            description: "What the files of each trace may hold together, MB (10^6 bytes): \
+                          at a quarter of it the file written is closed, the older ones move \
+                          one number up (run.csv becomes run.1.csv, ...) and the oldest of \
+                          four is deleted and counted on /diagnostics. Pipes and devices are \
+                          not limited.",
+            constraints: "start-up only",
+            read_only: Some(START_UP),
+            range: Range::Integer(MIN_TRACE_MAX_MB as i64, MAX_TRACE_MAX_MB as i64),
+            node: Some(|n, v| n.trace_max_mb = int(v).max(0) as u64),
+            ..Decl::new("trace_max_mb", Integer, || {
+                V::Integer(DEFAULT_TRACE_MAX_MB as i64)
+            })
         },
         Decl {
             description: "Rate of the periodic ~/<ch>/status messages, Hz (they are also sent \

@@ -449,6 +449,7 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
                 names: vec!["pw01".into(), "pw02".into(), "pw03".into()]
             },
             trace: vec![],
+            trace_limit: crate::output::TraceLimit::default(),
             fault: None,
         }
     );
@@ -494,6 +495,7 @@ fn gpio_needs_lines_and_takes_a_trace() {
                 }],
             },
             trace: vec![],
+            trace_limit: crate::output::TraceLimit::default(),
             fault: None,
         }
     );
@@ -513,6 +515,22 @@ fn gpio_needs_lines_and_takes_a_trace() {
         StartupConfig::from_store(&su.store).unwrap().output.trace,
         [std::path::PathBuf::from("a.vcd"), "b.csv".into()]
     );
+    // The traces' size limit: 256 MB unless set, in MB, 1 at least.
+    assert_eq!(
+        StartupConfig::from_store(&su.store)
+            .unwrap()
+            .output
+            .trace_limit
+            .max_bytes,
+        256_000_000
+    );
+    let su = start_up(&[sv("trace_max_mb", V::Integer(64))]).unwrap();
+    let limit = StartupConfig::from_store(&su.store)
+        .unwrap()
+        .output
+        .trace_limit;
+    assert_eq!(limit.max_bytes, 64_000_000);
+    assert!(start_up(&[sv("trace_max_mb", V::Integer(0))]).is_err());
 }
 
 #[test]
