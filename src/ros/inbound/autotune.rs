@@ -159,7 +159,15 @@ async fn execute(
     let ticket = inputs.state().reset_ticket();
     // Reports of an earlier run that nobody took.
     inputs.state().take_autotune(ch, 0);
-    if let Err(e) = inputs.send(ch, Input::Autotune { ticket, goal }) {
+    let start_by = crate::clock::monotonic_ns() + START_WAIT.as_nanos() as u64;
+    if let Err(e) = inputs.send(
+        ch,
+        Input::Autotune {
+            ticket,
+            goal,
+            start_by,
+        },
+    ) {
         return ended(
             "refused",
             format!("{name}: the goal did not reach the output thread: {e}"),
