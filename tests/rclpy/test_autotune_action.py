@@ -9,8 +9,8 @@ a request about a goal the server does not know.
   the answer, seen on the trace; the unclaimed results are still there afterwards;
 - get_result requests for unknown goals: answered at once with STATUS_UNKNOWN (a cancel of one:
   ERROR_UNKNOWN_GOAL_ID); 100,000 of them (PWM_RESULT_FLOOD; from PWM_RESULT_FLOOD_CLIENTS
-  processes, 1 by default, about 5,000 a second here) leave the node's resident memory within
-  1 MB of where it was before them.
+  processes, 1 by default, about 5,000 a second here), after as many unmeasured, leave the
+  node's resident memory within 1 MB of where it was before them.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import time
 import uuid
 from pathlib import Path
 
+import pytest
 from action_msgs.msg import GoalStatus, GoalStatusArray
 from action_msgs.srv import CancelGoal
 from rclpy.action import ActionClient
@@ -49,8 +50,6 @@ STATUS_QOS = QoSProfile(
 FLOOD = int(os.environ.get("PWM_RESULT_FLOOD", "100000"))
 FLOOD_CLIENTS = int(os.environ.get("PWM_RESULT_FLOOD_CLIENTS", "1"))
 FLOOD_SCRIPT = Path(__file__).with_name("result_flood.py")
-#: Requests each flooding client sends before the memory is first read.
-WARMUP = 10_000
 
 
 def statuses(log) -> dict[bytes, int]:
@@ -259,6 +258,8 @@ def memory_kb(pid: int) -> dict[str, int]:
     return got
 
 
+# Two rounds of 100,000 requests: about 45 s here, twice that on a loaded machine.
+@pytest.mark.timeout(420)
 def test_unknown_result_requests_are_answered_at_once_and_keep_no_memory(
     node_process, process_launcher, ros, tmp_path
 ):
@@ -284,27 +285,28 @@ def test_unknown_result_requests_are_answered_at_once_and_keep_no_memory(
     ros.spin_until(answer.done, "the cancel of an unknown goal", timeout=10)
     assert answer.result().return_code == CancelGoal.Response.ERROR_UNKNOWN_GOAL_ID
 
-    # The flood, from processes of their own: each warms up first (its participant discovered,
-    # and the node's reply writer at its steady backlog: its send window holds up to 8192
-    # replies a client has not acknowledged yet, a few MB at this rate), then waits for the
-    # start. What is measured is what the requests leave behind.
+    # The flood, from processes of their own. Each first sends as many requests as it will
+    # then, unmeasured: its participant is discovered, and the node's allocator reaches its
+    # working set for this traffic (the DDS layer allocates and frees for each request on
+    # several threads, and glibc keeps what was freed in per-thread arenas). Then it waits for
+    # the start: what is measured is what the requests leave behind.
     go = tmp_path / "go"
     per = FLOOD // FLOOD_CLIENTS
     floods = [
         process_launcher.launch(
-            [sys.executable, str(FLOOD_SCRIPT), ACTION, str(per), str(WARMUP), "8", str(go)],
+            [sys.executable, str(FLOOD_SCRIPT), ACTION, str(per), str(per), "8", str(go)],
             name=f"flood{i}",
         )
         for i in range(FLOOD_CLIENTS)
     ]
     for f in floods:
-        f.wait_for_output("ready", timeout=120, stream="stdout")
+        f.wait_for_output("ready", timeout=max(120.0, per / 500.0), stream="stdout")
     ros.spin_for(1.0)
     before = memory_kb(proc.pid)
     t0 = time.monotonic()
     go.touch()
     for f in floods:
-        f.wait_for_output("done", timeout=max(120.0, per / 50.0), stream="stdout")
+        f.wait_for_output("done", timeout=max(120.0, per / 500.0), stream="stdout")
     took = time.monotonic() - t0
     ros.spin_for(1.0)
     after = memory_kb(proc.pid)
