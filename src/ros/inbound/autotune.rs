@@ -79,6 +79,8 @@ struct Run {
     apply: bool,
     started: bool,
     canceling: bool,
+    /// Whether the cancel reached the output thread's queue (tried again at each poll).
+    cancel_sent: bool,
     /// When the last report came (or the goal was sent).
     last: Instant,
     /// No report for this long: the run is taken as lost.
@@ -114,7 +116,7 @@ async fn serve(mut server: Server, inputs: Arc<Inputs>, ch: usize, name: String)
                     if let Some(r) = run.as_mut().filter(|r| ids.contains(&r.id) && !r.canceling) {
                         r.canceling = true;
                         info!("{name}: autotune cancel requested");
-                        let _ = inputs.send(ch, Input::AutotuneCancel(r.ticket));
+                        r.cancel_sent = inputs.send(ch, Input::AutotuneCancel(r.ticket)).is_ok();
                     }
                 }
                 None => {}
@@ -220,6 +222,7 @@ fn start(
         apply: g.apply,
         started: false,
         canceling: false,
+        cancel_sent: false,
         last: Instant::now(),
         stale,
     })
@@ -234,6 +237,9 @@ fn progress(
     name: &str,
     run: &mut Run,
 ) -> Option<(GoalEndStatus, AutotuneResult)> {
+    if run.canceling && !run.cancel_sent {
+        run.cancel_sent = inputs.send(ch, Input::AutotuneCancel(run.ticket)).is_ok();
+    }
     for report in inputs.state().take_autotune(ch, run.ticket) {
         run.last = Instant::now();
         match report {
