@@ -57,6 +57,10 @@ pub enum Input {
         ticket: u32,
         /// What is asked.
         goal: crate::core::heater::autotune::Goal,
+        /// The latest instant the run may start, monotonic ns: a goal the thread takes later
+        /// is dropped unanswered (its caller has given up on it by then), so no run starts
+        /// longer than the caller allowed after its goal was sent.
+        start_by: Nanos,
     },
     /// Cancels the channel's autotune with this ticket.
     AutotuneCancel(u32),

@@ -643,6 +643,74 @@ fn a_heater_fault_stops_the_heartbeat_and_can_latch_the_estop_of_every_channel()
     assert!(LINES.with(|l| !l.borrow().high.iter().any(|h| *h)));
 }
 
+#[test]
+fn an_autotune_goal_taken_after_its_start_by_never_starts() {
+    use crate::core::heater::autotune::{Goal, Report as Tune};
+    let heater = ChannelParams {
+        heater: crate::core::heater::HeaterParams {
+            feedback: true,
+            temp_max_c: 300.0,
+            ..Default::default()
+        },
+        ..params(100, 0, None)
+    };
+    let mut b = Bench::new(&[heater], &[], false);
+    b.send(0, Input::Enable(true));
+    b.send(0, Input::Feedback(25.0));
+    b.wake();
+    // What one wake-up reports of the autotunes, by ticket.
+    let tune_reports = |b: &mut Bench| {
+        assert!(b.worker.run(&mut b.rx).is_ok());
+        let mut got = Vec::new();
+        while let Ok(r) = b.reports.pop() {
+            if let Report::Core {
+                event: crate::core::Event::Autotune { ticket, report },
+                ..
+            } = r
+            {
+                got.push((ticket, report));
+            }
+        }
+        got
+    };
+    let goal = Goal {
+        target_c: 60.0,
+        amplitude_pct: 100.0,
+        noise_band_c: 0.5,
+    };
+    // Taken 1 ns after the latest instant it could start: dropped, nothing reported, the line
+    // stays off (the relay would drive it at 100 %: 25 °C is below the target).
+    b.send(
+        0,
+        Input::Autotune {
+            ticket: 1,
+            goal,
+            start_by: now() - 1,
+        },
+    );
+    assert!(tune_reports(&mut b).is_empty());
+    b.run_to(now() + 500 * MS, 0);
+    assert_eq!(rises(), 0);
+    // Taken at its start_by: it starts, and the relay turns the line on.
+    b.send(
+        0,
+        Input::Autotune {
+            ticket: 2,
+            goal,
+            start_by: now(),
+        },
+    );
+    let got = tune_reports(&mut b);
+    assert!(
+        got.iter()
+            .any(|(t, r)| *t == 2 && matches!(r, Tune::Started)),
+        "{got:?}"
+    );
+    b.run_to(now() + 500 * MS, 0);
+    assert!(rises() > 0);
+    assert!(violations().is_empty(), "{:?}", violations());
+}
+
 /// The settings of the valves below: short travel times so a test covers many moves.
 fn valve_params() -> crate::core::ValveParams {
     crate::core::ValveParams {

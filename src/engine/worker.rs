@@ -467,7 +467,15 @@ impl<O: Output> Worker<O> {
             Input::Feedback(c) => ch.feedback(now, c, emit),
             Input::Setpoint(c) => ch.set_setpoint(now, c, emit),
             Input::ResetFault(ticket) => ch.reset_heater_fault(now, ticket, emit),
-            Input::Autotune { ticket, goal } => ch.start_autotune(now, ticket, goal, emit),
+            Input::Autotune {
+                ticket,
+                goal,
+                start_by,
+            } => {
+                if now <= start_by {
+                    ch.start_autotune(now, ticket, goal, emit)
+                }
+            }
             Input::AutotuneCancel(ticket) => ch.cancel_autotune(now, ticket, emit),
             Input::EStop(_)
             | Input::Live(_)
