@@ -164,6 +164,7 @@ pub fn listen_valves(
             Input::AddValve {
                 close: v.close,
                 config: *config,
+                start: Default::default(),
             },
         );
         let b = Arc::clone(inputs);

@@ -197,6 +197,15 @@ mod tests {
     fn status() -> ValveStatus {
         ValveStatus {
             position_pct: 40.0,
+            low_pct: 36.0,
+            high_pct: 45.0,
+            restored: false,
+            fault: None,
+            reset: None,
+            feedback_pct: f64::NAN,
+            feedback_silent: false,
+            measured_travel_ms: [f64::NAN; 2],
+            measured_lag_ms: [f64::NAN; 2],
             target_pct: 40.0,
             motion: Motion::Stopped,
             activity: Activity::Tracking,
