@@ -350,12 +350,14 @@ pub struct ResetAnswer {
 }
 
 /// What the valve knows of its position from before it started: the state file of a previous
-/// run, its bounds already grown by the time the node was down.
+/// run, its bounds already grown by the time the node was down. In motor coordinates (see
+/// [`ValveStatus::motor`]): the motor runs over `0..=100 + backlash_pct`, the stem lies within
+/// `[motor - backlash_pct, motor]`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Restored {
-    /// The estimate, percent.
+    /// The motor's estimate, percent.
     pub position_pct: f64,
-    /// The lowest position the valve can be at, percent.
+    /// The lowest motor position possible, percent.
     pub low_pct: f64,
     /// The highest, percent.
     pub high_pct: f64,
@@ -381,6 +383,10 @@ pub struct ValveStatus {
     pub low_pct: f64,
     /// The highest position the valve can be at now, percent.
     pub high_pct: f64,
+    /// The same knowledge in motor coordinates (estimate, low, high), percent of the stroke
+    /// over `0..=100 + backlash_pct`: what the state file keeps, so a restart does not widen
+    /// the bounds by the play.
+    pub motor: [f64; 3],
     /// The target, percent; NaN before the first command.
     pub target_pct: f64,
     /// Which line drives.
@@ -540,7 +546,7 @@ impl Valve {
         let restored = start.restored.and_then(|r| {
             let ok = [r.position_pct, r.low_pct, r.high_pct]
                 .iter()
-                .all(|v| v.is_finite() && (0.0..=100.0).contains(v))
+                .all(|v| v.is_finite() && (0.0..=100.0 + b).contains(v))
                 && r.low_pct <= r.position_pct
                 && r.position_pct <= r.high_pct;
             ok.then_some(r)
@@ -555,9 +561,9 @@ impl Valve {
         }
         let know = match restored {
             Some(r) => Know {
-                est: (r.position_pct + b / 2.0).clamp(r.low_pct, r.high_pct + b),
+                est: r.position_pct,
                 lo: r.low_pct,
-                hi: r.high_pct + b,
+                hi: r.high_pct,
             },
             None => Know {
                 est: 0.0,
@@ -1003,6 +1009,7 @@ impl Valve {
             position_pct: self.stem(&k),
             low_pct: lo,
             high_pct: hi,
+            motor: [k.est, k.lo, k.hi],
             target_pct: self.target.unwrap_or(f64::NAN),
             motion,
             activity,

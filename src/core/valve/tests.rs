@@ -1240,3 +1240,232 @@ proptest! {
         }
     }
 }
+
+/// A valve with position feedback, for the feedback tests: its samples come from a true valve.
+fn fed(p: ValveParams, truth: truth::TruthParams, start: f64) -> Plant {
+    let cfg = p.validate().unwrap();
+    let mut r = Rig::new(p);
+    r.v = Valve::start(
+        cfg,
+        0,
+        ValveStart {
+            feedback: true,
+            ..ValveStart::default()
+        },
+    );
+    Plant {
+        r,
+        truth: truth::TrueValve::new(truth, start),
+        fed: 0,
+    }
+}
+
+impl Plant {
+    /// Runs for `d`, a feedback sample of the true position every `every`.
+    fn run_sampled(&mut self, d: Nanos, every: Nanos) {
+        let end = self.r.now + d;
+        while self.r.now < end {
+            self.run_for(every.min(end - self.r.now));
+            let t = self.r.now;
+            let pct = self.truth.position(t as i64);
+            self.r
+                .act(false, |v, now, e| v.feedback(now, pct, e).unwrap());
+            self.feed();
+        }
+    }
+}
+
+fn truth_like(p: &ValveParams, k: f64) -> truth::TruthParams {
+    truth::TruthParams {
+        travel_ns: [
+            p.travel_open_ms as f64 * 1e6 * k,
+            p.travel_close_ms as f64 * 1e6 * k,
+        ],
+        lag_ns: p.start_lag_ms as f64 * 1e6,
+        coast_ns: 0.0,
+        backlash_pct: p.backlash_pct,
+        switch_at_pct: 0.5,
+    }
+}
+
+/// Siemens `PID_3Step` with `Feedback_PER`: at rest the estimate is the feedback and the
+/// uncertainty its tolerance; no reference stroke is needed to be referenced.
+#[test]
+fn feedback_at_rest_sets_the_estimate_and_the_uncertainty() {
+    let p = ValveParams {
+        feedback_tolerance_pct: 1.5,
+        ..params()
+    };
+    let mut pl = fed(p, truth_like(&p, 1.05), 63.0);
+    pl.run_sampled(2 * S, 50 * MS);
+    let st = pl.r.v.status(pl.r.now);
+    assert!(st.referenced, "{st:?}");
+    assert!(close(st.position_pct, 63.0, 1e-9) && close(st.uncertainty_pct, 1.5, 1e-9));
+    pl.command(20.0);
+    pl.run_sampled(60 * S, 50 * MS);
+    let st = pl.r.v.status(pl.r.now);
+    let true_pct = pl.truth.position(pl.r.now as i64);
+    assert!(
+        close(st.position_pct, true_pct, 1e-9),
+        "{st:?} vs {true_pct}"
+    );
+    assert!(close(true_pct, 20.0, 63.0 * 0.06), "{true_pct}");
+    assert!(st.fault.is_none());
+}
+
+/// A drive long enough to move a healthy valve twice the stall distance with the feedback not
+/// following is `motor_stalled`, within the bound: the start lag and its tolerance, that
+/// distance and the play at the slowest travel time, and the feedback's delay.
+#[test]
+fn a_drive_the_feedback_does_not_follow_is_motor_stalled_within_the_bound() {
+    let p = ValveParams {
+        start_lag_ms: 150,
+        backlash_pct: 1.0,
+        ..params()
+    };
+    let mut pl = fed(p, truth_like(&p, 1.0), 50.0);
+    pl.run_sampled(2 * S, 50 * MS);
+    pl.truth.stalled = true;
+    pl.command(90.0);
+    // The pause from the start has passed: the drive rises at once.
+    let rose = pl.r.now;
+    pl.run_sampled(20 * S, 50 * MS);
+    let st = pl.r.v.status(pl.r.now);
+    let Some(ValveFault::MotorStalled {
+        cause: StallCause::NoFeedbackMotion(Dir::Open),
+        moved_pct,
+        expected_pct,
+        ..
+    }) = st.fault
+    else {
+        panic!("{st:?}")
+    };
+    assert!(moved_pct.abs() < 1e-9 && expected_pct == 4.0, "{st:?}");
+    let p0 = r_first_open(&pl.r);
+    // (4 % + 1 % play) × 100 s × 1.1, the lag and its tolerance, the feedback's delay and one
+    // sample period.
+    let bound = 5_500 * MS + 150 * MS + 95 * MS + FEEDBACK_DELAY + 50 * MS;
+    assert!(p0.2 - p0.1 <= bound, "{} ms", (p0.2 - p0.1) / MS);
+    assert_eq!(p0.1, rose);
+    assert!(pl.r.v.lines.driving().is_none(), "lines off");
+    assert!(pl.r.v.reset(pl.r.now, 1, &mut |_| {}));
+    assert!(
+        !pl.r.v.status(pl.r.now).referenced,
+        "a cleared stall leaves it unreferenced"
+    );
+}
+
+fn r_first_open(r: &Rig) -> (Dir, Nanos, Nanos) {
+    *r.pulses()
+        .iter()
+        .find(|p| p.0 == Dir::Open)
+        .expect("an opening drive")
+}
+
+/// OSCAT `ACTUATOR_3P`: a travel time measured with the feedback more than 10 % off the
+/// configured one (beyond what the measurement allows) twice in a row is `travel_mismatch`; one
+/// within 10 % is not, and the measured travel and lag are reported.
+#[test]
+fn a_measured_travel_time_off_by_more_than_10_percent_is_travel_mismatch() {
+    let p = ValveParams {
+        start_lag_ms: 100,
+        feedback_tolerance_pct: 0.5,
+        backlash_pct: 0.0,
+        ..params()
+    };
+    for (k, mismatch) in [(1.05, false), (1.3, true)] {
+        let mut pl = fed(p, truth_like(&p, k), 10.0);
+        pl.run_sampled(2 * S, 50 * MS);
+        for t in [40.0, 15.0, 70.0, 20.0, 85.0, 30.0, 60.0, 12.0] {
+            pl.command(t);
+            pl.run_sampled(150 * S, 100 * MS);
+            if pl.r.v.fault().is_some() {
+                break;
+            }
+        }
+        let st = pl.r.v.status(pl.r.now);
+        assert_eq!(
+            matches!(st.fault, Some(ValveFault::TravelMismatch { .. })),
+            mismatch,
+            "{k}: {st:?}"
+        );
+        if !mismatch {
+            for i in 0..2 {
+                let want = [100_000.0, 80_000.0][i] * k;
+                assert!(close(st.measured_travel_ms[i], want, want * 0.02), "{st:?}");
+                assert!(close(st.measured_lag_ms[i], 100.0, 30.0), "{st:?}");
+            }
+        }
+    }
+}
+
+/// A position restored from the state file: `skip_if_restored` starts without a stroke from
+/// its bounds; `close` strokes anyway; `skip_if_restored` without one strokes.
+#[test]
+fn a_restored_position_skips_the_reference_stroke_only_when_asked() {
+    // In motor coordinates, 1 % of play: the stem within 40..45 %, estimated at 42 %.
+    let restored = Restored {
+        position_pct: 42.5,
+        low_pct: 41.0,
+        high_pct: 45.0,
+    };
+    let start = |mode, restored| {
+        let cfg = ValveParams {
+            reference_at_start: mode,
+            backlash_pct: 1.0,
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        let mut r = Rig::new(params());
+        r.v = Valve::start(
+            cfg,
+            0,
+            ValveStart {
+                restored,
+                ..ValveStart::default()
+            },
+        );
+        r.run_for(10 * S);
+        r
+    };
+    let r = start(ReferenceAtStart::SkipIfRestored, Some(restored));
+    assert!(r.trace.is_empty(), "no stroke");
+    let st = r.v.status(r.now);
+    assert!(st.referenced && st.restored, "{st:?}");
+    assert!(close(st.position_pct, 42.0, 1e-9));
+    assert!(close(st.low_pct, 40.0, 1e-9) && close(st.high_pct, 45.0, 1e-9));
+    let r = start(ReferenceAtStart::Close, Some(restored));
+    assert_eq!(
+        r.trace[0],
+        (Dir::Close, Level::High, S),
+        "the stroke, after the pause"
+    );
+    assert_eq!(r.v.status(r.now).activity, Activity::Referencing);
+    let r = start(ReferenceAtStart::SkipIfRestored, None);
+    assert_eq!(r.trace[0].0, Dir::Close);
+    let r = start(ReferenceAtStart::Open, None);
+    assert_eq!(r.trace[0].0, Dir::Open);
+    let r = start(ReferenceAtStart::None, None);
+    assert!(r.trace.is_empty());
+}
+
+/// A valve's lines do not count against `max_simultaneous_on`: its drive rises while other
+/// lines hold every slot, and a channel's slot is not taken by it.
+#[test]
+fn a_valve_does_not_count_against_max_simultaneous_on() {
+    let board = LineBoard::new(3);
+    board.set_max_on(1);
+    let mut v = Valve::new(params().validate().unwrap(), 0);
+    v.seat_on(&board, 0, 1);
+    board.set(2, Level::High);
+    assert!(!board.may_rise(2) || board.is_high(2));
+    let mut edges = Vec::new();
+    v.command(0, 50.0, &mut |e| edges.push(e)).unwrap();
+    v.poll(5 * S, &mut |e| edges.push(e));
+    assert_eq!(edges.len(), 1, "{edges:?}");
+    assert!(board.is_high(0));
+    assert_eq!(board.high_count(), 1, "only the channel's line counts");
+    board.set(2, Level::Low);
+    assert!(board.may_rise(2), "the valve holds no slot");
+}

@@ -199,6 +199,7 @@ mod tests {
             position_pct: 40.0,
             low_pct: 36.0,
             high_pct: 45.0,
+            motor: [40.5, 37.0, 45.0],
             restored: false,
             fault: None,
             reset: None,
