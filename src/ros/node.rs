@@ -9,6 +9,7 @@
 
 use crate::clock;
 use crate::core::config::ShortStr;
+use crate::core::valve::ValveStart;
 use crate::core::ChannelConfig;
 use crate::core::ValveConfig;
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
@@ -28,6 +29,7 @@ use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
 use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
 use crate::ros::config::valve::{self, ValveError, ValveLimits, ValveSpec};
+use crate::ros::config::valve_state;
 use crate::ros::inbound::autotune;
 use crate::ros::inbound::estop::{self, EStop};
 use crate::ros::inbound::heater::{self, HeaterChannel};
@@ -35,7 +37,7 @@ use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
 use crate::ros::inbound::lifecycle;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::inbound::param_services;
-use crate::ros::inbound::valve as valve_inputs;
+use crate::ros::inbound::valve::{self as valve_inputs, ValveAnswers, ValveRun};
 use crate::ros::interface::msg::{self, RosMessage};
 use crate::ros::interface::{qos, type_hash};
 use crate::ros::outbound::diagnostics::ChannelHealth;
@@ -201,6 +203,12 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         })
         .collect::<Result<Vec<_>, ValveError>>()?;
     let limits = valve_limits(&su.store, &valves)?;
+    let state_dir =
+        (!cfg.settings.state_dir.is_empty()).then(|| PathBuf::from(&cfg.settings.state_dir));
+    if let Some(dir) = &state_dir {
+        valve_state::check_state_dir(dir).map_err(ValveError::StateDir)?;
+    }
+    let runs = valve_runs(&su.store, &valves, &limits, state_dir.as_deref());
     let gpio_lines = match &cfg.output.backend {
         Backend::Gpio { lines } => Some(lines.as_slice()),
         Backend::Sim { .. } => None,
@@ -222,9 +230,71 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         parsed.ros,
         su.store,
         cfg,
-        (splits, valves, limits),
+        (splits, runs, limits, state_dir),
         (domain, disc, secure),
     ))
+}
+
+/// What each valve starts with: its restored position (from `state_dir`, logged either way),
+/// its wired end switches, its feedback topic.
+fn valve_runs(
+    store: &params::ParamStore,
+    valves: &[(ValveSpec, ValveConfig)],
+    limits: &[ValveLimits],
+    state_dir: Option<&std::path::Path>,
+) -> Vec<ValveRun> {
+    valves
+        .iter()
+        .zip(limits)
+        .map(|((v, config), l)| {
+            let feedback_topic = store
+                .string(&format!("{}.feedback_topic", v.name))
+                .unwrap_or("")
+                .trim()
+                .to_string();
+            let restored = state_dir.and_then(|dir| {
+                let got = valve_state::read_state(dir, &v.name).and_then(|r| match r {
+                    Some(r) => r.restore(config, crate::clock::wall_ns()).map(Some),
+                    None => Ok(None),
+                });
+                match got {
+                    Ok(Some(r)) => {
+                        info!(
+                            "valve {}: position restored from its state file: motor {:.2} % \
+                             within {:.2}..{:.2} %; reference_at_start {}",
+                            v.name,
+                            r.position_pct,
+                            r.low_pct,
+                            r.high_pct,
+                            config.reference_at_start.as_str()
+                        );
+                        Some(r)
+                    }
+                    Ok(None) => {
+                        info!("valve {}: no state file yet", v.name);
+                        None
+                    }
+                    Err(e) => {
+                        warn!(
+                            "valve {}: state file not used: {e}; the position is unknown",
+                            v.name
+                        );
+                        None
+                    }
+                }
+            });
+            ValveRun {
+                spec: v.clone(),
+                config: *config,
+                start: ValveStart {
+                    restored,
+                    switches_wired: [l.open.is_some(), l.close.is_some()],
+                    feedback: !feedback_topic.is_empty(),
+                },
+                feedback_topic,
+            }
+        })
+        .collect()
 }
 
 /// The end switches of each valve, from its parameters `NAME.open_limit_line`, ...
@@ -423,10 +493,11 @@ async fn serve(
     ros: RosArgs,
     store: ParamStore,
     cfg: StartupConfig,
-    (splits, valves, limits): (
+    (splits, valves, limits, state_dir): (
         Vec<split::SplitPair>,
-        Vec<(ValveSpec, ValveConfig)>,
+        Vec<ValveRun>,
         Vec<ValveLimits>,
+        Option<PathBuf>,
     ),
     (domain, disc, secure): (u16, Discovery, Option<PathBuf>),
 ) -> Result<i32, NodeError> {
@@ -437,7 +508,7 @@ async fn serve(
     let mut signals = StopSignals::catch();
     // The output first: configuration and hardware errors stop the node before it joins ROS.
     let (output, line_slot) = open_output(&cfg)?;
-    let specs: Vec<ValveSpec> = valves.iter().map(|(v, _)| v.clone()).collect();
+    let specs: Vec<ValveSpec> = valves.iter().map(|r| r.spec.clone()).collect();
     let switches = valve_inputs::open_switches(&specs, &limits)
         .map_err(|e| NodeError::Output(OpenError::Switch(e)))?;
     let hardware_ids = cfg.output.hardware_ids();
@@ -493,15 +564,22 @@ async fn serve(
     let mcap = mcap_trace(&cfg, &ep, &names)?;
     let valve_outs: Vec<(String, String, String)> = valves
         .iter()
-        .map(|(v, _)| {
+        .map(|r| {
             (
-                v.name.clone(),
-                names[v.open].clone(),
-                names[v.close].clone(),
+                r.spec.name.clone(),
+                names[r.spec.open].clone(),
+                names[r.spec.close].clone(),
             )
         })
         .collect();
-    let valve_pubs = ValveOut::create(&mut ep, &valve_outs)?;
+    let mut valve_pubs = ValveOut::create(&mut ep, &valve_outs)?;
+    let valve_answers = Arc::new(ValveAnswers::new(valves.len()));
+    for (k, (out, run)) in valve_pubs.iter_mut().zip(&valves).enumerate() {
+        out.answer_to(k, Arc::clone(&valve_answers));
+        if let Some(dir) = &state_dir {
+            out.keep_state(dir.clone(), run.config);
+        }
+    }
     let param_events = node
         .create_publisher(&context.get_parameter_events_topic(), None)
         .map_err(ros_err("publisher /parameter_events"))?;
@@ -549,7 +627,12 @@ async fn serve(
     };
     tasks.extend(inputs::listen_channels(&mut ep, &inputs, &names)?);
     tasks.extend(inputs::listen_splits(&mut ep, &inputs, &splits)?);
-    tasks.extend(valve_inputs::listen_valves(&mut ep, &inputs, &valves)?);
+    tasks.extend(valve_inputs::listen_valves(
+        &mut ep,
+        &inputs,
+        &valves,
+        &valve_answers,
+    )?);
     valve_inputs::spawn_switch_readers(switches, &inputs);
     let heaters: Vec<HeaterChannel> = cfg
         .channels

@@ -607,6 +607,9 @@ impl Reporter {
     /// then the node's status.
     pub fn publish_diagnostics(&mut self, now: Nanos) {
         self.node_from_state();
+        for v in &mut self.valves {
+            v.periodic();
+        }
         let status: Vec<DiagnosticStatus> = self
             .health
             .iter()
