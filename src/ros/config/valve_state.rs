@@ -13,8 +13,10 @@
 //! record was taken with both lines held off (a stop, the e-stop, a fault, the lifecycle's
 //! inactive states), a line may have been on from the record until the node started again
 //! (killed mid-move, a line left high until the restart requested it low), so the valve may
-//! have moved that long either way at the fastest travel time. One more second is counted for
-//! the reports on their way when the node died.
+//! have moved that long either way at the fastest travel time. The record is stamped with the
+//! time its snapshot was taken in the output thread, so a drive that started after it is
+//! covered whether or not its report arrived; [`REPORT_SLACK`] covers the conversion between
+//! the monotonic and the wall clock.
 
 use crate::core::valve::{Restored, ValveConfig, ValveStatus, TRAVEL_TOLERANCE};
 use crate::core::Nanos;
@@ -27,9 +29,9 @@ pub const STATE_MAGIC: &str = "pwm_actuator valve state 1";
 /// Largest state file read, bytes.
 pub const MAX_STATE_BYTES: u64 = 4_096;
 
-/// Reports on their way when the node died: counted as drive time either way on top of the
-/// time since the record, ns.
-pub const REPORT_SLACK: Nanos = 1_000_000_000;
+/// Counted as drive time either way on top of the time since the record, for the conversion of
+/// the snapshot's monotonic time to the wall clock, ns.
+pub const REPORT_SLACK: Nanos = 100_000_000;
 
 /// What a state file holds.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -301,9 +303,9 @@ mod tests {
         // Held: nothing raised a line since, the bounds stay.
         let r = record(true).restore(&c, t + 3_600_000_000_000).unwrap();
         assert_eq!((r.low_pct, r.high_pct), (38.0, 43.0));
-        // Not held: 2 s since, 1 s of reports, at 10 s × 0.9: 33.3 % either way.
+        // Not held: 2 s since, 0.1 s of slack, at 10 s × 0.9: 23.3 % either way.
         let r = record(false).restore(&c, t + 2_000_000_000).unwrap();
-        let g = 3.0 / 9.0 * 100.0;
+        let g = 2.1 / 9.0 * 100.0;
         assert!((r.low_pct - (38.0 - g)).abs() < 1e-9, "{r:?}");
         assert!((r.high_pct - (43.0 + g)).abs() < 1e-9, "{r:?}");
         assert!(record(false)

@@ -289,9 +289,13 @@ impl Reporter {
                     self.publish_status(channel, &status);
                 }
             }
-            Report::Valve { valve, status, .. } => {
+            Report::Valve {
+                valve,
+                status,
+                at_ns,
+            } => {
                 if let Some(v) = self.valves.get_mut(valve) {
-                    v.on_status(status);
+                    v.on_status(status, at_ns);
                 }
             }
             Report::OutputFault { channel } => {

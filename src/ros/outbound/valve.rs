@@ -28,6 +28,10 @@ pub const STATE_WRITE_MOVING: i64 = 1_000_000_000;
 /// adds to the bounds stays bounded, ns.
 pub const STATE_WRITE_RESTING: i64 = 30_000_000_000;
 
+/// How long a report may be on its way from the output thread, counted when a record of the
+/// last snapshot is written afresh, ns.
+pub const REPORT_WAY: i64 = 1_000_000_000;
+
 /// One valve's state file and when it was last written.
 struct StateFile {
     dir: PathBuf,
@@ -132,15 +136,18 @@ impl ValveOut {
         self.answers = Some((index, answers));
     }
 
-    /// Once a second: the state file written afresh at rest (see [`STATE_WRITE_RESTING`]).
+    /// Once a second: the state file written afresh at rest (see [`STATE_WRITE_RESTING`]). The
+    /// last snapshot still holds but for a change whose report is on its way: the record is
+    /// stamped [`REPORT_WAY`] earlier, so a restore counts that too.
     pub fn periodic(&mut self) {
         if let (Some(f), Some(s)) = (self.file.as_mut(), self.last.as_ref()) {
-            f.update(&self.name, s, clock::wall_ns());
+            f.update(&self.name, s, clock::wall_ns() - REPORT_WAY);
         }
     }
 
-    /// A snapshot came: it is published, and kept for the diagnostics.
-    pub fn on_status(&mut self, status: ValveStatus) {
+    /// A snapshot taken at monotonic `at_ns` came: it is published, kept for the diagnostics,
+    /// written to the state file (stamped with the wall-clock time it was taken).
+    pub fn on_status(&mut self, status: ValveStatus, at_ns: crate::core::Nanos) {
         let before = self.last.and_then(|s| s.fault);
         if status.fault.is_some() && before.is_none() {
             if let Some(f) = &status.fault {
@@ -151,7 +158,8 @@ impl ValveOut {
             a.note(*k, status.fault, status.reset);
         }
         if let Some(f) = self.file.as_mut() {
-            f.update(&self.name, &status, clock::wall_ns());
+            let since = clock::monotonic_ns().saturating_sub(at_ns);
+            f.update(&self.name, &status, clock::wall_ns() - since as i64);
         }
         let was = self.last.map(|s| (s.referenced, s.switches));
         if was.is_some_and(|w| w != (status.referenced, status.switches)) {
