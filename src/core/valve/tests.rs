@@ -1184,6 +1184,8 @@ proptest! {
             x % m
         };
         let (mut rests, mut ends) = (0, 0);
+        // The largest error at a rest, and its share of the uncertainty reported then.
+        let (mut worst, mut worst_share) = (0.0f64, 0.0f64);
         for _ in 0..1_000 {
             let r = next(100);
             let target = if r < 10 {
@@ -1209,6 +1211,11 @@ proptest! {
                     "true {true_pct} vs estimate {} ± {}: {st:?}", st.position_pct, st.uncertainty_pct
                 );
                 prop_assert!(st.low_pct - 1e-9 <= true_pct && true_pct <= st.high_pct + 1e-9);
+                let err = (true_pct - st.position_pct).abs();
+                worst = worst.max(err);
+                if st.uncertainty_pct > 0.0 {
+                    worst_share = worst_share.max(err / st.uncertainty_pct);
+                }
                 if target == 0.0 || target == 100.0 {
                     ends += 1;
                     prop_assert_eq!(true_pct, target, "an end command left it short: {:?}", st);
@@ -1217,6 +1224,12 @@ proptest! {
             }
         }
         prop_assert!(rests > 300 && ends > 50, "{rests} rests, {ends} ends");
+        eprintln!(
+            "travel {open_s}/{close_s} s × {k_open:.3}/{k_close:.3}, coast {coast_ms:.0} ms: \
+             {rests} rests ({ends} at an end), largest |true - estimate| {worst:.2} %, at most \
+             {:.0} % of the uncertainty reported",
+            worst_share * 100.0
+        );
         // The lines as written.
         let pause = p.reversal_pause_ms * MS;
         let mut high = [false; 2];
