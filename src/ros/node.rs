@@ -29,7 +29,7 @@ use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
 use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
 use crate::ros::config::valve::{self, ValveError, ValveLimits, ValveSpec};
-use crate::ros::config::valve_state;
+use crate::ros::config::valve_state::{self, StateRecord};
 use crate::ros::inbound::autotune;
 use crate::ros::inbound::estop::{self, EStop};
 use crate::ros::inbound::heater::{self, HeaterChannel};
@@ -208,7 +208,7 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
     if let Some(dir) = &state_dir {
         valve_state::check_state_dir(dir).map_err(ValveError::StateDir)?;
     }
-    let runs = valve_runs(&su.store, &valves, &limits, state_dir.as_deref());
+    let (runs, records) = valve_runs(&su.store, &valves, &limits, state_dir.as_deref());
     let gpio_lines = match &cfg.output.backend {
         Backend::Gpio { lines } => Some(lines.as_slice()),
         Backend::Sim { .. } => None,
@@ -230,20 +230,21 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         parsed.ros,
         su.store,
         cfg,
-        (splits, runs, limits, state_dir),
+        (splits, runs, limits, state_dir, records),
         (domain, disc, secure),
     ))
 }
 
-/// What each valve starts with: its restored position (from `state_dir`, logged either way),
-/// its wired end switches, its feedback topic.
+/// What each valve starts with: its wired end switches, its feedback topic; and the record of
+/// its state file (from `state_dir`; a file not used is logged with the reason).
 fn valve_runs(
     store: &params::ParamStore,
     valves: &[(ValveSpec, ValveConfig)],
     limits: &[ValveLimits],
     state_dir: Option<&std::path::Path>,
-) -> Vec<ValveRun> {
-    valves
+) -> (Vec<ValveRun>, Vec<Option<StateRecord>>) {
+    let mut records = Vec::new();
+    let runs = valves
         .iter()
         .zip(limits)
         .map(|((v, config), l)| {
@@ -252,49 +253,58 @@ fn valve_runs(
                 .unwrap_or("")
                 .trim()
                 .to_string();
-            let restored = state_dir.and_then(|dir| {
-                let got = valve_state::read_state(dir, &v.name).and_then(|r| match r {
-                    Some(r) => r.restore(config, crate::clock::wall_ns()).map(Some),
-                    None => Ok(None),
-                });
-                match got {
-                    Ok(Some(r)) => {
-                        info!(
-                            "valve {}: position restored from its state file: motor {:.2} % \
-                             within {:.2}..{:.2} %; reference_at_start {}",
-                            v.name,
-                            r.position_pct,
-                            r.low_pct,
-                            r.high_pct,
-                            config.reference_at_start.as_str()
-                        );
-                        Some(r)
-                    }
-                    Ok(None) => {
-                        info!("valve {}: no state file yet", v.name);
-                        None
-                    }
-                    Err(e) => {
-                        warn!(
-                            "valve {}: state file not used: {e}; the position is unknown",
-                            v.name
-                        );
-                        None
-                    }
+            // Read now, restored once the output holds the lines low (see `restore_valves`).
+            let record = state_dir.and_then(|dir| match valve_state::read_state(dir, &v.name) {
+                Ok(Some(r)) => Some(r),
+                Ok(None) => {
+                    info!("valve {}: no state file yet", v.name);
+                    None
+                }
+                Err(e) => {
+                    warn!(
+                        "valve {}: state file not used: {e}; the position is unknown",
+                        v.name
+                    );
+                    None
                 }
             });
+            records.push(record);
             ValveRun {
                 spec: v.clone(),
                 config: *config,
                 start: ValveStart {
-                    restored,
+                    restored: None,
                     switches_wired: [l.open.is_some(), l.close.is_some()],
                     feedback: !feedback_topic.is_empty(),
                 },
                 feedback_topic,
             }
         })
-        .collect()
+        .collect();
+    (runs, records)
+}
+
+/// The restored position of each valve from its record, its bounds grown up to now: called
+/// once the output holds every line low, so no drive after it is missed (logged either way).
+fn restore_valves(valves: &mut [ValveRun], records: &[Option<StateRecord>]) {
+    for (run, record) in valves.iter_mut().zip(records) {
+        let Some(r) = record else { continue };
+        let name = &run.spec.name;
+        match r.restore(&run.config, crate::clock::wall_ns()) {
+            Ok(p) => {
+                info!(
+                    "valve {name}: position restored from its state file: motor {:.2} % within \
+                     {:.2}..{:.2} %; reference_at_start {}",
+                    p.position_pct,
+                    p.low_pct,
+                    p.high_pct,
+                    run.config.reference_at_start.as_str()
+                );
+                run.start.restored = Some(p);
+            }
+            Err(e) => warn!("valve {name}: state file not used: {e}; the position is unknown"),
+        }
+    }
 }
 
 /// The end switches of each valve, from its parameters `NAME.open_limit_line`, ...
@@ -488,17 +498,22 @@ fn pump(
     reporter.into_inner()
 }
 
+/// The split-range pairs, the valves, their end switches, the state directory and the valves'
+/// state records, as the start-up made them.
+type PairsAndValves = (
+    Vec<split::SplitPair>,
+    Vec<ValveRun>,
+    Vec<ValveLimits>,
+    Option<PathBuf>,
+    Vec<Option<StateRecord>>,
+);
+
 async fn serve(
     id: NodeIdentity,
     ros: RosArgs,
     store: ParamStore,
     cfg: StartupConfig,
-    (splits, valves, limits, state_dir): (
-        Vec<split::SplitPair>,
-        Vec<ValveRun>,
-        Vec<ValveLimits>,
-        Option<PathBuf>,
-    ),
+    (splits, mut valves, limits, state_dir, records): PairsAndValves,
     (domain, disc, secure): (u16, Discovery, Option<PathBuf>),
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
@@ -508,6 +523,7 @@ async fn serve(
     let mut signals = StopSignals::catch();
     // The output first: configuration and hardware errors stop the node before it joins ROS.
     let (output, line_slot) = open_output(&cfg)?;
+    restore_valves(&mut valves, &records);
     let specs: Vec<ValveSpec> = valves.iter().map(|r| r.spec.clone()).collect();
     let switches = valve_inputs::open_switches(&specs, &limits)
         .map_err(|e| NodeError::Output(OpenError::Switch(e)))?;
