@@ -1200,9 +1200,11 @@ impl Valve {
     // ---- faults ----------------------------------------------------------------------------
 
     /// Latches `fault` at `now`: both lines low at once, the moves dropped, nothing moves until
-    /// the reset.
+    /// the reset. Every fault says the drive times did not move the valve as counted (or a
+    /// switch contradicts them): the position is no longer known.
     fn latch(&mut self, now: Nanos, fault: ValveFault, emit: &mut dyn FnMut(ValveEvent)) {
         self.safety_off(now, emit);
+        self.lose_reference();
         self.legs = Legs::default();
         self.mv = None;
         self.awaiting_switch = None;

@@ -708,6 +708,10 @@ fn an_end_move_without_its_wired_switch_is_motor_stalled() {
         }) => assert!(close(drive_ms, 120_000.0, 1e-6), "{drive_ms}"),
         f => panic!("{f:?}"),
     }
+    assert!(
+        !st.referenced && st.uncertainty_pct == 100.0,
+        "not taken as a reference: {st:?}"
+    );
     assert_eq!(r.pulses(), vec![(Dir::Close, S, 121 * S)]);
     r.command(50.0);
     r.run_for(100 * S);
