@@ -16,7 +16,8 @@
 //! have moved that long either way at the fastest travel time. The record is stamped with the
 //! time its snapshot was taken in the output thread, so a drive that started after it is
 //! covered whether or not its report arrived; [`REPORT_SLACK`] covers the conversion between
-//! the monotonic and the wall clock.
+//! the monotonic and the wall clock. The recorded bounds are widened by [`STATE_MARGIN_PCT`]
+//! too: at rest the file is rewritten only when the bounds leave the recorded ones by more.
 
 use crate::core::valve::{Restored, ValveConfig, ValveStatus, TRAVEL_TOLERANCE};
 use crate::core::Nanos;
@@ -28,6 +29,11 @@ pub const STATE_MAGIC: &str = "pwm_actuator valve state 1";
 
 /// Largest state file read, bytes.
 pub const MAX_STATE_BYTES: u64 = 4_096;
+
+/// At rest the state file is not rewritten while the bounds stay within the recorded ones
+/// widened by this (a noisy feedback would rewrite it at every sample): a restore widens the
+/// recorded bounds by as much, percent.
+pub const STATE_MARGIN_PCT: f64 = 1.0;
 
 /// Counted as drive time either way on top of the time since the record, for the conversion of
 /// the snapshot's monotonic time to the wall clock, ns.
@@ -171,13 +177,14 @@ impl StateRecord {
             ));
         }
         let top = 100.0 + self.backlash_pct;
-        let grow = if self.lines_held {
-            0.0
-        } else {
-            let ns = age.max(0) as f64 + REPORT_SLACK as f64;
-            let fastest = p.travel_open_ms.min(p.travel_close_ms) as f64 * 1e6;
-            ns / (fastest * (1.0 - TRAVEL_TOLERANCE)) * 100.0
-        };
+        let grow = STATE_MARGIN_PCT
+            + if self.lines_held {
+                0.0
+            } else {
+                let ns = age.max(0) as f64 + REPORT_SLACK as f64;
+                let fastest = p.travel_open_ms.min(p.travel_close_ms) as f64 * 1e6;
+                ns / (fastest * (1.0 - TRAVEL_TOLERANCE)) * 100.0
+            };
         let [m, lo, hi] = self.motor;
         let (lo, hi) = ((lo - grow).max(0.0), (hi + grow).min(top));
         if lo <= 0.0 && hi >= top {
@@ -300,12 +307,12 @@ mod tests {
     fn the_bounds_grow_by_the_time_since_an_unheld_record() {
         let c = cfg();
         let t = record(true).wall_ns;
-        // Held: nothing raised a line since, the bounds stay.
+        // Held: nothing raised a line since, the bounds stay (but for the margin at rest).
         let r = record(true).restore(&c, t + 3_600_000_000_000).unwrap();
-        assert_eq!((r.low_pct, r.high_pct), (38.0, 43.0));
-        // Not held: 2 s since, 0.1 s of slack, at 10 s × 0.9: 23.3 % either way.
+        assert_eq!((r.low_pct, r.high_pct), (37.0, 44.0));
+        // Not held: 2 s since, 0.1 s of slack, at 10 s × 0.9: 23.3 % either way, and the margin.
         let r = record(false).restore(&c, t + 2_000_000_000).unwrap();
-        let g = 2.1 / 9.0 * 100.0;
+        let g = 2.1 / 9.0 * 100.0 + 1.0;
         assert!((r.low_pct - (38.0 - g)).abs() < 1e-9, "{r:?}");
         assert!((r.high_pct - (43.0 + g)).abs() < 1e-9, "{r:?}");
         assert!(record(false)

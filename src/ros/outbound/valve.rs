@@ -9,7 +9,7 @@
 use crate::clock;
 use crate::core::valve::{Activity, Dir, Motion, StallCause, ValveFault};
 use crate::core::{ValveConfig, ValveStatus};
-use crate::ros::config::valve_state::{write_state, StateRecord};
+use crate::ros::config::valve_state::{write_state, StateRecord, STATE_MARGIN_PCT};
 use crate::ros::inbound::valve::ValveAnswers;
 use crate::ros::interface::msg::{self, DiagnosticStatus, KeyValue};
 use crate::ros::interface::qos;
@@ -42,23 +42,27 @@ struct StateFile {
 }
 
 impl StateFile {
-    /// Writes the record of `status` if due: the first, at a move's start and stop, on any
-    /// change at rest, every [`STATE_WRITE_MOVING`] while moving and every
-    /// [`STATE_WRITE_RESTING`] at rest.
+    /// Writes the record of `status` if due: the first, at a move's start and stop, every
+    /// [`STATE_WRITE_MOVING`] while moving, at rest once the bounds leave the recorded ones
+    /// widened by [`STATE_MARGIN_PCT`] (at most that often; the restore widens them as much),
+    /// and every [`STATE_WRITE_RESTING`] at rest.
     fn update(&mut self, name: &str, status: &ValveStatus, now: i64) {
         let rec = StateRecord::of(&self.config, status, now);
         let moving = status.motion != Motion::Stopped;
         let due = match &self.last {
             None => true,
             Some((last, at, was_moving)) => {
-                let changed = StateRecord {
-                    wall_ns: 0,
-                    ..*last
-                } != StateRecord { wall_ns: 0, ..rec };
                 let age = now - at;
+                // At rest a record still holds while the bounds stay within its own, widened by
+                // a margin: a noisy feedback does not rewrite the file at every sample.
+                let [_, lo, hi] = rec.motor;
+                let [_, was_lo, was_hi] = last.motor;
+                let held = lo >= was_lo - STATE_MARGIN_PCT
+                    && hi <= was_hi + STATE_MARGIN_PCT
+                    && rec.lines_held == last.lines_held;
+                let quiet = !moving && held;
                 *was_moving != moving
-                    || (moving && age >= STATE_WRITE_MOVING)
-                    || (!moving && changed)
+                    || (!quiet && age >= STATE_WRITE_MOVING)
                     || age >= STATE_WRITE_RESTING
             }
         };
