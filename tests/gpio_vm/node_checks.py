@@ -638,6 +638,38 @@ def valve_without_its_end_switch_is_motor_stalled():
     return f"reference drove {drive:.2f} s, no switch: motor_stalled, lines off after it"
 
 
+def valve_switch_where_it_cannot_be_is_implausible():
+    """A valve on lines 0 (open) and 1 (close) with its open end switch on input line 2 (a stuck
+    contact, or a broken wire read as "at the end"): after the reference at start has closed it,
+    the open switch turning active is switch_implausible (the valve is known closed); it latches
+    with both lines off, so the command timeout's `open` 2.5 s later drives nothing."""
+    l0, l1, sw = Line(0), Line(1), Line(2)
+    for l in (l0, l1, sw):
+        l.set_pull(False)
+    p = node([("pw01", 0), ("pw02", 1)],
+             ["valve:=mix:pw01:pw02", "mix.travel_open_ms:=2000",
+              "mix.travel_close_ms:=2000", "mix.reference_at_start:=close",
+              "mix.command_timeout_ms:=6000", "mix.on_timeout:=open",
+              f"mix.open_limit_line:={CHIP}:2"])
+    try:
+        wait_level(p, l1, True)
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end and l1.level():
+            pass
+        require(not l1.level(), "the reference did not end within 10 s")
+        sw.set_pull(True)
+        after = sample_for([l0, l1], 5.0)
+        on = [(o, t) for o, xs in after.items() for t, v, h in xs if h and v]
+        require(not on, f"a line rose after the implausible switch: line {on[:1]}")
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    require("switch_implausible: end switches open active close inactive" in err,
+            f"no switch_implausible in the log: {err[-1500:]}")
+    return "open switch active at the closed end: switch_implausible, nothing rose in 5 s"
+
+
 def bad_switch_line_is_a_configuration_error():
     """An end switch line that cannot be requested (its chip does not exist, or the line is
     held by someone else) stops the node at start-up with exit 2 naming the switch, before any
@@ -679,6 +711,7 @@ CHECKS = [
     heartbeat_toggles_and_stops_on_sigstop,
     valve_close_switch_stops_the_drive,
     valve_without_its_end_switch_is_motor_stalled,
+    valve_switch_where_it_cannot_be_is_implausible,
     bad_switch_line_is_a_configuration_error,
 ]
 
