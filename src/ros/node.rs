@@ -290,7 +290,7 @@ fn restore_valves(valves: &mut [ValveRun], records: &[Option<StateRecord>]) {
     for (run, record) in valves.iter_mut().zip(records) {
         let Some(r) = record else { continue };
         let name = &run.spec.name;
-        match r.restore(&run.config, crate::clock::wall_ns()) {
+        match r.restore(&run.config, valve_state::Stamp::now()) {
             Ok(p) => {
                 info!(
                     "valve {name}: position restored from its state file: motor {:.2} % within \

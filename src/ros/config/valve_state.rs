@@ -16,11 +16,13 @@
 //! have moved that long either way at the fastest travel time. The record is stamped with the
 //! time its snapshot was taken in the output thread, so a drive that started after it is
 //! covered whether or not its report arrived; [`REPORT_SLACK`] covers the conversion between
-//! the monotonic and the wall clock. The recorded bounds are widened by [`STATE_MARGIN_PCT`]
+//! the monotonic clock and the others. Within one boot the time since the record is counted on
+//! CLOCK_BOOTTIME (see [`Stamp`]), across a reboot on the wall clock. The recorded bounds are widened by [`STATE_MARGIN_PCT`]
 //! too: at rest the file is rewritten only when the bounds leave the recorded ones by more.
 
 use crate::core::valve::{Restored, ValveConfig, ValveStatus, TRAVEL_TOLERANCE};
 use crate::core::Nanos;
+use nix::time::{clock_gettime, ClockId};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -39,6 +41,60 @@ pub const STATE_MARGIN_PCT: f64 = 1.0;
 /// the snapshot's monotonic time to the wall clock, ns.
 pub const REPORT_SLACK: Nanos = 100_000_000;
 
+/// When a record was taken: the wall clock, and the boot it was taken in with CLOCK_BOOTTIME
+/// (which counts suspended time and no clock steps). Within one boot the time since a record
+/// is counted on CLOCK_BOOTTIME, so a wall-clock step (NTP) while the node was down cannot
+/// shorten it; across a reboot on the wall clock.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Stamp {
+    /// Wall-clock ns since the Unix epoch.
+    pub wall_ns: i64,
+    /// The kernel's boot id (`/proc/sys/kernel/random/boot_id`), 0 when unknown.
+    pub boot_id: u128,
+    /// CLOCK_BOOTTIME, ns.
+    pub boot_ns: i64,
+}
+
+impl Stamp {
+    /// Now.
+    pub fn now() -> Stamp {
+        let boot_ns = clock_gettime(ClockId::CLOCK_BOOTTIME)
+            .map(|t| t.tv_sec() * 1_000_000_000 + t.tv_nsec())
+            .unwrap_or(0);
+        Stamp {
+            wall_ns: crate::clock::wall_ns(),
+            boot_id: boot_id().unwrap_or(0),
+            boot_ns,
+        }
+    }
+
+    /// This stamp `ns` earlier.
+    pub fn earlier(self, ns: i64) -> Stamp {
+        Stamp {
+            wall_ns: self.wall_ns - ns,
+            boot_ns: self.boot_ns - ns,
+            ..self
+        }
+    }
+
+    /// The time from `then` to this stamp, ns: on CLOCK_BOOTTIME within one (known) boot, on the
+    /// wall clock otherwise.
+    pub fn since(&self, then: &Stamp) -> Option<i64> {
+        if self.boot_id != 0 && self.boot_id == then.boot_id {
+            self.boot_ns.checked_sub(then.boot_ns)
+        } else {
+            self.wall_ns.checked_sub(then.wall_ns)
+        }
+    }
+}
+
+/// The kernel's boot id, a UUID, as a number; `None` when it cannot be read.
+fn boot_id() -> Option<u128> {
+    let text = std::fs::read_to_string("/proc/sys/kernel/random/boot_id").ok()?;
+    let hex: String = text.trim().chars().filter(|c| *c != '-').collect();
+    (hex.len() == 32).then(|| u128::from_str_radix(&hex, 16).ok())?
+}
+
 /// What a state file holds.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StateRecord {
@@ -51,20 +107,20 @@ pub struct StateRecord {
     pub motor: [f64; 3],
     /// Both lines were held off when it was taken (nothing could raise them afterwards).
     pub lines_held: bool,
-    /// When it was taken, wall-clock ns since the Unix epoch.
-    pub wall_ns: i64,
+    /// When its snapshot was taken.
+    pub stamp: Stamp,
 }
 
 impl StateRecord {
-    /// The record of `status` (of a valve with settings `cfg`) taken at `wall_ns`.
-    pub fn of(cfg: &ValveConfig, status: &ValveStatus, wall_ns: i64) -> StateRecord {
+    /// The record of `status` (of a valve with settings `cfg`) taken at `stamp`.
+    pub fn of(cfg: &ValveConfig, status: &ValveStatus, stamp: Stamp) -> StateRecord {
         let held = !status.live || status.estop || status.fault.is_some();
         StateRecord {
             travel_ms: [cfg.params.travel_open_ms, cfg.params.travel_close_ms],
             backlash_pct: cfg.params.backlash_pct,
             motor: status.motor,
             lines_held: held && status.motion == crate::core::valve::Motion::Stopped,
-            wall_ns,
+            stamp,
         }
     }
 
@@ -73,7 +129,7 @@ impl StateRecord {
         let body = format!(
             "{STATE_MAGIC}\nname {name}\ntravel_open_ms {}\ntravel_close_ms {}\nbacklash_pct \
              {:?}\nmotor_pct {:?}\nmotor_low_pct {:?}\nmotor_high_pct {:?}\nlines_held {}\n\
-             wall_ns {}\n",
+             wall_ns {}\nboot_id {:032x}\nboot_ns {}\n",
             self.travel_ms[0],
             self.travel_ms[1],
             self.backlash_pct,
@@ -81,7 +137,9 @@ impl StateRecord {
             self.motor[1],
             self.motor[2],
             self.lines_held,
-            self.wall_ns
+            self.stamp.wall_ns,
+            self.stamp.boot_id,
+            self.stamp.boot_ns
         );
         format!("{body}check {:016x}\n", fnv1a(body.as_bytes()))
     }
@@ -136,6 +194,11 @@ impl StateRecord {
         let wall_ns = get("wall_ns")?
             .parse::<i64>()
             .map_err(|_| "wall_ns is not a time".to_string())?;
+        let boot_id = u128::from_str_radix(&get("boot_id")?, 16)
+            .map_err(|_| "boot_id is not a boot id".to_string())?;
+        let boot_ns = get("boot_ns")?
+            .parse::<i64>()
+            .map_err(|_| "boot_ns is not a time".to_string())?;
         let top = 100.0 + backlash_pct;
         if !(0.0 <= lo && lo <= m && m <= hi && hi <= top) {
             return Err(format!(
@@ -147,13 +210,17 @@ impl StateRecord {
             backlash_pct,
             motor: [m, lo, hi],
             lines_held,
-            wall_ns,
+            stamp: Stamp {
+                wall_ns,
+                boot_id,
+                boot_ns,
+            },
         })
     }
 
-    /// What valve `cfg` restores from this record at wall-clock `now_ns`: the bounds grown by the
-    /// time since the record (see the module), or why not.
-    pub fn restore(&self, cfg: &ValveConfig, now_ns: i64) -> Result<Restored, String> {
+    /// What valve `cfg` restores from this record at `now`: the bounds grown by the time since
+    /// the record (see the module), or why not.
+    pub fn restore(&self, cfg: &ValveConfig, now: Stamp) -> Result<Restored, String> {
         let p = &cfg.params;
         if self.travel_ms != [p.travel_open_ms, p.travel_close_ms] {
             return Err(format!(
@@ -167,9 +234,7 @@ impl StateRecord {
                 self.backlash_pct, p.backlash_pct
             ));
         }
-        let age = now_ns
-            .checked_sub(self.wall_ns)
-            .ok_or("wall_ns overflows")?;
+        let age = now.since(&self.stamp).ok_or("its time overflows")?;
         if age < -(REPORT_SLACK as i64) {
             return Err(format!(
                 "written {:.1} s in the future (the clock went back)",
@@ -284,7 +349,20 @@ mod tests {
             backlash_pct: 1.0,
             motor: [40.5, 38.0, 43.0],
             lines_held: held,
-            wall_ns: 1_000_000_000_000,
+            stamp: Stamp {
+                wall_ns: 1_000_000_000_000,
+                boot_id: 0xfeed,
+                boot_ns: 5_000_000_000,
+            },
+        }
+    }
+
+    /// `record(_)`'s stamp moved on by `ns` on both clocks.
+    fn after(ns: i64) -> Stamp {
+        Stamp {
+            wall_ns: 1_000_000_000_000 + ns,
+            boot_id: 0xfeed,
+            boot_ns: 5_000_000_000 + ns,
         }
     }
 
@@ -306,23 +384,43 @@ mod tests {
     #[test]
     fn the_bounds_grow_by_the_time_since_an_unheld_record() {
         let c = cfg();
-        let t = record(true).wall_ns;
         // Held: nothing raised a line since, the bounds stay (but for the margin at rest).
-        let r = record(true).restore(&c, t + 3_600_000_000_000).unwrap();
+        let r = record(true).restore(&c, after(3_600_000_000_000)).unwrap();
         assert_eq!((r.low_pct, r.high_pct), (37.0, 44.0));
         // Not held: 2 s since, 0.1 s of slack, at 10 s × 0.9: 23.3 % either way, and the margin.
-        let r = record(false).restore(&c, t + 2_000_000_000).unwrap();
+        let r = record(false).restore(&c, after(2_000_000_000)).unwrap();
         let g = 2.1 / 9.0 * 100.0 + 1.0;
         assert!((r.low_pct - (38.0 - g)).abs() < 1e-9, "{r:?}");
         assert!((r.high_pct - (43.0 + g)).abs() < 1e-9, "{r:?}");
         assert!(record(false)
-            .restore(&c, t + 60_000_000_000)
+            .restore(&c, after(60_000_000_000))
             .unwrap_err()
             .contains("may be anywhere"));
         assert!(record(true)
-            .restore(&c, t - 5_000_000_000)
+            .restore(&c, after(-5_000_000_000))
             .unwrap_err()
             .contains("future"));
+        // Within one boot the downtime is counted on CLOCK_BOOTTIME: a wall clock stepped back
+        // by an hour while the node was down does not shorten it.
+        let stepped = Stamp {
+            wall_ns: after(60_000_000_000).wall_ns - 3_600_000_000_000,
+            ..after(60_000_000_000)
+        };
+        assert!(record(false)
+            .restore(&c, stepped)
+            .unwrap_err()
+            .contains("may be anywhere"));
+        // Across a reboot, on the wall clock.
+        let rebooted = Stamp {
+            boot_id: 0xbeef,
+            boot_ns: 1,
+            ..after(2_000_000_000)
+        };
+        assert_eq!(
+            record(false).restore(&c, rebooted),
+            record(false).restore(&c, after(2_000_000_000))
+        );
+        assert_ne!(Stamp::now().boot_id, 0, "this kernel has a boot id");
         let other = ValveParams {
             travel_open_ms: 12_000,
             ..c.params
@@ -330,7 +428,7 @@ mod tests {
         .validate()
         .unwrap();
         assert!(record(true)
-            .restore(&other, t)
+            .restore(&other, after(0))
             .unwrap_err()
             .contains("travel"));
     }

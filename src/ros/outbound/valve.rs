@@ -9,7 +9,7 @@
 use crate::clock;
 use crate::core::valve::{Activity, Dir, Motion, StallCause, ValveFault};
 use crate::core::{ValveConfig, ValveStatus};
-use crate::ros::config::valve_state::{write_state, StateRecord, STATE_MARGIN_PCT};
+use crate::ros::config::valve_state::{write_state, Stamp, StateRecord, STATE_MARGIN_PCT};
 use crate::ros::inbound::valve::ValveAnswers;
 use crate::ros::interface::msg::{self, DiagnosticStatus, KeyValue};
 use crate::ros::interface::qos;
@@ -42,12 +42,14 @@ struct StateFile {
 }
 
 impl StateFile {
-    /// Writes the record of `status` if due: the first, at a move's start and stop, every
+    /// Writes the record of `status` if due: the first, at a move's start and stop and when the
+    /// lines are held or released, every
     /// [`STATE_WRITE_MOVING`] while moving, at rest once the bounds leave the recorded ones
     /// widened by [`STATE_MARGIN_PCT`] (at most that often; the restore widens them as much),
     /// and every [`STATE_WRITE_RESTING`] at rest.
-    fn update(&mut self, name: &str, status: &ValveStatus, now: i64) {
-        let rec = StateRecord::of(&self.config, status, now);
+    fn update(&mut self, name: &str, status: &ValveStatus, stamp: Stamp) {
+        let rec = StateRecord::of(&self.config, status, stamp);
+        let now = stamp.wall_ns;
         let moving = status.motion != Motion::Stopped;
         let due = match &self.last {
             None => true,
@@ -61,7 +63,10 @@ impl StateFile {
                     && hi <= was_hi + STATE_MARGIN_PCT
                     && rec.lines_held == last.lines_held;
                 let quiet = !moving && held;
+                // A move's start and stop, and the lines held or released (a stop of the node,
+                // the e-stop, a fault), are written at once.
                 *was_moving != moving
+                    || rec.lines_held != last.lines_held
                     || (!quiet && age >= STATE_WRITE_MOVING)
                     || age >= STATE_WRITE_RESTING
             }
@@ -145,7 +150,7 @@ impl ValveOut {
     /// stamped [`REPORT_WAY`] earlier, so a restore counts that too.
     pub fn periodic(&mut self) {
         if let (Some(f), Some(s)) = (self.file.as_mut(), self.last.as_ref()) {
-            f.update(&self.name, s, clock::wall_ns() - REPORT_WAY);
+            f.update(&self.name, s, Stamp::now().earlier(REPORT_WAY));
         }
     }
 
@@ -163,7 +168,7 @@ impl ValveOut {
         }
         if let Some(f) = self.file.as_mut() {
             let since = clock::monotonic_ns().saturating_sub(at_ns);
-            f.update(&self.name, &status, clock::wall_ns() - since as i64);
+            f.update(&self.name, &status, Stamp::now().earlier(since as i64));
         }
         let was = self.last.map(|s| (s.referenced, s.switches));
         if was.is_some_and(|w| w != (status.referenced, status.switches)) {
@@ -429,6 +434,65 @@ mod tests {
             switches: [false; 2],
             moves: 3,
         }
+    }
+
+    /// The state file follows a move and a stop of the node at once, and is not rewritten at
+    /// rest while the bounds stay within the record and its margin.
+    #[test]
+    fn the_state_file_follows_moves_and_the_stop_at_once() {
+        use crate::ros::config::valve_state::read_state;
+        let dir = std::env::temp_dir().join(format!("pwm-valve-out-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let config = crate::core::ValveParams::default().validate().unwrap();
+        let mut f = StateFile {
+            dir: dir.clone(),
+            config,
+            last: None,
+            failing: false,
+        };
+        let t0 = Stamp::now();
+        let at = |ms: i64| Stamp {
+            wall_ns: t0.wall_ns + ms * 1_000_000,
+            boot_ns: t0.boot_ns + ms * 1_000_000,
+            ..t0
+        };
+        let read = || read_state(&dir, "mix").unwrap().unwrap();
+        let rest = status();
+        f.update("mix", &rest, at(0));
+        assert_eq!(read().stamp, at(0), "the first record");
+        let moving = ValveStatus {
+            motion: Motion::Opening,
+            motor: [41.0, 37.0, 46.0],
+            ..rest
+        };
+        f.update("mix", &moving, at(100));
+        assert_eq!(read().stamp, at(100), "a move's start at once");
+        f.update("mix", &moving, at(600));
+        assert_eq!(read().stamp, at(100), "not twice within a second");
+        f.update("mix", &moving, at(1_200));
+        assert_eq!(read().stamp, at(1_200), "once a second while moving");
+        let held = ValveStatus {
+            live: false,
+            ..rest
+        };
+        f.update("mix", &rest, at(1_300));
+        f.update("mix", &held, at(1_400));
+        let r = read();
+        assert!(
+            r.lines_held && r.stamp == at(1_400),
+            "the stop at once: {r:?}"
+        );
+        // At rest, bounds within the record's and the margin: no rewrite.
+        let noisy = ValveStatus {
+            motor: [40.7, 36.6, 45.4],
+            ..held
+        };
+        f.update("mix", &noisy, at(1_500));
+        f.update("mix", &noisy, at(3_500));
+        assert_eq!(read().stamp, at(1_400));
+        f.update("mix", &noisy, at(1_400 + STATE_WRITE_RESTING / 1_000_000));
+        assert_ne!(read().stamp, at(1_400), "written afresh at rest");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
