@@ -719,8 +719,10 @@ fn valve_params() -> crate::core::ValveParams {
         deadband_pct: 0.5,
         min_pulse_ms: 40,
         reversal_pause_ms: 60,
+        // The estimate is compared with the integral of the lines: no play to sit in.
+        backlash_pct: 0.0,
         end_overrun_pct: 10.0,
-        reference_at_start: true,
+        reference_at_start: crate::core::valve::ReferenceAtStart::Close,
         recalibrate_after_s: 0,
         ..crate::core::ValveParams::default()
     }
@@ -733,7 +735,14 @@ fn valve_bench(held: bool) -> Bench {
     let mut b = Bench::new(&chans, &[(0, 1)], held);
     LINES.with(|l| l.borrow_mut().pairs.push((2, 3)));
     let config = valve_params().validate().unwrap();
-    b.send(2, Input::AddValve { close: 3, config });
+    b.send(
+        2,
+        Input::AddValve {
+            close: 3,
+            config,
+            start: Default::default(),
+        },
+    );
     b.wake();
     b
 }

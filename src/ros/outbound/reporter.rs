@@ -298,9 +298,13 @@ impl Reporter {
                     self.publish_status(channel, &status);
                 }
             }
-            Report::Valve { valve, status, .. } => {
+            Report::Valve {
+                valve,
+                status,
+                at_ns,
+            } => {
                 if let Some(v) = self.valves.get_mut(valve) {
-                    v.on_status(status);
+                    v.on_status(status, at_ns);
                 }
             }
             Report::OutputFault { channel } => {
@@ -620,6 +624,9 @@ impl Reporter {
     pub fn publish_diagnostics(&mut self, now: Nanos) {
         self.node_from_state();
         self.traces.poll(now, true);
+        for v in &mut self.valves {
+            v.periodic();
+        }
         let status: Vec<DiagnosticStatus> = self
             .health
             .iter()

@@ -35,6 +35,8 @@ pub struct NodeSettings {
     pub split: String,
     /// `valve`: the three-point valves, as written (parsed against the channels at start-up).
     pub valve: String,
+    /// `state_dir`: where the valves' state files live; empty for none.
+    pub state_dir: String,
     /// `heartbeat_line`: the heartbeat line's offset, if there is one.
     pub heartbeat_line: Option<u32>,
     /// `heartbeat_chip`: the heartbeat line's chip.

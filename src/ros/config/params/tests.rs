@@ -638,12 +638,18 @@ fn a_valves_motion_settings_change_while_running_checked_whole() {
         a.valve_configs[0].1.min_pulse,
         2_000 * crate::core::NS_PER_MS
     );
-    // The travel times, the end switches and the reference at start stay start-up only.
+    // A reversal pause below the floor is refused with the core's reason.
+    let e = live(s, "mix.reversal_pause_ms", V::Integer(5)).unwrap_err();
+    assert!(e.to_string().contains("below 20 ms"), "{e}");
+    // The travel times, the end switches, the feedback, the backlash and the reference at
+    // start stay start-up only.
     for (name, v) in [
         ("mix.travel_open_ms", V::Integer(120_000)),
         ("mix.open_limit_line", V::String("5".into())),
         ("mix.limit_debounce_ms", V::Integer(20)),
-        ("mix.reference_at_start", V::Boolean(false)),
+        ("mix.reference_at_start", V::String("none".into())),
+        ("mix.feedback_topic", V::String("/pot".into())),
+        ("mix.backlash_pct", V::Double(2.0)),
     ] {
         let e = live(s, name, v).unwrap_err();
         assert!(matches!(e, ParamError::ReadOnly { .. }), "{name}: {e}");
