@@ -353,6 +353,7 @@ impl Channel {
         let before = self.line;
         let mut edges = 0u32;
         let mut last_at = now;
+        let outer = self.avg_batch(now);
         {
             let mut inner = |e: Event| match e {
                 Event::Edge { at, .. } => {
@@ -368,6 +369,7 @@ impl Channel {
                 self.advance(t, &mut inner);
             }
         }
+        self.avg_batch(outer);
         let changed = self.line.level != before.level;
         if changed {
             // The edge reaches the line now, however long ago it was due: the minimum of the

@@ -462,6 +462,36 @@ fn the_average_cap_holds_on_the_line_with_late_falls() {
     );
 }
 
+/// A wake-up late by as much as the break after a 99.78 % pulse handles the fall and the next
+/// period's start in one batch: the fall never reaches the line, which stays on. The cap's
+/// decision at that period start counts the line on until the wake-up, so the first window
+/// holds no more than the cap and the first fall's lateness beyond the margin kept for it.
+#[test]
+fn a_break_swallowed_by_a_late_wake_up_counts_against_the_average_cap() {
+    let late = 223_977;
+    let limit = 12.833_770_986_117_996;
+    let p = ChannelParams {
+        avg_duty_limit_pct: limit,
+        avg_window_s: 1,
+        ..params(100, 0, None)
+    };
+    let mut b = Bench::new(&[p], &[], false);
+    // A break of 100 ms x (1 - 0.9977602...) = 223,977 ns: exactly the lateness.
+    b.send(0, Input::Command(Command::Percent(99.776_023_349_732_03)));
+    b.send(0, Input::Enable(true));
+    b.wake();
+    let t = now();
+    b.run_to(t + 2_000 * MS, late);
+    let allowed = (limit / 100.0 * 1e9).floor() as Nanos;
+    let most = most_on_in_a_window(0, 1_000 * MS);
+    // Without the swallowed break counted: allowed + 377,954 ns (twice the lateness).
+    assert!(
+        most <= allowed + late + WRITE_NS,
+        "{most} ns on in a window, {allowed} allowed (+{} ns unforeseen)",
+        late + WRITE_NS
+    );
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 400, ..ProptestConfig::default() })]
 
