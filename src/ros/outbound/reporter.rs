@@ -614,6 +614,7 @@ impl Reporter {
             .iter()
             .map(|h| h.level(now))
             .chain(self.rate_statuses.iter().map(|d| d.level))
+            .chain(self.valves.iter().map(ValveOut::level))
             .chain(std::iter::once(self.node.level(now)))
             .chain(self.traces.levels(now))
             .collect()

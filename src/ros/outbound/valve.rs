@@ -196,6 +196,12 @@ impl ValveOut {
     pub fn to_status(&self, node_name: &str) -> DiagnosticStatus {
         diagnostic(node_name, &self.name, &self.lines, self.last.as_ref())
     }
+
+    /// The level of the valve's `/diagnostics` status ([`DiagnosticStatus::OK`] ...), as
+    /// [`ValveOut::to_status`] gives it.
+    pub fn level(&self) -> u8 {
+        diagnostic("", &self.name, &self.lines, self.last.as_ref()).level
+    }
 }
 
 fn on_off(active: bool) -> &'static str {
