@@ -130,6 +130,7 @@ impl Channel {
     /// The line fell at `at` after being high since `since`: counts the span.
     pub(super) fn avg_fall(&mut self, since: Nanos, at: Nanos) {
         self.avg.count(since.min(at), at);
+        self.heat_on_time(since.min(at), at);
     }
 
     /// An edge reached the line after it was emitted: the line's writes take time, so every
@@ -145,6 +146,7 @@ impl Channel {
             return;
         }
         self.avg.count(scheduled, actual);
+        self.heat_on_time(scheduled, actual);
         let lag = actual - scheduled;
         self.avg.fall_lag = lag
             .max(self.avg.fall_lag - self.avg.fall_lag / 16)
