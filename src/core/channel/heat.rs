@@ -503,9 +503,20 @@ impl Channel {
                 None => Some(fault),
                 _ => None,
             },
-            // The heater is back at work: gone once a reset lets it run again (the check
-            // needs full power to look, which only a run can give).
-            HeaterFault::NoRise { .. } => None,
+            // With the line off nothing shows whether the heater heats again: as for
+            // not_heating, the condition lasts while the setpoint would drive it hard again
+            // (above the reading by more than the hysteresis); lower the setpoint to reset.
+            HeaterFault::NoRise { full_s, .. } => {
+                let (Some((sp, _)), Some((temp, _))) = (self.heat.setpoint, self.heat.reading)
+                else {
+                    return None;
+                };
+                (sp > 0.0 && temp < sp - h.runaway.hysteresis_c).then_some(HeaterFault::NoRise {
+                    start_c: temp,
+                    now_c: temp,
+                    full_s,
+                })
+            }
             // The readings must have been steady (no jump) for the last 10 s.
             HeaterFault::SensorJump { .. } => self
                 .heat

@@ -559,9 +559,10 @@ pub(super) fn node_decls() -> Vec<Decl> {
             ..Decl::new("rt_priority", Integer, || V::Integer(0))
         },
         Decl {
-            description: "A heater fault of any channel (temperature_out_of_range, \
-                          sensor_timeout, not_heating, stuck_on) also latches the e-stop of \
-                          every channel; ~/reset_estop releases it.",
+            description: "A heater fault of any channel (any check: \
+                          temperature_out_of_range, sensor_timeout, sensor_stuck, no_rise, \
+                          sensor_jump, not_heating, stuck_on, model_deviation) also latches the \
+                          e-stop of every channel; ~/reset_estop releases it.",
             constraints: "start-up only",
             read_only: Some(START_UP),
             node: Some(|n, v| n.heater_fault_latches_estop = boolean(v)),
