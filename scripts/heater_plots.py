@@ -8,7 +8,7 @@ lets them run, stops both, and draws from the record: the temperature (what the 
 the plant's true one), the setpoint, the duty (the line's on time in each period) and the line.
 
   settle        80 °C setpoint from 20 °C: the loop settling          -> docs/heater-settle.png
-  not_heating   settled, then the heater disconnected: not_heating trips -> docs/heater-not-heating.png
+  fallen_off    settled, then the sensor falls off its block: no_rise trips -> docs/heater-fallen-off.png
 
 Usage:
   scripts/heater_plots.py                     both scenarios, into docs/
@@ -46,9 +46,9 @@ PARAMS = [
 SCENARIOS = {
     "settle": dict(seconds=200.0, sim=[], out="docs/heater-settle.png",
                    title="pw01 under pid: 80 °C setpoint from 20 °C"),
-    "not_heating": dict(seconds=150.0, sim=["--fault", "heater_disconnected", "--fault-after", "110"],
-                        out="docs/heater-not-heating.png",
-                        title="settled at 80 °C, heater disconnected at 110 s: not_heating"),
+    "fallen_off": dict(seconds=150.0, sim=["--fault", "sensor_fallen_off", "--fault-after", "110"],
+                       out="docs/heater-fallen-off.png",
+                       title="settled at 80 °C, the sensor falls off its block at 110 s: no_rise"),
 }  # fmt: skip
 
 

@@ -5,8 +5,8 @@
 //! and runs the core's first-order-plus-dead-time [`Plant`] on them in real time, publishing
 //! its sensor as `sensor_msgs/Temperature` at a fixed rate. Faults are injected from the
 //! command line (`--fault`, `--fault-after`) or at run time on `~/fault` (`std_msgs/String`:
-//! `none`, `heater_disconnected`, `heater_stuck_on`, `sensor_stuck`, `sensor_silent`,
-//! `sensor_shorted`). With `--record` it writes every reading and every edge to a CSV file
+//! `none`, `heater_disconnected`, `heater_stuck_on`, `heater_half_power`, `sensor_stuck`,
+//! `sensor_silent`, `sensor_shorted`, `sensor_fallen_off`). With `--record` it writes every reading and every edge to a CSV file
 //! (`t_s,kind,value,true_c`), for the pictures of docs/heater.md.
 
 use crate::sim_ros::{self, make_topic};
@@ -53,10 +53,15 @@ pub struct SimHeaterOptions {
     /// Peak sensor noise, °C (uniform), 0..100
     #[arg(long, value_name = "C", default_value_t = 0.05)]
     pub noise: f64,
-    /// A fault to inject: none, heater_disconnected, heater_stuck_on, sensor_stuck,
-    /// sensor_silent, sensor_shorted
+    /// A fault to inject: none, heater_disconnected, heater_stuck_on, heater_half_power,
+    /// sensor_stuck, sensor_silent, sensor_shorted (reads ambient), sensor_fallen_off (cools
+    /// toward ambient with a 20 s time constant)
     #[arg(long, value_name = "FAULT", default_value = "none")]
     pub fault: String,
+    /// The sensor's resolution, °C (0.25 for a MAX6675 board, 0.0625 for a DS18B20); 0: none,
+    /// 0..10
+    #[arg(long, value_name = "C", default_value_t = 0.0)]
+    pub quantum: f64,
     /// Inject --fault this many seconds after start (0: from the start)
     #[arg(long, value_name = "S", default_value_t = 0.0)]
     pub fault_after: f64,
@@ -118,8 +123,8 @@ pub enum OptionError {
     },
     /// `--fault` names no fault.
     #[error(
-        "--fault {0}: expected none, heater_disconnected, heater_stuck_on, sensor_stuck, \
-         sensor_silent or sensor_shorted"
+        "--fault {0}: expected none, heater_disconnected, heater_stuck_on, heater_half_power, \
+         sensor_stuck, sensor_silent, sensor_shorted or sensor_fallen_off"
     )]
     UnknownFault(String),
 }
@@ -144,6 +149,7 @@ fn check(o: &SimHeaterOptions) -> Result<(PlantParams, PlantFault), OptionError>
     within("dead-time", o.dead_time, 0.0, 600.0)?;
     within("ambient", o.ambient, -100.0, 1000.0)?;
     within("noise", o.noise, 0.0, 100.0)?;
+    within("quantum", o.quantum, 0.0, 10.0)?;
     within("fault-after", o.fault_after, 0.0, 1e6)?;
     within("duration", o.duration, 0.0, 1e7)?;
     within("print-every", o.print_every, 0.0, 1e6)?;
@@ -233,7 +239,9 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
     };
 
     let start = clock::monotonic_ns();
-    let plant = Arc::new(Mutex::new(Plant::new(params, start, 0x5eed)));
+    let mut plant = Plant::new(params, start, 0x5eed);
+    plant.set_quantum(o.quantum);
+    let plant = Arc::new(Mutex::new(plant));
     let record = Arc::new(Mutex::new(Record(match &o.record {
         Some(p) => Some(std::io::BufWriter::new(
             std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?,

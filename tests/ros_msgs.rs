@@ -109,6 +109,10 @@ fn own_messages_match_their_msg_files() {
             heater_fault: String::new(),
             heater_fault_message: String::new(),
             heater_fault_lasts: false,
+            model_predicted_c: 0.0,
+            model_residual_c: 0.0,
+            stale_readings: 0,
+            last_stale_age_ms: 0.0,
         }),
     );
     check_file(

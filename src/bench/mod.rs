@@ -203,6 +203,8 @@ pub fn run(opts: BenchOptions) -> i32 {
         params.heater.feedback = true;
         params.heater.control = pwm_actuator::core::heater::Control::Pid;
         params.heater.pid_kp = PID_KP;
+        // The loop needs the heater's maximum; the bench's readings stay far below it.
+        params.heater.temp_max_c = 2.0 * PID_SETPOINT_C;
     }
     if let Err(e) = params.validate() {
         eprintln!("--period-ms: {e}");
@@ -431,7 +433,14 @@ fn run_side(
     for ch in 0..opts.channels {
         if opts.pid {
             send(&mut requests, ch, Input::Setpoint(PID_SETPOINT_C))?;
-            send(&mut requests, ch, Input::Feedback(reading))?;
+            send(
+                &mut requests,
+                ch,
+                Input::Feedback {
+                    celsius: reading,
+                    age: None,
+                },
+            )?;
         } else {
             send(
                 &mut requests,
@@ -460,7 +469,14 @@ fn run_side(
         let mut next = window.wall0;
         while next < end {
             for ch in 0..opts.channels {
-                send(&mut requests, ch, Input::Feedback(reading))?;
+                send(
+                    &mut requests,
+                    ch,
+                    Input::Feedback {
+                        celsius: reading,
+                        age: None,
+                    },
+                )?;
             }
             next += 100 * NS_PER_MS;
             sleep_until(next.min(end));

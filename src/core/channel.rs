@@ -52,6 +52,9 @@ mod watchdog;
 
 pub use report::{Event, Protections, Status};
 
+/// The shortest stretch a heater's delivered duty is averaged over, ns.
+const CHECK_WINDOW: Nanos = 1_000_000_000;
+
 /// The running on or off step of the schedule.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Step {
@@ -251,7 +254,7 @@ impl Channel {
             seat: None,
             carry_in: 0.0,
             carry: 0.0,
-            heat: Heat::new(&cfg.heater, now),
+            heat: Heat::new(&cfg.heater, cfg.period.max(CHECK_WINDOW), now),
         }
     }
 

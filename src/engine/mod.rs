@@ -42,7 +42,15 @@ pub enum Input {
     Bank(Bank),
     /// A temperature reading of the channel's feedback, °C (any value: NaN and infinities
     /// latch `temperature_out_of_range`); it counts as arriving when the thread takes it.
-    Feedback(f64),
+    /// `age`: how long after its stamp it arrived, ns (negative: stamped in the future;
+    /// `None`: unstamped), see
+    /// [`Channel::feedback_stamped`](crate::core::Channel::feedback_stamped).
+    Feedback {
+        /// The reading, °C.
+        celsius: f64,
+        /// Arrival less stamp, ns.
+        age: Option<i64>,
+    },
     /// A setpoint for the channel's loop, °C (see
     /// [`Channel::set_setpoint`](crate::core::Channel::set_setpoint)).
     Setpoint(f64),

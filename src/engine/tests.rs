@@ -647,7 +647,13 @@ fn a_heater_fault_stops_the_heartbeat_and_can_latch_the_estop_of_every_channel()
         b.send(ch, Input::Command(crate::core::Command::Percent(100.0)));
         b.send(ch, Input::Enable(true));
     }
-    b.send(0, Input::Feedback(25.0));
+    b.send(
+        0,
+        Input::Feedback {
+            celsius: 25.0,
+            age: None,
+        },
+    );
     b.wake();
     b.run_to(now() + 1_000 * MS, 0);
     let toggles = |l: &Lines| l.edges[2].len();
@@ -656,7 +662,13 @@ fn a_heater_fault_stops_the_heartbeat_and_can_latch_the_estop_of_every_channel()
     assert!(LINES.with(|l| l.borrow().high[0] && l.borrow().high[1]));
     // A reading above temp_max_c: channel 0's line off at once, and with it, through the
     // e-stop, channel 1's; the heartbeat rests inactive.
-    b.send(0, Input::Feedback(350.0));
+    b.send(
+        0,
+        Input::Feedback {
+            celsius: 350.0,
+            age: None,
+        },
+    );
     b.wake();
     LINES.with(|l| {
         let l = l.borrow();
@@ -686,7 +698,13 @@ fn an_autotune_goal_taken_after_its_start_by_never_starts() {
     };
     let mut b = Bench::new(&[heater], &[], false);
     b.send(0, Input::Enable(true));
-    b.send(0, Input::Feedback(25.0));
+    b.send(
+        0,
+        Input::Feedback {
+            celsius: 25.0,
+            age: None,
+        },
+    );
     b.wake();
     // What one wake-up reports of the autotunes, by ticket.
     let tune_reports = |b: &mut Bench| {

@@ -479,7 +479,7 @@ impl<O: Output> Worker<O> {
                     self.board.pair(req.channel, partner);
                 }
             }
-            Input::Feedback(c) => ch.feedback(now, c, emit),
+            Input::Feedback { celsius, age } => ch.feedback_stamped(now, celsius, age, emit),
             Input::Setpoint(c) => ch.set_setpoint(now, c, emit),
             Input::ResetFault(ticket) => ch.reset_heater_fault(now, ticket, emit),
             Input::Autotune {

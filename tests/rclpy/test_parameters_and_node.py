@@ -98,6 +98,13 @@ CHANNEL_PARAMS = (
     "temp_min_c",
     "temp_max_c",
     "feedback_timeout_ms",
+    "feedback_max_skew_ms",
+    "setpoint_margin_c",
+    "sensor_stuck_time_s",
+    "sensor_stuck_band_c",
+    "sensor_stuck_energy_s",
+    "no_rise_time_s",
+    "sensor_max_rate_c_per_s",
     "runaway_hysteresis_c",
     "runaway_max_error",
     "runaway_gain_time_s",
@@ -106,6 +113,13 @@ CHANNEL_PARAMS = (
     "stuck_on_time_s",
     "autotune_max_overshoot_c",
     "autotune_timeout_s",
+    "autotune_margin_c",
+    "model_gain_c_per_pct",
+    "model_tau_s",
+    "model_dead_time_s",
+    "model_ambient_c",
+    "model_tolerance_c",
+    "model_time_s",
 )
 
 

@@ -41,6 +41,7 @@ ARGS = ["--managed"] + node_args(
     valve="mix:pw04:pw05",
     pw03__feedback_topic="/heater/temperature",
     pw03__control="pid",
+    pw03__temp_max_c=150.0,
 )
 #: The DDS name space of the heater channel's autotune action's services and topics.
 ACTION = "pwm_actuator/pw03/autotune/_action"

@@ -159,6 +159,8 @@ impl Channel {
     pub(super) fn avg_fall(&mut self, since: Nanos, at: Nanos) {
         let to = at.max(self.avg.batch_now);
         self.avg.count_span(since.min(at), to);
+        // The heater got that on time too (its checks and model count what the line did).
+        self.heat_on_time(since.min(at), to);
     }
 
     /// A batch of deadlines handled at `now` begins (`now`) or ends (what this returned when
@@ -180,6 +182,7 @@ impl Channel {
             return;
         }
         self.avg.count_span(scheduled, actual);
+        self.heat_on_time(scheduled, actual);
         let lag = actual - scheduled;
         self.avg.fall_lag = lag
             .max(self.avg.fall_lag - self.avg.fall_lag / 16)

@@ -1,14 +1,21 @@
-//! The heater loop inside the channel (issue 22): readings and setpoints as inputs, the PID
-//! sampled as a channel deadline whose duty takes the path of a duty command, and the heater
-//! checks, which latch a fault that drives the line low at once and keeps it low, as the
-//! e-stop does for one channel. `stuck_on` reads the line as really written (its guard), so
-//! "held off the whole time" is exact.
+//! The heater loop inside the channel: readings and setpoints as inputs, the PID sampled as a
+//! channel deadline whose duty takes the path of a duty command, and the heater checks, which
+//! latch a fault that drives the line low at once and keeps it low, as the e-stop does for one
+//! channel. Only fresh readings count: one that stopped coming, or whose stamp says it is old
+//! or from the future, moves nothing. `stuck_on`, `sensor_stuck` and the thermal model read
+//! the line as really written (its guard and the real write times), so "held off the whole
+//! time" and "the duty delivered" are exact.
 
 use super::super::command::Command;
 use super::super::heater::{
-    Control, HeaterConfig, HeaterFault, HeaterStatus, Refusal, ResetRefusal, StuckOn, CHECK_TICK,
+    delivered_span, Control, Delivered, HeaterConfig, HeaterFault, HeaterStatus, Model, Refusal,
+    ResetRefusal, StuckOn, CHECK_TICK, DEFAULT_FEEDBACK_TIMEOUT_MS,
 };
+use super::super::NS_PER_MS;
 use super::{Channel, Event, Level, Nanos};
+
+/// How long the readings must be steady after a `sensor_jump` before a reset is taken, ns.
+const JUMP_CALM: Nanos = 10_000_000_000;
 
 impl Channel {
     /// Whether the loop sets the duty (`control` `pid`).
@@ -40,16 +47,65 @@ impl Channel {
         (lo, self.cfg.max_duty * 100.0)
     }
 
+    /// The line's on time so far, ns: the finished high phases and the running one, as
+    /// really written.
+    pub(super) fn on_total(&self, t: Nanos) -> Nanos {
+        let running = match (self.line.level, self.line.since) {
+            (Level::High, Some(since)) => t.saturating_sub(since.max(self.heat.on_counted_to)),
+            _ => 0,
+        };
+        self.heat.on_closed.saturating_add(running)
+    }
+
+    /// A high phase of the line from `since` ended at `at` (or a fall reached the line only
+    /// at `at`, `since` being when it was scheduled): the heater got that on time.
+    pub(super) fn heat_on_time(&mut self, since: Nanos, at: Nanos) {
+        // A late batch counts a fall up to its wake-up, and the late fall again from its
+        // schedule: what is counted already is not counted twice.
+        let from = since.max(self.heat.on_counted_to);
+        if at > from {
+            self.heat.on_closed = self.heat.on_closed.saturating_add(at - from);
+            self.heat.on_counted_to = at;
+        }
+    }
+
+    /// The timeout readings are held to, ns: `feedback_timeout_ms`, and while an autotune runs
+    /// with it at 0 (possible under `open`), its default.
+    fn feedback_timeout(&self) -> Nanos {
+        match self.cfg.heater.feedback_timeout {
+            0 if self.heat.autotune.is_some() => DEFAULT_FEEDBACK_TIMEOUT_MS * NS_PER_MS,
+            t => t,
+        }
+    }
+
+    /// When the last fresh reading came (creation, a reset or a new feedback setting before
+    /// the first).
+    fn fresh_since(&self) -> Nanos {
+        self.heat
+            .reading
+            .map_or(self.heat.expected_since, |(_, at)| at)
+    }
+
     /// When `sensor_timeout` trips: enabled, feedback with a timeout, no fault latched.
     fn sensor_deadline(&self) -> Option<Nanos> {
-        let h = &self.cfg.heater;
-        (h.params.feedback && h.feedback_timeout > 0 && self.enabled && self.heat.fault.is_none())
-            .then(|| {
-                self.heat
-                    .reading
-                    .map_or(self.heat.expected_since, |(_, at)| at)
-                    .saturating_add(h.feedback_timeout)
-            })
+        let timeout = self.feedback_timeout();
+        (self.cfg.heater.params.feedback
+            && timeout > 0
+            && self.enabled
+            && self.heat.fault.is_none())
+        .then(|| self.fresh_since().saturating_add(timeout))
+    }
+
+    /// The checks that watch the loop act: enabled, no fault latched, and the loop or an
+    /// autotune sets the duty, or a duty command does (the heater is driven either way).
+    fn heater_driven(&self) -> bool {
+        self.enabled && self.heat.fault.is_none()
+    }
+
+    /// The stretch the delivered duty is averaged over, ns: a PWM period (or the PID's sample
+    /// when longer), at least a second.
+    fn duty_window(&self) -> Nanos {
+        self.cfg.period.max(self.sample()).max(CHECK_TICK)
     }
 
     /// The heater's next deadline: `sensor_timeout`, the next `not_heating` tick, the next
@@ -84,13 +140,9 @@ impl Channel {
     }
 
     fn silence(&self, now: Nanos) -> HeaterFault {
-        let since = self
-            .heat
-            .reading
-            .map_or(self.heat.expected_since, |(_, at)| at);
         HeaterFault::SensorTimeout {
-            silent_ms: now.saturating_sub(since) / super::super::NS_PER_MS,
-            timeout_ms: self.cfg.heater.params.feedback_timeout_ms,
+            silent_ms: now.saturating_sub(self.fresh_since()) / NS_PER_MS,
+            timeout_ms: self.feedback_timeout() / NS_PER_MS,
         }
     }
 
@@ -98,17 +150,17 @@ impl Channel {
     /// `sensor_timeout` and the enable is not taken (returns false); under `pid` the loop
     /// takes a sample first, so the first period runs the loop's duty.
     pub(super) fn heat_before_enable(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) -> bool {
-        let h = &self.cfg.heater;
-        if h.params.feedback && h.feedback_timeout > 0 && self.heat.fault.is_none() {
-            let since = self
-                .heat
-                .reading
-                .map_or(self.heat.expected_since, |(_, at)| at);
-            if now.saturating_sub(since) >= h.feedback_timeout {
-                self.latch_heater_fault(now, self.silence(now), emit);
-                return false;
-            }
+        let timeout = self.feedback_timeout();
+        if self.cfg.heater.params.feedback
+            && timeout > 0
+            && self.heat.fault.is_none()
+            && now.saturating_sub(self.fresh_since()) >= timeout
+        {
+            self.latch_heater_fault(now, self.silence(now), emit);
+            return false;
         }
+        // The stuck check starts afresh with the run.
+        self.heat.still.clear();
         if self.pid_on() && self.heat.fault.is_none() {
             self.pid_sample(now, emit);
         }
@@ -124,11 +176,12 @@ impl Channel {
         if self.watchdog_tripped || self.heat.fault.is_some() || self.heat.autotune.is_some() {
             return;
         }
-        let (Some((setpoint, _)), Some((reading, _))) = (self.heat.setpoint, self.heat.reading)
+        let (Some((setpoint, _)), Some((reading, read_at))) =
+            (self.heat.setpoint, self.heat.reading)
         else {
             return;
         };
-        if !reading.is_finite() {
+        if !reading.is_finite() || t.saturating_sub(read_at) >= self.feedback_timeout().max(1) {
             return;
         }
         // The time since the last sample; after a pause (disabled) the nominal sample, so the
@@ -139,10 +192,17 @@ impl Channel {
         };
         self.heat.last_sample = Some(t);
         let (lo, hi) = self.pid_limits();
+        // The derivative moves on a new reading only, over the time between the readings.
+        let reading_dt = match self.heat.sampled_reading_at {
+            Some(prev) if prev == read_at => None,
+            Some(prev) => Some(read_at.saturating_sub(prev) as f64 / 1e9),
+            None => Some(dt as f64 / 1e9),
+        };
+        self.heat.sampled_reading_at = Some(read_at);
         let out = self
             .heat
             .pid
-            .step(setpoint, reading, dt as f64 / 1e9, lo, hi)
+            .sample(setpoint, reading, reading_dt, dt as f64 / 1e9, lo, hi)
             .output;
         self.take_command(t, Command::Percent(out), false, emit);
     }
@@ -150,10 +210,15 @@ impl Channel {
     /// `not_heating`'s tick at `t` (Klipper's `verify_heater`, once a second): the target is
     /// the setpoint while the loop runs (under `pid`, enabled, no fault), else none.
     fn not_heating_tick(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
-        let Some((temp, _)) = self.heat.reading.filter(|(c, _)| c.is_finite()) else {
+        self.autotune_tick(t, emit);
+        let timeout = self.feedback_timeout();
+        let Some((temp, _)) = self
+            .heat
+            .reading
+            .filter(|(c, at)| c.is_finite() && (timeout == 0 || t.saturating_sub(*at) < timeout))
+        else {
             return;
         };
-        self.autotune_tick(t, emit);
         let runs = self.pid_on() && self.enabled && self.heat.fault.is_none();
         let target = match (self.autotune_target(), self.heat.setpoint) {
             // An autotune's target is the check's while it runs.
@@ -191,15 +256,44 @@ impl Channel {
         })
     }
 
-    /// A temperature reading `celsius` (°C) at `now`. Ignored without feedback configured.
-    /// NaN, infinities and readings outside `temp_min_c..=temp_max_c` latch
-    /// `temperature_out_of_range`; a rise while the line has been off for `stuck_on_time_s`
-    /// latches `stuck_on`. Under `pid` it feeds the watchdog together with the setpoint.
+    /// A temperature reading `celsius` (°C) at `now`, unstamped (its arrival is its time).
+    /// See [`Channel::feedback_stamped`].
     pub fn feedback(&mut self, now: Nanos, celsius: f64, emit: &mut dyn FnMut(Event)) {
+        self.feedback_stamped(now, celsius, None, emit);
+    }
+
+    /// A temperature reading `celsius` (°C) arriving at `now`, `age` ns after its stamp
+    /// (`None`: unstamped; negative: stamped in the future). Ignored without feedback
+    /// configured. A stamp older than the feedback timeout or further ahead than
+    /// `feedback_max_skew_ms` makes the reading stale: counted, and used by nothing. A fresh
+    /// reading goes through the checks: NaN, infinities and readings outside
+    /// `temp_min_c..=temp_max_c` latch `temperature_out_of_range`; a rise while the line has
+    /// been off for `stuck_on_time_s` latches `stuck_on`; a jump faster than the heater can
+    /// latches `sensor_jump`; a reading standing still while the delivered power moves
+    /// latches `sensor_stuck`; one that leaves the thermal model latches `model_deviation`.
+    /// Under `pid` it feeds the watchdog together with the setpoint.
+    pub fn feedback_stamped(
+        &mut self,
+        now: Nanos,
+        celsius: f64,
+        age: Option<i64>,
+        emit: &mut dyn FnMut(Event),
+    ) {
         let p = self.cfg.heater.params;
         if !p.feedback {
             return;
         }
+        if let Some(age) = age {
+            let timeout = self.feedback_timeout();
+            let too_old = timeout > 0 && age > 0 && age as u64 >= timeout;
+            let ahead = age < 0 && age.unsigned_abs() > self.cfg.heater.max_skew;
+            if too_old || ahead {
+                self.heat.stale = (self.heat.stale.0.saturating_add(1), age);
+                self.heat.stale_now = true;
+                return;
+            }
+        }
+        self.heat.stale_now = false;
         self.heat.reading = Some((celsius, now));
         if let Some(fault) = self.out_of_range(celsius) {
             self.latch_heater_fault(now, fault, emit);
@@ -220,8 +314,100 @@ impl Channel {
                 return;
             }
         }
+        let on_now = self.on_total(now);
+        self.heat.delivered.record(now, on_now);
+        if let Some(jump) = self
+            .heat
+            .leap
+            .reading(now, celsius, p.sensor_max_rate_c_per_s)
+        {
+            self.heat.last_jump_at = Some(now);
+            let fault = HeaterFault::SensorJump {
+                change_c: jump.change_c,
+                within_s: jump.within_s,
+                max_rate: p.sensor_max_rate_c_per_s,
+            };
+            self.latch_heater_fault(now, fault, emit);
+            return;
+        }
+        if let Some(fault) = self.model_reading(now, on_now, celsius) {
+            self.latch_heater_fault(now, fault, emit);
+            return;
+        }
+        if self.heater_driven() {
+            let delivered = self.heat.delivered;
+            let limits = self.cfg.heater.stuck;
+            // During an autotune's cycles the power that holds the heater is the relay's
+            // mean, not the half cycle's.
+            let reference = self.heat.autotune.and_then(|(_, a)| a.mean_power());
+            if let Some(still) = self.heat.still.reading(
+                now,
+                celsius,
+                &limits,
+                self.cfg.period,
+                &delivered,
+                on_now,
+                reference,
+            ) {
+                let fault = HeaterFault::SensorStuck {
+                    celsius: still.celsius,
+                    still_s: still.still_s,
+                    swing_s: still.swing_s,
+                    limit_s: p.sensor_stuck_energy_s,
+                    full: still.full,
+                };
+                self.latch_heater_fault(now, fault, emit);
+                return;
+            }
+        } else {
+            self.heat.still.clear();
+        }
+        let limits = self.cfg.heater.stuck;
+        // The loop (or an autotune) has asked for full power for the check's time.
+        let full = self.heater_driven()
+            && (self.pid_on() || self.heat.autotune.is_some())
+            && self
+                .heat
+                .delivered
+                .duty(now.saturating_sub(limits.no_rise), now, on_now)
+                .is_some_and(|d| d >= super::super::heater::checks::FULL_POWER * limits.full);
+        if let Some(flat) =
+            self.heat
+                .flat
+                .reading(now, celsius, limits.no_rise, limits.band_c, full)
+        {
+            let fault = HeaterFault::NoRise {
+                start_c: flat.start_c,
+                now_c: flat.now_c,
+                full_s: flat.full_s,
+            };
+            self.latch_heater_fault(now, fault, emit);
+            return;
+        }
         self.autotune_reading(now, celsius, emit);
         self.feed_watchdog(now, emit);
+    }
+
+    /// The thermal model at a fresh reading: its prediction, and `model_deviation` once the
+    /// residual has stayed beyond the tolerance for the check's time.
+    fn model_reading(&mut self, now: Nanos, on_now: Nanos, celsius: f64) -> Option<HeaterFault> {
+        let m = self.heat.model.as_mut()?;
+        let pr = m.reading(now, on_now, celsius);
+        self.heat.prediction = Some(pr);
+        let p = &self.cfg.heater.params;
+        if pr.residual_c.abs() <= p.model_tolerance_c {
+            self.heat.deviating_since = None;
+            return None;
+        }
+        let since = *self.heat.deviating_since.get_or_insert(now);
+        (now.saturating_sub(since) >= self.cfg.heater.model_time).then_some(
+            HeaterFault::ModelDeviation {
+                celsius,
+                predicted_c: pr.predicted_c,
+                tolerance_c: p.model_tolerance_c,
+                time_s: p.model_time_s,
+            },
+        )
     }
 
     /// A setpoint (°C) at `now`, under `pid`; refused under `open`, when not finite, or
@@ -234,11 +420,11 @@ impl Channel {
             Some(Refusal::Autotuning)
         } else if !celsius.is_finite() {
             Some(Refusal::SetpointNotFinite(celsius))
-        } else if celsius < p.temp_min_c || celsius > p.temp_max_c {
+        } else if celsius < p.temp_min_c || celsius > p.setpoint_ceiling() {
             Some(Refusal::SetpointOutOfRange {
                 value: celsius,
                 min_c: p.temp_min_c,
-                max_c: p.temp_max_c,
+                max_c: p.setpoint_ceiling(),
             })
         } else {
             None
@@ -248,6 +434,7 @@ impl Channel {
             return;
         }
         self.heat.setpoint = Some((celsius, now));
+        self.heat.lowered_from = None;
         self.feed_watchdog(now, emit);
     }
 
@@ -294,6 +481,13 @@ impl Channel {
         emit(Event::HeaterFault(fault));
         self.set_enable(now, false, emit);
         self.force_low(now, emit);
+        // Nothing of the duty before the fault survives it: after the reset and the next
+        // enable, the loop starts from 0 % and the present reading; open loop waits for a
+        // new command.
+        self.take_command(now, Command::Percent(0.0), false, emit);
+        self.heat.pid.start_from(0.0);
+        self.heat.last_sample = None;
+        self.heat.sampled_reading_at = None;
     }
 
     /// Whether the condition of `fault` holds at `now`: the figures it has now if so.
@@ -305,13 +499,52 @@ impl Channel {
                 None => Some(fault),
             },
             HeaterFault::SensorTimeout { .. } => {
-                let since = self
-                    .heat
-                    .reading
-                    .map_or(self.heat.expected_since, |(_, at)| at);
-                (h.feedback_timeout > 0 && now.saturating_sub(since) >= h.feedback_timeout)
+                let timeout = self.feedback_timeout();
+                (timeout > 0 && now.saturating_sub(self.fresh_since()) >= timeout)
                     .then(|| self.silence(now))
             }
+            // The reading must have moved since: still the frozen value, the fault lasts.
+            HeaterFault::SensorStuck { celsius, .. } => match self.heat.reading {
+                Some((c, _)) if (c - celsius).abs() <= h.stuck.band_c => Some(fault),
+                None => Some(fault),
+                _ => None,
+            },
+            // With the line off nothing shows whether the heater heats again: as for
+            // not_heating, the condition lasts while the setpoint would drive it hard again
+            // (above the reading by more than the hysteresis); lower the setpoint to reset.
+            HeaterFault::NoRise { full_s, .. } => {
+                let (Some((sp, _)), Some((temp, _))) = (self.heat.setpoint, self.heat.reading)
+                else {
+                    return None;
+                };
+                (sp > 0.0 && temp < sp - h.runaway.hysteresis_c).then_some(HeaterFault::NoRise {
+                    start_c: temp,
+                    now_c: temp,
+                    full_s,
+                })
+            }
+            // The readings must have been steady (no jump) for the last 10 s.
+            HeaterFault::SensorJump { .. } => self
+                .heat
+                .last_jump_at
+                .is_some_and(|t| now.saturating_sub(t) < JUMP_CALM)
+                .then_some(fault),
+            // The residual must be back within the tolerance.
+            HeaterFault::ModelDeviation {
+                tolerance_c,
+                time_s,
+                ..
+            } => match (self.heat.prediction, self.heat.reading) {
+                (Some(pr), Some((c, _))) if pr.residual_c.abs() > tolerance_c => {
+                    Some(HeaterFault::ModelDeviation {
+                        celsius: c,
+                        predicted_c: pr.predicted_c,
+                        tolerance_c,
+                        time_s,
+                    })
+                }
+                _ => None,
+            },
             // The check would go on summing error: the reading is below the setpoint less the
             // hysteresis (a setpoint of 0 or below is no target, as in Klipper).
             HeaterFault::NotHeating { max_error, .. } => {
@@ -360,8 +593,16 @@ impl Channel {
             self.level = self.line.level;
             self.heat.fault = None;
             self.heat.not_heating = Default::default();
-            self.heat.pid.start_from(self.accepted * 100.0);
+            // The loop starts afresh from 0 % and the readings to come (bumpless from 0).
+            self.heat.pid.start_from(0.0);
             self.heat.last_sample = None;
+            self.heat.sampled_reading_at = None;
+            self.heat.still.clear();
+            self.heat.deviating_since = None;
+            if let (Some(m), Some((c, _))) = (self.heat.model.as_mut(), self.heat.reading) {
+                let on = self.heat.on_closed;
+                m.restart(now, on, c);
+            }
             // The silence counts from now: the reset was allowed on a fresh reading.
             self.heat.expected_since = now;
         }
@@ -402,11 +643,35 @@ impl Channel {
             (Control::Pid, Control::Open) => {
                 self.heat.next_sample = None;
                 self.heat.setpoint = None;
-                // The loop's last duty stays in force until a command; the watchdog counts
-                // commands from now.
+                // Open loop heats on commands only: 0 % until the first one. The watchdog
+                // counts commands from now.
+                self.take_command(now, Command::Percent(0.0), false, emit);
                 self.last_command_at = now;
             }
             _ => self.heat.pid.set_gains(new.gains, lo, hi),
+        }
+        // A lowered temp_max_c takes the setpoint in force down with it: the loop never aims
+        // above the ceiling in force.
+        if let Some((sp, at)) = self.heat.setpoint {
+            let ceiling = new.params.setpoint_ceiling();
+            if sp > ceiling {
+                self.heat.setpoint = Some((ceiling.max(new.params.temp_min_c), at));
+                self.heat.lowered_from = Some(sp);
+            }
+        }
+        if old.params.model != new.params.model {
+            self.heat.model = new
+                .params
+                .model
+                .is_set()
+                .then(|| Model::new(new.params.model));
+            self.heat.prediction = None;
+            self.heat.deviating_since = None;
+        }
+        if old.stuck != new.stuck || old.sample != new.sample {
+            self.heat.still.clear();
+            self.heat.flat = super::super::heater::NoRise::new(new.stuck.no_rise);
+            self.heat.delivered = Delivered::new(delivered_span(&new, self.duty_window()));
         }
         if old.sample != new.sample && self.heat.next_sample.is_some() {
             let from = self.heat.last_sample.unwrap_or(now);
@@ -435,6 +700,10 @@ impl Channel {
                 .fault
                 .is_some_and(|f| self.condition(now, f).is_some()),
             runaway_error: self.heat.not_heating.error(),
+            model: self.heat.prediction,
+            stale: self.heat.stale,
+            stale_now: self.heat.stale_now,
+            setpoint_lowered_from: self.heat.lowered_from,
             sizing: {
                 let ms = |ns: Nanos| ns as f64 / super::super::NS_PER_MS as f64;
                 let mut rules = super::super::heater::sizing(

@@ -8,7 +8,8 @@ use super::super::command::Command;
 use super::super::heater::autotune::{
     Autotune, Goal, GoalRefusal, Outcome, Report, Rule, Stop, TuneSizing,
 };
-use super::super::heater::{sizing, Control, Gains, HeaterParams};
+use super::super::heater::{sizing, Control, Gains, HeaterParams, DEFAULT_FEEDBACK_TIMEOUT_MS};
+use super::super::NS_PER_MS;
 use super::{Channel, Event, Nanos};
 
 impl Channel {
@@ -21,7 +22,8 @@ impl Channel {
     /// refused unless the channel has feedback and a reading, runs (enabled, no e-stop, lines
     /// live), has no heater fault latched and no other run, and the goal is within the
     /// channel's limits (target within `temp_min_c..=temp_max_c`, amplitude within
-    /// `max_duty_pct`).
+    /// `max_duty_pct`), and a fresh reading came. The target must lie `autotune_margin_c`
+    /// below `temp_max_c`, which must be set.
     pub fn start_autotune(
         &mut self,
         now: Nanos,
@@ -32,6 +34,8 @@ impl Channel {
         let p = self.cfg.heater.params;
         let refusal = if !p.feedback {
             Some(GoalRefusal::NoFeedback)
+        } else if !p.temp_max_set() {
+            Some(GoalRefusal::NoTempMax)
         } else if self.heat.fault.is_some() {
             Some(GoalRefusal::Fault)
         } else if !self.enabled || self.estop || !self.live {
@@ -39,10 +43,26 @@ impl Channel {
         } else if self.heat.autotune.is_some() {
             Some(GoalRefusal::Busy)
         } else {
-            goal.check(p.temp_min_c, p.temp_max_c, self.cfg.max_duty * 100.0)
-                .err()
+            // Marlin's M303 keeps its target 15 °C below the heater's maximum: the relay
+            // overshoots it.
+            goal.check(
+                p.temp_min_c,
+                p.temp_max_c - p.autotune_margin_c,
+                self.cfg.max_duty * 100.0,
+            )
+            .err()
         };
-        let reading = self.heat.reading.map(|(c, _)| c).filter(|c| c.is_finite());
+        // Only a fresh reading starts a run (the feedback timeout, or its default when the
+        // timeout is off under open).
+        let fresh = match self.cfg.heater.feedback_timeout {
+            0 => DEFAULT_FEEDBACK_TIMEOUT_MS * NS_PER_MS,
+            t => t,
+        };
+        let reading = self
+            .heat
+            .reading
+            .filter(|(c, at)| c.is_finite() && now.saturating_sub(*at) < fresh)
+            .map(|(c, _)| c);
         let refusal = refusal.or(reading.is_none().then_some(GoalRefusal::NoReading));
         if let Some(r) = refusal {
             emit(Event::Autotune {
@@ -92,7 +112,7 @@ impl Channel {
         };
         self.last_command_at = now;
         let (before, out) = (run.progress(), run.output_pct());
-        let stop = run.reading(now, celsius);
+        let stop = run.reading_delivered(now, celsius, self.on_total(now));
         self.heat.autotune = Some((ticket, run));
         if run.progress() != before {
             emit(Event::Autotune {

@@ -66,6 +66,16 @@ pub const MAX_DELTA_C: f64 = 1000.0;
 pub const MAX_RUNAWAY_ERROR: f64 = 1.0e7;
 /// Shortest PID sample accepted, ms (0 means the channel's period).
 pub const MIN_SAMPLE_MS: u64 = 10;
+/// `feedback_timeout_ms`'s default, ms: Klipper's MCU switches a heater off 3 s after its host
+/// stops refreshing it, and a sensor publishing at 1 Hz may lose two readings in a row
+/// without tripping it.
+pub const DEFAULT_FEEDBACK_TIMEOUT_MS: u64 = 3000;
+/// Largest `feedback_max_skew_ms`, ms.
+pub const MAX_SKEW_MS: u64 = 60_000;
+/// Largest model gain accepted, °C per % of duty.
+pub const MAX_MODEL_GAIN: f64 = 100.0;
+/// Largest rate accepted for `sensor_max_rate_c_per_s`, °C/s.
+pub const MAX_RATE_C_PER_S: f64 = 10_000.0;
 
 /// The heater settings of one channel as a user states them (issue 22). The defaults are
 /// Klipper's for `runaway_*` and "off" for the rest.
@@ -89,8 +99,32 @@ pub struct HeaterParams {
     pub temp_min_c: f64,
     /// Readings above this are `temperature_out_of_range`, °C.
     pub temp_max_c: f64,
-    /// `sensor_timeout`: no reading for this long while enabled, ms; 0 = off.
+    /// `sensor_timeout`: no fresh reading for this long while enabled, ms; 0 = off (only
+    /// under `open`).
     pub feedback_timeout_ms: u64,
+    /// How far in the future a reading's `header.stamp` may lie against the node's clock
+    /// (the two hosts' clock skew), ms. A stamp further ahead, or older than
+    /// `feedback_timeout_ms` at its arrival, makes the reading stale. A zero stamp (an
+    /// unstamped reading) counts from its arrival.
+    pub feedback_max_skew_ms: u64,
+    /// A setpoint must lie at least this far below `temp_max_c`, °C (Marlin's
+    /// `HOTEND_OVERSHOOT`, 15).
+    pub setpoint_margin_c: f64,
+    /// `sensor_stuck`: the shortest time a reading must stand still to be stuck, s (at full
+    /// power, the time); 0 = off.
+    pub sensor_stuck_time_s: f64,
+    /// `sensor_stuck`: a change of the reading by more than this counts as movement, °C (0:
+    /// any change); `no_rise`: a rise of at most this is none.
+    pub sensor_stuck_band_c: f64,
+    /// `sensor_stuck`: how far the energy the heater gets may swing (stray from a steady
+    /// power), in seconds of full power, while the reading stands still.
+    pub sensor_stuck_energy_s: f64,
+    /// `no_rise`: at full power (the loop or an autotune asking for it) for this long, the
+    /// reading must rise, s; 0 = off.
+    pub no_rise_time_s: f64,
+    /// `sensor_jump`: a reading that moves faster than this against the one before (over at
+    /// least a second), °C/s, is not a temperature; 0 = off.
+    pub sensor_max_rate_c_per_s: f64,
     /// `not_heating`'s hysteresis, °C (Klipper 5).
     pub runaway_hysteresis_c: f64,
     /// `not_heating`'s max_error, °C·s (Klipper 120).
@@ -107,6 +141,37 @@ pub struct HeaterParams {
     pub autotune_max_overshoot_c: f64,
     /// An autotune aborts when no relay cycle completes within this, s (1200).
     pub autotune_timeout_s: f64,
+    /// An autotune's target must lie at least this far below `temp_max_c`, °C (Marlin's
+    /// M303: 15).
+    pub autotune_margin_c: f64,
+    /// The heater's thermal model (first order plus dead time); none when its gain is 0.
+    pub model: ModelParams,
+    /// `model_deviation`: a residual (reading less the model's prediction) beyond this, °C...
+    pub model_tolerance_c: f64,
+    /// ...lasting this long, s, latches the fault.
+    pub model_time_s: f64,
+}
+
+/// A heater's thermal model: first order plus dead time, driven by the line's real on time.
+/// With the line on a share `u` (%) of the time, after the dead time:
+/// `dT/dt = (ambient + gain·u − T) / tau`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ModelParams {
+    /// Steady-state rise per % of duty, °C/%; 0 = no model.
+    pub gain_c_per_pct: f64,
+    /// Time constant, s.
+    pub tau_s: f64,
+    /// Dead time between the line and the sensor, s.
+    pub dead_time_s: f64,
+    /// Ambient, °C: the temperature at 0 %.
+    pub ambient_c: f64,
+}
+
+impl ModelParams {
+    /// Whether a model is set (its gain is above 0).
+    pub fn is_set(&self) -> bool {
+        self.gain_c_per_pct > 0.0
+    }
 }
 
 impl Default for HeaterParams {
@@ -121,18 +186,51 @@ impl Default for HeaterParams {
             pid_d_filter_s: 0.0,
             temp_min_c: MIN_TEMP_C,
             temp_max_c: MAX_TEMP_C,
-            feedback_timeout_ms: 0,
+            feedback_timeout_ms: DEFAULT_FEEDBACK_TIMEOUT_MS,
+            feedback_max_skew_ms: 1000,
+            setpoint_margin_c: 15.0,
+            sensor_stuck_time_s: DEFAULT_STUCK_TIME_S,
+            sensor_stuck_band_c: 0.0,
+            sensor_stuck_energy_s: DEFAULT_STUCK_ENERGY_S,
+            no_rise_time_s: DEFAULT_NO_RISE_TIME_S,
+            sensor_max_rate_c_per_s: DEFAULT_MAX_RATE_C_PER_S,
             runaway_hysteresis_c: 5.0,
             runaway_max_error: 120.0,
             runaway_gain_time_s: 20.0,
             runaway_heating_gain_c: 2.0,
-            stuck_on_rise_c: 0.0,
+            stuck_on_rise_c: DEFAULT_STUCK_ON_RISE_C,
             stuck_on_time_s: 30.0,
             autotune_max_overshoot_c: 20.0,
             autotune_timeout_s: 1200.0,
+            autotune_margin_c: 15.0,
+            model: ModelParams {
+                gain_c_per_pct: 0.0,
+                tau_s: 60.0,
+                dead_time_s: 0.0,
+                ambient_c: 20.0,
+            },
+            model_tolerance_c: DEFAULT_MODEL_TOLERANCE_C,
+            model_time_s: DEFAULT_MODEL_TIME_S,
         }
     }
 }
+
+/// `sensor_stuck_time_s`'s default, s.
+pub const DEFAULT_STUCK_TIME_S: f64 = 6.0;
+/// `stuck_on_rise_c`'s default, °C: above what a heater of the sizing range (rise at full
+/// power up to 0.7 °C/s, dead time up to 3 s, noise up to ±0.2 °C) rises after its line goes
+/// off, `r·L + 2n = 2.5 °C`, by half again and 1 °C.
+pub const DEFAULT_STUCK_ON_RISE_C: f64 = 5.0;
+/// `sensor_stuck_energy_s`'s default, seconds of full power.
+pub const DEFAULT_STUCK_ENERGY_S: f64 = 1.5;
+/// `no_rise_time_s`'s default, s.
+pub const DEFAULT_NO_RISE_TIME_S: f64 = 10.0;
+/// `sensor_max_rate_c_per_s`'s default, °C/s.
+pub const DEFAULT_MAX_RATE_C_PER_S: f64 = 10.0;
+/// `model_tolerance_c`'s default, °C.
+pub const DEFAULT_MODEL_TOLERANCE_C: f64 = 10.0;
+/// `model_time_s`'s default, s.
+pub const DEFAULT_MODEL_TIME_S: f64 = 5.0;
 
 /// Why heater settings are refused. The old settings stay in force.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
@@ -157,6 +255,31 @@ pub enum HeaterConfigError {
     /// `control` `pid` without feedback.
     #[error("control pid needs a feedback_topic (set at start-up)")]
     PidWithoutFeedback,
+    /// `control` `pid` with `temp_max_c` left at its unset default.
+    #[error(
+        "control pid needs temp_max_c: the highest temperature the heater may reach, below \
+         {MAX_TEMP_C} °C (Klipper refuses a heater without max_temp)"
+    )]
+    PidWithoutTempMax,
+    /// `control` `pid` with `feedback_timeout_ms` 0.
+    #[error(
+        "control pid needs feedback_timeout_ms above 0: the loop must not heat on a reading \
+         that stopped coming (default {DEFAULT_FEEDBACK_TIMEOUT_MS} ms)"
+    )]
+    PidWithoutTimeout,
+    /// The setpoint margin leaves no setpoint between the limits.
+    #[error(
+        "setpoint_margin_c {margin_c} leaves no setpoint between temp_min_c {min_c} and \
+         temp_max_c {max_c}"
+    )]
+    NoSetpointRoom {
+        /// `setpoint_margin_c`.
+        margin_c: f64,
+        /// `temp_min_c`.
+        min_c: f64,
+        /// `temp_max_c`.
+        max_c: f64,
+    },
 }
 
 /// The channel's limits on an autotune run.
@@ -168,6 +291,22 @@ pub struct AutotuneLimits {
     pub timeout: Nanos,
 }
 
+/// `sensor_stuck`'s settings, validated.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StuckLimits {
+    /// How long a still reading is believed while the power moves, ns; 0 = off.
+    pub time: Nanos,
+    /// A change above this is movement, °C.
+    pub band_c: f64,
+    /// The energy surplus that must move the reading, seconds of full power.
+    pub energy_s: f64,
+    /// `no_rise`'s time, ns; 0 = off.
+    pub no_rise: Nanos,
+    /// The duty the loop can reach at most (`max_duty_pct`), fraction: its full power. Set by
+    /// the channel's validation.
+    pub full: f64,
+}
+
 /// The validated heater settings the channel runs on.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeaterConfig {
@@ -177,6 +316,12 @@ pub struct HeaterConfig {
     pub gains: Gains,
     /// `sensor_timeout`, ns; 0 = off.
     pub feedback_timeout: Nanos,
+    /// How far in the future a stamp may lie, ns.
+    pub max_skew: Nanos,
+    /// `sensor_stuck`.
+    pub stuck: StuckLimits,
+    /// `model_deviation`'s time, ns.
+    pub model_time: Nanos,
     /// `not_heating`.
     pub runaway: Runaway,
     /// `stuck_on`'s window, ns.
@@ -191,7 +336,25 @@ fn seconds(s: f64) -> Nanos {
     (s * 1e9).round() as Nanos
 }
 
+/// Longest model dead time accepted, s.
+pub const MAX_MODEL_DEAD_TIME_S: f64 = 600.0;
+
 impl HeaterParams {
+    /// Whether `temp_max_c` was set: its default, [`MAX_TEMP_C`], means unset.
+    pub fn temp_max_set(&self) -> bool {
+        self.temp_max_c < MAX_TEMP_C
+    }
+
+    /// The highest setpoint accepted, °C: `temp_max_c − setpoint_margin_c` (`temp_max_c`
+    /// while it is unset).
+    pub fn setpoint_ceiling(&self) -> f64 {
+        if self.temp_max_set() {
+            self.temp_max_c - self.setpoint_margin_c
+        } else {
+            self.temp_max_c
+        }
+    }
+
     /// Checks every value against its range (NaN never passes) and makes the nanosecond
     /// configuration.
     pub fn validate(&self) -> Result<HeaterConfig, HeaterConfigError> {
@@ -219,6 +382,71 @@ impl HeaterParams {
             0.0,
             MAX_TIMEOUT_MS as f64,
         )?;
+        OutOfRange::check(
+            "feedback_max_skew_ms",
+            self.feedback_max_skew_ms as f64,
+            0.0,
+            MAX_SKEW_MS as f64,
+        )?;
+        OutOfRange::check(
+            "setpoint_margin_c",
+            self.setpoint_margin_c,
+            0.0,
+            MAX_DELTA_C,
+        )?;
+        OutOfRange::check(
+            "sensor_stuck_time_s",
+            self.sensor_stuck_time_s,
+            0.0,
+            MAX_TIME_S,
+        )?;
+        OutOfRange::check(
+            "sensor_stuck_band_c",
+            self.sensor_stuck_band_c,
+            0.0,
+            MAX_DELTA_C,
+        )?;
+        OutOfRange::check(
+            "sensor_stuck_energy_s",
+            self.sensor_stuck_energy_s,
+            0.1,
+            MAX_TIME_S,
+        )?;
+        OutOfRange::check("no_rise_time_s", self.no_rise_time_s, 0.0, MAX_TIME_S)?;
+        OutOfRange::check(
+            "sensor_max_rate_c_per_s",
+            self.sensor_max_rate_c_per_s,
+            0.0,
+            MAX_RATE_C_PER_S,
+        )?;
+        OutOfRange::check(
+            "autotune_margin_c",
+            self.autotune_margin_c,
+            0.0,
+            MAX_DELTA_C,
+        )?;
+        let m = &self.model;
+        OutOfRange::check(
+            "model_gain_c_per_pct",
+            m.gain_c_per_pct,
+            0.0,
+            MAX_MODEL_GAIN,
+        )?;
+        OutOfRange::check("model_tau_s", m.tau_s, 0.1, MAX_TIME_S)?;
+        OutOfRange::check(
+            "model_dead_time_s",
+            m.dead_time_s,
+            0.0,
+            MAX_MODEL_DEAD_TIME_S,
+        )?;
+        OutOfRange::check("model_ambient_c", m.ambient_c, MIN_TEMP_C, MAX_TEMP_C)?;
+        OutOfRange::check(
+            "model_tolerance_c",
+            self.model_tolerance_c,
+            0.1,
+            MAX_DELTA_C,
+        )?;
+        OutOfRange::check("model_time_s", self.model_time_s, 0.0, MAX_TIME_S)?;
         OutOfRange::check(
             "runaway_hysteresis_c",
             self.runaway_hysteresis_c,
@@ -258,8 +486,23 @@ impl HeaterParams {
             1.0,
             MAX_TIME_S,
         )?;
-        if self.control == Control::Pid && !self.feedback {
-            return Err(HeaterConfigError::PidWithoutFeedback);
+        if self.control == Control::Pid {
+            if !self.feedback {
+                return Err(HeaterConfigError::PidWithoutFeedback);
+            }
+            if !self.temp_max_set() {
+                return Err(HeaterConfigError::PidWithoutTempMax);
+            }
+            if self.feedback_timeout_ms == 0 {
+                return Err(HeaterConfigError::PidWithoutTimeout);
+            }
+        }
+        if self.temp_max_set() && self.setpoint_ceiling() < self.temp_min_c {
+            return Err(HeaterConfigError::NoSetpointRoom {
+                margin_c: self.setpoint_margin_c,
+                min_c: self.temp_min_c,
+                max_c: self.temp_max_c,
+            });
         }
         Ok(HeaterConfig {
             sample: self.pid_sample_ms * NS_PER_MS,
@@ -270,6 +513,15 @@ impl HeaterParams {
                 d_filter_s: self.pid_d_filter_s,
             },
             feedback_timeout: self.feedback_timeout_ms * NS_PER_MS,
+            max_skew: self.feedback_max_skew_ms * NS_PER_MS,
+            stuck: StuckLimits {
+                time: seconds(self.sensor_stuck_time_s),
+                band_c: self.sensor_stuck_band_c,
+                energy_s: self.sensor_stuck_energy_s,
+                no_rise: seconds(self.no_rise_time_s),
+                full: 1.0,
+            },
+            model_time: seconds(self.model_time_s),
             runaway: Runaway {
                 hysteresis_c: self.runaway_hysteresis_c,
                 max_error: self.runaway_max_error,
@@ -291,14 +543,63 @@ mod tests {
     use super::*;
 
     #[test]
-    fn defaults_are_klippers_and_off() {
+    fn defaults_are_klippers_and_the_checks_are_on() {
         let c = HeaterParams::default().validate().unwrap();
         assert_eq!(c.params.control, Control::Open);
         assert_eq!(c.runaway.hysteresis_c, 5.0);
         assert_eq!(c.runaway.max_error, 120.0);
         assert_eq!(c.runaway.gain_time, 20 * 1_000_000_000);
         assert_eq!(c.runaway.heating_gain_c, 2.0);
-        assert_eq!((c.feedback_timeout, c.params.stuck_on_rise_c), (0, 0.0));
+        assert_eq!(c.feedback_timeout, 3_000_000_000);
+        assert_eq!(c.params.stuck_on_rise_c, DEFAULT_STUCK_ON_RISE_C);
+        assert_eq!(c.stuck.time, 6_000_000_000);
+        assert_eq!(c.stuck.no_rise, 10_000_000_000);
+        assert!(!c.params.model.is_set());
+        assert!(!c.params.temp_max_set());
+    }
+
+    #[test]
+    fn pid_needs_its_maximum_and_a_feedback_timeout() {
+        let pid = HeaterParams {
+            feedback: true,
+            control: Control::Pid,
+            ..HeaterParams::default()
+        };
+        assert_eq!(pid.validate(), Err(HeaterConfigError::PidWithoutTempMax));
+        assert!(pid
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("control pid needs temp_max_c"));
+        let with_max = HeaterParams {
+            temp_max_c: 250.0,
+            ..pid
+        };
+        assert!(with_max.validate().is_ok());
+        assert_eq!(with_max.setpoint_ceiling(), 235.0);
+        let no_timeout = HeaterParams {
+            feedback_timeout_ms: 0,
+            ..with_max
+        };
+        assert_eq!(
+            no_timeout.validate(),
+            Err(HeaterConfigError::PidWithoutTimeout)
+        );
+        // Open loop may switch the timeout off.
+        let open = HeaterParams {
+            control: Control::Open,
+            ..no_timeout
+        };
+        assert!(open.validate().is_ok());
+        // A margin that leaves no setpoint.
+        let squeezed = HeaterParams {
+            temp_min_c: 240.0,
+            ..with_max
+        };
+        assert!(matches!(
+            squeezed.validate(),
+            Err(HeaterConfigError::NoSetpointRoom { .. })
+        ));
     }
 
     #[test]

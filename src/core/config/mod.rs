@@ -370,6 +370,16 @@ pub enum ConfigError {
     /// A heater setting was refused.
     #[error(transparent)]
     Heater(#[from] HeaterConfigError),
+    /// A fault value with no end under `pid`.
+    #[error(
+        "fault_duty_pct {fault_duty_pct} under control pid needs fault_hold_ms above 0: \
+         nothing but the loop commands the duty, so the fault value would heat open loop \
+         for ever"
+    )]
+    FaultValueUnderPid {
+        /// The fault value, %.
+        fault_duty_pct: f64,
+    },
 }
 
 /// Validated channel settings in nanoseconds, with every profile default resolved.
@@ -634,6 +644,18 @@ impl ChannelParams {
                 max_s: MAX_AVG_WINDOW_S,
             });
         }
+        let mut heater = self.heater.validate()?;
+        heater.stuck.full = self.max_duty_pct / 100.0;
+        if heater.params.control == heater::Control::Pid
+            && self.fault_duty_pct > 0.0
+            && self.fault_hold_ms == 0
+        {
+            // Under pid nothing commands the duty but the loop: a fault value held "until a
+            // command" would heat open loop for ever.
+            return Err(ConfigError::FaultValueUnderPid {
+                fault_duty_pct: self.fault_duty_pct,
+            });
+        }
         Ok(ChannelConfig {
             period,
             min_on,
@@ -654,7 +676,7 @@ impl ChannelParams {
             avg_limit: self.avg_duty_limit_pct / 100.0,
             avg_window: self.avg_window_s * 1_000 * NS_PER_MS,
             tick,
-            heater: self.heater.validate()?,
+            heater,
             params: *self,
         })
     }

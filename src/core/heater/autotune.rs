@@ -37,8 +37,15 @@
 //! to a quarter of the step: their integral, four times faster, fills during the approach.
 
 use super::super::Nanos;
-use super::Gains;
+use super::{Gains, ModelParams};
 use std::f64::consts::PI;
+
+/// Bins of a cycle's delivered energy (see [`Autotune::reading_delivered`]).
+const BINS: usize = 128;
+/// The first width of a bin, ns.
+const FIRST_BIN: Nanos = 250_000_000;
+/// Points kept of the approach's first leg.
+const APPROACH_POINTS: usize = 64;
 
 /// Cycles that must agree for a run to converge.
 pub const CONVERGE_CYCLES: usize = 4;
@@ -76,7 +83,7 @@ pub use super::super::config::heater::AutotuneLimits as Limits;
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum GoalRefusal {
     /// The target is not finite or outside the channel's temperature limits.
-    #[error("target {target_c} °C is not a finite temperature within temp_min_c..temp_max_c ({min_c}..{max_c} °C)")]
+    #[error("target {target_c} °C is not a finite temperature within temp_min_c..temp_max_c − autotune_margin_c ({min_c}..{max_c} °C)")]
     Target {
         /// The target.
         target_c: f64,
@@ -108,9 +115,12 @@ pub enum GoalRefusal {
     /// A run is under way on this channel.
     #[error("an autotune is already running on this channel")]
     Busy,
-    /// No reading has arrived yet.
-    #[error("no temperature reading yet")]
+    /// No fresh reading: none yet, or the last one is older than the feedback timeout.
+    #[error("no fresh temperature reading")]
     NoReading,
+    /// `temp_max_c` is not set.
+    #[error("temp_max_c is not set: the run needs the heater's maximum")]
+    NoTempMax,
 }
 
 impl Goal {
@@ -337,18 +347,38 @@ struct Cycle {
     period_s: f64,
     on_fraction: f64,
     amplitude_c: f64,
+    /// The duty the line delivered while the relay was on, and while it was off, fractions.
+    power_on: f64,
+    power_off: f64,
+    /// The amplitude of the fundamental of the power the line delivered over the cycle,
+    /// fraction (see [`Autotune::reading_delivered`]).
+    fundamental: f64,
+    /// The readings at the switch off and the switch on that began the cycle, °C, and the
+    /// highest and lowest reading of the cycle.
+    at_off_c: f64,
+    at_on_c: f64,
+    high_c: f64,
+    low_c: f64,
 }
 
 impl Cycle {
-    fn ku(&self, amplitude_pct: f64) -> f64 {
-        2.0 * amplitude_pct * (PI * self.on_fraction).sin() / (PI * self.amplitude_c)
+    /// The describing function of the power the line really delivered: its fundamental's
+    /// amplitude over the temperature's, % per °C.
+    fn ku(&self) -> f64 {
+        self.fundamental * 100.0 / self.amplitude_c
+    }
+
+    /// The swing of the rectangular wave whose fundamental is the delivered one, fraction:
+    /// `fundamental · π / (2·sin(π·D))`.
+    fn swing(&self) -> f64 {
+        self.fundamental * PI / (2.0 * (PI * self.on_fraction).sin())
     }
 }
 
 /// The estimate of a converged run.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Estimate {
-    /// Ultimate gain, % per °C.
+    /// Ultimate gain, % per °C, from the power the line really delivered.
     pub ku: f64,
     /// Ultimate period, s.
     pub tu_s: f64,
@@ -356,6 +386,60 @@ pub struct Estimate {
     pub amplitude_c: f64,
     /// Mean on fraction of the cycles used.
     pub on_fraction: f64,
+    /// The mean duty the line delivered while the relay was on, %: the relay's amplitude as
+    /// the heater got it (the protections, the average cap, the minimum times and the
+    /// maximum on time can deliver less than commanded; a switch reaches the line at the
+    /// next period start, which shifts a little of each half into the other).
+    pub delivered_on_pct: f64,
+    /// The heater's thermal model the cycles give (see [`identify`]), when they give one.
+    pub model: Option<ModelParams>,
+}
+
+/// A relay's limit cycle as measured: what [`cycle_rate`] takes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LimitCycle {
+    /// How long the relay was on, and off, s.
+    pub t_on: f64,
+    /// How long it was off, s.
+    pub t_off: f64,
+    /// The reading at the switch off, and at the switch on, °C.
+    pub up: f64,
+    /// The reading at the switch on, °C.
+    pub down: f64,
+    /// The highest and the lowest reading, °C.
+    pub high: f64,
+    /// The lowest reading, °C.
+    pub low: f64,
+    /// The power the heater got while the relay was on, and while it was off, %.
+    pub power_on_pct: f64,
+    /// While it was off, %.
+    pub power_off_pct: f64,
+}
+
+/// What a relay's small limit cycle tells of its heater: the rise per % of power and second,
+/// °C/(%·s), and the dead time, s. Around one temperature the cycle's halves are nearly
+/// straight: the reading rises from its lowest to its highest over the on half (shifted by the
+/// dead time) at `(high − low)/t_on`, and falls back over the off half at `(high − low)/t_off`;
+/// the difference of the two slopes is what the difference of the two powers does. The
+/// overshoot past each switching point is the dead time at that slope (`grid_s`, the delay
+/// with which the relay reached the line, up to a period, is taken out by half: the model
+/// runs on the line's real on time). `None` for a cycle that shows none of this.
+pub fn cycle_rate(c: &LimitCycle, grid_s: f64) -> Option<(f64, f64)> {
+    let swing = c.high - c.low;
+    let powers = c.power_on_pct - c.power_off_pct;
+    let finite = [c.t_on, c.t_off, c.up, c.down, c.high, c.low, powers];
+    if finite.iter().any(|v| !v.is_finite()) || c.t_on <= 0.0 || c.t_off <= 0.0 || swing <= 0.0 {
+        return None;
+    }
+    if powers < 1.0 {
+        return None;
+    }
+    let up_slope = swing / c.t_on;
+    let down_slope = swing / c.t_off;
+    let rate = (up_slope + down_slope) / powers;
+    let dead = ((c.high - c.up) / up_slope + (c.down - c.low) / down_slope) / 2.0;
+    let dead = (dead - grid_s / 2.0).clamp(0.0, super::MAX_MODEL_DEAD_TIME_S);
+    (rate > 0.0).then_some((rate, dead))
 }
 
 /// TCONT_CP's sizing rules (003) with the new gains, for the channel as configured.
@@ -410,9 +494,29 @@ pub struct Autotune {
     /// The relay's state.
     on: bool,
     phase: Phase,
-    /// The last switch on and the switch off after it.
+    /// The last switch on and the switch off after it, with the line's cumulative on time
+    /// and the reading at each.
     on_at: Option<Nanos>,
     off_at: Option<Nanos>,
+    on_energy: Nanos,
+    off_energy: Nanos,
+    on_c: f64,
+    off_c: f64,
+    /// The cumulative on time of the commanded relay, for a caller that does not pass the
+    /// line's ([`Autotune::reading`]), and when it was last advanced.
+    commanded: (Nanos, Nanos),
+    /// The last reading's instant and the line's cumulative on time then.
+    last: (Nanos, Nanos),
+    /// The energy the line delivered in the running cycle, in bins of `bin_w` from its
+    /// start (halved in number, doubled in width, when the cycle outgrows them).
+    bins: [f64; BINS],
+    bin_w: Nanos,
+    /// The approach's first leg (until the relay first switches): `(instant, reading, the
+    /// line's cumulative on time)`, thinned as it grows; it ends at the first switch.
+    approach: [(Nanos, f64, Nanos); APPROACH_POINTS],
+    approach_len: usize,
+    approach_stride: Nanos,
+    approach_open: bool,
     /// Lowest reading since the last switch on, highest since the last switch off.
     low: f64,
     high: f64,
@@ -456,6 +560,18 @@ impl Autotune {
             phase: Phase::Approach,
             on_at: None,
             off_at: None,
+            on_energy: 0,
+            off_energy: 0,
+            on_c: f64::NAN,
+            off_c: f64::NAN,
+            commanded: (0, now),
+            last: (now, 0),
+            bins: [0.0; BINS],
+            bin_w: FIRST_BIN,
+            approach: [(0, 0.0, 0); APPROACH_POINTS],
+            approach_len: 0,
+            approach_stride: FIRST_BIN,
+            approach_open: true,
             low: f64::INFINITY,
             high: f64::NEG_INFINITY,
             since: now,
@@ -504,10 +620,51 @@ impl Autotune {
         })
     }
 
-    /// A reading `celsius` at `now`: moves the relay (read [`Autotune::output_pct`] after),
-    /// counts the cycles; `Some` ends the run, with [`Stop::Converged`] once the estimate
-    /// holds. The reading must be finite (the channel's range check comes first).
+    /// The mean duty the line delivered over the last complete cycle, fraction: the power
+    /// that holds the heater at the target. `None` before the first cycle.
+    pub fn mean_power(&self) -> Option<f64> {
+        let c = self.n.checked_sub(1).map(|i| self.cycles[i])?;
+        Some(c.power_on * c.on_fraction + c.power_off * (1.0 - c.on_fraction))
+    }
+
+    /// A reading `celsius` at `now` with the line following the relay exactly (its on time
+    /// counted from the relay's output). See [`Autotune::reading_delivered`].
     pub fn reading(&mut self, now: Nanos, celsius: f64) -> Option<Stop> {
+        let (total, at) = self.commanded;
+        let on = (self.output_pct() / 100.0 * now.saturating_sub(at) as f64) as Nanos;
+        self.commanded = (total + on, now.max(at));
+        self.reading_delivered(now, celsius, self.commanded.0)
+    }
+
+    /// A reading `celsius` at `now`, with `on_total` the line's cumulative on time then, ns:
+    /// moves the relay (read [`Autotune::output_pct`] after), counts the cycles; `Some` ends
+    /// the run, with [`Stop::Converged`] once the estimate holds. The reading must be finite
+    /// (the channel's range check comes first).
+    ///
+    /// The energy the line really delivered is binned over the running cycle; at its end
+    /// the fundamental of that power at the cycle's own frequency — whatever the
+    /// protections, the minimum times and the PWM's period-late switching did to it — over
+    /// the temperature's amplitude is the describing function.
+    pub fn reading_delivered(&mut self, now: Nanos, celsius: f64, on_total: Nanos) -> Option<Stop> {
+        if let Some(on_at) = self.on_at {
+            let (t0, e0) = self.last;
+            let energy = on_total.saturating_sub(e0) as f64;
+            let mid = (t0 / 2 + now / 2).saturating_sub(on_at);
+            let mut k = (mid / self.bin_w) as usize;
+            while k >= BINS {
+                for j in 0..BINS / 2 {
+                    self.bins[j] = self.bins[2 * j] + self.bins[2 * j + 1];
+                }
+                self.bins[BINS / 2..].fill(0.0);
+                self.bin_w = self.bin_w.saturating_mul(2);
+                k = (mid / self.bin_w) as usize;
+            }
+            self.bins[k] += energy;
+        }
+        self.last = (now, on_total);
+        if self.approach_open {
+            self.approach_point(now, celsius, on_total);
+        }
         let limit_c = self.goal.target_c + self.limits.max_overshoot_c;
         if celsius > limit_c {
             return Some(Stop::Overshoot { celsius, limit_c });
@@ -520,12 +677,18 @@ impl Autotune {
         let band = self.goal.noise_band_c;
         if self.on && celsius > self.goal.target_c + band {
             self.on = false;
+            self.approach_open = false;
             self.off_at = Some(now);
+            self.off_energy = on_total;
+            self.off_c = celsius;
             self.high = celsius;
         } else if !self.on && celsius < self.goal.target_c - band {
             self.on = true;
-            let stop = self.cycle_ends(now);
+            self.approach_open = false;
+            let stop = self.cycle_ends(now, on_total);
             self.on_at = Some(now);
+            self.on_energy = on_total;
+            self.on_c = celsius;
             self.off_at = None;
             self.low = celsius;
             return stop;
@@ -533,18 +696,140 @@ impl Autotune {
         None
     }
 
-    /// A switch on at `now` ends the cycle that began with the last one.
-    fn cycle_ends(&mut self, now: Nanos) -> Option<Stop> {
+    fn approach_point(&mut self, now: Nanos, celsius: f64, on_total: Nanos) {
+        let n = self.approach_len;
+        if n > 0 && now < self.approach[n - 1].0.saturating_add(self.approach_stride) {
+            return;
+        }
+        if n == APPROACH_POINTS {
+            // Thin: every other point (the first stays), twice the spacing.
+            for k in 1..APPROACH_POINTS / 2 {
+                self.approach[k] = self.approach[2 * k];
+            }
+            self.approach_len = APPROACH_POINTS / 2;
+            self.approach_stride = self.approach_stride.saturating_mul(2);
+        }
+        self.approach[self.approach_len] = (now, celsius, on_total);
+        self.approach_len += 1;
+    }
+
+    /// The heater's model from the converged cycles (`cycle`: their means) and the approach.
+    /// The cycles, small swings around one temperature, fix the rise per % of power and
+    /// second (`gain/τ`) and the dead time, but not the time constant apart from the ambient
+    /// (both only enter as the loss rate at the target). The approach's first leg, at one
+    /// power from wherever the heater stood, is a step response once its dead time has
+    /// passed: `T(t) = T∞ + (T_L − T∞)·e^(−(t − t_L)/τ)`, fitted by a scan of `τ` with linear
+    /// least squares for the rest; its curvature gives `τ`, and `T∞` the ambient. An
+    /// approach too short or too straight to show a curvature gives no model.
+    fn model(&self, cycle: &LimitCycle) -> Option<ModelParams> {
+        let grid_s = self.grid as f64 / 1e9;
+        let (rate, dead_s) = cycle_rate(cycle, grid_s)?;
+        let pts = &self.approach[..self.approach_len];
+        let (t0, _, _) = *pts.first()?;
+        let dead = ((dead_s + grid_s) * 1e9) as Nanos;
+        let from = pts.partition_point(|p| p.0 < t0.saturating_add(dead));
+        let used = &pts[from..];
+        if used.len() < 8 {
+            return None;
+        }
+        let (tl, _, el) = used[0];
+        let (tn, _, en) = used[used.len() - 1];
+        if tn <= tl {
+            return None;
+        }
+        // The power of the leg, as delivered.
+        let power_pct = en.saturating_sub(el) as f64 / (tn - tl) as f64 * 100.0;
+        // Least squares of T ≈ a + b·e^(−(t − tl)/τ) for one τ: (sse, a).
+        let solve = |tau: f64| -> Option<(f64, f64)> {
+            let (mut n, mut sx, mut sy, mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+            for &(t, y, _) in used {
+                let x = (-((t - tl) as f64 / 1e9) / tau).exp();
+                n += 1.0;
+                sx += x;
+                sy += y;
+                sxx += x * x;
+                sxy += x * y;
+                syy += y * y;
+            }
+            let det = n * sxx - sx * sx;
+            if det.abs() < 1e-12 {
+                return None;
+            }
+            let b = (n * sxy - sx * sy) / det;
+            let a = (sy - b * sx) / n;
+            let sse = syy - a * sy - b * sxy;
+            Some((sse.max(0.0), a))
+        };
+        // Scan τ from 1 s to 10^5 s, 1/24 decade apart.
+        let mut best: Option<(f64, f64, f64, usize)> = None;
+        let steps = 120;
+        for k in 0..=steps {
+            let tau = 10f64.powf(5.0 * k as f64 / steps as f64);
+            if let Some((sse, a)) = solve(tau) {
+                if best.is_none_or(|b| sse < b.0) {
+                    best = Some((sse, tau, a, k));
+                }
+            }
+        }
+        let (sse, tau, t_inf, k) = best?;
+        // A curvature: the best τ lies inside the scan, and the straight line (τ at the
+        // scan's top) explains the leg clearly worse.
+        let line = solve(1e7)?.0;
+        if k == 0 || k == steps || sse > 0.5 * line {
+            return None;
+        }
+        let gain = rate * tau;
+        let m = ModelParams {
+            gain_c_per_pct: gain,
+            tau_s: tau,
+            dead_time_s: dead_s,
+            ambient_c: t_inf - gain * power_pct,
+        };
+        let sane = gain > 0.0
+            && gain <= super::MAX_MODEL_GAIN
+            && (0.1..=super::MAX_TIME_S).contains(&tau)
+            && (super::MIN_TEMP_C..=super::MAX_TEMP_C).contains(&m.ambient_c);
+        sane.then_some(m)
+    }
+
+    /// A switch on at `now` (the line's cumulative on time `on_total`) ends the cycle that
+    /// began with the last one.
+    fn cycle_ends(&mut self, now: Nanos, on_total: Nanos) -> Option<Stop> {
         let (Some(on_at), Some(off_at)) = (self.on_at, self.off_at) else {
             // The first switch on: the approach is over, cycles start.
             self.phase = Phase::Relay;
             return None;
         };
         let period_s = (now - on_at) as f64 / 1e9;
+        let t_on = off_at.saturating_sub(on_at).max(1);
+        let t_off = now.saturating_sub(off_at).max(1);
+        let power_on = self.off_energy.saturating_sub(self.on_energy) as f64 / t_on as f64;
+        let power_off = on_total.saturating_sub(self.off_energy) as f64 / t_off as f64;
+        let on_fraction = (off_at - on_at) as f64 / 1e9 / period_s;
+        let p_ns = (now - on_at) as f64;
+        let w = 2.0 * PI / p_ns;
+        let (re, im) = self
+            .bins
+            .iter()
+            .enumerate()
+            .fold((0.0, 0.0), |(re, im), (k, e)| {
+                let t = (k as f64 + 0.5) * self.bin_w as f64;
+                (re + e * (w * t).cos(), im - e * (w * t).sin())
+            });
+        let fundamental = 2.0 * re.hypot(im) / p_ns;
+        self.bins = [0.0; BINS];
+        self.bin_w = FIRST_BIN;
         let cycle = Cycle {
             period_s,
-            on_fraction: (off_at - on_at) as f64 / 1e9 / period_s,
+            on_fraction,
             amplitude_c: (self.high - self.low) / 2.0,
+            power_on,
+            power_off,
+            fundamental,
+            at_off_c: self.off_c,
+            at_on_c: self.on_c,
+            high_c: self.high,
+            low_c: self.low,
         };
         self.cycles[self.n] = cycle;
         self.n += 1;
@@ -568,11 +853,31 @@ impl Autotune {
         if s <= allowed {
             let k = CONVERGE_CYCLES as f64;
             let mean = |f: fn(&Cycle) -> f64| last.iter().map(f).sum::<f64>() / k;
+            let tu_s = mean(|c| c.period_s);
+            let on_fraction = mean(|c| c.on_fraction);
+            // The two power levels of the rectangular wave with the delivered fundamental and
+            // the delivered mean.
+            let swing = mean(|c| c.swing());
+            let mean_power =
+                mean(|c| c.power_on * c.on_fraction + c.power_off * (1.0 - c.on_fraction));
+            let power_off = (mean_power - swing * on_fraction).max(0.0);
+            let model = self.model(&LimitCycle {
+                t_on: tu_s * on_fraction,
+                t_off: tu_s * (1.0 - on_fraction),
+                up: mean(|c| c.at_off_c),
+                down: mean(|c| c.at_on_c),
+                high: mean(|c| c.high_c),
+                low: mean(|c| c.low_c),
+                power_on_pct: (power_off + swing) * 100.0,
+                power_off_pct: power_off * 100.0,
+            });
             let est = Estimate {
-                ku: mean(|c| c.ku(1.0)) * self.goal.amplitude_pct,
-                tu_s: mean(|c| c.period_s),
+                ku: mean(|c| c.ku()),
+                tu_s,
                 amplitude_c: mean(|c| c.amplitude_c),
-                on_fraction: mean(|c| c.on_fraction),
+                on_fraction,
+                delivered_on_pct: mean(|c| c.power_on) * 100.0,
+                model,
             };
             let d = est.on_fraction;
             if !(MIN_ON_FRACTION..=1.0 - MIN_ON_FRACTION).contains(&d) {

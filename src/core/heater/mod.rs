@@ -3,24 +3,34 @@
 //! virtual time (`Channel::feedback`, `Channel::set_setpoint`, its deadlines), and only the
 //! channel knows when its line was really on, which `stuck_on` needs.
 //!
-//! Everything is off by default: a channel without feedback runs open loop as before.
+//! A channel without feedback runs open loop as before. Under `pid` every check that needs no
+//! model is on by default (`sensor_timeout`, `sensor_stuck`, `sensor_jump`, the range,
+//! `not_heating`), and `pid` refuses to start without `temp_max_c`.
 //!
 //! - [`pid`]: the loop.
-//! - [`checks`]: `not_heating` (Klipper's `verify_heater`) and `stuck_on`.
-//! - [`autotune`]: the relay autotune.
+//! - [`checks`]: `not_heating` (Klipper's `verify_heater`), `stuck_on`, `sensor_stuck`,
+//!   `sensor_jump`.
+//! - [`model`]: the thermal model behind `model_deviation`.
+//! - [`autotune`]: the relay autotune, which also identifies the model.
 //! - [`plant`]: a first-order-plus-dead-time heater, for the tests and the simulated heater.
 
 pub mod autotune;
 pub mod checks;
+pub mod model;
 pub mod pid;
 pub mod plant;
 
 pub use super::config::heater::{
-    Control, Gains, HeaterConfig, HeaterConfigError, HeaterParams, Runaway, MAX_DELTA_C, MAX_GAIN,
-    MAX_RUNAWAY_ERROR, MAX_TEMP_C, MAX_TIME_S, MIN_SAMPLE_MS, MIN_TEMP_C,
+    Control, Gains, HeaterConfig, HeaterConfigError, HeaterParams, ModelParams, Runaway,
+    StuckLimits, DEFAULT_FEEDBACK_TIMEOUT_MS, DEFAULT_MAX_RATE_C_PER_S, DEFAULT_MODEL_TIME_S,
+    DEFAULT_MODEL_TOLERANCE_C, DEFAULT_NO_RISE_TIME_S, DEFAULT_STUCK_ENERGY_S,
+    DEFAULT_STUCK_ON_RISE_C, DEFAULT_STUCK_TIME_S, MAX_DELTA_C, MAX_GAIN, MAX_MODEL_DEAD_TIME_S,
+    MAX_MODEL_GAIN, MAX_RATE_C_PER_S, MAX_RUNAWAY_ERROR, MAX_SKEW_MS, MAX_TEMP_C, MAX_TIME_S,
+    MIN_SAMPLE_MS, MIN_TEMP_C,
 };
 use super::Nanos;
-pub use checks::{NotHeating, Rise, StuckOn};
+pub use checks::{Delivered, Flat, Jump, Leap, NoRise, NotHeating, Rise, Still, Stuck, StuckOn};
+pub use model::{Model, Prediction};
 pub use pid::{Pid, Terms};
 pub use plant::{Plant, PlantFault, PlantParams};
 use std::fmt;
@@ -67,17 +77,65 @@ pub enum HeaterFault {
         /// `stuck_on_time_s`.
         window_s: f64,
     },
+    /// The reading stood still while the heater got an energy that must have moved it (or
+    /// stayed at full power): a frozen sensor.
+    SensorStuck {
+        /// The reading, °C.
+        celsius: f64,
+        /// How long it stood still, s.
+        still_s: f64,
+        /// How far the energy the heater got swung meanwhile, seconds of full power.
+        swing_s: f64,
+        /// `sensor_stuck_energy_s`.
+        limit_s: f64,
+        /// The heater was at full power all the while.
+        full: bool,
+    },
+    /// The heater was at full power (the loop asking for more) and the reading did not rise.
+    NoRise {
+        /// The mean reading at the start, °C.
+        start_c: f64,
+        /// The mean reading now, °C.
+        now_c: f64,
+        /// How long at full power, s.
+        full_s: f64,
+    },
+    /// The reading moved faster than a heater can.
+    SensorJump {
+        /// The change, °C.
+        change_c: f64,
+        /// Within this time, s.
+        within_s: f64,
+        /// `sensor_max_rate_c_per_s`.
+        max_rate: f64,
+    },
+    /// The reading left the thermal model's prediction by more than the tolerance for the
+    /// check's time.
+    ModelDeviation {
+        /// The reading, °C.
+        celsius: f64,
+        /// The model's prediction, °C.
+        predicted_c: f64,
+        /// `model_tolerance_c`.
+        tolerance_c: f64,
+        /// `model_time_s`.
+        time_s: f64,
+    },
 }
 
 impl HeaterFault {
     /// The check's name, as on `/diagnostics`: `temperature_out_of_range`, `sensor_timeout`,
-    /// `not_heating`, `stuck_on`.
+    /// `not_heating`, `stuck_on`, `sensor_stuck`, `no_rise`, `sensor_jump`, `model_deviation`.
     pub fn check(&self) -> &'static str {
         match self {
             HeaterFault::OutOfRange { .. } => "temperature_out_of_range",
             HeaterFault::SensorTimeout { .. } => "sensor_timeout",
             HeaterFault::NotHeating { .. } => "not_heating",
             HeaterFault::StuckOn { .. } => "stuck_on",
+            HeaterFault::SensorStuck { .. } => "sensor_stuck",
+            HeaterFault::NoRise { .. } => "no_rise",
+            HeaterFault::SensorJump { .. } => "sensor_jump",
+            HeaterFault::ModelDeviation { .. } => "model_deviation",
         }
     }
 }
@@ -98,7 +156,60 @@ impl fmt::Display for HeaterFault {
                 timeout_ms,
             } => write!(
                 f,
-                "sensor_timeout: no reading for {silent_ms} ms (feedback_timeout_ms {timeout_ms})"
+                "sensor_timeout: no fresh reading for {silent_ms} ms (feedback_timeout_ms \
+                 {timeout_ms})"
+            ),
+            HeaterFault::SensorStuck {
+                celsius,
+                still_s,
+                swing_s,
+                limit_s,
+                full,
+            } => {
+                if full {
+                    write!(
+                        f,
+                        "sensor_stuck: reading {celsius:.2} °C still for {still_s:.1} s with \
+                         the heater at full power"
+                    )
+                } else {
+                    write!(
+                        f,
+                        "sensor_stuck: reading {celsius:.2} °C still for {still_s:.1} s while \
+                         the heater's energy swung by {swing_s:.1} s of full power \
+                         (sensor_stuck_energy_s {limit_s})"
+                    )
+                }
+            }
+            HeaterFault::NoRise {
+                start_c,
+                now_c,
+                full_s,
+            } => write!(
+                f,
+                "no_rise: at full power for {full_s} s the reading went from {start_c:.2} °C \
+                 to {now_c:.2} °C: the sensor does not see the heater, or the heater does \
+                 not heat"
+            ),
+            HeaterFault::SensorJump {
+                change_c,
+                within_s,
+                max_rate,
+            } => write!(
+                f,
+                "sensor_jump: reading moved {change_c:+.2} °C within {within_s:.2} s \
+                 (sensor_max_rate_c_per_s {max_rate}, over at least 1 s)"
+            ),
+            HeaterFault::ModelDeviation {
+                celsius,
+                predicted_c,
+                tolerance_c,
+                time_s,
+            } => write!(
+                f,
+                "model_deviation: reading {celsius:.2} °C, model {predicted_c:.2} °C: off by \
+                 {:+.2} °C, beyond model_tolerance_c {tolerance_c} for model_time_s {time_s} s",
+                celsius - predicted_c
             ),
             HeaterFault::NotHeating {
                 celsius,
@@ -138,14 +249,18 @@ pub enum Refusal {
     /// A setpoint that is NaN or infinite.
     #[error("setpoint {0} refused: not a finite number")]
     SetpointNotFinite(f64),
-    /// A setpoint outside the temperature limits.
-    #[error("setpoint {value} °C refused: outside temp_min_c..temp_max_c ({min_c}..{max_c} °C)")]
+    /// A setpoint outside the temperature limits: below `temp_min_c` or above
+    /// `temp_max_c − setpoint_margin_c`.
+    #[error(
+        "setpoint {value} °C refused: outside temp_min_c..temp_max_c − setpoint_margin_c \
+         ({min_c}..{max_c} °C)"
+    )]
     SetpointOutOfRange {
         /// The setpoint.
         value: f64,
         /// `temp_min_c`.
         min_c: f64,
-        /// `temp_max_c`.
+        /// `temp_max_c − setpoint_margin_c`.
         max_c: f64,
     },
 }
@@ -180,6 +295,15 @@ pub struct HeaterStatus {
     pub fault_lasts: bool,
     /// `not_heating`'s summed error, °C·s.
     pub runaway_error: f64,
+    /// The thermal model's prediction and residual at the last fresh reading.
+    pub model: Option<Prediction>,
+    /// Readings refused as stale by their stamp, and the age of the last one, ns (negative:
+    /// stamped in the future).
+    pub stale: (u64, i64),
+    /// The latest reading was refused as stale.
+    pub stale_now: bool,
+    /// The setpoint in force was lowered to fit a lowered `temp_max_c`: from, °C.
+    pub setpoint_lowered_from: Option<f64>,
     /// TCONT_CP's sizing rules (003) the settings break under `pid`.
     pub sizing: [Option<Sizing>; 3],
 }
@@ -274,10 +398,45 @@ pub(crate) struct Heat {
     pub(crate) rise: Rise,
     /// The autotune run, with its ticket.
     pub(crate) autotune: Option<(u32, autotune::Autotune)>,
+    /// The line's on time over its finished high phases, ns (the running one is added from
+    /// the line's state): what the heater really got.
+    pub(crate) on_closed: Nanos,
+    /// Up to when the on time is counted in `on_closed`.
+    pub(crate) on_counted_to: Nanos,
+    /// The line's cumulative on time at past readings.
+    pub(crate) delivered: Delivered,
+    /// `sensor_stuck` and `sensor_jump`.
+    pub(crate) still: Stuck,
+    pub(crate) leap: Leap,
+    /// `no_rise`.
+    pub(crate) flat: NoRise,
+    /// The thermal model, when one is set, and what it said at the last fresh reading.
+    pub(crate) model: Option<Model>,
+    pub(crate) prediction: Option<Prediction>,
+    /// Since when the residual lies beyond the tolerance.
+    pub(crate) deviating_since: Option<Nanos>,
+    /// The arrival of the reading the last PID sample used (the derivative moves only on a
+    /// new one).
+    pub(crate) sampled_reading_at: Option<Nanos>,
+    /// Stale readings refused, and the age of the last one, ns; the latest was one.
+    pub(crate) stale: (u64, i64),
+    pub(crate) stale_now: bool,
+    /// The setpoint was lowered to fit a lowered `temp_max_c`: from, °C.
+    pub(crate) lowered_from: Option<f64>,
+    /// The last reading that jumped.
+    pub(crate) last_jump_at: Option<Nanos>,
+}
+
+/// How far back the delivered-duty history reaches, ns: `sensor_stuck`'s time and window.
+pub(crate) fn delivered_span(cfg: &HeaterConfig, window: Nanos) -> Nanos {
+    cfg.stuck
+        .time
+        .saturating_mul(2)
+        .saturating_add(window.saturating_mul(2))
 }
 
 impl Heat {
-    pub(crate) fn new(cfg: &HeaterConfig, now: Nanos) -> Heat {
+    pub(crate) fn new(cfg: &HeaterConfig, window: Nanos, now: Nanos) -> Heat {
         Heat {
             pid: Pid::new(cfg.gains),
             not_heating: NotHeating::default(),
@@ -297,6 +456,24 @@ impl Heat {
                 off_whole_window: false,
             },
             autotune: None,
+            on_closed: 0,
+            on_counted_to: 0,
+            delivered: Delivered::new(delivered_span(cfg, window)),
+            still: Stuck::default(),
+            leap: Leap::default(),
+            flat: NoRise::new(cfg.stuck.no_rise),
+            model: cfg
+                .params
+                .model
+                .is_set()
+                .then(|| Model::new(cfg.params.model)),
+            prediction: None,
+            deviating_since: None,
+            sampled_reading_at: None,
+            stale: (0, 0),
+            stale_now: false,
+            lowered_from: None,
+            last_jump_at: None,
         }
     }
 }

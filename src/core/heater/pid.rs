@@ -94,18 +94,37 @@ impl Pid {
         self.gains = gains;
     }
 
+    /// One sample on a new reading: the loop's output for `setpoint` and `measurement` (°C),
+    /// `dt_s` seconds after the last sample, which read the previous reading `dt_s` before,
+    /// limited to `lo..=hi` %. See [`Pid::sample`].
+    pub fn step(&mut self, setpoint: f64, measurement: f64, dt_s: f64, lo: f64, hi: f64) -> Terms {
+        self.sample(setpoint, measurement, Some(dt_s), dt_s, lo, hi)
+    }
+
     /// One sample: the loop's output for `setpoint` and `measurement` (°C), `dt_s` seconds
     /// after the last sample, limited to `lo..=hi` % (the power limits the duty then goes
-    /// through). Both inputs must be finite; the caller refuses the rest.
-    pub fn step(&mut self, setpoint: f64, measurement: f64, dt_s: f64, lo: f64, hi: f64) -> Terms {
+    /// through). `reading_dt_s` is the time between this measurement and the one the last
+    /// sample used, `None` when it is the same reading: the derivative is taken between
+    /// readings, not between samples, so a loop that samples faster than its sensor publishes
+    /// sees neither a zero slope nor a spike. Both inputs must be finite; the caller refuses
+    /// the rest.
+    pub fn sample(
+        &mut self,
+        setpoint: f64,
+        measurement: f64,
+        reading_dt_s: Option<f64>,
+        dt_s: f64,
+        lo: f64,
+        hi: f64,
+    ) -> Terms {
         let g = self.gains;
         let error = setpoint - measurement;
         let p = g.kp * error;
         // Derivative on the measurement: a setpoint step changes P only.
-        if let Some((last, _)) = self.last.filter(|_| dt_s > 0.0) {
-            let raw = -g.kd * (measurement - last) / dt_s;
+        if let (Some((last, _)), Some(rdt)) = (self.last, reading_dt_s.filter(|t| *t > 0.0)) {
+            let raw = -g.kd * (measurement - last) / rdt;
             let alpha = if g.d_filter_s > 0.0 {
-                dt_s / (g.d_filter_s + dt_s)
+                rdt / (g.d_filter_s + rdt)
             } else {
                 1.0
             };
@@ -115,11 +134,15 @@ impl Pid {
             self.integral = (from - p - self.d).clamp(lo, hi);
         } else {
             let candidate = self.integral + g.ki * error * dt_s;
-            let unlimited = p + candidate + self.d;
-            // Anti-windup: while the output is at a limit, do not integrate further in the
-            // direction that holds it there.
-            let winds = (unlimited > hi && error > 0.0) || (unlimited < lo && error < 0.0);
-            if !winds {
+            // Anti-windup: the integral goes up to what holds the output at its limit in the
+            // direction the error pushes, never beyond, and a step that would cross the limit
+            // ends at it (so the output reaches the limit rather than stopping short of it).
+            let rest = p + self.d;
+            if error > 0.0 && rest + candidate > hi {
+                self.integral = self.integral.max((hi - rest).min(candidate));
+            } else if error < 0.0 && rest + candidate < lo {
+                self.integral = self.integral.min((lo - rest).max(candidate));
+            } else {
                 self.integral = candidate;
             }
             self.integral = self.integral.clamp(lo, hi);
@@ -161,6 +184,23 @@ mod tests {
         // The measurement rises by 1 °C in 1 s: D = -50 % per °C/s.
         let t = pid.step(60.0, 41.0, 1.0, 0.0, 100.0);
         assert_eq!(t.d, -50.0);
+    }
+
+    #[test]
+    fn the_derivative_is_taken_between_readings_not_samples() {
+        let mut pid = Pid::new(gains(0.0, 0.0, 10.0));
+        pid.sample(0.0, 0.0, Some(1.0), 0.25, -100.0, 100.0);
+        // A reading 1 s later, 1 °C up: -10 %.
+        let t = pid.sample(0.0, 1.0, Some(1.0), 0.25, -100.0, 100.0);
+        assert_eq!(t.d, -10.0);
+        // Three samples on the same reading: the slope holds, no zero.
+        for _ in 0..3 {
+            let t = pid.sample(0.0, 1.0, None, 0.25, -100.0, 100.0);
+            assert_eq!(t.d, -10.0);
+        }
+        // The next reading, 1 s after the last: the same slope, no spike.
+        let t = pid.sample(0.0, 2.0, Some(1.0), 0.25, -100.0, 100.0);
+        assert_eq!(t.d, -10.0);
     }
 
     #[test]

@@ -47,27 +47,64 @@ pub enum PlantFault {
     HeaterDisconnected,
     /// The heater is stuck on (a welded SSR): full power whatever the line.
     HeaterStuckOn,
+    /// The heater delivers half its power (a burnt element of two, a supply at 71 % of its
+    /// voltage).
+    HeaterHalfPower,
     /// The sensor reports its last value for ever.
     SensorStuck,
     /// The sensor sends nothing.
     SensorSilent,
-    /// The sensor is shorted: it reads ambient.
+    /// The sensor is shorted to ambient (a thermocouple shorted at its connector reads the
+    /// temperature there): it reads ambient, with its noise.
     SensorShorted,
+    /// The sensor fell off the heater: it cools toward ambient with its own time constant,
+    /// [`FALLEN_SENSOR_TAU_S`], and sees nothing of the heater any more.
+    SensorFallenOff,
 }
 
+/// The time constant of a sensor that fell off its heater, s: a small probe in still air.
+pub const FALLEN_SENSOR_TAU_S: f64 = 20.0;
+
+/// Every fault's spelling, as `sim-heater` takes it.
+pub const FAULT_NAMES: [&str; 8] = [
+    "none",
+    "heater_disconnected",
+    "heater_stuck_on",
+    "heater_half_power",
+    "sensor_stuck",
+    "sensor_silent",
+    "sensor_shorted",
+    "sensor_fallen_off",
+];
+
 impl PlantFault {
-    /// The spelling used by `sim-heater`: `none`, `heater_disconnected`, `heater_stuck_on`,
-    /// `sensor_stuck`, `sensor_silent`, `sensor_shorted`.
+    /// The spelling used by `sim-heater`: one of [`FAULT_NAMES`].
     pub fn parse(s: &str) -> Option<PlantFault> {
         Some(match s {
             "none" => PlantFault::None,
             "heater_disconnected" => PlantFault::HeaterDisconnected,
             "heater_stuck_on" => PlantFault::HeaterStuckOn,
+            "heater_half_power" => PlantFault::HeaterHalfPower,
             "sensor_stuck" => PlantFault::SensorStuck,
             "sensor_silent" => PlantFault::SensorSilent,
             "sensor_shorted" => PlantFault::SensorShorted,
+            "sensor_fallen_off" => PlantFault::SensorFallenOff,
             _ => return None,
         })
+    }
+
+    /// The spelling of the fault (see [`FAULT_NAMES`]).
+    pub fn name(self) -> &'static str {
+        match self {
+            PlantFault::None => "none",
+            PlantFault::HeaterDisconnected => "heater_disconnected",
+            PlantFault::HeaterStuckOn => "heater_stuck_on",
+            PlantFault::HeaterHalfPower => "heater_half_power",
+            PlantFault::SensorStuck => "sensor_stuck",
+            PlantFault::SensorSilent => "sensor_silent",
+            PlantFault::SensorShorted => "sensor_shorted",
+            PlantFault::SensorFallenOff => "sensor_fallen_off",
+        }
     }
 }
 
@@ -86,6 +123,12 @@ pub struct Plant {
     line_since: Nanos,
     fault: PlantFault,
     stuck_reading: Option<f64>,
+    /// A fallen-off sensor's own temperature, °C, and the instant it was advanced to.
+    fallen: Option<(f64, Nanos)>,
+    /// The share of full power a disturbance takes away (a fan, an open door), 0..=1.
+    disturbance: f64,
+    /// The sensor's resolution, °C; 0 = none.
+    quantum_c: f64,
     rng: u64,
 }
 
@@ -102,6 +145,9 @@ impl Plant {
             line_since: now,
             fault: PlantFault::None,
             stuck_reading: None,
+            fallen: None,
+            disturbance: 0.0,
+            quantum_c: 0.0,
             rng: seed | 1,
         }
     }
@@ -115,6 +161,30 @@ impl Plant {
     pub fn set_fault(&mut self, fault: PlantFault) {
         self.fault = fault;
         self.stuck_reading = None;
+        self.fallen = None;
+    }
+
+    /// A disturbance that takes `share` (0..=1) of the heater's full power away from now on
+    /// (a fan blowing on it, a door opened), down to the ambient and no further; 0 removes it.
+    /// The caller advances the plant to the instant first.
+    pub fn set_disturbance(&mut self, share: f64) {
+        self.disturbance = share.clamp(0.0, 1.0);
+    }
+
+    /// The disturbance in force, share of full power.
+    pub fn disturbance(&self) -> f64 {
+        self.disturbance
+    }
+
+    /// Moves the ambient temperature to `celsius` from now on (the room warms or cools).
+    pub fn set_ambient(&mut self, celsius: f64) {
+        self.p.ambient_c = celsius;
+    }
+
+    /// Rounds every reading to a multiple of `quantum_c` °C (a MAX6675 board reads in 0.25 °C
+    /// steps, a DS18B20 in 0.0625 °C); 0 = none.
+    pub fn set_quantum(&mut self, quantum_c: f64) {
+        self.quantum_c = quantum_c.max(0.0);
     }
 
     /// The fault injected.
@@ -151,10 +221,15 @@ impl Plant {
         let power = match self.fault {
             PlantFault::HeaterDisconnected => 0.0,
             PlantFault::HeaterStuckOn => 1.0,
+            PlantFault::HeaterHalfPower => self.power / 2.0,
             _ => self.power,
-        };
+        } - self.disturbance;
         let target = self.p.ambient_c + self.p.rate_c_per_s * self.p.tau_s * power;
         self.temp = target + (self.temp - target) * (-h / self.p.tau_s).exp();
+        if target < self.p.ambient_c {
+            // A disturbance takes heat away, down to the ambient, never below it.
+            self.temp = self.temp.max(self.p.ambient_c);
+        }
         self.at = t;
     }
 
@@ -184,10 +259,25 @@ impl Plant {
     /// The sensor's reading at `t`, °C, or `None` when it is silent.
     pub fn reading(&mut self, t: Nanos) -> Option<f64> {
         self.advance(t);
-        let noisy = self.temp + self.noise();
+        let sensed = match self.fault {
+            PlantFault::SensorShorted => self.p.ambient_c,
+            PlantFault::SensorFallenOff => {
+                // The probe cools toward ambient from where it fell off.
+                let (c, at) = *self.fallen.get_or_insert((self.temp, t));
+                let h = t.saturating_sub(at) as f64 / 1e9;
+                let amb = self.p.ambient_c;
+                let c = amb + (c - amb) * (-h / FALLEN_SENSOR_TAU_S).exp();
+                self.fallen = Some((c, t));
+                c
+            }
+            _ => self.temp,
+        };
+        let mut noisy = sensed + self.noise();
+        if self.quantum_c > 0.0 {
+            noisy = (noisy / self.quantum_c).round() * self.quantum_c;
+        }
         match self.fault {
             PlantFault::SensorSilent => None,
-            PlantFault::SensorShorted => Some(self.p.ambient_c),
             PlantFault::SensorStuck => Some(*self.stuck_reading.get_or_insert(noisy)),
             _ => Some(noisy),
         }
@@ -235,6 +325,11 @@ mod tests {
         assert_eq!(plant.reading(30 * S), Some(b));
         plant.set_fault(PlantFault::SensorShorted);
         assert_eq!(plant.reading(40 * S), Some(20.0));
+        plant.set_fault(PlantFault::SensorFallenOff);
+        let c = plant.reading(40 * S).unwrap();
+        let later = plant.reading(40 * S + 20 * S).unwrap();
+        // One time constant toward ambient.
+        assert!((later - (20.0 + (c - 20.0) / std::f64::consts::E)).abs() < 1e-9);
         plant.set_fault(PlantFault::SensorSilent);
         assert_eq!(plant.reading(50 * S), None);
     }

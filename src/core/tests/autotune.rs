@@ -97,9 +97,15 @@ fn a_run_through_the_channel_converges_and_its_gains_hold_the_setpoint() {
     assert_eq!(o.stop, Stop::Converged, "{o:?}");
     let est = o.estimate.unwrap();
     // The describing function for the averaged 60 % relay (see autotune's tests), with the
-    // period's time-proportioning as extra delay: within 10 %.
+    // period's time-proportioning as extra delay (a switch of the relay reaches the line at
+    // the next period start, half a period later on average): within 10 %. The estimate
+    // comes from the power the line really delivered.
+    let delayed = PlantParams {
+        dead_time_s: plant().dead_time_s + 0.5,
+        ..plant()
+    };
     let (ku, tu) =
-        crate::core::heater::autotune::tests::describing_function(&plant(), 68.0, 60.0, 0.5);
+        crate::core::heater::autotune::tests::describing_function(&delayed, 68.0, 60.0, 0.5);
     println!("through the channel: {est:?}; DF Ku {ku:.3} Tu {tu:.1}");
     assert!((est.ku / ku - 1.0).abs() < 0.1, "{} vs {ku}", est.ku);
     assert!((est.tu_s / tu - 1.0).abs() < 0.1, "{} vs {tu}", est.tu_s);
@@ -286,6 +292,8 @@ fn heater_faults_end_the_run_and_the_checks_stay_armed() {
 fn the_watchdog_ends_the_run_when_readings_stop() {
     let mut p = params(heater(&plant()));
     p.command_timeout_ms = 5000;
+    // The sensor timeout would end the run first (3 s): the watchdog's turn here.
+    p.heater.feedback_timeout_ms = 10_000;
     // Readings feed the watchdog while the run goes (the setpoint does not come).
     let mut r = rig(p);
     r.setpoint(30.0);
@@ -409,7 +417,9 @@ fn a_goal_clears_a_tripped_watchdog_like_a_command() {
 /// A slow bed (time constant 300 s, dead time 60 s): its relay swings about 10 °C below the
 /// band, long enough that `not_heating` with Klipper's defaults latches during the run — the
 /// check stays armed. Sized for the plant (`runaway_gain_time_s` above the dead time,
-/// `runaway_max_error` for the dips, docs/autotune.md), the run converges in about 25 min.
+/// `runaway_max_error` for the dips, `no_rise_time_s` and `sensor_stuck_time_s` at least
+/// twice the dead time, `stuck_on_rise_c` above its rise after the line goes off,
+/// docs/heater.md), the run converges in about 25 min.
 #[test]
 fn a_slow_bed_needs_its_runaway_settings_sized_for_the_run() {
     let bed = PlantParams {
@@ -428,6 +438,11 @@ fn a_slow_bed_needs_its_runaway_settings_sized_for_the_run() {
         let mut p = params(heater(&bed));
         p.heater.runaway_gain_time_s = gain_time_s;
         p.heater.runaway_max_error = max_error;
+        // The response checks, sized for its dead time too: at least twice it.
+        p.heater.no_rise_time_s = 150.0;
+        p.heater.sensor_stuck_time_s = 150.0;
+        // And stuck_on above what it rises after its line goes off: 1.5·(r·L + 2n) + 0.5.
+        p.heater.stuck_on_rise_c = 1.5 * (bed.rate_c_per_s * bed.dead_time_s + 0.1) + 0.5;
         let mut r = Rig::new(p, bed, 3);
         r.secs(1.0).enable().secs(1.0);
         start(&mut r, g);
@@ -442,4 +457,80 @@ fn a_slow_bed_needs_its_runaway_settings_sized_for_the_run() {
     assert_eq!(o.stop, Stop::Converged, "{o:?}");
     println!("bed: converged after {} s, {:?}", t / S, o.estimate);
     assert!(t < 30 * 60 * S, "{t}");
+}
+
+/// The model a run identifies from its approach and its cycles, through the channel (the
+/// line's real on time, the PWM's period), on heaters from a fast cartridge to a slow block,
+/// each started from ambient: within 10 % of the plant's gain and time constant, within half a
+/// second of its dead time, within 3 °C of its ambient.
+#[test]
+fn a_run_identifies_the_heaters_model() {
+    for (rate, tau, dead) in [
+        (2.0, 60.0, 3.0),
+        (0.6, 120.0, 2.0),
+        (0.4, 300.0, 4.0),
+        (3.0, 40.0, 1.0),
+    ] {
+        let plant = PlantParams {
+            rate_c_per_s: rate,
+            tau_s: tau,
+            dead_time_s: dead,
+            ambient_c: 20.0,
+            noise_c: 0.05,
+        };
+        let p = params(heater(&plant));
+        let mut r = Rig::new(p, plant, 3);
+        r.secs(1.0).enable().secs(1.0);
+        let target = 20.0 + 0.4 * rate * tau;
+        let g = Goal {
+            target_c: target,
+            amplitude_pct: 100.0,
+            noise_band_c: 0.3,
+        };
+        r.act(|ch, now, emit| ch.start_autotune(now, 5, g, emit));
+        let (_, o) = until_done(&mut r, 20_000);
+        assert_eq!(o.stop, Stop::Converged, "{o:?}");
+        let m = o.estimate.unwrap().model.expect("a model");
+        println!("plant {rate} °C/s, tau {tau} s, L {dead} s: {m:?}");
+        let k = rate * tau / 100.0;
+        assert!(
+            (m.gain_c_per_pct / k - 1.0).abs() < 0.1,
+            "{m:?} vs gain {k}"
+        );
+        assert!((m.tau_s / tau - 1.0).abs() < 0.1, "{m:?}");
+        assert!((m.dead_time_s - dead).abs() < 0.5, "{m:?}");
+        assert!((m.ambient_c - 20.0).abs() < 3.0, "{m:?}");
+    }
+}
+
+/// Ku comes from the power the line really delivered: a 100 % relay whose line `max_on_ms`
+/// cuts after 1.5 s for a 1 s break delivers about 60 % while on, and the estimate is the
+/// describing function of that power, not of the commanded relay: against the commanded
+/// relay's value (`2·A·sin(π·D)/(π·a)` with A = 100 %), lower by about the share the line
+/// delivered while on.
+#[test]
+fn ku_comes_from_the_power_the_line_delivered() {
+    let mut p = params(heater(&plant()));
+    p.max_on_ms = 1500;
+    p.min_off_ms = Some(1000);
+    let mut r = rig(p);
+    // 40 °C needs about 17 % on average: within the cap.
+    let g = Goal {
+        target_c: 40.0,
+        ..goal(100.0)
+    };
+    start(&mut r, g);
+    let (_, o) = until_done(&mut r, 5000);
+    assert_eq!(o.stop, Stop::Converged, "{o:?}");
+    let est = o.estimate.unwrap();
+    let share = est.delivered_on_pct / 100.0;
+    assert!(share < 0.8, "{est:?}");
+    let commanded = 2.0 * 100.0 * (std::f64::consts::PI * est.on_fraction).sin()
+        / (std::f64::consts::PI * est.amplitude_c);
+    println!("capped: {est:?}; commanded relay's Ku {commanded:.3}");
+    assert!(
+        (est.ku / commanded / share - 1.0).abs() < 0.2,
+        "Ku {} against the commanded {commanded} at a delivered share {share}",
+        est.ku
+    );
 }

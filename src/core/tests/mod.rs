@@ -3,6 +3,7 @@
 
 mod autotune;
 mod bank;
+mod failsafe;
 mod harness;
 mod heater;
 mod props;

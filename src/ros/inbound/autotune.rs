@@ -295,6 +295,14 @@ fn finish(
             r.pid_kd = g.kd;
             r.pid_d_filter_s = g.d_filter_s;
             r.rule = RULE.into();
+            r.delivered_on_pct = e.delivered_on_pct;
+            if let Some(m) = e.model {
+                r.model_identified = true;
+                r.model_gain_c_per_pct = m.gain_c_per_pct;
+                r.model_tau_s = m.tau_s;
+                r.model_dead_time_s = m.dead_time_s;
+                r.model_ambient_c = m.ambient_c;
+            }
             if let Some(s) = o.sizing {
                 r.period_ok = s.period_ok;
                 r.min_times_ok = s.min_times_ok;
@@ -302,6 +310,14 @@ fn finish(
                 r.sizing = s.broken.iter().flatten().map(|b| b.to_string()).collect();
             }
             if apply {
+                let model = e.model.map(|m| {
+                    [
+                        ("model_gain_c_per_pct", m.gain_c_per_pct),
+                        ("model_tau_s", m.tau_s),
+                        ("model_dead_time_s", m.dead_time_s),
+                        ("model_ambient_c", m.ambient_c),
+                    ]
+                });
                 let items = [
                     ("pid_kp", g.kp),
                     ("pid_ki", g.ki),
@@ -309,6 +325,7 @@ fn finish(
                     ("pid_d_filter_s", g.d_filter_s),
                 ]
                 .into_iter()
+                .chain(model.into_iter().flatten())
                 .map(|(k, v)| (format!("{name}.{k}"), ParameterValue::Double(v)))
                 .collect();
                 match inputs.set_params(items, "autotune") {

@@ -49,7 +49,13 @@ pub fn listen_heaters(
             &h.feedback_topic,
             qos::sensor(),
             move |m: msg::Temperature| {
-                let _ = b.send(ch, Input::Feedback(m.temperature));
+                let _ = b.send(
+                    ch,
+                    Input::Feedback {
+                        celsius: m.temperature,
+                        age: stamp_age(&m.header, crate::clock::wall_ns()),
+                    },
+                );
             },
         )?);
         let b = Arc::clone(inputs);
@@ -70,6 +76,13 @@ pub fn listen_heaters(
         )?);
     }
     Ok(tasks)
+}
+
+/// How long after its stamp a reading arrived at `now_wall` (ns since the Unix epoch), ns;
+/// `None` for an unstamped reading (a zero stamp, as a message left at its defaults has).
+fn stamp_age(header: &msg::Header, now_wall: i64) -> Option<i64> {
+    let stamp = header.stamp.to_nanos();
+    (stamp != 0).then(|| now_wall.saturating_sub(stamp))
 }
 
 /// `~/<ch>/reset_fault`: asks the output thread to clear the channel's heater fault and

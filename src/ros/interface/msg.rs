@@ -366,6 +366,14 @@ pub struct ChannelStatus {
     pub heater_fault_message: String,
     /// Its condition still holds.
     pub heater_fault_lasts: bool,
+    /// The thermal model's prediction at the last fresh reading, °C; NaN without a model.
+    pub model_predicted_c: f64,
+    /// The reading less the prediction (its slow offset taken out), °C; NaN without a model.
+    pub model_residual_c: f64,
+    /// Readings refused as stale by their stamp.
+    pub stale_readings: u64,
+    /// The age of the last one, ms (negative: stamped ahead); NaN: none.
+    pub last_stale_age_ms: f64,
 }
 ros_message!(ChannelStatus, "pwm_actuator_msgs", "ChannelStatus");
 
@@ -461,6 +469,18 @@ pub struct AutotuneResult {
     pub sizing: Vec<String>,
     /// Complete relay cycles, the approach included.
     pub cycles: u32,
+    /// The relay's on output as delivered, %.
+    pub delivered_on_pct: f64,
+    /// The run identified a thermal model.
+    pub model_identified: bool,
+    /// The model's gain, °C per %.
+    pub model_gain_c_per_pct: f64,
+    /// Its time constant, s.
+    pub model_tau_s: f64,
+    /// Its dead time, s.
+    pub model_dead_time_s: f64,
+    /// Its ambient, °C.
+    pub model_ambient_c: f64,
 }
 impl Message for AutotuneResult {}
 

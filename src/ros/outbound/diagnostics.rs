@@ -112,6 +112,14 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
             .map_or(String::new(), |f| f.check().to_string()),
         heater_fault_message: s.heater.fault.map_or(String::new(), |f| f.to_string()),
         heater_fault_lasts: s.heater.fault_lasts,
+        model_predicted_c: s.heater.model.map_or(f64::NAN, |m| m.predicted_c),
+        model_residual_c: s.heater.model.map_or(f64::NAN, |m| m.residual_c),
+        stale_readings: s.heater.stale.0,
+        last_stale_age_ms: if s.heater.stale.0 == 0 {
+            f64::NAN
+        } else {
+            s.heater.stale.1 as f64 / 1e6
+        },
     }
 }
 
@@ -453,6 +461,7 @@ impl ChannelHealth {
         } else if self.recent_rejection(now).is_some()
             || self.recent_refusal(now).is_some()
             || s.is_some_and(|s| s.heater.sizing[0].is_some())
+            || s.is_some_and(|s| s.heater.stale_now || s.heater.setpoint_lowered_from.is_some())
             || s.is_some_and(|s| s.e1 || (s.limited && !s.rule.extended()) || s.command_clamped)
             || s.is_some_and(|s| s.sizing.is_some())
         {
@@ -493,6 +502,26 @@ impl ChannelHealth {
             return "watchdog: no duty command within command_timeout_ms; output forced off \
                     until the next command"
                 .into();
+        }
+        if s.heater.stale_now {
+            let age = s.heater.stale.1 as f64 / 1e6;
+            let (how, ms_) = if age < 0.0 {
+                ("ahead of this node's clock", -age)
+            } else {
+                ("old on arrival", age)
+            };
+            return format!(
+                "feedback readings refused as stale: {} so far, the last stamped {ms_:.0} ms \
+                 {how}; the loop holds off them (check the hosts' clocks; \
+                 feedback_max_skew_ms, feedback_timeout_ms)",
+                s.heater.stale.0
+            );
+        }
+        if let (Some(from), Some(sp)) = (s.heater.setpoint_lowered_from, s.heater.setpoint) {
+            return format!(
+                "setpoint lowered from {from} °C to {sp} °C: temp_max_c was lowered below it \
+                 (the setpoint stays setpoint_margin_c under temp_max_c)"
+            );
         }
         let refused_at = self.last_refusal.as_ref().map_or(0, |(_, at)| *at);
         let newest_input = self
@@ -665,6 +694,17 @@ impl ChannelHealth {
                     ("pid_d_pct", format!("{:.3}", h.terms.d)),
                     ("pid_output_pct", format!("{:.3}", h.terms.output)),
                     ("runaway_error", format!("{:.1}", h.runaway_error)),
+                    ("model_predicted_c", num(h.model.map(|m| m.predicted_c))),
+                    ("model_residual_c", num(h.model.map(|m| m.residual_c))),
+                    ("stale_readings", h.stale.0.to_string()),
+                    (
+                        "last_stale_age_ms",
+                        if h.stale.0 == 0 {
+                            "none".into()
+                        } else {
+                            format!("{:.1}", h.stale.1 as f64 / 1e6)
+                        },
+                    ),
                     (
                         "heater_fault",
                         h.fault.map_or(String::new(), |f| f.check().to_string()),

@@ -20,8 +20,8 @@ use crate::core::config::{
     MAX_SLEW_PCT_PER_S, MAX_TIMEOUT_MS,
 };
 use crate::core::heater::{
-    Control, HeaterParams, MAX_DELTA_C, MAX_GAIN, MAX_RUNAWAY_ERROR, MAX_TEMP_C, MAX_TIME_S,
-    MIN_TEMP_C,
+    Control, HeaterParams, MAX_DELTA_C, MAX_GAIN, MAX_MODEL_DEAD_TIME_S, MAX_MODEL_GAIN,
+    MAX_RATE_C_PER_S, MAX_RUNAWAY_ERROR, MAX_SKEW_MS, MAX_TEMP_C, MAX_TIME_S, MIN_TEMP_C,
 };
 use crate::core::valve::{
     OnTimeout, ReferenceAtStart, ValveParams, MAX_BACKLASH_PCT, MAX_COMMAND_TIMEOUT_MS,
@@ -649,9 +649,10 @@ pub(super) fn node_decls() -> Vec<Decl> {
             ..Decl::new("rt_priority", Integer, || V::Integer(0))
         },
         Decl {
-            description: "A heater fault of any channel (temperature_out_of_range, \
-                          sensor_timeout, not_heating, stuck_on) also latches the e-stop of \
-                          every channel; ~/reset_estop releases it.",
+            description: "A heater fault of any channel (any check: \
+                          temperature_out_of_range, sensor_timeout, sensor_stuck, no_rise, \
+                          sensor_jump, not_heating, stuck_on, model_deviation) also latches the \
+                          e-stop of every channel; ~/reset_estop releases it.",
             constraints: "start-up only",
             read_only: Some(START_UP),
             node: Some(|n, v| n.heater_fault_latches_estop = boolean(v)),
@@ -1116,9 +1117,12 @@ pub(super) fn channel_decls() -> Vec<Decl> {
         },
         Decl {
             description: "Highest valid reading, °C: above it the heater fault \
-                          temperature_out_of_range latches. Also the highest setpoint. Set it \
-                          for a real heater (Klipper's max_temp).",
-            constraints: "above temp_min_c",
+                          temperature_out_of_range latches. A setpoint must lie \
+                          setpoint_margin_c below it, an autotune's target autotune_margin_c. \
+                          The default, 3000, means unset: control pid refuses to run without \
+                          it (Klipper's max_temp, which a heater needs). Lowering it below the \
+                          setpoint in force lowers the setpoint with it.",
+            constraints: "above temp_min_c; required by control pid",
             range: Range::Double(MIN_TEMP_C, MAX_TEMP_C),
             checked: Checked::Core,
             core: Some(|c, v| {
@@ -1130,15 +1134,125 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
-            description: "sensor_timeout: no reading for this long while the channel is \
-                          enabled latches the heater fault. 0: off.",
+            description: "sensor_timeout: no fresh reading for this long while the channel is \
+                          enabled latches the heater fault, ms. The loop, not_heating and the \
+                          autotune act on fresh readings only. 3000 (Klipper's MCU stops a \
+                          heater 3 s after its host falls silent; a 1 Hz sensor may lose two \
+                          readings in a row). 0 (off) only under control open; an autotune \
+                          then holds its readings to 3000 all the same.",
+            constraints: "above 0 under control pid",
             range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
-            note: " (0 = off)",
+            checked: Checked::Core,
+            note: " (0 = off, under open only)",
             core: Some(|c, v| {
                 c.heater.feedback_timeout_ms = ms(v);
                 Ok(())
             }),
-            ..Decl::new("feedback_timeout_ms", Integer, || V::Integer(0))
+            ..Decl::new("feedback_timeout_ms", Integer, || {
+                V::Integer(heater_defaults().feedback_timeout_ms as i64)
+            })
+        },
+        Decl {
+            description: "How far in the future a reading's header.stamp may lie against this \
+                          node's clock, ms (the clock skew between the sensor's host and this \
+                          one). A stamp further ahead, or older than feedback_timeout_ms when \
+                          the reading arrives, makes the reading stale: counted on \
+                          ~/<ch>/status and /diagnostics, used by nothing. A zero stamp \
+                          (unstamped) counts from its arrival.",
+            range: Range::Integer(0, MAX_SKEW_MS as i64),
+            core: Some(|c, v| {
+                c.heater.feedback_max_skew_ms = ms(v);
+                Ok(())
+            }),
+            ..Decl::new("feedback_max_skew_ms", Integer, || {
+                V::Integer(heater_defaults().feedback_max_skew_ms as i64)
+            })
+        },
+        Decl {
+            description: "A setpoint must lie at least this far below temp_max_c, °C (Marlin's \
+                          HOTEND_OVERSHOOT): the loop's overshoot stays below the maximum.",
+            range: Range::Double(0.0, MAX_DELTA_C),
+            checked: Checked::Core,
+            core: Some(|c, v| {
+                c.heater.setpoint_margin_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("setpoint_margin_c", Double, || {
+                V::Double(heater_defaults().setpoint_margin_c)
+            })
+        },
+        Decl {
+            description: "sensor_stuck: a reading that stands still (within \
+                          sensor_stuck_band_c) for at least this long, s, while the energy \
+                          the heater gets swings by sensor_stuck_energy_s, or while it is at \
+                          full power, latches the heater fault. At least twice the heater's \
+                          dead time. 0: off.",
+            range: Range::Double(0.0, MAX_TIME_S),
+            note: " (0 = off)",
+            core: Some(|c, v| {
+                c.heater.sensor_stuck_time_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("sensor_stuck_time_s", Double, || {
+                V::Double(heater_defaults().sensor_stuck_time_s)
+            })
+        },
+        Decl {
+            description: "sensor_stuck: a change of the reading by more than this is movement, \
+                          °C (0: any change); no_rise: a rise of at most this (and the \
+                          readings' own scatter) is none.",
+            range: Range::Double(0.0, MAX_DELTA_C),
+            core: Some(|c, v| {
+                c.heater.sensor_stuck_band_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("sensor_stuck_band_c", Double, || {
+                V::Double(heater_defaults().sensor_stuck_band_c)
+            })
+        },
+        Decl {
+            description: "sensor_stuck: how far the energy the heater gets may swing (stray \
+                          from a steady power) while the reading stands still, in seconds of \
+                          full power. A heater that rises at r °C/s at full power moves by at \
+                          least r times this.",
+            range: Range::Double(0.1, MAX_TIME_S),
+            core: Some(|c, v| {
+                c.heater.sensor_stuck_energy_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("sensor_stuck_energy_s", Double, || {
+                V::Double(heater_defaults().sensor_stuck_energy_s)
+            })
+        },
+        Decl {
+            description: "no_rise: with the loop (or an autotune) at full power for this long, \
+                          s, the reading must rise, or the heater fault latches (the sensor \
+                          does not see the heater, or the heater does not heat). At least \
+                          twice the heater's dead time. 0: off.",
+            range: Range::Double(0.0, MAX_TIME_S),
+            note: " (0 = off)",
+            core: Some(|c, v| {
+                c.heater.no_rise_time_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("no_rise_time_s", Double, || {
+                V::Double(heater_defaults().no_rise_time_s)
+            })
+        },
+        Decl {
+            description: "sensor_jump: a reading that moves by more than this many °C per \
+                          second against the one before it (over at least a second) latches \
+                          the heater fault: no heater's block moves that fast; a shorted or \
+                          broken sensor does. Above the heater's fastest rise. 0: off.",
+            range: Range::Double(0.0, MAX_RATE_C_PER_S),
+            note: " (0 = off)",
+            core: Some(|c, v| {
+                c.heater.sensor_max_rate_c_per_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("sensor_max_rate_c_per_s", Double, || {
+                V::Double(heater_defaults().sensor_max_rate_c_per_s)
+            })
         },
         Decl {
             description: "not_heating (Klipper's verify_heater hysteresis), °C: within this of \
@@ -1200,7 +1314,9 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.stuck_on_rise_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("stuck_on_rise_c", Double, || V::Double(0.0))
+            ..Decl::new("stuck_on_rise_c", Double, || {
+                V::Double(heater_defaults().stuck_on_rise_c)
+            })
         },
         Decl {
             description: "stuck_on's window, s.",
@@ -1235,6 +1351,91 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             }),
             ..Decl::new("autotune_timeout_s", Double, || {
                 V::Double(heater_defaults().autotune_timeout_s)
+            })
+        },
+        Decl {
+            description: "An autotune's target must lie at least this far below temp_max_c, °C \
+                          (Marlin's M303: 15): the relay overshoots its target.",
+            range: Range::Double(0.0, MAX_DELTA_C),
+            core: Some(|c, v| {
+                c.heater.autotune_margin_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("autotune_margin_c", Double, || {
+                V::Double(heater_defaults().autotune_margin_c)
+            })
+        },
+        Decl {
+            description: "The heater's thermal model (first order plus dead time, run on the \
+                          line's real on time): its steady-state rise per % of duty, °C/%. \
+                          0: no model. An autotune run identifies the model and applies it \
+                          with the gains.",
+            range: Range::Double(0.0, MAX_MODEL_GAIN),
+            note: " (0 = no model)",
+            core: Some(|c, v| {
+                c.heater.model.gain_c_per_pct = double(v);
+                Ok(())
+            }),
+            ..Decl::new("model_gain_c_per_pct", Double, || {
+                V::Double(heater_defaults().model.gain_c_per_pct)
+            })
+        },
+        Decl {
+            description: "The thermal model's time constant, s.",
+            range: Range::Double(0.1, MAX_TIME_S),
+            core: Some(|c, v| {
+                c.heater.model.tau_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("model_tau_s", Double, || {
+                V::Double(heater_defaults().model.tau_s)
+            })
+        },
+        Decl {
+            description: "The thermal model's dead time between the line and the sensor, s.",
+            range: Range::Double(0.0, MAX_MODEL_DEAD_TIME_S),
+            core: Some(|c, v| {
+                c.heater.model.dead_time_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("model_dead_time_s", Double, || {
+                V::Double(heater_defaults().model.dead_time_s)
+            })
+        },
+        Decl {
+            description: "The thermal model's ambient: the temperature at 0 %, °C.",
+            range: Range::Double(MIN_TEMP_C, MAX_TEMP_C),
+            core: Some(|c, v| {
+                c.heater.model.ambient_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("model_ambient_c", Double, || {
+                V::Double(heater_defaults().model.ambient_c)
+            })
+        },
+        Decl {
+            description: "model_deviation: a residual (the reading less the model's \
+                          prediction, its slow offset taken out) beyond this, °C, for \
+                          model_time_s latches the heater fault. Above what unannounced \
+                          disturbances shift it by.",
+            range: Range::Double(0.1, MAX_DELTA_C),
+            core: Some(|c, v| {
+                c.heater.model_tolerance_c = double(v);
+                Ok(())
+            }),
+            ..Decl::new("model_tolerance_c", Double, || {
+                V::Double(heater_defaults().model_tolerance_c)
+            })
+        },
+        Decl {
+            description: "model_deviation's time, s.",
+            range: Range::Double(0.0, MAX_TIME_S),
+            core: Some(|c, v| {
+                c.heater.model_time_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("model_time_s", Double, || {
+                V::Double(heater_defaults().model_time_s)
             })
         },
         Decl {
