@@ -13,7 +13,8 @@ but not B, one to B's address does.
   node: the node's own unicast announcements are what makes it found.
 - With `ROS_STATIC_PEERS` on both sides, as rcl users set it, the client receives the node's
   `/diagnostics`, gets a `get_parameters` answer, and commands channel pw01, which the node
-  shows by its status and its edges, and writes in its trace.
+  shows by its status and its edges, and writes in its trace: with the node's range `SUBNET`
+  and with `LOCALHOST` (this host and the static peers, no multicast).
 
 Needs root (network namespaces) and `ip`; skipped with that reason where they are missing.
 """
@@ -123,6 +124,24 @@ PROBE = textwrap.dedent(
         except socket.timeout:
             pass
         print(" ".join(sorted(got)))
+    elif sys.argv[1] == "count":
+        # Datagrams to the domain's SPDP multicast group and port until stdin closes.
+        import select
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("0.0.0.0", int(sys.argv[2])))
+        mreq = struct.pack("4s4s", socket.inet_aton("239.255.0.1"), socket.inet_aton("0.0.0.0"))
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
+        print("joined", flush=True)
+        n = 0
+        while True:
+            ready = select.select([s, sys.stdin], [], [], 1.0)[0]
+            if s in ready:
+                s.recv(65536)
+                n += 1
+            if sys.stdin in ready:
+                break
+        print(n)
     else:
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         for _ in range(10):
@@ -152,14 +171,15 @@ def check_the_wire(h: RoutedHosts, env: dict) -> None:
     assert heard[h.b] == ["unicast"], f"on host B: {heard[h.b]} (multicast must not pass)"
 
 
-def start_node(h, process_launcher, node_binary, tmp_path, peers: Optional[str]):
+def start_node(h, process_launcher, node_binary, tmp_path, peers: Optional[str],
+               node_range: str = "SUBNET"):
     trace = tmp_path / "node-trace.csv"
     argv = ["ip", "netns", "exec", h.a, str(node_binary), "--output", "sim", "--trace",
             str(trace), "--ros-args", "-p", "pw01.period_ms:=200"]
     proc = process_launcher.launch(
         argv,
         name="node",
-        env={"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET", "ROS_STATIC_PEERS": peers},
+        env={"ROS_AUTOMATIC_DISCOVERY_RANGE": node_range, "ROS_STATIC_PEERS": peers},
         trace_path=trace,
     )
     proc.wait_for_output(RUNNING)
@@ -211,13 +231,34 @@ def test_the_node_s_own_static_peers_make_it_seen(
     assert got["seen_s"] is not None and got["diagnostics"] > 0, got
 
 
+@pytest.mark.parametrize("node_range", ["SUBNET", "LOCALHOST"])
 def test_with_static_peers_on_both_sides_rclpy_gets_diagnostics_parameters_and_commands(
-    hosts, ros_env, process_launcher, node_binary, tmp_path
+    hosts, ros_env, ros_domain_id, process_launcher, node_binary, tmp_path, node_range
 ):
+    """SUBNET: the peers beside multicast; LOCALHOST: this host and the peers only (rcl's
+    meaning), no multicast, the node's sockets reachable from the peers."""
     check_the_wire(hosts, ros_env)
-    proc = start_node(hosts, process_launcher, node_binary, tmp_path, peers=hosts.b_addr)
-    assert f"discovery announcements also sent to {hosts.b_addr}" in proc.stderr()
-    got = look(hosts, ros_env, peers=hosts.a_addr, full=True)
+    # What the node sends to the SPDP multicast group, as the router sees it.
+    spdp_port = 7400 + 250 * ros_domain_id
+    counter = subprocess.Popen(
+        ["ip", "netns", "exec", hosts.r, sys.executable, "-c", PROBE, "count", str(spdp_port)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=ros_env,
+    )
+    try:
+        assert counter.stdout.readline().strip() == "joined"
+        proc = start_node(hosts, process_launcher, node_binary, tmp_path, peers=hosts.b_addr,
+                          node_range=node_range)
+        assert f"discovery announcements also sent to {hosts.b_addr}" in proc.stderr()
+        got = look(hosts, ros_env, peers=hosts.a_addr, full=True)
+        multicast = int(counter.communicate(input="", timeout=20)[0].strip())
+    finally:
+        if counter.poll() is None:
+            counter.kill()
+    print(f"SPDP multicast datagrams from host A seen by the router: {multicast}")
+    if node_range == "LOCALHOST":
+        assert multicast == 0, "LOCALHOST with static peers sent discovery by multicast"
+    else:
+        assert multicast > 0, "SUBNET sent no discovery by multicast"
     assert got["seen_s"] is not None, got
     assert got["diagnostics"] > 0, got
     assert got["parameter"] == 200, got
