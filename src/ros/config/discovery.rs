@@ -26,11 +26,14 @@
 //!   `SYSTEM_DEFAULT` that is beside multicast; with `LOCALHOST` multicast is off, SPDP goes to
 //!   the localhost ports and the peers, the node advertises its addresses on every interface
 //!   (the peers must reach them), and its sockets are not confined to loopback; under `OFF` the
-//!   peers are ignored with a warning, as rcl ignores them. A peer that names no IPv4 address
-//!   (an unknown name, an IPv6 address) is skipped with a warning.
+//!   peers are ignored with a warning, as rcl ignores them. An entry that is neither an address
+//!   nor spelled as a host name, is longer than [`MAX_PEER_LEN`], or names no IPv4 address (an
+//!   unknown name, an IPv6 address) is skipped with a warning that echoes it escaped; more than
+//!   [`MAX_STATIC_PEERS`] entries are refused.
 //!
-//! This module reads variables, resolves peer names, builds the participant and sets socket
-//! options; it must not send or receive anything itself.
+//! This module reads variables, resolves peer names (the system's resolver may ask a DNS
+//! server), builds the participant and sets socket options; it must not send or receive
+//! anything else itself.
 
 use log::{info, warn};
 use rustdds::dds::CreateResult;
