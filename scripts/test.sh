@@ -220,7 +220,9 @@ vendor_tests() {
         endpoints_announce_their_user_data_in_sedp gone_participants_and_endpoints_leave_nothing_behind \
         a_participant_back_within_its_attic_time_gets_its_endpoints_back \
         samples_of_a_lost_participant_leave_built_in_topic_caches \
-        gone_writers_and_forgotten_instances_leave_the_read_state 2>&1 |
+        gone_writers_and_forgotten_instances_leave_the_read_state \
+        spdp_announcements_go_to_static_peers \
+        without_multicast_discovery_no_multicast_locator_is_announced 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"
 }

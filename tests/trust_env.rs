@@ -290,15 +290,31 @@ fn subnet_is_unchanged_and_off_discovers_no_one() {
 }
 
 #[test]
-fn static_peers_are_refused_clearly() {
-    let (code, err, traced) = run_to_exit(&[("ROS_STATIC_PEERS", "192.0.2.1;peer.example")], &[]);
+fn static_peers_are_taken_bad_ones_warned_about_and_too_many_refused() {
+    // Too many: refused before any output is opened, naming the count and the bound.
+    let many: Vec<String> = (1..=33).map(|i| format!("127.0.1.{i}")).collect();
+    let (code, err, traced) = run_to_exit(&[("ROS_STATIC_PEERS", &many.join(";"))], &[]);
     assert_eq!(code, Some(2), "{err}");
     assert!(
-        err.contains("ROS_STATIC_PEERS asks for static peers (192.0.2.1;peer.example)"),
+        err.contains("ROS_STATIC_PEERS names 33 peers; the node takes at most 32"),
         "{err}"
     );
     assert!(!traced, "the output was opened before the refusal");
-    // Under OFF, rcl does not use them either: a warning, and the node starts.
+    // Entries without an IPv4 address are skipped with a warning that echoes them escaped;
+    // the others are used.
+    let dom = Domain::acquire();
+    let node = Spawned::start(
+        &dom,
+        &[(
+            "ROS_STATIC_PEERS",
+            "fe80::1; 127.0.0.1 ;bad\n[ERROR] forged",
+        )],
+    );
+    node.assert_logged("ROS_STATIC_PEERS: peer `fe80::1` skipped: no IPv4 address");
+    node.assert_logged("ROS_STATIC_PEERS: peer `bad\\n[ERROR] forged` skipped");
+    node.assert_logged("static peers: discovery announcements also sent to 127.0.0.1");
+    assert!(!node.log().contains("bad\n"), "{}", node.log());
+    // Under OFF, rcl does not use them: a warning, and the node starts.
     let dom = Domain::acquire();
     let node = Spawned::start(
         &dom,
@@ -308,6 +324,7 @@ fn static_peers_are_refused_clearly() {
         ],
     );
     node.assert_logged("ROS_STATIC_PEERS is ignored");
+    assert!(!node.log().contains("static peers:"), "{}", node.log());
 }
 
 #[test]

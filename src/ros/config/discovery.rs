@@ -1,15 +1,17 @@
 //! How far the node's DDS participant discovers and can be reached: `ROS_AUTOMATIC_DISCOVERY_RANGE`,
 //! `ROS_STATIC_PEERS` and the deprecated `ROS_LOCALHOST_ONLY`, read with rcl's Jazzy rules and
-//! applied to the RustDDS participant, or refused when RustDDS cannot do what they ask.
+//! applied to the RustDDS participant.
 //!
 //! rcl's rules (Jazzy, `rcl/src/rcl/discovery_options.c` and `init.c`):
 //! - `ROS_AUTOMATIC_DISCOVERY_RANGE`: `SUBNET` (also when unset or empty), `LOCALHOST`, `OFF`,
 //!   `SYSTEM_DEFAULT`; any other value is warned about and taken as `LOCALHOST`.
-//! - `ROS_STATIC_PEERS`: addresses separated by `;`, empty items skipped.
+//! - `ROS_STATIC_PEERS`: addresses or host names separated by `;`, empty items skipped; used
+//!   with every range but `OFF`.
 //! - `ROS_LOCALHOST_ONLY=1` is deprecated but honoured: the range becomes `LOCALHOST` and the
 //!   two variables above are ignored, each with a warning.
 //!
-//! What RustDDS 0.15 allows and what this module does with it:
+//! What this module does with them on RustDDS (with the vendored patch's static peers and
+//! discovery without multicast, vendor/rustdds/README.pwm_actuator.md):
 //! - `SUBNET`, `SYSTEM_DEFAULT`: RustDDS's defaults (multicast on every interface).
 //! - `LOCALHOST`: only 127.0.0.1 is advertised and used for multicast, SPDP goes to the
 //!   well-known localhost ports (RustDDS's `same_host_loopback`), and, because RustDDS binds
@@ -18,16 +20,25 @@
 //!   arrived on another interface, and it sends nothing out of one.
 //! - `OFF`: nothing is advertised, no multicast, no localhost announcements, and the sockets
 //!   are confined to loopback as for `LOCALHOST`. The node then discovers no one.
-//! - `ROS_STATIC_PEERS`: RustDDS has no initial-peer list, so a non-empty list is refused
-//!   (under `OFF`, where rcl does not use static peers either, it is ignored with a warning).
+//! - `ROS_STATIC_PEERS`: each peer is resolved to its IPv4 addresses at start-up, and every SPDP
+//!   announcement is also sent unicast to the well-known SPDP ports of participant ids 0..9 of
+//!   the domain on each, as Fast DDS's and Cyclone DDS's initial peers are. With `SUBNET` and
+//!   `SYSTEM_DEFAULT` that is beside multicast; with `LOCALHOST` multicast is off, SPDP goes to
+//!   the localhost ports and the peers, the node advertises its addresses on every interface
+//!   (the peers must reach them), and its sockets are not confined to loopback; under `OFF` the
+//!   peers are ignored with a warning, as rcl ignores them. An entry that is neither an address
+//!   nor spelled as a host name, is longer than [`MAX_PEER_LEN`], or names no IPv4 address (an
+//!   unknown name, an IPv6 address) is skipped with a warning that echoes it escaped; more than
+//!   [`MAX_STATIC_PEERS`] entries are refused.
 //!
-//! This module reads variables, builds the participant and sets socket options; it must not
-//! send or receive anything itself.
+//! This module reads variables, resolves peer names (the system's resolver may ask a DNS
+//! server), builds the participant and sets socket options; it must not send or receive
+//! anything else itself.
 
 use log::{info, warn};
 use rustdds::dds::CreateResult;
 use rustdds::{DomainParticipant, DomainParticipantBuilder};
-use std::net::{IpAddr, Ipv4Addr};
+use std::net::{IpAddr, Ipv4Addr, ToSocketAddrs};
 
 use crate::ros::config::logging::shown;
 
@@ -37,6 +48,11 @@ pub const RANGE_ENV: &str = "ROS_AUTOMATIC_DISCOVERY_RANGE";
 pub const PEERS_ENV: &str = "ROS_STATIC_PEERS";
 /// `ROS_LOCALHOST_ONLY` (deprecated in Jazzy).
 pub const LOCALHOST_ONLY_ENV: &str = "ROS_LOCALHOST_ONLY";
+/// Most entries `ROS_STATIC_PEERS` may name, and most addresses the node sends to (a name
+/// may resolve to several): each address costs ten datagrams per SPDP announcement.
+pub const MAX_STATIC_PEERS: usize = 32;
+/// Longest entry of `ROS_STATIC_PEERS`, in bytes: a DNS name's limit.
+pub const MAX_PEER_LEN: usize = 253;
 
 /// How far automatic discovery goes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -68,6 +84,9 @@ impl Range {
 pub struct Discovery {
     /// The range.
     pub range: Range,
+    /// The static peers' IPv4 addresses, each with the entry of `ROS_STATIC_PEERS` it came
+    /// from; empty under `OFF`.
+    pub peers: Vec<(String, Ipv4Addr)>,
     /// Warnings to log once at start-up (deprecated or ignored variables).
     pub warnings: Vec<String>,
 }
@@ -75,15 +94,15 @@ pub struct Discovery {
 /// What cannot be honoured.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum DiscoveryError {
-    /// `ROS_STATIC_PEERS` names peers, and RustDDS cannot add initial peers.
+    /// `ROS_STATIC_PEERS` names more peers than the node sends to.
     #[error(
-        "{PEERS_ENV} asks for static peers ({peers}) but this node cannot honour it: RustDDS 0.15 \
-         has no list of initial peers, so those peers would never be contacted. Unset \
-         {PEERS_ENV}, or reach those machines by multicast ({RANGE_ENV}=SUBNET)"
+        "{PEERS_ENV} names {count} peers; the node takes at most {MAX_STATIC_PEERS} (each is \
+         sent every discovery announcement ten times). List fewer hosts, or reach them by \
+         multicast ({RANGE_ENV}=SUBNET)"
     )]
-    StaticPeers {
-        /// The peers, escaped and bounded.
-        peers: String,
+    TooManyPeers {
+        /// How many it names.
+        count: usize,
     },
     /// The sockets could not be confined to the loopback device.
     #[error(
@@ -98,11 +117,25 @@ pub enum DiscoveryError {
     },
 }
 
-/// Reads the discovery settings from variables looked up with `var`, with rcl's Jazzy rules.
+/// Reads the discovery settings from variables looked up with `var`, with rcl's Jazzy rules,
+/// resolving peer names with the system's resolver.
 pub fn read(var: impl Fn(&str) -> Option<String>) -> Result<Discovery, DiscoveryError> {
+    read_resolving(var, system_resolve)
+}
+
+/// The IPv4 and IPv6 addresses of `host` from the system's resolver.
+fn system_resolve(host: &str) -> std::io::Result<Vec<IpAddr>> {
+    Ok((host, 0u16).to_socket_addrs()?.map(|a| a.ip()).collect())
+}
+
+/// [`read`], resolving peer names with `resolve`.
+pub fn read_resolving(
+    var: impl Fn(&str) -> Option<String>,
+    resolve: impl Fn(&str) -> std::io::Result<Vec<IpAddr>>,
+) -> Result<Discovery, DiscoveryError> {
     let mut warnings = Vec::new();
     let range_var = var(RANGE_ENV).filter(|v| !v.is_empty());
-    let peers: Vec<String> = var(PEERS_ENV)
+    let names: Vec<String> = var(PEERS_ENV)
         .unwrap_or_default()
         .split(';')
         .map(str::trim)
@@ -114,13 +147,14 @@ pub fn read(var: impl Fn(&str) -> Option<String>) -> Result<Discovery, Discovery
             "{LOCALHOST_ONLY_ENV} is deprecated but still honored if it is enabled. Use \
              {RANGE_ENV} and {PEERS_ENV} instead"
         ));
-        if range_var.is_some() || !peers.is_empty() {
+        if range_var.is_some() || !names.is_empty() {
             warnings.push(format!(
                 "{LOCALHOST_ONLY_ENV}=1: {RANGE_ENV} and {PEERS_ENV} are ignored"
             ));
         }
         return Ok(Discovery {
             range: Range::Localhost,
+            peers: Vec::new(),
             warnings,
         });
     }
@@ -138,18 +172,93 @@ pub fn read(var: impl Fn(&str) -> Option<String>) -> Result<Discovery, Discovery
             Range::Localhost
         }
     };
-    if !peers.is_empty() {
+    let mut peers = Vec::new();
+    if !names.is_empty() {
         if range == Range::Off {
             warnings.push(format!(
                 "{RANGE_ENV}=OFF: {PEERS_ENV} is ignored (no discovery at all)"
             ));
+        } else if names.len() > MAX_STATIC_PEERS {
+            return Err(DiscoveryError::TooManyPeers { count: names.len() });
         } else {
-            return Err(DiscoveryError::StaticPeers {
-                peers: shown(&peers.join(";")),
-            });
+            for name in &names {
+                match peer_addresses(name, &resolve) {
+                    Ok(addrs) => {
+                        let mut dropped = 0usize;
+                        for a in addrs {
+                            if peers.iter().any(|(_, p)| *p == a) {
+                                continue;
+                            }
+                            if peers.len() < MAX_STATIC_PEERS {
+                                peers.push((shown(name), a));
+                            } else {
+                                dropped += 1;
+                            }
+                        }
+                        if dropped > 0 {
+                            warnings.push(format!(
+                                "{PEERS_ENV}: {dropped} address(es) of peer `{}` skipped: the \
+                                 node sends to at most {MAX_STATIC_PEERS} addresses",
+                                shown(name)
+                            ));
+                        }
+                    }
+                    Err(why) => warnings.push(format!(
+                        "{PEERS_ENV}: peer `{}` skipped: {why}",
+                        shown(name)
+                    )),
+                }
+            }
         }
     }
-    Ok(Discovery { range, warnings })
+    Ok(Discovery {
+        range,
+        peers,
+        warnings,
+    })
+}
+
+/// Whether `name` is spelled as a host name: labels of ASCII letters, digits, `-` and `_`
+/// separated by dots.
+fn is_host_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.split('.').all(|l| {
+            !l.is_empty()
+                && l.bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
+        })
+}
+
+/// The IPv4 addresses of one entry of `ROS_STATIC_PEERS`: an address, or a name `resolve`
+/// knows; why none, if none.
+fn peer_addresses(
+    name: &str,
+    resolve: impl Fn(&str) -> std::io::Result<Vec<IpAddr>>,
+) -> Result<Vec<Ipv4Addr>, String> {
+    if name.len() > MAX_PEER_LEN {
+        return Err(format!("longer than {MAX_PEER_LEN} bytes"));
+    }
+    let addrs = match name.parse::<IpAddr>() {
+        Ok(a) => vec![a],
+        // Only what can be a host name goes to the resolver (and so to a DNS server).
+        Err(_) if !is_host_name(name) => return Err("not an address or a host name".to_string()),
+        Err(_) => resolve(name).map_err(|e| format!("cannot be resolved ({e})"))?,
+    };
+    let v4: Vec<Ipv4Addr> = addrs
+        .iter()
+        .filter_map(|a| match a {
+            IpAddr::V4(a) => Some(*a),
+            IpAddr::V6(_) => None,
+        })
+        .collect();
+    if v4.is_empty() {
+        return Err(if addrs.is_empty() {
+            "no address".to_string()
+        } else {
+            "no IPv4 address (the node's DDS transport is IPv4 only)".to_string()
+        });
+    }
+    Ok(v4)
 }
 
 impl Discovery {
@@ -175,8 +284,15 @@ impl Discovery {
         };
         #[cfg(not(feature = "dds-security"))]
         let _ = secure;
+        let peers = self.peers.iter().map(|(_, a)| *a);
         match self.range {
-            Range::Subnet | Range::SystemDefault => b,
+            Range::Subnet | Range::SystemDefault => b.with_static_peers(peers),
+            // This host and the static peers: no multicast, SPDP to the localhost ports and
+            // the peers, the addresses of every interface advertised so the peers can answer.
+            Range::Localhost if self.reaches_peers() => b
+                .multicast_discovery(false)
+                .same_host_loopback(true)
+                .with_static_peers(peers),
             Range::Localhost => b
                 .with_only_networks([IpAddr::V4(Ipv4Addr::LOCALHOST)])
                 .same_host_loopback(true),
@@ -187,12 +303,19 @@ impl Discovery {
         .build()
     }
 
-    /// For `LOCALHOST` and `OFF`, binds every UDP socket the process has to the loopback
-    /// device; call it after the participant and every entity exist (RustDDS opens its
-    /// sockets then). Returns how many sockets were newly confined; 0 for the other ranges.
+    /// Whether SPDP also goes to static peers (there are some, and the range is not `OFF`).
+    pub fn reaches_peers(&self) -> bool {
+        !self.peers.is_empty() && self.range != Range::Off
+    }
+
+    /// For `LOCALHOST` without static peers and `OFF`, binds every UDP socket the process has
+    /// to the loopback device; call it after the participant and every entity exist (RustDDS
+    /// opens its sockets then). Returns how many sockets were newly confined; 0 for the other
+    /// ranges, and for `LOCALHOST` with static peers (they must reach the node).
     pub fn confine(&self) -> Result<usize, DiscoveryError> {
         match self.range {
             Range::Subnet | Range::SystemDefault => Ok(0),
+            Range::Localhost if self.reaches_peers() => Ok(0),
             Range::Localhost | Range::Off => {
                 confine_udp_sockets_to_loopback().map_err(|e| DiscoveryError::Confine {
                     range: self.range.as_str(),
@@ -207,8 +330,27 @@ impl Discovery {
         for w in &self.warnings {
             warn!("{w}");
         }
+        if self.reaches_peers() {
+            let list: Vec<String> = self
+                .peers
+                .iter()
+                .map(|(name, a)| match name.parse::<Ipv4Addr>() {
+                    Ok(_) => a.to_string(),
+                    Err(_) => format!("{a} ({name})"),
+                })
+                .collect();
+            info!(
+                "static peers: discovery announcements also sent to {}{}",
+                list.join(", "),
+                match self.range {
+                    Range::Localhost => "; no multicast, sockets not confined to loopback",
+                    _ => "",
+                }
+            );
+        }
         match self.range {
             Range::Subnet | Range::SystemDefault => {}
+            Range::Localhost if self.reaches_peers() => {}
             Range::Localhost => info!(
                 "discovery range LOCALHOST: advertising 127.0.0.1 only, {confined} UDP sockets \
                  bound to the loopback device"
@@ -355,18 +497,140 @@ mod tests {
         assert!(d.warnings[1].contains("ignored"));
     }
 
+    /// A resolver that knows `robot.local` (IPv4 and IPv6) and `v6only.local`.
+    fn resolve(host: &str) -> std::io::Result<Vec<IpAddr>> {
+        match host {
+            "robot.local" => Ok(vec![
+                "10.0.0.7".parse().unwrap(),
+                "fe80::1".parse().unwrap(),
+                "10.0.0.8".parse().unwrap(),
+            ]),
+            "v6only.local" => Ok(vec!["fe80::2".parse().unwrap()]),
+            "farm.local" => Ok((1..=40)
+                .map(|i| IpAddr::V4(Ipv4Addr::new(10, 9, 0, i)))
+                .collect()),
+            _ => Err(std::io::Error::other("unknown host")),
+        }
+    }
+
+    fn read_peers(vars: &[(&str, &str)]) -> Result<Discovery, DiscoveryError> {
+        read_resolving(
+            |k| {
+                vars.iter()
+                    .find(|(n, _)| *n == k)
+                    .map(|(_, v)| v.to_string())
+            },
+            resolve,
+        )
+    }
+
     #[test]
-    fn static_peers_are_refused_unless_discovery_is_off() {
+    fn static_peers_are_addresses_and_resolved_names() {
         for r in ["", "SUBNET", "LOCALHOST", "SYSTEM_DEFAULT"] {
-            let e =
-                read_with(&[(RANGE_ENV, r), (PEERS_ENV, "192.168.0.1;remote.com")]).unwrap_err();
-            assert!(e.to_string().contains("192.168.0.1;remote.com"), "{e}");
+            let d = read_peers(&[
+                (RANGE_ENV, r),
+                (PEERS_ENV, " 192.168.0.1;robot.local;;10.0.0.7 "),
+            ])
+            .unwrap();
+            let addrs: Vec<String> = d.peers.iter().map(|(_, a)| a.to_string()).collect();
+            // In order, each address once, IPv4 only.
+            assert_eq!(addrs, ["192.168.0.1", "10.0.0.7", "10.0.0.8"], "{r}");
+            assert_eq!(d.peers[1].0, "robot.local");
+            assert!(d.reaches_peers());
+            assert!(d.warnings.is_empty(), "{:?}", d.warnings);
         }
         // Separators alone name no peer.
-        assert!(read_with(&[(PEERS_ENV, " ; ;")]).is_ok());
-        let d = read_with(&[(RANGE_ENV, "OFF"), (PEERS_ENV, "192.168.0.1")]).unwrap();
+        let d = read_peers(&[(PEERS_ENV, " ; ;")]).unwrap();
+        assert!(d.peers.is_empty() && !d.reaches_peers());
+    }
+
+    #[test]
+    fn peers_without_an_ipv4_address_are_skipped_with_a_warning() {
+        let d = read_peers(&[(
+            PEERS_ENV,
+            "nowhere.invalid;v6only.local;fe80::3;10.1.1.1;x\n[ERROR] y",
+        )])
+        .unwrap();
+        assert_eq!(
+            d.peers,
+            [("10.1.1.1".to_string(), Ipv4Addr::new(10, 1, 1, 1))]
+        );
+        assert_eq!(d.warnings.len(), 4, "{:?}", d.warnings);
+        assert!(d.warnings[0].contains("nowhere.invalid") && d.warnings[0].contains("resolved"));
+        assert!(d.warnings[1].contains("IPv4"));
+        assert!(d.warnings[2].contains("fe80::3"));
+        // Not a host name: never given to the resolver, echoed escaped.
+        assert!(
+            d.warnings[3].contains("`x\\n[ERROR] y` skipped: not an address or a host name"),
+            "{:?}",
+            d.warnings
+        );
+        assert!(d.warnings.iter().all(|w| !w.contains('\n')));
+        for name in ["a..b", ".a", "a b", "a/b", "", "a\0b"] {
+            assert!(!is_host_name(name), "{name:?}");
+        }
+        assert!(is_host_name("robot-1.lab_net.local"));
+        let long = "a".repeat(MAX_PEER_LEN + 1);
+        let d = read_peers(&[(PEERS_ENV, &long)]).unwrap();
+        assert!(d.peers.is_empty());
+        assert!(d.warnings[0].contains("longer than"), "{:?}", d.warnings);
+    }
+
+    #[test]
+    fn static_peers_are_bounded_and_ignored_when_discovery_is_off() {
+        let many: Vec<String> = (0..=MAX_STATIC_PEERS)
+            .map(|i| format!("10.0.1.{i}"))
+            .collect();
+        let e = read_peers(&[(PEERS_ENV, &many.join(";"))]).unwrap_err();
+        assert!(
+            e.to_string().contains(&format!("{}", MAX_STATIC_PEERS + 1)),
+            "{e}"
+        );
+        let d = read_peers(&[(RANGE_ENV, "OFF"), (PEERS_ENV, "192.168.0.1")]).unwrap();
         assert_eq!(d.range, Range::Off);
+        assert!(d.peers.is_empty() && !d.reaches_peers());
         assert!(d.warnings[0].contains("ignored"));
+        // As many entries as allowed are all taken.
+        let d = read_peers(&[(PEERS_ENV, &many[..MAX_STATIC_PEERS].join(";"))]).unwrap();
+        assert_eq!(d.peers.len(), MAX_STATIC_PEERS);
+        // A name with more addresses than fit: the first ones are taken, the rest warned about.
+        let d = read_peers(&[(PEERS_ENV, "10.0.0.1;farm.local")]).unwrap();
+        assert_eq!(d.peers.len(), MAX_STATIC_PEERS);
+        assert_eq!(
+            d.peers[1],
+            ("farm.local".to_string(), Ipv4Addr::new(10, 9, 0, 1))
+        );
+        assert_eq!(d.warnings.len(), 1, "{:?}", d.warnings);
+        assert!(d.warnings[0].contains("9 address(es) of peer `farm.local` skipped"));
+    }
+
+    #[test]
+    fn hostile_peer_lists_are_warned_about_bounded_and_never_panic() {
+        // Control characters, a NUL, a very long entry, a huge list of separators: with the
+        // system's resolver (no name here reaches a DNS server: each is refused before).
+        let long = format!("{}\n[ERROR] forged", "h".repeat(100_000));
+        let list = format!("a\0b;{long};10.0.0.5;{}", ";".repeat(1_000_000));
+        let d = read(|k| (k == PEERS_ENV).then(|| list.clone())).unwrap();
+        assert_eq!(
+            d.peers,
+            [("10.0.0.5".to_string(), Ipv4Addr::new(10, 0, 0, 5))]
+        );
+        assert_eq!(d.warnings.len(), 2, "{:?}", d.warnings);
+        for w in &d.warnings {
+            assert!(!w.contains('\n') && !w.contains('\0'), "{w:?}");
+            assert!(w.len() < 400, "{} bytes", w.len());
+        }
+    }
+
+    #[test]
+    fn localhost_with_static_peers_leaves_the_sockets_reachable() {
+        let d = read_peers(&[(RANGE_ENV, "LOCALHOST"), (PEERS_ENV, "10.0.0.9")]).unwrap();
+        assert_eq!(d.range, Range::Localhost);
+        // Nothing is confined: the peers must reach the node's unicast sockets.
+        let udp = std::net::UdpSocket::bind("0.0.0.0:0").unwrap();
+        use std::os::fd::AsRawFd;
+        assert_eq!(d.confine().unwrap(), 0);
+        assert!(!bound_to_device(udp.as_raw_fd()));
     }
 
     #[test]
@@ -377,6 +641,7 @@ mod tests {
         assert!(!bound_to_device(udp.as_raw_fd()));
         let d = Discovery {
             range: Range::Localhost,
+            peers: vec![],
             warnings: vec![],
         };
         match d.confine() {

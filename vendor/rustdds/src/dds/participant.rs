@@ -37,7 +37,7 @@ use crate::{
     discovery_db::DiscoveryDB,
     sedp_messages::{DiscoveredReaderData, DiscoveredTopicData, DiscoveredWriterData},
   },
-  network::{constant::*, udp_listener::UDPListener},
+  network::{constant::*, udp_listener::UDPListener, util::DiscoveryReach},
   polling::{
     ready_channel, wake_channel, wake_channel_unbounded, LoopWaker, ReadySender, WakeReceiver,
     WakeSender, WakeUnboundedSender,
@@ -78,6 +78,8 @@ pub struct DomainParticipantBuilder {
 
   same_host_loopback: bool, // prefer loopback for same-host peers + localhost SPDP discovery peers
 
+  reach: DiscoveryReach, // static peers, and whether multicast is used
+
   socket_receive_buffer_size: usize,
   socket_send_buffer_size: usize,
 
@@ -93,6 +95,7 @@ impl DomainParticipantBuilder {
       domain_id,
       only_networks: None,
       same_host_loopback: true,
+      reach: DiscoveryReach::default(),
       socket_receive_buffer_size: Self::DEFAULT_SOCKET_RECEIVE_BUFFER_SIZE,
       socket_send_buffer_size: Self::DEFAULT_SOCKET_SEND_BUFFER_SIZE,
       #[cfg(feature = "security")]
@@ -126,6 +129,26 @@ impl DomainParticipantBuilder {
   /// `src/rtps/loopback_same_host_design.md`.
   pub fn same_host_loopback(mut self, enabled: bool) -> Self {
     self.same_host_loopback = enabled;
+    self
+  }
+
+  /// Static discovery peers (the "initial peers" of other DDS
+  /// implementations, ROS 2's `ROS_STATIC_PEERS`): every SPDP announcement is
+  /// also sent unicast to each of these hosts, to the well-known metatraffic
+  /// unicast port of participant ids `0..SPDP_STATIC_PEER_PARTICIPANTS` of this
+  /// domain, so participants there discover this one where multicast does not
+  /// reach. Replaces any list given before; default: none.
+  pub fn with_static_peers(mut self, peers: impl IntoIterator<Item = Ipv4Addr>) -> Self {
+    self.reach.static_peers = peers.into_iter().collect();
+    self
+  }
+
+  /// Whether SPDP uses multicast (default: yes). Without it no multicast
+  /// listener is opened and no multicast locator advertised, so discovery goes
+  /// only to the static peers and, with `same_host_loopback`, the localhost
+  /// peers.
+  pub fn multicast_discovery(mut self, enabled: bool) -> Self {
+    self.reach.multicast = enabled;
     self
   }
 
@@ -344,6 +367,7 @@ impl DomainParticipantBuilder {
       self.socket_send_buffer_size,
       self.only_networks,
       self.same_host_loopback,
+      self.reach,
       dp_waker,
       discovery_sample_sender,
     )?;
@@ -977,6 +1001,7 @@ impl DomainParticipantDisc {
     socket_send_buffer_size: usize,
     only_networks: Option<Vec<IpAddr>>,
     same_host_loopback: bool,
+    reach: DiscoveryReach,
     dp_waker: LoopWaker,
     discovery_sample_sender: ReadySender<mio1::Token>,
   ) -> CreateResult<Self> {
@@ -994,6 +1019,7 @@ impl DomainParticipantDisc {
       socket_send_buffer_size,
       only_networks,
       same_host_loopback,
+      reach,
       dp_waker,
       discovery_sample_sender,
     )?;
@@ -1236,6 +1262,7 @@ impl DomainParticipantInner {
     socket_send_buffer_size: usize,
     only_networks: Option<Vec<IpAddr>>,
     same_host_loopback: bool,
+    reach: DiscoveryReach,
     dp_waker: LoopWaker,
     discovery_sample_sender: ReadySender<mio1::Token>,
   ) -> CreateResult<Self> {
@@ -1246,17 +1273,21 @@ impl DomainParticipantInner {
 
     let mut listeners = HashMap::new();
 
-    match UDPListener::new_multicast_with_buf_size(
-      "0.0.0.0",
-      spdp_well_known_multicast_port(domain_id),
-      Ipv4Addr::new(239, 255, 0, 1),
-      socket_receive_buffer_size,
-      only_networks.as_deref(),
-    ) {
-      Ok(l) => {
-        listeners.insert(DISCOVERY_MUL_LISTENER_TOKEN, l);
+    // Without multicast discovery no multicast listener is opened, so none is
+    // joined or advertised.
+    if reach.multicast {
+      match UDPListener::new_multicast_with_buf_size(
+        "0.0.0.0",
+        spdp_well_known_multicast_port(domain_id),
+        Ipv4Addr::new(239, 255, 0, 1),
+        socket_receive_buffer_size,
+        only_networks.as_deref(),
+      ) {
+        Ok(l) => {
+          listeners.insert(DISCOVERY_MUL_LISTENER_TOKEN, l);
+        }
+        Err(e) => warn!("Cannot get multicast discovery listener: {e:?}"),
       }
-      Err(e) => warn!("Cannot get multicast discovery listener: {e:?}"),
     }
 
     let mut participant_id = 0;
@@ -1288,17 +1319,19 @@ impl DomainParticipantInner {
 
     // Now the user traffic listeners
 
-    match UDPListener::new_multicast_with_buf_size(
-      "0.0.0.0",
-      user_traffic_multicast_port(domain_id),
-      Ipv4Addr::new(239, 255, 0, 1),
-      socket_receive_buffer_size,
-      only_networks.as_deref(),
-    ) {
-      Ok(l) => {
-        listeners.insert(USER_TRAFFIC_MUL_LISTENER_TOKEN, l);
+    if reach.multicast {
+      match UDPListener::new_multicast_with_buf_size(
+        "0.0.0.0",
+        user_traffic_multicast_port(domain_id),
+        Ipv4Addr::new(239, 255, 0, 1),
+        socket_receive_buffer_size,
+        only_networks.as_deref(),
+      ) {
+        Ok(l) => {
+          listeners.insert(USER_TRAFFIC_MUL_LISTENER_TOKEN, l);
+        }
+        Err(e) => warn!("Cannot get multicast user traffic listener: {e:?}"),
       }
-      Err(e) => warn!("Cannot get multicast user traffic listener: {e:?}"),
     }
 
     let user_traffic_listener = UDPListener::new_unicast_with_buf_size(
@@ -1412,6 +1445,7 @@ impl DomainParticipantInner {
           only_networks_for_ev_loop,
           socket_send_buffer_size,
           same_host_loopback,
+          reach,
           reader_ready_rx,
           writer_ready_rx,
           dp_waker,
@@ -1880,5 +1914,106 @@ mod tests {
     let socket_address = SocketAddrV4::new(ip, port_number);
     let locators = vec![Locator::UdpV4(socket_address)];
     sender.send_to_locator_list(&_data, &locators);
+  }
+
+  /// The first datagram from the participant with `prefix` that arrives on `socket`
+  /// carrying a DATA of the SPDP writer, within `within`.
+  fn spdp_announcement_of(
+    socket: &std::net::UdpSocket,
+    prefix: &[u8],
+    within: std::time::Duration,
+  ) -> Option<Vec<u8>> {
+    let end = std::time::Instant::now() + within;
+    let mut buf = vec![0u8; 65536];
+    while std::time::Instant::now() < end {
+      socket
+        .set_read_timeout(Some(std::time::Duration::from_millis(200)))
+        .unwrap();
+      let Ok(n) = socket.recv(&mut buf) else {
+        continue;
+      };
+      let d = &buf[..n];
+      let spdp_writer = [0x00, 0x01, 0x00, 0xc2];
+      if d.len() > 20
+        && &d[..4] == b"RTPS"
+        && &d[8..20] == prefix
+        && d.windows(4).any(|w| w == spdp_writer)
+      {
+        return Some(d.to_vec());
+      }
+    }
+    None
+  }
+
+  #[test]
+  fn spdp_announcements_go_to_static_peers() {
+    // The peer: another loopback address, on the SPDP unicast port of participant
+    // id 1 of the domain (not only the first id is reached).
+    let domain = test_domain_id(22);
+    let peer = std::net::Ipv4Addr::new(127, 0, 0, 2);
+    let socket =
+      std::net::UdpSocket::bind((peer, spdp_well_known_unicast_port(domain, 1))).unwrap();
+    let dp = super::DomainParticipantBuilder::new(domain)
+      .same_host_loopback(false)
+      .with_static_peers([peer])
+      .build()
+      .unwrap();
+    let prefix = crate::structure::entity::RTPSEntity::guid(&dp).prefix.bytes;
+    let got = spdp_announcement_of(&socket, &prefix, std::time::Duration::from_secs(10));
+    assert!(
+      got.is_some(),
+      "no SPDP announcement reached the static peer"
+    );
+    drop(dp);
+    // Without static peers nothing is sent there.
+    let dp = super::DomainParticipantBuilder::new(domain)
+      .same_host_loopback(false)
+      .build()
+      .unwrap();
+    let prefix = crate::structure::entity::RTPSEntity::guid(&dp).prefix.bytes;
+    let got = spdp_announcement_of(&socket, &prefix, std::time::Duration::from_secs(3));
+    assert!(
+      got.is_none(),
+      "an SPDP announcement reached a host that is no peer"
+    );
+  }
+
+  #[test]
+  fn without_multicast_discovery_no_multicast_locator_is_announced() {
+    // PID_METATRAFFIC_MULTICAST_LOCATOR (0x0033) and PID_DEFAULT_MULTICAST_LOCATOR
+    // (0x0048), little endian, each with its 24-byte locator.
+    let has_multicast_locator = |d: &[u8]| {
+      d.windows(4)
+        .any(|w| w == [0x33, 0x00, 0x18, 0x00] || w == [0x48, 0x00, 0x18, 0x00])
+    };
+    let domain = test_domain_id(23);
+    let peer = std::net::Ipv4Addr::new(127, 0, 0, 3);
+    let socket =
+      std::net::UdpSocket::bind((peer, spdp_well_known_unicast_port(domain, 0))).unwrap();
+    let announce = |multicast: bool| {
+      let dp = super::DomainParticipantBuilder::new(domain)
+        .same_host_loopback(false)
+        .multicast_discovery(multicast)
+        .with_static_peers([peer])
+        .build()
+        .unwrap();
+      let prefix = crate::structure::entity::RTPSEntity::guid(&dp).prefix.bytes;
+      spdp_announcement_of(&socket, &prefix, std::time::Duration::from_secs(10))
+        .expect("no SPDP announcement reached the static peer")
+    };
+    let without = announce(false);
+    assert!(!has_multicast_locator(&without), "{without:02x?}");
+    // With multicast (where this machine has a multicast-capable interface) the same
+    // announcement names its multicast locators: the check above can see them.
+    let probe = crate::network::udp_listener::UDPListener::new_multicast(
+      "0.0.0.0",
+      spdp_well_known_unicast_port(domain, 60),
+      std::net::Ipv4Addr::new(239, 255, 0, 1),
+    )
+    .and_then(|l| l.to_locator_address(None));
+    if probe.is_ok_and(|locators| !locators.is_empty()) {
+      let with = announce(true);
+      assert!(has_multicast_locator(&with), "{with:02x?}");
+    }
   }
 }

@@ -32,3 +32,10 @@ pub const fn user_traffic_unicast_port(domain_id: u16, participant_id: u16) -> u
 /// multicast on the loopback interface is unavailable (the Linux default for
 /// `lo`). See `src/rtps/loopback_same_host_design.md`.
 pub const SPDP_LOCALHOST_PEER_COUNT: u16 = 12;
+
+/// Number of participant ids whose well-known SPDP unicast port is sent every
+/// announcement on each static peer (`DomainParticipantBuilder::with_static_peers`):
+/// ids `0..SPDP_STATIC_PEER_PARTICIPANTS`, as Cyclone DDS's default
+/// `MaxAutoParticipantIndex` (9) reaches; Fast DDS's `maxInitialPeersRange`
+/// default is 4.
+pub const SPDP_STATIC_PEER_PARTICIPANTS: u16 = 10;

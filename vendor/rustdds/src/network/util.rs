@@ -177,6 +177,46 @@ pub fn localhost_spdp_peer_locators(
     .collect()
 }
 
+/// How far SPDP reaches beyond multicast: the static peers every announcement
+/// is also sent to, and whether multicast is used at all
+/// (`DomainParticipantBuilder::with_static_peers` / `multicast_discovery`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DiscoveryReach {
+  /// Hosts sent every SPDP announcement by unicast.
+  pub static_peers: Vec<Ipv4Addr>,
+  /// Whether multicast listeners are opened (and so multicast used).
+  pub multicast: bool,
+}
+
+impl Default for DiscoveryReach {
+  fn default() -> Self {
+    DiscoveryReach {
+      static_peers: Vec::new(),
+      multicast: true,
+    }
+  }
+}
+
+/// The SPDP destinations of the static `peers`: the well-known metatraffic
+/// unicast port of participant ids `0..participants` of `domain_id` on each.
+pub fn static_peer_spdp_locators(
+  domain_id: u16,
+  peers: &[Ipv4Addr],
+  participants: u16,
+) -> Vec<Locator> {
+  peers
+    .iter()
+    .flat_map(|peer| {
+      (0..participants).map(move |pid| {
+        Locator::from(SocketAddr::new(
+          IpAddr::V4(*peer),
+          crate::network::constant::spdp_well_known_unicast_port(domain_id, pid),
+        ))
+      })
+    })
+    .collect()
+}
+
 pub fn get_local_unicast_locators_filtered(
   port: u16,
   only_networks: Option<&[IpAddr]>,
