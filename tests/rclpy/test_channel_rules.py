@@ -312,7 +312,8 @@ def test_suppress_short_pulse_and_short_break(node_process, ros):
     st = ch.wait_status(lambda s: s.rule == "suppressed_pulse", "10 % suppressed")
     assert (st.e1, st.min_time_limited, st.output, st.duty_applied) == (True, False, False, 0.0)
     assert close(st.duty_commanded, 10.0), st
-    diag = ch.wait_diag(lambda d: diag_level(d) == WARN, "WARN for E1")
+    diag = ch.wait_diag(lambda d: diag_level(d) == WARN and diag_values(d)["e1"] == "true",
+                        "WARN for E1")
     assert "E1" in diag.message and diag_values(diag)["e1"] == "true", diag
     # A subscriber that joins now, long after E1 was set, gets the current state at once.
     late = ros.subscribe(Bool, f"{NODE}/pw01/e1", E1_QOS)
@@ -357,7 +358,10 @@ def test_stretch_raises_pulse_to_min_on(node_process, ros):
     assert (st.e1, st.min_time_limited, st.on_time_ms, st.off_time_ms) == (True, True, 30.0, 170.0)
     assert close(st.duty_applied, 15.0) and close(st.duty_commanded, 5.0), st
     ch.wait_e1(True, "5 % stretched")
-    diag = ch.wait_diag(lambda d: diag_level(d) == WARN, "WARN for the limit")
+    diag = ch.wait_diag(
+        lambda d: diag_level(d) == WARN and diag_values(d)["min_time_limited"] == "true",
+        "WARN for the limit",
+    )
     assert diag_values(diag)["min_time_limited"] == "true", diag
     t0 = mono_ns()
     edges = wait_trace(proc, lambda es: len(pulses(after(es, t0))) >= 3, "3 stretched pulses",
@@ -789,11 +793,19 @@ def test_watchdog_switches_off_at_the_deadline_and_recovers(node_process, ros):
     period, timeout = 200, 1000
     proc, ch = start(node_process, ros, pw01__period_ms=period, pw01__enable=True,
                      pw01__command_timeout_ms=timeout)
+    # The channel was enabled at start-up with no command: the watchdog has tripped then, at 0 %
+    # commanded. Only an ERROR at 100 % commanded, after the command, is the trip it causes.
+    diag_from = len(ch.diagnostics.messages)
     first = ch.duty(100.0, confirm=lambda s: s.duty_commanded == 100.0 and not s.watchdog_tripped)
     tripped = ch.wait_status(lambda s: s.watchdog_tripped, "watchdog tripped",
                              start=len(ch.status.messages))
     assert not tripped.output and not tripped.active, tripped
-    d = ch.wait_diag(lambda d: diag_level(d) == ERROR, "ERROR for the watchdog")
+    assert tripped.duty_commanded == 100.0, tripped
+    d = ch.wait_diag(
+        lambda d: diag_level(d) == ERROR and diag_values(d)["duty_commanded_pct"] == "100.000",
+        "ERROR for the watchdog after the command",
+        start=diag_from,
+    )
     assert diag_values(d)["watchdog_tripped"] == "true" and "watchdog" in d.message, d
     t_quiet = mono_ns()
     observe_until(ch, t_quiet + 3 * period * MS)
