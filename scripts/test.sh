@@ -84,6 +84,23 @@ fi
 release_ok=1
 run_step "cargo build --release" cargo build --release --bins --locked || release_ok=0
 
+# 3b. The shell blocks of README.md and docs/*.md marked runnable here
+# (scripts/check-doc-commands.py): each must exit 0; the others are listed with the reason they
+# cannot run here (hardware, the ros2 command line, runs of minutes) and counted as skipped.
+doc_commands() {
+    python3 scripts/check-doc-commands.py 2>&1 | tee "$LOG_DIR/doc-commands.log"
+    return "${PIPESTATUS[0]}"
+}
+if ((release_ok)); then
+    run_step "doc commands" doc_commands
+    read -r d_pass d_fail d_skip < <(sed -n 's/^doc commands: \([0-9]*\) passed, \([0-9]*\) failed, \([0-9]*\) not runnable here$/\1 \2 \3/p' \
+        "$LOG_DIR/doc-commands.log" | tail -n1 | grep . || echo "0 1 0")
+    passed=$((passed + d_pass)) failed=$((failed + d_fail)) skipped=$((skipped + d_skip))
+else
+    failed=$((failed + 1))
+    failed_steps+=("doc commands (no release build)")
+fi
+
 # 4. Rust tests, every test binary even after a failure. The full output goes to the console
 # and to a log; the per-binary result lines are counted afterwards.
 # shellcheck disable=SC2317  # called through run_step
