@@ -65,9 +65,10 @@ scripts/gpio-vm.sh --timeout "$timeout_s" -- tests/gpio_vm/guest.sh "$test_bin" 
     "$REPO/target/release/pwm_actuator_node" 2>&1 | tee "$log"
 rc=${PIPESTATUS[0]}
 echo "---- gpio-vm run: exit $rc ($((SECONDS - start)) s)"
-# The Rust test: its libtest summary; the node checks: their own summary line.
+# The Rust test: its libtest summary; the node checks: one PASS or FAIL line each, so those
+# that ended before a hang are counted too.
 read -r g_pass g_fail < <(awk '/^test result: /{for(i=1;i<=NF;i++){if($(i+1)~/^passed;?$/)p+=$i; if($(i+1)~/^failed;?$/)f+=$i}} END{print p+0, f+0}' "$log")
-read -r n_pass n_fail < <(sed -n 's/^gpio-vm checks: \([0-9]*\) passed, \([0-9]*\) failed.*/\1 \2/p' "$log" | tail -n1 | grep . || echo "0 0")
+read -r n_pass n_fail < <(awk '/^PASS /{p++} /^FAIL /{f++} END{print p+0, f+0}' "$log")
 # What reported no result counts as failed: the guest stopped under it, or it never ran.
 g_missing=$((1 - g_pass - g_fail)) n_missing=$((checks - n_pass - n_fail))
 ((g_missing < 0)) && g_missing=0
