@@ -16,8 +16,11 @@
 #
 # Everything built is cached in .gpio-vm/ (git-ignored) and rebuilt when an input changes: the
 # kernel version, the module sources, busybox, or the parts of this script that build them.
-# Debian packages are installed with apt-get when missing. Exit status: COMMAND's, or 125 when
-# the guest could not be prepared or did not report one (the reason is printed).
+# Debian packages are installed with apt-get when missing. Exit status: COMMAND's; 124 when the
+# guest did not finish within the timeout (it was killed: a hang, never a skip); 125 when the
+# guest could not be prepared or ended without reporting a status; 120 when this machine cannot
+# run it at all (not Debian, or packages missing and not root to install them). The reason is
+# printed.
 
 set -euo pipefail
 
@@ -28,19 +31,27 @@ TIMEOUT=300
 PREPARE_ONLY=0
 # Exit status when the guest itself could not run (distinct from the command's own statuses).
 NO_GUEST=125
+# Exit status when the guest ran out of time and was killed (timeout(1)'s own).
+HUNG=124
+# Exit status when this machine cannot run the guest at all (nothing failed).
+NOT_HERE=120
 
 die() {
     echo "gpio-vm: $*" >&2
     exit "$NO_GUEST"
 }
 say() { echo "gpio-vm: $*" >&2; }
+not_here() {
+    echo "gpio-vm: cannot run on this machine: $*" >&2
+    exit "$NOT_HERE"
+}
 
 while (($#)); do
     case "$1" in
         --lines) LINES=${2:?--lines needs a number}; shift ;;
         --timeout) TIMEOUT=${2:?--timeout needs seconds}; shift ;;
         --prepare) PREPARE_ONLY=1 ;;
-        -h | --help) sed -n '2,20p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h | --help) sed -n '2,23p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
         --) shift; break ;;
         -*) die "unknown option '$1' (try --help)" ;;
         *) break ;;
@@ -57,7 +68,7 @@ fi
 
 apt_updated=0
 apt_install() {
-    ((EUID == 0)) || die "needs Debian packages ($*) and is not root: install them first"
+    ((EUID == 0)) || not_here "needs Debian packages ($*) and is not root: install them first"
     if ((!apt_updated)); then
         say "apt-get update"
         apt-get update -qq >&2 || die "apt-get update failed"
@@ -68,7 +79,7 @@ apt_install() {
         || die "apt-get install $* failed"
 }
 
-command -v apt-get >/dev/null || die "needs apt-get (Debian 12)"
+command -v apt-get >/dev/null || not_here "needs apt-get (Debian 12)"
 missing=()
 command -v qemu-system-x86_64 >/dev/null || missing+=(qemu-system-x86)
 [[ -x /bin/busybox ]] || missing+=(busybox-static)
@@ -288,6 +299,7 @@ if [[ -f "$RUN/status" ]]; then
     exit "$status"
 fi
 if ((qemu_rc == 124 || qemu_rc == 137)); then
-    die "the guest did not finish within ${TIMEOUT} s (killed)"
+    say "the guest did not finish within ${TIMEOUT} s (killed)"
+    exit "$HUNG"
 fi
 die "the guest ended without reporting the command's status (qemu exit $qemu_rc)"

@@ -180,7 +180,13 @@ async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
         "{:?}",
         d.values
     );
-    let s = next(&status, LONG).await.expect("status still published");
+    // A status sent after the refusals were reported, not one queued from before them.
+    let reported = a.header.stamp.to_nanos();
+    let s = wait_for(&status, LONG, |s: &ChannelStatus| {
+        s.stamp.to_nanos() > reported
+    })
+    .await
+    .expect("status still published after the refusals");
     assert_eq!(s.duty_commanded, 40.0, "the last good command is in force");
     assert!(node
         .log()
@@ -231,6 +237,14 @@ async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
     node.stop_ok();
 }
 
+/// Wall-clock time now, ns since the Unix epoch (the clock of the node's stamps).
+fn wall_ns() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as i64
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_watchdog_trips_to_error() {
     let node = NodeProc::launch(&ros_params(&[
@@ -250,14 +264,49 @@ async fn the_watchdog_trips_to_error() {
         .await
         .expect("enabled");
     ros.matched(&duty).await;
-    let _ = duty.publish(Float64 { data: 50.0 });
-    // No further command: after 300 ms the watchdog forces the output off.
+    // The watchdog counts from the channel's creation, so it has tripped before now: the duty
+    // command recovers it, and only a trip after that recovery is the one it must cause.
+    let trips_before = node.log().matches("watchdog tripped").count();
+    let mut sent = 0;
+    let mut recovered = None;
+    for _ in 0..10 {
+        sent = wall_ns();
+        let _ = duty.publish(Float64 { data: 50.0 });
+        recovered = wait_for(&status, Duration::from_secs(1), |s: &ChannelStatus| {
+            s.duty_commanded == 50.0 && !s.watchdog_tripped
+        })
+        .await;
+        if recovered.is_some() {
+            break;
+        }
+    }
+    let recovered = recovered.expect("the duty command recovers the watchdog");
+    // No further command: 300 ms after the node took it (after it was sent), the watchdog
+    // forces the output off.
     let s = wait_for(&status, LONG, |s: &ChannelStatus| s.watchdog_tripped)
         .await
-        .expect("watchdog trips");
+        .expect("watchdog trips after the command");
     assert!(!s.active);
-    let a = pw01_until(&diag, "ERROR", |d| d.level == DiagnosticStatus::ERROR).await;
+    assert_eq!(s.duty_commanded, 50.0);
+    let after_ms = (s.stamp.to_nanos() - sent) as f64 / 1e6;
+    assert!(
+        (300.0..2300.0).contains(&after_ms),
+        "tripped {after_ms:.1} ms after the command was sent, expected 300 ms after it was taken"
+    );
+    let a = pw01_until(&diag, "ERROR after the command", |d| {
+        d.level == DiagnosticStatus::ERROR && kv(d, "duty_commanded_pct") == "50.000"
+    })
+    .await;
+    assert!(a.header.stamp.to_nanos() >= recovered.stamp.to_nanos());
     assert!(pw01_diag(&a).unwrap().message.starts_with("watchdog"));
-    assert!(node.wait_log("watchdog tripped", LONG));
+    let end = std::time::Instant::now() + LONG;
+    while node.log().matches("watchdog tripped").count() <= trips_before {
+        assert!(
+            std::time::Instant::now() < end,
+            "no log line for the trip after the command:\n{}",
+            node.log()
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
     node.stop_ok();
 }

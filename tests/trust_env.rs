@@ -168,17 +168,21 @@ impl Spawned {
         assert!(log.contains(needle), "{needle:?} not in:\n{log}");
     }
 
-    /// The local addresses of the node's UDP sockets, as `ss` shows them (`0.0.0.0%lo:7400`).
-    fn udp_sockets(&self) -> Option<Vec<String>> {
-        let out = Command::new("ss").args(["-H", "-uanp"]).output().ok()?;
+    /// The node's UDP sockets as `ss` shows their local address (`0.0.0.0%lo:7400`: bound to
+    /// the loopback device). Only `ss` (iproute2, over sock_diag) shows the device a socket is
+    /// bound to, so a machine without it fails these tests, saying so, rather than skip them.
+    fn udp_sockets(&self) -> Vec<String> {
+        let out = Command::new("ss")
+            .args(["-H", "-uanp"])
+            .output()
+            .unwrap_or_else(|e| panic!("`ss` (iproute2) is needed to see the node's sockets: {e}"));
+        assert!(out.status.success(), "ss -H -uanp: {out:?}");
         let pid = format!("pid={},", self.child.id());
-        Some(
-            String::from_utf8_lossy(&out.stdout)
-                .lines()
-                .filter(|l| l.contains(&pid))
-                .filter_map(|l| l.split_whitespace().nth(3).map(str::to_string))
-                .collect(),
-        )
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .filter(|l| l.contains(&pid))
+            .filter_map(|l| l.split_whitespace().nth(3).map(str::to_string))
+            .collect()
     }
 }
 
@@ -233,10 +237,7 @@ fn localhost_binds_every_socket_to_loopback_and_still_talks_on_this_machine() {
     ] {
         let dom = Domain::acquire();
         let node = Spawned::start(&dom, &env);
-        let Some(socks) = node.udp_sockets() else {
-            eprintln!("skipped: `ss` is not available");
-            return;
-        };
+        let socks = node.udp_sockets();
         assert!(socks.len() >= 4, "{env:?}: {socks:?}\n{}", node.log());
         for s in &socks {
             assert!(
@@ -248,7 +249,11 @@ fn localhost_binds_every_socket_to_loopback_and_still_talks_on_this_machine() {
         // A participant on this machine still discovers it and hears it.
         assert!(heard_from(&dom, LONG), "{env:?}: {}", node.log());
         // Having matched a peer opened no socket outside loopback.
-        let after = node.udp_sockets().unwrap_or_default();
+        let after = node.udp_sockets();
+        assert!(
+            !after.is_empty(),
+            "{env:?}: no UDP socket after matching a peer"
+        );
         assert!(
             after
                 .iter()
@@ -270,17 +275,20 @@ fn localhost_binds_every_socket_to_loopback_and_still_talks_on_this_machine() {
 fn subnet_is_unchanged_and_off_discovers_no_one() {
     let dom = Domain::acquire();
     let node = Spawned::start(&dom, &[("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET")]);
-    if let Some(socks) = node.udp_sockets() {
-        assert!(socks.iter().any(|s| s.starts_with("0.0.0.0:")), "{socks:?}");
-    }
+    let socks = node.udp_sockets();
+    assert!(socks.iter().any(|s| s.starts_with("0.0.0.0:")), "{socks:?}");
     assert!(heard_from(&dom, LONG), "{}", node.log());
     drop(node);
 
     let dom = Domain::acquire();
     let node = Spawned::start(&dom, &[("ROS_AUTOMATIC_DISCOVERY_RANGE", "OFF")]);
-    if let Some(socks) = node.udp_sockets() {
-        assert!(socks.iter().all(|s| s.contains("%lo:")), "{socks:?}");
-    }
+    let socks = node.udp_sockets();
+    assert!(
+        !socks.is_empty(),
+        "OFF: the node has no UDP socket\n{}",
+        node.log()
+    );
+    assert!(socks.iter().all(|s| s.contains("%lo:")), "{socks:?}");
     node.assert_logged("discovery range OFF");
     assert!(
         !heard_from(&dom, Duration::from_secs(4)),

@@ -3,14 +3,36 @@
 # backend's integration test (tests/output_gpio_sim.rs, built by cargo on the host) and the
 # node-level checks of the release binary, both on the guest's gpio-sim chip.
 #
-# Usage: tests/gpio_vm/guest.sh GPIO_SIM_TEST_BINARY NODE_BINARY
-# Exit status 0 when both passed.
+# Usage: tests/gpio_vm/guest.sh GPIO_SIM_TEST_BINARY NODE_BINARY [TEST_FILTER]
+#   TEST_FILTER  libtest's name filter for the binary (e.g. `output_gpio_sim::`), when the
+#                binary holds other tests too
+# Exit status 0 when both passed. Each part has a time limit of its own (PART_TIMEOUT_S): a part
+# that hangs is killed, said to have hung, and counted failed, and the other part still runs.
 set -u
-test_bin=$1 node=$2
+test_bin=$1 node=$2 filter=${3:-}
 here=$(dirname "$0")
+# Each part takes under 2 minutes on an idle machine; this leaves room for a loaded one.
+PART_TIMEOUT_S=420
 rc=0
+
+# part NAME COMMAND...: runs COMMAND under the time limit; says so if it hung.
+part() {
+    name=$1
+    shift
+    timeout -k 5 "$PART_TIMEOUT_S" "$@"
+    status=$?
+    if [ "$status" -eq 124 ] || [ "$status" -eq 137 ]; then
+        echo "== $name: HUNG: killed after $PART_TIMEOUT_S s"
+    fi
+    [ "$status" -eq 0 ] || rc=1
+}
+
 echo "== tests/output_gpio_sim.rs on $GPIO_SIM_CHIP"
-"$test_bin" --ignored --test-threads=1 || rc=1
+if [ -n "$filter" ]; then
+    part output_gpio_sim "$test_bin" --ignored --test-threads=1 "$filter"
+else
+    part output_gpio_sim "$test_bin" --ignored --test-threads=1
+fi
 echo "== node checks ($node)"
-/usr/bin/python3 "$here/node_checks.py" "$node" || rc=1
+part "node checks" /usr/bin/python3 "$here/node_checks.py" "$node"
 exit $rc

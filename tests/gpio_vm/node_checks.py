@@ -555,6 +555,83 @@ def heartbeat_toggles_and_stops_on_sigstop():
             f"{len(resumed)} after SIGCONT, inactive at the end")
 
 
+_libc = None
+PTRACE_DETACH, PTRACE_SEIZE, PTRACE_INTERRUPT = 17, 0x4206, 0x4207
+WALL = 0x40000000
+
+
+def ptrace(request, tid):
+    global _libc
+    if _libc is None:
+        import ctypes
+
+        _libc = ctypes.CDLL(None, use_errno=True)
+        _libc.ptrace.argtypes = [ctypes.c_long, ctypes.c_long, ctypes.c_void_p, ctypes.c_void_p]
+    if _libc.ptrace(request, tid, None, None) != 0:
+        import ctypes
+
+        raise OSError(ctypes.get_errno(), f"ptrace {request:#x} on thread {tid}")
+
+
+def thread_states(pid):
+    """{thread name: [state letters]} of process `pid` (/proc/PID/task/*/stat)."""
+    states = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        stat = open(f"/proc/{pid}/task/{tid}/stat").read()
+        name = stat[stat.index("(") + 1:stat.rindex(")")]
+        states.setdefault(name, []).append(stat[stat.rindex(")") + 2])
+    return states
+
+
+def output_thread(pid):
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        if open(f"/proc/{pid}/task/{tid}/comm").read().strip() == "pwm-output":
+            return int(tid)
+    raise CheckFailed("no pwm-output thread in the node")
+
+
+def heartbeat_stops_while_the_output_thread_alone_hangs():
+    """heartbeat_line at 10 Hz; the output thread alone stopped with ptrace (as a write stuck in
+    a driver or a starved thread stops it), every other thread of the node running: not one
+    toggle while it is stopped, toggling again once it runs."""
+    hb = Line(6)
+    hb.set_pull(False)
+    p = node([("pw01", 4)], ["heartbeat_line:=6", f"heartbeat_chip:={CHIP}",
+                             "heartbeat_hz:=10.0"])
+    tid = None
+    try:
+        wait_level(p, hb, True)
+        running = toggles(levels_for(hb, 1.0))
+        require(len(running) >= 12, f"{len(running)} toggles in 1 s at 10 Hz before the stop")
+        tid = output_thread(p.pid)
+        ptrace(PTRACE_SEIZE, tid)
+        ptrace(PTRACE_INTERRUPT, tid)
+        os.waitpid(tid, WALL)
+        stopped = toggles(levels_for(hb, 1.5))
+        states = thread_states(p.pid)
+        require(states.get("pwm-output") == ["t"], f"output thread not stopped: {states}")
+        others = [s for name, ss in states.items() if name != "pwm-output" for s in ss]
+        require(others and "t" not in others and p.poll() is None,
+                f"the rest of the node not running while the output thread was stopped: {states}")
+        ptrace(PTRACE_DETACH, tid)
+        tid = None
+        require(not stopped, f"{len(stopped)} toggles while the output thread was stopped")
+        resumed = toggles(levels_for(hb, 1.0))
+        require(len(resumed) >= 12, f"{len(resumed)} toggles in 1 s after the output thread ran")
+        p.send_signal(signal.SIGTERM)
+        code, err = stop(p)
+        require(code == 0, f"node exit {code} after SIGTERM: {err[-1000:]}")
+    finally:
+        if tid is not None:
+            try:
+                ptrace(PTRACE_DETACH, tid)
+            except OSError:
+                pass
+        kill(p)
+    return (f"{len(running)} toggles in 1 s, 0 in 1.5 s with the output thread alone stopped "
+            f"({len(others)} other threads running), {len(resumed)} in 1 s after")
+
+
 def valve_close_switch_stops_the_drive():
     """A valve on lines 0 (open) and 1 (close) with its close end switch on input line 2:
     referencing at start drives closed; pulling the switch line up (active) ends the close
@@ -709,6 +786,7 @@ CHECKS = [
     missing_chip_is_a_configuration_error,
     two_channels_on_one_line_refused,
     heartbeat_toggles_and_stops_on_sigstop,
+    heartbeat_stops_while_the_output_thread_alone_hangs,
     valve_close_switch_stops_the_drive,
     valve_without_its_end_switch_is_motor_stalled,
     valve_switch_where_it_cannot_be_is_implausible,

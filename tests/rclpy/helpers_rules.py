@@ -33,11 +33,17 @@ def stamp_ns(stamp: Any) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
-#: Tolerance of written times (trace `t_ns`, edge stamps, lateness) against scheduled ones, ns.
-#: Timing accuracy is the benchmark's business; this only catches an edge written at a wrong
-#: moment (a phase late: 74 ms and more in these tests), on a shared 2-core VM without
-#: real-time priority, where the output thread was seen waking 39 ms late once.
+#: The most an edge may be written after its scheduled time (trace `t_ns`, an edge's
+#: `lateness_ns`), ns: on a shared 2-core VM without real-time priority the output thread was
+#: seen waking 39 ms late once. Timing accuracy is the benchmark's business. An edge must also
+#: be written before the line's next edge is due (test_channel_rules.assert_written_in_time),
+#: so a short phase gets no more than its own length. Only absolute lateness is held to this:
+#: two written times are compared by their difference, within CLOCK_TOL_NS.
 WRITE_TOL_NS = 60 * MS
+#: How far apart two figures of the same instants may be when they come from two clocks read
+#: beside each other (the wall clock of a message's stamp, the monotonic clock of the trace), ns:
+#: the offset between the clocks changes by far less than this over a test.
+CLOCK_TOL_NS = 2 * MS
 #: QoS of `~/<ch>/e1`: reliable, transient local, keep last 1 (docs/interface.md), so a late subscriber
 #: gets the current state.
 E1_QOS = QoSProfile(
@@ -347,6 +353,7 @@ __all__ = [
     "MS",
     "NODE",
     "WRITE_TOL_NS",
+    "CLOCK_TOL_NS",
     "ChannelClient",
     "Edge",
     "Sent",

@@ -64,6 +64,7 @@ def test_autotune_with_apply_sets_gains_that_settle_the_loop(
     feedback: list = []
     t0 = mono_ns()
     handle = send(ros, client, True, feedback)
+    during = len(ch.status.messages)
     got = handle.get_result_async()
     ros.spin_until(got.done, "the autotune's result", timeout=150)
     took = (mono_ns() - t0) / 1e9
@@ -97,8 +98,14 @@ def test_autotune_with_apply_sets_gains_that_settle_the_loop(
         "pw01.pid_ki": r.pid_ki,
         "pw01.pid_kd": r.pid_kd,
     }, got_params
-    # The run ends at 0 %: the line off until a setpoint.
-    s = ch.wait_status(lambda s: s.duty_commanded == 0.0 and not s.output, "0 % after the run")
+    # The run ends at 0 %: the line off until a setpoint. Only statuses sent once the run is
+    # over count: the channel was at 0 % before it, and the relay's off half is 0 % too.
+    assert any(m.output for m in ch.status.messages[during:]), "the line never on in the run"
+    ch.wait_diag(lambda d: diag_values(d).get("autotune") == "", "no autotune after the run",
+                 start=len(ch.diagnostics.messages))
+    after = len(ch.status.messages)
+    s = ch.wait_status(lambda s: s.duty_commanded == 0.0 and not s.output, "0 % after the run",
+                       start=after)
     assert s.setpoint_c != TARGET or math.isnan(s.setpoint_c), s
 
     # Let the heater cool, then the step to the target with the new gains.

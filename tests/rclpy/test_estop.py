@@ -113,9 +113,15 @@ def test_silence_on_the_estop_topic_latches_it_when_a_timeout_is_set(node_proces
     response = reset(ros)
     assert response.success, response
     on = ch.enable(True)
+    # Kept alive, the diagnostics sent from now on say released: at least one must come.
+    seen = len(ch.diagnostics.messages)
     keep_alive(0.8)
-    d = ch.diagnostics.messages[-1] if ch.diagnostics.messages else None
-    assert d is None or not any(latched(s) for s in d.status), d
+    end = mono_ns() + 3000 * MS
+    while len(ch.diagnostics.messages) <= seen:
+        assert mono_ns() < end, "no diagnostics while the e-stop was kept alive"
+        keep_alive(0.1)
+    released = ch.diagnostics.messages[seen:]
+    assert not any(latched(s) for d in released for s in d.status), released
 
     # Silence: latched within the timeout (plus the check's period and delivery).
     silent = mono_ns()

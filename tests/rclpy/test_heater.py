@@ -148,13 +148,18 @@ def test_the_loop_holds_its_setpoint_within_one_degree(
     # At 60 °C the plant needs (60 − 20) / 100 = 40 % on average; the integral carries it.
     assert 25.0 < s.pid_output < 55.0, s
     assert abs(s.temperature_c - SETPOINT) < 1.0 and 0.0 <= s.temperature_age_ms < 1000.0, s
-    d = ch.wait_diag(lambda d: "pid_output_pct" in diag_values(d), "the loop's figures")
+    # Diagnostics sent now, with the loop settled, not the first ones from before it ran.
+    d = ch.wait_diag(lambda d: "pid_output_pct" in diag_values(d), "the loop's figures",
+                     start=len(ch.diagnostics.messages))
     assert diag_level(d) != ERROR, d
+    assert 25.0 < float(diag_values(d)["pid_output_pct"]) < 55.0, d
     # A duty command is refused under pid, with the reason.
+    refused_from = len(ch.diagnostics.messages)
     ch.duty_pub.publish(Float64(data=10.0))
     d = ch.wait_diag(
         lambda d: "control is pid" in diag_values(d).get("last_rejection", ""),
         "the duty command refused",
+        start=refused_from,
     )
 
 

@@ -41,9 +41,13 @@ from test_channel_rules import close_all_traces, observe_until, start
 from test_estop import estop_publisher, release, reset
 
 PAIR = ("pw01", "pw02")
-#: The bound within which the output thread must take a safety input, else the outputs are
-#: switched off by the emergency handle (engine::SAFETY_TAKE_BOUND), plus delivery.
+#: The bound within which the output thread must take a safety input once the node has it, else
+#: the outputs are switched off by the emergency handle (engine::SAFETY_TAKE_BOUND; the 250 ms
+#: of docs/safety.md).
 TAKE_BOUND_NS = 250 * MS
+#: What the test allows on top of it for the input's way to the node: DDS delivery behind the
+#: thousands of duty commands just published, on a loaded machine (docs/safety.md says so).
+DELIVERY_NS = 100 * MS
 
 
 def high_spans(edges: Sequence[Edge]) -> list[tuple[int, int]]:
@@ -221,8 +225,14 @@ def test_activating_a_managed_node_never_raises_both_lines_of_a_pair(node_proces
 # ---------------------------------------------------------------------------------------------
 
 
+def high_at(edges: Sequence[Edge], t_ns: int) -> list[tuple[int, int]]:
+    """The high span (by written time) that the line was in at `t_ns`: one, or none."""
+    return [s for s in high_spans(edges) if s[0] <= t_ns < s[1]]
+
+
 def test_an_estop_acts_while_the_output_thread_is_stopped_behind_a_full_queue(node_process, ros):
-    proc, ch = start(node_process, ros, pw01__period_ms=100, pw01__duty=50.0)
+    # At 100 % the line is high when the e-stop comes: its fall is the e-stop's.
+    proc, ch = start(node_process, ros, pw01__period_ms=100, pw01__duty=100.0)
     estop = estop_publisher(ros)
     ch.enable(True)
     observe_until(ch, mono_ns() + 300 * MS)
@@ -238,11 +248,14 @@ def test_an_estop_acts_while_the_output_thread_is_stopped_behind_a_full_queue(no
     traces = close_all_traces(proc, ["pw01"])
     edges = traces["pw01"]
     assert "queue full" in out, "the queue did not fill:\n" + out[-2000:]
-    # Off within the bound (the emergency handle), and no rise after the press.
+    # High at the press, off within the bound (the emergency handle), and no rise after it.
     assert rises_after(edges, pressed) == [], edges[-10:]
     assert edges[-1].level == 0
-    last_high = [s for s in high_spans(edges) if s[1] > pressed]
-    assert all(f <= pressed + TAKE_BOUND_NS + 100 * MS for _, f in last_high), last_high
+    span = high_at(edges, pressed)
+    assert len(span) == 1, f"the line was not high at the press: {edges[-10:]}"
+    off_ms = (span[0][1] - pressed) / MS
+    print(f"e-stop with the output thread stopped: line off {off_ms:.1f} ms after the press")
+    assert span[0][1] <= pressed + TAKE_BOUND_NS + DELIVERY_NS, off_ms
     assert "emergency handle" in out, out[-2000:]
     assert diag_level(d) == 2, d
 
@@ -251,8 +264,9 @@ def test_a_lowered_limit_acts_while_the_output_thread_is_stopped_behind_a_full_q
     node_process, ros
 ):
     names = ("pw01", "pw02")
+    # At 100 % both lines are high when the limit is lowered: their falls are the limit's.
     proc, a, b = launch(node_process, ros, names, 2, pw01__period_ms=100,
-                        pw02__period_ms=100, pw01__duty=60.0, pw02__duty=60.0)
+                        pw02__period_ms=100, pw01__duty=100.0, pw02__duty=100.0)
     a.enable(True)
     b.enable(True)
     # The parameter client made before the stop (the first call makes it).
@@ -268,12 +282,22 @@ def test_a_lowered_limit_acts_while_the_output_thread_is_stopped_behind_a_full_q
     assert response.successful, response
     # Not answered before the bound: the thread was stopped, and the answer waited for it.
     assert answered - lowered >= TAKE_BOUND_NS - 10 * MS, (answered - lowered) / MS
-    assert most_high_at_a_rise(traces, after_ns=lowered) <= 1
+    # Both high when it was lowered, both off within the bound (the emergency handle, which
+    # latches the output: nothing rises after it).
+    for name, edges in traces.items():
+        span = high_at(edges, lowered)
+        assert len(span) == 1, f"{name} was not high when the limit was lowered: {edges[-10:]}"
+        off_ms = (span[0][1] - lowered) / MS
+        assert span[0][1] <= lowered + TAKE_BOUND_NS + DELIVERY_NS, (name, off_ms)
+        assert rises_after(edges, lowered) == [], (name, edges[-10:])
+        assert edges[-1].level == 0, (name, edges[-10:])
+    assert "emergency handle" in proc.output(), "the emergency handle did not act"
 
 
 def test_a_lifecycle_shutdown_acts_while_the_output_thread_is_stopped(node_process, ros):
+    # At 100 % the line is high when the shutdown is asked for: its fall is the shutdown's.
     proc = node_process(
-        ["--managed"] + node_args(pw01__period_ms=100, pw01__duty=50.0, pw01__enable=True)
+        ["--managed"] + node_args(pw01__period_ms=100, pw01__duty=100.0, pw01__enable=True)
     )
     ch = ChannelClient(ros, "pw01")
     ch.wait_connected()
@@ -291,7 +315,9 @@ def test_a_lifecycle_shutdown_acts_while_the_output_thread_is_stopped(node_proce
     assert done.success, done
     assert rises_after(edges, asked) == [], edges[-10:]
     assert edges[-1].level == 0
-    assert all(f <= asked + TAKE_BOUND_NS + 100 * MS for r, f in high_spans(edges) if f > asked)
+    span = high_at(edges, asked)
+    assert len(span) == 1, f"the line was not high when the shutdown was asked: {edges[-10:]}"
+    assert span[0][1] <= asked + TAKE_BOUND_NS + DELIVERY_NS, (span[0][1] - asked) / MS
 
 
 # ---------------------------------------------------------------------------------------------

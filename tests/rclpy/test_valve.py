@@ -236,11 +236,15 @@ def test_the_estop_and_deactivation_stop_a_moving_valve_and_leave_both_lines_off
     held = states.wait_for(lambda s: s.motion == "stopped", start=start, timeout=5.0)
     assert held.position_pct < 90.0 - 1.0, held
     ros.spin_for(0.6)
+    # Only states sent after the activation count: the valve held short of 90 % is stopped too.
+    resumed_from = len(states.messages)
     activated = mono_ns()
     assert change(ros, Transition.TRANSITION_ACTIVATE)
+    states.wait_for(lambda s: s.motion == "opening", start=resumed_from, timeout=10.0,
+                    what="the move resumed after activation")
     states.wait_for(
         lambda s: s.motion == "stopped" and abs(s.position_pct - 90.0) <= 3.0,
-        start=start,
+        start=resumed_from,
         timeout=10.0,
         what="the valve at 90 % after activation",
     )

@@ -49,7 +49,8 @@ const APPROACH_POINTS: usize = 64;
 
 /// Cycles that must agree for a run to converge.
 pub const CONVERGE_CYCLES: usize = 4;
-/// Most cycles a run takes (the approach included) before it is rejected as not converged.
+/// Most relay cycles a run takes (the approach is not one) before it is rejected as not
+/// converged.
 pub const MAX_CYCLES: usize = 12;
 /// How far the agreeing cycles may spread: (largest − smallest) / mean of the period, of
 /// the amplitude and of the on fraction; widened by twice the relay's time grid over the
@@ -172,7 +173,8 @@ impl Phase {
 pub struct Progress {
     /// Where it stands.
     pub phase: Phase,
-    /// Complete cycles, the approach included.
+    /// Complete relay cycles, from the first switch on (the approach is not one; the first
+    /// cycle, which still holds the approach's overshoot, is counted but not used).
     pub cycles: u32,
     /// The last cycle's half peak-to-peak amplitude `a`, °C (0 before the first).
     pub amplitude_c: f64,
@@ -1141,7 +1143,8 @@ pub(crate) mod tests {
                 let (o, d) = closed_loop(plant, g, target, settle, (5.0 * est.tu_s) as u64);
                 println!("   {rule:?}: overshoot {o:.2}, dev {d:.2}");
             }
-            bad |= dev >= 1.0 || over >= 0.5;
+            // docs/autotune.md's figures: at most 0.15 °C over, within 0.15 °C after.
+            bad |= dev >= 0.15 || over >= 0.15;
         }
         assert!(!bad);
     }

@@ -467,7 +467,7 @@ pub struct AutotuneResult {
     pub recommended_period_ms: u32,
     /// The sizing rules broken.
     pub sizing: Vec<String>,
-    /// Complete relay cycles, the approach included.
+    /// Complete relay cycles, from the first switch on (the approach is not one).
     pub cycles: u32,
     /// The relay's on output as delivered, %.
     pub delivered_on_pct: f64,
@@ -489,7 +489,7 @@ impl Message for AutotuneResult {}
 pub struct AutotuneFeedback {
     /// `approach` or `relay`.
     pub phase: String,
-    /// Complete relay cycles, the approach included.
+    /// Complete relay cycles, from the first switch on (the approach is not one).
     pub cycles: u32,
     /// The last cycle's half peak-to-peak amplitude, °C.
     pub amplitude_c: f64,

@@ -1342,8 +1342,10 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
-            description: "An autotune aborts when no relay cycle completes within this, s \
-                          (the approach to the target counts as the first).",
+            description:
+                "An autotune aborts when no relay cycle completes within this of the run's \
+                          start or of the last cycle's end, s (the approach and the first cycle \
+                          share the first window).",
             range: Range::Double(1.0, MAX_TIME_S),
             core: Some(|c, v| {
                 c.heater.autotune_timeout_s = double(v);
