@@ -113,6 +113,8 @@ fn params() -> ValveParams {
         command_timeout_ms: 0,
         on_timeout: OnTimeout::Stop,
         feedback_tolerance_pct: 1.0,
+        max_starts_per_h: 0,
+        control: ControlParams::default(),
     }
 }
 
@@ -925,6 +927,7 @@ fn out_of_range_parameters_are_refused_with_their_name() {
         .map(|p| match p.validate() {
             Err(ValveConfigError::OutOfRange(e)) => e.name,
             Err(ValveConfigError::ReversalPauseTooShort(_)) => "reversal_pause_ms",
+            Err(ValveConfigError::Control(_)) => "control",
             Ok(_) => "accepted",
         })
         .collect();
@@ -939,7 +942,7 @@ fn out_of_range_parameters_are_refused_with_their_name() {
     );
     assert!(matches!(
         Valve::new(params().validate().unwrap(), 0).command(0, f64::NAN, &mut |_| {}),
-        Err(crate::core::CommandError::NotANumber)
+        Err(ValveRefusal::Command(crate::core::CommandError::NotANumber))
     ));
 }
 
@@ -974,6 +977,8 @@ fn arb_params() -> impl Strategy<Value = ValveParams> {
                 command_timeout_ms: 0,
                 on_timeout: OnTimeout::Stop,
                 feedback_tolerance_pct: 1.0,
+                max_starts_per_h: 0,
+                control: ControlParams::default(),
             },
         )
 }

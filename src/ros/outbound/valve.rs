@@ -412,6 +412,7 @@ pub fn diagnostic(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::valve::ControlStatus;
 
     fn status() -> ValveStatus {
         ValveStatus {
@@ -439,6 +440,13 @@ mod tests {
             live: true,
             switches: [false; 2],
             moves: 3,
+            starts: 3,
+            starts_last_hour: 3,
+            max_starts_per_h: 0,
+            deadband_in_force_pct: 0.5,
+            control: ControlStatus::default(),
+            refusals: 0,
+            last_refusal: None,
         }
     }
 

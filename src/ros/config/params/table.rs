@@ -428,6 +428,10 @@ pub(super) fn valve_params(get: impl Fn(&str) -> Option<V>) -> ValveParams {
             .and_then(|v| text(&v).parse().ok())
             .unwrap_or(d.on_timeout),
         feedback_tolerance_pct: dbl_or("feedback_tolerance_pct", d.feedback_tolerance_pct),
+        // The motor budget and the loop are not parameters of the node: no budget, and the
+        // position commands set the target.
+        max_starts_per_h: 0,
+        control: d.control,
     }
 }
 
