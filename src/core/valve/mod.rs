@@ -1908,7 +1908,11 @@ impl Valve {
         };
         let elapsed = now.saturating_sub(rose);
         let halted = match m.leg {
-            Leg::Track => self.target.is_none(),
+            // An end move for a target (a command or a manual open or close at the end, or a
+            // recalibration on the way to a target) stops with it: a manual stop, a hold.
+            Leg::Track | Leg::End(_, EndKind::Plain | EndKind::Recalibrate) => {
+                self.target.is_none()
+            }
             Leg::Step => self.step_aim.is_none(),
             _ => false,
         };
@@ -2230,5 +2234,7 @@ pub fn exercise_next(valves: &[Valve]) -> Option<Nanos> {
     valves.iter().filter_map(Valve::exercise_due_at).min()
 }
 
+#[cfg(test)]
+mod loop_tests;
 #[cfg(test)]
 mod tests;
