@@ -405,6 +405,13 @@ pub fn diagnostic(
             kv("open_switch", s.switches[0].to_string()),
             kv("close_switch", s.switches[1].to_string()),
             kv("moves", s.moves.to_string()),
+            kv("starts", s.starts.to_string()),
+            kv("starts_last_hour", s.starts_last_hour.to_string()),
+            kv("max_starts_per_h", s.max_starts_per_h.to_string()),
+            kv(
+                "deadband_in_force_pct",
+                format!("{:.2}", s.deadband_in_force_pct),
+            ),
         ],
     }
 }
