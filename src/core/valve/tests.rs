@@ -1491,3 +1491,42 @@ fn a_valve_does_not_count_against_max_simultaneous_on() {
     board.set(2, Level::Low);
     assert!(board.may_rise(2), "the valve holds no slot");
 }
+
+/// Siemens `PID_3Step` `Manual_UP` / `Manual_DN`: an operator's open drives to the end, and
+/// an operator's stop on the way stops the motor there (once its minimum pulse is driven), not
+/// at the end; back in automatic nothing moves until a command.
+#[test]
+fn a_manual_stop_stops_a_manual_open_on_its_way() {
+    let mut r = referenced(params());
+    r.act(false, |v, now, e| {
+        v.manual(now, Manual::Open, e).expect("live")
+    });
+    r.run_for(10 * S);
+    assert_eq!(r.v.status(r.now).control.manual, Some(Manual::Open));
+    r.act(false, |v, now, e| {
+        v.manual(now, Manual::Stop, e).expect("live")
+    });
+    r.settle();
+    r.run_for(60 * S);
+    let pulses = r.pulses();
+    assert_eq!(pulses.len(), 1, "{pulses:?}");
+    let (d, rise, fall) = pulses[0];
+    assert_eq!(d, Dir::Open);
+    // Stopped at once: 10 s of a 100 s travel, not the end move's 110 s.
+    assert!(
+        fall - rise <= 10 * S + 10 * MS,
+        "drove {} ms",
+        (fall - rise) / MS
+    );
+    assert!(close(r.v.status(r.now).position_pct, 10.0, 0.5));
+    // A position command is refused in manual mode; `auto` moves nothing by itself.
+    assert_eq!(
+        r.v.command(r.now, 50.0, &mut |_| {}),
+        Err(ValveRefusal::PositionInManual)
+    );
+    r.act(false, |v, now, e| {
+        v.manual(now, Manual::Auto, e).expect("auto")
+    });
+    r.run_for(60 * S);
+    assert_eq!(r.pulses().len(), 1);
+}
