@@ -150,6 +150,9 @@ def test_a_valve_references_follows_positions_and_keeps_its_lines_apart(node_pro
     mine = [s for s in status.status if s.name.endswith("valve mix")][0]
     assert diag_level(mine) == OK, mine
     assert float(diag_values(mine)["uncertainty_pct"]) == round(last.uncertainty_pct, 2), mine
+    # docs/valve.md, the motor's budget: every rise of a line is a start, counted.
+    assert diag_values(mine)["max_starts_per_h"] == "1200", mine
+    starts = int(diag_values(mine)["starts"])
     # At rest /diagnostics goes out once a second (and at a change of level): the valve's
     # status counts among the levels compared, so it does not look changed at every wake-up.
     before = len(diags.messages)
@@ -163,6 +166,7 @@ def test_a_valve_references_follows_positions_and_keeps_its_lines_apart(node_pro
     close_edges = trace_edges(proc, "pw02")
     rises = assert_lines_apart(open_edges, close_edges)
     assert rises >= 7, (open_edges, close_edges)
+    assert starts == rises, (starts, rises)
     # The state's estimate is the trace's drive times over the travel times (the trace records
     # each edge when its write returned, as the output thread reports it to the valve), less
     # half the play: the motor's position runs 0..100 + backlash, the stem sits within the play.

@@ -1,6 +1,7 @@
 //! The settings of one three-point valve: what a user states (milliseconds, percent, hours),
 //! their ranges, and the validated form in nanoseconds the valve runs on.
 
+use super::control::{ControlConfig, ControlError, ControlParams};
 use crate::core::config::{named_enum, OutOfRange};
 use crate::core::{Nanos, NS_PER_MS};
 
@@ -32,6 +33,11 @@ pub const MAX_START_LAG_PCT_OF_TRAVEL: f64 = 10.0;
 pub const MAX_BACKLASH_PCT: f64 = 5.0;
 /// Largest feedback tolerance accepted, percent of the stroke.
 pub const MAX_FEEDBACK_TOLERANCE_PCT: f64 = 10.0;
+/// `max_starts_per_h`'s default: actuators for modulating duty are commonly rated for about
+/// 1 200 starts an hour in duty S4 (IEC 60034-1).
+pub const DEFAULT_MAX_STARTS_PER_H: u64 = 1_200;
+/// Largest `max_starts_per_h` accepted (ten a second).
+pub const MAX_STARTS_PER_H: u64 = 36_000;
 
 /// How the valve finds its position when the node starts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
@@ -147,6 +153,11 @@ pub struct ValveParams {
     /// How far the position feedback may be from the true position, percent of the stroke
     /// (a potentiometer's or a 0–10 V input's accuracy). 0..=10.
     pub feedback_tolerance_pct: f64,
+    /// The motor's budget of starts, per hour (the actuator's duty class); 0 = none.
+    /// 0..=36 000.
+    pub max_starts_per_h: u64,
+    /// The valve's own loop (`control`, the gains, the process value's freshness).
+    pub control: ControlParams,
 }
 
 impl Default for ValveParams {
@@ -167,6 +178,8 @@ impl Default for ValveParams {
             command_timeout_ms: 0,
             on_timeout: OnTimeout::Stop,
             feedback_tolerance_pct: 1.0,
+            max_starts_per_h: DEFAULT_MAX_STARTS_PER_H,
+            control: ControlParams::default(),
         }
     }
 }
@@ -184,6 +197,9 @@ pub enum ValveConfigError {
          shorter break lets both windings conduct"
     )]
     ReversalPauseTooShort(u64),
+    /// The loop's settings.
+    #[error(transparent)]
+    Control(#[from] ControlError),
 }
 
 /// The validated settings a valve runs on, in nanoseconds.
@@ -217,6 +233,10 @@ pub struct ValveConfig {
     pub on_timeout: OnTimeout,
     /// Feedback tolerance, percent.
     pub feedback_tolerance_pct: f64,
+    /// The motor's budget of starts per hour; 0 = none.
+    pub max_starts_per_h: u64,
+    /// The loop.
+    pub control: ControlConfig,
     /// The parameters this was made from.
     pub params: ValveParams,
 }
@@ -294,6 +314,13 @@ impl ValveParams {
             0.0,
             MAX_COMMAND_TIMEOUT_MS as f64,
         )?;
+        OutOfRange::check(
+            "max_starts_per_h",
+            self.max_starts_per_h as f64,
+            0.0,
+            MAX_STARTS_PER_H as f64,
+        )?;
+        let control = self.control.validate(self.max_starts_per_h)?;
         Ok(ValveConfig {
             travel: [
                 self.travel_open_ms * NS_PER_MS,
@@ -312,6 +339,8 @@ impl ValveParams {
             command_timeout: self.command_timeout_ms * NS_PER_MS,
             on_timeout: self.on_timeout,
             feedback_tolerance_pct: self.feedback_tolerance_pct,
+            max_starts_per_h: self.max_starts_per_h,
+            control,
             params: self,
         })
     }

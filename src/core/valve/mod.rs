@@ -28,20 +28,30 @@
 //!   difference than the dead band, or a drive shorter than the minimum pulse, waits
 //!   (Schneider `SERVO`: short moves accumulate).
 
+mod budget;
 mod config;
+pub mod control;
 mod lines;
+pub mod mixing;
 pub mod truth;
 
+pub use budget::{Budget, MAX_DEADBAND_FACTOR};
 pub use config::{
-    OnTimeout, ReferenceAtStart, ValveConfig, ValveConfigError, ValveParams, MAX_BACKLASH_PCT,
-    MAX_COMMAND_TIMEOUT_MS, MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT, MAX_EXERCISE_EVERY_H,
-    MAX_FEEDBACK_TOLERANCE_PCT, MAX_RECALIBRATE_AFTER_S, MAX_REVERSAL_PAUSE_MS,
-    MAX_START_LAG_PCT_OF_TRAVEL, MAX_TRAVEL_MS, MIN_REVERSAL_PAUSE_MS, MIN_TRAVEL_MS,
+    OnTimeout, ReferenceAtStart, ValveConfig, ValveConfigError, ValveParams,
+    DEFAULT_MAX_STARTS_PER_H, MAX_BACKLASH_PCT, MAX_COMMAND_TIMEOUT_MS, MAX_DEADBAND_PCT,
+    MAX_END_OVERRUN_PCT, MAX_EXERCISE_EVERY_H, MAX_FEEDBACK_TOLERANCE_PCT, MAX_RECALIBRATE_AFTER_S,
+    MAX_REVERSAL_PAUSE_MS, MAX_STARTS_PER_H, MAX_START_LAG_PCT_OF_TRAVEL, MAX_TRAVEL_MS,
+    MIN_REVERSAL_PAUSE_MS, MIN_TRAVEL_MS,
+};
+pub use control::{
+    BadManual, Control, ControlConfig, ControlError, ControlParams, ControlStatus, LoopOutput,
+    LoopState, Manual, ValveRefusal,
 };
 pub use lines::MIN_BREAK;
 
 use super::board::{LineBoard, Seat};
 use super::{Level, Nanos, NS_PER_MS};
+use control::{Demand, Loop, View};
 use lines::Lines;
 use std::sync::Arc;
 
@@ -217,6 +227,8 @@ enum Leg {
     End(Dir, EndKind),
     /// Drive back to the target after the exercise stroke (still part of it).
     Return,
+    /// A step pulse of the loop in step mode: towards its output in the frame of the drives.
+    Step,
 }
 
 impl Leg {
@@ -429,6 +441,60 @@ pub struct ValveStatus {
     pub measured_lag_ms: [f64; 2],
     /// Moves completed.
     pub moves: u64,
+    /// Starts of the motor (rises of either line) since the valve was made.
+    pub starts: u64,
+    /// Starts within the last hour (the minute under way and the 60 before it).
+    pub starts_last_hour: u64,
+    /// The budget in force, starts an hour; 0 = none.
+    pub max_starts_per_h: u64,
+    /// The dead band in force, percent: `deadband_pct`, widened while the budget runs low.
+    pub deadband_in_force_pct: f64,
+    /// The loop (`control`), and the manual mode.
+    pub control: ControlStatus,
+    /// Inputs refused since the valve was made (position commands, setpoints, process values,
+    /// manual commands).
+    pub refusals: u64,
+    /// The last refusal.
+    pub last_refusal: Option<ValveRefusal>,
+}
+
+/// The stem's displacement the valve's drives gave, nominally (the configured travel times
+/// and start lag), counted from the valve's creation and never clamped: the frame of the
+/// loop's step mode, which needs no absolute position. The play is counted as the true valve
+/// has it: after a reversal the motor turns `slack` before the stem follows.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Odo {
+    /// The stem's displacement, percent.
+    stem: f64,
+    /// How far the motor may turn opening before the stem follows, percent: 0 with the play
+    /// taken up on the opening side, `backlash_pct` on the closing side.
+    slack_open: f64,
+}
+
+impl Odo {
+    /// The motor's slack towards `d`, percent.
+    fn slack(&self, d: Dir, backlash: f64) -> f64 {
+        match d {
+            Dir::Open => self.slack_open,
+            Dir::Close => (backlash - self.slack_open).max(0.0),
+        }
+    }
+
+    /// After a motor displacement of `motor` percent towards `d`.
+    fn drove(self, d: Dir, motor: f64, backlash: f64) -> Odo {
+        let slack = self.slack(d, backlash);
+        let moved = (motor - slack).max(0.0);
+        match d {
+            Dir::Open => Odo {
+                stem: self.stem + moved,
+                slack_open: (self.slack_open - motor).max(0.0),
+            },
+            Dir::Close => Odo {
+                stem: self.stem - moved,
+                slack_open: (self.slack_open + motor).min(backlash),
+            },
+        }
+    }
 }
 
 /// What the valve knows of its position, in motor coordinates: the motor's position `m`
@@ -526,6 +592,27 @@ pub struct Valve {
     /// The last periodic report while driving.
     tick: Nanos,
     moves: u64,
+    /// The motor's budget of starts.
+    budget: Budget,
+    /// A tracking move the budget (or the dead band it widened) holds back: when to look
+    /// again.
+    budget_wait: Option<Nanos>,
+    /// The target cannot wait for the budget (the command timeout's end move, the safe
+    /// position, manual moves).
+    target_forced: bool,
+    /// The valve's own loop.
+    ctl: Loop,
+    /// Step mode: where the loop's output stands in the frame of the drives ([`Odo`]).
+    step_aim: Option<f64>,
+    /// The manual command in force: the valve is in manual mode.
+    manual: Option<Manual>,
+    /// The stem's displacement by the drives, and at the last rise.
+    odo: Odo,
+    odo_at_rise: Odo,
+    /// The last fall's drive, for the frame's correction by its real write time.
+    odo_fix: Option<(Dir, Nanos)>,
+    refusals: u64,
+    last_refusal: Option<ValveRefusal>,
 }
 
 impl Valve {
@@ -606,6 +693,23 @@ impl Valve {
             mismatches: [(0, 0); 2],
             tick: now,
             moves: 0,
+            budget: Budget::new(cfg.max_starts_per_h, now),
+            budget_wait: None,
+            target_forced: false,
+            ctl: Loop::new(cfg.control, now),
+            step_aim: None,
+            manual: None,
+            odo: Odo {
+                stem: 0.0,
+                slack_open: b / 2.0,
+            },
+            odo_at_rise: Odo {
+                stem: 0.0,
+                slack_open: b / 2.0,
+            },
+            odo_fix: None,
+            refusals: 0,
+            last_refusal: None,
         }
     }
 
@@ -656,28 +760,134 @@ impl Valve {
             ..cfg
         };
         self.lines.set_timing(cfg.reversal_pause, cfg.min_pulse);
+        self.budget.set_rate(cfg.max_starts_per_h, now);
+        let was_pid = self.ctl.on();
+        self.ctl.set_config(now, cfg.control);
+        if was_pid != self.ctl.on() {
+            // Either way the command timeout counts afresh: from position commands or
+            // setpoints, from now.
+            self.last_command = now;
+            self.timed_out = false;
+            if was_pid {
+                // Back to position commands: the loop's last target stays until a command;
+                // step mode had none, so the valve stays where it is.
+                self.step_aim = None;
+                self.target_forced = false;
+            }
+        }
         self.step(now, emit);
     }
 
+    /// Counts a refused input and gives it back as the error.
+    fn refuse(&mut self, r: ValveRefusal) -> Result<(), ValveRefusal> {
+        self.refusals += 1;
+        self.last_refusal = Some(r);
+        Err(r)
+    }
+
     /// A position command at `now`, percent (0 = closed), clamped to 0..=100. NaN and
-    /// infinities are refused and the target in force stays.
+    /// infinities are refused and the target in force stays; so is every command while the loop
+    /// sets the target (`control` `pid`) or the valve is in manual mode.
     pub fn command(
         &mut self,
         now: Nanos,
         pct: f64,
         emit: &mut dyn FnMut(ValveEvent),
-    ) -> Result<(), crate::core::CommandError> {
+    ) -> Result<(), ValveRefusal> {
         if pct.is_nan() {
-            return Err(crate::core::CommandError::NotANumber);
+            return self.refuse(ValveRefusal::Command(crate::core::CommandError::NotANumber));
         }
         if pct.is_infinite() {
-            return Err(crate::core::CommandError::Infinite);
+            return self.refuse(ValveRefusal::Command(crate::core::CommandError::Infinite));
+        }
+        if self.manual.is_some() {
+            return self.refuse(ValveRefusal::PositionInManual);
+        }
+        if self.ctl.on() {
+            return self.refuse(ValveRefusal::PositionUnderPid);
         }
         self.target = Some(pct.clamp(0.0, 100.0));
+        self.target_forced = false;
         self.last_command = now;
         self.timed_out = false;
         if !self.estop && self.fault.is_none() {
             self.armed = true;
+        }
+        self.step(now, emit);
+        Ok(())
+    }
+
+    /// A setpoint for the loop at `now`, in the process's unit; refused under `control`
+    /// `position`, when not finite or beyond ±1e9. Under `pid` it feeds the command timeout
+    /// (as position commands do under `position`), and after an e-stop or a fault's reset it is
+    /// the fresh command that lets the valve move again.
+    pub fn setpoint(
+        &mut self,
+        now: Nanos,
+        value: f64,
+        emit: &mut dyn FnMut(ValveEvent),
+    ) -> Result<(), ValveRefusal> {
+        if let Err(r) = self.ctl.set_setpoint(value) {
+            return self.refuse(r);
+        }
+        self.last_command = now;
+        self.timed_out = false;
+        if !self.estop && self.fault.is_none() {
+            self.armed = true;
+        }
+        self.step(now, emit);
+        Ok(())
+    }
+
+    /// A process value arriving at `now`, `age` ns after its stamp (`None`: unstamped;
+    /// negative: stamped in the future): see the loop's freshness rule
+    /// ([`control`](self::control)). The loop acts on it at its next sample.
+    pub fn process_value(
+        &mut self,
+        now: Nanos,
+        value: f64,
+        age: Option<i64>,
+    ) -> Result<(), ValveRefusal> {
+        match self.ctl.reading(now, value, age) {
+            Ok(()) => Ok(()),
+            Err(r) => self.refuse(r),
+        }
+    }
+
+    /// A manual command at `now` (`~/valve/NAME/manual`): `open`, `close`, `stop` or a
+    /// position put the valve in manual mode — position commands and the loop are set aside,
+    /// the motor budget does not hold the operator back (the starts are counted) — and `auto`
+    /// returns bumplessly: the valve stays where manual mode left it until automatic moves it
+    /// (the loop starts from there). Refused while the e-stop is latched, the lines are held
+    /// or a fault is latched.
+    pub fn manual(
+        &mut self,
+        now: Nanos,
+        m: Manual,
+        emit: &mut dyn FnMut(ValveEvent),
+    ) -> Result<(), ValveRefusal> {
+        if m == Manual::Auto {
+            if self.manual.take().is_some() {
+                self.last_command = now;
+                self.timed_out = false;
+                // The manual target stays (forced no longer): automatic takes over from it.
+                self.target_forced = false;
+            }
+            self.step(now, emit);
+            return Ok(());
+        }
+        if self.estop || !self.live || self.fault.is_some() {
+            return self.refuse(ValveRefusal::ManualHeld);
+        }
+        self.manual = Some(m);
+        self.armed = true;
+        self.target_forced = true;
+        self.step_aim = None;
+        match m {
+            Manual::Open => self.target = Some(100.0),
+            Manual::Close => self.target = Some(0.0),
+            Manual::Position(p) => self.target = Some(p.clamp(0.0, 100.0)),
+            Manual::Stop | Manual::Auto => self.target = None,
         }
         self.step(now, emit);
         Ok(())
@@ -702,6 +912,8 @@ impl Valve {
         }
         let timeout = (self.cfg.command_timeout > 0 && !self.timed_out)
             .then(|| self.last_command.saturating_add(self.cfg.command_timeout));
+        let sample = self.ctl.poll_at();
+        let budget = self.budget_wait.filter(|_| self.mv.is_none());
         let mv = self.mv.and_then(|m| {
             if m.started {
                 self.lines.rose(m.dir).map(|r| {
@@ -716,7 +928,10 @@ impl Valve {
         // Idle with a leg queued (the reference at start): due at once.
         let leg =
             (self.mv.is_none() && !self.legs.is_empty() && self.armed).then_some(self.idle_since);
-        [timeout, mv, leg, switch_due].into_iter().flatten().min()
+        [timeout, mv, leg, switch_due, sample, budget]
+            .into_iter()
+            .flatten()
+            .min()
     }
 
     /// A move waits for its rise that the board, an end switch or a fall not yet reported holds
@@ -752,6 +967,16 @@ impl Valve {
             }
         }
         self.idle_since = actual;
+        // The drive lasted `late` longer (or shorter): the drives' frame counts it whatever
+        // else happened since.
+        if let Some((d, drive)) = self.odo_fix.take() {
+            if d == dir && late != 0 {
+                let real = (i128::from(drive) + late).clamp(0, i128::from(Nanos::MAX)) as Nanos;
+                self.odo =
+                    self.odo_at_rise
+                        .drove(dir, self.nominal(dir, real), self.cfg.backlash_pct);
+            }
+        }
         // The drive lasted `late` longer (or shorter) than integrated at the fall: integrated
         // afresh from what was known at its rise, unless something changed the knowledge since.
         if let Some((d, drive)) = self.correctable.take() {
@@ -775,6 +1000,7 @@ impl Valve {
         if latched {
             self.safety_off(now, emit);
             self.armed = false;
+            self.ctl.pause();
         }
         self.estop = latched;
     }
@@ -784,6 +1010,7 @@ impl Valve {
     pub fn set_live(&mut self, now: Nanos, live: bool, emit: &mut dyn FnMut(ValveEvent)) {
         if !live {
             self.safety_off(now, emit);
+            self.ctl.pause();
         }
         self.live = live;
         self.step(now, emit);
@@ -1030,7 +1257,152 @@ impl Valve {
             measured_travel_ms: self.measured_travel,
             measured_lag_ms: self.measured_lag,
             moves: self.moves,
+            starts: self.budget.total(),
+            starts_last_hour: self.budget.last_hour(now),
+            max_starts_per_h: self.budget.per_h(),
+            deadband_in_force_pct: self.deadband(now),
+            control: self.ctl.status(now, self.manual, self.loop_output()),
+            refusals: self.refusals,
+            last_refusal: self.last_refusal,
         }
+    }
+
+    // ---- the loop and the budget -----------------------------------------------------------
+
+    /// What the loop's output drives now.
+    fn loop_output(&self) -> LoopOutput {
+        self.ctl.output(self.feedback_on)
+    }
+
+    /// The dead band in force for a target that may wait, percent: widened while the budget
+    /// runs low.
+    fn deadband(&self, now: Nanos) -> f64 {
+        self.cfg.deadband_pct * self.budget.deadband_factor(now)
+    }
+
+    /// Whether a tracking start that closes `diff` percent may be made at `now`: beyond the
+    /// dead band in force and with the budget's leave (a forced target needs neither's). When
+    /// only the budget holds it back, the next look is set for when it narrows.
+    fn budget_allows(&mut self, now: Nanos, diff: f64) -> bool {
+        if self.target_forced {
+            return diff.abs() >= self.cfg.deadband_pct;
+        }
+        if diff.abs() >= self.deadband(now) && self.budget.allows(now) {
+            return true;
+        }
+        if diff.abs() >= self.cfg.deadband_pct {
+            self.budget_wait = self.budget.next_token_at(now);
+        }
+        false
+    }
+
+    /// The motor's nominal displacement of a drive of `drive` ns towards `d`, percent.
+    fn nominal(&self, d: Dir, drive: Nanos) -> f64 {
+        drive.saturating_sub(self.cfg.start_lag) as f64 / self.cfg.travel[d.index()] as f64 * 100.0
+    }
+
+    /// The drives' frame at `now`, the drive under way counted.
+    fn odo_now(&self, now: Nanos) -> Odo {
+        match self.lines.driving() {
+            Some(d) => {
+                let rose = self.lines.rose(d).unwrap_or(now);
+                self.odo_at_rise.drove(
+                    d,
+                    self.nominal(d, now.saturating_sub(rose)),
+                    self.cfg.backlash_pct,
+                )
+            }
+            None => self.odo,
+        }
+    }
+
+    /// What the loop sees of the valve at `now`.
+    fn view(&self, now: Nanos) -> View {
+        let k = self.know_now(now);
+        let (low, high) = self.stem_bounds(&k);
+        let step = self.loop_output() == LoopOutput::Step;
+        let frame = self.odo_now(now).stem;
+        // Legs of its own (the reference, a recalibration, the exercise stroke): the valve does
+        // not follow the loop meanwhile.
+        let own = |l: Leg| {
+            matches!(
+                l,
+                Leg::Return
+                    | Leg::End(
+                        _,
+                        EndKind::Reference | EndKind::Recalibrate | EndKind::Exercise
+                    )
+            )
+        };
+        let busy = self.mv.is_some_and(|m| own(m.leg)) || !self.legs.is_empty();
+        View {
+            step,
+            start: if step {
+                frame
+            } else {
+                self.target.unwrap_or_else(|| self.stem(&k))
+            },
+            frame,
+            low,
+            high,
+            follows: self.live && !self.estop && self.fault.is_none() && self.armed && !busy,
+            manual: self.manual.is_some(),
+            timed_out: self.timed_out,
+        }
+    }
+
+    /// Does what the loop asks at `now`.
+    fn apply(&mut self, d: Demand) {
+        match d {
+            Demand::None => {}
+            Demand::Target(t) => {
+                self.target = Some(t.clamp(0.0, 100.0));
+                self.target_forced = false;
+                self.step_aim = None;
+            }
+            Demand::Step(aim) => {
+                self.step_aim = Some(aim);
+                self.target = None;
+                self.target_forced = false;
+            }
+            Demand::Hold => {
+                // No target: a move under way ends after its minimum pulse, none starts.
+                self.target = None;
+                self.step_aim = None;
+                self.target_forced = false;
+            }
+            Demand::Safe(p) => {
+                self.target = Some(p);
+                self.target_forced = true;
+                self.step_aim = None;
+            }
+        }
+    }
+
+    /// Step mode: the pulse towards `aim` (the frame), if one is worth a start at `now`:
+    /// beyond the dead band in force, at least the minimum pulse, with the budget's leave, not
+    /// towards an end the valve is at. After a reversal the pulse first takes up the play.
+    fn plan_step(&mut self, now: Nanos, aim: f64) -> Option<Move> {
+        let pending = aim - self.odo.stem;
+        if pending == 0.0 {
+            return None;
+        }
+        let d = if pending > 0.0 { Dir::Open } else { Dir::Close };
+        if self.switches[d.index()] || self.at_end == Some(d) {
+            return None;
+        }
+        let motor = pending.abs() + self.odo.slack(d, self.cfg.backlash_pct);
+        let want = self.drive_for(d, motor);
+        if want < self.cfg.min_pulse.max(1) || !self.budget_allows(now, pending) {
+            return None;
+        }
+        Some(Move {
+            dir: d,
+            want: want.min(self.cap(d)),
+            leg: Leg::Step,
+            aim,
+            started: false,
+        })
     }
 
     /// Whether a recalibration is due: the valve is unreferenced, or the run time since the
@@ -1161,6 +1533,10 @@ impl Valve {
         }
         self.know = self.drove(self.at_rise, d, drive);
         self.correctable = Some((d, drive));
+        self.odo = self
+            .odo_at_rise
+            .drove(d, self.nominal(d, drive), self.cfg.backlash_pct);
+        self.odo_fix = Some((d, drive));
         self.run_since_ref = self.run_since_ref.saturating_add(drive);
         if let Some(r) = self.rest.as_mut() {
             r.driven[d.index()] = r.driven[d.index()].saturating_add(drive);
@@ -1173,6 +1549,9 @@ impl Valve {
     fn after_rise(&mut self, d: Dir, now: Nanos) {
         self.at_rise = self.know;
         self.correctable = None;
+        self.odo_at_rise = self.odo;
+        self.odo_fix = None;
+        self.budget.start(now);
         self.at_end = None;
         self.tick = now;
         self.drives.rotate_left(1);
@@ -1204,6 +1583,7 @@ impl Valve {
     /// switch contradicts them): the position is no longer known.
     fn latch(&mut self, now: Nanos, fault: ValveFault, emit: &mut dyn FnMut(ValveEvent)) {
         self.safety_off(now, emit);
+        self.ctl.pause();
         self.lose_reference();
         self.legs = Legs::default();
         self.mv = None;
@@ -1455,6 +1835,12 @@ impl Valve {
             self.tick = now;
         }
         self.check_timeout(now);
+        if self.ctl.poll_at().is_some_and(|t| now >= t) {
+            let v = self.view(now);
+            let d = self.ctl.sample(now, &v);
+            self.apply(d);
+        }
+        self.budget_wait = None;
         // A few rounds: a move ends and the next one is queued in the same call.
         for _ in 0..8 {
             match self.mv {
@@ -1465,6 +1851,9 @@ impl Valve {
                 }
                 Some(m) if m.leg.tracks() && self.target != Some(m.aim) => {
                     // Retargeted before the line rose: planned afresh.
+                    self.mv = None;
+                }
+                Some(m) if m.leg == Leg::Step && self.step_aim != Some(m.aim) => {
                     self.mv = None;
                 }
                 Some(m) => {
@@ -1493,11 +1882,16 @@ impl Valve {
             return;
         }
         self.timed_out = true;
-        self.target = Some(match self.cfg.on_timeout {
-            OnTimeout::Stop => self.estimate(now),
-            OnTimeout::Close => 0.0,
-            OnTimeout::Open => 100.0,
-        });
+        self.target_forced = true;
+        self.step_aim = None;
+        self.target = match self.cfg.on_timeout {
+            // Under the loop the valve may not know where it is (step mode): it stops
+            // without a target rather than aim at a guess.
+            OnTimeout::Stop if self.ctl.on() => None,
+            OnTimeout::Stop => Some(self.estimate(now)),
+            OnTimeout::Close => Some(0.0),
+            OnTimeout::Open => Some(100.0),
+        };
     }
 
     /// The longest drive in `d`, ns: 150 % of its travel time.
@@ -1513,6 +1907,37 @@ impl Valve {
             return true;
         };
         let elapsed = now.saturating_sub(rose);
+        let halted = match m.leg {
+            // An end move for a target (a command or a manual open or close at the end, or a
+            // recalibration on the way to a target) stops with it: a manual stop, a hold.
+            Leg::Track | Leg::End(_, EndKind::Plain | EndKind::Recalibrate) => {
+                self.target.is_none()
+            }
+            Leg::Step => self.step_aim.is_none(),
+            _ => false,
+        };
+        if halted {
+            // Nothing to aim at any more (a hold, a manual stop, a switch of mode): the move
+            // ends once it has driven its minimum pulse.
+            let want = m.want.min(elapsed.max(self.cfg.min_pulse));
+            if want != m.want {
+                m.want = want;
+                self.mv = Some(m);
+            }
+        } else if m.leg == Leg::Step {
+            if let Some(aim) = self.step_aim.filter(|&a| a != m.aim) {
+                let d = m.dir;
+                let left = (aim - self.odo_at_rise.stem) * d.sign();
+                let want = if left > 0.0 {
+                    self.drive_for(d, left + self.odo_at_rise.slack(d, self.cfg.backlash_pct))
+                } else {
+                    0
+                };
+                m.want = want.max(elapsed).max(self.cfg.min_pulse).min(self.cap(d));
+                m.aim = aim;
+                self.mv = Some(m);
+            }
+        }
         let retarget = self.target.filter(|&t| m.leg.tracks() && t != m.aim);
         if let Some(target) = retarget {
             if target == m.dir.end_pct() {
@@ -1605,7 +2030,7 @@ impl Valve {
                 let Some(target) = self.target else {
                     return true;
                 };
-                match self.plan_track(now, target) {
+                match self.plan_track(now, target, false) {
                     Some(Leg::Track) => Leg::Return,
                     Some(leg) => leg,
                     None => return true,
@@ -1613,16 +2038,26 @@ impl Valve {
             }
             Some(leg) => leg,
             None => {
+                if let Some(aim) = self.step_aim {
+                    return match self.plan_step(now, aim) {
+                        Some(m) => {
+                            self.mv = Some(m);
+                            true
+                        }
+                        None => false,
+                    };
+                }
                 let Some(target) = self.target else {
                     return false;
                 };
-                match self.plan_track(now, target) {
+                match self.plan_track(now, target, true) {
                     Some(leg) => leg,
                     None => return false,
                 }
             }
         };
         let m = match leg {
+            Leg::Step => return false,
             Leg::End(d, kind) => {
                 if self.switches[d.index()] {
                     // Already at that end, by its switch.
@@ -1678,12 +2113,20 @@ impl Valve {
     }
 
     /// What tracking `target` at `now` asks for: an end move, a recalibration first, a move, or
-    /// nothing (within the dead band, shorter than the minimum pulse, at the end already).
-    fn plan_track(&mut self, now: Nanos, target: f64) -> Option<Leg> {
+    /// nothing (within the dead band, shorter than the minimum pulse, at the end already, or —
+    /// `gated` — held back by the motor budget).
+    fn plan_track(&mut self, now: Nanos, target: f64, gated: bool) -> Option<Leg> {
         let due = self.recalibration_due(now);
+        let start_allowed = |v: &mut Valve| {
+            if !gated || v.target_forced || v.budget.allows(now) {
+                return true;
+            }
+            v.budget_wait = v.budget.next_token_at(now);
+            false
+        };
         for d in Dir::BOTH {
             if target == d.end_pct() {
-                if self.at_end == Some(d) {
+                if self.at_end == Some(d) || !start_allowed(self) {
                     return None;
                 }
                 let kind = if due {
@@ -1695,6 +2138,9 @@ impl Valve {
             }
             if due && (target - d.end_pct()).abs() <= RECALIBRATE_NEAR_PCT && self.at_end != Some(d)
             {
+                if !start_allowed(self) {
+                    return None;
+                }
                 // To the end first; back to the target once there.
                 return Some(Leg::End(d, EndKind::Recalibrate));
             }
@@ -1708,6 +2154,10 @@ impl Valve {
         let drive = self.drive_for(d, err.abs());
         if drive < self.cfg.min_pulse.max(1) {
             // Shorter than the minimum: the difference stays and grows with later commands.
+            return None;
+        }
+        if gated && !self.budget_allows(now, err) {
+            // The budget (or the dead band it widened) holds it back: it waits and adds up.
             return None;
         }
         // A move that would take the uncertainty past the limit recalibrates first, through the
@@ -1784,5 +2234,7 @@ pub fn exercise_next(valves: &[Valve]) -> Option<Nanos> {
     valves.iter().filter_map(Valve::exercise_due_at).min()
 }
 
+#[cfg(test)]
+mod loop_tests;
 #[cfg(test)]
 mod tests;

@@ -113,6 +113,8 @@ fn params() -> ValveParams {
         command_timeout_ms: 0,
         on_timeout: OnTimeout::Stop,
         feedback_tolerance_pct: 1.0,
+        max_starts_per_h: 0,
+        control: ControlParams::default(),
     }
 }
 
@@ -925,6 +927,7 @@ fn out_of_range_parameters_are_refused_with_their_name() {
         .map(|p| match p.validate() {
             Err(ValveConfigError::OutOfRange(e)) => e.name,
             Err(ValveConfigError::ReversalPauseTooShort(_)) => "reversal_pause_ms",
+            Err(ValveConfigError::Control(_)) => "control",
             Ok(_) => "accepted",
         })
         .collect();
@@ -939,7 +942,7 @@ fn out_of_range_parameters_are_refused_with_their_name() {
     );
     assert!(matches!(
         Valve::new(params().validate().unwrap(), 0).command(0, f64::NAN, &mut |_| {}),
-        Err(crate::core::CommandError::NotANumber)
+        Err(ValveRefusal::Command(crate::core::CommandError::NotANumber))
     ));
 }
 
@@ -974,6 +977,8 @@ fn arb_params() -> impl Strategy<Value = ValveParams> {
                 command_timeout_ms: 0,
                 on_timeout: OnTimeout::Stop,
                 feedback_tolerance_pct: 1.0,
+                max_starts_per_h: 0,
+                control: ControlParams::default(),
             },
         )
 }
@@ -1485,4 +1490,43 @@ fn a_valve_does_not_count_against_max_simultaneous_on() {
     assert_eq!(board.high_count(), 1, "only the channel's line counts");
     board.set(2, Level::Low);
     assert!(board.may_rise(2), "the valve holds no slot");
+}
+
+/// Siemens `PID_3Step` `Manual_UP` / `Manual_DN`: an operator's open drives to the end, and
+/// an operator's stop on the way stops the motor there (once its minimum pulse is driven), not
+/// at the end; back in automatic nothing moves until a command.
+#[test]
+fn a_manual_stop_stops_a_manual_open_on_its_way() {
+    let mut r = referenced(params());
+    r.act(false, |v, now, e| {
+        v.manual(now, Manual::Open, e).expect("live")
+    });
+    r.run_for(10 * S);
+    assert_eq!(r.v.status(r.now).control.manual, Some(Manual::Open));
+    r.act(false, |v, now, e| {
+        v.manual(now, Manual::Stop, e).expect("live")
+    });
+    r.settle();
+    r.run_for(60 * S);
+    let pulses = r.pulses();
+    assert_eq!(pulses.len(), 1, "{pulses:?}");
+    let (d, rise, fall) = pulses[0];
+    assert_eq!(d, Dir::Open);
+    // Stopped at once: 10 s of a 100 s travel, not the end move's 110 s.
+    assert!(
+        fall - rise <= 10 * S + 10 * MS,
+        "drove {} ms",
+        (fall - rise) / MS
+    );
+    assert!(close(r.v.status(r.now).position_pct, 10.0, 0.5));
+    // A position command is refused in manual mode; `auto` moves nothing by itself.
+    assert_eq!(
+        r.v.command(r.now, 50.0, &mut |_| {}),
+        Err(ValveRefusal::PositionInManual)
+    );
+    r.act(false, |v, now, e| {
+        v.manual(now, Manual::Auto, e).expect("auto")
+    });
+    r.run_for(60 * S);
+    assert_eq!(r.pulses().len(), 1);
 }

@@ -405,6 +405,13 @@ pub fn diagnostic(
             kv("open_switch", s.switches[0].to_string()),
             kv("close_switch", s.switches[1].to_string()),
             kv("moves", s.moves.to_string()),
+            kv("starts", s.starts.to_string()),
+            kv("starts_last_hour", s.starts_last_hour.to_string()),
+            kv("max_starts_per_h", s.max_starts_per_h.to_string()),
+            kv(
+                "deadband_in_force_pct",
+                format!("{:.2}", s.deadband_in_force_pct),
+            ),
         ],
     }
 }
@@ -412,6 +419,7 @@ pub fn diagnostic(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::valve::ControlStatus;
 
     fn status() -> ValveStatus {
         ValveStatus {
@@ -439,6 +447,13 @@ mod tests {
             live: true,
             switches: [false; 2],
             moves: 3,
+            starts: 3,
+            starts_last_hour: 3,
+            max_starts_per_h: 0,
+            deadband_in_force_pct: 0.5,
+            control: ControlStatus::default(),
+            refusals: 0,
+            last_refusal: None,
         }
     }
 

@@ -26,8 +26,8 @@ use crate::core::heater::{
 use crate::core::valve::{
     OnTimeout, ReferenceAtStart, ValveParams, MAX_BACKLASH_PCT, MAX_COMMAND_TIMEOUT_MS,
     MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT, MAX_EXERCISE_EVERY_H, MAX_FEEDBACK_TOLERANCE_PCT,
-    MAX_RECALIBRATE_AFTER_S, MAX_REVERSAL_PAUSE_MS, MAX_TRAVEL_MS, MIN_REVERSAL_PAUSE_MS,
-    MIN_TRAVEL_MS,
+    MAX_RECALIBRATE_AFTER_S, MAX_REVERSAL_PAUSE_MS, MAX_STARTS_PER_H, MAX_TRAVEL_MS,
+    MIN_REVERSAL_PAUSE_MS, MIN_TRAVEL_MS,
 };
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::output::gpio::parse_line_addr;
@@ -359,6 +359,19 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             })
         },
         Decl {
+            description: "The motor's budget of starts per hour (the actuator's duty class, IEC \
+                          60034-1 S4; modulating actuators are commonly rated 1200). Tracking \
+                          starts are paced by it: while it runs low the dead band in force \
+                          widens, so small corrections wait and add up (Schneider SERVO), and no \
+                          hour holds more starts. The reference, the exercise stroke and the \
+                          command timeout's end move are never held back, only counted. 0: no \
+                          budget.",
+            range: Range::Integer(0, MAX_STARTS_PER_H as i64),
+            ..Decl::new("max_starts_per_h", Integer, || {
+                V::Integer(valve_defaults().max_starts_per_h as i64)
+            })
+        },
+        Decl {
             description: "End switch at the open end: a GPIO input line [CHIP:]OFFSET (a bare \
                           offset, quoted to stay a string, is on /dev/gpiochip0), read with \
                           edge events. Active, it \
@@ -428,6 +441,9 @@ pub(super) fn valve_params(get: impl Fn(&str) -> Option<V>) -> ValveParams {
             .and_then(|v| text(&v).parse().ok())
             .unwrap_or(d.on_timeout),
         feedback_tolerance_pct: dbl_or("feedback_tolerance_pct", d.feedback_tolerance_pct),
+        max_starts_per_h: int_or("max_starts_per_h", d.max_starts_per_h),
+        // The loop is not a parameter of the node: the position commands set the target.
+        control: d.control,
     }
 }
 
