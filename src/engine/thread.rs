@@ -327,10 +327,18 @@ impl Reports {
         self.dropped.load(Ordering::Relaxed)
     }
 
+    /// A handle that wakes this reader from any thread ([`ReportWaker::wake`]): for a reader
+    /// that sleeps until its next deadline and must look at something else now (a note from a
+    /// ROS callback, a request to stop).
+    pub fn waker(&self) -> ReportWaker {
+        ReportWaker(Arc::clone(&self.wake))
+    }
+
     /// Blocks up to `timeout` for the wake-up eventfd (for non-async readers such as tests and
-    /// the benchmark). Returns true when it became readable.
+    /// the benchmark). Returns true when it became readable. The timeout is rounded up to whole
+    /// milliseconds, so a reader never wakes before the deadline it computed.
     pub fn wait(&self, timeout: Duration) -> bool {
-        let ms = timeout.as_millis().min(i32::MAX as u128) as i32;
+        let ms = timeout.as_nanos().div_ceil(1_000_000).min(i32::MAX as u128) as i32;
         let mut fds = [PollFd::new(self.wake.as_fd(), PollFlags::POLLIN)];
         matches!(poll(&mut fds, PollTimeout::try_from(ms).unwrap_or(PollTimeout::MAX)), Ok(n) if n > 0)
     }
@@ -343,17 +351,18 @@ impl Reports {
     /// Hands every report to `on_report`, batch by batch, calling `after_batch` after each
     /// batch, until `stop()` is true or the output thread has ended. Returns true in the latter
     /// case, after handing over the thread's last reports. Sleeps on the wake-up eventfd
-    /// between batches, at most as long as the last `after_batch` said (a reader with clocks of
-    /// its own) and never more than 100 ms, so it looks at `stop` at least that often.
+    /// between batches, as long as the last `after_batch` said (a reader with clocks of its
+    /// own): it looks at `stop` only when woken, so whoever makes `stop()` true wakes it
+    /// ([`Reports::waker`]).
     pub fn serve(
         &mut self,
         stop: impl Fn() -> bool,
         mut on_report: impl FnMut(Report),
         mut after_batch: impl FnMut(&Reports) -> Duration,
     ) -> bool {
-        let mut wait = Duration::from_millis(100);
+        let mut wait = Duration::ZERO;
         while !stop() {
-            self.wait(wait.min(Duration::from_millis(100)));
+            self.wait(wait);
             // Cleared before draining, so a report queued meanwhile wakes the next wait at once.
             self.clear_wake();
             while let Some(r) = self.try_recv() {
@@ -368,6 +377,25 @@ impl Reports {
             }
         }
         false
+    }
+}
+
+/// Wakes the reader of [`Reports`] from any thread (see [`Reports::waker`]). Cheap to clone;
+/// a wake-up costs one `write` on an eventfd, and wake-ups before the reader runs merge.
+#[derive(Clone)]
+pub struct ReportWaker(Arc<EventFd>);
+
+impl ReportWaker {
+    /// Wakes the reader now (it then drains the reports and runs its `after_batch`).
+    pub fn wake(&self) {
+        // EAGAIN: the counter is saturated, a wake-up is pending anyway.
+        let _ = self.0.write(1);
+    }
+}
+
+impl std::fmt::Debug for ReportWaker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ReportWaker")
     }
 }
 

@@ -627,7 +627,7 @@ async fn serve(
     if let Some(mcap) = mcap {
         reporter.record_to(mcap);
     }
-    reporter.watch_traces(TraceReport::new(traces));
+    reporter.watch_traces(TraceReport::new(traces.clone()));
     reporter.set_valves(valve_pubs);
     let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
@@ -677,6 +677,13 @@ async fn serve(
         tasks.extend(lifecycle::serve(&mut ep, &inputs, line_slot, cell)?);
     }
     let quit = Arc::new(AtomicBool::new(false));
+    // The report thread sleeps until something is due: whatever it must see sooner wakes it.
+    let wake_reports = reports.waker();
+    node_state.set_reporter_waker(wake_reports.clone());
+    {
+        let w = wake_reports.clone();
+        traces.on_change(move || w.wake());
+    }
     let pump_thread = {
         let (q, sig) = (Arc::clone(&quit), Arc::clone(&stop_signal));
         std::thread::Builder::new()
@@ -713,6 +720,7 @@ async fn serve(
         t.abort();
     }
     quit.store(true, Ordering::SeqCst);
+    wake_reports.wake();
     let reporter = match pump_thread.join() {
         Ok(r) => Some(r),
         Err(_) => {
