@@ -39,6 +39,11 @@ pub struct EngineOptions {
     pub start_held: bool,
     /// The node-level planner at start-up: `phase` and `max_simultaneous_on`.
     pub bank: Bank,
+    /// The thread wakes at least this often even with nothing to do, so that a watcher of its
+    /// [`Liveness`] (the systemd watchdog's pinger) sees a stall within it, ns. `None`: it
+    /// sleeps until its next deadline or request, however far (a node without a watchdog: an
+    /// idle thread costs nothing).
+    pub liveness_tick_ns: Option<Nanos>,
 }
 
 impl Default for EngineOptions {
@@ -49,6 +54,7 @@ impl Default for EngineOptions {
             heartbeat_half_period_ns: None,
             start_held: false,
             bank: Bank::default(),
+            liveness_tick_ns: Some(LIVENESS_TICK_NS),
         }
     }
 }
@@ -403,14 +409,15 @@ impl std::fmt::Debug for ReportWaker {
 /// the outputs off through the emergency handle and leaves the thread behind.
 pub const SHUTDOWN_WAIT: Duration = Duration::from_secs(2);
 
-/// The output thread wakes at least this often, even with nothing to do, so that its liveness
-/// can be seen from outside ([`Liveness`]), ns.
+/// The output thread's default [`EngineOptions::liveness_tick_ns`]: it wakes at least this
+/// often, even with nothing to do, so that its liveness can be seen from outside
+/// ([`Liveness`]), ns.
 pub const LIVENESS_TICK_NS: Nanos = 100_000_000;
 
 /// Whether the output thread keeps its schedule, readable from any thread (the systemd
 /// watchdog's pinger reads it). Before each sleep the thread publishes the deadline it will
-/// wake at (never more than [`LIVENESS_TICK_NS`] ahead); a thread that is hung, stuck in a
-/// write, or starved of CPU falls behind that promise.
+/// wake at (never more than [`EngineOptions::liveness_tick_ns`] ahead, when set); a thread
+/// that is hung, stuck in a write, or starved of CPU falls behind that promise.
 #[derive(Clone)]
 pub struct Liveness(Arc<LivenessState>);
 
@@ -629,6 +636,7 @@ where
                 let mut thread = OutputThread {
                     worker,
                     liveness,
+                    liveness_tick_ns: opts.liveness_tick_ns,
                     last_work: now,
                     requests: req_rx,
                     req_wake,
@@ -701,6 +709,8 @@ fn check_lines<O: Output>(
 pub struct OutputThread<O: Output> {
     worker: Worker<O>,
     liveness: Liveness,
+    /// [`EngineOptions::liveness_tick_ns`].
+    liveness_tick_ns: Option<Nanos>,
     /// When [`OutputThread::work`] last ran, monotonic ns.
     last_work: Nanos,
     requests: rtrb::Consumer<Request>,
@@ -756,11 +766,17 @@ impl<O: Output> OutputThread<O> {
         Ok(true)
     }
 
-    /// The earliest deadline of any channel or of the heartbeat line, and at the latest
-    /// [`LIVENESS_TICK_NS`] after the last wake-up, monotonic ns.
+    /// The earliest deadline of any channel or of the heartbeat line, and, with a liveness
+    /// tick ([`EngineOptions::liveness_tick_ns`]), at the latest one tick after the last
+    /// wake-up, monotonic ns; `None`: nothing is due until a request comes.
     pub fn next_deadline(&self) -> Option<Nanos> {
-        let tick = self.last_work.saturating_add(LIVENESS_TICK_NS);
-        Some(self.worker.next_deadline().map_or(tick, |d| d.min(tick)))
+        let tick = self
+            .liveness_tick_ns
+            .map(|t| self.last_work.saturating_add(t));
+        match (self.worker.next_deadline(), tick) {
+            (Some(d), Some(t)) => Some(d.min(t)),
+            (d, t) => d.or(t),
+        }
     }
 
     /// Whether [`EngineHandle::shutdown`] (or dropping the handle) asked the thread to stop.

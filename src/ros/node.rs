@@ -457,6 +457,9 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
         // A managed node starts unconfigured: every line held inactive.
         start_held: cfg.settings.managed,
         bank: cfg.settings.bank,
+        // The tick is for the systemd watchdog's pinger alone; without one the thread sleeps
+        // until its next edge or request.
+        liveness_tick_ns: crate::service::watchdog_interval().map(|_| engine::LIVENESS_TICK_NS),
         ..EngineOptions::default()
     };
     let engine = engine::spawn(configs, output, opts).map_err(NodeError::Engine)?;
