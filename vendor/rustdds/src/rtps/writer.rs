@@ -311,9 +311,10 @@ impl Writer {
     // TODO: Configuration value
     let cache_cleaning_period = Duration::from_secs(6);
 
-    // Start periodic Heartbeat
+    // Start periodic Heartbeat, on the grid every writer's slow heartbeat and
+    // cache cleaning share, so that the event loop wakes once for all writers.
     if let Some(period) = heartbeat_period {
-      timed_event_timer.borrow_mut().set_timeout(
+      timed_event_timer.borrow_mut().set_on_grid(
         std::time::Duration::from(period),
         DpTimerEvent::Writer {
           entity_id: i.guid.entity_id,
@@ -322,7 +323,7 @@ impl Writer {
       );
     }
     // start periodic cache cleaning
-    timed_event_timer.borrow_mut().set_timeout(
+    timed_event_timer.borrow_mut().set_on_grid(
       std::time::Duration::from(cache_cleaning_period),
       DpTimerEvent::Writer {
         entity_id: i.guid.entity_id,
@@ -414,6 +415,17 @@ impl Writer {
     );
   }
 
+  // Like `schedule_timed_event`, on the grid of `Timer::set_on_grid`.
+  fn schedule_on_grid(&self, period: std::time::Duration, event: TimedEvent) {
+    self.timed_event_timer.borrow_mut().set_on_grid(
+      period,
+      DpTimerEvent::Writer {
+        entity_id: self.my_guid.entity_id,
+        event,
+      },
+    );
+  }
+
   // Time between repair rounds for one reader. See REPAIR_INTERVAL_DEFAULT.
   fn repair_interval(&self) -> std::time::Duration {
     repair_interval_for(self.qos_policies.deadline().map(|dl| dl.0))
@@ -487,18 +499,19 @@ impl Writer {
         // Adaptive period: reschedule sooner (fast) while some reader still has
         // unacknowledged data so repair is prompted quickly, and back off to the
         // slow period once everyone is caught up to keep idle traffic low.
-        let next_period = if readers_behind {
-          self.heartbeat_period_fast.or(self.heartbeat_period)
-        } else {
-          self.heartbeat_period
-        };
-        if let Some(period) = next_period {
-          self.schedule_timed_event(std::time::Duration::from(period), TimedEvent::Heartbeat);
+        // The slow period stays on the grid shared by every writer (one wake-up
+        // of the loop for all); the fast one runs from now, for this writer.
+        if readers_behind {
+          if let Some(period) = self.heartbeat_period_fast.or(self.heartbeat_period) {
+            self.schedule_timed_event(std::time::Duration::from(period), TimedEvent::Heartbeat);
+          }
+        } else if let Some(period) = self.heartbeat_period {
+          self.schedule_on_grid(std::time::Duration::from(period), TimedEvent::Heartbeat);
         }
       }
       TimedEvent::CacheCleaning => {
         self.handle_cache_cleaning();
-        self.schedule_timed_event(
+        self.schedule_on_grid(
           std::time::Duration::from(self.cache_cleaning_period),
           TimedEvent::CacheCleaning,
         );
