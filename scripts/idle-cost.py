@@ -48,12 +48,14 @@ TICK = os.sysconf("SC_CLK_TCK")
 CHANNELS = ((1000, 37.0), (1000, 50.0))
 
 
-def node_argv(node: str) -> list[str]:
+def node_argv(node: str, params: list[str]) -> list[str]:
     argv = [node, "--channels", str(len(CHANNELS)), "--ros-args"]
     for n, (period, duty) in enumerate(CHANNELS, start=1):
         ch = f"pw{n:02d}"
         argv += ["-p", f"{ch}.period_ms:={period}", "-p", f"{ch}.duty:={duty}",
                  "-p", f"{ch}.enable:=true"]
+    for p in params:
+        argv += ["-p", p]
     return argv
 
 
@@ -135,6 +137,8 @@ def main() -> int:
                     help="exit 1 unless the node's CPU is at most --max-node-cpu-pct and below "
                     "the reference's")
     ap.add_argument("--max-node-cpu-pct", type=float, default=0.1)
+    ap.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
+                    help="one more parameter for the node (e.g. status_rate_hz:=1.0); repeatable")
     a = ap.parse_args()
 
     d_node, _lock1 = take_domain("idle-cost")
@@ -145,7 +149,7 @@ def main() -> int:
     base.pop("RUST_LOG", None)
     procs = {}
     for label, argv, domain in (
-        ("pwm_actuator", node_argv(a.node), d_node),
+        ("pwm_actuator", node_argv(a.node, a.param), d_node),
         ("rclpy reference", [sys.executable, str(REPO / "scripts/idle_reference.py")], d_ref),
     ):
         log = (work / f"{label.split()[0]}.log").open("w")
@@ -157,7 +161,7 @@ def main() -> int:
     if not a.json:
         print(f"idle-cost: warm-up {a.warmup:g} s, window {a.seconds:g} s, logs in {work}",
               flush=True)
-        print(f"idle-cost: {' '.join(node_argv(a.node))}", flush=True)
+        print(f"idle-cost: {' '.join(node_argv(a.node, a.param))}", flush=True)
 
     def alive() -> bool:
         for label, p in procs.items():
