@@ -305,9 +305,11 @@ impl<E> Timer<E> {
   /// for all of them instead of once for each. The first one may come sooner
   /// than `period`; each one after it comes one `period` later.
   pub(crate) fn set_on_grid(&mut self, period: Duration, event: E) {
+    // The origin first: it is never after `now`, so `when` lies on the grid.
+    let origin = grid_origin();
     let now = Instant::now();
     let period_ns = period.as_nanos().max(1);
-    let since = now.saturating_duration_since(grid_origin()).as_nanos();
+    let since = now.saturating_duration_since(origin).as_nanos();
     let ahead = period_ns - since % period_ns;
     let delay = Duration::from_nanos(u64::try_from(ahead).unwrap_or(u64::MAX));
     let when = now.checked_add(delay).unwrap_or(now);
@@ -332,7 +334,7 @@ impl<E> Timer<E> {
 }
 
 /// The origin of [`Timer::set_on_grid`]'s grid: the first time it is asked.
-fn grid_origin() -> Instant {
+pub(crate) fn grid_origin() -> Instant {
   static ORIGIN: OnceLock<Instant> = OnceLock::new();
   *ORIGIN.get_or_init(Instant::now)
 }
@@ -371,6 +373,7 @@ mod grid_tests {
   fn events_set_on_the_grid_at_different_times_fall_due_together() {
     let period = Duration::from_millis(200);
     let mut t = Timer::new();
+    let origin = grid_origin();
     let first_set = Instant::now();
     t.set_on_grid(period, 1);
     std::thread::sleep(Duration::from_millis(30));
@@ -381,6 +384,10 @@ mod grid_tests {
     let (a, b) = (at(1), at(2));
     assert!(a > first_set && a <= first_set + period);
     assert!(b > second_set && b <= second_set + period);
+    for when in [a, b] {
+      let since = when.saturating_duration_since(origin).as_nanos();
+      assert_eq!(since % period.as_nanos(), 0, "on the grid");
+    }
     let apart = b.saturating_duration_since(a);
     assert!(
       apart == Duration::ZERO || apart == period,
