@@ -240,7 +240,9 @@ vendor_tests() {
         samples_of_a_lost_participant_leave_built_in_topic_caches \
         gone_writers_and_forgotten_instances_leave_the_read_state \
         spdp_announcements_go_to_static_peers \
-        without_multicast_discovery_no_multicast_locator_is_announced 2>&1 |
+        without_multicast_discovery_no_multicast_locator_is_announced \
+        events_set_on_the_grid_at_different_times_fall_due_together \
+        a_reader_behind_that_cannot_be_reached_gets_no_fast_heartbeat 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"
 }

@@ -212,6 +212,6 @@ mod tests;
 
 pub use thread::{
     monotonic_timer, spawn, spawn_with, Engine, EngineError, EngineHandle, EngineOptions, Liveness,
-    NotTaken, OutputThread, Reports, Requests, SafetyPath, LIVENESS_TICK_NS, SAFETY_TAKE_BOUND,
-    SHUTDOWN_WAIT,
+    NotTaken, OutputThread, ReportWaker, Reports, Requests, SafetyPath, LIVENESS_TICK_NS,
+    SAFETY_TAKE_BOUND, SHUTDOWN_WAIT,
 };

@@ -39,6 +39,11 @@ pub struct EngineOptions {
     pub start_held: bool,
     /// The node-level planner at start-up: `phase` and `max_simultaneous_on`.
     pub bank: Bank,
+    /// The thread wakes at least this often even with nothing to do, so that a watcher of its
+    /// [`Liveness`] (the systemd watchdog's pinger) sees a stall within it, ns. `None`: it
+    /// sleeps until its next deadline or request, however far (a node without a watchdog: an
+    /// idle thread costs nothing).
+    pub liveness_tick_ns: Option<Nanos>,
 }
 
 impl Default for EngineOptions {
@@ -49,6 +54,7 @@ impl Default for EngineOptions {
             heartbeat_half_period_ns: None,
             start_held: false,
             bank: Bank::default(),
+            liveness_tick_ns: Some(LIVENESS_TICK_NS),
         }
     }
 }
@@ -327,10 +333,18 @@ impl Reports {
         self.dropped.load(Ordering::Relaxed)
     }
 
+    /// A handle that wakes this reader from any thread ([`ReportWaker::wake`]): for a reader
+    /// that sleeps until its next deadline and must look at something else now (a note from a
+    /// ROS callback, a request to stop).
+    pub fn waker(&self) -> ReportWaker {
+        ReportWaker(Arc::clone(&self.wake))
+    }
+
     /// Blocks up to `timeout` for the wake-up eventfd (for non-async readers such as tests and
-    /// the benchmark). Returns true when it became readable.
+    /// the benchmark). Returns true when it became readable. The timeout is rounded up to whole
+    /// milliseconds, so a reader never wakes before the deadline it computed.
     pub fn wait(&self, timeout: Duration) -> bool {
-        let ms = timeout.as_millis().min(i32::MAX as u128) as i32;
+        let ms = timeout.as_nanos().div_ceil(1_000_000).min(i32::MAX as u128) as i32;
         let mut fds = [PollFd::new(self.wake.as_fd(), PollFlags::POLLIN)];
         matches!(poll(&mut fds, PollTimeout::try_from(ms).unwrap_or(PollTimeout::MAX)), Ok(n) if n > 0)
     }
@@ -343,17 +357,18 @@ impl Reports {
     /// Hands every report to `on_report`, batch by batch, calling `after_batch` after each
     /// batch, until `stop()` is true or the output thread has ended. Returns true in the latter
     /// case, after handing over the thread's last reports. Sleeps on the wake-up eventfd
-    /// between batches, at most as long as the last `after_batch` said (a reader with clocks of
-    /// its own) and never more than 100 ms, so it looks at `stop` at least that often.
+    /// between batches, as long as the last `after_batch` said (a reader with clocks of its
+    /// own): it looks at `stop` only when woken, so whoever makes `stop()` true wakes it
+    /// ([`Reports::waker`]).
     pub fn serve(
         &mut self,
         stop: impl Fn() -> bool,
         mut on_report: impl FnMut(Report),
         mut after_batch: impl FnMut(&Reports) -> Duration,
     ) -> bool {
-        let mut wait = Duration::from_millis(100);
+        let mut wait = Duration::ZERO;
         while !stop() {
-            self.wait(wait.min(Duration::from_millis(100)));
+            self.wait(wait);
             // Cleared before draining, so a report queued meanwhile wakes the next wait at once.
             self.clear_wake();
             while let Some(r) = self.try_recv() {
@@ -371,18 +386,38 @@ impl Reports {
     }
 }
 
+/// Wakes the reader of [`Reports`] from any thread (see [`Reports::waker`]). Cheap to clone;
+/// a wake-up costs one `write` on an eventfd, and wake-ups before the reader runs merge.
+#[derive(Clone)]
+pub struct ReportWaker(Arc<EventFd>);
+
+impl ReportWaker {
+    /// Wakes the reader now (it then drains the reports and runs its `after_batch`).
+    pub fn wake(&self) {
+        // EAGAIN: the counter is saturated, a wake-up is pending anyway.
+        let _ = self.0.write(1);
+    }
+}
+
+impl std::fmt::Debug for ReportWaker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ReportWaker")
+    }
+}
+
 /// How long [`EngineHandle::shutdown`] waits for the output thread to end before it switches
 /// the outputs off through the emergency handle and leaves the thread behind.
 pub const SHUTDOWN_WAIT: Duration = Duration::from_secs(2);
 
-/// The output thread wakes at least this often, even with nothing to do, so that its liveness
-/// can be seen from outside ([`Liveness`]), ns.
+/// The output thread's default [`EngineOptions::liveness_tick_ns`]: it wakes at least this
+/// often, even with nothing to do, so that its liveness can be seen from outside
+/// ([`Liveness`]), ns.
 pub const LIVENESS_TICK_NS: Nanos = 100_000_000;
 
 /// Whether the output thread keeps its schedule, readable from any thread (the systemd
 /// watchdog's pinger reads it). Before each sleep the thread publishes the deadline it will
-/// wake at (never more than [`LIVENESS_TICK_NS`] ahead); a thread that is hung, stuck in a
-/// write, or starved of CPU falls behind that promise.
+/// wake at (never more than [`EngineOptions::liveness_tick_ns`] ahead, when set); a thread
+/// that is hung, stuck in a write, or starved of CPU falls behind that promise.
 #[derive(Clone)]
 pub struct Liveness(Arc<LivenessState>);
 
@@ -601,6 +636,7 @@ where
                 let mut thread = OutputThread {
                     worker,
                     liveness,
+                    liveness_tick_ns: opts.liveness_tick_ns,
                     last_work: now,
                     requests: req_rx,
                     req_wake,
@@ -673,6 +709,8 @@ fn check_lines<O: Output>(
 pub struct OutputThread<O: Output> {
     worker: Worker<O>,
     liveness: Liveness,
+    /// [`EngineOptions::liveness_tick_ns`].
+    liveness_tick_ns: Option<Nanos>,
     /// When [`OutputThread::work`] last ran, monotonic ns.
     last_work: Nanos,
     requests: rtrb::Consumer<Request>,
@@ -728,11 +766,17 @@ impl<O: Output> OutputThread<O> {
         Ok(true)
     }
 
-    /// The earliest deadline of any channel or of the heartbeat line, and at the latest
-    /// [`LIVENESS_TICK_NS`] after the last wake-up, monotonic ns.
+    /// The earliest deadline of any channel or of the heartbeat line, and, with a liveness
+    /// tick ([`EngineOptions::liveness_tick_ns`]), at the latest one tick after the last
+    /// wake-up, monotonic ns; `None`: nothing is due until a request comes.
     pub fn next_deadline(&self) -> Option<Nanos> {
-        let tick = self.last_work.saturating_add(LIVENESS_TICK_NS);
-        Some(self.worker.next_deadline().map_or(tick, |d| d.min(tick)))
+        let tick = self
+            .liveness_tick_ns
+            .map(|t| self.last_work.saturating_add(t));
+        match (self.worker.next_deadline(), tick) {
+            (Some(d), Some(t)) => Some(d.min(t)),
+            (d, t) => d.or(t),
+        }
     }
 
     /// Whether [`EngineHandle::shutdown`] (or dropping the handle) asked the thread to stop.

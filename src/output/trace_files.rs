@@ -317,6 +317,32 @@ struct HealthInner {
     /// Counts the changes worth telling at once: a failure or its end, a full file system, a
     /// deleted file, a rotation.
     changes: AtomicU64,
+    /// Called after each change worth telling (see [`TraceHealth::on_change`]).
+    hook: ChangeHook,
+}
+
+/// What a [`TraceHealth`] calls after a change worth telling: set once.
+#[derive(Default)]
+struct ChangeHook(std::sync::OnceLock<Box<dyn Fn() + Send + Sync>>);
+
+impl std::fmt::Debug for ChangeHook {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.0.get().is_some() {
+            "ChangeHook(set)"
+        } else {
+            "ChangeHook"
+        })
+    }
+}
+
+impl HealthInner {
+    /// Counts a change worth telling and tells whoever asked ([`TraceHealth::on_change`]).
+    fn changed(&self) {
+        self.changes.fetch_add(1, Ordering::Relaxed);
+        if let Some(f) = self.hook.0.get() {
+            f();
+        }
+    }
 }
 
 /// The state of every trace of the node, shared by their writer threads (which update it) and
@@ -333,11 +359,19 @@ impl TraceHealth {
         TraceHealth::default()
     }
 
+    /// Calls `f` after every change worth telling from now on, on the thread that made it (a
+    /// trace's writer thread), after the count of [`TraceHealth::changes`] moved: the reader
+    /// of the state sleeps until told instead of looking again and again. Only the first call
+    /// sets it; `f` must be quick and must not block.
+    pub fn on_change(&self, f: impl Fn() + Send + Sync + 'static) {
+        let _ = self.inner.hook.0.set(Box::new(f));
+    }
+
     /// Adds a trace; its writer updates it through the slot returned.
     pub fn register(&self, state: TraceState) -> TraceSlot {
         let mut traces = super::safety::lock_ignore_poison(&self.inner.traces);
         traces.push(state);
-        self.inner.changes.fetch_add(1, Ordering::Relaxed);
+        self.inner.changed();
         TraceSlot {
             health: self.clone(),
             index: traces.len() - 1,
@@ -389,7 +423,7 @@ impl TraceSlot {
             state.rotations,
         );
         if before != after {
-            self.health.inner.changes.fetch_add(1, Ordering::Relaxed);
+            self.health.inner.changed();
         }
     }
 }

@@ -457,6 +457,9 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
         // A managed node starts unconfigured: every line held inactive.
         start_held: cfg.settings.managed,
         bank: cfg.settings.bank,
+        // The tick is for the systemd watchdog's pinger alone; without one the thread sleeps
+        // until its next edge or request.
+        liveness_tick_ns: crate::service::watchdog_interval().map(|_| engine::LIVENESS_TICK_NS),
         ..EngineOptions::default()
     };
     let engine = engine::spawn(configs, output, opts).map_err(NodeError::Engine)?;
@@ -627,7 +630,7 @@ async fn serve(
     if let Some(mcap) = mcap {
         reporter.record_to(mcap);
     }
-    reporter.watch_traces(TraceReport::new(traces));
+    reporter.watch_traces(TraceReport::new(traces.clone()));
     reporter.set_valves(valve_pubs);
     let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
@@ -677,6 +680,13 @@ async fn serve(
         tasks.extend(lifecycle::serve(&mut ep, &inputs, line_slot, cell)?);
     }
     let quit = Arc::new(AtomicBool::new(false));
+    // The report thread sleeps until something is due: whatever it must see sooner wakes it.
+    let wake_reports = reports.waker();
+    node_state.set_reporter_waker(wake_reports.clone());
+    {
+        let w = wake_reports.clone();
+        traces.on_change(move || w.wake());
+    }
     let pump_thread = {
         let (q, sig) = (Arc::clone(&quit), Arc::clone(&stop_signal));
         std::thread::Builder::new()
@@ -713,6 +723,7 @@ async fn serve(
         t.abort();
     }
     quit.store(true, Ordering::SeqCst);
+    wake_reports.wake();
     let reporter = match pump_thread.join() {
         Ok(r) => Some(r),
         Err(_) => {

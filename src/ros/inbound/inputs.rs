@@ -148,6 +148,7 @@ impl Inputs {
         if self.notes.try_send(note).is_err() {
             self.notes_lost.fetch_add(1, Ordering::Relaxed);
         }
+        self.state.wake_reporter();
     }
 
     /// Queues a request for the output thread; a full or closed queue is logged.

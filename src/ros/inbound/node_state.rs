@@ -5,8 +5,11 @@
 //!
 //! Every field is an atomic written by one side and read by the other: a callback never waits
 //! for the report thread, and the report thread never waits for a callback. Nothing here
-//! publishes or reads a clock.
+//! publishes or reads a clock. A change the report thread must show at once (the e-stop, a
+//! note queued for it) wakes it ([`NodeState::wake_reporter`]): it sleeps until something is
+//! due rather than looking again and again.
 
+use crate::engine::ReportWaker;
 use crate::ros::config::params::{channel_name, ParamStore};
 pub use crate::ros::config::params::{
     DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW, MAX_COMMAND_HZ_WINDOW,
@@ -79,6 +82,8 @@ pub struct NodeState {
     /// Per channel, the reports of autotune runs the action has not taken yet (a lock held
     /// for a push by the report thread and a drain by the action task).
     autotunes: Box<[AutotuneMailbox]>,
+    /// Wakes the report thread, once it runs.
+    reporter: std::sync::OnceLock<ReportWaker>,
 }
 
 /// One channel's autotune reports waiting for the action, with their tickets.
@@ -111,6 +116,7 @@ impl NodeState {
             autotunes: (0..channels)
                 .map(|_| std::sync::Mutex::new(std::collections::VecDeque::new()))
                 .collect(),
+            reporter: std::sync::OnceLock::new(),
         }
     }
 
@@ -218,12 +224,28 @@ impl NodeState {
         self.estop_latches.load(Ordering::Relaxed)
     }
 
-    /// The e-stop latched (`true`, counted) or was reset (`false`).
+    /// The e-stop latched (`true`, counted) or was reset (`false`); the report thread is woken
+    /// to publish the new level.
     pub fn set_estop(&self, latched: bool) {
         if latched {
             self.estop_latches.fetch_add(1, Ordering::Relaxed);
         }
         self.estop_latched.store(latched, Ordering::Release);
+        self.wake_reporter();
+    }
+
+    /// From now on [`NodeState::wake_reporter`] wakes the report thread through `waker` (set
+    /// once, when the report thread starts).
+    pub fn set_reporter_waker(&self, waker: ReportWaker) {
+        let _ = self.reporter.set(waker);
+    }
+
+    /// Wakes the report thread (nothing before it runs): something it must look at now has
+    /// changed here, or was queued for it.
+    pub fn wake_reporter(&self) {
+        if let Some(w) = self.reporter.get() {
+            w.wake();
+        }
     }
 
     /// Counts a duty command for `channel` (any of `~/<ch>/duty`, `~/<ch>/sv`, a split-range

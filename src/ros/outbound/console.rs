@@ -128,6 +128,16 @@ impl EdgeLines {
         out
     }
 
+    /// When [`EdgeLines::flush`] has a summary to give next (the earliest window with held-back
+    /// edges closes), monotonic ns; `None` while no edge is held back.
+    pub fn next_flush(&self) -> Option<Nanos> {
+        self.windows
+            .iter()
+            .filter(|w| w.hidden > 0)
+            .map(|w| w.start_ns.saturating_add(WINDOW_NS))
+            .min()
+    }
+
     /// Summaries of channels whose held-back edges are older than a second at `now_ns`, so a
     /// burst is summarised even when no edge follows it. `names` gives the channel names.
     pub fn flush(&mut self, names: &[String], now_ns: Nanos) -> Vec<String> {

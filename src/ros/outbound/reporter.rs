@@ -27,7 +27,9 @@ use crate::ros::outbound::console::EdgeLines;
 use crate::ros::outbound::diagnostics::{
     clamp_text, status_changed, status_msg, ChannelHealth, NodeCounters,
 };
-use crate::ros::outbound::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
+use crate::ros::outbound::diagnostics::{
+    frequency_status_name, LatenessHistogram, NodeHealth, LOSS_WARN_NS, REFUSAL_WARN_NS,
+};
 use crate::ros::outbound::frequency::{FrequencyReport, FrequencyStatus};
 use crate::ros::outbound::mcap_trace::McapTrace;
 use crate::ros::outbound::traces::TraceReport;
@@ -50,9 +52,6 @@ const DIAGNOSTICS_RUN_NS: Nanos = 1_000_000_000;
 
 /// At most one extra `/diagnostics` message per this interval when levels change, ns.
 const DIAGNOSTICS_COALESCE_NS: Nanos = 50_000_000;
-
-/// The longest the report thread sleeps between looks at its clocks and notes.
-pub const MAX_WAIT: Duration = Duration::from_millis(100);
 
 /// The per-channel publishers.
 pub struct ChannelPubs {
@@ -512,9 +511,13 @@ impl Reporter {
         }
     }
 
-    /// After a batch of reports (and at least every [`MAX_WAIT`]): notes, summaries of
-    /// held-back edge lines, lost reports, the periodic status, and `/diagnostics` when due or
-    /// when a level changed. Returns how long the thread may sleep before the next call.
+    /// After a batch of reports, a wake-up ([`NodeState::wake_reporter`], a trace's change) or
+    /// when the time it last returned has passed: notes, summaries of held-back edge lines, lost
+    /// reports, the periodic status, and `/diagnostics` when due or when a level changed.
+    /// Returns how long the thread may sleep before the next call: until the earliest of the
+    /// next periodic `/diagnostics`, diagnostics run, status, edge-line summary, coalesced
+    /// level change and the end of a WARN that lasts a while (a refusal's, a loss's) — computed,
+    /// so an idle node sleeps a second at a time.
     pub fn after_batch(&mut self, dropped_total: u64) -> Duration {
         let now = clock::monotonic_ns();
         self.take_notes(now);
@@ -555,23 +558,53 @@ impl Reporter {
             }
         }
         self.node_from_state();
-        // A trace that fails is on /diagnostics within MAX_WAIT, as its level changes.
+        // A trace that fails wakes this thread, and is on /diagnostics as its level changes.
         self.traces.poll(now, false);
         let since = now.saturating_sub(self.last_diagnostics);
-        let levels_changed = || self.levels(now) != self.levels_published;
-        if since >= DIAGNOSTICS_PERIOD_NS || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed())
-        {
+        let levels_changed = self.levels(now) != self.levels_published;
+        if since >= DIAGNOSTICS_PERIOD_NS || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed) {
             if since >= DIAGNOSTICS_PERIOD_NS {
                 logging::flush_suppressed();
                 release_free_memory();
             }
             self.publish_diagnostics(now);
         }
-        let mut next = (self.last_diagnostics + DIAGNOSTICS_PERIOD_NS).min(self.next_run);
-        if let Some(t) = self.status.next() {
-            next = next.min(t);
-        }
-        Duration::from_nanos(next.saturating_sub(now)).min(MAX_WAIT)
+        // A change held back by the coalescing is published as soon as the interval has passed.
+        let coalesced = (self.levels_published != self.levels(now))
+            .then_some(self.last_diagnostics + DIAGNOSTICS_COALESCE_NS);
+        let next = [
+            coalesced,
+            Some(self.last_diagnostics + DIAGNOSTICS_PERIOD_NS),
+            Some(self.next_run),
+            self.status.next(),
+            self.lines.next_flush(),
+            self.next_level_change(now),
+        ]
+        .into_iter()
+        .flatten()
+        .min()
+        .unwrap_or(now);
+        Duration::from_nanos(next.saturating_sub(now))
+    }
+
+    /// When a level `/diagnostics` carries will next change by itself after `now`, with no
+    /// report or note (a WARN for a while after a refusal, a lost report, a dropped sample or a
+    /// trace's problem ends), monotonic ns; `None` when none will.
+    fn next_level_change(&self, now: Nanos) -> Option<Nanos> {
+        let channel_ends = self.health.iter().flat_map(|h| {
+            [&h.last_rejection, &h.last_refusal]
+                .into_iter()
+                .filter_map(|e| e.as_ref().map(|(_, at)| at.saturating_add(REFUSAL_WARN_NS)))
+        });
+        let node_ends = [self.node.last_drop, self.node.last_too_large]
+            .into_iter()
+            .flatten()
+            .map(|at| at.saturating_add(LOSS_WARN_NS));
+        channel_ends
+            .chain(node_ends)
+            .filter(|t| *t > now)
+            .chain(self.traces.next_change(now))
+            .min()
     }
 
     /// The diagnostics run, once a second: each channel's command rate against its expected

@@ -5,9 +5,9 @@
 //! A trace is WARN while it cannot be written (a full disk, a read-only file system: what it
 //! should hold is counted lost, and a new file is tried every second) or its file system is
 //! full, and for [`LOSS_WARN_NS`] after any problem (its file deleted while written and begun
-//! again, a failure that has ended). The report thread reads the state at least every
-//! [`MAX_WAIT`](super::reporter::MAX_WAIT), so a failure reaches `/diagnostics` at once: a
-//! changed level is published within 50 ms.
+//! again, a failure that has ended). A writer thread that changes the state wakes the report
+//! thread ([`TraceHealth::on_change`](crate::output::TraceHealth::on_change)), so a failure
+//! reaches `/diagnostics` at once: a changed level is published within 50 ms.
 //!
 //! The log says each failure, full file system and deleted file once when it is seen, what a
 //! failure that lasts has lost at most every [`LOG_REPEAT_NS`], and when it ends; its words
@@ -98,6 +98,17 @@ impl TraceReport {
             log_news(state, told, now);
         }
         true
+    }
+
+    /// When the level of a trace will next change by itself (a problem's [`LOSS_WARN_NS`] ends),
+    /// after `now`, monotonic ns; `None` when none will.
+    pub fn next_change(&self, now: Nanos) -> Option<Nanos> {
+        self.states
+            .iter()
+            .filter_map(|s| s.last_problem.as_ref())
+            .map(|(_, at)| at.saturating_add(LOSS_WARN_NS))
+            .filter(|t| *t > now)
+            .min()
     }
 
     /// Each trace's level at `now`, in order.

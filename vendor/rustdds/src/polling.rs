@@ -298,6 +298,26 @@ impl<E> Timer<E> {
     self.deadlines.insert((when, id), event);
   }
 
+  /// Sets `event` to fall due at the next instant after now that is a whole
+  /// number of `period`s after one process-wide origin. Periodic events of
+  /// one period set at different times (every writer's HEARTBEAT, its cache
+  /// cleaning) then fall due at the same instants, and the loop wakes once
+  /// for all of them instead of once for each. The first one may come sooner
+  /// than `period`; each one after it comes one `period` later.
+  pub(crate) fn set_on_grid(&mut self, period: Duration, event: E) {
+    // The origin first: it is never after `now`, so `when` lies on the grid.
+    let origin = grid_origin();
+    let now = Instant::now();
+    let period_ns = period.as_nanos().max(1);
+    let since = now.saturating_duration_since(origin).as_nanos();
+    let ahead = period_ns - since % period_ns;
+    let delay = Duration::from_nanos(u64::try_from(ahead).unwrap_or(u64::MAX));
+    let when = now.checked_add(delay).unwrap_or(now);
+    let id = self.next_id;
+    self.next_id = self.next_id.wrapping_add(1);
+    self.deadlines.insert((when, id), event);
+  }
+
   /// The earliest event whose deadline has passed, if any.
   pub(crate) fn poll(&mut self) -> Option<E> {
     let key = *self.deadlines.keys().next()?;
@@ -311,6 +331,12 @@ impl<E> Timer<E> {
   pub(crate) fn next_deadline(&self) -> Option<Instant> {
     self.deadlines.keys().next().map(|(when, _)| *when)
   }
+}
+
+/// The origin of [`Timer::set_on_grid`]'s grid: the first time it is asked.
+pub(crate) fn grid_origin() -> Instant {
+  static ORIGIN: OnceLock<Instant> = OnceLock::new();
+  *ORIGIN.get_or_init(Instant::now)
 }
 
 pub(crate) type SharedTimer<E> = std::rc::Rc<std::cell::RefCell<Timer<E>>>;
@@ -332,5 +358,40 @@ pub(crate) fn timeout_until(deadline: Option<Instant>, cap: Duration) -> Duratio
       }
     }
     None => cap,
+  }
+}
+
+#[cfg(test)]
+mod grid_tests {
+  use super::*;
+
+  // Two periodic events set 30 ms apart fall due at the same instant (or,
+  // when a grid point passed between the two calls, exactly one period
+  // apart), each within one period from when it was set. With `set_timeout`
+  // they would be 30 ms apart: two wake-ups of the loop instead of one.
+  #[test]
+  fn events_set_on_the_grid_at_different_times_fall_due_together() {
+    let period = Duration::from_millis(200);
+    let mut t = Timer::new();
+    let origin = grid_origin();
+    let first_set = Instant::now();
+    t.set_on_grid(period, 1);
+    std::thread::sleep(Duration::from_millis(30));
+    let second_set = Instant::now();
+    t.set_on_grid(period, 2);
+    let due: Vec<(Instant, u8)> = t.deadlines.iter().map(|((w, _), e)| (*w, *e)).collect();
+    let at = |e: u8| due.iter().find(|(_, x)| *x == e).unwrap().0;
+    let (a, b) = (at(1), at(2));
+    assert!(a > first_set && a <= first_set + period);
+    assert!(b > second_set && b <= second_set + period);
+    for when in [a, b] {
+      let since = when.saturating_duration_since(origin).as_nanos();
+      assert_eq!(since % period.as_nanos(), 0, "on the grid");
+    }
+    let apart = b.saturating_duration_since(a);
+    assert!(
+      apart == Duration::ZERO || apart == period,
+      "due {apart:?} apart, not on one grid"
+    );
   }
 }

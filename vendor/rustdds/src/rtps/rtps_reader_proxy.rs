@@ -334,6 +334,20 @@ impl RtpsReaderProxy {
     self.send_route
   }
 
+  /// Whether `Writer::send_message_to_readers` has somewhere to send this
+  /// reader a message: its resolved route, or, while the route is the
+  /// fallback, a UDP locator in its unicast or multicast list (loopback ones
+  /// are kept apart until the peer is confirmed same-host).
+  pub fn has_destination(&self) -> bool {
+    let route = self.send_route;
+    if route.fallback {
+      self.unicast_locator_list.iter().any(Locator::is_udp)
+        || self.multicast_locator_list.iter().any(Locator::is_udp)
+    } else {
+      route.unicast.is_some() || route.multicast.is_some()
+    }
+  }
+
   /// Recompute this reader's [`SendRoute`] from its advertised locators and the
   /// per-participant [`InterfaceObservations`], using `selector`.
   pub fn resolve_send_route(

@@ -311,9 +311,10 @@ impl Writer {
     // TODO: Configuration value
     let cache_cleaning_period = Duration::from_secs(6);
 
-    // Start periodic Heartbeat
+    // Start periodic Heartbeat, on the grid every writer's slow heartbeat and
+    // cache cleaning share, so that the event loop wakes once for all writers.
     if let Some(period) = heartbeat_period {
-      timed_event_timer.borrow_mut().set_timeout(
+      timed_event_timer.borrow_mut().set_on_grid(
         std::time::Duration::from(period),
         DpTimerEvent::Writer {
           entity_id: i.guid.entity_id,
@@ -322,7 +323,7 @@ impl Writer {
       );
     }
     // start periodic cache cleaning
-    timed_event_timer.borrow_mut().set_timeout(
+    timed_event_timer.borrow_mut().set_on_grid(
       std::time::Duration::from(cache_cleaning_period),
       DpTimerEvent::Writer {
         entity_id: i.guid.entity_id,
@@ -414,6 +415,17 @@ impl Writer {
     );
   }
 
+  // Like `schedule_timed_event`, on the grid of `Timer::set_on_grid`.
+  fn schedule_on_grid(&self, period: std::time::Duration, event: TimedEvent) {
+    self.timed_event_timer.borrow_mut().set_on_grid(
+      period,
+      DpTimerEvent::Writer {
+        entity_id: self.my_guid.entity_id,
+        event,
+      },
+    );
+  }
+
   // Time between repair rounds for one reader. See REPAIR_INTERVAL_DEFAULT.
   fn repair_interval(&self) -> std::time::Duration {
     repair_interval_for(self.qos_policies.deadline().map(|dl| dl.0))
@@ -487,18 +499,29 @@ impl Writer {
         // Adaptive period: reschedule sooner (fast) while some reader still has
         // unacknowledged data so repair is prompted quickly, and back off to the
         // slow period once everyone is caught up to keep idle traffic low.
-        let next_period = if readers_behind {
-          self.heartbeat_period_fast.or(self.heartbeat_period)
-        } else {
-          self.heartbeat_period
-        };
-        if let Some(period) = next_period {
-          self.schedule_timed_event(std::time::Duration::from(period), TimedEvent::Heartbeat);
+        // The fast period only for a reader behind that a HEARTBEAT can reach:
+        // one without a destination (a loopback-only locator set not yet
+        // confirmed same-host, see loopback_same_host_design.md) never answers,
+        // and would keep the writer at 10 wake-ups a second for good.
+        let last_change = self.send_buffer.last_change_sequence_number();
+        let readers_behind = readers_behind
+          && self
+            .readers
+            .values()
+            .any(|rp| last_change >= rp.all_acked_before && rp.has_destination());
+        // The slow period stays on the grid shared by every writer (one wake-up
+        // of the loop for all); the fast one runs from now, for this writer.
+        if readers_behind {
+          if let Some(period) = self.heartbeat_period_fast.or(self.heartbeat_period) {
+            self.schedule_timed_event(std::time::Duration::from(period), TimedEvent::Heartbeat);
+          }
+        } else if let Some(period) = self.heartbeat_period {
+          self.schedule_on_grid(std::time::Duration::from(period), TimedEvent::Heartbeat);
         }
       }
       TimedEvent::CacheCleaning => {
         self.handle_cache_cleaning();
-        self.schedule_timed_event(
+        self.schedule_on_grid(
           std::time::Duration::from(self.cache_cleaning_period),
           TimedEvent::CacheCleaning,
         );
@@ -3189,6 +3212,49 @@ mod tests {
       f.writer.udp_sender.flush_control(SocketId::Unicast);
       assert_eq!(f.repair_round(), 5);
       assert!(!f.reader_proxy().repair_mode);
+    }
+
+    // pwm_actuator: the HEARTBEAT after a timed one, for a writer whose only
+    // reader is behind: 100 ms later (fast) when the reader can be reached, on
+    // the slow period's grid when it cannot (no locator).
+    fn next_heartbeat_after_tick(reader_locator: Option<SocketAddr>) -> (Instant, Instant) {
+      let mut f = Fixture::user(5, 8, reader_locator);
+      *f.timer.borrow_mut() = crate::polling::Timer::new();
+      let ticked = Instant::now();
+      f.writer.handle_timed_event(TimedEvent::Heartbeat);
+      let mut timer = f.timer.borrow_mut();
+      let mut heartbeats = Vec::new();
+      while let Some(when) = timer.next_deadline() {
+        std::thread::sleep(when.saturating_duration_since(Instant::now()));
+        if let Some(DpTimerEvent::Writer {
+          event: TimedEvent::Heartbeat,
+          ..
+        }) = timer.poll()
+        {
+          heartbeats.push(when);
+        }
+      }
+      assert_eq!(heartbeats.len(), 1, "one HEARTBEAT armed");
+      (ticked, heartbeats[0])
+    }
+
+    #[test]
+    fn a_reader_behind_that_cannot_be_reached_gets_no_fast_heartbeat() {
+      let on_grid = |t: Instant| {
+        t.saturating_duration_since(crate::polling::grid_origin())
+          .as_nanos()
+          % StdDuration::from(HEARTBEAT_PERIOD_SLOW).as_nanos()
+          == 0
+      };
+      let (ticked, next) = next_heartbeat_after_tick(None);
+      assert!(on_grid(next), "unreachable: the slow period's grid");
+      assert!(next <= ticked + StdDuration::from(HEARTBEAT_PERIOD_SLOW));
+      // A loopback locator would not be used before route resolution.
+      let (ticked, next) =
+        next_heartbeat_after_tick(Some(SocketAddr::from(([192, 0, 2, 1], 9))));
+      let fast = StdDuration::from(HEARTBEAT_PERIOD_FAST);
+      assert!(!on_grid(next), "reachable: the fast period");
+      assert!(next >= ticked + fast && next <= ticked + fast + StdDuration::from_millis(50));
     }
 
     // pwm_actuator: cache cleaning keeps History depth when no reliable reader

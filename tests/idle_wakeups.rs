@@ -1,0 +1,85 @@
+//! An idle output thread costs nothing: without a liveness tick (a node without a systemd
+//! watchdog) it sleeps until its next deadline or request, with one only every tick. Its own
+//! file, so that no other test's output thread runs in the process while the wake-ups of the
+//! thread named `pwm-output` are counted.
+
+use pwm_actuator::core::{ChannelParams, Nanos};
+use pwm_actuator::engine::{self, EngineOptions};
+use pwm_actuator::output::SimOutput;
+use std::time::Duration;
+
+fn one_channel() -> Vec<pwm_actuator::core::ChannelConfig> {
+    vec![ChannelParams::default().validate().unwrap()]
+}
+
+/// The voluntary context switches (sleeps) so far of this process's thread named `name`.
+fn sleeps_of_thread(name: &str) -> u64 {
+    for task in std::fs::read_dir("/proc/self/task").unwrap().flatten() {
+        let comm = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
+        if comm.trim() != name {
+            continue;
+        }
+        let status = std::fs::read_to_string(task.path().join("status")).unwrap();
+        return status
+            .lines()
+            .find_map(|l| l.strip_prefix("voluntary_ctxt_switches:"))
+            .map(|v| v.trim().parse().unwrap())
+            .unwrap();
+    }
+    panic!("no thread named {name}");
+}
+
+#[test]
+fn without_a_liveness_tick_an_idle_output_thread_sleeps_until_a_request() {
+    // One disabled channel: nothing is ever due. With the tick the thread wakes every 100 ms
+    // (about 10 times in a second); without it, not once until a request or the stop.
+    let run = |tick: Option<Nanos>| {
+        let sim = SimOutput::new(vec!["pw01".into()], None).unwrap();
+        let opts = EngineOptions {
+            liveness_tick_ns: tick,
+            ..EngineOptions::default()
+        };
+        let e = engine::spawn(one_channel(), sim, opts).unwrap();
+        std::thread::sleep(Duration::from_millis(200));
+        let before = sleeps_of_thread("pwm-output");
+        std::thread::sleep(Duration::from_millis(1000));
+        let woke = sleeps_of_thread("pwm-output") - before;
+        let lag = e
+            .handle
+            .liveness()
+            .lag_ns(pwm_actuator::clock::monotonic_ns());
+        e.handle.shutdown().unwrap();
+        (woke, lag)
+    };
+    let (woke, lag) = run(None);
+    assert!(woke <= 1, "woke {woke} times in 1 s with nothing to do");
+    assert_eq!(lag, Some(0), "asleep with nothing due is on schedule");
+    let (woke, _) = run(Some(engine::LIVENESS_TICK_NS));
+    assert!(woke >= 5, "with the tick: woke {woke} times in 1 s");
+}
+
+#[test]
+fn a_reader_waiting_less_than_a_millisecond_sleeps_rather_than_spins() {
+    // A wait shorter than the poll's millisecond resolution is rounded up, never down to 0:
+    // a reader with a deadline 0.3 ms away sleeps once instead of spinning until it.
+    let sim = SimOutput::new(vec!["pw01".into()], None).unwrap();
+    let opts = EngineOptions {
+        liveness_tick_ns: None,
+        ..EngineOptions::default()
+    };
+    let mut e = engine::spawn(one_channel(), sim, opts).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    e.reports.clear_wake();
+    while e.reports.try_recv().is_some() {}
+    for _ in 0..20 {
+        let start = std::time::Instant::now();
+        let woken = e.reports.wait(Duration::from_micros(300));
+        assert!(!woken, "no report is coming");
+        assert!(
+            start.elapsed() >= Duration::from_micros(300),
+            "returned after {:?}, before its deadline",
+            start.elapsed()
+        );
+    }
+    e.handle.shutdown().unwrap();
+}
