@@ -242,7 +242,8 @@ vendor_tests() {
         spdp_announcements_go_to_static_peers \
         without_multicast_discovery_no_multicast_locator_is_announced \
         events_set_on_the_grid_at_different_times_fall_due_together \
-        a_reader_behind_that_cannot_be_reached_gets_no_fast_heartbeat 2>&1 |
+        a_reader_behind_that_cannot_be_reached_gets_no_fast_heartbeat \
+        signals_to_the_event_loops_leave_them_running 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"
 }

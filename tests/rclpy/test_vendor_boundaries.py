@@ -362,6 +362,29 @@ def test_stalls_of_the_process_never_shorten_a_phase_below_its_minimum(node_proc
         )
 
 
+def test_a_stopped_and_continued_node_keeps_its_ros_side(node_process, ros):
+    """A node stopped and continued (SIGSTOP or Ctrl-Z, then SIGCONT; a debugger attaching)
+    keeps talking ROS: the DDS threads' waits return EINTR at the continue (signal(7)), which
+    ended both threads before the vendored rustdds's twelfth change and left the node running
+    its lines with no ROS at all. After five stops, the node still answers get_parameters,
+    takes a duty command and reports it on its status."""
+    import signal
+    import time
+
+    proc, ch = start(node_process, ros, pw01__period_ms=200, pw01__enable=True)
+    ch.duty(20.0)
+    for _ in range(5):
+        proc.send_signal(signal.SIGSTOP)
+        time.sleep(0.1)
+        proc.send_signal(signal.SIGCONT)
+        time.sleep(0.1)
+    values = ros.get_parameters(NODE, ["pw01.period_ms"], timeout=10.0)
+    assert values == {"pw01.period_ms": 200}, values
+    sent = ch.duty(60.0)
+    assert sent.reply.duty_commanded == 60.0, sent.reply
+    assert proc.popen.poll() is None, "the node ended"
+
+
 # ---------------------------------------------------------------------------------------------
 # Fault value after a watchdog trip (fault mode of PLC output modules)
 # ---------------------------------------------------------------------------------------------

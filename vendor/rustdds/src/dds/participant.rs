@@ -1945,6 +1945,77 @@ mod tests {
     None
   }
 
+  /// The names of this process's threads (`/proc/self/task/*/comm`, at most 15 bytes) with
+  /// their thread ids.
+  #[cfg(target_os = "linux")]
+  fn threads_named(prefix: &str) -> Vec<(i32, String)> {
+    std::fs::read_dir("/proc/self/task")
+      .unwrap()
+      .filter_map(|e| {
+        let e = e.ok()?;
+        let tid: i32 = e.file_name().to_str()?.parse().ok()?;
+        let name = std::fs::read_to_string(e.path().join("comm")).ok()?;
+        let name = name.trim_end().to_string();
+        name.starts_with(prefix).then_some((tid, name))
+      })
+      .collect()
+  }
+
+  #[cfg(target_os = "linux")]
+  #[test]
+  fn signals_to_the_event_loops_leave_them_running() {
+    use nix::libc;
+    extern "C" fn ignore(_: libc::c_int) {}
+    // A handler with SA_RESTART, as a process that handles a signal installs it:
+    // epoll_wait still returns EINTR in the thread that takes the signal.
+    unsafe {
+      let mut sa: libc::sigaction = std::mem::zeroed();
+      sa.sa_sigaction = ignore as *const () as usize;
+      sa.sa_flags = libc::SA_RESTART;
+      libc::sigemptyset(&mut sa.sa_mask);
+      assert_eq!(libc::sigaction(libc::SIGUSR2, &sa, std::ptr::null_mut()), 0);
+    }
+    let domain = test_domain_id(24);
+    let peer = std::net::Ipv4Addr::new(127, 0, 0, 3);
+    let socket =
+      std::net::UdpSocket::bind((peer, spdp_well_known_unicast_port(domain, 1))).unwrap();
+    let dp = super::DomainParticipantBuilder::new(domain)
+      .same_host_loopback(false)
+      .with_static_peers([peer])
+      .build()
+      .unwrap();
+    let prefix = crate::structure::entity::RTPSEntity::guid(&dp).prefix.bytes;
+    assert!(spdp_announcement_of(&socket, &prefix, std::time::Duration::from_secs(10)).is_some());
+    // Each thread of the participant (the event loop and discovery) blocks in
+    // epoll_wait; signal each one a few times while it waits.
+    let threads = threads_named("RustDDS");
+    assert!(threads.len() >= 2, "the participant's threads: {threads:?}");
+    for _ in 0..5 {
+      std::thread::sleep(std::time::Duration::from_millis(50));
+      for (tid, name) in &threads {
+        let r = unsafe {
+          libc::syscall(
+            libc::SYS_tgkill,
+            libc::getpid() as libc::c_long,
+            *tid as libc::c_long,
+            libc::SIGUSR2 as libc::c_long,
+          )
+        };
+        // ESRCH: the thread ended at an earlier signal.
+        assert_eq!(r, 0, "thread {tid} ({name}) is gone after a signal");
+      }
+    }
+    // Both threads still work: the discovery thread still announces the participant and
+    // the event loop still sends it (what came before drained first). Before, either
+    // thread ended at its first EINTR.
+    while spdp_announcement_of(&socket, &prefix, std::time::Duration::from_millis(10)).is_some() {}
+    assert!(
+      spdp_announcement_of(&socket, &prefix, std::time::Duration::from_secs(15)).is_some(),
+      "no SPDP announcement after the signals"
+    );
+    drop(dp);
+  }
+
   #[test]
   fn spdp_announcements_go_to_static_peers() {
     // The peer: another loopback address, on the SPDP unicast port of participant

@@ -314,6 +314,10 @@ impl DPEventLoop {
       let poll_timeout = timeout_until(ev_wrapper.shared_timer.borrow().next_deadline(), idle_cap);
       match ev_wrapper.poll.poll(&mut events, Some(poll_timeout)) {
         Ok(_) => {}
+        // A signal delivered to this thread, or a stop and continue (SIGSTOP or
+        // SIGTSTP, then SIGCONT), or a tracer attaching: epoll_wait is never
+        // restarted (signal(7)). Nothing failed; poll again.
+        Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
         Err(e) => {
           error!("dp_event_loop poll failed: {e:?}");
           break;
