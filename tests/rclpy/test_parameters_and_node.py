@@ -118,6 +118,7 @@ CHANNEL_PARAMS = (
     "model_tau_s",
     "model_dead_time_s",
     "model_ambient_c",
+    "model_sensor_tau_s",
     "model_tolerance_c",
     "model_time_s",
 )

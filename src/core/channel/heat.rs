@@ -98,7 +98,7 @@ impl Channel {
 
     /// The stretch the delivered duty is averaged over, ns: a PWM period (or the PID's sample
     /// when longer), at least a second.
-    fn duty_window(&self) -> Nanos {
+    pub(super) fn duty_window(&self) -> Nanos {
         self.cfg.period.max(self.sample()).max(CHECK_TICK)
     }
 
@@ -333,7 +333,11 @@ impl Channel {
             let limits = self.cfg.heater.stuck;
             // During an autotune's cycles the power that holds the heater is the relay's
             // mean, not the half cycle's.
-            let reference = self.heat.autotune.and_then(|(_, a)| a.mean_power());
+            let reference = self
+                .heat
+                .autotune
+                .as_ref()
+                .and_then(|(_, a)| a.mean_power());
             if let Some(still) = self.heat.still.reading(
                 now,
                 celsius,

@@ -152,9 +152,10 @@ pub struct HeaterParams {
     pub model_time_s: f64,
 }
 
-/// A heater's thermal model: first order plus dead time, driven by the line's real on time.
-/// With the line on a share `u` (%) of the time, after the dead time:
-/// `dT/dt = (ambient + gain·u − T) / tau`.
+/// A heater's thermal model: first order plus dead time, driven by the line's real on time,
+/// and a sensor that lags its block. With the line on a share `u` (%) of the time, after the
+/// dead time: `dT/dt = (ambient + gain·u − T) / tau`, and the sensor reads `S` with
+/// `dS/dt = (T − S) / sensor_tau` (`sensor_tau` 0: it reads `T`).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ModelParams {
     /// Steady-state rise per % of duty, °C/%; 0 = no model.
@@ -165,6 +166,8 @@ pub struct ModelParams {
     pub dead_time_s: f64,
     /// Ambient, °C: the temperature at 0 %.
     pub ambient_c: f64,
+    /// The sensor's time constant behind the block, s; 0 = the sensor reads the block.
+    pub sensor_tau_s: f64,
 }
 
 impl ModelParams {
@@ -208,6 +211,7 @@ impl Default for HeaterParams {
                 tau_s: 60.0,
                 dead_time_s: 0.0,
                 ambient_c: 20.0,
+                sensor_tau_s: 0.0,
             },
             model_tolerance_c: DEFAULT_MODEL_TOLERANCE_C,
             model_time_s: DEFAULT_MODEL_TIME_S,
@@ -440,6 +444,12 @@ impl HeaterParams {
             MAX_MODEL_DEAD_TIME_S,
         )?;
         OutOfRange::check("model_ambient_c", m.ambient_c, MIN_TEMP_C, MAX_TEMP_C)?;
+        OutOfRange::check(
+            "model_sensor_tau_s",
+            m.sensor_tau_s,
+            0.0,
+            MAX_MODEL_DEAD_TIME_S,
+        )?;
         OutOfRange::check(
             "model_tolerance_c",
             self.model_tolerance_c,

@@ -16,6 +16,7 @@
 
 pub mod autotune;
 pub mod checks;
+pub mod fit;
 pub mod model;
 pub mod pid;
 pub mod plant;

@@ -265,6 +265,7 @@ fn explore() {
                             dead_time_s: dead,
                             ambient_c: 20.0,
                             noise_c: 0.1,
+                            sensor_tau_s: 0.0,
                         },
                         quantum_c: 0.0,
                         setpoint_share: share,
@@ -326,6 +327,7 @@ pub(super) fn arb_plant(g: &mut Gen) -> PlantParams {
         dead_time_s: g.range(0.5, 3.0),
         ambient_c: g.range(15.0, 25.0),
         noise_c: g.range(0.0, 0.2),
+        sensor_tau_s: 0.0,
     }
 }
 

@@ -1324,6 +1324,19 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
+            description: "The thermal model's sensor: its time constant behind the block, s \
+                          (a probe in a bore, a thermistor on a bed lags what it measures). 0: \
+                          the sensor reads the block.",
+            range: Range::Double(0.0, MAX_MODEL_DEAD_TIME_S),
+            core: Some(|c, v| {
+                c.heater.model.sensor_tau_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("model_sensor_tau_s", Double, || {
+                V::Double(heater_defaults().model.sensor_tau_s)
+            })
+        },
+        Decl {
             description: "model_deviation: a residual (the reading less the model's \
                           prediction, its slow offset taken out) beyond this, °C, for \
                           model_time_s latches the heater fault. Above what unannounced \
