@@ -10,6 +10,10 @@
 # installs QEMU and builds a gpio-sim module on first use); where the guest cannot run they are
 # reported as skipped with the reason.
 #
+# What waits on the network or times nothing runs beside the compiles: the Kilted set-up from
+# the start, and the two long rclpy memory tests (BESIDE_TESTS below) from the release build on,
+# each on a ROS domain of its own. Each step's time is printed, and all of them at the end.
+#
 # Usage: scripts/test.sh [--quick] [-- PYTEST_ARGS...]
 #   --quick   skip `cargo fmt --check` and `cargo clippy`
 #   PYTEST_ARGS are passed to the Jazzy run of pytest (e.g. `-- -k edges -x`).
@@ -36,6 +40,7 @@ mkdir -p "$LOG_DIR"
 SECONDS=0
 failed_steps=()
 skipped_steps=()
+step_times=()
 passed=0 failed=0 skipped=0
 
 banner() { printf '\n==== %s ====\n' "$*"; }
@@ -53,6 +58,79 @@ run_step() {
     else
         printf -- '---- %s: ok (%d s)\n' "$name" $((SECONDS - start))
     fi
+    step_times+=("$(printf '%6d s  %s' $((SECONDS - start)) "$name")")
+    return "$rc"
+}
+
+# Adds the counts of a pytest junit XML file to the totals; its skips also go to junit_skipped.
+# No result file at all (pytest did not start) counts as one failed test, so it never looks clean.
+junit_skipped=0
+add_junit_counts() {
+    local p_tests p_fail p_err p_skip
+    junit_skipped=0
+    if [[ ! -f "$1" ]]; then
+        failed=$((failed + 1))
+        return
+    fi
+    read -r p_tests p_fail p_err p_skip < <(python3 - "$1" <<'EOF'
+import sys
+import xml.etree.ElementTree as ET
+
+root = ET.parse(sys.argv[1]).getroot()
+suites = [root] if root.tag == "testsuite" else root.findall("testsuite")
+total = [sum(int(s.get(k, 0)) for s in suites) for k in ("tests", "failures", "errors", "skipped")]
+print(*total)
+EOF
+    )
+    passed=$((passed + p_tests - p_fail - p_err - p_skip))
+    failed=$((failed + p_fail + p_err))
+    skipped=$((skipped + p_skip))
+    junit_skipped=$p_skip
+}
+
+# run_pytest_paths DISTRO JUNIT PATH... -- ARGS...: pytest over the PATHs with DISTRO's venv and
+# messages (scripts/env.sh) against the release binary, results in JUNIT (counted by
+# add_junit_counts). Returns pytest's status: 0 all passed, 1 some failed, 5 no test collected
+# (a failure here too).
+run_pytest_paths() {
+    local distro="$1" junit="$2" ws rc
+    shift 2
+    local paths=()
+    while (($#)) && [[ "$1" != "--" ]]; do
+        paths+=("$1")
+        shift
+    done
+    (($#)) && shift
+    ws="$REPO/.ros-ws"
+    [[ "$distro" == jazzy ]] || ws="$REPO/.ros-ws-$distro"
+    rm -f "$junit"
+    (
+        # shellcheck source=scripts/env.sh
+        PWM_DISTRO="$distro" source "$REPO/scripts/env.sh"
+        # ROS logs of the run stay in the checkout (git-ignored), not in ~/.ros.
+        export ROS_HOME="$ws/ros_home"
+        export PWM_ACTUATOR_NODE="${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}"
+        exec python -m pytest "${paths[@]}" -v -ra --junitxml="$junit" "$@"
+    ) </dev/null
+    rc=$?
+    if ((rc == 5)); then
+        echo "test: pytest ($distro) collected no tests" >&2
+    fi
+    return "$rc"
+}
+
+# run_pytest DISTRO JUNIT ARGS...: run_pytest_paths over tests/rclpy less BESIDE_TESTS (3a), the
+# results added to the totals.
+# shellcheck disable=SC2317  # called through run_step
+run_pytest() {
+    local distro="$1" junit="$2" rc=0 t
+    shift 2
+    local ignore=()
+    for t in "${BESIDE_TESTS[@]}"; do
+        ignore+=("--ignore=$t")
+    done
+    run_pytest_paths "$distro" "$junit" tests/rclpy -- "${ignore[@]}" "$@" || rc=$?
+    add_junit_counts "$junit"
     return "$rc"
 }
 
@@ -63,12 +141,18 @@ if ! run_step "setup" scripts/setup.sh; then
     exit 1
 fi
 
+# 1b. The Kilted venv waits on the package registry: it is made beside everything below and
+# waited for (its output printed then) before the Kilted smoke subset.
+kilted_setup_log="$LOG_DIR/setup-kilted.log"
+kilted_setup_started=$SECONDS
+scripts/setup.sh --distro kilted >"$kilted_setup_log" 2>&1 </dev/null &
+kilted_setup_pid=$!
+
 # 2. Static checks.
 if ((quick)); then
     skipped_steps+=("cargo fmt" "cargo clippy")
 else
     run_step "cargo fmt" cargo fmt --all --check
-    run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
 fi
 
 # 2b. The layers: no import cycle among the files of src/, no layer of the ROS shell importing
@@ -82,6 +166,23 @@ fi
 # 3. The release binary the rclpy suite runs.
 release_ok=1
 run_step "cargo build --release" cargo build --release --bins --locked || release_ok=0
+
+# 3a. The two long rclpy tests that time no edge — memory under a 3-minute soak and after a
+# storm of 1,000 short-lived participants (they check that no edge is early and no phase short,
+# which load cannot excuse) — run from here beside clippy and the Rust tests, with PYTEST_ARGS;
+# the rest of the suite runs later without them. Their results are added when waited for (5).
+BESIDE_TESTS=(tests/rclpy/test_soak.py tests/rclpy/test_participant_storm.py)
+beside_pid=""
+if ((release_ok)); then
+    beside_started=$SECONDS
+    (run_pytest_paths jazzy "$LOG_DIR/rclpy-beside-junit.xml" "${BESIDE_TESTS[@]}" -- \
+        "${pytest_extra[@]}" >"$LOG_DIR/rclpy-beside.log" 2>&1) &
+    beside_pid=$!
+fi
+
+if ((!quick)); then
+    run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
+fi
 
 # 4. Rust tests, every test binary even after a failure. The full output goes to the console
 # and to a log; the per-binary result lines are counted afterwards.
@@ -116,7 +217,10 @@ vendor_tests() {
         data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
         reply_written_before_its_reader_matched_goes_to_it_on_match cache_cleaning_ acknowledged_samples_beyond_depth_go_on_insert \
         unanswered_nack_is_repeated_until_the_samples_come \
-        endpoints_announce_their_user_data_in_sedp 2>&1 |
+        endpoints_announce_their_user_data_in_sedp gone_participants_and_endpoints_leave_nothing_behind \
+        a_participant_back_within_its_attic_time_gets_its_endpoints_back \
+        samples_of_a_lost_participant_leave_built_in_topic_caches \
+        gone_writers_and_forgotten_instances_leave_the_read_state 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"
 }
@@ -139,6 +243,30 @@ read -r t_pass t_fail < <(awk '/^test result: /{for(i=1;i<=NF;i++){if($(i+1)~/^p
 printf 'type hashes against rosidl: %d passed, %d failed\n' "$t_pass" "$t_fail"
 passed=$((passed + t_pass)) failed=$((failed + t_fail))
 skipped=$((skipped - 1)) # the ignored type_hashes test, counted above
+
+# 4a''. The rclpy tests started at 3a, waited for before the GPIO guest (whose sampler is
+# timed): their output, their time and their results. With PYTEST_ARGS that select none of them
+# (pytest exit 5) nothing is counted.
+if [[ -n "$beside_pid" ]]; then
+    banner "rclpy memory tests (beside the compiles since 3a)"
+    beside_rc=0
+    wait "$beside_pid" || beside_rc=$?
+    cat "$LOG_DIR/rclpy-beside.log"
+    beside_name="rclpy memory tests"
+    if ((beside_rc == 5 && ${#pytest_extra[@]})); then
+        printf -- '---- %s: none selected by the pytest arguments\n' "$beside_name"
+    else
+        add_junit_counts "$LOG_DIR/rclpy-beside-junit.xml"
+        if ((beside_rc != 0)); then
+            failed_steps+=("$beside_name")
+            printf -- '---- %s: FAILED (exit %d, %d s)\n' "$beside_name" "$beside_rc" $((SECONDS - beside_started))
+        else
+            printf -- '---- %s: ok (%d s)\n' "$beside_name" $((SECONDS - beside_started))
+        fi
+        step_times+=("$(printf '%6d s  %s (beside the steps from the release build on)' \
+            $((SECONDS - beside_started)) "$beside_name")")
+    fi
+fi
 
 # 4b. Real kernel GPIO lines: in a QEMU guest with a gpio-sim chip (scripts/gpio-vm.sh), the
 # GPIO backend's integration test (ignored by `cargo test` above, counted as skipped there) and
@@ -169,6 +297,7 @@ else
         vm_why="scripts/gpio-vm.sh --prepare failed (see above)"
     fi
     printf -- '---- gpio-vm prepare: %s (%d s)\n' "${vm_why:-ok}" $((SECONDS - vm_start))
+    step_times+=("$(printf '%6d s  %s' $((SECONDS - vm_start)) "gpio-vm prepare")")
 fi
 if [[ -z "$vm_why" ]]; then
     rm -f "$LOG_DIR/gpio-vm.log"
@@ -177,6 +306,7 @@ if [[ -z "$vm_why" ]]; then
     gpio_vm_tests
     vm_rc=$?
     printf -- '---- gpio-vm tests: exit %d (%d s)\n' "$vm_rc" $((SECONDS - vm_start))
+    step_times+=("$(printf '%6d s  %s' $((SECONDS - vm_start)) "gpio-vm tests")")
     # The Rust test: its libtest summary; the node checks: their own summary line.
     read -r g_pass g_fail < <(awk '/^test result: /{for(i=1;i<=NF;i++){if($(i+1)~/^passed;?$/)p+=$i; if($(i+1)~/^failed;?$/)f+=$i}} END{print p+0, f+0}' "$LOG_DIR/gpio-vm.log")
     read -r n_pass n_fail < <(sed -n 's/^gpio-vm checks: \([0-9]*\) passed, \([0-9]*\) failed.*/\1 \2/p' "$LOG_DIR/gpio-vm.log" | tail -n1 | grep . || echo "0 0")
@@ -231,58 +361,8 @@ else
     failed=$((failed + 1))
 fi
 
-# Adds the counts of a pytest junit XML file to the totals; its skips also go to junit_skipped.
-junit_skipped=0
-add_junit_counts() {
-    local p_tests p_fail p_err p_skip
-    read -r p_tests p_fail p_err p_skip < <(python3 - "$1" <<'EOF'
-import sys
-import xml.etree.ElementTree as ET
-
-root = ET.parse(sys.argv[1]).getroot()
-suites = [root] if root.tag == "testsuite" else root.findall("testsuite")
-total = [sum(int(s.get(k, 0)) for s in suites) for k in ("tests", "failures", "errors", "skipped")]
-print(*total)
-EOF
-    )
-    passed=$((passed + p_tests - p_fail - p_err - p_skip))
-    failed=$((failed + p_fail + p_err))
-    skipped=$((skipped + p_skip))
-    junit_skipped=$p_skip
-}
-
-# 5. The rclpy suite, with the venv's python and the built messages.
-# run_pytest DISTRO JUNIT ARGS...: pytest over tests/rclpy with DISTRO's venv and messages
-# (scripts/env.sh) against the release binary, results in JUNIT and added to the totals. Returns
-# pytest's status: 0 all passed, 1 some failed, 5 no test collected (a failure here too). No
-# result file at all (pytest did not start) counts as one failed test, so it never looks clean.
-# shellcheck disable=SC2317  # called through run_step
-run_pytest() {
-    local distro="$1" junit="$2" rc ws
-    shift 2
-    junit_skipped=0
-    ws="$REPO/.ros-ws"
-    [[ "$distro" == jazzy ]] || ws="$REPO/.ros-ws-$distro"
-    rm -f "$junit"
-    (
-        # shellcheck source=scripts/env.sh
-        PWM_DISTRO="$distro" source "$REPO/scripts/env.sh"
-        # ROS logs of the run stay in the checkout (git-ignored), not in ~/.ros.
-        export ROS_HOME="$ws/ros_home"
-        export PWM_ACTUATOR_NODE="${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}"
-        exec python -m pytest tests/rclpy -v -ra --junitxml="$junit" "$@"
-    ) </dev/null
-    rc=$?
-    if ((rc == 5)); then
-        echo "test: pytest ($distro) collected no tests" >&2
-    fi
-    if [[ -f "$junit" ]]; then
-        add_junit_counts "$junit"
-    else
-        failed=$((failed + 1))
-    fi
-    return "$rc"
-}
+# 5. The rclpy suite (less BESIDE_TESTS, run at 3a), with the venv's python and the built
+# messages.
 # shellcheck disable=SC2317  # called through run_step
 rclpy_suite() {
     run_pytest jazzy "$LOG_DIR/rclpy-junit.xml" "${pytest_extra[@]}"
@@ -300,6 +380,15 @@ fi
 # the same release binary. PYTEST_ARGS are not passed: the subset always runs whole. A setup
 # that fails counts as a failed step and a failed test, never as skipped; so does a smoke test
 # that skips, since none of them has a reason to.
+# The Kilted set-up started at 1b: waited for, its output printed, its status returned.
+# shellcheck disable=SC2317  # called through run_step
+kilted_setup_wait() {
+    local rc=0
+    wait "$kilted_setup_pid" || rc=$?
+    cat "$kilted_setup_log"
+    echo "setup (kilted): started at 1b, $((SECONDS - kilted_setup_started)) s ago"
+    return "$rc"
+}
 # shellcheck disable=SC2317  # called through run_step
 kilted_smoke() {
     local rc=0
@@ -313,14 +402,19 @@ kilted_smoke() {
 if ((!release_ok)); then
     skipped_steps+=("rclpy smoke (kilted) (no release build)")
     failed_steps+=("rclpy smoke (kilted)")
-elif ! run_step "setup (kilted)" scripts/setup.sh --distro kilted; then
+elif ! run_step "setup (kilted)" kilted_setup_wait; then
     echo "test: setup --distro kilted failed; the Kilted smoke subset did not run" >&2
     failed=$((failed + 1))
 else
     run_step "rclpy smoke (kilted)" kilted_smoke
 fi
 
+# The Kilted set-up, if no step above waited for it (no release build): not left running.
+wait "$kilted_setup_pid" 2>/dev/null || true
+
 banner "summary"
+printf 'step times:\n'
+printf '  %s\n' "${step_times[@]}"
 printf 'time: %d s\n' "$SECONDS"
 ((${#skipped_steps[@]})) && printf 'skipped: %s\n' "${skipped_steps[*]}"
 status=0

@@ -36,7 +36,7 @@ PARAMS = [
     # the edges, so it sees the reference at start.
     "managed:=true", "channels:=2", "valve:=mix:pw01:pw02", f"mix.travel_open_ms:={TRAVEL_MS}",
     f"mix.travel_close_ms:={TRAVEL_MS}", "mix.min_pulse_ms:=200", "mix.reversal_pause_ms:=400",
-    "mix.deadband_pct:=0.5", "mix.end_overrun_pct:=10.0",
+    "mix.deadband_pct:=0.5", "mix.end_overrun_pct:=10.0", "mix.max_uncertainty_pct:=30.0",
 ]  # fmt: skip
 #: (seconds after the reference ended, target %): a move, four 1.5 % steps (60 ms each, below
 #: the 200 ms minimum pulse) that wait until the fourth sends all 6 % in one move, a reversal,
@@ -74,7 +74,7 @@ def main() -> None:
         )  # fmt: skip
         rclpy.init()
         ros = rclpy.create_node("valve_plot")
-        states: list[tuple[float, float, float, bool]] = []
+        states: list[tuple[float, float, float, bool, float, float]] = []
         ros.create_subscription(
             ValveState,
             "/pwm_actuator/valve/mix/state",
@@ -84,6 +84,8 @@ def main() -> None:
                     m.position_pct,
                     m.target_pct,
                     m.referenced and m.motion == "stopped",
+                    m.position_low_pct,
+                    m.position_high_pct,
                 )
             ),
             100,
@@ -150,6 +152,8 @@ def main() -> None:
     st = [s for s in states if s[0] >= t_start]
     ax_p.plot(rel([t for t, _ in true]), [v for _, v in true], lw=1.0, label="true position (sim-valve)")
     ax_p.plot(rel([s[0] for s in st]), [s[1] for s in st], "o-", ms=3, lw=0.8, label="estimate (~/valve/mix/state)")
+    ax_p.fill_between(rel([s[0] for s in st]), [s[4] for s in st], [s[5] for s in st], step="post",
+                      alpha=0.2, label="bounds of the true position")  # fmt: skip
     tg = [(s[0], s[2]) for s in st if s[2] == s[2]]
     ax_p.step(rel([t for t, _ in tg]), [v for _, v in tg], where="post", color="k", lw=0.8, ls=":", label="target")
     ax_p.set_ylabel("position %")

@@ -2,16 +2,22 @@
 //! ROS participant (part of the binary only).
 //!
 //! It listens to the `~/<ch>/edges` of a valve's two channels (the node's real edges, stamped
-//! with the time each write returned) and moves a true position with its own travel times —
-//! which may differ from the ones the node is configured with — between hard end stops, and
-//! publishes it as `std_msgs/Float64` (percent, 0 = closed) at a fixed rate. With `--record` it
-//! writes every edge and every published position to a CSV file (`t_s,kind,value`, wall-clock
-//! seconds; kind `open`, `close` or `true`) for the picture of docs/valve.md.
+//! with the time each write returned) and moves a true position ([`TrueValve`]) with its own
+//! travel times — which may differ from the ones the node is configured with —, a start lag, a
+//! coast after each fall and play between motor and stem, between hard end stops, and
+//! publishes it as `std_msgs/Float64` (percent, 0 = closed) at a fixed rate. It can be made
+//! faulty: a stalled motor, an end switch stuck active. Beside the truth it publishes what
+//! sensors would tell the node: an analog position feedback with noise (`--feedback-topic`,
+//! for `NAME.feedback_topic`) and its two end switches (`std_msgs/Bool`, closed within
+//! `--switch-at-pct` of their end). With `--record` it writes every edge and every published
+//! position to a CSV file (`t_s,kind,value`, wall-clock seconds; kind `open`, `close` or
+//! `true`) for the picture of docs/valve.md.
 
 use crate::sim_ros::{self, make_topic};
 use clap::{ArgAction, Args, FromArgMatches};
 use futures::StreamExt;
 use pwm_actuator::clock;
+use pwm_actuator::core::valve::truth::{TrueValve, TruthParams};
 use pwm_actuator::ros::interface::msg::{self, RosMessage};
 use ros2_client::qos::History;
 use ros2_client::QosProfile;
@@ -41,6 +47,39 @@ pub struct SimValveOptions {
     /// Where the valve starts, percent 0..100 (unknown to the node)
     #[arg(long, value_name = "PCT", default_value_t = 37.0)]
     pub start_pct: f64,
+    /// From a line's rise until the motor moves, ms, 0..10000
+    #[arg(long, value_name = "MS", default_value_t = 0.0)]
+    pub start_lag_ms: f64,
+    /// The motor runs on this long after a fall, ms, 0..10000
+    #[arg(long, value_name = "MS", default_value_t = 0.0)]
+    pub coast_ms: f64,
+    /// Play between motor and stem, percent of the stroke, 0..10
+    #[arg(long, value_name = "PCT", default_value_t = 0.0)]
+    pub backlash_pct: f64,
+    /// The motor does not turn (a dead motor, a blown fuse), after --stall-after-s
+    #[arg(long)]
+    pub stalled: bool,
+    /// With --stalled: the motor stops turning this many seconds after the start
+    #[arg(long, value_name = "S", default_value_t = 0.0)]
+    pub stall_after_s: f64,
+    /// The open end switch is stuck active
+    #[arg(long)]
+    pub stuck_open_switch: bool,
+    /// The close end switch is stuck active
+    #[arg(long)]
+    pub stuck_close_switch: bool,
+    /// An end switch closes this close to its end, percent, 0..10
+    #[arg(long, value_name = "PCT", default_value_t = 0.5)]
+    pub switch_at_pct: f64,
+    /// Publish the position with noise here (std_msgs/Float64, percent), as an analog feedback
+    #[arg(long, value_name = "TOPIC")]
+    pub feedback_topic: Option<String>,
+    /// Uniform noise of the feedback, ± percent, 0..10
+    #[arg(long, value_name = "PCT", default_value_t = 0.0)]
+    pub feedback_noise_pct: f64,
+    /// The end switches are published on TOPIC/open and TOPIC/close (std_msgs/Bool)
+    #[arg(long, value_name = "TOPIC", default_value = "/sim_valve/switch")]
+    pub switch_topic: String,
     /// The topic the true position is published on (std_msgs/Float64, percent)
     #[arg(long, value_name = "TOPIC", default_value = "/sim_valve/position")]
     pub topic: String,
@@ -90,62 +129,42 @@ fn check(o: &SimValveOptions) -> Result<(), String> {
     within("travel-open-ms", o.travel_open_ms, 100.0, 3_600_000.0)?;
     within("travel-close-ms", o.travel_close_ms, 100.0, 3_600_000.0)?;
     within("start-pct", o.start_pct, 0.0, 100.0)?;
+    within("start-lag-ms", o.start_lag_ms, 0.0, 10_000.0)?;
+    within("coast-ms", o.coast_ms, 0.0, 10_000.0)?;
+    within("backlash-pct", o.backlash_pct, 0.0, 10.0)?;
+    within("stall-after-s", o.stall_after_s, 0.0, 1e7)?;
+    within("switch-at-pct", o.switch_at_pct, 0.0, 10.0)?;
+    within("feedback-noise-pct", o.feedback_noise_pct, 0.0, 10.0)?;
     within("rate-hz", o.rate_hz, 0.1, 1000.0)?;
     within("duration", o.duration, 0.0, 1e7)
 }
 
-/// The true actuator: a position between hard end stops, moved by each line's high time at the
-/// true travel times. Times are the edges' stamps (ns).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TrueValve {
-    /// True travel times (open, close), ns.
-    travel: [f64; 2],
-    /// Position at the last fall, percent.
-    pos: f64,
-    /// Which line is high (0 open, 1 close) and since when.
-    high: [Option<i64>; 2],
+/// The true valve these options describe.
+pub fn true_valve(o: &SimValveOptions) -> TrueValve {
+    let mut v = TrueValve::new(
+        TruthParams {
+            travel_ns: [o.travel_open_ms * 1e6, o.travel_close_ms * 1e6],
+            lag_ns: o.start_lag_ms * 1e6,
+            coast_ns: o.coast_ms * 1e6,
+            backlash_pct: o.backlash_pct,
+            switch_at_pct: o.switch_at_pct,
+        },
+        o.start_pct,
+    );
+    v.stuck = [o.stuck_open_switch, o.stuck_close_switch];
+    v
 }
 
-impl TrueValve {
-    /// A valve at `pos` percent with true travel times `open_ms`, `close_ms`.
-    pub fn new(pos: f64, open_ms: f64, close_ms: f64) -> TrueValve {
-        TrueValve {
-            travel: [open_ms * 1e6, close_ms * 1e6],
-            pos: pos.clamp(0.0, 100.0),
-            high: [None, None],
-        }
-    }
+/// A small xorshift generator for the feedback's noise (no crate needed for a test sensor).
+struct Noise(u64);
 
-    /// Line `i` (0 open, 1 close) went to `level` at `t` ns.
-    pub fn edge(&mut self, i: usize, level: bool, t: i64) {
-        if i > 1 {
-            return;
-        }
-        match (level, self.high[i]) {
-            (true, None) => self.high[i] = Some(t),
-            (false, Some(since)) => {
-                self.pos = self.moved(i, since, t);
-                self.high[i] = None;
-            }
-            _ => {}
-        }
-    }
-
-    fn moved(&self, i: usize, since: i64, t: i64) -> f64 {
-        let sign = if i == 0 { 1.0 } else { -1.0 };
-        let ran = (t - since).max(0) as f64;
-        // Hard end stops: the motor runs on against them, the position stays.
-        (self.pos + sign * ran / self.travel[i] * 100.0).clamp(0.0, 100.0)
-    }
-
-    /// The true position at `t` ns, percent. Both lines high (never, from the node) count as
-    /// no motion: the motor would not turn.
-    pub fn position(&self, t: i64) -> f64 {
-        match self.high {
-            [Some(s), None] => self.moved(0, s, t),
-            [None, Some(s)] => self.moved(1, s, t),
-            _ => self.pos,
-        }
+impl Noise {
+    /// Uniform in `-a..=a`.
+    fn next(&mut self, a: f64) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64 * 2.0 * a - a
     }
 }
 
@@ -176,11 +195,7 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 async fn serve(o: SimValveOptions) -> Result<(), String> {
     let mut node = sim_ros::start_node("sim_valve")?;
     let reliable = QosProfile::publisher_default().history(History::KeepLast { depth: 100 });
-    let valve = Arc::new(Mutex::new(TrueValve::new(
-        o.start_pct,
-        o.travel_open_ms,
-        o.travel_close_ms,
-    )));
+    let valve = Arc::new(Mutex::new(true_valve(&o)));
     let start_wall = clock::wall_ns();
     // Wall-clock seconds, as the node's messages are stamped, so a record and a ROS recording
     // line up.
@@ -213,6 +228,29 @@ async fn serve(o: SimValveOptions) -> Result<(), String> {
     let publisher = node
         .create_publisher::<msg::Float64>(&out_t, Some(reliable.clone()))
         .map_err(|e| format!("publisher {}: {e}", o.topic))?;
+    let feedback = match &o.feedback_topic {
+        Some(topic) => {
+            let t = make_topic(&node, topic, msg::Float64::type_name(), &reliable)?;
+            Some(
+                node.create_publisher::<msg::Float64>(&t, Some(reliable.clone()))
+                    .map_err(|e| format!("publisher {topic}: {e}"))?,
+            )
+        }
+        None => None,
+    };
+    let mut switches = Vec::new();
+    for end in ["open", "close"] {
+        let topic = format!("{}/{end}", o.switch_topic.trim_end_matches('/'));
+        let t = make_topic(&node, &topic, msg::Bool::type_name(), &reliable)?;
+        switches.push(
+            node.create_publisher::<msg::Bool>(&t, Some(reliable.clone()))
+                .map_err(|e| format!("publisher {topic}: {e}"))?,
+        );
+    }
+    let mut noise = Noise(start_wall as u64 | 1);
+    let stall_at = o
+        .stalled
+        .then(|| start_wall + (o.stall_after_s * 1e9) as i64);
     eprintln!(
         "sim-valve: true travel {} ms open, {} ms close, from {} %; edges from {}/{{{},{}}}/edges, \
          position on {} at {} Hz",
@@ -233,9 +271,29 @@ async fn serve(o: SimValveOptions) -> Result<(), String> {
         if end.is_some_and(|e| now >= e) {
             break;
         }
-        let pos = lock(&valve).position(now);
+        let (pos, sw) = {
+            let mut v = lock(&valve);
+            if stall_at.is_some_and(|t| now >= t) && !v.stalled {
+                // The motor stops where it is: the drive so far counted first.
+                let moved = v.position(now);
+                let (p, stuck) = (*v.params(), v.stuck);
+                *v = TrueValve::new(p, moved);
+                v.stuck = stuck;
+                v.stalled = true;
+                eprintln!("sim-valve: the motor stalls at {moved:.2} %");
+            }
+            (v.position(now), v.switches(now))
+        };
         lock(&record).line(secs(now), "true", pos);
         let _ = publisher.publish(msg::Float64 { data: pos });
+        if let Some(f) = &feedback {
+            let _ = f.publish(msg::Float64 {
+                data: pos + noise.next(o.feedback_noise_pct),
+            });
+        }
+        for (p, on) in switches.iter().zip(sw) {
+            let _ = p.publish(msg::Bool { data: on });
+        }
     }
     if let Some(w) = lock(&record).0.as_mut() {
         let _ = w.flush();
@@ -248,20 +306,36 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_true_valve_integrates_its_lines_between_hard_stops() {
-        let mut v = TrueValve::new(50.0, 1000.0, 2000.0);
+    fn the_options_make_the_true_valve_and_bad_ones_are_refused() {
+        let m = command()
+            .try_get_matches_from([
+                "sim-valve",
+                "--travel-open-ms",
+                "1000",
+                "--start-pct",
+                "50",
+                "--start-lag-ms",
+                "100",
+                "--stuck-close-switch",
+            ])
+            .unwrap();
+        let o = options(&m).unwrap();
+        assert_eq!(check(&o), Ok(()));
+        let mut v = true_valve(&o);
+        assert_eq!(v.switches(0), [false, true], "stuck");
         v.edge(0, true, 0);
-        assert!((v.position(250_000_000) - 75.0).abs() < 1e-9);
-        v.edge(0, false, 1_000_000_000);
-        assert_eq!(v.position(2_000_000_000), 100.0, "the open stop");
-        v.edge(1, true, 3_000_000_000);
-        v.edge(1, false, 4_000_000_000);
-        assert!((v.position(5_000_000_000) - 50.0).abs() < 1e-9);
+        v.edge(0, false, 350_000_000);
+        assert!(
+            (v.position(1_000_000_000) - 75.0).abs() < 1e-9,
+            "250 ms after the lag"
+        );
         let m = command()
             .try_get_matches_from(["sim-valve", "--travel-open-ms", "10"])
             .unwrap();
         assert!(check(&options(&m).unwrap())
             .unwrap_err()
             .contains("travel-open-ms"));
+        let mut n = Noise(7);
+        assert!((0..1000).map(|_| n.next(0.5)).all(|x| x.abs() <= 0.5));
     }
 }

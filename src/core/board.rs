@@ -28,7 +28,9 @@ const NONE: usize = usize::MAX;
 pub struct LineBoard {
     high: Vec<AtomicBool>,
     partner: Vec<AtomicUsize>,
-    /// At most this many lines may be high after a rise; 0: no limit.
+    /// Lines that do not count against `max_on` (a valve's motor lines).
+    exempt: Vec<AtomicBool>,
+    /// At most this many counted lines may be high after a rise; 0: no limit.
     max_on: AtomicUsize,
     count: AtomicUsize,
 }
@@ -39,6 +41,7 @@ impl LineBoard {
         Arc::new(LineBoard {
             high: (0..lines).map(|_| AtomicBool::new(false)).collect(),
             partner: (0..lines).map(|_| AtomicUsize::new(NONE)).collect(),
+            exempt: (0..lines).map(|_| AtomicBool::new(false)).collect(),
             max_on: AtomicUsize::new(0),
             count: AtomicUsize::new(0),
         })
@@ -55,6 +58,16 @@ impl LineBoard {
         if a < self.lines() && b < self.lines() && a != b {
             self.partner[a].store(b, Relaxed);
             self.partner[b].store(a, Relaxed);
+        }
+    }
+
+    /// Line `i` no longer counts against `max_simultaneous_on` (a valve's motor line: its drive
+    /// cannot wait for a slot). Set at start-up, while the line is low.
+    pub fn exempt(&self, i: usize) {
+        if let Some(e) = self.exempt.get(i) {
+            if !self.is_high(i) {
+                e.store(true, Relaxed);
+            }
         }
     }
 
@@ -77,6 +90,9 @@ impl LineBoard {
         if partner != NONE && self.high[partner].load(Relaxed) {
             return false;
         }
+        if self.exempt[i].load(Relaxed) {
+            return true;
+        }
         let max_on = self.max_on.load(Relaxed);
         max_on == 0 || self.count.load(Relaxed) < max_on
     }
@@ -85,6 +101,9 @@ impl LineBoard {
     pub fn set(&self, i: usize, level: Level) {
         let Some(high) = self.high.get(i) else { return };
         let was = high.swap(level.is_high(), Relaxed);
+        if self.exempt[i].load(Relaxed) {
+            return;
+        }
         match (was, level.is_high()) {
             (false, true) => {
                 self.count.fetch_add(1, Relaxed);
@@ -101,7 +120,7 @@ impl LineBoard {
         self.high.get(i).is_some_and(|h| h.load(Relaxed))
     }
 
-    /// How many lines are high.
+    /// How many counted lines are high.
     pub fn high_count(&self) -> usize {
         self.count.load(Relaxed)
     }

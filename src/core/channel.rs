@@ -22,7 +22,9 @@
 //! the schedule between two ticks (an enable, a release, a re-evaluation). Each period carries
 //! the rounding remainder of its on time into the next (see [`Plan::carried`]). Only the safety
 //! offs, a maximum on time overdue, and edges written late lie off the grid, by their lateness;
-//! the next edge is back on it, its phase at least its minimum from the real edge.
+//! the next edge is back on it, its phase at least its minimum from the real edge — except the
+//! end of a phase of exactly its minimum, which comes that minimum after the real edge, off the
+//! grid by the same lateness, rather than a whole tick later (see `Channel::earliest`).
 //!
 //! Between a command and the plan lie the load's protections (issue 12), each off by default:
 //! the power limits (`max_duty_pct`, `min_duty_pct`, `zero_means_zero`) after clamping, the
@@ -108,8 +110,15 @@ struct Line {
     level: Level,
     /// When the line got `level`; `None` while it has never changed (low since creation).
     since: Option<Nanos>,
+    /// When the change to `level` was due: `since` less the lateness of its wake-up and
+    /// write. With a time base, the instant of the grid the phase counts from (see
+    /// [`Channel::earliest`]).
+    due: Nanos,
     /// A level the schedule asked for, held back until the given instant.
     held: Option<(Level, Nanos)>,
+    /// When the change held back is due, ns: its instant less the lateness of the phase it
+    /// waits on (the two differ only with a time base, see [`Channel::earliest`]).
+    held_due: Nanos,
     /// An interlock forbids the line to go high (its partner of a split-range pair is high); a
     /// rise asked for meanwhile is held back until it is released.
     locked: bool,
@@ -209,7 +218,9 @@ impl Channel {
             line: Line {
                 level: Level::Low,
                 since: None,
+                due: 0,
                 held: None,
+                held_due: 0,
                 locked: false,
                 cut: None,
                 resumes: false,
@@ -345,6 +356,7 @@ impl Channel {
         let before = self.line;
         let mut edges = 0u32;
         let mut last_at = now;
+        let outer = self.avg_batch(now);
         {
             let mut inner = |e: Event| match e {
                 Event::Edge { at, .. } => {
@@ -360,6 +372,7 @@ impl Channel {
                 self.advance(t, &mut inner);
             }
         }
+        self.avg_batch(outer);
         let changed = self.line.level != before.level;
         if changed {
             // The edge reaches the line now, however long ago it was due: the minimum of the
@@ -378,6 +391,7 @@ impl Channel {
         } else if edges > 0 {
             // Edges that cancelled out never reached the line.
             self.line.since = before.since;
+            self.line.due = before.due;
             // A high line has been high since its real rise: the maximum on time counts from
             // there, and may have run out by now.
             self.retime_cut(now);
@@ -763,7 +777,9 @@ impl Channel {
         // on the line, from its last edge, not from the step the schedule restarted at a hidden
         // period boundary while the output was held constant.
         let end = if step.level == self.line.level {
-            let phase_start = self.line.since.unwrap_or(0);
+            // With a time base, from the grid instant it was due (the guard still holds the
+            // minimum from the real edge), so a late write does not push the end a tick on.
+            let phase_start = self.phase_due().unwrap_or(0);
             phase_start
                 .saturating_add(len)
                 .max(now)

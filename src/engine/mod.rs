@@ -8,7 +8,7 @@
 //! channel cores, writes edges to the [`Output`](crate::output::Output) and sends reports back
 //! through a second ring buffer that never blocks it (a full buffer drops and counts).
 
-use crate::core::valve::Dir;
+use crate::core::valve::{Dir, ValveStart};
 use crate::core::{Bank, ChannelConfig, Command, Event, Level, Nanos, Status};
 use crate::core::{ValveConfig, ValveStatus};
 
@@ -65,6 +65,10 @@ pub enum Input {
         ticket: u32,
         /// What is asked.
         goal: crate::core::heater::autotune::Goal,
+        /// The latest instant the run may start, monotonic ns: a goal the thread takes later
+        /// is dropped unanswered (its caller has given up on it by then), so no run starts
+        /// longer than the caller allowed after its goal was sent.
+        start_by: Nanos,
     },
     /// Cancels the channel's autotune with this ticket.
     AutotuneCancel(u32),
@@ -80,6 +84,8 @@ pub enum Input {
         close: usize,
         /// The valve's settings.
         config: ValveConfig,
+        /// What it starts with: a restored position, its end switches, a feedback.
+        start: ValveStart,
     },
     /// A position command for valve `valve`, percent (0 = closed); the request's channel is
     /// ignored.
@@ -95,6 +101,22 @@ pub enum Input {
         valve: usize,
         /// The settings.
         config: ValveConfig,
+    },
+    /// A position feedback sample of valve `valve`, percent; it counts as arriving when the
+    /// thread takes it.
+    ValveFeedback {
+        /// Valve index.
+        valve: usize,
+        /// The feedback, percent.
+        pct: f64,
+    },
+    /// Clears the latched fault of valve `valve` if its cause is gone; the answer comes back
+    /// in the valve's next snapshot with this ticket.
+    ValveReset {
+        /// Valve index.
+        valve: usize,
+        /// The caller's number for the reset.
+        ticket: u32,
     },
     /// The end switch of direction `dir` of valve `valve` became `active`.
     ValveSwitch {

@@ -418,8 +418,23 @@ impl<O: Output> Worker<O> {
                 self.heater_estop = on;
                 return;
             }
-            Input::AddValve { close, config } => {
-                return self.add_valve(now, req.channel, close, config);
+            Input::AddValve {
+                close,
+                config,
+                start,
+            } => {
+                return self.add_valve(now, req.channel, close, config, start);
+            }
+            Input::ValveFeedback { valve, pct } => {
+                // NaN, infinities and values far off the stroke are refused by the valve.
+                return self.on_valve(valve, now, |v, now, emit| {
+                    let _ = v.feedback(now, pct, emit);
+                });
+            }
+            Input::ValveReset { valve, ticket } => {
+                return self.on_valve(valve, now, |v, now, emit| {
+                    v.reset(now, ticket, emit);
+                });
             }
             Input::ValvePosition { valve, pct } => {
                 // NaN and infinities are refused by the valve; the target in force stays.
@@ -467,7 +482,15 @@ impl<O: Output> Worker<O> {
             Input::Feedback { celsius, age } => ch.feedback_stamped(now, celsius, age, emit),
             Input::Setpoint(c) => ch.set_setpoint(now, c, emit),
             Input::ResetFault(ticket) => ch.reset_heater_fault(now, ticket, emit),
-            Input::Autotune { ticket, goal } => ch.start_autotune(now, ticket, goal, emit),
+            Input::Autotune {
+                ticket,
+                goal,
+                start_by,
+            } => {
+                if now <= start_by {
+                    ch.start_autotune(now, ticket, goal, emit)
+                }
+            }
             Input::AutotuneCancel(ticket) => ch.cancel_autotune(now, ticket, emit),
             Input::EStop(_)
             | Input::Live(_)
@@ -476,6 +499,8 @@ impl<O: Output> Worker<O> {
             | Input::AddValve { .. }
             | Input::ValvePosition { .. }
             | Input::ValveConfig { .. }
+            | Input::ValveFeedback { .. }
+            | Input::ValveReset { .. }
             | Input::ValveSwitch { .. } => {}
         }
         self.pushed |= sink.pushed;
@@ -534,7 +559,14 @@ impl<O: Output> Worker<O> {
     /// line does not exist, is the other, or already belongs to a valve or a split-range pair
     /// (the caller checks at start-up; here such a valve is ignored rather than stop the
     /// thread), or the reserved room is full.
-    fn add_valve(&mut self, now: Nanos, open: usize, close: usize, config: valve::ValveConfig) {
+    fn add_valve(
+        &mut self,
+        now: Nanos,
+        open: usize,
+        close: usize,
+        config: valve::ValveConfig,
+        start: valve::ValveStart,
+    ) {
         let n = self.channels.len();
         let free =
             |i: usize| i < n && self.owner[i].is_none() && self.interlocks.partner(i).is_none();
@@ -551,7 +583,7 @@ impl<O: Output> Worker<O> {
             self.channels[i].set_enable(now, false, &mut |e| sink.event(e));
             self.pushed |= sink.pushed;
         }
-        let mut v = Valve::new(config, now);
+        let mut v = Valve::start(config, now, start);
         v.seat_on(&self.board, open, close);
         let k = self.valves.len();
         self.owner[open] = Some((k, Dir::Open));

@@ -101,6 +101,7 @@ pub mod safety;
 pub mod sim;
 pub mod slot;
 pub mod trace;
+pub mod trace_files;
 pub mod traced;
 
 pub use bindings::{check_unique, BindingError, LineAddr};
@@ -110,4 +111,5 @@ pub use safety::{install_panic_hook, EmergencyRegistry, PANIC_EXIT_CODE};
 pub use sim::{SimOutput, SimProbe};
 pub use slot::LineSlot;
 pub use trace::{read_csv, CsvReadError, CsvRow, EdgeRecord, TraceError, TraceFormat, TraceSpec};
+pub use trace_files::{TraceHealth, TraceLimit, TraceState};
 pub use traced::Traced;

@@ -11,6 +11,7 @@ use super::fault::{FailingOutput, Fault, HangingOutput, FAULT_ENV};
 use super::gpio::{plan_requests, GpioError, GpioLine, GpioOutput};
 use super::slot::{slot, LineSlot};
 use super::trace::{TraceError, TraceSpec};
+use super::trace_files::{TraceHealth, TraceLimit};
 use super::{EmergencyOff, ErrorKind, LineChange, Output, OutputError, SimOutput, Traced};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -38,6 +39,8 @@ pub struct OutputSpec {
     /// Trace files (`.vcd`, `.csv`; `.mcap` ones are accepted and left to the ROS side) of
     /// what is written to the lines; may be empty.
     pub trace: Vec<PathBuf>,
+    /// What the files of each trace may hold together (`trace_max_mb`).
+    pub trace_limit: TraceLimit,
     /// A write fault to inject (`PWM_ACTUATOR_FAULT`, exit-path tests): writes that fail after
     /// a count, or that hang after a time. `None` in normal operation; other faults are not
     /// the output's and are ignored here.
@@ -121,12 +124,18 @@ impl OutputError for AnyError {
 }
 
 /// Any backend behind one type: what [`open`] returns.
-pub struct AnyOutput(Box<dyn Output<Error = AnyError>>);
+pub struct AnyOutput(Box<dyn Output<Error = AnyError>>, TraceHealth);
 
 impl AnyOutput {
     /// Wraps a backend.
     pub fn new<O: Output>(output: O) -> AnyOutput {
-        AnyOutput(Box::new(Erased(output)))
+        AnyOutput(Box::new(Erased(output)), TraceHealth::new())
+    }
+
+    /// The state of the VCD and CSV traces [`open`] created (none for other outputs): the
+    /// ROS side adds its MCAP traces and reports them all.
+    pub fn trace_health(&self) -> TraceHealth {
+        self.1.clone()
     }
 }
 
@@ -184,6 +193,7 @@ fn build(spec: &OutputSpec, deferred: bool) -> Result<(AnyOutput, Option<LineSlo
     let trace = TraceSpec::from_paths(&spec.trace)
         .map_err(OpenError::Trace)?
         .line_traces();
+    let health = TraceHealth::new();
     let recorder = |names: Vec<String>| {
         for f in trace.files() {
             log::info!(
@@ -191,7 +201,8 @@ fn build(spec: &OutputSpec, deferred: bool) -> Result<(AnyOutput, Option<LineSlo
                 f.path.display()
             );
         }
-        SimOutput::new(names, Some(trace.clone())).map_err(OpenError::Trace)
+        SimOutput::traced(names, Some(trace.clone()), spec.trace_limit, &health)
+            .map_err(OpenError::Trace)
     };
     let mut line_slot = None;
     let output = match &spec.backend {
@@ -225,7 +236,7 @@ fn build(spec: &OutputSpec, deferred: bool) -> Result<(AnyOutput, Option<LineSlo
         }
         Some(Fault::PanicAfterMs(_)) | None => output,
     };
-    Ok((output, line_slot))
+    Ok((AnyOutput(output.0, health), line_slot))
 }
 
 #[cfg(test)]
@@ -240,6 +251,7 @@ mod tests {
                 names: names.iter().map(|n| n.to_string()).collect(),
             },
             trace: vec![],
+            trace_limit: TraceLimit::default(),
             fault: None,
         }
     }
@@ -295,6 +307,7 @@ mod tests {
                 lines: vec![line("pw01"), line("pw02")],
             },
             trace: vec![vcd.clone()],
+            trace_limit: TraceLimit::default(),
             fault: None,
         };
         let e = open(&spec).err().unwrap();
@@ -319,6 +332,7 @@ mod tests {
                 }],
             },
             trace: vec![],
+            trace_limit: TraceLimit::default(),
             fault: None,
         };
         let e = open(&spec).err().unwrap();

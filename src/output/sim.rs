@@ -10,6 +10,7 @@
 
 use super::safety::{lock_bounded, lock_ignore_poison as lock, warn, EMERGENCY_LOCK_BUDGET};
 use super::trace::{validate_channel_names, EdgeRecord, TraceError, TraceSpec, TraceWriter};
+use super::trace_files::{TraceHealth, TraceLimit};
 use super::{EmergencyOff, LineChange, Output};
 use crate::clock::monotonic_ns;
 use crate::core::Level;
@@ -162,6 +163,7 @@ impl SimShared {
         }
         let dropped = self.dropped.load(Ordering::Relaxed);
         if dropped > io.reported_dropped {
+            writer.lost_before(dropped - io.reported_dropped);
             io.reported_dropped = dropped;
             io.error.get_or_insert(TraceError::Overflow { dropped });
         }
@@ -200,6 +202,11 @@ fn writer_loop(shared: Arc<SimShared>, stop: mpsc::Receiver<()>) {
             Err(RecvTimeoutError::Timeout) => {
                 let mut io = lock(io);
                 shared.drain(&mut io, |m| Some(lock(m)));
+                // Deleted files, full file systems, failed files' retries: here only, never
+                // in a drain the emergency handle runs.
+                if let Some(writer) = io.writer.as_mut() {
+                    writer.check(monotonic_ns());
+                }
             }
             Ok(()) | Err(RecvTimeoutError::Disconnected) => return,
         }
@@ -225,9 +232,31 @@ impl SimOutput {
         channel_names: Vec<String>,
         trace: Option<TraceSpec>,
     ) -> Result<SimOutput, TraceError> {
+        SimOutput::traced(
+            channel_names,
+            trace,
+            TraceLimit::default(),
+            &TraceHealth::new(),
+        )
+    }
+
+    /// [`SimOutput::new`] with each trace file keeping to `limit` and its state told in
+    /// `health` (see [`TraceWriter::create_watched`]).
+    pub fn traced(
+        channel_names: Vec<String>,
+        trace: Option<TraceSpec>,
+        limit: TraceLimit,
+        health: &TraceHealth,
+    ) -> Result<SimOutput, TraceError> {
         validate_channel_names(&channel_names)?;
         let writer = match trace.filter(|t| !t.is_empty()) {
-            Some(spec) => Some(TraceWriter::create(&spec, &channel_names, monotonic_ns())?),
+            Some(spec) => Some(TraceWriter::create_watched(
+                &spec,
+                &channel_names,
+                monotonic_ns(),
+                limit,
+                health,
+            )?),
             None => None,
         };
         SimOutput::with_trace_writer(channel_names, writer)
@@ -348,7 +377,7 @@ impl Drop for SimOutput {
                 }
             }
             if let Some(e) = io.error.take() {
-                warn(format_args!("sim output: {}", crate::error::chain(&e)));
+                warn(format_args!("sim output: {}", e.said()));
             }
         }
     }
@@ -384,10 +413,7 @@ impl EmergencyOff for SimEmergencyOff {
             Some(mut io) => {
                 s.drain(&mut io, |m| lock_bounded(m, EMERGENCY_LOCK_BUDGET));
                 if let Some(e) = io.error.take() {
-                    warn(format_args!(
-                        "sim output: emergency off: {}",
-                        crate::error::chain(&e)
-                    ));
+                    warn(format_args!("sim output: emergency off: {}", e.said()));
                 }
             }
             None => warn(format_args!(

@@ -9,6 +9,7 @@
 
 use crate::clock;
 use crate::core::config::ShortStr;
+use crate::core::valve::ValveStart;
 use crate::core::ChannelConfig;
 use crate::core::ValveConfig;
 use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
@@ -16,7 +17,7 @@ use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
 use crate::output::{
     self, install_panic_hook, AnyOutput, Backend, LineSlot, OpenError, Output, TraceFormat,
-    TraceSpec,
+    TraceHealth, TraceSpec,
 };
 use crate::ros::config::args::{self, ArgsError, RosArgs};
 use crate::ros::config::cli::{self, CliError, DEMO_ORIGIN, EXIT_FAILURE, EXIT_USAGE};
@@ -28,6 +29,7 @@ use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
 use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
 use crate::ros::config::valve::{self, ValveError, ValveLimits, ValveSpec};
+use crate::ros::config::valve_state::{self, StateRecord};
 use crate::ros::inbound::autotune;
 use crate::ros::inbound::estop::{self, EStop};
 use crate::ros::inbound::heater::{self, HeaterChannel};
@@ -35,12 +37,13 @@ use crate::ros::inbound::inputs::{self, Inputs, NOTE_QUEUE};
 use crate::ros::inbound::lifecycle;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::inbound::param_services;
-use crate::ros::inbound::valve as valve_inputs;
+use crate::ros::inbound::valve::{self as valve_inputs, ValveAnswers, ValveRun};
 use crate::ros::interface::msg::{self, RosMessage};
 use crate::ros::interface::{qos, type_hash};
 use crate::ros::outbound::diagnostics::ChannelHealth;
 use crate::ros::outbound::mcap_trace::{self, McapTrace};
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
+use crate::ros::outbound::traces::TraceReport;
 use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use crate::ros::wire::name_clash::{self, NameClash};
@@ -201,6 +204,12 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         })
         .collect::<Result<Vec<_>, ValveError>>()?;
     let limits = valve_limits(&su.store, &valves)?;
+    let state_dir =
+        (!cfg.settings.state_dir.is_empty()).then(|| PathBuf::from(&cfg.settings.state_dir));
+    if let Some(dir) = &state_dir {
+        valve_state::check_state_dir(dir).map_err(ValveError::StateDir)?;
+    }
+    let (runs, records) = valve_runs(&su.store, &valves, &limits, state_dir.as_deref());
     let gpio_lines = match &cfg.output.backend {
         Backend::Gpio { lines } => Some(lines.as_slice()),
         Backend::Sim { .. } => None,
@@ -222,9 +231,81 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         parsed.ros,
         su.store,
         cfg,
-        (splits, valves, limits),
+        (splits, runs, limits, state_dir, records),
         (domain, disc, secure),
     ))
+}
+
+/// What each valve starts with: its wired end switches, its feedback topic; and the record of
+/// its state file (from `state_dir`; a file not used is logged with the reason).
+fn valve_runs(
+    store: &params::ParamStore,
+    valves: &[(ValveSpec, ValveConfig)],
+    limits: &[ValveLimits],
+    state_dir: Option<&std::path::Path>,
+) -> (Vec<ValveRun>, Vec<Option<StateRecord>>) {
+    let mut records = Vec::new();
+    let runs = valves
+        .iter()
+        .zip(limits)
+        .map(|((v, config), l)| {
+            let feedback_topic = store
+                .string(&format!("{}.feedback_topic", v.name))
+                .unwrap_or("")
+                .trim()
+                .to_string();
+            // Read now, restored once the output holds the lines low (see `restore_valves`).
+            let record = state_dir.and_then(|dir| match valve_state::read_state(dir, &v.name) {
+                Ok(Some(r)) => Some(r),
+                Ok(None) => {
+                    info!("valve {}: no state file yet", v.name);
+                    None
+                }
+                Err(e) => {
+                    warn!(
+                        "valve {}: state file not used: {e}; the position is unknown",
+                        v.name
+                    );
+                    None
+                }
+            });
+            records.push(record);
+            ValveRun {
+                spec: v.clone(),
+                config: *config,
+                start: ValveStart {
+                    restored: None,
+                    switches_wired: [l.open.is_some(), l.close.is_some()],
+                    feedback: !feedback_topic.is_empty(),
+                },
+                feedback_topic,
+            }
+        })
+        .collect();
+    (runs, records)
+}
+
+/// The restored position of each valve from its record, its bounds grown up to now: called
+/// once the output holds every line low, so no drive after it is missed (logged either way).
+fn restore_valves(valves: &mut [ValveRun], records: &[Option<StateRecord>]) {
+    for (run, record) in valves.iter_mut().zip(records) {
+        let Some(r) = record else { continue };
+        let name = &run.spec.name;
+        match r.restore(&run.config, valve_state::Stamp::now()) {
+            Ok(p) => {
+                info!(
+                    "valve {name}: position restored from its state file: motor {:.2} % within \
+                     {:.2}..{:.2} %; reference_at_start {}",
+                    p.position_pct,
+                    p.low_pct,
+                    p.high_pct,
+                    run.config.reference_at_start.as_str()
+                );
+                run.start.restored = Some(p);
+            }
+            Err(e) => warn!("valve {name}: state file not used: {e}; the position is unknown"),
+        }
+    }
 }
 
 /// The end switches of each valve, from its parameters `NAME.open_limit_line`, ...
@@ -329,6 +410,7 @@ fn mcap_trace(
     cfg: &StartupConfig,
     ep: &Endpoints<'_>,
     names: &[String],
+    health: &TraceHealth,
 ) -> Result<Option<McapTrace>, NodeError> {
     let trace_err = |e| NodeError::Output(OpenError::Trace(e));
     let paths = TraceSpec::from_paths(&cfg.output.trace)
@@ -361,7 +443,7 @@ fn mcap_trace(
             p.display()
         );
     }
-    McapTrace::create(&paths, topics)
+    McapTrace::create(&paths, topics, cfg.output.trace_limit, health)
         .map(Some)
         .map_err(trace_err)
 }
@@ -418,16 +500,22 @@ fn pump(
     reporter.into_inner()
 }
 
+/// The split-range pairs, the valves, their end switches, the state directory and the valves'
+/// state records, as the start-up made them.
+type PairsAndValves = (
+    Vec<split::SplitPair>,
+    Vec<ValveRun>,
+    Vec<ValveLimits>,
+    Option<PathBuf>,
+    Vec<Option<StateRecord>>,
+);
+
 async fn serve(
     id: NodeIdentity,
     ros: RosArgs,
     store: ParamStore,
     cfg: StartupConfig,
-    (splits, valves, limits): (
-        Vec<split::SplitPair>,
-        Vec<(ValveSpec, ValveConfig)>,
-        Vec<ValveLimits>,
-    ),
+    (splits, mut valves, limits, state_dir, records): PairsAndValves,
     (domain, disc, secure): (u16, Discovery, Option<PathBuf>),
 ) -> Result<i32, NodeError> {
     let remaps = &ros.remaps;
@@ -437,7 +525,8 @@ async fn serve(
     let mut signals = StopSignals::catch();
     // The output first: configuration and hardware errors stop the node before it joins ROS.
     let (output, line_slot) = open_output(&cfg)?;
-    let specs: Vec<ValveSpec> = valves.iter().map(|(v, _)| v.clone()).collect();
+    restore_valves(&mut valves, &records);
+    let specs: Vec<ValveSpec> = valves.iter().map(|r| r.spec.clone()).collect();
     let switches = valve_inputs::open_switches(&specs, &limits)
         .map_err(|e| NodeError::Output(OpenError::Switch(e)))?;
     let hardware_ids = cfg.output.hardware_ids();
@@ -490,18 +579,26 @@ async fn serve(
         remaps,
     };
     let (pubs, diagnostics) = ChannelPubs::create(&mut ep, &names)?;
-    let mcap = mcap_trace(&cfg, &ep, &names)?;
+    let traces = output.trace_health();
+    let mcap = mcap_trace(&cfg, &ep, &names, &traces)?;
     let valve_outs: Vec<(String, String, String)> = valves
         .iter()
-        .map(|(v, _)| {
+        .map(|r| {
             (
-                v.name.clone(),
-                names[v.open].clone(),
-                names[v.close].clone(),
+                r.spec.name.clone(),
+                names[r.spec.open].clone(),
+                names[r.spec.close].clone(),
             )
         })
         .collect();
-    let valve_pubs = ValveOut::create(&mut ep, &valve_outs)?;
+    let mut valve_pubs = ValveOut::create(&mut ep, &valve_outs)?;
+    let valve_answers = Arc::new(ValveAnswers::new(valves.len()));
+    for (k, (out, run)) in valve_pubs.iter_mut().zip(&valves).enumerate() {
+        out.answer_to(k, Arc::clone(&valve_answers));
+        if let Some(dir) = &state_dir {
+            out.keep_state(dir.clone(), run.config);
+        }
+    }
     let param_events = node
         .create_publisher(&context.get_parameter_events_topic(), None)
         .map_err(ros_err("publisher /parameter_events"))?;
@@ -530,6 +627,7 @@ async fn serve(
     if let Some(mcap) = mcap {
         reporter.record_to(mcap);
     }
+    reporter.watch_traces(TraceReport::new(traces));
     reporter.set_valves(valve_pubs);
     let estop = Arc::new(EStop::new(cfg.settings.estop_timeout_ms));
     let inputs = Arc::new(Inputs::new(
@@ -549,7 +647,12 @@ async fn serve(
     };
     tasks.extend(inputs::listen_channels(&mut ep, &inputs, &names)?);
     tasks.extend(inputs::listen_splits(&mut ep, &inputs, &splits)?);
-    tasks.extend(valve_inputs::listen_valves(&mut ep, &inputs, &valves)?);
+    tasks.extend(valve_inputs::listen_valves(
+        &mut ep,
+        &inputs,
+        &valves,
+        &valve_answers,
+    )?);
     valve_inputs::spawn_switch_readers(switches, &inputs);
     let heaters: Vec<HeaterChannel> = cfg
         .channels

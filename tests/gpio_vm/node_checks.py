@@ -565,7 +565,7 @@ def valve_close_switch_stops_the_drive():
         l.set_pull(False)
     p = node([("pw01", 0), ("pw02", 1)],
              ["valve:=mix:pw01:pw02", "mix.travel_open_ms:=20000",
-              "mix.travel_close_ms:=20000", "mix.reference_at_start:=true",
+              "mix.travel_close_ms:=20000", "mix.reference_at_start:=close",
               f"mix.close_limit_line:={CHIP}:2"])
     try:
         wait_level(p, l1, True)
@@ -597,6 +597,77 @@ def valve_close_switch_stops_the_drive():
     # reader thread, the request queue and the output thread. 100 ms is wide for TCG.
     require(ms < 100.0, f"the close line fell {ms:.1f} ms after the pull")
     return f"close line off {ms:.1f} ms after the pull (debounce 5 ms), referenced at 0 %"
+
+
+def valve_without_its_end_switch_is_motor_stalled():
+    """A valve on lines 0 (open) and 1 (close) with its close end switch on input line 2, and a
+    dead motor: the switch never closes. The reference at start drives closed for 150 % of the
+    2 s travel time (3 s), then, with no switch within its 200 ms grace, the node latches
+    motor_stalled (OSCAT ACTUATOR_3P): both lines stay off, a position command moves nothing,
+    and the log names the fault with its figures."""
+    l0, l1, sw = Line(0), Line(1), Line(2)
+    for l in (l0, l1, sw):
+        l.set_pull(False)
+    p = node([("pw01", 0), ("pw02", 1)],
+             ["valve:=mix:pw01:pw02", "mix.travel_open_ms:=2000",
+              "mix.travel_close_ms:=2000", "mix.reference_at_start:=close",
+              f"mix.close_limit_line:={CHIP}:2"])
+    try:
+        wait_level(p, l1, True)
+        rose = time.monotonic()
+        fell = None
+        while time.monotonic() < rose + 10.0:
+            t, v, _h = l1.sample()
+            if not v:
+                fell = t
+                break
+        require(fell is not None, "the close drive did not end within 10 s")
+        drive = fell - rose
+        # 3 s of drive; the guest's emulated timing and the sampling loop: 0.5 s either way.
+        require(2.5 <= drive <= 3.5, f"the reference drove {drive:.2f} s, 3 s expected")
+        after = sample_for([l0, l1], 2.0)
+        on = [(o, t) for o, xs in after.items() for t, v, h in xs if h and v]
+        require(not on, f"a line rose after the stalled reference: line {on[:1]}")
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    require("motor_stalled: the end move closing ran its whole drive" in err,
+            f"no motor_stalled in the log: {err[-1500:]}")
+    require("close end switch did not report" in err, f"the switch is not named: {err[-1500:]}")
+    return f"reference drove {drive:.2f} s, no switch: motor_stalled, lines off after it"
+
+
+def valve_switch_where_it_cannot_be_is_implausible():
+    """A valve on lines 0 (open) and 1 (close) with its open end switch on input line 2 (a stuck
+    contact, or a broken wire read as "at the end"): after the reference at start has closed it,
+    the open switch turning active is switch_implausible (the valve is known closed); it latches
+    with both lines off, so the command timeout's `open` 2.5 s later drives nothing."""
+    l0, l1, sw = Line(0), Line(1), Line(2)
+    for l in (l0, l1, sw):
+        l.set_pull(False)
+    p = node([("pw01", 0), ("pw02", 1)],
+             ["valve:=mix:pw01:pw02", "mix.travel_open_ms:=2000",
+              "mix.travel_close_ms:=2000", "mix.reference_at_start:=close",
+              "mix.command_timeout_ms:=6000", "mix.on_timeout:=open",
+              f"mix.open_limit_line:={CHIP}:2"])
+    try:
+        wait_level(p, l1, True)
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end and l1.level():
+            pass
+        require(not l1.level(), "the reference did not end within 10 s")
+        sw.set_pull(True)
+        after = sample_for([l0, l1], 5.0)
+        on = [(o, t) for o, xs in after.items() for t, v, h in xs if h and v]
+        require(not on, f"a line rose after the implausible switch: line {on[:1]}")
+    finally:
+        p.send_signal(signal.SIGTERM)
+    code, err = stop(p)
+    require(code == 0, f"exit {code} after SIGTERM: {err[-1000:]}")
+    require("switch_implausible: end switches open active close inactive" in err,
+            f"no switch_implausible in the log: {err[-1500:]}")
+    return "open switch active at the closed end: switch_implausible, nothing rose in 5 s"
 
 
 def bad_switch_line_is_a_configuration_error():
@@ -639,6 +710,8 @@ CHECKS = [
     two_channels_on_one_line_refused,
     heartbeat_toggles_and_stops_on_sigstop,
     valve_close_switch_stops_the_drive,
+    valve_without_its_end_switch_is_motor_stalled,
+    valve_switch_where_it_cannot_be_is_implausible,
     bad_switch_line_is_a_configuration_error,
 ]
 

@@ -295,7 +295,7 @@ def test_the_aggregator_analyzers_take_every_status_the_node_publishes(node_proc
     for key in ("find_and_remove_prefix", "expected"):
         assert isinstance(cfg.get(key, []), list), (key, cfg)
 
-    node_process(node_args(channels=3))
+    proc = node_process(node_args(channels=3))
     ch = ChannelClient(ros, "pw01")
     ch.wait_connected()
     array = ch.diagnostics.wait_for(
@@ -307,6 +307,7 @@ def test_the_aggregator_analyzers_take_every_status_the_node_publishes(node_proc
         *(f"{NODE_NAME}: {c}" for c in channels),
         *(freq_name(c) for c in channels),
         NODE_STATUS,
+        f"{NODE_NAME}: trace {proc.trace_path}",
     ], names
 
     # Every status the node publishes is taken, each under the path with the prefix gone;
@@ -319,6 +320,8 @@ def test_the_aggregator_analyzers_take_every_status_the_node_publishes(node_proc
         *(base + c for c in channels),
         *(f"{base}{c} command frequency" for c in channels),
         base + "node",
+        # The aggregator makes each '/' of a name a space.
+        f"{base}trace {str(proc.trace_path).replace('/', ' ')}",
     ], short
     for other in ("pwm_actuator_2: pw01", "camera: pwm_actuator: x", "heater: pw01"):
         assert not analyzer_matches(cfg, other), other

@@ -776,7 +776,7 @@ def test_whole_doubles_are_taken_for_integers_and_fractions_refused(ros, node_pr
 @pytest.mark.smoke
 def test_diagnostics_ok_for_a_normal_channel(ros, node_process):
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics")
-    start_node(
+    proc = start_node(
         node_process, params("pw01.enable:=true", "pw01.duty:=50.0", "pw01.period_ms:=200")
     )
     status = wait_diag(
@@ -806,7 +806,8 @@ def test_diagnostics_ok_for_a_normal_channel(ros, node_process):
     assert float(kv["on_time_ms"]) == 100.0 and float(kv["off_time_ms"]) == 100.0, kv
     assert kv["e1"] == "false" and kv["rule"] == "exact", kv
     assert kv["enabled"] == "true", kv
-    # One status per channel, one per channel's command rate, one for the node.
+    # One status per channel, one per channel's command rate, one for the node, one for the
+    # trace the test's node writes.
     [array] = [a for a in diagnostics.messages if any(s is status for s in a.status)]
     names = [s.name for s in array.status]
     assert names == [
@@ -815,6 +816,7 @@ def test_diagnostics_ok_for_a_normal_channel(ros, node_process):
         "pwm_actuator: pw01 command frequency",
         "pwm_actuator: pw02 command frequency",
         "pwm_actuator: node",
+        f"pwm_actuator: trace {proc.trace_path}",
     ], names
 
 

@@ -65,6 +65,7 @@ REQUIRED_PUBLISHERS = {
     "rr/pwm_actuator/change_stateReply",
     "rr/pwm_actuator/pw03/reset_faultReply",
     "rt/pwm_actuator/valve/mix/state",
+    "rr/pwm_actuator/valve/mix/resetReply",
 }
 REQUIRED_SUBSCRIPTIONS = {
     f"rq/{ACTION}/send_goalRequest",
@@ -85,6 +86,7 @@ REQUIRED_SUBSCRIPTIONS = {
     "rq/pwm_actuator/get_stateRequest",
     "rq/pwm_actuator/pw03/reset_faultRequest",
     "rt/pwm_actuator/valve/mix/position",
+    "rq/pwm_actuator/valve/mix/resetRequest",
 }
 
 

@@ -10,6 +10,13 @@
 //! the on time of the line within `(t - W, t]` is never more than [`Channel::avg_spent`] says,
 //! and at most one bucket's worth less.
 //!
+//! A wake-up later than its deadlines handles them in one batch at their own instants, but no
+//! edge of the batch reaches the line before the batch's `now`: a fall the batch takes leaves
+//! the line on until then. Its span is counted up to `now` at once, so a decision later in the
+//! same batch (the next period's start, when the late wake-up swallowed a short break) sees
+//! the line on; and when the batch's edges cancel out (the break never reached the line), the
+//! part counted is not counted again at the real fall.
+//!
 //! At each decision point where an on phase may start or run (a period start, a step start
 //! under `next_step` and `immediate`, a re-evaluation), the budget is the limit times `W` less
 //! the on time spent in the window ending now. The on time the plan commits the line to until
@@ -54,6 +61,12 @@ pub(super) struct Budget {
     /// [`FALL_LAG_FLOOR`] once the line has shown a write of its own (0 in virtual time, where
     /// edges take no time); kept as a margin for the next fall.
     fall_lag: Nanos,
+    /// The line's on time before this instant is counted in the ring, ns: the end of the last
+    /// span counted. A span is counted from here at the earliest, and so is the running one.
+    counted_to: Nanos,
+    /// While a late batch of deadlines is handled: its `now`, before which none of its edges
+    /// reaches the line, ns (0 otherwise).
+    batch_now: Nanos,
 }
 
 impl Budget {
@@ -68,6 +81,8 @@ impl Budget {
             allowance: Nanos::MAX,
             acts: false,
             fall_lag: 0,
+            counted_to: 0,
+            batch_now: 0,
         }
     }
 
@@ -95,6 +110,16 @@ impl Budget {
         }
     }
 
+    /// Counts the on time `[from, to)` of the line, less what is counted already (before
+    /// `counted_to`).
+    fn count_span(&mut self, from: Nanos, to: Nanos) {
+        let from = from.max(self.counted_to);
+        if to > from {
+            self.count(from, to);
+            self.counted_to = to;
+        }
+    }
+
     /// The on time counted in the buckets that overlap `(t - window, t]`, ns.
     fn within(&self, t: Nanos) -> Nanos {
         let first = t.saturating_sub(self.window) / self.width;
@@ -115,6 +140,8 @@ impl Budget {
             allowance: self.allowance,
             acts: self.acts,
             fall_lag: self.fall_lag,
+            counted_to: self.counted_to,
+            batch_now: self.batch_now,
             ..Budget::new(window)
         };
         self.count(now.saturating_sub(total), now);
@@ -127,10 +154,19 @@ impl Channel {
         self.cfg.avg_limit < 1.0
     }
 
-    /// The line fell at `at` after being high since `since`: counts the span.
+    /// The line fell at `at` after being high since `since`: counts the span, in a late batch
+    /// up to the batch's `now` (the fall reaches the line no earlier).
     pub(super) fn avg_fall(&mut self, since: Nanos, at: Nanos) {
-        self.avg.count(since.min(at), at);
-        self.heat_on_time(since.min(at), at);
+        let to = at.max(self.avg.batch_now);
+        self.avg.count_span(since.min(at), to);
+        // The heater got that on time too (its checks and model count what the line did).
+        self.heat_on_time(since.min(at), to);
+    }
+
+    /// A batch of deadlines handled at `now` begins (`now`) or ends (what this returned when
+    /// it began): see [`Channel::avg_fall`].
+    pub(super) fn avg_batch(&mut self, now: Nanos) -> Nanos {
+        std::mem::replace(&mut self.avg.batch_now, now)
     }
 
     /// An edge reached the line after it was emitted: the line's writes take time, so every
@@ -145,7 +181,7 @@ impl Channel {
         if actual <= scheduled {
             return;
         }
-        self.avg.count(scheduled, actual);
+        self.avg.count_span(scheduled, actual);
         self.heat_on_time(scheduled, actual);
         let lag = actual - scheduled;
         self.avg.fall_lag = lag
@@ -159,10 +195,13 @@ impl Channel {
     }
 
     /// The on time of the line within the window ending at `t`, ns, as the channel counts it
-    /// (never less than the real one): the finished spans and the running one.
+    /// (never less than the real one): the finished spans and the running one (from where the
+    /// ring's count ends).
     pub(super) fn avg_spent(&self, t: Nanos) -> Nanos {
         let running = match (self.line.level, self.line.since) {
-            (Level::High, Some(since)) => t.saturating_sub(since).min(self.avg.window),
+            (Level::High, Some(since)) => t
+                .saturating_sub(since.max(self.avg.counted_to))
+                .min(self.avg.window),
             _ => 0,
         };
         self.avg.within(t).saturating_add(running)

@@ -84,7 +84,7 @@ impl Channel {
                 _ => self.level,
             };
             if self.level == Level::High {
-                self.line.held = Some((Level::High, self.earliest(Level::High, now)));
+                self.hold(Level::High, now);
             }
         } else {
             self.release_held_rise(now, emit);
@@ -104,6 +104,7 @@ impl Channel {
                 self.write_line(Level::High, now, emit);
             } else if at <= now {
                 self.line.held = Some((Level::High, tick));
+                self.line.held_due = tick;
             }
         }
     }

@@ -51,7 +51,7 @@ impl Channel {
     /// really written.
     pub(super) fn on_total(&self, t: Nanos) -> Nanos {
         let running = match (self.line.level, self.line.since) {
-            (Level::High, Some(since)) => t.saturating_sub(since),
+            (Level::High, Some(since)) => t.saturating_sub(since.max(self.heat.on_counted_to)),
             _ => 0,
         };
         self.heat.on_closed.saturating_add(running)
@@ -60,7 +60,13 @@ impl Channel {
     /// A high phase of the line from `since` ended at `at` (or a fall reached the line only
     /// at `at`, `since` being when it was scheduled): the heater got that on time.
     pub(super) fn heat_on_time(&mut self, since: Nanos, at: Nanos) {
-        self.heat.on_closed = self.heat.on_closed.saturating_add(at.saturating_sub(since));
+        // A late batch counts a fall up to its wake-up, and the late fall again from its
+        // schedule: what is counted already is not counted twice.
+        let from = since.max(self.heat.on_counted_to);
+        if at > from {
+            self.heat.on_closed = self.heat.on_closed.saturating_add(at - from);
+            self.heat.on_counted_to = at;
+        }
     }
 
     /// The timeout readings are held to, ns: `feedback_timeout_ms`, and while an autotune runs

@@ -23,8 +23,18 @@ impl Channel {
     /// phase the line is in (after the phase's start or the minima changed).
     pub(super) fn retime_held(&mut self) {
         if let Some((level, at)) = self.line.held {
-            self.line.held = Some((level, self.earliest(level, at)));
+            let (when, due) = self.earliest(level, self.line.held_due);
+            self.line.held = Some((level, when.max(at)));
+            self.line.held_due = due;
         }
+    }
+
+    /// Holds back the change to `level` the schedule asks for at `at` until the guard lets it
+    /// through (see [`Channel::earliest`]).
+    pub(super) fn hold(&mut self, level: Level, at: Nanos) {
+        let (when, due) = self.earliest(level, at);
+        self.line.held = Some((level, when));
+        self.line.held_due = due;
     }
 
     /// The earliest instant at or after `at` the line may change to `level`: once the line has
@@ -32,16 +42,59 @@ impl Channel {
     /// grid. The grid is the instants `k * tick` of the monotonic clock; the minima are whole
     /// ticks, so a change asked for on the grid after a phase that began on it is not moved,
     /// and one asked for between two ticks waits for the next. A phase that began off the
-    /// grid (an edge written late, a safety off) ends on it all the same, at least its
-    /// minimum later.
-    pub(super) fn earliest(&self, level: Level, at: Nanos) -> Nanos {
+    /// grid (a safety off) ends on it all the same, at least its minimum later.
+    ///
+    /// A phase due on the grid but written late (a late wake-up, the write itself) keeps its
+    /// whole ticks: it ends on the grid as if it had begun when it was due, or, where that is
+    /// before its minimum from the real edge (a phase of exactly its minimum), at that
+    /// minimum, off the grid by the lateness. It is not rounded up a whole tick for a write's
+    /// microseconds, which would lengthen every pulse or break of exactly its minimum and
+    /// drift the delivered duty from the command. A lateness of a tick or more, or gathered
+    /// over phases of exactly their minima to a tick, is waited out to the next tick.
+    ///
+    /// Returns that instant, and the instant the change then counts as due: the grid instant
+    /// it would have had with no lateness (the instant itself where it is not late).
+    pub(super) fn earliest(&self, level: Level, at: Nanos) -> (Nanos, Nanos) {
         debug_assert_ne!(level, self.line.level);
-        let at = self
-            .line
-            .since
-            .map_or(0, |s| s.saturating_add(self.min_for(self.line.level)))
-            .max(at);
-        self.cfg.tick_at_or_after(at)
+        let min = self.min_for(self.line.level);
+        let Some(since) = self.line.since else {
+            let when = self.cfg.tick_at_or_after(at);
+            return (when, when);
+        };
+        let real = since.saturating_add(min);
+        if self.late_on_grid() {
+            let due = self
+                .cfg
+                .tick_at_or_after(self.line.due.saturating_add(min).max(at));
+            (due.max(real), due)
+        } else {
+            let when = self.cfg.tick_at_or_after(real.max(at));
+            (when, when)
+        }
+    }
+
+    /// With a time base: the line's phase was due on the grid and reached the line less than
+    /// a tick after (see [`Channel::earliest`]).
+    fn late_on_grid(&self) -> bool {
+        let tick = self.cfg.tick;
+        match self.line.since {
+            Some(since) if tick > 0 => {
+                self.line.due.is_multiple_of(tick) && since.saturating_sub(self.line.due) < tick
+            }
+            _ => false,
+        }
+    }
+
+    /// Where the line's phase counts from for the schedule, ns: the grid instant it was due,
+    /// where it reached the line less than a tick after (with a time base); else when it
+    /// really began. `None` while the line has never changed.
+    pub(super) fn phase_due(&self) -> Option<Nanos> {
+        let since = self.line.since?;
+        Some(if self.late_on_grid() {
+            self.line.due
+        } else {
+            since
+        })
     }
 
     /// The minimum time the line must keep `level` once it has it, ns.
@@ -78,7 +131,7 @@ impl Channel {
             }
             return;
         }
-        let when = self.earliest(level, at);
+        let (when, due) = self.earliest(level, at);
         if when == at && !(self.no_rise() && level == Level::High) {
             self.write_line(level, at, emit);
         } else {
@@ -86,6 +139,7 @@ impl Channel {
             let held = Some((level, when));
             self.line.resumes &= self.line.held == held;
             self.line.held = held;
+            self.line.held_due = due;
         }
     }
 
@@ -105,8 +159,15 @@ impl Channel {
             // the node's lines above all, which no flag set before the action can have
             // missed). It waits, held back, as a rise the interlock holds.
             self.line.held = Some((Level::High, at));
+            self.line.held_due = at;
             return;
         }
+        // A change the guard held back counts as due when it would have been with no
+        // lateness; any other at the instant it is written.
+        let due = match self.line.held {
+            Some(held) if held == (level, at) => self.line.held_due,
+            _ => at,
+        };
         if let Some(seat) = &self.seat {
             seat.set(level);
         }
@@ -116,7 +177,9 @@ impl Channel {
         self.line = Line {
             level,
             since: Some(at),
+            due,
             held: None,
+            held_due: 0,
             locked: self.line.locked,
             cut: None,
             resumes: false,
@@ -132,7 +195,7 @@ impl Channel {
         let resume = self.enabled && self.level == Level::High;
         self.write_line(Level::Low, t, emit);
         if resume {
-            self.line.held = Some((Level::High, self.earliest(Level::High, t)));
+            self.hold(Level::High, t);
             self.line.resumes = true;
         } else {
             self.level = Level::Low;

@@ -402,6 +402,8 @@ pub(crate) struct Heat {
     /// The line's on time over its finished high phases, ns (the running one is added from
     /// the line's state): what the heater really got.
     pub(crate) on_closed: Nanos,
+    /// Up to when the on time is counted in `on_closed`.
+    pub(crate) on_counted_to: Nanos,
     /// The line's cumulative on time at past readings.
     pub(crate) delivered: Delivered,
     /// `sensor_stuck` and `sensor_jump`.
@@ -456,6 +458,7 @@ impl Heat {
             },
             autotune: None,
             on_closed: 0,
+            on_counted_to: 0,
             delivered: Delivered::new(delivered_span(cfg, window)),
             still: Stuck::default(),
             leap: Leap::default(),

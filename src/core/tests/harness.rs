@@ -2,7 +2,7 @@
 //! one exactly when due, every event recorded with its cause. `wave()` prints the edges the way
 //! the seeds draw timing diagrams: `H@0 L@370 H@1000` (level @ ms).
 
-use crate::core::{Channel, ChannelParams, Command, Event, Level, Nanos, Status, NS_PER_MS};
+use crate::core::{Channel, ChannelParams, Command, Event, Level, Nanos, Plan, Status, NS_PER_MS};
 
 /// One millisecond in ns.
 pub const MS: Nanos = NS_PER_MS;
@@ -219,6 +219,58 @@ impl Bench {
             .map(|end| (on_before(end) - on_before(end.saturating_sub(w)), end))
             .collect()
     }
+}
+
+/// A constant command `pct` from 0 for `n` periods of `params` (sent again every `repeat` ns,
+/// if given, as a controller publishing at a rate does), driven by a thread that wakes and
+/// writes each edge late by the next of `late` (wake-up, write) ns in turn, as the output
+/// thread does: the line's high spans as really written, ns, and every plan the channel made.
+pub fn late_steady(
+    params: ChannelParams,
+    pct: f64,
+    n: u64,
+    repeat: Option<Nanos>,
+    late: &[(Nanos, Nanos)],
+) -> (Vec<(Nanos, Nanos)>, Vec<Plan>) {
+    let cfg = params.validate().unwrap();
+    let end = n * cfg.period;
+    let mut ch = Channel::new(cfg, 0);
+    let mut plans = Vec::new();
+    let mut edges: Vec<(Nanos, Level)> = Vec::new();
+    let mut k = 0usize;
+    let mut now = 0;
+    let mut ev = Vec::new();
+    ch.command(0, Command::Percent(pct), &mut |e| ev.push(e));
+    ch.set_enable(0, true, &mut |e| ev.push(e));
+    plans.push(*ch.plan());
+    let mut next_command = repeat.map_or(Nanos::MAX, |r| r.max(1));
+    loop {
+        for e in ev.drain(..) {
+            match e {
+                Event::Edge { level, .. } => {
+                    let written = now + late[k % late.len()].1;
+                    k += 1;
+                    ch.edge_written(written);
+                    edges.push((written, level));
+                }
+                Event::Plan(p) => plans.push(p),
+                _ => {}
+            }
+        }
+        let due = ch.poll_at().filter(|d| *d < end);
+        if next_command < end && due.is_none_or(|d| next_command < d) {
+            now = next_command.max(now);
+            next_command = next_command.saturating_add(repeat.unwrap_or(Nanos::MAX).max(1));
+            ch.command(now, Command::Percent(pct), &mut |e| ev.push(e));
+            continue;
+        }
+        let Some(d) = due else {
+            break;
+        };
+        now = d.max(now) + late[k % late.len()].0;
+        ch.poll(now, &mut |e| ev.push(e));
+    }
+    (high_spans(&edges, end.max(now)), plans)
 }
 
 /// The spans `[rise, fall)` a line was high, ns, in order, from its edges (level @ ns): a

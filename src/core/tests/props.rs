@@ -992,3 +992,79 @@ proptest! {
         late_run(start, &ops, &delays)?;
     }
 }
+
+proptest! {
+    /// The time base's error diffusion on a line whose edges are written late, as every edge
+    /// of the output thread is (by its wake-up and the write, tens of µs): over any run of
+    /// consecutive periods of a constant command the on time on the line is within one tick of
+    /// the command's, give or take the lateness of the edges, for every period, tick, duty and
+    /// pair of minima — or a rule acted and says so: E1 set with the rule named (suppressed,
+    /// stretched), or the policy's rule named (`band`'s constants, `extend`'s longer period).
+    /// A pulse or break of exactly its minimum is not lengthened a whole tick by its edge's
+    /// microseconds of lateness, nor is a phase 003's re-evaluation re-times (the command
+    /// sent again at a rate).
+    #[test]
+    fn with_a_time_base_late_writes_keep_the_delivered_on_time_or_e1_names_the_rule(
+        start in arb_params().prop_filter("pulsing", |p| p.period_ms > 0),
+        tb in arb_time_base(),
+        pct in 0.0..=100.0f64,
+        near in prop::option::of((any::<bool>(), -1.5..1.5f64)),
+        n in 2u64..40,
+        repeat in prop::option::of(1u64..200),
+        late in prop::collection::vec((0.0..=1.0f64, 0.0..=1.0f64), 1..16),
+    ) {
+        let params = steady(start);
+        let Some(params) = with_time_base(params, tb) else { return Ok(()) };
+        let cfg = params.validate().unwrap();
+        let (tick, period) = (cfg.tick, cfg.period);
+        let ticks = (period / tick) as f64;
+        // Half the time the duty lies within a tick and a half of a minimum, where the
+        // rounded pulses or breaks are exactly it.
+        let pct = match near {
+            Some((true, u)) => 100.0 * ((cfg.min_on / tick) as f64 + u) / ticks,
+            Some((false, u)) => 100.0 * (1.0 - ((cfg.min_off / tick) as f64 + u) / ticks),
+            None => pct,
+        }
+        .clamp(0.0, 100.0);
+        // Each edge late by up to a thousandth of a tick, at least 1 ns in all: every edge
+        // is late, and the lateness of a whole run stays well under a tick.
+        let most = (tick / 2000).max(1);
+        let late: Vec<(Nanos, Nanos)> = late
+            .iter()
+            .map(|(w, x)| ((w * most as f64) as Nanos, (x * most as f64) as Nanos + 1))
+            .collect();
+        let lateness = 2 * most + 1;
+        let (spans, plans) = super::harness::late_steady(params, pct, n, repeat.map(|ms| ms * MS), &late);
+        let d = cfg.limit_duty(pct / 100.0);
+        // E1 always names the rule that set it.
+        for p in &plans {
+            prop_assert!(!p.e1 || p.rule != Rule::Exact, "E1 with rule exact: {:?}", p);
+        }
+        let named = plans.iter().any(|p| {
+            (p.e1 && p.rule != Rule::Exact)
+                || p.rule.extended()
+                || matches!(p.rule, Rule::BandLow | Rule::BandHigh)
+        });
+        if named {
+            return Ok(());
+        }
+        let on = |a: Nanos, z: Nanos| -> Nanos {
+            spans.iter().map(|(r, f)| (*f).min(z).saturating_sub((*r).max(a))).sum()
+        };
+        let per: Vec<Nanos> = (0..n).map(|k| on(k * period, (k + 1) * period)).collect();
+        for i in 0..n as usize {
+            for j in i + 1..=n as usize {
+                let got: Nanos = per[i..j].iter().sum();
+                let want = d * (j - i) as f64 * period as f64;
+                let slack = tick as f64 + (2 * (j - i + 1) as u64 * lateness) as f64 + 1e-6 * want;
+                prop_assert!(
+                    (got as f64 - want).abs() <= slack,
+                    "periods {}..{} of {} ticks of {} ns at {} %: {} ticks on, {} commanded, \
+                     no E1, rule exact (min on {} ticks, min off {})",
+                    i, j, ticks, tick, pct, got as f64 / tick as f64, want / tick as f64,
+                    cfg.min_on / tick, cfg.min_off / tick
+                );
+            }
+        }
+    }
+}

@@ -298,3 +298,35 @@ fn every_policy_runs_on_the_grid() {
         }
     }
 }
+
+#[test]
+fn a_pulse_of_exactly_its_minimum_keeps_its_ticks_when_its_rise_is_written_late() {
+    // 33 % of 98 ms on a 7 ms tick is 4.62 ticks: pulses of 4 and 5 ticks. With the minimum
+    // on time 22..28 ms (4 ticks) the 4-tick pulses are exactly the minimum; every rise is
+    // written 50 µs late, as on the output thread. The fall of a 4-tick pulse then comes 4
+    // ticks after the real rise, off the grid by those 50 µs, not a whole tick later: over
+    // 133 periods the line is on 614 ticks (614.46 commanded), not 665.
+    let tick = 7 * MS;
+    for min_on_ms in [0, 22, 25, 28] {
+        let params = ticked(98, 7.0, |p| p.min_on_ms = min_on_ms);
+        let (spans, plans) = super::harness::late_steady(params, 33.0, 133, None, &[(0, 50_000)]);
+        let on: Nanos = spans.iter().map(|(r, f)| f - r).sum();
+        let want = 0.33 * 133.0 * 98.0 * MS as f64;
+        assert!(
+            (on as f64 - want).abs() <= tick as f64,
+            "min on {min_on_ms} ms: {} ticks on, {} commanded",
+            on as f64 / tick as f64,
+            want / tick as f64
+        );
+        // A 4-tick pulse lasts its minimum from the real rise and is written 50 µs late
+        // itself; a 5-tick one is whole ticks between two edges as late.
+        for (r, f) in &spans {
+            let len = f - r;
+            assert!(
+                len == 5 * tick || (4 * tick..=4 * tick + 50_000).contains(&len),
+                "min on {min_on_ms} ms: a pulse of {len} ns"
+            );
+        }
+        assert!(plans.iter().all(|p| !p.e1 && p.rule == Rule::Exact));
+    }
+}

@@ -32,8 +32,8 @@ pub(super) struct LineState {
 #[derive(Debug, Clone)]
 pub(super) struct Lines {
     pub(super) line: [LineState; 2],
-    /// The real time the last fall of either line reached it.
-    fell: Option<Nanos>,
+    /// The real time the last fall of either line reached it (or the lines were known low).
+    pub(super) fell: Option<Nanos>,
     /// The last fall's real time is not reported yet: no rise until it is, so the pause counts
     /// from the line and never from the schedule.
     unconfirmed: bool,
@@ -49,10 +49,13 @@ pub(super) struct Lines {
 }
 
 impl Lines {
-    pub(super) fn new(pause: Nanos, min_pulse: Nanos) -> Lines {
+    /// The guard of two lines known low at `now` (the output requested them inactive): the
+    /// first rise waits for the reversal pause from there, since a line may have been high
+    /// until then (a restart after a kill mid-move).
+    pub(super) fn new(pause: Nanos, min_pulse: Nanos, now: Nanos) -> Lines {
         Lines {
             line: [LineState::default(); 2],
-            fell: None,
+            fell: Some(now),
             unconfirmed: false,
             pause,
             min_pulse,

@@ -1,55 +1,112 @@
 //! A three-point (floating) valve actuator as a sans-IO state machine: one line drives the motor
-//! open, the other closed, and the position is known only by counting the time each line was
-//! really high against the actuator's travel time (Beckhoff `FB_BA_Anlg3Pnt`, Siemens
-//! `PID_3Step`, Schneider `SERVO`, OSCAT `ACTUATOR_3P`).
+//! open, the other closed, and the position is known by counting the time each line was really
+//! high against the actuator's travel time (Beckhoff `FB_BA_Anlg3Pnt`, Siemens `PID_3Step`,
+//! Schneider `SERVO`, OSCAT `ACTUATOR_3P`), or read from an optional position feedback.
 //!
 //! Like the channel, it never reads a clock or writes an output: it is given `now` and inputs,
 //! answers with edges ([`ValveEvent::Edge`]) and says when to call again ([`Valve::poll_at`]).
 //! The edges pass its line guard (`lines`), which holds the rules about the lines themselves;
 //! the estimate integrates the real edges, corrected by [`Valve::edge_written`].
 //!
+//! What the valve knows is an interval: the true position lies between a low and a high bound,
+//! propagated through every drive with the worst the actuator may do (travel 10 % off, the
+//! start lag off by its tolerance, the play between motor and stem). The estimate lies inside
+//! it and the uncertainty is its distance to the farther bound, so "the true position is
+//! within the uncertainty of the estimate" holds by construction, and an end is taken as a
+//! reference only once the interval has closed on it.
+//!
 //! What it does, in the order it decides at each call:
+//! - a latched fault (`motor_stalled`, `switch_implausible`, `travel_mismatch`) holds both
+//!   lines low until [`Valve::reset`];
 //! - a safety off (e-stop, lines not live) drops both lines at once; the valve stays where it is;
 //! - a command timeout (`command_timeout_ms`) sets the target to where it is, 0 % or 100 %;
 //! - a running move ends when its drive time is done, or is retargeted (extended, shortened to
 //!   its minimum pulse before a reversal, turned into an end move);
 //! - queued legs (the reference at start, a recalibration, the exercise stroke) run in order;
 //! - otherwise the valve tracks the target: a move to 0 % or 100 % is an end move that drives
-//!   on past the end by `end_overrun_pct`; a smaller difference than the dead band, or a drive
-//!   shorter than the minimum pulse, waits (Schneider `SERVO`: short moves accumulate).
+//!   past the end from anywhere the uncertainty allows, plus `end_overrun_pct`; a smaller
+//!   difference than the dead band, or a drive shorter than the minimum pulse, waits
+//!   (Schneider `SERVO`: short moves accumulate).
 
 mod config;
 mod lines;
+pub mod truth;
 
 pub use config::{
-    OnTimeout, ValveConfig, ValveConfigError, ValveParams, MAX_COMMAND_TIMEOUT_MS,
-    MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT, MAX_EXERCISE_EVERY_H, MAX_RECALIBRATE_AFTER_S,
-    MAX_REVERSAL_PAUSE_MS, MAX_TRAVEL_MS, MIN_TRAVEL_MS,
+    OnTimeout, ReferenceAtStart, ValveConfig, ValveConfigError, ValveParams, MAX_BACKLASH_PCT,
+    MAX_COMMAND_TIMEOUT_MS, MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT, MAX_EXERCISE_EVERY_H,
+    MAX_FEEDBACK_TOLERANCE_PCT, MAX_RECALIBRATE_AFTER_S, MAX_REVERSAL_PAUSE_MS,
+    MAX_START_LAG_PCT_OF_TRAVEL, MAX_TRAVEL_MS, MIN_REVERSAL_PAUSE_MS, MIN_TRAVEL_MS,
 };
 pub use lines::MIN_BREAK;
 
 use super::board::{LineBoard, Seat};
-use super::{Level, Nanos};
+use super::{Level, Nanos, NS_PER_MS};
 use lines::Lines;
 use std::sync::Arc;
 
-/// The share by which a real travel time may differ from the configured one, as OSCAT
-/// `ACTUATOR_3P` reports an error when open and close run times differ by more than 10 %. A
-/// travel time 10 % short moves the valve 1/0.9 − 1 = 11.1 % further than estimated, so the
-/// uncertainty grows by [`UNCERTAINTY_RATE`] of the run time since the last reference.
+/// The share by which a real travel time may differ from the configured one, either way, as
+/// OSCAT `ACTUATOR_3P` reports an error when open and close run times differ by more than 10 %.
+/// A travel time 10 % short moves the valve 1/0.9 − 1 = 11.1 % further than estimated, one 10 %
+/// long 1 − 1/1.1 = 9.1 % less.
 pub const TRAVEL_TOLERANCE: f64 = 0.10;
 
 /// The estimate's error per unit of run time over the travel time, at worst:
 /// `TRAVEL_TOLERANCE / (1 - TRAVEL_TOLERANCE)`.
 pub const UNCERTAINTY_RATE: f64 = TRAVEL_TOLERANCE / (1.0 - TRAVEL_TOLERANCE);
 
-/// A reference move drives this share of the travel time (Siemens `PID_3Step`'s virtual
-/// actuator limit, 150 %); no move is ever longer.
+/// How far the real start lag (less the coast after a fall) may be from `start_lag_ms`, as a
+/// share of it: a motor's start depends on its load, its supply and its temperature.
+pub const START_LAG_TOLERANCE: f64 = 0.5;
+
+/// How far the real start lag may be from `start_lag_ms` in any case, ns: a relay's operate and
+/// release times and a triac's wait for the next zero crossing (10 ms at 50 Hz) are never
+/// counted, so each drive may deliver up to this much more or less than counted.
+pub const LAG_FLOOR: Nanos = 20 * NS_PER_MS;
+
+/// A drive never lasts longer than this share of its travel time (Siemens `PID_3Step`'s virtual
+/// actuator limit, 150 %); an unreferenced valve's end move drives exactly that.
 pub const REFERENCE_FACTOR: f64 = 1.5;
 
 /// With a recalibration due, a target within this many percent of an end counts as "near" it:
 /// the valve goes to the end first, then back to the target.
 pub const RECALIBRATE_NEAR_PCT: f64 = 5.0;
+
+/// An end switch may close this far before the end, percent of the stroke: a switch active
+/// while the valve cannot be that close to its end is `switch_implausible`.
+pub const SWITCH_ZONE_PCT: f64 = 3.0;
+
+/// After an end move towards a wired end switch has run its whole drive, its switch has this
+/// long to report before the move counts as `motor_stalled` (debounce, reader thread, queue),
+/// ns.
+pub const SWITCH_GRACE: Nanos = 200 * NS_PER_MS;
+
+/// While a line is high the valve asks to be polled at least this often, so its snapshot (and
+/// the state file made from it) follows the move, ns.
+pub const REPORT_EVERY: Nanos = 250 * NS_PER_MS;
+
+/// A feedback sample is taken to show the position at most this long before it arrives (the
+/// sensor's sampling, its node and the transport), ns: the stall check counts drive time only
+/// up to this long before a sample, and the estimate is corrected from a sample only once the
+/// lines have been low this long.
+pub const FEEDBACK_DELAY: Nanos = 500 * NS_PER_MS;
+
+/// Without a feedback sample for this long the feedback is silent: the valve goes on by its
+/// drive times alone and the diagnostics warn, ns.
+pub const FEEDBACK_TIMEOUT: Nanos = 2_000 * NS_PER_MS;
+
+/// The feedback must move at least this far (or twice its tolerance, if more) in the drive's
+/// direction once the drive was long enough to move a healthy valve twice as far, percent:
+/// otherwise the motor is stalled.
+pub const STALL_MOVE_MIN_PCT: f64 = 2.0;
+
+/// Feedback values beyond the stroke by more than this are refused as a broken sensor (a
+/// potentiometer reads slightly beyond its ends), percent.
+pub const FEEDBACK_SLACK_PCT: f64 = 10.0;
+
+/// A move measures the travel time (with feedback) only when it displaced the valve at least
+/// this far, rest to rest, away from both ends, percent.
+pub const TRAVEL_SAMPLE_MIN_PCT: f64 = 20.0;
 
 /// A direction of drive, and its line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -137,16 +194,17 @@ pub enum Activity {
     Exercising,
 }
 
-/// Why a move to an end is made, which decides how long it drives past the estimated end.
+/// Why a move to an end is made (every end move drives past the end from anywhere the
+/// uncertainty allows, plus the overrun; a reference drives 150 %).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum EndKind {
-    /// A command at the end: `end_overrun_pct`.
+    /// A command at the end.
     Plain,
-    /// A recalibration: the overrun plus the uncertainty.
+    /// A recalibration on the way to a target.
     Recalibrate,
-    /// The exercise stroke: as a recalibration.
+    /// The exercise stroke.
     Exercise,
-    /// The reference: 150 % of the travel time, whatever the estimate.
+    /// The reference at start: 150 % of the travel time, whatever the estimate.
     Reference,
 }
 
@@ -175,10 +233,6 @@ struct Move {
     /// Drive time wanted from the real rise, ns.
     want: Nanos,
     leg: Leg,
-    /// The uncertainty it covers when it reaches its end, percent (end moves).
-    covers: f64,
-    /// The uncertainty when it started, percent: an end move that covers it is a reference.
-    needs: f64,
     /// The target it was planned for (tracking moves), percent.
     aim: f64,
     /// The line rose.
@@ -226,23 +280,128 @@ impl Legs {
     }
 }
 
+/// Why a valve's motor is taken to be stalled.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum StallCause {
+    /// An end move towards `dir` ran its whole drive and the end switch wired at that end did
+    /// not report (OSCAT `ACTUATOR_3P`'s error).
+    NoEndSwitch(Dir),
+    /// A drive towards `dir` long enough to move a healthy valve `expected_pct` moved the
+    /// feedback less than half of that.
+    NoFeedbackMotion(Dir),
+}
+
+/// A latched valve fault: both lines are held low until [`Valve::reset`] clears it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ValveFault {
+    /// The motor does not move the valve (a dead motor, a blown fuse, a seized valve, a broken
+    /// wire to the motor).
+    MotorStalled {
+        /// What showed it.
+        cause: StallCause,
+        /// The drive time that should have moved it, after the start lag, ms.
+        drive_ms: f64,
+        /// How far the valve moved meanwhile (by the feedback; NaN without), percent.
+        moved_pct: f64,
+        /// How far a healthy valve moves at least in that drive, percent.
+        expected_pct: f64,
+    },
+    /// An end switch active where the valve cannot be (beyond the uncertainty), or both
+    /// switches active at once.
+    SwitchImplausible {
+        /// The switches (open, close) active when it latched.
+        switches: [bool; 2],
+        /// Where the valve could be then: the low and high bounds, percent.
+        low_pct: f64,
+        /// The high bound, percent.
+        high_pct: f64,
+    },
+    /// A measured travel time differs from the configured one by more than
+    /// [`TRAVEL_TOLERANCE`] (OSCAT `ACTUATOR_3P`).
+    TravelMismatch {
+        /// The direction measured.
+        dir: Dir,
+        /// The lowest and highest travel time the measurement allows, ms.
+        measured_ms: [f64; 2],
+        /// The configured one, ms.
+        configured_ms: f64,
+    },
+}
+
+impl ValveFault {
+    /// The fault's name on `/diagnostics`: `motor_stalled`, `switch_implausible`,
+    /// `travel_mismatch`.
+    pub const fn name(&self) -> &'static str {
+        match self {
+            ValveFault::MotorStalled { .. } => "motor_stalled",
+            ValveFault::SwitchImplausible { .. } => "switch_implausible",
+            ValveFault::TravelMismatch { .. } => "travel_mismatch",
+        }
+    }
+}
+
+/// The answer to the reset with a ticket: cleared, or refused because the fault's cause lasts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ResetAnswer {
+    /// The ticket the reset came with.
+    pub ticket: u32,
+    /// The fault is cleared (or there was none).
+    pub cleared: bool,
+}
+
+/// What the valve knows of its position from before it started: the state file of a previous
+/// run, its bounds already grown by the time the node was down. In motor coordinates (see
+/// [`ValveStatus::motor`]): the motor runs over `0..=100 + backlash_pct`, the stem lies within
+/// `[motor - backlash_pct, motor]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Restored {
+    /// The motor's estimate, percent.
+    pub position_pct: f64,
+    /// The lowest motor position possible, percent.
+    pub low_pct: f64,
+    /// The highest, percent.
+    pub high_pct: f64,
+}
+
+/// What the valve is started with besides its settings.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ValveStart {
+    /// The position restored from the state file, if any.
+    pub restored: Option<Restored>,
+    /// Which ends (open, close) have an end switch wired.
+    pub switches_wired: [bool; 2],
+    /// A position feedback is configured.
+    pub feedback: bool,
+}
+
 /// A snapshot of a valve for the state topic and diagnostics.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ValveStatus {
     /// The estimated position now, percent (0 = closed).
     pub position_pct: f64,
+    /// The lowest position the valve can be at now, percent.
+    pub low_pct: f64,
+    /// The highest position the valve can be at now, percent.
+    pub high_pct: f64,
+    /// The same knowledge in motor coordinates (estimate, low, high), percent of the stroke
+    /// over `0..=100 + backlash_pct`: what the state file keeps, so a restart does not widen
+    /// the bounds by the play.
+    pub motor: [f64; 3],
     /// The target, percent; NaN before the first command.
     pub target_pct: f64,
     /// Which line drives.
     pub motion: Motion,
     /// What the valve is doing.
     pub activity: Activity,
-    /// The estimate was set at a reference (the reference at start, an end move that covered
-    /// the uncertainty, an end switch) and has not been lost since.
+    /// The estimate was set at a reference (the reference at start, an end move whose
+    /// interval closed on the end, an end switch, the feedback, a restored position) and has
+    /// not been lost since.
     pub referenced: bool,
+    /// The position was restored from the state file at start and no reference came since.
+    pub restored: bool,
     /// Accumulated drive time since the last reference, ns.
     pub run_since_reference: Nanos,
-    /// How far the true position may be from the estimate, percent (100 when unreferenced).
+    /// How far the true position may be from the estimate, percent.
     pub uncertainty_pct: f64,
     /// The uncertainty the diagnostics accept (`max_uncertainty_pct` in force), percent.
     pub max_uncertainty_pct: f64,
@@ -256,8 +415,66 @@ pub struct ValveStatus {
     pub live: bool,
     /// The end switches (open, close) are active.
     pub switches: [bool; 2],
+    /// The latched fault, if any.
+    pub fault: Option<ValveFault>,
+    /// The answer to the last reset, if one came.
+    pub reset: Option<ResetAnswer>,
+    /// The last feedback sample, percent; NaN without feedback or while it is silent.
+    pub feedback_pct: f64,
+    /// A feedback is configured and has been silent for [`FEEDBACK_TIMEOUT`].
+    pub feedback_silent: bool,
+    /// Travel times measured with the feedback (open, close), ms; NaN until measured.
+    pub measured_travel_ms: [f64; 2],
+    /// Start lags measured with the feedback (open, close), ms; NaN until measured.
+    pub measured_lag_ms: [f64; 2],
     /// Moves completed.
     pub moves: u64,
+}
+
+/// What the valve knows of its position, in motor coordinates: the motor's position `m`
+/// runs over `0..=100 + backlash`, and the stem (the valve's position) lies within
+/// `[m - backlash, m]` and within `0..=100`. Closing into the stop leaves `m = 0` and the stem
+/// at 0; opening into it leaves `m = 100 + backlash` and the stem at 100.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Know {
+    /// The nominal motor position, percent.
+    est: f64,
+    /// The lowest motor position possible, percent.
+    lo: f64,
+    /// The highest, percent.
+    hi: f64,
+}
+
+/// One drive as written, for the stall check: direction, real rise, real fall (`None` while
+/// the line is high).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Drive {
+    dir: Dir,
+    rose: Nanos,
+    fell: Option<Nanos>,
+}
+
+/// The drives kept for the stall check.
+const DRIVES: usize = 8;
+
+/// Travel samples kept per direction.
+const SAMPLES: usize = 8;
+
+/// A stall check under way: drives towards `dir` from `since` on, the feedback `from` then.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct StallWindow {
+    dir: Dir,
+    since: Nanos,
+    from: f64,
+}
+
+/// A feedback sample at rest and what drove the valve since: the start of a travel sample.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct RestMark {
+    pct: f64,
+    /// Drive time since, per direction, ns, and the number of drives.
+    driven: [Nanos; 2],
+    drives: u32,
 }
 
 /// One three-point valve.
@@ -265,12 +482,19 @@ pub struct ValveStatus {
 pub struct Valve {
     cfg: ValveConfig,
     lines: Lines,
-    /// The estimate at the last real fall or reference, percent.
-    pos: f64,
+    /// What is known at the last real fall or reference.
+    know: Know,
+    /// What was known when the line under way (or the last one) rose: an end move and a
+    /// retarget are planned from there, and a fall reported late is integrated afresh.
+    at_rise: Know,
+    /// The last fall may still be corrected by its real write time (nothing changed the
+    /// knowledge since).
+    correctable: Option<(Dir, Nanos)>,
     target: Option<f64>,
     mv: Option<Move>,
     legs: Legs,
     referenced: bool,
+    restored: bool,
     run_since_ref: Nanos,
     /// The valve sits at this end after an end move or switch (no end move to it again).
     at_end: Option<Dir>,
@@ -278,29 +502,86 @@ pub struct Valve {
     timed_out: bool,
     estop: bool,
     live: bool,
-    /// False after an e-stop until the next command: nothing moves by itself after the reset.
+    /// False after an e-stop or a fault reset until the next command: nothing moves by itself.
     armed: bool,
     idle_since: Nanos,
     switches: [bool; 2],
+    wired: [bool; 2],
+    /// An end move towards this end ran its drive; its switch is due by then.
+    awaiting_switch: Option<(Dir, Nanos, f64)>,
+    fault: Option<ValveFault>,
+    reset: Option<ResetAnswer>,
+    feedback_on: bool,
+    /// The last feedback sample: when it came, percent.
+    fb: Option<(Nanos, f64)>,
+    window: Option<StallWindow>,
+    rest: Option<RestMark>,
+    drives: [Option<Drive>; DRIVES],
+    /// Travel samples per direction: (drive time, drives, displacement percent).
+    samples: [[Option<(Nanos, u32, f64)>; SAMPLES]; 2],
+    measured_travel: [f64; 2],
+    measured_lag: [f64; 2],
+    /// Consecutive travel samples outside the tolerance, per direction, and on which side.
+    mismatches: [(u8, i8); 2],
+    /// The last periodic report while driving.
+    tick: Nanos,
     moves: u64,
 }
 
 impl Valve {
-    /// A stopped valve created at `now`, position unknown (0 % assumed, unreferenced); with
-    /// `reference_at_start` the reference is its first leg. Its lines are live.
+    /// A stopped valve created at `now`, position unknown (0 % assumed, unreferenced); the
+    /// reference at start as `reference_at_start` says. Its lines are live.
     pub fn new(cfg: ValveConfig, now: Nanos) -> Valve {
+        Valve::start(cfg, now, ValveStart::default())
+    }
+
+    /// A stopped valve created at `now` with what `start` says: a restored position (taken as
+    /// the valve's knowledge, referenced), the end switches wired, a feedback. The reference
+    /// at start is queued as `reference_at_start` says (none with `skip_if_restored` and a
+    /// restored position, none with `none`). Nothing rises before the reversal pause from
+    /// `now` has passed: the lines may have been high until the node started.
+    pub fn start(cfg: ValveConfig, now: Nanos, start: ValveStart) -> Valve {
+        let b = cfg.backlash_pct;
         let mut legs = Legs::default();
-        if cfg.reference_at_start {
-            legs.push(Leg::End(Dir::Close, EndKind::Reference));
+        let restored = start.restored.and_then(|r| {
+            let ok = [r.position_pct, r.low_pct, r.high_pct]
+                .iter()
+                .all(|v| v.is_finite() && (0.0..=100.0 + b).contains(v))
+                && r.low_pct <= r.position_pct
+                && r.position_pct <= r.high_pct;
+            ok.then_some(r)
+        });
+        match cfg.reference_at_start {
+            ReferenceAtStart::Close => legs.push(Leg::End(Dir::Close, EndKind::Reference)),
+            ReferenceAtStart::Open => legs.push(Leg::End(Dir::Open, EndKind::Reference)),
+            ReferenceAtStart::SkipIfRestored if restored.is_none() => {
+                legs.push(Leg::End(Dir::Close, EndKind::Reference))
+            }
+            ReferenceAtStart::SkipIfRestored | ReferenceAtStart::None => {}
         }
+        let know = match restored {
+            Some(r) => Know {
+                est: r.position_pct,
+                lo: r.low_pct,
+                hi: r.high_pct,
+            },
+            None => Know {
+                est: 0.0,
+                lo: 0.0,
+                hi: 100.0 + b,
+            },
+        };
         Valve {
-            lines: Lines::new(cfg.reversal_pause, cfg.min_pulse),
+            lines: Lines::new(cfg.reversal_pause, cfg.min_pulse, now),
             cfg,
-            pos: 0.0,
+            know,
+            at_rise: know,
+            correctable: None,
             target: None,
             mv: None,
             legs,
-            referenced: false,
+            referenced: restored.is_some(),
+            restored: restored.is_some(),
             run_since_ref: 0,
             at_end: None,
             last_command: now,
@@ -310,14 +591,32 @@ impl Valve {
             armed: true,
             idle_since: now,
             switches: [false; 2],
+            wired: start.switches_wired,
+            awaiting_switch: None,
+            fault: None,
+            reset: None,
+            feedback_on: start.feedback,
+            fb: None,
+            window: None,
+            rest: None,
+            drives: [None; DRIVES],
+            samples: [[None; SAMPLES]; 2],
+            measured_travel: [f64::NAN; 2],
+            measured_lag: [f64::NAN; 2],
+            mismatches: [(0, 0); 2],
+            tick: now,
             moves: 0,
         }
     }
 
     /// Puts the valve's lines on the node's board as lines `open` and `close`, paired: the
-    /// board refuses a rise while the partner is high, whatever asks for it.
+    /// board refuses a rise while the partner is high, whatever asks for it. The two lines do
+    /// not count against the board's `max_simultaneous_on`: a valve's drive cannot wait for a
+    /// free slot without its end moves and its reference waiting without bound.
     pub fn seat_on(&mut self, board: &Arc<LineBoard>, open: usize, close: usize) {
         board.pair(open, close);
+        board.exempt(open);
+        board.exempt(close);
         self.lines.set_seats(
             Seat {
                 board: Arc::clone(board),
@@ -338,7 +637,8 @@ impl Valve {
     /// New settings at `now`; a running move continues under them. A longer reversal pause or
     /// minimum pulse acts at once, a shorter one from the next fall or rise (the break or drive
     /// under way keeps the one in force at its edge); a new command timeout or exercise
-    /// interval counts from `now`.
+    /// interval counts from `now`. The travel times, the backlash and `reference_at_start`
+    /// are start-up settings: the ones in force stay.
     pub fn set_config(&mut self, now: Nanos, cfg: ValveConfig, emit: &mut dyn FnMut(ValveEvent)) {
         // A new command timeout or exercise interval counts from the change: switching one on
         // never makes the valve stroke at once for the time that passed before it.
@@ -348,7 +648,13 @@ impl Valve {
         if cfg.exercise_every != self.cfg.exercise_every {
             self.idle_since = self.idle_since.max(now);
         }
-        self.cfg = cfg;
+        let keep = self.cfg;
+        self.cfg = ValveConfig {
+            travel: keep.travel,
+            backlash_pct: keep.backlash_pct,
+            reference_at_start: keep.reference_at_start,
+            ..cfg
+        };
         self.lines.set_timing(cfg.reversal_pause, cfg.min_pulse);
         self.step(now, emit);
     }
@@ -370,7 +676,7 @@ impl Valve {
         self.target = Some(pct.clamp(0.0, 100.0));
         self.last_command = now;
         self.timed_out = false;
-        if !self.estop {
+        if !self.estop && self.fault.is_none() {
             self.armed = true;
         }
         self.step(now, emit);
@@ -383,19 +689,26 @@ impl Valve {
     }
 
     /// When to poll next, if anything is scheduled (a move's end, a rise held by the pause, the
-    /// command timeout). A rise the board refuses has none: call [`Valve::poll`] after other
-    /// lines fell (see [`Valve::rise_waiting`]).
+    /// command timeout, an end switch due, the periodic report while driving). A rise the board
+    /// refuses has none: call [`Valve::poll`] after other lines fell (see
+    /// [`Valve::rise_waiting`]).
     pub fn poll_at(&self) -> Option<Nanos> {
-        if self.estop || !self.live {
+        if self.fault.is_some() {
             return None;
+        }
+        let switch_due = self.awaiting_switch.map(|(_, at, _)| at);
+        if self.estop || !self.live {
+            return switch_due;
         }
         let timeout = (self.cfg.command_timeout > 0 && !self.timed_out)
             .then(|| self.last_command.saturating_add(self.cfg.command_timeout));
         let mv = self.mv.and_then(|m| {
             if m.started {
-                self.lines
-                    .rose(m.dir)
-                    .map(|r| self.lines.earliest_fall(m.dir, r.saturating_add(m.want)))
+                self.lines.rose(m.dir).map(|r| {
+                    self.lines
+                        .earliest_fall(m.dir, r.saturating_add(m.want))
+                        .min(self.tick.saturating_add(REPORT_EVERY))
+                })
             } else {
                 self.lines.earliest_rise(m.dir, 0)
             }
@@ -403,21 +716,18 @@ impl Valve {
         // Idle with a leg queued (the reference at start): due at once.
         let leg =
             (self.mv.is_none() && !self.legs.is_empty() && self.armed).then_some(self.idle_since);
-        let mv = match (leg, mv) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        };
-        match (timeout, mv) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        [timeout, mv, leg, switch_due].into_iter().flatten().min()
     }
 
     /// A move waits for its rise that the board, an end switch or a fall not yet reported holds
     /// (call [`Valve::poll`] after the next write).
     pub fn rise_waiting(&self) -> bool {
         self.mv.is_some_and(|m| {
-            !m.started && self.live && !self.estop && self.lines.earliest_rise(m.dir, 0).is_none()
+            !m.started
+                && self.live
+                && !self.estop
+                && self.fault.is_none()
+                && self.lines.earliest_rise(m.dir, 0).is_none()
         })
     }
 
@@ -428,11 +738,34 @@ impl Valve {
         let Some(late) = self.lines.written(dir, level, actual) else {
             return;
         };
-        if !level.is_high() {
-            // The drive lasted `late` longer (or shorter) than integrated at the fall.
-            let late_ns = late.clamp(-(i64::MAX as i128), i64::MAX as i128) as f64;
-            self.integrate(dir, late_ns);
-            self.idle_since = actual;
+        if level.is_high() {
+            if let Some(d) = self.drives.iter_mut().flatten().last() {
+                if d.dir == dir && d.fell.is_none() {
+                    d.rose = actual;
+                }
+            }
+            return;
+        }
+        if let Some(d) = self.drives.iter_mut().flatten().last() {
+            if d.dir == dir {
+                d.fell = Some(actual);
+            }
+        }
+        self.idle_since = actual;
+        // The drive lasted `late` longer (or shorter) than integrated at the fall: integrated
+        // afresh from what was known at its rise, unless something changed the knowledge since.
+        if let Some((d, drive)) = self.correctable.take() {
+            if d == dir && late != 0 {
+                let real = (i128::from(drive) + late).clamp(0, i128::from(Nanos::MAX)) as Nanos;
+                self.know = self.drove(self.at_rise, dir, real);
+                self.run_since_ref =
+                    (self.run_since_ref as i128 + late).clamp(0, i128::from(Nanos::MAX)) as Nanos;
+                self.check_reached(dir);
+                if let Some(r) = self.rest.as_mut() {
+                    let k = dir.index();
+                    r.driven[k] = (r.driven[k] as i128 + late).max(0) as Nanos;
+                }
+            }
         }
     }
 
@@ -456,9 +789,11 @@ impl Valve {
         self.step(now, emit);
     }
 
-    /// The end switch of `dir` became `active` at `now`: active, the drive in that direction
-    /// stops at once and the position is that end; no drive in that direction starts while it
-    /// is active.
+    /// The end switch of `dir` became `active` at `now`. Active where the valve can be (within
+    /// [`SWITCH_ZONE_PCT`] of that end by its bounds), the drive in that direction stops at
+    /// once and the valve is referenced at that end; no drive in that direction starts while it
+    /// is active. Active where the valve cannot be, or together with the other switch:
+    /// `switch_implausible`, latched.
     pub fn set_switch(
         &mut self,
         now: Nanos,
@@ -468,28 +803,140 @@ impl Valve {
     ) {
         self.switches[dir.index()] = active;
         self.lines.blocked[dir.index()] = active;
-        // Both ends at once cannot be: a wiring or switch fault. Nothing drives either way (each
-        // switch blocks its direction) and the position is not known any more.
-        let both = active && self.switches[dir.other().index()];
-        if active && (both || self.lines.driving() != Some(dir.other())) {
-            if let Some(drive) = self.lines.fall(dir, now, true, emit) {
-                self.run_since_ref = self.run_since_ref.saturating_add(drive);
-                self.finish_move();
+        if !active {
+            self.step(now, emit);
+            return;
+        }
+        if self.awaiting_switch.is_some_and(|(d, _, _)| d == dir) {
+            self.awaiting_switch = None;
+        }
+        // The bounds now, the drive under way counted.
+        let k = self.know_now(now);
+        let (lo, hi) = self.stem_bounds(&k);
+        let plausible = match dir {
+            Dir::Open => hi >= 100.0 - SWITCH_ZONE_PCT,
+            Dir::Close => lo <= SWITCH_ZONE_PCT,
+        };
+        let both = self.switches[dir.other().index()];
+        if both || !plausible {
+            self.latch(
+                now,
+                ValveFault::SwitchImplausible {
+                    switches: self.switches,
+                    low_pct: lo,
+                    high_pct: hi,
+                },
+                emit,
+            );
+            return;
+        }
+        if self.lines.driving() == Some(dir.other()) {
+            // Driving away from the end it marks: nothing to stop (it releases soon).
+            self.step(now, emit);
+            return;
+        }
+        if let Some(drive) = self.lines.fall(dir, now, true, emit) {
+            self.after_fall(dir, drive);
+            self.finish_move();
+        }
+        if self.mv.is_some_and(|m| m.dir == dir) {
+            self.mv = None;
+        }
+        // The end is reached: a queued end move to it is done too.
+        self.legs
+            .retain(|l| !matches!(l, Leg::End(d, _) if d == dir));
+        self.reach_end(dir);
+        self.step(now, emit);
+    }
+
+    /// A position feedback sample at `now`, percent (0 = closed): values within
+    /// [`FEEDBACK_SLACK_PCT`] beyond the stroke are clamped, others, NaN and infinities
+    /// refused. It checks the drive for a stalled motor, corrects the estimate once the lines
+    /// have been low for [`FEEDBACK_DELAY`] (the bounds are then the sample ± the feedback
+    /// tolerance), and measures the travel times.
+    pub fn feedback(
+        &mut self,
+        now: Nanos,
+        pct: f64,
+        emit: &mut dyn FnMut(ValveEvent),
+    ) -> Result<(), crate::core::CommandError> {
+        if pct.is_nan() {
+            return Err(crate::core::CommandError::NotANumber);
+        }
+        if pct.is_infinite() || !(-FEEDBACK_SLACK_PCT..=100.0 + FEEDBACK_SLACK_PCT).contains(&pct) {
+            return Err(crate::core::CommandError::Infinite);
+        }
+        let pct = pct.clamp(0.0, 100.0);
+        self.feedback_on = true;
+        self.fb = Some((now, pct));
+        if self.fault.is_some() {
+            return Ok(());
+        }
+        self.check_stall(now, pct, emit);
+        if self.fault.is_some() {
+            return Ok(());
+        }
+        let settled = self.lines.driving().is_none()
+            && self
+                .lines
+                .fell
+                .is_none_or(|f| now >= f.saturating_add(FEEDBACK_DELAY))
+            && self.mv.is_none_or(|m| !m.started);
+        if settled {
+            self.measure_travel(now, pct, emit);
+            if self.fault.is_some() {
+                return Ok(());
             }
-            if self.mv.is_some_and(|m| m.dir == dir) {
-                self.mv = None;
-            }
-            // The end is reached: a queued end move to it is done too.
-            self.legs
-                .retain(|l| !matches!(l, Leg::End(d, _) if d == dir));
-            if both {
-                self.referenced = false;
+            let tol = self.cfg.feedback_tolerance_pct;
+            let b = self.cfg.backlash_pct;
+            let (lo, hi) = ((pct - tol).max(0.0), (pct + tol).min(100.0));
+            self.set_know(Know {
+                est: (pct + b / 2.0).clamp(lo, hi + b),
+                lo,
+                hi: hi + b,
+            });
+            self.referenced = true;
+            self.restored = false;
+            self.run_since_ref = 0;
+            if self.at_end.is_some_and(|e| (e.end_pct() - pct).abs() > tol) {
                 self.at_end = None;
-            } else {
-                self.reach_end(dir, true);
+            }
+            if self.mv.is_some_and(|m| !m.started) {
+                // Planned from what was known before: planned afresh.
+                self.mv = None;
             }
         }
         self.step(now, emit);
+        Ok(())
+    }
+
+    /// Clears the latched fault at `now` if its cause is gone (after `switch_implausible` both
+    /// end switches must have released); the answer, with `ticket`, is in the next status. A cleared fault
+    /// leaves the valve unreferenced, and nothing moves until a fresh position command.
+    pub fn reset(&mut self, now: Nanos, ticket: u32, emit: &mut dyn FnMut(ValveEvent)) -> bool {
+        // An implausible switch is not believed again before both have released: a cleared
+        // fault leaves the valve unreferenced, where any switch would be plausible.
+        let lasting = matches!(self.fault, Some(ValveFault::SwitchImplausible { .. }))
+            && self.switches.iter().any(|&s| s);
+        let cleared = !lasting;
+        if cleared && self.fault.take().is_some() {
+            self.lose_reference();
+            self.armed = false;
+            self.awaiting_switch = None;
+            self.window = None;
+            self.rest = None;
+            self.samples = [[None; SAMPLES]; 2];
+            self.mismatches = [(0, 0); 2];
+            self.idle_since = now;
+        }
+        self.reset = Some(ResetAnswer { ticket, cleared });
+        self.step(now, emit);
+        cleared
+    }
+
+    /// The latched fault, if any.
+    pub fn fault(&self) -> Option<ValveFault> {
+        self.fault
     }
 
     /// The e-stop is latched.
@@ -506,7 +953,8 @@ impl Valve {
     /// When an exercise stroke becomes due, if the valve is idle, armed and exercising is on.
     pub fn exercise_due_at(&self) -> Option<Nanos> {
         let idle = self.mv.is_none() && self.legs.is_empty();
-        (self.cfg.exercise_every > 0 && idle && self.live && !self.estop && self.armed)
+        let ok = self.live && !self.estop && self.armed && self.fault.is_none();
+        (self.cfg.exercise_every > 0 && idle && ok)
             .then(|| self.idle_since.saturating_add(self.cfg.exercise_every))
     }
 
@@ -524,25 +972,15 @@ impl Valve {
 
     /// The estimated position at `now`, percent.
     pub fn estimate(&self, now: Nanos) -> f64 {
-        match self.lines.driving() {
-            Some(d) => {
-                let rose = self.lines.rose(d).unwrap_or(now);
-                let ran = now.saturating_sub(rose) as f64;
-                self.moved(self.pos, d, ran)
-            }
-            None => self.pos,
-        }
+        self.stem(&self.know_now(now))
     }
 
-    /// The uncertainty of the estimate, percent: 100 while unreferenced, else
-    /// [`UNCERTAINTY_RATE`] of the run time since the last reference over the shorter travel
-    /// time (the worst case).
-    pub fn uncertainty_pct(&self) -> f64 {
-        if !self.referenced {
-            return 100.0;
-        }
-        let shorter = self.cfg.travel[0].min(self.cfg.travel[1]) as f64;
-        (UNCERTAINTY_RATE * self.run_since_ref as f64 / shorter * 100.0).min(100.0)
+    /// The uncertainty of the estimate at `now`, percent: its distance to the farther bound.
+    pub fn uncertainty_pct(&self, now: Nanos) -> f64 {
+        let k = self.know_now(now);
+        let (lo, hi) = self.stem_bounds(&k);
+        let est = self.stem(&k);
+        (est - lo).max(hi - est).clamp(0.0, 100.0)
     }
 
     /// A snapshot at `now`.
@@ -562,40 +1000,404 @@ impl Valve {
                 _ => Activity::Tracking,
             }
         };
+        let k = self.know_now(now);
+        let (lo, hi) = self.stem_bounds(&k);
+        let fresh = self
+            .fb
+            .filter(|(t, _)| now < t.saturating_add(FEEDBACK_TIMEOUT));
         ValveStatus {
-            position_pct: self.estimate(now),
+            position_pct: self.stem(&k),
+            low_pct: lo,
+            high_pct: hi,
+            motor: [k.est, k.lo, k.hi],
             target_pct: self.target.unwrap_or(f64::NAN),
             motion,
             activity,
             referenced: self.referenced,
+            restored: self.restored,
             run_since_reference: self.run_since_ref,
-            uncertainty_pct: self.uncertainty_pct(),
+            uncertainty_pct: self.uncertainty_pct(now),
             max_uncertainty_pct: self.cfg.max_uncertainty_pct,
-            recalibration_due: self.recalibration_due(),
+            recalibration_due: self.recalibration_due(now),
             timed_out: self.timed_out,
             estop: self.estop,
             live: self.live,
             switches: self.switches,
+            fault: self.fault,
+            reset: self.reset,
+            feedback_pct: fresh.map_or(f64::NAN, |(_, p)| p),
+            feedback_silent: self.feedback_on && fresh.is_none(),
+            measured_travel_ms: self.measured_travel,
+            measured_lag_ms: self.measured_lag,
             moves: self.moves,
         }
     }
 
-    /// Whether the accumulated run time since the last reference asks for a recalibration.
-    pub fn recalibration_due(&self) -> bool {
-        self.cfg.recalibrate_after > 0 && self.run_since_ref >= self.cfg.recalibrate_after
+    /// Whether a recalibration is due: the valve is unreferenced, or the run time since the
+    /// last reference reached `recalibrate_after_s`, or the uncertainty passed half of
+    /// `max_uncertainty_pct`. The next target near an end then goes to that end first.
+    pub fn recalibration_due(&self, now: Nanos) -> bool {
+        !self.referenced
+            || (self.cfg.recalibrate_after > 0 && self.run_since_ref >= self.cfg.recalibrate_after)
+            || self.uncertainty_pct(now) > self.cfg.max_uncertainty_pct / 2.0
     }
 
-    /// `pos` moved by `ran` ns of drive in `d`, clamped to the stroke.
-    fn moved(&self, pos: f64, d: Dir, ran: f64) -> f64 {
+    // ---- knowledge -------------------------------------------------------------------------
+
+    /// The stem's estimate from motor knowledge `k`, percent.
+    fn stem(&self, k: &Know) -> f64 {
+        let b = self.cfg.backlash_pct;
+        let (lo, hi) = self.stem_bounds(k);
+        (k.est - b / 2.0).clamp(lo, hi)
+    }
+
+    /// The stem's bounds from motor knowledge `k`, percent.
+    fn stem_bounds(&self, k: &Know) -> (f64, f64) {
+        let b = self.cfg.backlash_pct;
+        ((k.lo - b).clamp(0.0, 100.0), k.hi.clamp(0.0, 100.0))
+    }
+
+    /// The top of the motor's range, percent.
+    fn top(&self) -> f64 {
+        100.0 + self.cfg.backlash_pct
+    }
+
+    /// The real lag's tolerance, ns.
+    fn lag_tolerance(&self) -> f64 {
+        START_LAG_TOLERANCE * self.cfg.start_lag as f64 + LAG_FLOOR as f64
+    }
+
+    /// Knowledge `k` after a drive of `drive` ns (line high time) in `d`: the nominal estimate
+    /// after the configured lag at the configured travel time; the bounds with the lag off by
+    /// its tolerance and the travel time 10 % off, both the worse way; clamped to the range.
+    fn drove(&self, k: Know, d: Dir, drive: Nanos) -> Know {
         let travel = self.cfg.travel[d.index()] as f64;
-        (pos + d.sign() * ran / travel * 100.0).clamp(0.0, 100.0)
+        let lag = self.cfg.start_lag as f64;
+        let tol = self.lag_tolerance();
+        let drive = drive as f64;
+        let nominal = (drive - lag).max(0.0) / travel * 100.0;
+        let least = (drive - lag - tol).max(0.0) / (travel * (1.0 + TRAVEL_TOLERANCE)) * 100.0;
+        let most = (drive - lag + tol).max(0.0) / (travel * (1.0 - TRAVEL_TOLERANCE)) * 100.0;
+        let top = self.top();
+        let s = d.sign();
+        let (near, far) = match d {
+            Dir::Open => (least, most),
+            Dir::Close => (most, least),
+        };
+        Know {
+            est: (k.est + s * nominal).clamp(0.0, top),
+            lo: (k.lo + s * near).clamp(0.0, top),
+            hi: (k.hi + s * far).clamp(0.0, top),
+        }
     }
 
-    /// Adds `ran` ns of drive in `d` to the estimate and the run time.
-    fn integrate(&mut self, d: Dir, ran: f64) {
-        self.pos = self.moved(self.pos, d, ran);
-        let run = self.run_since_ref as f64 + ran;
-        self.run_since_ref = run.max(0.0) as Nanos;
+    /// The knowledge at `now`, the drive under way counted.
+    fn know_now(&self, now: Nanos) -> Know {
+        match self.lines.driving() {
+            Some(d) => {
+                let rose = self.lines.rose(d).unwrap_or(now);
+                self.drove(self.at_rise, d, now.saturating_sub(rose))
+            }
+            None => self.know,
+        }
+    }
+
+    /// Replaces the knowledge (a reference, a switch, the feedback): a late fall reported
+    /// afterwards no longer corrects it.
+    fn set_know(&mut self, k: Know) {
+        self.know = k;
+        self.at_rise = k;
+        self.correctable = None;
+    }
+
+    /// The valve no longer knows where it is.
+    fn lose_reference(&mut self) {
+        let est = self.know.est;
+        self.set_know(Know {
+            est,
+            lo: 0.0,
+            hi: self.top(),
+        });
+        self.referenced = false;
+        self.restored = false;
+        self.at_end = None;
+    }
+
+    /// The interval closed on the end `d` drives to: the valve is there, referenced.
+    fn check_reached(&mut self, d: Dir) {
+        let reached = match d {
+            Dir::Open => self.know.lo >= self.top() - 1e-9,
+            Dir::Close => self.know.hi <= 1e-9,
+        };
+        if reached {
+            self.reach_end(d);
+        }
+    }
+
+    /// The valve is at end `d` (the interval closed on it, or its switch): referenced there.
+    fn reach_end(&mut self, d: Dir) {
+        let at = match d {
+            Dir::Open => self.top(),
+            Dir::Close => 0.0,
+        };
+        self.set_know(Know {
+            est: at,
+            lo: at,
+            hi: at,
+        });
+        self.at_end = Some(d);
+        self.referenced = true;
+        self.restored = false;
+        self.run_since_ref = 0;
+    }
+
+    /// A drive of `drive` ns in `d` fell: integrated into the knowledge, the run time, the
+    /// travel sample under way.
+    fn after_fall(&mut self, d: Dir, drive: Nanos) {
+        if let Some(x) = self.drives.iter_mut().flatten().last() {
+            if x.dir == d && x.fell.is_none() {
+                x.fell = Some(x.rose.saturating_add(drive));
+            }
+        }
+        self.know = self.drove(self.at_rise, d, drive);
+        self.correctable = Some((d, drive));
+        self.run_since_ref = self.run_since_ref.saturating_add(drive);
+        if let Some(r) = self.rest.as_mut() {
+            r.driven[d.index()] = r.driven[d.index()].saturating_add(drive);
+            r.drives += 1;
+        }
+        self.check_reached(d);
+    }
+
+    /// A line rose: what was known then is where the move counts from.
+    fn after_rise(&mut self, d: Dir, now: Nanos) {
+        self.at_rise = self.know;
+        self.correctable = None;
+        self.at_end = None;
+        self.tick = now;
+        self.drives.rotate_left(1);
+        self.drives[DRIVES - 1] = Some(Drive {
+            dir: d,
+            rose: now,
+            fell: None,
+        });
+        if let Some((_, pct)) = self.fresh_feedback(now) {
+            if self.window.is_none_or(|w| w.dir != d) {
+                self.window = Some(StallWindow {
+                    dir: d,
+                    since: now,
+                    from: pct,
+                });
+            }
+        }
+    }
+
+    fn fresh_feedback(&self, now: Nanos) -> Option<(Nanos, f64)> {
+        self.fb
+            .filter(|(t, _)| now < t.saturating_add(FEEDBACK_TIMEOUT))
+    }
+
+    // ---- faults ----------------------------------------------------------------------------
+
+    /// Latches `fault` at `now`: both lines low at once, the moves dropped, nothing moves until
+    /// the reset. Every fault says the drive times did not move the valve as counted (or a
+    /// switch contradicts them): the position is no longer known.
+    fn latch(&mut self, now: Nanos, fault: ValveFault, emit: &mut dyn FnMut(ValveEvent)) {
+        self.safety_off(now, emit);
+        self.lose_reference();
+        self.legs = Legs::default();
+        self.mv = None;
+        self.awaiting_switch = None;
+        if self.fault.is_none() {
+            self.fault = Some(fault);
+        }
+        self.armed = false;
+    }
+
+    /// Drive time towards `d` after the start lag within `from..to`, ns, from the drives kept.
+    fn effective_drive(&self, d: Dir, from: Nanos, to: Nanos) -> Nanos {
+        let lag = self.cfg.start_lag;
+        self.drives
+            .iter()
+            .flatten()
+            .filter(|x| x.dir == d)
+            .map(|x| {
+                let a = x.rose.saturating_add(lag).max(from);
+                let b = x.fell.unwrap_or(to).min(to);
+                b.saturating_sub(a)
+            })
+            .sum()
+    }
+
+    /// How far the feedback must move in a stall window, percent.
+    fn stall_move(&self) -> f64 {
+        STALL_MOVE_MIN_PCT.max(2.0 * self.cfg.feedback_tolerance_pct)
+    }
+
+    /// The drive after the lag that moves a healthy valve `pct` percent towards `d` at least,
+    /// from anywhere (the play taken up first, the travel 10 % long, the lag at its worst), ns.
+    fn drive_that_moves(&self, d: Dir, pct: f64) -> Nanos {
+        let travel = self.cfg.travel[d.index()] as f64;
+        let b = self.cfg.backlash_pct;
+        ((pct + b) / 100.0 * travel * (1.0 + TRAVEL_TOLERANCE) + self.lag_tolerance()) as Nanos
+    }
+
+    /// The stall check at a feedback sample `pct` at `now`.
+    fn check_stall(&mut self, now: Nanos, pct: f64, emit: &mut dyn FnMut(ValveEvent)) {
+        let dir = self
+            .lines
+            .driving()
+            .or_else(|| self.drives.iter().flatten().last().map(|x| x.dir));
+        let Some(d) = dir else { return };
+        let Some(w) = self.window.filter(|w| w.dir == d) else {
+            self.window = Some(StallWindow {
+                dir: d,
+                since: now,
+                from: pct,
+            });
+            return;
+        };
+        let moved = (pct - w.from) * d.sign();
+        let need = self.stall_move();
+        if moved >= need {
+            self.window = Some(StallWindow {
+                dir: d,
+                since: now,
+                from: pct,
+            });
+            return;
+        }
+        let expected = 2.0 * need;
+        let room = (d.end_pct() - w.from).abs();
+        if room < 2.0 * expected {
+            // Close to the end it drives to: the stop may hold it.
+            return;
+        }
+        let judged = now.saturating_sub(FEEDBACK_DELAY);
+        // Each drive of the window may have lost its lag's tolerance.
+        let drives = self
+            .drives
+            .iter()
+            .flatten()
+            .filter(|x| x.dir == d && x.fell.is_none_or(|f| f > w.since) && x.rose < judged)
+            .count()
+            .max(1);
+        let bound = self.drive_that_moves(d, expected)
+            + (self.lag_tolerance() * (drives - 1) as f64) as Nanos;
+        let drive = self.effective_drive(d, w.since, judged);
+        if drive >= bound {
+            self.latch(
+                now,
+                ValveFault::MotorStalled {
+                    cause: StallCause::NoFeedbackMotion(d),
+                    drive_ms: drive as f64 / 1e6,
+                    moved_pct: moved,
+                    expected_pct: expected,
+                },
+                emit,
+            );
+        }
+    }
+
+    /// A settled feedback sample `pct` at `now`: a travel sample from the last rest mark, if
+    /// the valve moved one way far enough away from both ends; then a new rest mark.
+    fn measure_travel(&mut self, now: Nanos, pct: f64, emit: &mut dyn FnMut(ValveEvent)) {
+        let mark = self.rest.replace(RestMark {
+            pct,
+            driven: [0; 2],
+            drives: 0,
+        });
+        let Some(m) = mark else { return };
+        let tol = self.cfg.feedback_tolerance_pct;
+        let margin = tol + SWITCH_ZONE_PCT;
+        let inside = |p: f64| p > margin && p < 100.0 - margin;
+        let delta = pct - m.pct;
+        let d = if delta > 0.0 { Dir::Open } else { Dir::Close };
+        let one_way = m.driven[d.other().index()] == 0 && m.driven[d.index()] > 0;
+        if !(one_way && inside(m.pct) && inside(pct) && delta.abs() >= TRAVEL_SAMPLE_MIN_PCT) {
+            return;
+        }
+        let k = d.index();
+        let drive = m.driven[k];
+        self.samples[k].rotate_left(1);
+        self.samples[k][SAMPLES - 1] = Some((drive, m.drives, delta.abs()));
+        self.fit(d);
+        // The travel times this sample allows: the displacement off by the feedback's
+        // tolerance at both ends and the play, the lag off by its tolerance in each drive.
+        let n = f64::from(m.drives.max(1));
+        let lag = self.cfg.start_lag as f64 * n;
+        let lag_tol = self.lag_tolerance() * n;
+        let b = self.cfg.backlash_pct;
+        let eff = drive as f64 - lag;
+        let lowest = (eff - lag_tol).max(0.0) / (delta.abs() + 2.0 * tol + b) * 100.0;
+        let highest = (eff + lag_tol) / (delta.abs() - 2.0 * tol).max(1e-6) * 100.0;
+        let travel = self.cfg.travel[k] as f64;
+        let side = if lowest > travel * (1.0 + TRAVEL_TOLERANCE) {
+            1
+        } else if highest < travel * (1.0 - TRAVEL_TOLERANCE) {
+            -1
+        } else {
+            0
+        };
+        let (count, was) = self.mismatches[k];
+        self.mismatches[k] = match side {
+            0 => (0, 0),
+            s if s == was => (count.saturating_add(1), s),
+            s => (1, s),
+        };
+        // Two samples in a row on the same side: not a noisy reading.
+        if self.mismatches[k].0 >= 2 {
+            self.latch(
+                now,
+                ValveFault::TravelMismatch {
+                    dir: d,
+                    measured_ms: [lowest / 1e6, highest / 1e6],
+                    configured_ms: travel / 1e6,
+                },
+                emit,
+            );
+        }
+    }
+
+    /// Fits the travel time and the start lag of direction `d` to its single-drive samples
+    /// (displacement = (drive − lag) / travel, least squares), once three with drives at
+    /// least a fifth of the travel time apart are there.
+    fn fit(&mut self, d: Dir) {
+        let k = d.index();
+        let pts: Vec<(f64, f64)> = self.samples[k]
+            .iter()
+            .flatten()
+            .filter(|s| s.1 == 1)
+            .map(|&(drive, _, pct)| (drive as f64, pct / 100.0))
+            .collect();
+        let n = pts.len() as f64;
+        if pts.len() < 3 {
+            return;
+        }
+        let (mx, my) = (
+            pts.iter().map(|p| p.0).sum::<f64>() / n,
+            pts.iter().map(|p| p.1).sum::<f64>() / n,
+        );
+        let sxx: f64 = pts.iter().map(|p| (p.0 - mx).powi(2)).sum();
+        let sxy: f64 = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+        let spread = pts.iter().map(|p| p.0).fold(f64::MIN, f64::max)
+            - pts.iter().map(|p| p.0).fold(f64::MAX, f64::min);
+        if sxx <= 0.0 || spread < self.cfg.travel[k] as f64 / 5.0 {
+            return;
+        }
+        let slope = sxy / sxx;
+        if slope <= 0.0 {
+            return;
+        }
+        let intercept = my - slope * mx;
+        self.measured_travel[k] = 1.0 / slope / 1e6;
+        self.measured_lag[k] = (-intercept / slope / 1e6).max(0.0);
+    }
+
+    // ---- motion ----------------------------------------------------------------------------
+
+    fn finish_move(&mut self) {
+        self.moves += 1;
     }
 
     /// Both lines low at once; a reference interrupted runs again later, other legs are
@@ -603,41 +1405,54 @@ impl Valve {
     fn safety_off(&mut self, now: Nanos, emit: &mut dyn FnMut(ValveEvent)) {
         if let Some(d) = self.lines.driving() {
             if let Some(drive) = self.lines.fall(d, now, true, emit) {
-                self.integrate(d, drive as f64);
+                self.after_fall(d, drive);
                 self.idle_since = now;
             }
         }
-        let reference = self
-            .mv
-            .is_some_and(|m| m.leg == Leg::End(Dir::Close, EndKind::Reference));
+        let reference = self.mv.and_then(|m| match m.leg {
+            Leg::End(d, EndKind::Reference) => Some(d),
+            _ => None,
+        });
         self.mv = None;
         self.legs
-            .retain(|l| l == Leg::End(Dir::Close, EndKind::Reference));
-        if reference && self.legs.is_empty() {
-            self.legs
-                .push_front(Leg::End(Dir::Close, EndKind::Reference));
+            .retain(|l| matches!(l, Leg::End(_, EndKind::Reference)));
+        if let Some(d) = reference {
+            if self.legs.is_empty() && !self.referenced {
+                self.legs.push_front(Leg::End(d, EndKind::Reference));
+            }
         }
-    }
-
-    /// The valve is at end `d`: the estimate is that end; `exact` (a switch, or an end move
-    /// that covered the uncertainty) makes it a reference.
-    fn reach_end(&mut self, d: Dir, exact: bool) {
-        self.pos = d.end_pct();
-        self.at_end = Some(d);
-        if exact {
-            self.referenced = true;
-            self.run_since_ref = 0;
-        }
-    }
-
-    fn finish_move(&mut self) {
-        self.moves += 1;
     }
 
     /// Decides at `now`.
     fn step(&mut self, now: Nanos, emit: &mut dyn FnMut(ValveEvent)) {
+        if self.fault.is_some() {
+            return;
+        }
+        if let Some((d, at, expected)) = self.awaiting_switch {
+            if now >= at && !self.switches[d.index()] {
+                let drive = self.drives.iter().flatten().last().map_or(0, |x| {
+                    x.fell
+                        .unwrap_or(now)
+                        .saturating_sub(x.rose.saturating_add(self.cfg.start_lag))
+                });
+                self.latch(
+                    now,
+                    ValveFault::MotorStalled {
+                        cause: StallCause::NoEndSwitch(d),
+                        drive_ms: drive as f64 / 1e6,
+                        moved_pct: f64::NAN,
+                        expected_pct: expected,
+                    },
+                    emit,
+                );
+                return;
+            }
+        }
         if self.estop || !self.live {
             return;
+        }
+        if self.lines.driving().is_some() && now >= self.tick.saturating_add(REPORT_EVERY) {
+            self.tick = now;
         }
         self.check_timeout(now);
         // A few rounds: a move ends and the next one is queued in the same call.
@@ -659,7 +1474,7 @@ impl Valve {
                     if let Some(mv) = self.mv.as_mut() {
                         mv.started = true;
                     }
-                    self.at_end = None;
+                    self.after_rise(m.dir, now);
                 }
                 None => {
                     if !self.next_move(now) {
@@ -685,6 +1500,11 @@ impl Valve {
         });
     }
 
+    /// The longest drive in `d`, ns: 150 % of its travel time.
+    fn cap(&self, d: Dir) -> Nanos {
+        (self.cfg.travel[d.index()] as f64 * REFERENCE_FACTOR) as Nanos
+    }
+
     /// The started move `m` at `now`: retargets a tracking move, ends it when its drive is
     /// done. Returns whether it ended (the caller looks for the next).
     fn run_move(&mut self, now: Nanos, mut m: Move, emit: &mut dyn FnMut(ValveEvent)) -> bool {
@@ -695,31 +1515,30 @@ impl Valve {
         let elapsed = now.saturating_sub(rose);
         let retarget = self.target.filter(|&t| m.leg.tracks() && t != m.aim);
         if let Some(target) = retarget {
-            let est = self.estimate(now);
             if target == m.dir.end_pct() {
-                // The target went to the end this move drives to: an end move from here.
-                let kind = if self.recalibration_due() {
+                // The target went to the end this move drives to: an end move from its rise.
+                let kind = if self.recalibration_due(now) {
                     EndKind::Recalibrate
                 } else {
                     EndKind::Plain
                 };
-                let (want, covers) = self.end_drive(m.dir, est, kind);
                 m = Move {
-                    want: elapsed + want,
+                    want: self.end_drive(m.dir, &self.at_rise).max(elapsed),
                     leg: Leg::End(m.dir, kind),
-                    covers,
-                    needs: self.uncertainty_pct(),
                     aim: target,
                     ..m
                 };
             } else {
-                let left = (target - est) * m.dir.sign();
-                let more = if left > 0.0 {
+                let left = (target + self.cfg.backlash_pct / 2.0 - self.at_rise.est) * m.dir.sign();
+                let want = if left > 0.0 {
                     self.drive_for(m.dir, left)
                 } else {
                     0
                 };
-                m.want = (elapsed + more).max(self.cfg.min_pulse);
+                m.want = want
+                    .max(elapsed)
+                    .max(self.cfg.min_pulse)
+                    .min(self.cap(m.dir));
                 m.aim = target;
             }
             self.mv = Some(m);
@@ -731,38 +1550,49 @@ impl Valve {
         let Some(drive) = self.lines.fall(m.dir, end, false, emit) else {
             return false;
         };
-        self.integrate(m.dir, drive as f64);
+        self.after_fall(m.dir, drive);
         self.idle_since = end;
         self.finish_move();
         self.mv = None;
-        if let Leg::End(d, kind) = m.leg {
-            let exact = kind == EndKind::Reference || m.covers >= m.needs;
-            self.reach_end(d, exact);
+        if let Leg::End(d, _) = m.leg {
+            if self.wired[d.index()] && !self.switches[d.index()] {
+                // The end switch there must have closed by now: the drive reached the end from
+                // the farthest the valve could have been.
+                let (lo, hi) = self.stem_bounds(&self.at_rise);
+                let far = match d {
+                    Dir::Open => 100.0 - lo,
+                    Dir::Close => hi,
+                };
+                self.awaiting_switch = Some((d, end.saturating_add(SWITCH_GRACE), far));
+            }
         }
         true
     }
 
-    /// Drive time for `pct` percent of the stroke in `d`, ns.
+    /// Drive time for `pct` percent of the motor's travel in `d`, the start lag included, ns.
     fn drive_for(&self, d: Dir, pct: f64) -> Nanos {
         let travel = self.cfg.travel[d.index()] as f64;
-        (pct.max(0.0) / 100.0 * travel).round() as Nanos
+        (pct.max(0.0) / 100.0 * travel).round() as Nanos + self.cfg.start_lag
     }
 
-    /// An end move in `d` from `est`: its drive time and the uncertainty it covers, percent.
-    fn end_drive(&self, d: Dir, est: f64, kind: EndKind) -> (Nanos, f64) {
-        let travel = self.cfg.travel[d.index()];
-        let cap = (travel as f64 * REFERENCE_FACTOR) as Nanos;
-        let dist = (d.end_pct() - est).abs();
-        let overrun = match kind {
-            EndKind::Plain => self.cfg.end_overrun_pct,
-            EndKind::Recalibrate | EndKind::Exercise => {
-                self.cfg.end_overrun_pct + self.uncertainty_pct()
-            }
-            EndKind::Reference => return (cap, 100.0),
+    /// The drive of an end move in `d` from knowledge `k`, ns: from the bound farthest from
+    /// that end to past it at the slowest travel time and the longest lag, plus the overrun;
+    /// 150 % of the travel time when unreferenced; never more.
+    fn end_drive(&self, d: Dir, k: &Know) -> Nanos {
+        let cap = self.cap(d);
+        if !self.referenced {
+            return cap;
+        }
+        let travel = self.cfg.travel[d.index()] as f64;
+        let dist = match d {
+            Dir::Open => self.top() - k.lo,
+            Dir::Close => k.hi,
         };
-        let want = self.drive_for(d, dist + overrun).min(cap);
-        let covers = (want as f64 / travel as f64 * 100.0 - dist).max(0.0);
-        (want, covers)
+        let need = dist.max(0.0) / 100.0 * travel * (1.0 + TRAVEL_TOLERANCE)
+            + self.lag_tolerance()
+            + self.cfg.start_lag as f64
+            + self.cfg.end_overrun_pct / 100.0 * travel;
+        (need.ceil() as Nanos).min(cap)
     }
 
     /// Picks the next move when none runs; returns whether one was set.
@@ -770,13 +1600,12 @@ impl Valve {
         if !self.armed {
             return false;
         }
-        let est = self.estimate(now);
         let leg = match self.legs.pop() {
             Some(Leg::Return) => {
                 let Some(target) = self.target else {
                     return true;
                 };
-                match self.plan_track(est, target) {
+                match self.plan_track(now, target) {
                     Some(Leg::Track) => Leg::Return,
                     Some(leg) => leg,
                     None => return true,
@@ -787,7 +1616,7 @@ impl Valve {
                 let Some(target) = self.target else {
                     return false;
                 };
-                match self.plan_track(est, target) {
+                match self.plan_track(now, target) {
                     Some(leg) => leg,
                     None => return false,
                 }
@@ -796,21 +1625,18 @@ impl Valve {
         let m = match leg {
             Leg::End(d, kind) => {
                 if self.switches[d.index()] {
-                    if self.switches[d.other().index()] {
-                        // Both switches: neither says where the valve is; nothing drives.
-                        return false;
-                    }
                     // Already at that end, by its switch.
-                    self.reach_end(d, true);
+                    self.reach_end(d);
                     return true;
                 }
-                let (want, covers) = self.end_drive(d, est, kind);
+                if kind == EndKind::Reference {
+                    // The reference at start always drives its 150 %.
+                    self.lose_reference_keep_estimate();
+                }
                 Move {
                     dir: d,
-                    want,
+                    want: self.end_drive(d, &self.know),
                     leg,
-                    covers,
-                    needs: self.uncertainty_pct(),
                     aim: d.end_pct(),
                     started: false,
                 }
@@ -819,15 +1645,19 @@ impl Valve {
                 let Some(target) = self.target else {
                     return false;
                 };
-                let d = if target > est { Dir::Open } else { Dir::Close };
+                let goal = target + self.cfg.backlash_pct / 2.0;
+                let d = if goal > self.know.est {
+                    Dir::Open
+                } else {
+                    Dir::Close
+                };
                 Move {
                     dir: d,
                     want: self
-                        .drive_for(d, (target - est).abs())
-                        .max(self.cfg.min_pulse),
+                        .drive_for(d, (goal - self.know.est).abs())
+                        .max(self.cfg.min_pulse)
+                        .min(self.cap(d)),
                     leg,
-                    covers: 0.0,
-                    needs: 100.0,
                     aim: target,
                     started: false,
                 }
@@ -840,13 +1670,20 @@ impl Valve {
         true
     }
 
-    /// What tracking `target` from `est` asks for: an end move, a recalibration first, a move,
-    /// or nothing (within the dead band, shorter than the minimum pulse, at the end already).
-    fn plan_track(&mut self, est: f64, target: f64) -> Option<Leg> {
-        let due = self.recalibration_due();
+    /// Before the reference at start: whatever was restored, the stroke counts from nothing.
+    fn lose_reference_keep_estimate(&mut self) {
+        if self.referenced && self.restored {
+            self.lose_reference();
+        }
+    }
+
+    /// What tracking `target` at `now` asks for: an end move, a recalibration first, a move, or
+    /// nothing (within the dead band, shorter than the minimum pulse, at the end already).
+    fn plan_track(&mut self, now: Nanos, target: f64) -> Option<Leg> {
+        let due = self.recalibration_due(now);
         for d in Dir::BOTH {
             if target == d.end_pct() {
-                if self.at_end == Some(d) && !due {
+                if self.at_end == Some(d) {
                     return None;
                 }
                 let kind = if due {
@@ -856,20 +1693,60 @@ impl Valve {
                 };
                 return Some(Leg::End(d, kind));
             }
-            if due && (target - d.end_pct()).abs() <= RECALIBRATE_NEAR_PCT {
+            if due && (target - d.end_pct()).abs() <= RECALIBRATE_NEAR_PCT && self.at_end != Some(d)
+            {
+                // To the end first; back to the target once there.
                 return Some(Leg::End(d, EndKind::Recalibrate));
             }
         }
-        let err = target - est;
+        let goal = target + self.cfg.backlash_pct / 2.0;
+        let err = goal - self.know.est;
         if err.abs() < self.cfg.deadband_pct || err == 0.0 {
             return None;
         }
         let d = if err > 0.0 { Dir::Open } else { Dir::Close };
-        if self.drive_for(d, err.abs()) < self.cfg.min_pulse.max(1) {
+        let drive = self.drive_for(d, err.abs());
+        if drive < self.cfg.min_pulse.max(1) {
             // Shorter than the minimum: the difference stays and grows with later commands.
             return None;
         }
+        // A move that would take the uncertainty past the limit recalibrates first, through the
+        // end that makes the shorter way among those that keep it within the limit.
+        if self.referenced {
+            let limit = self.cfg.max_uncertainty_pct;
+            let after = self.predict_unc(self.know, d, drive);
+            if after > limit {
+                let via =
+                    |e: Dir| (self.know.est - e.end_pct()).abs() + (target - e.end_pct()).abs();
+                let mut ends = Dir::BOTH;
+                ends.sort_by(|a, b| via(*a).total_cmp(&via(*b)));
+                for e in ends {
+                    if self.at_end == Some(e) {
+                        continue;
+                    }
+                    let at = if e == Dir::Open { self.top() } else { 0.0 };
+                    let from_end = Know {
+                        est: at,
+                        lo: at,
+                        hi: at,
+                    };
+                    let back = e.other();
+                    let back_drive = self.drive_for(back, (goal - at).abs());
+                    if self.predict_unc(from_end, back, back_drive) <= limit {
+                        return Some(Leg::End(e, EndKind::Recalibrate));
+                    }
+                }
+            }
+        }
         Some(Leg::Track)
+    }
+
+    /// The uncertainty after a drive of `drive` ns in `d` from `k`, percent.
+    fn predict_unc(&self, k: Know, d: Dir, drive: Nanos) -> f64 {
+        let after = self.drove(k, d, drive);
+        let (lo, hi) = self.stem_bounds(&after);
+        let est = self.stem(&after);
+        (est - lo).max(hi - est)
     }
 }
 

@@ -103,20 +103,23 @@ fn params() -> ValveParams {
         deadband_pct: 0.5,
         min_pulse_ms: 500,
         reversal_pause_ms: 1_000,
+        start_lag_ms: 0,
+        backlash_pct: 0.0,
         end_overrun_pct: 10.0,
-        reference_at_start: false,
+        reference_at_start: ReferenceAtStart::None,
         recalibrate_after_s: 0,
         exercise_every_h: 0,
-        max_uncertainty_pct: 10.0,
+        max_uncertainty_pct: 100.0,
         command_timeout_ms: 0,
         on_timeout: OnTimeout::Stop,
+        feedback_tolerance_pct: 1.0,
     }
 }
 
 /// The reference at start and a full overrun, so the valve is referenced at 0 %.
 fn referenced(p: ValveParams) -> Rig {
     let mut r = Rig::new(ValveParams {
-        reference_at_start: true,
+        reference_at_start: ReferenceAtStart::Close,
         ..p
     });
     r.settle();
@@ -133,11 +136,12 @@ fn close(a: f64, b: f64, tol: f64) -> bool {
 }
 
 /// Siemens `PID_3Step`: the reference drives closed for 150 % of the travel time (the virtual
-/// actuator limit), then the position is 0 % and the valve is referenced.
+/// actuator limit), then the position is 0 % and the valve is referenced. Nothing rises before
+/// the reversal pause from the start has passed.
 #[test]
 fn reference_at_start_closes_for_150_percent_of_the_travel_time() {
     let mut r = Rig::new(ValveParams {
-        reference_at_start: true,
+        reference_at_start: ReferenceAtStart::Close,
         ..params()
     });
     r.run_to(0);
@@ -146,45 +150,147 @@ fn reference_at_start_closes_for_150_percent_of_the_travel_time() {
     r.command(40.0);
     r.settle();
     let p = r.pulses();
-    assert_eq!(p[0], (Dir::Close, 0, 120 * S), "80 s × 1.5 closing");
+    assert_eq!(
+        p[0],
+        (Dir::Close, S, 121 * S),
+        "after the pause, 80 s × 1.5 closing"
+    );
     // Then to the target: 40 % of 100 s opening, after the pause.
     assert_eq!(p[1].0, Dir::Open);
-    assert_eq!(p[1].1, 121 * S);
+    assert_eq!(p[1].1, 122 * S);
     assert_eq!(p[1].2 - p[1].1, 40 * S);
     let st = r.v.status(r.now);
     assert!(st.referenced);
     assert!(close(st.position_pct, 40.0, 1e-9));
     assert_eq!(st.run_since_reference, 40 * S);
-    // 40 s of run over the shorter travel, 80 s, at 1/0.9 - 1.
-    assert!(close(
-        st.uncertainty_pct,
-        (1.0 / 0.9 - 1.0) * 40.0 / 80.0 * 100.0,
-        1e-9
-    ));
+    // The farther bound: 40 s and the 20 ms lag floor at a travel 10 % short.
+    let hi = (40.0 + 0.02) / 90.0 * 100.0;
+    assert!(close(st.uncertainty_pct, hi - 40.0, 1e-9), "{st:?}");
+    assert!(close(st.high_pct, hi, 1e-9));
+    assert!(close(st.low_pct, (40.0 - 0.02) / 110.0 * 100.0, 1e-9));
 }
 
-/// Beckhoff `FB_BA_Anlg3Pnt`, OSCAT `ACTUATOR_3P`: a command to an end drives on past the
-/// estimated end by the overrun, then stops; a repeated command there drives nothing.
+/// The drive of an end move from knowledge whose far bound is `far` percent from the end:
+/// that distance at the slowest travel time, the lag and its tolerance, and the overrun.
+fn end_drive_ns(far: f64, travel_s: f64, lag_ms: f64, overrun: f64) -> Nanos {
+    let travel = travel_s * 1e9;
+    let tol = 0.5 * lag_ms * 1e6 + 20e6;
+    (far / 100.0 * travel * 1.1 + tol + lag_ms * 1e6 + overrun / 100.0 * travel).ceil() as Nanos
+}
+
+/// Beckhoff `FB_BA_Anlg3Pnt`, OSCAT `ACTUATOR_3P`: a command to an end drives past the end
+/// from the farthest position the uncertainty allows, at the slowest travel time, plus the
+/// overrun; only then is the end a reference, and a repeated command there drives nothing.
 #[test]
-fn an_end_command_overruns_by_end_overrun_pct_then_stops() {
+fn an_end_command_drives_past_the_uncertainty_and_the_overrun_then_stops() {
     let mut r = referenced(params());
     r.command(50.0);
     r.settle();
+    let high = r.v.status(r.now).high_pct;
+    assert!(close(high, 50.02 / 90.0 * 100.0, 1e-9));
     r.command(0.0);
     r.settle();
     let p = r.pulses();
     assert_eq!(p.len(), 2);
-    // 50 % of 80 s plus 10 % of 80 s.
     assert_eq!(p[1].0, Dir::Close);
-    assert_eq!(p[1].2 - p[1].1, 48 * S);
-    assert_eq!(r.v.status(r.now).position_pct, 0.0);
+    assert_eq!(p[1].2 - p[1].1, end_drive_ns(high, 80.0, 0.0, 10.0));
+    let st = r.v.status(r.now);
+    assert_eq!((st.position_pct, st.uncertainty_pct), (0.0, 0.0));
+    assert!(st.referenced);
     r.command(0.0);
     r.run_for(1_000 * S);
     assert_eq!(r.pulses().len(), 2, "at the end: never driven again");
     r.command(100.0);
     r.settle();
     let p = r.pulses();
-    assert_eq!(p[2].2 - p[2].1, 110 * S, "100 % + 10 % of 100 s opening");
+    assert_eq!(p[2].2 - p[2].1, end_drive_ns(100.0, 100.0, 0.0, 10.0));
+    assert_eq!(r.v.status(r.now).position_pct, 100.0);
+}
+
+/// Unreferenced (no reference at start), a 0 % command and `on_timeout: close` drive the full
+/// 150 % of the travel time: from wherever the valve is, it reaches the end.
+#[test]
+fn unreferenced_end_moves_drive_150_percent() {
+    let mut r = Rig::new(params());
+    r.command(0.0);
+    r.settle();
+    let p = r.pulses();
+    assert_eq!(p, vec![(Dir::Close, S, 121 * S)]);
+    assert!(r.v.status(r.now).referenced);
+    let mut r = Rig::new(ValveParams {
+        command_timeout_ms: 5_000,
+        on_timeout: OnTimeout::Close,
+        ..params()
+    });
+    r.run_for(6 * S);
+    r.settle();
+    let p = r.pulses();
+    assert_eq!(p.len(), 1);
+    assert_eq!(p[0].2 - p[0].1, 120 * S, "{p:?}");
+    assert!(r.v.status(r.now).referenced);
+}
+
+/// A move retargeted to the end it drives to, unreferenced, never drives above 150 % of the
+/// travel time in one drive.
+#[test]
+fn a_retarget_to_an_end_never_drives_above_150_percent() {
+    let mut r = Rig::new(params());
+    r.command(90.0);
+    r.run_for(80 * S);
+    r.command(100.0);
+    r.settle();
+    for (d, a, b) in r.pulses() {
+        let travel = if d == Dir::Open { 100 } else { 80 };
+        assert!(b - a <= travel * S * 3 / 2, "{} s", (b - a) / S);
+    }
+    assert!(r.v.status(r.now).referenced);
+    assert_eq!(r.v.status(r.now).position_pct, 100.0);
+}
+
+/// The start lag is counted in every drive: a move of 2 % drives 2 % of the travel time plus
+/// the lag, and the estimate counts only what follows the lag.
+#[test]
+fn the_start_lag_is_counted_in_every_drive() {
+    let mut r = referenced(ValveParams {
+        start_lag_ms: 150,
+        min_pulse_ms: 200,
+        ..params()
+    });
+    r.command(2.0);
+    r.settle();
+    let p = r.pulses();
+    assert_eq!(p[0].2 - p[0].1, 2 * S + 150 * MS);
+    assert!(close(r.v.estimate(r.now), 2.0, 1e-9));
+    // The lag's tolerance (75 ms + 20 ms) is in the bounds.
+    let st = r.v.status(r.now);
+    assert!(
+        close(st.high_pct, (2.0 + 0.095) / 90.0 * 100.0, 1e-9),
+        "{st:?}"
+    );
+}
+
+/// Below 20 ms a reversal pause is refused with the reason: a relay's release and a triac's
+/// conduction to the next current zero take up to 10 ms each.
+#[test]
+fn a_reversal_pause_below_the_floor_is_refused_with_the_reason() {
+    let e = ValveParams {
+        reversal_pause_ms: 5,
+        ..params()
+    }
+    .validate()
+    .unwrap_err();
+    assert_eq!(e, ValveConfigError::ReversalPauseTooShort(5));
+    let text = e.to_string();
+    assert!(
+        text.contains("below 20 ms") && text.contains("triac"),
+        "{text}"
+    );
+    assert!(ValveParams {
+        reversal_pause_ms: MIN_REVERSAL_PAUSE_MS,
+        ..params()
+    }
+    .validate()
+    .is_ok());
 }
 
 /// Schneider `SERVO`: moves shorter than the minimum pulse are accumulated, not lost.
@@ -279,7 +385,8 @@ fn the_estimate_follows_the_real_write_times() {
 }
 
 /// OSCAT `ACTUATOR_3P` (`T_CAL`): after the accumulated run time, the next command near an end
-/// goes to the end first with an overrun that covers the uncertainty, which resets it.
+/// goes to the end first, far enough to reach it from anywhere the uncertainty allows, which
+/// references the valve and resets the run time.
 #[test]
 fn recalibration_goes_to_the_end_first_and_resets_the_run_time() {
     let mut r = referenced(ValveParams {
@@ -292,8 +399,7 @@ fn recalibration_goes_to_the_end_first_and_resets_the_run_time() {
     }
     let st = r.v.status(r.now);
     assert!(st.recalibration_due, "{st:?}");
-    let u = st.uncertainty_pct;
-    assert!(u > 10.0, "{u}");
+    let high = st.high_pct;
     r.command(3.0);
     r.run_for(10 * MS);
     assert_eq!(r.v.status(r.now).activity, Activity::Recalibrating);
@@ -302,14 +408,13 @@ fn recalibration_goes_to_the_end_first_and_resets_the_run_time() {
     let n = p.len();
     let to_end = p[n - 2];
     assert_eq!(to_end.0, Dir::Close);
-    let want = (30.0 + 10.0 + u) / 100.0 * 80e9;
-    assert!(close((to_end.2 - to_end.1) as f64, want, 2.0), "{to_end:?}");
+    assert_eq!(to_end.2 - to_end.1, end_drive_ns(high, 80.0, 0.0, 10.0));
     assert_eq!(p[n - 1].0, Dir::Open);
     assert_eq!(p[n - 1].2 - p[n - 1].1, 3 * S);
     let st = r.v.status(r.now);
     assert!(!st.recalibration_due);
     assert_eq!(st.run_since_reference, 3 * S);
-    // Far from an end, a due recalibration waits.
+    // Far from an end, a due recalibration waits (the uncertainty stays within the limit).
     let mut r = referenced(ValveParams {
         recalibrate_after_s: 10,
         ..params()
@@ -320,6 +425,47 @@ fn recalibration_goes_to_the_end_first_and_resets_the_run_time() {
     r.settle();
     assert_eq!(r.pulses().last().unwrap().0, Dir::Close);
     assert!(r.v.status(r.now).recalibration_due);
+}
+
+/// A valve modulating between 5 and 95 % never gets a target near an end; a move that would
+/// take the uncertainty past `max_uncertainty_pct` goes through the nearer end first, so the
+/// uncertainty stays within the limit and the diagnostics never warn. With the defaults a
+/// fresh valve does not pass the limit within a minute of modulating.
+#[test]
+fn a_modulating_valve_recalibrates_before_the_limit() {
+    let mut r = referenced(ValveParams {
+        max_uncertainty_pct: 10.0,
+        backlash_pct: 1.0,
+        ..params()
+    });
+    let mut x = 0x2545_f491_4f6c_dd1d_u64;
+    let mut recal = 0;
+    for _ in 0..200 {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        let target = 5.0 + (x % 9_000) as f64 / 100.0;
+        r.command(target);
+        r.run_for(10 * MS);
+        if r.v.status(r.now).activity == Activity::Recalibrating {
+            recal += 1;
+        }
+        r.settle();
+        let st = r.v.status(r.now);
+        assert!(st.uncertainty_pct <= 10.0 + 1e-9, "{st:?}");
+    }
+    assert!(recal >= 5, "{recal} recalibrations");
+    // The defaults: a referenced valve modulating 1 % steps for a minute stays below the limit.
+    let mut r = referenced(ValveParams::default());
+    let start = r.now;
+    let mut t = 50.0;
+    while r.now < start + 60 * S {
+        t = if t > 50.0 { 48.5 } else { 51.5 };
+        r.command(t);
+        r.settle();
+        let st = r.v.status(r.now);
+        assert!(st.uncertainty_pct <= st.max_uncertainty_pct, "{st:?}");
+    }
 }
 
 /// OSCAT `ACTUATOR_2P`'s self-activation and `T_DIAG`: an idle valve makes one full stroke and
@@ -396,43 +542,102 @@ fn exercise_strokes_one_valve_at_a_time_and_returns() {
 fn an_end_switch_stops_the_drive_and_sets_the_position() {
     let mut r = referenced(params());
     r.command(100.0);
-    r.run_for(70 * S);
+    // 95 s of 100: by its bounds the valve may be at the open end.
+    r.run_for(95 * S);
     r.act(true, |v, now, e| v.set_switch(now, Dir::Open, true, e));
     let p = r.pulses();
     assert_eq!(p.last().unwrap().2, r.now, "stopped at once");
     let st = r.v.status(r.now);
     assert_eq!(st.position_pct, 100.0);
-    assert!(st.referenced);
+    assert!(st.referenced && st.fault.is_none(), "{st:?}");
     assert_eq!(st.run_since_reference, 0);
     assert_eq!(st.motion, Motion::Stopped);
     r.command(100.0);
     r.run_for(100 * S);
     assert_eq!(r.pulses().len(), p.len(), "no drive into an active switch");
     r.command(50.0);
-    r.run_for(S);
+    r.run_for(2 * S);
     // Leaving the open end releases its switch.
     r.act(true, |v, now, e| v.set_switch(now, Dir::Open, false, e));
     r.settle();
     assert_eq!(r.pulses().last().unwrap().0, Dir::Close);
-    // The close switch cuts a move that the estimate thinks has further to go.
+    // The close switch cuts a move that the estimate thinks has further to go, once its low
+    // bound reaches the closed end.
     r.command(0.0);
-    r.run_for(10 * S);
+    r.run_for(37 * S);
+    assert!(r.v.estimate(r.now) > 3.0);
     r.act(true, |v, now, e| v.set_switch(now, Dir::Close, true, e));
-    assert_eq!(r.v.status(r.now).position_pct, 0.0);
-    assert_eq!(r.v.status(r.now).motion, Motion::Stopped);
+    let st = r.v.status(r.now);
+    assert_eq!((st.position_pct, st.motion), (0.0, Motion::Stopped));
+    assert!(st.fault.is_none(), "{st:?}");
 }
 
-/// Both end switches active at once (a wiring or switch fault): whatever the target, nothing
-/// drives either way while they are, and the position is not known any more (no command to an
-/// end takes a switch's word for it); once they release, the valve follows its target again,
-/// unreferenced until an end switch references it.
+/// An end switch active where the valve cannot be (a stuck contact, a broken wire read as the
+/// end) is `switch_implausible`: both lines off at once, latched; the reset is refused while
+/// the switch stays active, and clears it once released, leaving the valve unreferenced and
+/// waiting for a fresh command.
 #[test]
-fn both_end_switches_active_hold_the_valve_and_lose_the_reference() {
+fn a_switch_where_the_valve_cannot_be_is_implausible_and_latches() {
+    let mut r = referenced(params());
+    r.command(60.0);
+    r.run_for(20 * S);
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Close, true, e));
+    assert_eq!(
+        r.trace.last().unwrap().1,
+        Level::Low,
+        "the drive cut at once"
+    );
+    let st = r.v.status(r.now);
+    match st.fault {
+        Some(ValveFault::SwitchImplausible {
+            switches, low_pct, ..
+        }) => {
+            assert_eq!(switches, [false, true]);
+            assert!(low_pct > 15.0, "{low_pct}");
+        }
+        f => panic!("{f:?}"),
+    }
+    let n = r.pulses().len();
+    r.command(10.0);
+    r.run_for(100 * S);
+    assert_eq!(r.pulses().len(), n, "nothing drives while latched");
+    assert!(
+        !r.v.reset(r.now, 7, &mut |_| {}),
+        "refused while the switch is active"
+    );
+    assert_eq!(
+        r.v.status(r.now).reset,
+        Some(ResetAnswer {
+            ticket: 7,
+            cleared: false
+        })
+    );
+    r.act(true, |v, now, e| v.set_switch(now, Dir::Close, false, e));
+    assert!(r.v.reset(r.now, 8, &mut |_| {}));
+    let st = r.v.status(r.now);
+    assert!(st.fault.is_none() && !st.referenced, "{st:?}");
+    r.run_for(100 * S);
+    assert_eq!(r.pulses().len(), n, "nothing moves before a fresh command");
+    r.command(10.0);
+    r.settle();
+    assert!(r.pulses().len() > n);
+}
+
+/// Both end switches active at once (a wiring or switch fault) are `switch_implausible`:
+/// nothing drives either way, whatever the target; the reset is refused while both stay
+/// active; once cleared, the valve is unreferenced until an end switch or an end move
+/// references it.
+#[test]
+fn both_end_switches_active_latch_switch_implausible() {
     let mut r = referenced(params());
     r.command(50.0);
     r.settle();
     let before = r.pulses().len();
     r.act(true, |v, now, e| v.set_switch(now, Dir::Open, true, e));
+    assert!(
+        r.v.status(r.now).fault.is_some(),
+        "open at 50 %: implausible already"
+    );
     r.act(true, |v, now, e| v.set_switch(now, Dir::Close, true, e));
     for target in [0.0, 100.0, 30.0, 70.0] {
         r.command(target);
@@ -445,23 +650,80 @@ fn both_end_switches_active_hold_the_valve_and_lose_the_reference() {
     );
     let st = r.v.status(r.now);
     assert_eq!(st.switches, [true, true]);
-    assert!(!st.referenced && st.uncertainty_pct == 100.0, "{st:?}");
+    assert!(matches!(
+        st.fault,
+        Some(ValveFault::SwitchImplausible { .. })
+    ));
+    assert!(!r.v.reset(r.now, 1, &mut |_| {}));
     r.act(true, |v, now, e| v.set_switch(now, Dir::Open, false, e));
+    assert!(
+        !r.v.reset(r.now, 2, &mut |_| {}),
+        "the close switch still active"
+    );
     r.act(true, |v, now, e| v.set_switch(now, Dir::Close, false, e));
+    assert!(r.v.reset(r.now, 3, &mut |_| {}));
+    assert!(!r.v.status(r.now).referenced);
     let from = r.v.estimate(r.now);
     r.command(from - 20.0);
     r.settle();
-    assert!(
-        r.pulses().len() > before,
-        "no drive after the switches released"
-    );
-    assert!(close(r.v.estimate(r.now), from - 20.0, 1.0));
-    assert!(!r.v.status(r.now).referenced);
+    assert!(r.pulses().len() > before, "no drive after the reset");
     r.command(0.0);
     r.run_for(10 * S);
     r.act(true, |v, now, e| v.set_switch(now, Dir::Close, true, e));
     let st = r.v.status(r.now);
     assert!(st.referenced && st.position_pct == 0.0, "{st:?}");
+}
+
+/// OSCAT `ACTUATOR_3P`: an end move that ran its whole drive without the end switch wired at
+/// that end is `motor_stalled` (a dead motor, a blown fuse), latched with the lines off.
+#[test]
+fn an_end_move_without_its_wired_switch_is_motor_stalled() {
+    let cfg = ValveParams {
+        reference_at_start: ReferenceAtStart::Close,
+        ..params()
+    }
+    .validate()
+    .unwrap();
+    let mut r = Rig::new(params());
+    r.v = Valve::start(
+        cfg,
+        0,
+        ValveStart {
+            switches_wired: [false, true],
+            ..ValveStart::default()
+        },
+    );
+    r.run_for(121 * S);
+    assert!(
+        r.v.status(r.now).fault.is_none(),
+        "the switch has its grace"
+    );
+    r.run_for(SWITCH_GRACE);
+    let st = r.v.status(r.now);
+    match st.fault {
+        Some(ValveFault::MotorStalled {
+            cause: StallCause::NoEndSwitch(Dir::Close),
+            drive_ms,
+            ..
+        }) => assert!(close(drive_ms, 120_000.0, 1e-6), "{drive_ms}"),
+        f => panic!("{f:?}"),
+    }
+    assert!(
+        !st.referenced && st.uncertainty_pct == 100.0,
+        "not taken as a reference: {st:?}"
+    );
+    assert_eq!(r.pulses(), vec![(Dir::Close, S, 121 * S)]);
+    r.command(50.0);
+    r.run_for(100 * S);
+    assert_eq!(r.pulses().len(), 1, "latched");
+    assert!(r.v.reset(r.now, 1, &mut |_| {}));
+    r.command(50.0);
+    r.run_for(S);
+    assert_eq!(
+        r.trace.last().map(|e| (e.0, e.1)),
+        Some((Dir::Open, Level::High)),
+        "a fresh command after the reset"
+    );
 }
 
 /// Settings changed while running: a shorter reversal pause does not shorten the break under
@@ -662,6 +924,7 @@ fn out_of_range_parameters_are_refused_with_their_name() {
         .iter()
         .map(|p| match p.validate() {
             Err(ValveConfigError::OutOfRange(e)) => e.name,
+            Err(ValveConfigError::ReversalPauseTooShort(_)) => "reversal_pause_ms",
             Ok(_) => "accepted",
         })
         .collect();
@@ -683,7 +946,7 @@ fn out_of_range_parameters_are_refused_with_their_name() {
 fn arb_params() -> impl Strategy<Value = ValveParams> {
     (
         (5_000u64..120_000, 5_000u64..120_000),
-        (0.0f64..3.0, 0u64..3_000, 0u64..3_000),
+        (0.0f64..3.0, 0u64..3_000, 20u64..3_000),
         (
             0.0f64..20.0,
             any::<bool>(),
@@ -697,13 +960,20 @@ fn arb_params() -> impl Strategy<Value = ValveParams> {
                 deadband_pct: db,
                 min_pulse_ms: min_pulse,
                 reversal_pause_ms: pause,
+                start_lag_ms: 0,
+                backlash_pct: 0.0,
                 end_overrun_pct: overrun,
-                reference_at_start: reference,
+                reference_at_start: if reference {
+                    ReferenceAtStart::Close
+                } else {
+                    ReferenceAtStart::None
+                },
                 recalibrate_after_s: recal,
                 exercise_every_h: 0,
-                max_uncertainty_pct: 10.0,
+                max_uncertainty_pct: 100.0,
                 command_timeout_ms: 0,
                 on_timeout: OnTimeout::Stop,
+                feedback_tolerance_pct: 1.0,
             },
         )
 }
@@ -794,7 +1064,7 @@ proptest! {
             deadband_pct: 0.0,
             min_pulse_ms: min_pulse,
             recalibrate_after_s: 0,
-            reference_at_start: true,
+            reference_at_start: ReferenceAtStart::Close,
             ..p
         };
         let mut r = Rig::with(p, latency);
@@ -820,4 +1090,399 @@ proptest! {
             "delivered {delivered} vs commanded {commanded}, one pulse {one_pulse}"
         );
     }
+}
+
+/// A rig whose edges also drive a true valve ([`truth::TrueValve`]).
+struct Plant {
+    r: Rig,
+    truth: truth::TrueValve,
+    fed: usize,
+}
+
+impl Plant {
+    fn feed(&mut self) {
+        for &(d, l, t) in &self.r.trace[self.fed..] {
+            self.truth.edge(d.index(), l.is_high(), t as i64);
+        }
+        self.fed = self.r.trace.len();
+    }
+
+    fn command(&mut self, pct: f64) {
+        self.r.command(pct);
+        self.feed();
+    }
+
+    /// Runs to `t` in steps, feeding the truth as the edges come (the rig writes them at once).
+    fn run_for(&mut self, d: Nanos) {
+        self.r.run_for(d);
+        self.feed();
+    }
+
+    fn settle(&mut self) {
+        self.r.settle();
+        self.feed();
+        // Past the coast and the pause: the true valve stands too.
+        self.r.run_for(S);
+        self.feed();
+    }
+
+    fn at_rest(&self) -> bool {
+        self.r.v.lines.driving().is_none() && !self.truth.driving()
+    }
+}
+
+/// The settings of the plant property: 150 ms of start lag, 1 % of backlash, the defaults
+/// otherwise (recalibration and the uncertainty limit included).
+fn plant_params(open_s: u64, close_s: u64, reference: bool) -> ValveParams {
+    ValveParams {
+        travel_open_ms: open_s * 1_000,
+        travel_close_ms: close_s * 1_000,
+        start_lag_ms: 150,
+        backlash_pct: 1.0,
+        reference_at_start: if reference {
+            ReferenceAtStart::Close
+        } else {
+            ReferenceAtStart::None
+        },
+        ..ValveParams::default()
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(6))]
+
+    /// A thousand random commands (a tenth at the ends, a tenth near them) on a true valve whose
+    /// travel times are up to 10 % off the configured ones either way, with 150 ms of start lag,
+    /// a coast of up to 40 ms and 1 % of play, from a start position the valve does not know,
+    /// with latency on every write. At every rest the true position lies within the reported
+    /// uncertainty of the estimate; every end command leaves the true position at that end; no
+    /// drive lasts more than 150 % of its travel time; the lines are never high together and
+    /// no line rises within the reversal pause.
+    #[test]
+    fn the_true_position_stays_within_the_reported_uncertainty(
+        (open_s, close_s) in (5u64..60, 5u64..60),
+        (k_open, k_close) in (0.9f64..=1.1, 0.9f64..=1.1),
+        coast_ms in 0.0f64..40.0,
+        start in 0.0f64..=100.0,
+        reference in any::<bool>(),
+        latency in 0u64..3_000_000,
+        seed in any::<u64>(),
+    ) {
+        let p = plant_params(open_s, close_s, reference);
+        let truth = truth::TrueValve::new(
+            truth::TruthParams {
+                travel_ns: [open_s as f64 * 1e9 * k_open, close_s as f64 * 1e9 * k_close],
+                lag_ns: 150e6,
+                coast_ns: coast_ms * 1e6,
+                backlash_pct: 1.0,
+                switch_at_pct: 0.5,
+            },
+            start,
+        );
+        let mut pl = Plant { r: Rig::with(p, latency), truth, fed: 0 };
+        let mut x = seed | 1;
+        let mut next = |m: u64| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x % m
+        };
+        let (mut rests, mut ends) = (0, 0);
+        // The largest error at a rest, and its share of the uncertainty reported then.
+        let (mut worst, mut worst_share) = (0.0f64, 0.0f64);
+        for _ in 0..1_000 {
+            let r = next(100);
+            let target = if r < 10 {
+                [0.0, 100.0][next(2) as usize]
+            } else if r < 20 {
+                let near = next(500) as f64 / 100.0;
+                [near, 100.0 - near][next(2) as usize]
+            } else {
+                next(10_001) as f64 / 100.0
+            };
+            pl.command(target);
+            if target == 0.0 || target == 100.0 || next(2) == 0 {
+                pl.settle();
+            } else {
+                pl.run_for(next(3_000) * MS);
+            }
+            if pl.at_rest() {
+                rests += 1;
+                let st = pl.r.v.status(pl.r.now);
+                let true_pct = pl.truth.position(pl.r.now as i64);
+                prop_assert!(
+                    (true_pct - st.position_pct).abs() <= st.uncertainty_pct + 1e-9,
+                    "true {true_pct} vs estimate {} ± {}: {st:?}", st.position_pct, st.uncertainty_pct
+                );
+                prop_assert!(st.low_pct - 1e-9 <= true_pct && true_pct <= st.high_pct + 1e-9);
+                let err = (true_pct - st.position_pct).abs();
+                worst = worst.max(err);
+                if st.uncertainty_pct > 0.0 {
+                    worst_share = worst_share.max(err / st.uncertainty_pct);
+                }
+                if target == 0.0 || target == 100.0 {
+                    ends += 1;
+                    prop_assert_eq!(true_pct, target, "an end command left it short: {:?}", st);
+                    prop_assert_eq!(st.position_pct, target);
+                }
+            }
+        }
+        prop_assert!(rests > 300 && ends > 50, "{rests} rests, {ends} ends");
+        eprintln!(
+            "travel {open_s}/{close_s} s × {k_open:.3}/{k_close:.3}, coast {coast_ms:.0} ms: \
+             {rests} rests ({ends} at an end), largest |true - estimate| {worst:.2} %, at most \
+             {:.0} % of the uncertainty reported",
+            worst_share * 100.0
+        );
+        // The lines as written.
+        let pause = p.reversal_pause_ms * MS;
+        let mut high = [false; 2];
+        let mut rose = [0; 2];
+        let mut fell: Option<Nanos> = None;
+        for &(d, l, t) in &pl.r.trace {
+            let i = d.index();
+            if l.is_high() {
+                prop_assert!(!high[1 - i], "both lines high at {}", t);
+                if let Some(f) = fell {
+                    prop_assert!(t >= f + pause, "rise {} within the pause after {}", t, f);
+                }
+                high[i] = true;
+                rose[i] = t;
+            } else {
+                let travel = [p.travel_open_ms, p.travel_close_ms][i] * MS;
+                prop_assert!(t - rose[i] <= travel * 3 / 2 + latency, "a drive above 150 %");
+                high[i] = false;
+                fell = Some(t);
+            }
+        }
+    }
+}
+
+/// A valve with position feedback, for the feedback tests: its samples come from a true valve.
+fn fed(p: ValveParams, truth: truth::TruthParams, start: f64) -> Plant {
+    let cfg = p.validate().unwrap();
+    let mut r = Rig::new(p);
+    r.v = Valve::start(
+        cfg,
+        0,
+        ValveStart {
+            feedback: true,
+            ..ValveStart::default()
+        },
+    );
+    Plant {
+        r,
+        truth: truth::TrueValve::new(truth, start),
+        fed: 0,
+    }
+}
+
+impl Plant {
+    /// Runs for `d`, a feedback sample of the true position every `every`.
+    fn run_sampled(&mut self, d: Nanos, every: Nanos) {
+        let end = self.r.now + d;
+        while self.r.now < end {
+            self.run_for(every.min(end - self.r.now));
+            let t = self.r.now;
+            let pct = self.truth.position(t as i64);
+            self.r
+                .act(false, |v, now, e| v.feedback(now, pct, e).unwrap());
+            self.feed();
+        }
+    }
+}
+
+fn truth_like(p: &ValveParams, k: f64) -> truth::TruthParams {
+    truth::TruthParams {
+        travel_ns: [
+            p.travel_open_ms as f64 * 1e6 * k,
+            p.travel_close_ms as f64 * 1e6 * k,
+        ],
+        lag_ns: p.start_lag_ms as f64 * 1e6,
+        coast_ns: 0.0,
+        backlash_pct: p.backlash_pct,
+        switch_at_pct: 0.5,
+    }
+}
+
+/// Siemens `PID_3Step` with `Feedback_PER`: at rest the estimate is the feedback and the
+/// uncertainty its tolerance; no reference stroke is needed to be referenced.
+#[test]
+fn feedback_at_rest_sets_the_estimate_and_the_uncertainty() {
+    let p = ValveParams {
+        feedback_tolerance_pct: 1.5,
+        ..params()
+    };
+    let mut pl = fed(p, truth_like(&p, 1.05), 63.0);
+    pl.run_sampled(2 * S, 50 * MS);
+    let st = pl.r.v.status(pl.r.now);
+    assert!(st.referenced, "{st:?}");
+    assert!(close(st.position_pct, 63.0, 1e-9) && close(st.uncertainty_pct, 1.5, 1e-9));
+    pl.command(20.0);
+    pl.run_sampled(60 * S, 50 * MS);
+    let st = pl.r.v.status(pl.r.now);
+    let true_pct = pl.truth.position(pl.r.now as i64);
+    assert!(
+        close(st.position_pct, true_pct, 1e-9),
+        "{st:?} vs {true_pct}"
+    );
+    assert!(close(true_pct, 20.0, 63.0 * 0.06), "{true_pct}");
+    assert!(st.fault.is_none());
+}
+
+/// A drive long enough to move a healthy valve twice the stall distance with the feedback not
+/// following is `motor_stalled`, within the bound: the start lag and its tolerance, that
+/// distance and the play at the slowest travel time, and the feedback's delay.
+#[test]
+fn a_drive_the_feedback_does_not_follow_is_motor_stalled_within_the_bound() {
+    let p = ValveParams {
+        start_lag_ms: 150,
+        backlash_pct: 1.0,
+        ..params()
+    };
+    let mut pl = fed(p, truth_like(&p, 1.0), 50.0);
+    pl.run_sampled(2 * S, 50 * MS);
+    pl.truth.stalled = true;
+    pl.command(90.0);
+    // The pause from the start has passed: the drive rises at once.
+    let rose = pl.r.now;
+    pl.run_sampled(20 * S, 50 * MS);
+    let st = pl.r.v.status(pl.r.now);
+    let Some(ValveFault::MotorStalled {
+        cause: StallCause::NoFeedbackMotion(Dir::Open),
+        moved_pct,
+        expected_pct,
+        ..
+    }) = st.fault
+    else {
+        panic!("{st:?}")
+    };
+    assert!(moved_pct.abs() < 1e-9 && expected_pct == 4.0, "{st:?}");
+    let p0 = r_first_open(&pl.r);
+    // (4 % + 1 % play) × 100 s × 1.1, the lag and its tolerance, the feedback's delay and one
+    // sample period.
+    let bound = 5_500 * MS + 150 * MS + 95 * MS + FEEDBACK_DELAY + 50 * MS;
+    assert!(p0.2 - p0.1 <= bound, "{} ms", (p0.2 - p0.1) / MS);
+    assert_eq!(p0.1, rose);
+    assert!(pl.r.v.lines.driving().is_none(), "lines off");
+    assert!(pl.r.v.reset(pl.r.now, 1, &mut |_| {}));
+    assert!(
+        !pl.r.v.status(pl.r.now).referenced,
+        "a cleared stall leaves it unreferenced"
+    );
+}
+
+fn r_first_open(r: &Rig) -> (Dir, Nanos, Nanos) {
+    *r.pulses()
+        .iter()
+        .find(|p| p.0 == Dir::Open)
+        .expect("an opening drive")
+}
+
+/// OSCAT `ACTUATOR_3P`: a travel time measured with the feedback more than 10 % off the
+/// configured one (beyond what the measurement allows) twice in a row is `travel_mismatch`; one
+/// within 10 % is not, and the measured travel and lag are reported.
+#[test]
+fn a_measured_travel_time_off_by_more_than_10_percent_is_travel_mismatch() {
+    let p = ValveParams {
+        start_lag_ms: 100,
+        feedback_tolerance_pct: 0.5,
+        backlash_pct: 0.0,
+        ..params()
+    };
+    for (k, mismatch) in [(1.05, false), (1.3, true)] {
+        let mut pl = fed(p, truth_like(&p, k), 10.0);
+        pl.run_sampled(2 * S, 50 * MS);
+        for t in [40.0, 15.0, 70.0, 20.0, 85.0, 30.0, 60.0, 12.0] {
+            pl.command(t);
+            pl.run_sampled(150 * S, 100 * MS);
+            if pl.r.v.fault().is_some() {
+                break;
+            }
+        }
+        let st = pl.r.v.status(pl.r.now);
+        assert_eq!(
+            matches!(st.fault, Some(ValveFault::TravelMismatch { .. })),
+            mismatch,
+            "{k}: {st:?}"
+        );
+        if !mismatch {
+            for i in 0..2 {
+                let want = [100_000.0, 80_000.0][i] * k;
+                assert!(close(st.measured_travel_ms[i], want, want * 0.02), "{st:?}");
+                assert!(close(st.measured_lag_ms[i], 100.0, 30.0), "{st:?}");
+            }
+        }
+    }
+}
+
+/// A position restored from the state file: `skip_if_restored` starts without a stroke from
+/// its bounds; `close` strokes anyway; `skip_if_restored` without one strokes.
+#[test]
+fn a_restored_position_skips_the_reference_stroke_only_when_asked() {
+    // In motor coordinates, 1 % of play: the stem within 40..45 %, estimated at 42 %.
+    let restored = Restored {
+        position_pct: 42.5,
+        low_pct: 41.0,
+        high_pct: 45.0,
+    };
+    let start = |mode, restored| {
+        let cfg = ValveParams {
+            reference_at_start: mode,
+            backlash_pct: 1.0,
+            ..params()
+        }
+        .validate()
+        .unwrap();
+        let mut r = Rig::new(params());
+        r.v = Valve::start(
+            cfg,
+            0,
+            ValveStart {
+                restored,
+                ..ValveStart::default()
+            },
+        );
+        r.run_for(10 * S);
+        r
+    };
+    let r = start(ReferenceAtStart::SkipIfRestored, Some(restored));
+    assert!(r.trace.is_empty(), "no stroke");
+    let st = r.v.status(r.now);
+    assert!(st.referenced && st.restored, "{st:?}");
+    assert!(close(st.position_pct, 42.0, 1e-9));
+    assert!(close(st.low_pct, 40.0, 1e-9) && close(st.high_pct, 45.0, 1e-9));
+    let r = start(ReferenceAtStart::Close, Some(restored));
+    assert_eq!(
+        r.trace[0],
+        (Dir::Close, Level::High, S),
+        "the stroke, after the pause"
+    );
+    assert_eq!(r.v.status(r.now).activity, Activity::Referencing);
+    let r = start(ReferenceAtStart::SkipIfRestored, None);
+    assert_eq!(r.trace[0].0, Dir::Close);
+    let r = start(ReferenceAtStart::Open, None);
+    assert_eq!(r.trace[0].0, Dir::Open);
+    let r = start(ReferenceAtStart::None, None);
+    assert!(r.trace.is_empty());
+}
+
+/// A valve's lines do not count against `max_simultaneous_on`: its drive rises while other
+/// lines hold every slot, and a channel's slot is not taken by it.
+#[test]
+fn a_valve_does_not_count_against_max_simultaneous_on() {
+    let board = LineBoard::new(3);
+    board.set_max_on(1);
+    let mut v = Valve::new(params().validate().unwrap(), 0);
+    v.seat_on(&board, 0, 1);
+    board.set(2, Level::High);
+    assert!(!board.may_rise(2) || board.is_high(2));
+    let mut edges = Vec::new();
+    v.command(0, 50.0, &mut |e| edges.push(e)).unwrap();
+    v.poll(5 * S, &mut |e| edges.push(e));
+    assert_eq!(edges.len(), 1, "{edges:?}");
+    assert!(board.is_high(0));
+    assert_eq!(board.high_count(), 1, "only the channel's line counts");
+    board.set(2, Level::Low);
+    assert!(board.may_rise(2), "the valve holds no slot");
 }

@@ -91,6 +91,18 @@ pub struct Flags {
     )]
     #[arg(long, value_name = "FILE", action = ArgAction::Append, allow_hyphen_values = true)]
     pub trace: Vec<String>,
+    /// What the files of each trace may hold together, MB; sets the start-up value of
+    /// `trace_max_mb`.
+    #[arg(
+        help = "What the files of each trace may hold together, MB (default 256) [trace_max_mb]"
+    )]
+    #[arg(
+        long = "trace-max-mb",
+        value_name = "MB",
+        value_parser = parse_integer,
+        allow_hyphen_values = true
+    )]
+    pub trace_max_mb: Option<i64>,
     /// GPIO line of a channel, e.g. pw01=17 or pw02=/dev/gpiochip1:4; repeatable; sets the start-up
     /// value of `CH.gpio_chip`, `CH.gpio_line`.
     #[arg(
@@ -274,6 +286,13 @@ impl Flags {
                 "--trace",
             );
         }
+        if let Some(mb) = self.trace_max_mb {
+            push(
+                "trace_max_mb".into(),
+                ParameterValue::Integer(mb),
+                "--trace-max-mb",
+            );
+        }
         for (ch, chip, offset) in &self.lines {
             if let Some(chip) = chip {
                 push(
@@ -340,6 +359,8 @@ mod tests {
             "--trace",
             "a.vcd",
             "--trace=b.csv",
+            "--trace-max-mb",
+            "64",
             "--line",
             "pw01=17",
             "--line=pw02=/dev/gpiochip1:4",
@@ -353,6 +374,7 @@ mod tests {
         .unwrap();
         assert!(f.demo);
         assert_eq!(f.trace, vec!["a.vcd", "b.csv"]);
+        assert_eq!(f.trace_max_mb, Some(64));
         assert_eq!(
             f.lines,
             vec![
@@ -368,6 +390,7 @@ mod tests {
                 "channels",
                 "output",
                 "trace",
+                "trace_max_mb",
                 "pw01.gpio_line",
                 "pw02.gpio_chip",
                 "pw02.gpio_line",
@@ -380,7 +403,8 @@ mod tests {
             ]
         );
         assert_eq!(v[2].value, ParameterValue::String("a.vcd,b.csv".into()));
-        assert_eq!(v[8].value, ParameterValue::Double(37.0));
+        assert_eq!(v[3].value, ParameterValue::Integer(64));
+        assert_eq!(v[9].value, ParameterValue::Double(37.0));
     }
 
     #[test]

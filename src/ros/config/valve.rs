@@ -109,6 +109,9 @@ pub enum ValveError {
         /// What holds it (`the output line of pw01`, `an end switch line`).
         what: ShortStr,
     },
+    /// `state_dir` is not a writable directory.
+    #[error("{0}")]
+    StateDir(String),
     /// A valve's settings refused by the core.
     #[error("valve `{name}`: {source}")]
     Settings {

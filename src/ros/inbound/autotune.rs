@@ -6,20 +6,28 @@
 //! was really on and stops the run on a heater fault, the e-stop, a deactivate or a disable.
 //! The action's task sends the goal and a cancel through the request queue and reads the
 //! core's reports (start, each cycle, the end) that the report thread files in the node state.
-//! One run per channel at a time: a second goal is rejected while one runs.
+//!
+//! The action server ([`ActionServer`]) answers every request as it comes and never waits for
+//! a client: one run per channel at a time, so a goal that comes while a run goes is rejected
+//! at once (the reason in the log); a goal that comes while none does is accepted at once and
+//! sent to the output thread, which starts it within [`START_BY`] of its acceptance or never
+//! (it drops a goal it takes later). Results are kept as the server says (15 minutes, 16 ended
+//! goals).
 //!
 //! A refused goal (no reading yet, the channel not running, a target outside the limits, an
 //! amplitude above `max_duty_pct`, ...) is accepted and then aborted, so the client gets the
 //! reason in the result's `message`.
 
+use crate::clock::monotonic_ns;
 use crate::core::heater::autotune::{Goal, Outcome, Progress, Report, Stop};
 use crate::engine::Input;
 use crate::ros::inbound::heater::HeaterChannel;
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::interface::msg::{AutotuneFeedback, AutotuneGoal, AutotuneResult, MSG_PACKAGE};
+use crate::ros::wire::action::{ActionServer, Event, GoalRequest};
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{info, warn};
-use ros2_client::action::{AsyncActionServer, ExecutingGoalHandle, GoalEndStatus};
+use ros2_client::action::{GoalEndStatus, GoalId};
 use ros2_client::ParameterValue;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -27,15 +35,16 @@ use tokio::task::JoinHandle;
 
 /// The rule that gives the gains, as the result names it.
 pub const RULE: &str = "tyreus_luyben";
-/// How often the task looks for the core's reports.
+/// How often the task looks for the core's reports while a run goes.
 const POLL: Duration = Duration::from_millis(50);
-/// How long the output thread has to answer a goal.
+/// The latest a run starts after its goal was accepted: the output thread drops a goal it
+/// takes later.
+pub const START_BY: Duration = Duration::from_secs(1);
+/// How long the task waits for the output thread's first answer to a goal before it ends the
+/// goal as `lost` (longer than [`START_BY`]: by then the run can no longer start).
 const START_WAIT: Duration = Duration::from_secs(2);
-/// How long the result waits for its client to ask for it.
-const RESULT_WAIT: Duration = Duration::from_secs(30);
 
-type Server = AsyncActionServer<AutotuneGoal, AutotuneResult, AutotuneFeedback>;
-type Executing = ExecutingGoalHandle<AutotuneGoal>;
+type Server = ActionServer<AutotuneGoal, AutotuneResult, AutotuneFeedback>;
 
 /// The autotune action of each channel in `heaters`, and the tasks that serve them.
 pub fn serve_autotune(
@@ -45,14 +54,14 @@ pub fn serve_autotune(
 ) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut tasks = Vec::new();
     for h in heaters {
-        let server = ep
+        let endpoints = ep
             .services()
             .action_server::<AutotuneGoal, AutotuneResult, AutotuneFeedback>(
                 &format!("~/{}/autotune", h.name),
                 MSG_PACKAGE,
                 "Autotune",
             )?;
-        let server = AsyncActionServer::new(server);
+        let server = ActionServer::new(format!("{}: autotune", h.name), endpoints);
         tasks.push(tokio::spawn(serve(
             server,
             Arc::clone(inputs),
@@ -63,46 +72,68 @@ pub fn serve_autotune(
     Ok(tasks)
 }
 
-async fn serve(server: Server, inputs: Arc<Inputs>, ch: usize, name: String) {
+/// The run under way: its goal, the output thread's ticket, and what the task knows of it.
+struct Run {
+    id: GoalId,
+    ticket: u32,
+    apply: bool,
+    started: bool,
+    canceling: bool,
+    /// Whether the cancel reached the output thread's queue (tried again at each poll).
+    cancel_sent: bool,
+    /// When the last report came (or the goal was sent).
+    last: Instant,
+    /// No report for this long: the run is taken as lost.
+    stale: Duration,
+}
+
+async fn serve(mut server: Server, inputs: Arc<Inputs>, ch: usize, name: String) {
+    let mut run: Option<Run> = None;
+    let mut poll_at = Instant::now();
+    let mut expire_at: Option<Instant> = None;
     loop {
-        let handle = match server.receive_new_goal().await {
-            Ok(h) => h,
-            Err(e) => {
-                warn!("{name}: autotune: unreadable goal: {e}");
-                continue;
+        let wake = match (&run, expire_at) {
+            (Some(_), Some(e)) => Some(poll_at.min(e)),
+            (Some(_), None) => Some(poll_at),
+            (None, e) => e,
+        };
+        let timer = async {
+            match wake {
+                Some(t) => tokio::time::sleep_until(t.into()).await,
+                None => std::future::pending().await,
             }
         };
-        let Some(goal) = server.get_new_goal(handle) else {
-            continue;
-        };
-        let accepted = match server.accept_goal(handle).await {
-            Ok(a) => a,
-            Err(e) => {
-                warn!("{name}: autotune: cannot accept the goal: {e:?}");
-                continue;
+        tokio::select! {
+            event = server.next() => match event {
+                Some(Event::Goal(g)) => match &run {
+                    Some(r) => server.reject(g, &format!("a run is under way (goal {:?})", r.id)),
+                    None => {
+                        run = start(&mut server, &inputs, ch, &name, g);
+                        poll_at = Instant::now() + POLL;
+                    }
+                },
+                Some(Event::Cancel(ids)) => {
+                    if let Some(r) = run.as_mut().filter(|r| ids.contains(&r.id) && !r.canceling) {
+                        r.canceling = true;
+                        info!("{name}: autotune cancel requested");
+                        r.cancel_sent = inputs.send(ch, Input::AutotuneCancel(r.ticket)).is_ok();
+                    }
+                }
+                None => {}
+            },
+            _ = timer => {
+                if let Some(r) = run.as_mut() {
+                    if Instant::now() >= poll_at {
+                        poll_at = Instant::now() + POLL;
+                        if let Some((status, result)) = progress(&server, &inputs, ch, &name, r) {
+                            server.end(&r.id, status, result);
+                            run = None;
+                        }
+                    }
+                }
             }
-        };
-        let exec = match server.start_executing_goal(accepted).await {
-            Ok(x) => x,
-            Err(e) => {
-                warn!("{name}: autotune: cannot start the goal: {e:?}");
-                continue;
-            }
-        };
-        let (status, result) = execute(&server, &inputs, ch, &name, goal, exec).await;
-        match tokio::time::timeout(
-            RESULT_WAIT,
-            server.send_result_response(exec, status, result),
-        )
-        .await
-        {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => warn!("{name}: autotune: cannot send the result: {e:?}"),
-            Err(_) => warn!(
-                "{name}: autotune: the client did not ask for its result within {} s",
-                RESULT_WAIT.as_secs()
-            ),
         }
+        expire_at = server.expire();
     }
 }
 
@@ -134,14 +165,17 @@ fn feedback(p: Progress) -> AutotuneFeedback {
     }
 }
 
-async fn execute(
-    server: &Server,
+/// Accepts the goal and sends it to the output thread; `None` when it ended at once (it did
+/// not reach the thread).
+fn start(
+    server: &mut Server,
     inputs: &Inputs,
     ch: usize,
     name: &str,
-    g: AutotuneGoal,
-    exec: Executing,
-) -> (GoalEndStatus, AutotuneResult) {
+    g: GoalRequest<AutotuneGoal>,
+) -> Option<Run> {
+    let (id, g) = server.accept(g);
+    server.execute(&id);
     let amplitude_pct = if g.amplitude_pct == 0.0 {
         param(inputs, name, "max_duty_pct").unwrap_or(100.0)
     } else {
@@ -159,11 +193,21 @@ async fn execute(
     let ticket = inputs.state().reset_ticket();
     // Reports of an earlier run that nobody took.
     inputs.state().take_autotune(ch, 0);
-    if let Err(e) = inputs.send(ch, Input::Autotune { ticket, goal }) {
-        return ended(
+    let start_by = monotonic_ns() + START_BY.as_nanos() as u64;
+    if let Err(e) = inputs.send(
+        ch,
+        Input::Autotune {
+            ticket,
+            goal,
+            start_by,
+        },
+    ) {
+        let (status, result) = ended(
             "refused",
             format!("{name}: the goal did not reach the output thread: {e}"),
         );
+        server.end(&id, status, result);
+        return None;
     }
     info!(
         "{name}: autotune to {} °C, relay {} %, noise band {} °C{}",
@@ -172,56 +216,59 @@ async fn execute(
         goal.noise_band_c,
         if g.apply { ", apply" } else { "" }
     );
-    let (mut started, mut canceling, mut last) = (false, false, Instant::now());
-    loop {
-        for report in inputs.state().take_autotune(ch, ticket) {
-            last = Instant::now();
-            match report {
-                Report::Refused(why) => {
-                    warn!("{name}: autotune refused: {why}");
-                    return ended("refused", format!("{name}: refused: {why}"));
-                }
-                Report::Started => started = true,
-                Report::Progress(p) => {
-                    if let Err(e) = server.publish_feedback(exec, feedback(p)).await {
-                        warn!("{name}: autotune: cannot publish feedback: {e:?}");
-                    }
-                }
-                Report::Finished(o) => return finish(inputs, name, g.apply, canceling, o),
+    Some(Run {
+        id,
+        ticket,
+        apply: g.apply,
+        started: false,
+        canceling: false,
+        cancel_sent: false,
+        last: Instant::now(),
+        stale,
+    })
+}
+
+/// Takes the core's reports of the run: publishes its feedback, and returns how it ended once
+/// it has.
+fn progress(
+    server: &Server,
+    inputs: &Inputs,
+    ch: usize,
+    name: &str,
+    run: &mut Run,
+) -> Option<(GoalEndStatus, AutotuneResult)> {
+    if run.canceling && !run.cancel_sent {
+        run.cancel_sent = inputs.send(ch, Input::AutotuneCancel(run.ticket)).is_ok();
+    }
+    for report in inputs.state().take_autotune(ch, run.ticket) {
+        run.last = Instant::now();
+        match report {
+            Report::Refused(why) => {
+                warn!("{name}: autotune refused: {why}");
+                return Some(ended("refused", format!("{name}: refused: {why}")));
             }
-        }
-        if (!started && last.elapsed() > START_WAIT) || last.elapsed() > stale {
-            let _ = inputs.send(ch, Input::AutotuneCancel(ticket));
-            return ended(
-                "lost",
-                format!("{name}: no report from the output thread; the run was canceled"),
-            );
-        }
-        tokio::select! {
-            _ = tokio::time::sleep(POLL) => {}
-            cancel = server.receive_cancel_request() => match cancel {
-                Ok(c) => {
-                    let mine = c.contains_goal(&exec.goal_id());
-                    let ids = mine.then_some(exec.goal_id()).into_iter();
-                    if let Err(e) = server.respond_to_cancel_requests(&c, ids).await {
-                        warn!("{name}: autotune: cannot answer a cancel: {e}");
-                    }
-                    if mine && !canceling {
-                        canceling = true;
-                        info!("{name}: autotune cancel requested");
-                        let _ = inputs.send(ch, Input::AutotuneCancel(ticket));
-                    }
-                }
-                Err(e) => warn!("{name}: autotune: unreadable cancel request: {e}"),
-            },
-            other = server.receive_new_goal() => {
-                if let Ok(h) = other {
-                    warn!("{name}: autotune goal rejected: a run is under way");
-                    let _ = server.reject_goal(h).await;
-                }
-            }
+            Report::Started => run.started = true,
+            Report::Progress(p) => server.feedback(run.id, feedback(p)),
+            Report::Finished(o) => return Some(finish(inputs, name, run.apply, run.canceling, o)),
         }
     }
+    let quiet = run.last.elapsed();
+    if (!run.started && quiet > START_WAIT) || quiet > run.stale {
+        let _ = inputs.send(ch, Input::AutotuneCancel(run.ticket));
+        let why = if run.started {
+            format!("no report from the output thread for {} s", quiet.as_secs())
+        } else {
+            format!(
+                "the output thread did not start the run within {} s",
+                START_WAIT.as_secs()
+            )
+        };
+        return Some(ended(
+            "lost",
+            format!("{name}: {why}; the run was canceled"),
+        ));
+    }
+    None
 }
 
 /// The result of a run that ended with `o`; with `apply` and gains, sets them as parameters.

@@ -1,7 +1,11 @@
 //! The three-point valves' inputs: each valve is made in the output thread on its two channels'
 //! lines, and `~/valve/<NAME>/position` (`std_msgs/Float64`, percent, 0 = closed) sets its
 //! target. Positions go through the request queue like commands; the core refuses NaN and
-//! infinities (the target in force stays) and clamps the rest to 0..100.
+//! infinities (the target in force stays) and clamps the rest to 0..100. A valve with
+//! `NAME.feedback_topic` subscribes to it (`std_msgs/Float64`, percent, best effort so that
+//! best-effort and reliable publishers both match); `~/valve/<NAME>/reset` (`std_srvs/Trigger`)
+//! asks the output thread to clear a latched fault and answers with its verdict, which the
+//! report side files in [`ValveAnswers`].
 
 //!
 //! End switches (`NAME.open_limit_line`, `NAME.close_limit_line`) are GPIO input lines,
@@ -9,17 +13,19 @@
 //! exit 2) and read by one thread per line ([`spawn_switch_readers`]): the level at start, then
 //! every change, each sent as `Input::ValveSwitch` through the request queue.
 
-use crate::core::valve::Dir;
+use crate::core::valve::{Dir, ResetAnswer, ValveFault, ValveStart};
 use crate::core::ValveConfig;
 use crate::engine::Input;
 use crate::output::gpio_input::{InputError, InputLine, InputRequest};
 use crate::ros::config::valve::{LimitLine, ValveLimits, ValveSpec};
 use crate::ros::inbound::inputs::Inputs;
-use crate::ros::interface::msg;
+use crate::ros::interface::msg::{self, TriggerResponse};
+use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{info, warn};
-use std::sync::Arc;
-use std::time::Duration;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 use tokio::task::JoinHandle;
 
 /// One requested end switch line.
@@ -141,29 +147,101 @@ fn read_switch(s: SwitchLine, inputs: &Inputs) {
     }
 }
 
+/// One valve to make: its channels, its settings, what it starts with, its feedback topic
+/// (empty: none).
+#[derive(Debug, Clone)]
+pub struct ValveRun {
+    /// Name and channels.
+    pub spec: ValveSpec,
+    /// Settings.
+    pub config: ValveConfig,
+    /// Restored position, wired switches, feedback.
+    pub start: ValveStart,
+    /// The `std_msgs/Float64` feedback topic, as configured (relative names resolve in the
+    /// node's namespace, and remapping applies); empty for none.
+    pub feedback_topic: String,
+}
+
+/// How long `~/valve/<NAME>/reset` waits for the output thread's answer.
+pub const VALVE_RESET_WAIT: Duration = Duration::from_secs(1);
+
+/// One valve's last reset answer and the fault it reported last.
+type AnswerSlot = (Option<ResetAnswer>, Option<ValveFault>);
+
+/// What the report side knows of each valve's resets: the last answer with its ticket, and
+/// the fault latched before it (for the service's message). The lock is held for a copy.
+#[derive(Debug)]
+pub struct ValveAnswers {
+    slots: Box<[Mutex<AnswerSlot>]>,
+    next: AtomicU32,
+}
+
+impl ValveAnswers {
+    /// Slots for `valves` valves.
+    pub fn new(valves: usize) -> ValveAnswers {
+        ValveAnswers {
+            slots: (0..valves).map(|_| Mutex::new((None, None))).collect(),
+            next: AtomicU32::new(1),
+        }
+    }
+
+    /// A fresh ticket.
+    pub fn ticket(&self) -> u32 {
+        self.next.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Valve `k`'s snapshot came with `fault` latched and `reset` the last answer.
+    pub fn note(&self, k: usize, fault: Option<ValveFault>, reset: Option<ResetAnswer>) {
+        if let Some(slot) = self.slots.get(k) {
+            *crate::output::safety::lock_ignore_poison(slot) = (reset, fault);
+        }
+    }
+
+    /// The fault valve `k` has latched, as last reported.
+    pub fn fault(&self, k: usize) -> Option<ValveFault> {
+        let slot = self.slots.get(k)?;
+        crate::output::safety::lock_ignore_poison(slot).1
+    }
+
+    /// The answer to the reset with `ticket` of valve `k`, once it has come.
+    pub fn answer(&self, k: usize, ticket: u32) -> Option<bool> {
+        let slot = self.slots.get(k)?;
+        match crate::output::safety::lock_ignore_poison(slot).0 {
+            Some(a) if a.ticket == ticket => Some(a.cleared),
+            _ => None,
+        }
+    }
+}
+
 /// Makes each valve of `valves` (numbered in order) in the output thread and listens on its
-/// `~/valve/<NAME>/position`.
+/// `~/valve/<NAME>/position`, its feedback topic and its `~/valve/<NAME>/reset`.
 pub fn listen_valves(
     ep: &mut Endpoints<'_>,
     inputs: &Arc<Inputs>,
-    valves: &[(ValveSpec, ValveConfig)],
+    valves: &[ValveRun],
+    answers: &Arc<ValveAnswers>,
 ) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut tasks = Vec::new();
-    for (k, (v, config)) in valves.iter().enumerate() {
+    for (k, run) in valves.iter().enumerate() {
+        let (v, config) = (&run.spec, &run.config);
         let p = config.params;
         info!(
-            "valve {}: {} opens, {} closes; travel {} ms open, {} ms close",
+            "valve {}: {} opens, {} closes; travel {} ms open, {} ms close, start lag {} ms, \
+             backlash {} %",
             v.name,
             inputs.name(v.open),
             inputs.name(v.close),
             p.travel_open_ms,
-            p.travel_close_ms
+            p.travel_close_ms,
+            p.start_lag_ms,
+            p.backlash_pct
         );
         let _ = inputs.send(
             v.open,
             Input::AddValve {
                 close: v.close,
                 config: *config,
+                start: run.start,
             },
         );
         let b = Arc::clone(inputs);
@@ -177,6 +255,87 @@ pub fn listen_valves(
                 },
             );
         })?);
+        if !run.feedback_topic.is_empty() {
+            info!(
+                "valve {}: position feedback from {}",
+                v.name, run.feedback_topic
+            );
+            let b = Arc::clone(inputs);
+            tasks.push(ep.listen_with(
+                &run.feedback_topic,
+                qos::sensor(),
+                move |m: msg::Float64| {
+                    let _ = b.send(
+                        0,
+                        Input::ValveFeedback {
+                            valve: k,
+                            pct: m.data,
+                        },
+                    );
+                },
+            )?);
+        }
+        let (b, a, name) = (Arc::clone(inputs), Arc::clone(answers), v.name.clone());
+        let reset = move |_: msg::EmptyRequest| reset(&b, &a, k, &name);
+        let mut maker = ep.services();
+        tasks.push(maker.serve(
+            &format!("~/valve/{}/reset", v.name),
+            "std_srvs",
+            "Trigger",
+            reset,
+        )?);
     }
     Ok(tasks)
+}
+
+/// `~/valve/<NAME>/reset`: asks the output thread to clear valve `k`'s fault and answers with
+/// its verdict (refused while an implausible end switch stays active).
+fn reset(inputs: &Inputs, answers: &ValveAnswers, k: usize, name: &str) -> TriggerResponse {
+    let refuse = |message: String| TriggerResponse {
+        success: false,
+        message,
+    };
+    let fault = answers.fault(k);
+    let ticket = answers.ticket();
+    if let Err(e) = inputs.send(0, Input::ValveReset { valve: k, ticket }) {
+        return refuse(format!("the reset did not reach the output thread: {e}"));
+    }
+    let start = Instant::now();
+    loop {
+        if let Some(cleared) = answers.answer(k, ticket) {
+            let what = fault.map_or("", |f| f.name());
+            return match (cleared, fault) {
+                (true, Some(_)) => {
+                    info!("valve {name}: {what} cleared by a reset");
+                    TriggerResponse {
+                        success: true,
+                        message: format!(
+                            "valve {name}: {what} cleared; the valve is unreferenced and \
+                             waits for a fresh position command"
+                        ),
+                    }
+                }
+                (true, None) => TriggerResponse {
+                    success: true,
+                    message: format!("valve {name}: no fault latched"),
+                },
+                (false, _) => {
+                    let f = answers.fault(k).or(fault);
+                    warn!("valve {name}: reset refused: the cause lasts");
+                    refuse(format!(
+                        "valve {name}: reset refused: {} lasts (an end switch is still active)",
+                        f.map_or("the fault", |f| f.name())
+                    ))
+                }
+            };
+        }
+        if start.elapsed() >= VALVE_RESET_WAIT {
+            return refuse(format!(
+                "valve {name}: no answer from the output thread within {} ms; nothing changed \
+                 that is known",
+                VALVE_RESET_WAIT.as_millis()
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
 }

@@ -263,6 +263,12 @@ pub struct ValveState {
     pub run_since_reference_s: f64,
     /// The estimate's uncertainty, percent.
     pub uncertainty_pct: f64,
+    /// The lowest position the valve can be at, percent.
+    pub position_low_pct: f64,
+    /// The highest position the valve can be at, percent.
+    pub position_high_pct: f64,
+    /// The position was restored from the state file and no reference came since.
+    pub restored: bool,
     /// A recalibration is due.
     pub recalibration_due: bool,
     /// The command timeout acted.
@@ -273,6 +279,11 @@ pub struct ValveState {
     pub open_switch: bool,
     /// The close end switch is active.
     pub close_switch: bool,
+    /// The latched fault (`motor_stalled`, `switch_implausible`, `travel_mismatch`), empty
+    /// when none.
+    pub fault: String,
+    /// The last feedback sample, percent; NaN without one.
+    pub feedback_pct: f64,
     /// Moves completed since start.
     pub moves: u64,
 }

@@ -14,12 +14,24 @@
 //! sees any of it. The writer thread does all file I/O: chunks of at most [`CHUNK_SIZE`]
 //! bytes (LZ4), each closed and written out at least every [`FLUSH_PERIOD`] while messages
 //! come, so after a SIGKILL a reader in recovery mode reads everything up to the last second.
-//! When the node stops, the writer closes the file with its summary and footer. A file that
-//! reaches [`MAX_CHUNKS_PER_FILE`] chunks is closed and the trace goes on in `<stem>.1.mcap`,
-//! `<stem>.2.mcap`, ...: the summary's index, kept in memory until the file is closed, stays
-//! bounded.
+//! When the node stops, the writer closes the file with its summary and footer.
+//!
+//! A trace keeps to its size limit by rotation, as the VCD and CSV traces do
+//! ([`crate::output::trace_files`]): before a message would take the file written beyond its
+//! share of `trace_max_mb` once its open chunk and summary are written, the file is closed
+//! whole, becomes `<stem>.1.mcap` (the older ones move up, the oldest of four is deleted), and
+//! the trace goes on in a new file at its path, with the schemas and channels again and the
+//! sequences from 1. So does a file that reaches [`MAX_CHUNKS_PER_FILE`] chunks: the summary's
+//! index, kept in memory until the file is closed, stays bounded. A file that cannot be
+//! written (a full disk) is told at once ([`TraceHealth`]), its messages counted lost, and a
+//! new file tried every second; a file deleted while written is begun again at its path.
 
-use crate::output::TraceError;
+use crate::output::trace::TraceFormat;
+use crate::output::trace_files::{
+    self, Counted, TraceHealth, TraceLimit, TraceSlot, TraceState, CHECK_PERIOD_NS,
+    RETRY_PERIOD_NS, TRACE_FILES,
+};
+use crate::output::{Nanos, TraceError};
 use crate::ros::interface::schema;
 use log::warn;
 use mcap::records::MessageHeader;
@@ -93,9 +105,23 @@ pub struct McapTrace {
 
 impl McapTrace {
     /// Creates (truncates) every file of `paths`, writes its header, schemas and channels and
-    /// flushes them (a valid, empty trace from the start), and starts the writer thread.
-    pub fn create(paths: &[PathBuf], topics: Vec<Topic>) -> Result<McapTrace, TraceError> {
-        McapTrace::create_with(paths, topics, FLUSH_PERIOD, MAX_CHUNKS_PER_FILE)
+    /// flushes them (a valid, empty trace from the start), and starts the writer thread. Each
+    /// trace keeps to `limit` (a regular file: a pipe or a device is written as it is) and
+    /// tells its state in `health`.
+    pub fn create(
+        paths: &[PathBuf],
+        topics: Vec<Topic>,
+        limit: TraceLimit,
+        health: &TraceHealth,
+    ) -> Result<McapTrace, TraceError> {
+        McapTrace::create_with(
+            paths,
+            topics,
+            FLUSH_PERIOD,
+            MAX_CHUNKS_PER_FILE,
+            limit,
+            health,
+        )
     }
 
     /// [`McapTrace::create`] with another flush period and number of chunks per file.
@@ -104,10 +130,18 @@ impl McapTrace {
         topics: Vec<Topic>,
         flush_period: Duration,
         max_chunks: u64,
+        limit: TraceLimit,
+        health: &TraceHealth,
     ) -> Result<McapTrace, TraceError> {
         let mut files = Vec::with_capacity(paths.len());
         for path in paths {
-            files.push(TraceFile::create(path.clone(), &topics, max_chunks)?);
+            files.push(TraceFile::create(
+                path.clone(),
+                &topics,
+                max_chunks,
+                limit,
+                health,
+            )?);
         }
         let (tx, rx) = mpsc::sync_channel(QUEUE_CAPACITY);
         let dropped = Arc::new(AtomicU64::new(0));
@@ -179,26 +213,52 @@ impl Drop for McapTrace {
     }
 }
 
-/// One MCAP file being written, and the files after it when it fills up.
+/// What the MCAP writer writes to: the file, buffered, with what went through counted.
+type Out = Counted<BufWriter<File>>;
+
+/// The bytes a message record adds to its chunk beyond its data: opcode, record length,
+/// channel id, sequence, log and publish time.
+const MESSAGE_RECORD_BYTES: u64 = 31;
+
+/// The most of an open chunk's uncompressed bytes not yet in the file, bytes: the writer
+/// writes a chunk to the file as LZ4 compresses it, and LZ4 holds back at most a block
+/// (64 KiB); twice that, to be sure.
+const LZ4_HELD: u64 = 2 * 64 * 1024;
+
+/// One MCAP trace: the file written at its path and the older ones (see
+/// [`crate::output::trace_files`]).
 struct TraceFile {
-    /// The path given (the first file).
+    /// The path given: the file written.
     base: PathBuf,
-    /// The file written now.
-    path: PathBuf,
-    /// Files closed so far because they were full.
-    rotations: u32,
-    writer: Option<mcap::Writer<BufWriter<File>>>,
+    writer: Option<mcap::Writer<Out>>,
+    /// Bytes the writer has written to the file written, buffered or not.
+    written: Arc<AtomicU64>,
+    /// A second handle on the file written, for the checks; `None` for a pipe or a device.
+    handle: Option<File>,
     /// The MCAP channel id of each topic.
     channels: Vec<u16>,
     /// The last sequence number written per topic.
     sequences: Vec<u32>,
-    /// Messages written since the last flush.
-    unflushed: bool,
+    /// The open chunk's messages and their uncompressed bytes: what closing it writes, at
+    /// most, with their index.
+    pending_messages: u64,
+    pending_bytes: u64,
     chunks: u64,
     /// Chunks after which the file is closed and the next one begun.
     max_chunks: u64,
-    /// Set after the first error: the file is left as it is from then on.
-    failed: bool,
+    limit: TraceLimit,
+    /// The bytes of the header, schemas and channels: the summary repeats the last two.
+    header_bytes: u64,
+    /// The older files' sizes, bytes.
+    older: [Option<u64>; TRACE_FILES as usize - 1],
+    /// Messages in the file written.
+    messages: u64,
+    /// Where its state is told, and the messages lost since it was last told.
+    slot: TraceSlot,
+    lost: u64,
+    /// When the next check is due, and the next try of a failed trace, monotonic ns.
+    next_check: Nanos,
+    next_retry: Nanos,
 }
 
 fn write_options() -> mcap::WriteOptions {
@@ -209,97 +269,166 @@ fn write_options() -> mcap::WriteOptions {
         .chunk_size(Some(CHUNK_SIZE))
 }
 
+/// The I/O error inside an MCAP error, or the MCAP error as one.
+fn io_error(e: mcap::McapError) -> std::io::Error {
+    match e {
+        mcap::McapError::Io(e) => e,
+        e => std::io::Error::other(e),
+    }
+}
+
 fn mcap_io(path: &Path, e: mcap::McapError) -> TraceError {
     TraceError::Write {
         path: path.to_path_buf(),
-        source: std::io::Error::other(e),
+        source: io_error(e),
     }
-}
-
-/// The path of the file after `rotations` full ones: `run.mcap`, `run.1.mcap`, ...
-pub fn rotated_path(base: &Path, rotations: u32) -> PathBuf {
-    if rotations == 0 {
-        return base.to_path_buf();
-    }
-    let stem = base.file_stem().unwrap_or_default().to_string_lossy();
-    let ext = base.extension().unwrap_or_default().to_string_lossy();
-    base.with_file_name(format!("{stem}.{rotations}.{ext}"))
 }
 
 impl TraceFile {
-    fn create(path: PathBuf, topics: &[Topic], max_chunks: u64) -> Result<TraceFile, TraceError> {
-        let mut f = TraceFile {
-            base: path.clone(),
-            path,
-            rotations: 0,
-            writer: None,
-            channels: Vec::new(),
-            sequences: vec![0; topics.len()],
-            unflushed: false,
-            chunks: 0,
-            max_chunks,
-            failed: false,
-        };
-        f.open(topics)?;
-        Ok(f)
-    }
-
-    /// Opens `self.path` and writes the header, the schemas and the channels.
-    fn open(&mut self, topics: &[Topic]) -> Result<(), TraceError> {
-        let file = File::create(&self.path).map_err(|source| TraceError::Create {
-            path: self.path.clone(),
+    fn create(
+        path: PathBuf,
+        topics: &[Topic],
+        max_chunks: u64,
+        limit: TraceLimit,
+        health: &TraceHealth,
+    ) -> Result<TraceFile, TraceError> {
+        let file = File::create(&path).map_err(|source| TraceError::Create {
+            path: path.clone(),
             source,
         })?;
-        let mut w = write_options()
-            .create(BufWriter::new(file))
-            .map_err(|e| mcap_io(&self.path, e))?;
+        let regular = trace_files::is_regular(&file);
+        let slot = health.register(TraceState::new(
+            &path,
+            TraceFormat::Mcap,
+            if regular { limit.max_bytes } else { 0 },
+        ));
+        let mut f = TraceFile {
+            older: trace_files::older_sizes(&path),
+            base: path,
+            writer: None,
+            written: Arc::new(AtomicU64::new(0)),
+            handle: None,
+            channels: Vec::new(),
+            sequences: vec![0; topics.len()],
+            pending_messages: 0,
+            pending_bytes: 0,
+            chunks: 0,
+            max_chunks,
+            limit,
+            header_bytes: 0,
+            messages: 0,
+            slot,
+            lost: 0,
+            next_check: 0,
+            next_retry: 0,
+        };
+        f.begin(file, topics)
+            .map_err(|e| mcap_io(&f.base, e))
+            .map(|()| f)
+    }
+
+    /// Starts the file `file` (at the path) with the header, the schemas and the channels.
+    fn begin(&mut self, file: File, topics: &[Topic]) -> Result<(), mcap::McapError> {
+        self.handle = match trace_files::is_regular(&file) {
+            true => Some(file.try_clone()?),
+            false => None,
+        };
+        let out = Counted::new(BufWriter::new(file));
+        self.written = out.counter();
+        let mut w = write_options().create(out)?;
         let mut channels = Vec::with_capacity(topics.len());
         for t in topics {
-            let text = schema::ros2msg(t.package, t.type_name).ok_or_else(|| {
-                mcap_io(
-                    &self.path,
-                    mcap::McapError::UnknownSchema(t.name.clone(), 0),
-                )
-            })?;
-            let id = w
-                .add_schema(
-                    &schema::schema_name(t.package, t.type_name),
-                    schema::SCHEMA_ENCODING,
-                    text.as_bytes(),
-                )
-                .map_err(|e| mcap_io(&self.path, e))?;
-            let ch = w
-                .add_channel(id, &t.name, MESSAGE_ENCODING, &BTreeMap::new())
-                .map_err(|e| mcap_io(&self.path, e))?;
-            channels.push(ch);
+            let text = schema::ros2msg(t.package, t.type_name)
+                .ok_or_else(|| mcap::McapError::UnknownSchema(t.name.clone(), 0))?;
+            let id = w.add_schema(
+                &schema::schema_name(t.package, t.type_name),
+                schema::SCHEMA_ENCODING,
+                text.as_bytes(),
+            )?;
+            channels.push(w.add_channel(id, &t.name, MESSAGE_ENCODING, &BTreeMap::new())?);
         }
-        w.flush().map_err(|e| mcap_io(&self.path, e))?;
+        w.flush()?;
+        self.header_bytes = self.written();
         self.writer = Some(w);
         self.channels = channels;
+        self.sequences.iter_mut().for_each(|s| *s = 0);
         // The flush above closed the chunk that holds the schemas and channels.
         self.chunks = 1;
-        self.unflushed = false;
+        self.messages = 0;
+        self.pending_messages = 0;
+        self.pending_bytes = 0;
         Ok(())
     }
 
-    fn fail(&mut self, e: TraceError) {
-        warn!(
-            "MCAP trace: {}; nothing more is written to it",
-            crate::error::chain(&e)
-        );
-        self.failed = true;
+    /// Opens a new file at the path and begins it; a failure is told.
+    fn restart(&mut self, topics: &[Topic]) -> bool {
+        let file = match File::create(&self.base) {
+            Ok(f) => f,
+            Err(e) => {
+                self.fail("cannot create", e);
+                return false;
+            }
+        };
+        match self.begin(file, topics) {
+            Ok(()) => true,
+            Err(e) => {
+                self.fail("cannot write", io_error(e));
+                false
+            }
+        }
+    }
+
+    /// A write failed with `e`: nothing more goes to this file; the failure is told at once,
+    /// a new file tried every [`RETRY_PERIOD_NS`].
+    fn fail(&mut self, what: &str, e: std::io::Error) {
+        let text = format!("{what}: {}", trace_files::io_reason(&e));
         // Dropping the writer tries to write the summary of what is in the file.
         self.writer = None;
+        let now = crate::clock::monotonic_ns();
+        self.next_retry = now.saturating_add(RETRY_PERIOD_NS);
+        let lost = std::mem::take(&mut self.lost);
+        self.slot.update(|s| {
+            s.lost += lost;
+            if s.failing.as_deref() != Some(text.as_str()) {
+                s.problem(text.clone(), now);
+            }
+            s.failing = Some(text);
+        });
+    }
+
+    /// The most the file written can come to once its open chunk and its summary are
+    /// written, with a message of `record` uncompressed bytes more, bytes: what of the open
+    /// chunk is not in the file yet ([`LZ4_HELD`] at most; LZ4 never grows data by more than
+    /// 1/255 and a frame's few bytes), each message's index entry (16 bytes, written when the
+    /// chunk closes), and the summary, which repeats the schemas and channels and indexes each
+    /// chunk.
+    fn projected(&self, record: u64) -> u64 {
+        if self.writer.is_none() {
+            return 0;
+        }
+        let n = self.channels.len() as u64;
+        let held = (self.pending_bytes + record).min(LZ4_HELD + record);
+        let open_chunk = held + held / 255 + 128 + 16 * (self.pending_messages + 1) + 16 * n;
+        let summary = self.header_bytes + (self.chunks + 2) * (128 + 10 * n) + 512;
+        self.written() + open_chunk + summary
     }
 
     fn write(&mut self, item: &Item, topics: &[Topic]) {
-        if self.failed {
+        if self.writer.is_none() {
+            self.lost += 1;
             return;
         }
-        if self.chunks >= self.max_chunks {
-            self.rotate(topics);
+        let record = MESSAGE_RECORD_BYTES + item.data.len() as u64;
+        let too_big = self.handle.is_some() && self.projected(record) > self.limit.file_bytes();
+        if self.messages > 0 && (self.chunks >= self.max_chunks || too_big) {
+            self.rotate(topics, true);
+        } else if self.pending_bytes + record > CHUNK_SIZE {
+            // Closed here rather than by the writer, so the count of the open chunk stays
+            // true.
+            self.flush();
         }
         let Some(w) = self.writer.as_mut() else {
+            self.lost += 1;
             return;
         };
         let seq = &mut self.sequences[item.topic];
@@ -311,17 +440,26 @@ impl TraceFile {
             publish_time: item.time_ns,
         };
         match w.write_to_known_channel(&header, &item.data) {
-            Ok(()) => self.unflushed = true,
+            Ok(()) => {
+                self.pending_messages += 1;
+                self.pending_bytes += record;
+                self.messages += 1;
+            }
             Err(e) => {
-                let e = mcap_io(&self.path, e);
-                self.fail(e);
+                self.lost += 1;
+                self.fail("cannot write", io_error(e));
             }
         }
     }
 
+    /// Bytes written to the file written so far, buffered or not.
+    fn written(&self) -> u64 {
+        self.written.load(Ordering::Relaxed)
+    }
+
     /// Closes the open chunk and writes it out, if anything was written since the last flush.
     fn flush(&mut self) {
-        if self.failed || !self.unflushed {
+        if self.pending_messages == 0 {
             return;
         }
         let Some(w) = self.writer.as_mut() else {
@@ -329,51 +467,112 @@ impl TraceFile {
         };
         match w.flush() {
             Ok(()) => {
-                self.unflushed = false;
+                self.pending_messages = 0;
+                self.pending_bytes = 0;
                 self.chunks += 1;
             }
-            Err(e) => {
-                let e = mcap_io(&self.path, e);
-                self.fail(e);
-            }
+            Err(e) => self.fail("cannot write", io_error(e)),
         }
     }
 
-    /// Closes the file with its summary and footer.
-    fn finish(&mut self) {
-        if self.failed {
-            return;
-        }
+    /// Closes the file with its summary and footer; `false` if that failed (and was told).
+    fn finish(&mut self) -> bool {
         if let Some(mut w) = self.writer.take() {
             let r = w.finish().and_then(|_| {
                 use std::io::Write;
                 w.into_inner().flush().map_err(mcap::McapError::from)
             });
             if let Err(e) = r {
-                let e = mcap_io(&self.path, e);
-                self.fail(e);
+                self.fail("cannot write", io_error(e));
+                return false;
             }
         }
+        true
     }
 
-    /// Closes the full file and goes on in the next one.
-    fn rotate(&mut self, topics: &[Topic]) {
-        self.finish();
-        if self.failed {
+    /// Closes the file written whole, moves the older ones up (the oldest deleted) and goes
+    /// on in a new file at the path. `full`: because the file is full (its share of the limit,
+    /// or its most chunks; counted as a rotation), not to keep a failed file beside the new
+    /// one.
+    fn rotate(&mut self, topics: &[Topic], full: bool) {
+        if !self.finish() {
             return;
         }
-        self.rotations += 1;
-        self.path = rotated_path(&self.base, self.rotations);
-        log::info!(
-            "MCAP trace: {} holds {} chunks; going on in {}",
-            rotated_path(&self.base, self.rotations - 1).display(),
-            self.max_chunks,
-            self.path.display()
+        let dropped = match trace_files::shift_files(&self.base) {
+            Ok(d) => d,
+            Err(e) => {
+                self.fail("cannot rotate", e);
+                return;
+            }
+        };
+        self.older = trace_files::older_sizes(&self.base);
+        self.slot.update(|s| {
+            s.rotations += u64::from(full);
+            s.files_dropped += u64::from(dropped);
+        });
+        log::debug!(
+            "MCAP trace: {} closed at {} chunks, now {}; going on in a new {}",
+            self.base.display(),
+            self.chunks,
+            trace_files::rotated_path(&self.base, 1).display(),
+            self.base.display()
         );
-        self.sequences.iter_mut().for_each(|s| *s = 0);
-        if let Err(e) = self.open(topics) {
-            self.fail(e);
+        self.restart(topics);
+    }
+
+    /// The checks due at `now`: a file deleted or replaced while written begins again at its
+    /// path; a failed one tries a new file every [`RETRY_PERIOD_NS`]; its file system's room;
+    /// then its state is told.
+    fn check(&mut self, now: Nanos, topics: &[Topic]) {
+        if now >= self.next_check && self.handle.is_some() {
+            self.next_check = now.saturating_add(CHECK_PERIOD_NS);
+            let gone = self.writer.is_some()
+                && self
+                    .handle
+                    .as_ref()
+                    .is_some_and(|h| !trace_files::still_at(h, &self.base));
+            if gone {
+                self.slot.update(|s| {
+                    s.reopened += 1;
+                    s.problem(
+                        "the file was deleted or replaced while written; begun again at its path"
+                            .into(),
+                        now,
+                    );
+                });
+                // Its summary goes to the deleted file, which closes and frees its space.
+                self.writer = None;
+                self.restart(topics);
+            } else if self.writer.is_none() && now >= self.next_retry {
+                // A file that holds messages is kept: the new one comes after it.
+                let begun = if self.messages > 0 {
+                    self.rotate(topics, false);
+                    self.writer.is_some()
+                } else {
+                    self.restart(topics)
+                };
+                if begun {
+                    self.slot.update(|s| s.failing = None);
+                }
+            }
+            let no_room = self.handle.as_ref().is_some_and(trace_files::no_room);
+            self.slot.update(|s| {
+                if no_room && !s.no_room {
+                    s.problem("its file system is full".into(), now);
+                }
+                s.no_room = no_room;
+            });
         }
+        let lost = std::mem::take(&mut self.lost);
+        // The file written as far as written (its summary too, once closed).
+        let written = self.written();
+        let older = self.older.iter().flatten().sum::<u64>();
+        let files = 1 + self.older.iter().flatten().count() as u32;
+        self.slot.update(|s| {
+            s.lost += lost;
+            s.bytes = written + older;
+            s.files = files;
+        });
     }
 }
 
@@ -386,8 +585,9 @@ fn writer_loop(
 ) {
     let mut last_flush = Instant::now();
     let mut reported_dropped = 0;
+    let check = Duration::from_nanos(CHECK_PERIOD_NS);
     loop {
-        let wait = flush_period.saturating_sub(last_flush.elapsed());
+        let wait = flush_period.saturating_sub(last_flush.elapsed()).min(check);
         match rx.recv_timeout(wait) {
             Ok(item) => {
                 for f in &mut files {
@@ -409,9 +609,14 @@ fn writer_loop(
                 reported_dropped = d;
             }
         }
+        let now = crate::clock::monotonic_ns();
+        for f in &mut files {
+            f.check(now, &topics);
+        }
     }
     for f in &mut files {
         f.finish();
+        f.check(crate::clock::monotonic_ns(), &topics);
     }
     let d = dropped.load(Ordering::Relaxed);
     if d > 0 {
@@ -480,6 +685,17 @@ mod tests {
         }
     }
 
+    /// A trace of [`topics`] at `path`, with the default limit.
+    fn create(path: &Path) -> McapTrace {
+        McapTrace::create(
+            &[path.to_path_buf()],
+            topics(),
+            TraceLimit::default(),
+            &TraceHealth::new(),
+        )
+        .unwrap()
+    }
+
     /// Decodes CDR bytes as a subscriber of the node does.
     fn decode<M: DeserializeOwned>(bytes: &[u8]) -> M {
         let payload =
@@ -502,18 +718,10 @@ mod tests {
     }
 
     #[test]
-    fn rotated_paths_number_the_files_after_the_first() {
-        let p = Path::new("/tmp/x/run.mcap");
-        assert_eq!(rotated_path(p, 0), p);
-        assert_eq!(rotated_path(p, 1), Path::new("/tmp/x/run.1.mcap"));
-        assert_eq!(rotated_path(p, 12), Path::new("/tmp/x/run.12.mcap"));
-    }
-
-    #[test]
     fn a_trace_reads_back_with_schemas_channels_and_every_message() {
         let tmp = tempfile::tempdir().unwrap();
         let path = tmp.path().join("run.mcap");
-        let trace = McapTrace::create(std::slice::from_ref(&path), topics()).unwrap();
+        let trace = create(&path);
         let edges: Vec<OutputEdge> = (1..=50).map(|s| edge(s, s % 2 == 1)).collect();
         let core = crate::core::Channel::new(Default::default(), 0).status(0);
         let status = status_msg(0, &core, 0, 1_700_000_000_000_000_123);
@@ -579,7 +787,7 @@ mod tests {
     fn a_full_queue_drops_and_counts_without_waiting() {
         let tmp = tempfile::tempdir().unwrap();
         let path = tmp.path().join("run.mcap");
-        let trace = McapTrace::create(std::slice::from_ref(&path), topics()).unwrap();
+        let trace = create(&path);
         let n = QUEUE_CAPACITY as u64 * 8;
         let t0 = Instant::now();
         for s in 1..=n {
@@ -598,7 +806,7 @@ mod tests {
     fn chunks_are_written_out_while_the_trace_is_open() {
         let tmp = tempfile::tempdir().unwrap();
         let path = tmp.path().join("run.mcap");
-        let trace = McapTrace::create(std::slice::from_ref(&path), topics()).unwrap();
+        let trace = create(&path);
         for s in 1..=10 {
             trace.record(0, s, &edge(s as u64, true));
         }
@@ -622,53 +830,129 @@ mod tests {
         trace.finish();
     }
 
+    /// The files of a trace at `path`, newest first, each read whole: (path, its messages'
+    /// sequences per topic in order, its chunks).
+    fn read_files(path: &Path) -> Vec<(PathBuf, Vec<u32>, usize)> {
+        (0..TRACE_FILES)
+            .map(|k| trace_files::rotated_path(path, k))
+            .filter(|p| p.exists())
+            .map(|p| {
+                let bytes = std::fs::read(&p).unwrap();
+                assert!(
+                    bytes.ends_with(mcap::MAGIC),
+                    "{} is not closed",
+                    p.display()
+                );
+                let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
+                assert_eq!(summary.channels.len(), 3, "every file has every channel");
+                let seqs: Vec<u32> = mcap::MessageStream::new(&bytes)
+                    .unwrap()
+                    .map(|m| m.unwrap().sequence)
+                    .collect();
+                assert_eq!(seqs, (1..=seqs.len() as u32).collect::<Vec<_>>());
+                (p, seqs, summary.chunk_indexes.len())
+            })
+            .collect()
+    }
+
     #[test]
     fn a_full_file_is_closed_whole_and_the_trace_goes_on_in_the_next() {
         let tmp = tempfile::tempdir().unwrap();
         let path = tmp.path().join("run.mcap");
         let period = Duration::from_millis(20);
-        let trace =
-            McapTrace::create_with(std::slice::from_ref(&path), topics(), period, 3).unwrap();
-        // One message per flush period: a chunk each, three chunks a file.
-        let sent = 10;
+        let health = TraceHealth::new();
+        let trace = McapTrace::create_with(
+            std::slice::from_ref(&path),
+            topics(),
+            period,
+            3,
+            TraceLimit::default(),
+            &health,
+        )
+        .unwrap();
+        // One message per flush period: a chunk each, three chunks a file (the first holds
+        // the schemas and channels): two messages a file, three files.
+        let sent = 6;
         for s in 1..=sent {
             trace.record(0, s, &edge(s as u64, true));
             std::thread::sleep(period * 3);
         }
         trace.finish();
-        let mut total = 0;
-        let mut files = 0;
-        for k in 0.. {
-            let p = rotated_path(&path, k);
-            if !p.exists() {
-                break;
-            }
-            files += 1;
-            let bytes = std::fs::read(&p).unwrap();
-            assert!(
-                bytes.ends_with(mcap::MAGIC),
-                "{} is not closed",
-                p.display()
-            );
-            let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
-            assert!(summary.chunk_indexes.len() <= 3, "{}", p.display());
-            assert_eq!(summary.channels.len(), 3, "every file has every channel");
-            let seqs: Vec<u32> = mcap::MessageStream::new(&bytes)
-                .unwrap()
-                .map(|m| m.unwrap().sequence)
-                .collect();
-            assert_eq!(seqs, (1..=seqs.len() as u32).collect::<Vec<_>>());
-            total += seqs.len();
-        }
-        assert!(files >= 3, "{files} file(s)");
+        let files = read_files(&path);
+        assert_eq!(files.len(), 3, "{files:?}");
+        assert!(files.iter().all(|(_, _, chunks)| *chunks <= 3), "{files:?}");
+        let total: usize = files.iter().map(|(_, s, _)| s.len()).sum();
         assert_eq!(total, sent as usize);
+        let state = &health.snapshot()[0];
+        assert_eq!((state.files, state.files_dropped, state.lost), (3, 0, 0));
+    }
+
+    #[test]
+    fn rotation_keeps_the_files_within_the_limit_and_drops_the_oldest() {
+        let tmp = tempfile::tempdir().unwrap();
+        let path = tmp.path().join("run.mcap");
+        let health = TraceHealth::new();
+        // 200 kB over four files: 50 kB each.
+        let limit = TraceLimit { max_bytes: 200_000 };
+        let trace = McapTrace::create_with(
+            std::slice::from_ref(&path),
+            topics(),
+            Duration::from_millis(20),
+            MAX_CHUNKS_PER_FILE,
+            limit,
+            &health,
+        )
+        .unwrap();
+        // Diagnostics that LZ4 cannot shrink much: about 1 MB in all.
+        let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
+        let mut noise = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            format!("{x:016x}")
+        };
+        let sent = 2_000;
+        for s in 0..sent {
+            let mut d = diagnostics();
+            d.status[0].message = (0..30).map(|_| noise()).collect();
+            trace.record(2, s, &d);
+            if s % 200 == 0 {
+                // Room for the writer: nothing is dropped for a full queue.
+                std::thread::sleep(Duration::from_millis(30));
+            }
+        }
+        assert_eq!(trace.dropped(), 0);
+        trace.finish();
+        let files = read_files(&path);
+        let sizes: Vec<u64> = files
+            .iter()
+            .map(|(p, _, _)| std::fs::metadata(p).unwrap().len())
+            .collect();
+        assert_eq!(files.len(), TRACE_FILES as usize, "{sizes:?}");
+        assert!(
+            sizes.iter().all(|s| *s <= limit.file_bytes()),
+            "a file above 50 kB: {sizes:?}"
+        );
+        assert!(sizes.iter().sum::<u64>() <= limit.max_bytes);
+        let state = &health.snapshot()[0];
+        assert!(state.files_dropped > 0, "{state:?}");
+        assert_eq!(state.bytes, sizes.iter().sum::<u64>(), "{state:?}");
+        assert_eq!(state.lost, 0);
+        // The newest messages are kept: the last file ends with the last one sent.
+        let kept: usize = files.iter().map(|(_, s, _)| s.len()).sum();
+        assert!(kept > 0 && kept < sent as usize);
     }
 
     #[test]
     fn an_unwritable_path_is_refused_naming_it() {
-        let err = McapTrace::create(&[PathBuf::from("/nonexistent-dir-pwm/run.mcap")], topics())
-            .err()
-            .unwrap();
+        let err = McapTrace::create(
+            &[PathBuf::from("/nonexistent-dir-pwm/run.mcap")],
+            topics(),
+            TraceLimit::default(),
+            &TraceHealth::new(),
+        )
+        .err()
+        .unwrap();
         assert!(
             err.to_string().contains("/nonexistent-dir-pwm/run.mcap"),
             "{err}"

@@ -30,6 +30,7 @@ use crate::ros::outbound::diagnostics::{
 use crate::ros::outbound::diagnostics::{frequency_status_name, LatenessHistogram, NodeHealth};
 use crate::ros::outbound::frequency::{FrequencyReport, FrequencyStatus};
 use crate::ros::outbound::mcap_trace::McapTrace;
+use crate::ros::outbound::traces::TraceReport;
 use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{debug, error, info, warn};
@@ -179,6 +180,8 @@ pub struct Reporter {
     mcap: Option<McapTrace>,
     /// The valves, in the order the output thread numbers them.
     valves: Vec<ValveOut>,
+    /// Every trace's state.
+    traces: TraceReport,
 }
 
 impl Reporter {
@@ -238,6 +241,7 @@ impl Reporter {
             last_run: now,
             mcap: None,
             valves: Vec::new(),
+            traces: TraceReport::default(),
         };
         for ch in 0..n {
             r.publish_e1(ch, false);
@@ -250,6 +254,11 @@ impl Reporter {
     /// order), then `/diagnostics`.
     pub fn record_to(&mut self, trace: McapTrace) {
         self.mcap = Some(trace);
+    }
+
+    /// Reports on `/diagnostics` and in the log the traces whose state `traces` holds.
+    pub fn watch_traces(&mut self, traces: TraceReport) {
+        self.traces = traces;
     }
 
     /// The MCAP trace's topic of channel `ch`'s edges; its status is the next one.
@@ -289,9 +298,13 @@ impl Reporter {
                     self.publish_status(channel, &status);
                 }
             }
-            Report::Valve { valve, status, .. } => {
+            Report::Valve {
+                valve,
+                status,
+                at_ns,
+            } => {
                 if let Some(v) = self.valves.get_mut(valve) {
-                    v.on_status(status);
+                    v.on_status(status, at_ns);
                 }
             }
             Report::OutputFault { channel } => {
@@ -542,6 +555,8 @@ impl Reporter {
             }
         }
         self.node_from_state();
+        // A trace that fails is on /diagnostics within MAX_WAIT, as its level changes.
+        self.traces.poll(now, false);
         let since = now.saturating_sub(self.last_diagnostics);
         let levels_changed = || self.levels(now) != self.levels_published;
         if since >= DIAGNOSTICS_PERIOD_NS || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed())
@@ -599,14 +614,20 @@ impl Reporter {
             .iter()
             .map(|h| h.level(now))
             .chain(self.rate_statuses.iter().map(|d| d.level))
+            .chain(self.valves.iter().map(ValveOut::level))
             .chain(std::iter::once(self.node.level(now)))
+            .chain(self.traces.levels(now))
             .collect()
     }
 
     /// Publishes `/diagnostics` now: each channel's status, then each channel's command rate,
-    /// then the node's status.
+    /// then the node's status, then each trace's.
     pub fn publish_diagnostics(&mut self, now: Nanos) {
         self.node_from_state();
+        self.traces.poll(now, true);
+        for v in &mut self.valves {
+            v.periodic();
+        }
         let status: Vec<DiagnosticStatus> = self
             .health
             .iter()
@@ -614,6 +635,7 @@ impl Reporter {
             .chain(self.rate_statuses.iter().cloned())
             .chain(self.valves.iter().map(|v| v.to_status(&self.node_name)))
             .chain(std::iter::once(self.node.to_status(&self.node_name, now)))
+            .chain(self.traces.statuses(&self.node_name, now))
             .collect();
         let levels = status.iter().map(|d| d.level).collect();
         let arr = DiagnosticArray {

@@ -1,18 +1,100 @@
 //! Output thread → ROS for the three-point valves: `~/valve/<NAME>/state` on every snapshot the
-//! output thread sends, and one `/diagnostics` status per valve — ERROR while both end switches
-//! are active (a wiring or switch fault: nothing drives either way), WARN while unreferenced, when
-//! the uncertainty of the estimate exceeds `NAME.max_uncertainty_pct`, or after a command
-//! timeout; OK otherwise; STALE before the first snapshot.
+//! output thread sends, the valve's state file (`state_dir`), the answers to
+//! `~/valve/<NAME>/reset`, and one `/diagnostics` status per valve — ERROR while a fault is
+//! latched (`motor_stalled`, `switch_implausible`, `travel_mismatch`, with its figures), WARN
+//! while unreferenced, when the uncertainty of the estimate exceeds `NAME.max_uncertainty_pct`,
+//! while the position feedback is silent, or after a command timeout; OK otherwise; STALE
+//! before the first snapshot.
 
 use crate::clock;
-use crate::core::valve::{Activity, Motion};
-use crate::core::ValveStatus;
+use crate::core::valve::{Activity, Dir, Motion, StallCause, ValveFault};
+use crate::core::{ValveConfig, ValveStatus};
+use crate::ros::config::valve_state::{write_state, Stamp, StateRecord, STATE_MARGIN_PCT};
+use crate::ros::inbound::valve::ValveAnswers;
 use crate::ros::interface::msg::{self, DiagnosticStatus, KeyValue};
 use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
-use log::{debug, info};
+use log::{debug, error, info};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::Publisher;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// While the valve moves its state file is written at most this often, ns (and at every start
+/// and stop of a move).
+pub const STATE_WRITE_MOVING: i64 = 1_000_000_000;
+
+/// At rest the state file is written afresh this often, so that what a restart after a kill
+/// adds to the bounds stays bounded, ns.
+pub const STATE_WRITE_RESTING: i64 = 30_000_000_000;
+
+/// How long a report may be on its way from the output thread, counted when a record of the
+/// last snapshot is written afresh, ns.
+pub const REPORT_WAY: i64 = 1_000_000_000;
+
+/// One valve's state file and when it was last written.
+struct StateFile {
+    dir: PathBuf,
+    config: ValveConfig,
+    /// The last record written, its wall time, and whether the valve was moving then.
+    last: Option<(StateRecord, i64, bool)>,
+    failing: bool,
+}
+
+impl StateFile {
+    /// Writes the record of `status` if due: the first, at a move's start and stop and when the
+    /// lines are held or released, every
+    /// [`STATE_WRITE_MOVING`] while moving, at rest once the bounds leave the recorded ones
+    /// widened by [`STATE_MARGIN_PCT`] (at most that often; the restore widens them as much),
+    /// and every [`STATE_WRITE_RESTING`] at rest.
+    fn update(&mut self, name: &str, status: &ValveStatus, stamp: Stamp) {
+        let rec = StateRecord::of(&self.config, status, stamp);
+        let now = stamp.wall_ns;
+        let moving = status.motion != Motion::Stopped;
+        let due = match &self.last {
+            None => true,
+            Some((last, at, was_moving)) => {
+                let age = now - at;
+                // At rest a record still holds while the bounds stay within its own, widened by
+                // a margin: a noisy feedback does not rewrite the file at every sample.
+                let [_, lo, hi] = rec.motor;
+                let [_, was_lo, was_hi] = last.motor;
+                let held = lo >= was_lo - STATE_MARGIN_PCT
+                    && hi <= was_hi + STATE_MARGIN_PCT
+                    && rec.lines_held == last.lines_held;
+                let quiet = !moving && held;
+                // A move's start and stop, and the lines held or released (a stop of the node,
+                // the e-stop, a fault), are written at once.
+                *was_moving != moving
+                    || rec.lines_held != last.lines_held
+                    || (!quiet && age >= STATE_WRITE_MOVING)
+                    || age >= STATE_WRITE_RESTING
+            }
+        };
+        if !due {
+            return;
+        }
+        match write_state(&self.dir, name, &rec.encode(name)) {
+            Ok(()) => {
+                if self.failing {
+                    info!("valve {name}: state file written again");
+                }
+                self.failing = false;
+                self.last = Some((rec, now, moving));
+            }
+            Err(e) => {
+                if !self.failing {
+                    error!(
+                        "valve {name}: cannot write its state file in {}: {e}; a restart will \
+                         not find the position",
+                        self.dir.display()
+                    );
+                }
+                self.failing = true;
+            }
+        }
+    }
+}
 
 /// One valve on the report side: its publisher, what its diagnostics judge by, its last
 /// snapshot.
@@ -22,6 +104,9 @@ pub struct ValveOut {
     lines: String,
     state: Publisher<msg::ValveState>,
     last: Option<ValveStatus>,
+    file: Option<StateFile>,
+    /// Its index, and where the answers to its resets go.
+    answers: Option<(usize, Arc<ValveAnswers>)>,
 }
 
 impl ValveOut {
@@ -38,13 +123,53 @@ impl ValveOut {
                 lines: format!("{open}/{close}"),
                 state: ep.publisher(&format!("~/valve/{name}/state"), qos::status())?,
                 last: None,
+                file: None,
+                answers: None,
             });
         }
         Ok(out)
     }
 
-    /// A snapshot came: it is published, and kept for the diagnostics.
-    pub fn on_status(&mut self, status: ValveStatus) {
+    /// Keeps this valve's state file in `dir` (its settings `config`).
+    pub fn keep_state(&mut self, dir: PathBuf, config: ValveConfig) {
+        self.file = Some(StateFile {
+            dir,
+            config,
+            last: None,
+            failing: false,
+        });
+    }
+
+    /// Files the answers to this valve's (number `index`) resets in `answers`.
+    pub fn answer_to(&mut self, index: usize, answers: Arc<ValveAnswers>) {
+        self.answers = Some((index, answers));
+    }
+
+    /// Once a second: the state file written afresh at rest (see [`STATE_WRITE_RESTING`]). The
+    /// last snapshot still holds but for a change whose report is on its way: the record is
+    /// stamped [`REPORT_WAY`] earlier, so a restore counts that too.
+    pub fn periodic(&mut self) {
+        if let (Some(f), Some(s)) = (self.file.as_mut(), self.last.as_ref()) {
+            f.update(&self.name, s, Stamp::now().earlier(REPORT_WAY));
+        }
+    }
+
+    /// A snapshot taken at monotonic `at_ns` came: it is published, kept for the diagnostics,
+    /// written to the state file (stamped with the wall-clock time it was taken).
+    pub fn on_status(&mut self, status: ValveStatus, at_ns: crate::core::Nanos) {
+        let before = self.last.and_then(|s| s.fault);
+        if status.fault.is_some() && before.is_none() {
+            if let Some(f) = &status.fault {
+                error!("valve {}: {}", self.name, fault_text(&self.name, f));
+            }
+        }
+        if let Some((k, a)) = &self.answers {
+            a.note(*k, status.fault, status.reset);
+        }
+        if let Some(f) = self.file.as_mut() {
+            let since = clock::monotonic_ns().saturating_sub(at_ns);
+            f.update(&self.name, &status, Stamp::now().earlier(since as i64));
+        }
         let was = self.last.map(|s| (s.referenced, s.switches));
         if was.is_some_and(|w| w != (status.referenced, status.switches)) {
             // Rare (a reference, an end switch): worth a line on the console.
@@ -71,6 +196,12 @@ impl ValveOut {
     pub fn to_status(&self, node_name: &str) -> DiagnosticStatus {
         diagnostic(node_name, &self.name, &self.lines, self.last.as_ref())
     }
+
+    /// The level of the valve's `/diagnostics` status ([`DiagnosticStatus::OK`] ...), as
+    /// [`ValveOut::to_status`] gives it.
+    pub fn level(&self) -> u8 {
+        diagnostic("", &self.name, &self.lines, self.last.as_ref()).level
+    }
 }
 
 fn on_off(active: bool) -> &'static str {
@@ -93,12 +224,82 @@ pub fn state_msg(name: &str, s: &ValveStatus) -> msg::ValveState {
         referenced: s.referenced,
         run_since_reference_s: s.run_since_reference as f64 / 1e9,
         uncertainty_pct: s.uncertainty_pct,
+        position_low_pct: s.low_pct,
+        position_high_pct: s.high_pct,
+        restored: s.restored,
         recalibration_due: s.recalibration_due,
         timed_out: s.timed_out,
         estop: s.estop,
         open_switch: s.switches[0],
         close_switch: s.switches[1],
+        fault: s.fault.map_or("", |f| f.name()).to_string(),
+        feedback_pct: s.feedback_pct,
         moves: s.moves,
+    }
+}
+
+fn drive_name(d: Dir) -> &'static str {
+    match d {
+        Dir::Open => "opening",
+        Dir::Close => "closing",
+    }
+}
+
+fn end_name(d: Dir) -> &'static str {
+    match d {
+        Dir::Open => "open",
+        Dir::Close => "close",
+    }
+}
+
+/// What a latched fault means, with its figures, for `/diagnostics` and the log.
+pub fn fault_text(name: &str, f: &ValveFault) -> String {
+    let reset = format!("lines off until ~/valve/{name}/reset");
+    match *f {
+        ValveFault::MotorStalled {
+            cause: StallCause::NoEndSwitch(d),
+            drive_ms,
+            expected_pct,
+            ..
+        } => format!(
+            "motor_stalled: the end move {} ran its whole drive ({drive_ms:.0} ms after the start \
+             lag, enough for {expected_pct:.1} % at the slowest travel) and the {} end switch \
+             did not report; {reset}",
+            drive_name(d),
+            end_name(d)
+        ),
+        ValveFault::MotorStalled {
+            cause: StallCause::NoFeedbackMotion(d),
+            drive_ms,
+            moved_pct,
+            expected_pct,
+        } => format!(
+            "motor_stalled: {drive_ms:.0} ms of drive {} after the start lag moved the feedback \
+             {moved_pct:.2} %, where a healthy valve moves at least {expected_pct:.1} %; {reset}",
+            drive_name(d)
+        ),
+        ValveFault::SwitchImplausible {
+            switches,
+            low_pct,
+            high_pct,
+        } => format!(
+            "switch_implausible: end switches open {} close {} while the valve can only be \
+             within {low_pct:.1}..{high_pct:.1} %; {reset} once both switches release",
+            on_off(switches[0]),
+            on_off(switches[1])
+        ),
+        ValveFault::TravelMismatch {
+            dir,
+            measured_ms,
+            configured_ms,
+        } => format!(
+            "travel_mismatch: the {} travel time measured {:.0}..{:.0} ms, configured {:.0} ms \
+             (more than 10 % off); {reset}",
+            end_name(dir),
+            measured_ms[0],
+            measured_ms[1],
+            configured_ms
+        ),
     }
 }
 
@@ -136,13 +337,8 @@ pub fn diagnostic(
             values: Vec::new(),
         };
     };
-    let (level, message) = if s.switches == [true, true] {
-        (
-            DiagnosticStatus::ERROR,
-            "both end switches active: a wiring or switch fault; no drive either way until one \
-             releases"
-                .to_string(),
-        )
+    let (level, message) = if let Some(f) = &s.fault {
+        (DiagnosticStatus::ERROR, fault_text(name, f))
     } else if !s.referenced {
         (
             DiagnosticStatus::WARN,
@@ -155,6 +351,11 @@ pub fn diagnostic(
                 "uncertainty {:.1} % above max_uncertainty_pct {} %",
                 s.uncertainty_pct, s.max_uncertainty_pct
             ),
+        )
+    } else if s.feedback_silent {
+        (
+            DiagnosticStatus::WARN,
+            "position feedback silent: the position counts on the drive times alone".to_string(),
         )
     } else if s.timed_out {
         (
@@ -184,7 +385,25 @@ pub fn diagnostic(
                 format!("{:.1}", s.run_since_reference as f64 / 1e9),
             ),
             kv("uncertainty_pct", format!("{:.2}", s.uncertainty_pct)),
+            kv("position_low_pct", format!("{:.2}", s.low_pct)),
+            kv("position_high_pct", format!("{:.2}", s.high_pct)),
+            kv("restored", s.restored.to_string()),
             kv("recalibration_due", s.recalibration_due.to_string()),
+            kv("fault", s.fault.map_or("", |f| f.name()).to_string()),
+            kv("feedback_pct", format!("{:.2}", s.feedback_pct)),
+            kv(
+                "measured_travel_ms",
+                format!(
+                    "{:.0}/{:.0}",
+                    s.measured_travel_ms[0], s.measured_travel_ms[1]
+                ),
+            ),
+            kv(
+                "measured_start_lag_ms",
+                format!("{:.0}/{:.0}", s.measured_lag_ms[0], s.measured_lag_ms[1]),
+            ),
+            kv("open_switch", s.switches[0].to_string()),
+            kv("close_switch", s.switches[1].to_string()),
             kv("moves", s.moves.to_string()),
         ],
     }
@@ -197,6 +416,16 @@ mod tests {
     fn status() -> ValveStatus {
         ValveStatus {
             position_pct: 40.0,
+            low_pct: 36.0,
+            high_pct: 45.0,
+            motor: [40.5, 37.0, 45.0],
+            restored: false,
+            fault: None,
+            reset: None,
+            feedback_pct: f64::NAN,
+            feedback_silent: false,
+            measured_travel_ms: [f64::NAN; 2],
+            measured_lag_ms: [f64::NAN; 2],
             target_pct: 40.0,
             motion: Motion::Stopped,
             activity: Activity::Tracking,
@@ -211,6 +440,65 @@ mod tests {
             switches: [false; 2],
             moves: 3,
         }
+    }
+
+    /// The state file follows a move and a stop of the node at once, and is not rewritten at
+    /// rest while the bounds stay within the record and its margin.
+    #[test]
+    fn the_state_file_follows_moves_and_the_stop_at_once() {
+        use crate::ros::config::valve_state::read_state;
+        let dir = std::env::temp_dir().join(format!("pwm-valve-out-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let config = crate::core::ValveParams::default().validate().unwrap();
+        let mut f = StateFile {
+            dir: dir.clone(),
+            config,
+            last: None,
+            failing: false,
+        };
+        let t0 = Stamp::now();
+        let at = |ms: i64| Stamp {
+            wall_ns: t0.wall_ns + ms * 1_000_000,
+            boot_ns: t0.boot_ns + ms * 1_000_000,
+            ..t0
+        };
+        let read = || read_state(&dir, "mix").unwrap().unwrap();
+        let rest = status();
+        f.update("mix", &rest, at(0));
+        assert_eq!(read().stamp, at(0), "the first record");
+        let moving = ValveStatus {
+            motion: Motion::Opening,
+            motor: [41.0, 37.0, 46.0],
+            ..rest
+        };
+        f.update("mix", &moving, at(100));
+        assert_eq!(read().stamp, at(100), "a move's start at once");
+        f.update("mix", &moving, at(600));
+        assert_eq!(read().stamp, at(100), "not twice within a second");
+        f.update("mix", &moving, at(1_200));
+        assert_eq!(read().stamp, at(1_200), "once a second while moving");
+        let held = ValveStatus {
+            live: false,
+            ..rest
+        };
+        f.update("mix", &rest, at(1_300));
+        f.update("mix", &held, at(1_400));
+        let r = read();
+        assert!(
+            r.lines_held && r.stamp == at(1_400),
+            "the stop at once: {r:?}"
+        );
+        // At rest, bounds within the record's and the margin: no rewrite.
+        let noisy = ValveStatus {
+            motor: [40.7, 36.6, 45.4],
+            ..held
+        };
+        f.update("mix", &noisy, at(1_500));
+        f.update("mix", &noisy, at(3_500));
+        assert_eq!(read().stamp, at(1_400));
+        f.update("mix", &noisy, at(1_400 + STATE_WRITE_RESTING / 1_000_000));
+        assert_ne!(read().stamp, at(1_400), "written afresh at rest");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
@@ -244,12 +532,40 @@ mod tests {
         );
         let both = ValveStatus {
             switches: [true, true],
+            fault: Some(ValveFault::SwitchImplausible {
+                switches: [true, true],
+                low_pct: 0.0,
+                high_pct: 100.0,
+            }),
             ..unref
         };
         assert_eq!(d(Some(&both)).level, DiagnosticStatus::ERROR);
-        assert!(d(Some(&both))
-            .message
-            .starts_with("both end switches active"));
+        let m = d(Some(&both)).message;
+        assert!(
+            m.starts_with("switch_implausible: end switches open active close active")
+                && m.contains("~/valve/mix/reset"),
+            "{m}"
+        );
+        let stalled = ValveStatus {
+            fault: Some(ValveFault::MotorStalled {
+                cause: StallCause::NoFeedbackMotion(Dir::Open),
+                drive_ms: 612.0,
+                moved_pct: 0.04,
+                expected_pct: 4.0,
+            }),
+            ..ok
+        };
+        let m = d(Some(&stalled)).message;
+        assert_eq!(d(Some(&stalled)).level, DiagnosticStatus::ERROR);
+        assert!(
+            m.starts_with("motor_stalled: 612 ms of drive opening") && m.contains("0.04 %"),
+            "{m}"
+        );
+        let silent = ValveStatus {
+            feedback_silent: true,
+            ..ok
+        };
+        assert_eq!(d(Some(&silent)).level, DiagnosticStatus::WARN);
         let m = state_msg("mix", &ok);
         assert_eq!(
             (m.motion.as_str(), m.run_since_reference_s),

@@ -1,9 +1,11 @@
 //! Making the node's endpoints: subscriptions, publishers and the tasks that listen
-//! ([`endpoints`]), with the one service maker every service goes through, and the
-//! watch for another node with this node's name ([`name_clash`]).
+//! ([`endpoints`]), with the one service maker every service goes through, the action
+//! server with its goals ([`action`]), and the watch for another node with this node's
+//! name ([`name_clash`]).
 //!
 //! Layer 3 of the ROS shell: may import [`interface`](super::interface) and
 //! [`config`](super::config).
 
+pub mod action;
 pub mod endpoints;
 pub mod name_clash;

@@ -19,6 +19,8 @@ pub struct NodeSettings {
     pub managed: bool,
     /// `trace`: trace files, in order.
     pub trace: Vec<PathBuf>,
+    /// `trace_max_mb`: what the files of each trace may hold together, MB.
+    pub trace_max_mb: u64,
     /// `status_rate_hz`: periodic status rate, Hz (0 = on change only).
     pub status_rate_hz: f64,
     /// `edge_log_rate`: edge lines per second and channel (0 = none).
@@ -33,6 +35,8 @@ pub struct NodeSettings {
     pub split: String,
     /// `valve`: the three-point valves, as written (parsed against the channels at start-up).
     pub valve: String,
+    /// `state_dir`: where the valves' state files live; empty for none.
+    pub state_dir: String,
     /// `heartbeat_line`: the heartbeat line's offset, if there is one.
     pub heartbeat_line: Option<u32>,
     /// `heartbeat_chip`: the heartbeat line's chip.

@@ -6,7 +6,7 @@ use super::NodeSettings;
 use super::DEFAULT_CHANNELS;
 use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Stage};
 use crate::core::ChannelConfig;
-use crate::output::{Backend, GpioLine, OutputSpec};
+use crate::output::{Backend, GpioLine, OutputSpec, TraceLimit};
 
 /// The name of the heartbeat line (in traces and safe-off's report).
 pub const HEARTBEAT_LINE: &str = "heartbeat";
@@ -182,6 +182,7 @@ impl StartupConfig {
         let output = OutputSpec {
             backend,
             trace: settings.trace.clone(),
+            trace_limit: TraceLimit::from_mb(settings.trace_max_mb),
             fault: None,
         };
         Ok(StartupConfig {

@@ -24,13 +24,15 @@ use crate::core::heater::{
     MAX_RATE_C_PER_S, MAX_RUNAWAY_ERROR, MAX_SKEW_MS, MAX_TEMP_C, MAX_TIME_S, MIN_TEMP_C,
 };
 use crate::core::valve::{
-    OnTimeout, ValveParams, MAX_COMMAND_TIMEOUT_MS, MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT,
-    MAX_EXERCISE_EVERY_H, MAX_RECALIBRATE_AFTER_S, MAX_REVERSAL_PAUSE_MS, MAX_TRAVEL_MS,
+    OnTimeout, ReferenceAtStart, ValveParams, MAX_BACKLASH_PCT, MAX_COMMAND_TIMEOUT_MS,
+    MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT, MAX_EXERCISE_EVERY_H, MAX_FEEDBACK_TOLERANCE_PCT,
+    MAX_RECALIBRATE_AFTER_S, MAX_REVERSAL_PAUSE_MS, MAX_TRAVEL_MS, MIN_REVERSAL_PAUSE_MS,
     MIN_TRAVEL_MS,
 };
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::output::gpio::parse_line_addr;
 use crate::output::gpio_input::MAX_DEBOUNCE_MS;
+use crate::output::trace_files::{DEFAULT_TRACE_MAX_MB, MAX_TRACE_MAX_MB, MIN_TRACE_MAX_MB};
 use crate::ros::interface::msg;
 use std::str::FromStr;
 
@@ -181,9 +183,10 @@ fn limit_line_spelling(s: &str) -> Result<(), UnknownName> {
     }
 }
 
-/// Why a valve's end switch settings and its reference at start cannot change while running.
-const VALVE_START_UP: &str = "the end switch lines are requested, and the reference at start \
-                              runs, at start-up; restart the node";
+/// Why a valve's end switch settings, feedback, backlash and reference at start cannot change
+/// while running.
+const VALVE_START_UP: &str = "the end switch lines and the feedback are requested, and the \
+                              reference at start runs, at start-up; restart the node";
 
 /// Why a valve's travel times cannot change while running.
 const VALVE_TRAVEL: &str = "the position estimate and the moves under way count in the travel \
@@ -216,8 +219,9 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             })
         },
         Decl {
-            description: "Dead band, percent of the stroke: no move for a smaller difference \
-                          between target and estimate (Beckhoff fHys).",
+            description: "Dead band, percent of the stroke: no move while target and estimate \
+                          differ by less than this either way (a half width: Beckhoff's fHys is \
+                          the full width, fHys/2 either way, so deadband_pct = fHys/2).",
             range: Range::Double(0.0, MAX_DEADBAND_PCT),
             ..Decl::new("deadband_pct", Double, || {
                 V::Double(valve_defaults().deadband_pct)
@@ -235,33 +239,67 @@ pub(super) fn valve_decls() -> Vec<Decl> {
         },
         Decl {
             description: "Reversal pause, ms: both lines are low at least this long, counted \
-                          from the real fall, before a line rises.",
-            range: Range::Integer(0, MAX_REVERSAL_PAUSE_MS as i64),
+                          from the real fall (and from start-up), before a line rises. At \
+                          least 20: a relay releases in up to 10 ms and a triac conducts to the \
+                          next current zero (up to 10 ms at 50 Hz).",
+            range: Range::Integer(MIN_REVERSAL_PAUSE_MS as i64, MAX_REVERSAL_PAUSE_MS as i64),
+            checked: Checked::Core,
             ..Decl::new("reversal_pause_ms", Integer, || {
                 V::Integer(valve_defaults().reversal_pause_ms as i64)
             })
         },
         Decl {
+            description: "Start lag, ms: from a line's rise until the motor moves the valve. \
+                          Every drive lasts this much longer than its displacement needs, and \
+                          the estimate counts only the drive after it; its tolerance (half of \
+                          it plus 20 ms) goes into the uncertainty.",
+            constraints: "at most 10 % of the shorter travel time",
+            range: Range::Integer(0, MAX_TRAVEL_MS as i64 / 10),
+            checked: Checked::Core,
+            ..Decl::new("start_lag_ms", Integer, || {
+                V::Integer(valve_defaults().start_lag_ms as i64)
+            })
+        },
+        Decl {
+            description: "Backlash, percent of the stroke: the play between motor and stem; \
+                          after a reversal the motor turns this far before the valve follows. \
+                          It goes into the uncertainty, and the estimate sits in the middle of \
+                          the play.",
+            range: Range::Double(0.0, MAX_BACKLASH_PCT),
+            read_only: Some(VALVE_START_UP),
+            ..Decl::new("backlash_pct", Double, || {
+                V::Double(valve_defaults().backlash_pct)
+            })
+        },
+        Decl {
             description: "Overrun at an end, percent of the travel time: a move to 0 % or \
-                          100 % drives on past the estimated end by this, then stops (OSCAT \
-                          ACTUATOR_3P).",
+                          100 % drives past the end from the farthest position the \
+                          uncertainty allows (at the slowest travel time), and then this much \
+                          longer (OSCAT ACTUATOR_3P); 150 % of the travel time at most.",
             range: Range::Double(0.0, MAX_END_OVERRUN_PCT),
             ..Decl::new("end_overrun_pct", Double, || {
                 V::Double(valve_defaults().end_overrun_pct)
             })
         },
         Decl {
-            description: "Reference at start: drive closed for 150 % of the travel time and \
-                          take 0 % (Siemens PID_3Step's virtual actuator limit).",
+            description: "How the valve finds its position at start: close (drive closed for \
+                          150 % of the travel time and take 0 %, Siemens PID_3Step's virtual \
+                          actuator limit), open (the same towards open), skip_if_restored (no \
+                          stroke when the state file gave the position, close otherwise), none \
+                          (the restored position, or unreferenced until an end is reached).",
+            choices: Some(|s| spelled::<ReferenceAtStart>(s, false)),
             read_only: Some(VALVE_START_UP),
-            ..Decl::new("reference_at_start", Bool, || {
-                V::Boolean(valve_defaults().reference_at_start)
+            ..Decl::new("reference_at_start", String, || {
+                V::String(valve_defaults().reference_at_start.as_str().to_string())
             })
         },
         Decl {
-            description: "Recalibration: after this much accumulated run time since the last \
-                          reference, the next command within 5 % of an end goes to the end \
-                          with an overrun covering the uncertainty, s (OSCAT T_CAL). 0: never.",
+            description: "Recalibration: once this much run time has accumulated since the \
+                          last reference, or the uncertainty passed half of \
+                          max_uncertainty_pct, the next command within 5 % of an end goes to \
+                          that end first, s (OSCAT T_CAL). A move that would take the \
+                          uncertainty past max_uncertainty_pct goes through the nearer end \
+                          whatever the target. 0: by the uncertainty only.",
             range: Range::Integer(0, MAX_RECALIBRATE_AFTER_S as i64),
             ..Decl::new("recalibrate_after_s", Integer, || {
                 V::Integer(valve_defaults().recalibrate_after_s as i64)
@@ -278,9 +316,9 @@ pub(super) fn valve_decls() -> Vec<Decl> {
         },
         Decl {
             description: "Diagnostics warn above this uncertainty of the position estimate, \
-                          percent (11.1 % of the run time since the last reference over the \
-                          shorter travel time, for travel times up to 10 % off; 100 while \
-                          unreferenced).",
+                          percent (the travel 10 % off, the start lag off by its tolerance and \
+                          the backlash, over every drive since the last reference); a move that \
+                          would pass it recalibrates first.",
             range: Range::Double(0.0, 100.0),
             ..Decl::new("max_uncertainty_pct", Double, || {
                 V::Double(valve_defaults().max_uncertainty_pct)
@@ -299,6 +337,25 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             choices: Some(|s| spelled::<OnTimeout>(s, false)),
             ..Decl::new("on_timeout", String, || {
                 V::String(valve_defaults().on_timeout.as_str().to_string())
+            })
+        },
+        Decl {
+            description: "Position feedback topic (std_msgs/Float64, percent, 0 = closed: a \
+                          potentiometer or 0-10 V input read by another node, PID_3Step's \
+                          Feedback_PER). With it the estimate is corrected at rest, a drive that \
+                          does not move it is motor_stalled, and the travel times are measured. \
+                          Empty: none.",
+            read_only: Some(VALVE_START_UP),
+            ..Decl::new("feedback_topic", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "Accuracy of the position feedback, percent of the stroke: at rest the \
+                          position lies within this of the feedback.",
+            range: Range::Double(0.0, MAX_FEEDBACK_TOLERANCE_PCT),
+            ..Decl::new("feedback_tolerance_pct", Double, || {
+                V::Double(valve_defaults().feedback_tolerance_pct)
             })
         },
         Decl {
@@ -357,8 +414,12 @@ pub(super) fn valve_params(get: impl Fn(&str) -> Option<V>) -> ValveParams {
         deadband_pct: dbl_or("deadband_pct", d.deadband_pct),
         min_pulse_ms: int_or("min_pulse_ms", d.min_pulse_ms),
         reversal_pause_ms: int_or("reversal_pause_ms", d.reversal_pause_ms),
+        start_lag_ms: int_or("start_lag_ms", d.start_lag_ms),
+        backlash_pct: dbl_or("backlash_pct", d.backlash_pct),
         end_overrun_pct: dbl_or("end_overrun_pct", d.end_overrun_pct),
-        reference_at_start: get("reference_at_start").map_or(d.reference_at_start, |v| boolean(&v)),
+        reference_at_start: get("reference_at_start")
+            .and_then(|v| text(&v).parse().ok())
+            .unwrap_or(d.reference_at_start),
         recalibrate_after_s: int_or("recalibrate_after_s", d.recalibrate_after_s),
         exercise_every_h: int_or("exercise_every_h", d.exercise_every_h),
         max_uncertainty_pct: dbl_or("max_uncertainty_pct", d.max_uncertainty_pct),
@@ -366,6 +427,7 @@ pub(super) fn valve_params(get: impl Fn(&str) -> Option<V>) -> ValveParams {
         on_timeout: get("on_timeout")
             .and_then(|v| text(&v).parse().ok())
             .unwrap_or(d.on_timeout),
+        feedback_tolerance_pct: dbl_or("feedback_tolerance_pct", d.feedback_tolerance_pct),
     }
 }
 
@@ -419,6 +481,20 @@ pub(super) fn node_decls() -> Vec<Decl> {
                     .collect()
             }),
             ..Decl::new("trace", String, || V::String(std::string::String::new()))
+        },
+        Decl {
+            description: "What the files of each trace may hold together, MB (10^6 bytes): \
+                          at a quarter of it the file written is closed, the older ones move \
+                          one number up (run.csv becomes run.1.csv, ...) and the oldest of \
+                          four is deleted and counted on /diagnostics. Pipes and devices are \
+                          not limited.",
+            constraints: "start-up only",
+            read_only: Some(START_UP),
+            range: Range::Integer(MIN_TRACE_MAX_MB as i64, MAX_TRACE_MAX_MB as i64),
+            node: Some(|n, v| n.trace_max_mb = int(v).max(0) as u64),
+            ..Decl::new("trace_max_mb", Integer, || {
+                V::Integer(DEFAULT_TRACE_MAX_MB as i64)
+            })
         },
         Decl {
             description: "Rate of the periodic ~/<ch>/status messages, Hz (they are also sent \
@@ -506,6 +582,20 @@ pub(super) fn node_decls() -> Vec<Decl> {
             read_only: Some(START_UP),
             node: Some(|n, v| n.valve = text(v).to_string()),
             ..Decl::new("valve", String, || V::String(std::string::String::new()))
+        },
+        Decl {
+            description: "Directory of the valves' state files (NAME.state): each valve's \
+                          position and its bounds, written atomically at every stop and once a \
+                          second while it moves, read at start-up (see reference_at_start). \
+                          Empty: none, the position is lost at every restart.",
+            constraints: "start-up only; an existing, writable directory",
+            read_only: Some(START_UP),
+            node: Some(|n, v| n.state_dir = text(v).to_string()),
+            ..Decl::new(
+                "state_dir",
+                String,
+                || V::String(std::string::String::new()),
+            )
         },
         Decl {
             description: "Heartbeat line: offset on heartbeat_chip (with output sim, a simulated \

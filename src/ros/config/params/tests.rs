@@ -449,6 +449,7 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
                 names: vec!["pw01".into(), "pw02".into(), "pw03".into()]
             },
             trace: vec![],
+            trace_limit: crate::output::TraceLimit::default(),
             fault: None,
         }
     );
@@ -494,6 +495,7 @@ fn gpio_needs_lines_and_takes_a_trace() {
                 }],
             },
             trace: vec![],
+            trace_limit: crate::output::TraceLimit::default(),
             fault: None,
         }
     );
@@ -513,6 +515,22 @@ fn gpio_needs_lines_and_takes_a_trace() {
         StartupConfig::from_store(&su.store).unwrap().output.trace,
         [std::path::PathBuf::from("a.vcd"), "b.csv".into()]
     );
+    // The traces' size limit: 256 MB unless set, in MB, 1 at least.
+    assert_eq!(
+        StartupConfig::from_store(&su.store)
+            .unwrap()
+            .output
+            .trace_limit
+            .max_bytes,
+        256_000_000
+    );
+    let su = start_up(&[sv("trace_max_mb", V::Integer(64))]).unwrap();
+    let limit = StartupConfig::from_store(&su.store)
+        .unwrap()
+        .output
+        .trace_limit;
+    assert_eq!(limit.max_bytes, 64_000_000);
+    assert!(start_up(&[sv("trace_max_mb", V::Integer(0))]).is_err());
 }
 
 #[test]
@@ -620,12 +638,18 @@ fn a_valves_motion_settings_change_while_running_checked_whole() {
         a.valve_configs[0].1.min_pulse,
         2_000 * crate::core::NS_PER_MS
     );
-    // The travel times, the end switches and the reference at start stay start-up only.
+    // A reversal pause below the floor is refused with the core's reason.
+    let e = live(s, "mix.reversal_pause_ms", V::Integer(5)).unwrap_err();
+    assert!(e.to_string().contains("below 20 ms"), "{e}");
+    // The travel times, the end switches, the feedback, the backlash and the reference at
+    // start stay start-up only.
     for (name, v) in [
         ("mix.travel_open_ms", V::Integer(120_000)),
         ("mix.open_limit_line", V::String("5".into())),
         ("mix.limit_debounce_ms", V::Integer(20)),
-        ("mix.reference_at_start", V::Boolean(false)),
+        ("mix.reference_at_start", V::String("none".into())),
+        ("mix.feedback_topic", V::String("/pot".into())),
+        ("mix.backlash_pct", V::Double(2.0)),
     ] {
         let e = live(s, name, v).unwrap_err();
         assert!(matches!(e, ParamError::ReadOnly { .. }), "{name}: {e}");

@@ -1099,8 +1099,50 @@ impl Discovery {
     }
   }
 
+  // What the built-in readers keep per instance (state, key hash) of a
+  // participant that is gone, and of its endpoints. A participant's GUID
+  // prefix is not used again, so none of it will be needed.
+  fn forget_participant_instances(&mut self, prefix: GuidPrefix) {
+    self
+      .dcps_participant
+      .reader
+      .forget_instances(|k| k.0.prefix == prefix);
+    self
+      .dcps_subscription
+      .reader
+      .forget_instances(|k| k.0.prefix == prefix);
+    self
+      .dcps_publication
+      .reader
+      .forget_instances(|k| k.0.prefix == prefix);
+    self
+      .dcps_participant_message
+      .reader
+      .forget_instances(|k| k.prefix() == prefix);
+    #[cfg(feature = "security")]
+    {
+      self
+        .dcps_participant_secure
+        .reader
+        .forget_instances(|k| k.0.prefix == prefix);
+      self
+        .dcps_publications_secure
+        .reader
+        .forget_instances(|k| k.0.prefix == prefix);
+      self
+        .dcps_subscriptions_secure
+        .reader
+        .forget_instances(|k| k.0.prefix == prefix);
+      self
+        .dcps_participant_message_secure
+        .reader
+        .forget_instances(|k| k.prefix() == prefix);
+    }
+  }
+
   fn process_participant_dispose(&mut self, participant_guidp: GuidPrefix) {
     discovery_db_write(&self.discovery_db).remove_participant(participant_guidp, true); // true = actively removed
+    self.forget_participant_instances(participant_guidp);
     self.send_discovery_notification(DiscoveryNotificationType::ParticipantLost {
       guid_prefix: participant_guidp,
     });
@@ -1230,6 +1272,10 @@ impl Discovery {
           Sample::Dispose(reader_key) => {
             info!("Dispose Reader {reader_key:?}");
             discovery_db_write(&self.discovery_db).remove_topic_reader(reader_key);
+            self
+              .dcps_subscription
+              .reader
+              .forget_instances(|k| k.0 == reader_key);
             self.send_discovery_notification(DiscoveryNotificationType::ReaderLost {
               reader_guid: reader_key,
             });
@@ -1299,6 +1345,10 @@ impl Discovery {
           }
           Sample::Dispose(writer_key) => {
             discovery_db_write(&self.discovery_db).remove_topic_writer(writer_key);
+            self
+              .dcps_publication
+              .reader
+              .forget_instances(|k| k.0 == writer_key);
             self.send_discovery_notification(DiscoveryNotificationType::WriterLost {
               writer_guid: writer_key,
             });
@@ -1760,10 +1810,11 @@ impl Discovery {
     }
   }
 
-  pub fn participant_cleanup(&self) {
+  pub fn participant_cleanup(&mut self) {
     let removed = discovery_db_write(&self.discovery_db).participant_cleanup();
     for (guid_prefix, reason) in removed {
       debug!("participant cleanup - timeout for {guid_prefix:?}");
+      self.forget_participant_instances(guid_prefix);
       self.send_discovery_notification(DiscoveryNotificationType::ParticipantLost { guid_prefix });
       self.send_participant_status(DomainParticipantStatusEvent::ParticipantLost {
         id: guid_prefix,

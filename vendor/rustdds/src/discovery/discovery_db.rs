@@ -69,6 +69,9 @@ pub(crate) struct DiscoveryDB {
   // was lost due to time-out. If we have a
   external_topic_readers_attic: BTreeMap<GUID, DiscoveredReaderData>,
   external_topic_writers_attic: BTreeMap<GUID, DiscoveredWriterData>,
+  // When each participant's endpoints went to the attic, and how long they
+  // stay there (the participant's lease duration).
+  attic_since: BTreeMap<GuidPrefix, (Instant, Duration)>,
 
   // Database of topic updates:
   // Outer level key is topic name
@@ -137,6 +140,7 @@ impl DiscoveryDB {
       external_topic_writers: BTreeMap::new(),
       external_topic_readers_attic: BTreeMap::new(),
       external_topic_writers_attic: BTreeMap::new(),
+      attic_since: BTreeMap::new(),
       topics: BTreeMap::new(),
       topic_updated_sender,
       participant_status_sender,
@@ -194,6 +198,7 @@ impl DiscoveryDB {
         &mut self.external_topic_writers_attic,
         &mut self.external_topic_writers,
       );
+      self.attic_since.remove(&guid.prefix);
     }
 
     // In any case:
@@ -227,7 +232,6 @@ impl DiscoveryDB {
   // participant timed out.
   pub fn remove_participant(&mut self, guid_prefix: GuidPrefix, active_disposal: bool) {
     info!("removing participant {guid_prefix:?}");
-    self.participant_proxies.remove(&guid_prefix);
     self.participant_last_life_signs.remove(&guid_prefix);
     #[cfg(feature = "security")]
     self.authentication_statuses.remove(&guid_prefix);
@@ -235,6 +239,7 @@ impl DiscoveryDB {
     if active_disposal {
       self.remove_topic_reader_with_prefix(guid_prefix);
       self.remove_topic_writer_with_prefix(guid_prefix);
+      self.forget_topic_sources_of(guid_prefix);
     } else {
       // move to attic
       move_by_guid_prefix(
@@ -247,7 +252,72 @@ impl DiscoveryDB {
         &mut self.external_topic_writers,
         &mut self.external_topic_writers_attic,
       );
+      // The attic keeps them for one more lease duration: a participant that
+      // comes back within it gets its endpoints back at once. After that a
+      // returning participant is a new one, whose endpoints are learned again
+      // from its SEDP writers (a reliable transient-local writer sends its
+      // history again to a reader that acknowledges from sequence number 0, as
+      // our preemptive ACKNACK does). Without a limit, every participant that
+      // ever timed out would stay here for good.
+      let lease = self
+        .participant_proxies
+        .get(&guid_prefix)
+        .and_then(|p| p.lease_duration)
+        .unwrap_or(DEFAULT_PARTICIPANT_LEASE_DURATION);
+      self
+        .attic_since
+        .insert(guid_prefix, (Instant::now(), lease));
     }
+    self.participant_proxies.remove(&guid_prefix);
+  }
+
+  // Removes the attic entries of participants that did not come back within
+  // their attic time, and what the topics table kept from them.
+  fn empty_attic(&mut self, now: Instant) {
+    let expired: Vec<GuidPrefix> = self
+      .attic_since
+      .iter()
+      .filter(|(_, (since, keep))| Duration::from_std(now.duration_since(*since)) > *keep)
+      .map(|(prefix, _)| *prefix)
+      .collect();
+    for prefix in expired {
+      debug!("Forgetting endpoints of lost participant {prefix:?}");
+      self.attic_since.remove(&prefix);
+      for guid in self
+        .external_topic_readers_attic
+        .range(prefix.range())
+        .map(|(g, _)| *g)
+        .collect::<Vec<_>>()
+      {
+        self.external_topic_readers_attic.remove(&guid);
+      }
+      for guid in self
+        .external_topic_writers_attic
+        .range(prefix.range())
+        .map(|(g, _)| *g)
+        .collect::<Vec<_>>()
+      {
+        self.external_topic_writers_attic.remove(&guid);
+      }
+      self.forget_topic_sources_of(prefix);
+    }
+  }
+
+  // The topics table keeps, per topic, what each remote endpoint (or DCPSTopic
+  // writer) told about it. Once the endpoint is gone, its entry goes, and a
+  // topic that nobody describes any more goes with it.
+  fn forget_topic_source(&mut self, source: GUID) {
+    self.topics.retain(|_, sources| {
+      sources.remove(&source);
+      !sources.is_empty()
+    });
+  }
+
+  fn forget_topic_sources_of(&mut self, prefix: GuidPrefix) {
+    self.topics.retain(|_, sources| {
+      sources.retain(|guid, _| guid.prefix != prefix);
+      !sources.is_empty()
+    });
   }
 
   pub fn find_participant_proxy(
@@ -273,6 +343,7 @@ impl DiscoveryDB {
   pub fn remove_topic_reader(&mut self, guid: GUID) {
     info!("remove_topic_reader {guid:?}");
     self.external_topic_readers.remove(&guid);
+    self.forget_topic_source(guid);
   }
 
   #[cfg(feature = "security")]
@@ -300,6 +371,7 @@ impl DiscoveryDB {
 
   pub fn remove_topic_writer(&mut self, guid: GUID) {
     self.external_topic_writers.remove(&guid);
+    self.forget_topic_source(guid);
   }
 
   // Delete participant proxies, if we have not heard of them within
@@ -341,9 +413,36 @@ impl DiscoveryDB {
       } // match
     } // for
 
-    for (guid, _) in &to_remove {
+    for (guid, reason) in &to_remove {
+      // Its readers and writers are lost with it. A participant that leaves
+      // disposes each of its endpoints (ReaderLost / WriterLost); one whose
+      // lease expired never does, so say it here. Listeners that keep
+      // something per remote endpoint (ros2-client's graph) can then let go.
+      let readers: Vec<GUID> = self
+        .external_topic_readers
+        .range(guid.range())
+        .map(|(g, _)| *g)
+        .collect();
+      let writers: Vec<GUID> = self
+        .external_topic_writers
+        .range(guid.range())
+        .map(|(g, _)| *g)
+        .collect();
       self.remove_participant(*guid, false); // false = removed due to timeout
+      for reader in readers {
+        self.send_participant_status(DomainParticipantStatusEvent::ReaderLost {
+          guid: reader,
+          reason: reason.clone(),
+        });
+      }
+      for writer in writers {
+        self.send_participant_status(DomainParticipantStatusEvent::WriterLost {
+          guid: writer,
+          reason: reason.clone(),
+        });
+      }
     }
+    self.empty_attic(inow);
 
     to_remove
   }
@@ -1308,5 +1407,171 @@ mod tests {
     };
     reader(r_typed.guid(), hash);
     reader(r_other.guid(), b"");
+  }
+
+  fn remote_guid(prefix: GuidPrefix, key: u8, kind: EntityKind) -> GUID {
+    GUID::new(prefix, EntityId::new([0, 0, key], kind))
+  }
+
+  fn remote_reader(guid: GUID, topic: &str) -> DiscoveredReaderData {
+    DiscoveredReaderData {
+      reader_proxy: ReaderProxy::new(guid, false, vec![], vec![]),
+      subscription_topic_data: SubscriptionBuiltinTopicData::new(
+        guid,
+        None,
+        topic.to_string(),
+        "RandomData".to_string(),
+        &QosPolicies::qos_none(),
+        None,
+      ),
+      content_filter: None,
+      user_data: Vec::new(),
+    }
+  }
+
+  fn remote_writer(guid: GUID, topic: &str) -> DiscoveredWriterData {
+    DiscoveredWriterData {
+      last_updated: Instant::now(),
+      writer_proxy: WriterProxy::new(guid, vec![], vec![]),
+      publication_topic_data: crate::discovery::sedp_messages::PublicationBuiltinTopicData::new_with_qos(
+        guid,
+        None,
+        topic.to_string(),
+        "RandomData".to_string(),
+        &QosPolicies::qos_none(),
+        None,
+      ),
+      user_data: Vec::new(),
+    }
+  }
+
+  // A remote participant with a lease of `lease_ms`, one reader on "shared"
+  // and on "own_<n>", one writer on "shared".
+  fn discover_remote(db: &mut DiscoveryDB, n: u8, lease_ms: u64) -> GuidPrefix {
+    let prefix = GuidPrefix::new(&[n; 12]);
+    let mut data = spdp_participant_data().unwrap();
+    data.participant_guid = GUID::new(prefix, EntityId::PARTICIPANT);
+    data.lease_duration = Some(Duration::from(StdDuration::from_millis(lease_ms)));
+    db.update_participant(&data);
+    let own = format!("own_{n}");
+    db.update_subscription(&remote_reader(
+      remote_guid(prefix, 1, EntityKind::READER_WITH_KEY_USER_DEFINED),
+      "shared",
+    ));
+    db.update_subscription(&remote_reader(
+      remote_guid(prefix, 2, EntityKind::READER_WITH_KEY_USER_DEFINED),
+      &own,
+    ));
+    db.update_publication(&remote_writer(
+      remote_guid(prefix, 3, EntityKind::WRITER_WITH_KEY_USER_DEFINED),
+      "shared",
+    ));
+    prefix
+  }
+
+  fn topic_sources(db: &DiscoveryDB) -> Vec<(String, usize)> {
+    db.topics
+      .iter()
+      .map(|(name, sources)| (name.clone(), sources.len()))
+      .collect()
+  }
+
+  #[test]
+  fn gone_participants_and_endpoints_leave_nothing_behind() {
+    let (topic_sender, _topic_receiver) = std::sync::mpsc::sync_channel::<()>(4);
+    let (status_sender, status_receiver) = sync_status_channel(64).unwrap();
+    let mut db = DiscoveryDB::new(GUID::new_participant_guid(), topic_sender, status_sender);
+
+    let left = discover_remote(&mut db, 1, 60_000);
+    let killed = discover_remote(&mut db, 2, 300);
+    let stays = discover_remote(&mut db, 3, 60_000);
+    assert_eq!(db.external_topic_readers.len(), 6);
+    assert_eq!(db.external_topic_writers.len(), 3);
+    assert_eq!(
+      topic_sources(&db),
+      vec![
+        ("own_1".to_string(), 1),
+        ("own_2".to_string(), 1),
+        ("own_3".to_string(), 1),
+        ("shared".to_string(), 6),
+      ]
+    );
+
+    // One endpoint disposed: its topic record goes, and a topic nobody
+    // describes any more.
+    db.remove_topic_reader(remote_guid(stays, 2, EntityKind::READER_WITH_KEY_USER_DEFINED));
+    assert!(!db.topics.contains_key("own_3"));
+
+    // A participant that says it leaves: everything of it goes at once.
+    db.remove_participant(left, true);
+    assert_eq!(db.external_topic_readers.range(left.range()).count(), 0);
+    assert_eq!(db.external_topic_writers.range(left.range()).count(), 0);
+    assert!(!db.topics.contains_key("own_1"));
+    assert_eq!(db.topics["shared"].len(), 4);
+
+    // A participant whose lease expires: its endpoints are lost with it, and
+    // wait in the attic for one more lease, then they and its topic records go.
+    while status_receiver.try_recv().is_ok() {}
+    std::thread::sleep(StdDuration::from_millis(400));
+    let lost = db.participant_cleanup();
+    assert_eq!(lost.len(), 1);
+    assert_eq!(lost[0].0, killed);
+    let mut lost_endpoints = Vec::new();
+    while let Ok(event) = status_receiver.try_recv() {
+      match event {
+        DomainParticipantStatusEvent::ReaderLost {
+          guid,
+          reason: LostReason::Timeout { .. },
+        } => lost_endpoints.push(guid),
+        DomainParticipantStatusEvent::WriterLost {
+          guid,
+          reason: LostReason::Timeout { .. },
+        } => lost_endpoints.push(guid),
+        _ => {}
+      }
+    }
+    assert_eq!(
+      lost_endpoints,
+      vec![
+        remote_guid(killed, 1, EntityKind::READER_WITH_KEY_USER_DEFINED),
+        remote_guid(killed, 2, EntityKind::READER_WITH_KEY_USER_DEFINED),
+        remote_guid(killed, 3, EntityKind::WRITER_WITH_KEY_USER_DEFINED),
+      ]
+    );
+    assert_eq!(db.external_topic_readers_attic.len(), 2);
+    assert_eq!(db.external_topic_writers_attic.len(), 1);
+    std::thread::sleep(StdDuration::from_millis(400));
+    assert!(db.participant_cleanup().is_empty());
+    assert!(db.external_topic_readers_attic.is_empty());
+    assert!(db.external_topic_writers_attic.is_empty());
+    assert!(!db.participant_proxies.contains_key(&killed));
+    assert!(!db.participant_last_life_signs.contains_key(&killed));
+
+    // What is left is the participant that stays.
+    assert_eq!(
+      topic_sources(&db),
+      vec![("shared".to_string(), 2)]
+    );
+    assert_eq!(db.external_topic_readers.len(), 1);
+    assert_eq!(db.external_topic_writers.len(), 1);
+    assert_eq!(db.participant_proxies.len(), 1);
+  }
+
+  #[test]
+  fn a_participant_back_within_its_attic_time_gets_its_endpoints_back() {
+    let (topic_sender, _topic_receiver) = std::sync::mpsc::sync_channel::<()>(4);
+    let (status_sender, _status_receiver) = sync_status_channel(64).unwrap();
+    let mut db = DiscoveryDB::new(GUID::new_participant_guid(), topic_sender, status_sender);
+    let prefix = discover_remote(&mut db, 4, 300);
+    let data = db.participant_proxies[&prefix].clone();
+    std::thread::sleep(StdDuration::from_millis(400));
+    assert_eq!(db.participant_cleanup().len(), 1);
+    assert_eq!(db.external_topic_readers.len(), 0);
+    // Back before the attic time is over.
+    assert!(db.update_participant(&data));
+    assert_eq!(db.external_topic_readers.len(), 2);
+    assert_eq!(db.external_topic_writers.len(), 1);
+    assert!(db.external_topic_readers_attic.is_empty());
+    assert_eq!(db.topics["shared"].len(), 2);
   }
 }

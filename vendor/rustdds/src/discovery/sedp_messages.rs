@@ -1328,6 +1328,13 @@ impl Keyed for ParticipantMessageData {
 )]
 pub struct ParticipantMessageDataKey(GuidPrefix, ParticipantMessageDataKind);
 
+impl ParticipantMessageDataKey {
+  // The participant whose message this is.
+  pub(crate) fn prefix(&self) -> GuidPrefix {
+    self.0
+  }
+}
+
 impl Key for ParticipantMessageDataKey {}
 
 // =======================================================================

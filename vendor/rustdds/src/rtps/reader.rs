@@ -619,9 +619,18 @@ impl Reader {
   pub fn remove_writer_proxy(&mut self, writer_guid: GUID) {
     if self.matched_writers.contains_key(&writer_guid) {
       self.matched_writers.remove(&writer_guid);
-      self
-        .acquire_the_topic_cache_guard()
-        .forget_reliable_writer(writer_guid);
+      let mut topic_cache = self.acquire_the_topic_cache_guard();
+      if self.my_guid.entity_id.kind().is_built_in() {
+        // A built-in topic (discovery) keeps up to thousands of samples, and
+        // those of a lost participant's writers are of no use any more.
+        topic_cache.remove_changes_of_writer(writer_guid);
+      } else {
+        // A user topic's samples stay for the DataReader to take: the writer
+        // may have written them just before it left. The topic's sample limit
+        // bounds them.
+        topic_cache.forget_reliable_writer(writer_guid);
+      }
+      drop(topic_cache);
       #[cfg(feature = "security")]
       if let Some(security_plugins_handle) = &self.security_plugins {
         security_plugins_handle
@@ -2540,4 +2549,99 @@ mod tests {
     // we attempted to add
     assert!(reader.matched_writer(writer_guid).is_none());
   }
+
+  // A reader of `kind` on a topic cache of its own, reliable, with the writer
+  // `writer` matched.
+  fn reader_with_matched_writer(kind: EntityKind, writer: GUID) -> (Reader, Arc<Mutex<TopicCache>>) {
+    let dds_cache = Arc::new(RwLock::new(DDSCache::new()));
+    let qos = QosPolicyBuilder::new()
+      .reliability(Reliability::Reliable {
+        max_blocking_time: Duration::from_millis(100),
+      })
+      .build();
+    let topic_cache_handle = dds_cache.write().unwrap().add_new_topic(
+      format!("topic_{kind:?}"),
+      TypeDesc::new("test_type".to_string()),
+      &qos,
+    );
+    let (notification_sender, _notification_receiver) =
+      crate::mio_source::notification_channel(100);
+    let (_notification_event_source, notification_event_sender) =
+      mio_source::make_poll_channel().unwrap();
+    let (status_sender, _status_receiver) = sync_status_channel::<DataReaderStatus>(16).unwrap();
+    let (participant_status_sender, _participant_status_receiver) =
+      sync_status_channel(16).unwrap();
+    let (_reader_command_sender, reader_command_receiver) =
+      wake_channel::<ReaderCommand>(10, &LoopWaker::new());
+    let mut reader = Reader::new(
+      ReaderIngredients {
+        guid: GUID::dummy_test_guid(kind),
+        notification_sender,
+        status_sender,
+        topic_name: format!("topic_{kind:?}"),
+        topic_cache_handle: topic_cache_handle.clone(),
+        like_stateless: false,
+        qos_policy: qos.clone(),
+        data_reader_command_receiver: reader_command_receiver,
+        data_reader_waker: Arc::new(Mutex::new(None)),
+        poll_event_sender: notification_event_sender,
+        security_plugins: None,
+        discovery_notify: None,
+      },
+      Rc::new(UDPSender::new(0).unwrap()),
+      new_shared_timer(),
+      participant_status_sender,
+    );
+    reader.matched_writer_add(writer, EntityId::UNKNOWN, vec![], vec![], &qos);
+    (reader, topic_cache_handle)
+  }
+
+  fn cached_changes(topic_cache: &Arc<Mutex<TopicCache>>) -> usize {
+    topic_cache
+      .lock()
+      .unwrap()
+      .get_changes_in_range_best_effort(Timestamp::ZERO, Timestamp::now())
+      .count()
+  }
+
+  // What a built-in (discovery) reader received from a participant's writers
+  // leaves its topic cache when that participant is lost; a user reader keeps
+  // what it has not necessarily taken yet.
+  #[test]
+  fn samples_of_a_lost_participant_leave_built_in_topic_caches() {
+    let prefix = GuidPrefix::new(&[9; 12]);
+    let mr_state = MessageReceiverState {
+      source_guid_prefix: prefix,
+      ..Default::default()
+    };
+    let data_flags = BitFlags::<DATA_Flags>::from_flag(DATA_Flags::Data);
+    for (reader_kind, writer_kind, kept) in [
+      (
+        EntityKind::READER_WITH_KEY_BUILT_IN,
+        EntityKind::WRITER_WITH_KEY_BUILT_IN,
+        0,
+      ),
+      (
+        EntityKind::READER_NO_KEY_USER_DEFINED,
+        EntityKind::WRITER_NO_KEY_USER_DEFINED,
+        3,
+      ),
+    ] {
+      let writer = GUID::new(prefix, EntityId::new([0, 0, 3], writer_kind));
+      let (mut reader, topic_cache) = reader_with_matched_writer(reader_kind, writer);
+      for sn in 1..=3 {
+        let data = Data {
+          reader_id: reader.my_guid.entity_id,
+          writer_id: writer.entity_id,
+          writer_sn: SequenceNumber::new(sn),
+          ..Data::default()
+        };
+        reader.handle_data_msg(data, data_flags, &mr_state);
+      }
+      assert_eq!(cached_changes(&topic_cache), 3, "{reader_kind:?}");
+      reader.participant_lost(prefix);
+      assert_eq!(cached_changes(&topic_cache), kept, "{reader_kind:?}");
+    }
+  }
 }
+

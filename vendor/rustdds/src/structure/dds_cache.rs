@@ -246,6 +246,24 @@ impl TopicCache {
     self.received_reliably_before.remove(&writer);
   }
 
+  // Does the cache hold samples of `writer`, or expect some (a reliable Writer
+  // that is matched)?
+  pub fn knows_writer(&self, writer: &GUID) -> bool {
+    self.sequence_numbers.contains_key(writer) || self.received_reliably_before.contains_key(writer)
+  }
+
+  // Removes every change of `writer`, whether a DataReader took it or not.
+  // For the built-in discovery topics, whose only reader is Discovery itself:
+  // what a lost participant announced is of no use once it is gone.
+  pub fn remove_changes_of_writer(&mut self, writer: GUID) {
+    if let Some(sn_map) = self.sequence_numbers.remove(&writer) {
+      for ts in sn_map.values() {
+        self.changes.remove(ts);
+      }
+    }
+    self.received_reliably_before.remove(&writer);
+  }
+
   // The oldest change that a Reliable DataReader cannot yet take, because an
   // earlier sample from the same Writer is still missing: its receive timestamp,
   // Writer and SequenceNumber.

@@ -94,6 +94,14 @@ where
   D: Keyed,
   DA: DeserializerAdapter<D> + DefaultDecoder<D>,
 {
+  // Forgets the instances `forget` selects: their samples, their state and
+  // their key hash. Discovery uses this for the participants and endpoints it
+  // has seen leave, whose instances would otherwise stay for good.
+  pub(crate) fn forget_instances(&mut self, forget: impl Fn(&D::K) -> bool) {
+    self.datasample_cache.forget_instances(&forget);
+    self.simple_data_reader.forget_keys(&forget);
+  }
+
   // Gets all unseen cache_changes from the TopicCache. Deserializes
   // the serialized payload and stores the DataSamples (the actual data and the
   // samplestate) to local container, datasample_cache.
@@ -1638,4 +1646,118 @@ mod tests {
     assert!(results.is_ok());
     assert!(results.unwrap().is_empty());
   }
+
+  // What a reader keeps per Writer and per instance goes once they are gone:
+  // the read pointer of a Writer whose samples have left the topic cache, and
+  // the state and key hash of an instance Discovery has seen leave.
+  #[test]
+  fn gone_writers_and_forgotten_instances_leave_the_read_state() {
+    let dp = DomainParticipant::new(test_domain_id(0)).expect("Participant creation failed!");
+    let qos = QosPolicies::qos_none();
+    let sub = dp.create_subscriber(&qos).unwrap();
+    let topic = dp
+      .create_topic(
+        "dr forget".to_string(),
+        "forget test".to_string(),
+        &qos,
+        TopicKind::WithKey,
+      )
+      .unwrap();
+    let topic_cache =
+      dp.dds_cache()
+        .write()
+        .unwrap()
+        .add_new_topic(topic.name(), topic.get_type(), &topic.qos());
+    let (notification_sender, _notification_receiver) =
+      crate::mio_source::notification_channel(100);
+    let (_notification_event_source, notification_event_sender) =
+      mio_source::make_poll_channel().unwrap();
+    let (status_sender, _status_receiver) = sync_status_channel::<DataReaderStatus>(16).unwrap();
+    let (participant_status_sender, _participant_status_receiver) =
+      sync_status_channel(16).unwrap();
+    let (_reader_command_sender, reader_command_receiver) =
+      wake_channel::<ReaderCommand>(10, &LoopWaker::new());
+    // A built-in reader, as Discovery's are: a lost participant's samples
+    // leave its topic cache.
+    let reader_guid = GUID::new_with_prefix_and_id(
+      dp.guid_prefix(),
+      EntityId::create_custom_entity_id([0, 0, 9], EntityKind::READER_WITH_KEY_BUILT_IN),
+    );
+    let mut reader = Reader::new(
+      ReaderIngredients {
+        guid: reader_guid,
+        notification_sender,
+        status_sender,
+        topic_name: topic.name(),
+        topic_cache_handle: topic_cache,
+        like_stateless: false,
+        qos_policy: qos.clone(),
+        data_reader_command_receiver: reader_command_receiver,
+        data_reader_waker: Arc::new(Mutex::new(None)),
+        poll_event_sender: notification_event_sender,
+        security_plugins: None,
+        discovery_notify: None,
+      },
+      Rc::new(UDPSender::new_with_random_port().unwrap()),
+      new_shared_timer(),
+      participant_status_sender,
+    );
+    let mut datareader = sub
+      .create_datareader::<RandomData, CDRDeserializerAdapter<RandomData>>(&topic, None)
+      .unwrap();
+
+    // Two writers of two participants, one instance each.
+    let writers: Vec<GUID> = [1u8, 2]
+      .iter()
+      .map(|n| GUID {
+        prefix: GuidPrefix::new(&[*n; 12]),
+        entity_id: EntityId::create_custom_entity_id(
+          [*n; 3],
+          EntityKind::WRITER_WITH_KEY_USER_DEFINED,
+        ),
+      })
+      .collect();
+    for (i, writer_guid) in writers.iter().enumerate() {
+      let mr_state = MessageReceiverState {
+        source_guid_prefix: writer_guid.prefix,
+        ..Default::default()
+      };
+      reader.matched_writer_add(*writer_guid, EntityId::UNKNOWN, vec![], vec![], &qos);
+      let data = RandomData {
+        a: 10 + i as i64,
+        b: "x".to_string(),
+      };
+      let data_msg = Data {
+        reader_id: reader.entity_id(),
+        writer_id: writer_guid.entity_id,
+        writer_sn: SequenceNumber::from(1),
+        serialized_payload: Some(
+          SerializedPayload {
+            representation_identifier: RepresentationIdentifier::CDR_LE,
+            representation_options: [0, 0],
+            value: Bytes::from(to_vec::<RandomData, LittleEndian>(&data).unwrap()),
+          }
+          .into(),
+        ),
+        ..Data::default()
+      };
+      reader.handle_data_msg(data_msg, DATA_Flags::Endianness | DATA_Flags::Data, &mr_state);
+    }
+    assert_eq!(datareader.take(100, ReadCondition::any()).unwrap().len(), 2);
+    assert_eq!(datareader.datasample_cache.instance_map.len(), 2);
+    assert_eq!(datareader.simple_data_reader.read_state_sizes(), (2, 2));
+
+    // The first writer's participant is lost: its samples leave the cache, and
+    // with them the reader's pointer for it, on the next read.
+    reader.participant_lost(writers[0].prefix);
+    assert_eq!(datareader.take(100, ReadCondition::any()).unwrap().len(), 0);
+    assert_eq!(datareader.simple_data_reader.read_state_sizes(), (1, 2));
+
+    // Its instance is forgotten: state and key hash.
+    datareader.forget_instances(|k| *k == 10);
+    assert_eq!(datareader.datasample_cache.instance_map.len(), 1);
+    assert!(datareader.datasample_cache.instance_map.contains_key(&11));
+    assert_eq!(datareader.simple_data_reader.read_state_sizes(), (1, 1));
+  }
 }
+

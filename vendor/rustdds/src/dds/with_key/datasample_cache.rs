@@ -235,6 +235,25 @@ where
     // sample, i.e.
   }
 
+  // Removes the instances whose key `forget` selects, with their samples and
+  // their state. For instances that will not come back: the endpoints and
+  // participants Discovery has seen leave.
+  pub(crate) fn forget_instances(&mut self, forget: impl Fn(&D::K) -> bool) {
+    let keys: Vec<D::K> = self
+      .instance_map
+      .keys()
+      .filter(|k| forget(k))
+      .cloned()
+      .collect();
+    for key in keys {
+      if let Some(imd) = self.instance_map.remove(&key) {
+        for ts in imd.instance_samples {
+          self.datasamples.remove(&ts);
+        }
+      }
+    }
+  }
+
   // Helper for select_keys and select_instance_keys
   //
   // Selection is in timestamp order. If there are samples that have been received

@@ -360,7 +360,15 @@ where
     // loop in case we get a sample that should be ignored, so we try next.
     loop {
       let (timestamp, cc) = match changes.next() {
-        None => return Ok(None), // no more data available right now
+        None => {
+          // no more data available right now
+          drop(changes);
+          // A read pointer is needed only while the cache has samples of its
+          // Writer or still expects some (its Writer is matched). Without
+          // this, one is kept for every Writer that ever wrote to the topic.
+          last_read_sn.retain(|writer, _| topic_cache.knows_writer(writer));
+          return Ok(None);
+        }
         Some((ts, cc)) => (ts, cc),
       };
 
@@ -395,6 +403,24 @@ where
         return result.map(Some);
       }
     }
+  }
+
+  // How many read pointers (Writers) and key hashes this reader keeps.
+  #[cfg(test)]
+  pub(crate) fn read_state_sizes(&self) -> (usize, usize) {
+    let state = self.read_state.lock().unwrap();
+    (state.last_read_sn.len(), state.hash_to_key_map.len())
+  }
+
+  // Forgets the key hashes of the instances `forget` selects (which will not
+  // come back), so that a dispose by hash of them is no longer decoded.
+  pub(crate) fn forget_keys(&self, forget: impl Fn(&D::K) -> bool) {
+    self
+      .read_state
+      .lock()
+      .unwrap()
+      .hash_to_key_map
+      .retain(|_, key| !forget(key));
   }
 
   pub fn qos(&self) -> &QosPolicies {
