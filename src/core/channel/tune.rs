@@ -168,7 +168,7 @@ impl Channel {
         self.heat.autotune = None;
         let gains = estimate.map(|e| Rule::TyreusLuyben.gains(e.ku, e.tu_s));
         let sizing = gains.map(|g| self.tune_sizing(g));
-        if self.pid_on() {
+        if self.loop_on() {
             // The loop holds 0 % until a new setpoint.
             self.heat.setpoint = None;
             self.heat.pid.start_from(0.0);

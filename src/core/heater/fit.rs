@@ -407,7 +407,7 @@ impl Trace {
 }
 
 /// Solves the 3×3 system `m·x = v` by elimination with partial pivoting.
-fn solve3(mut m: [[f64; 3]; 3], mut v: [f64; 3]) -> Option<[f64; 3]> {
+pub(crate) fn solve3(mut m: [[f64; 3]; 3], mut v: [f64; 3]) -> Option<[f64; 3]> {
     let scale = m.iter().flatten().fold(0.0f64, |a, x| a.max(x.abs()));
     if scale <= 0.0 || scale.is_nan() {
         return None;

@@ -47,6 +47,9 @@ pub struct Model {
     sensor: f64,
     sensor_in: f64,
     sensor_at: Nanos,
+    /// The ambient (°C) and the announced disturbance (feed-forward, %) in force.
+    ambient: f64,
+    ff: f64,
     started: bool,
 }
 
@@ -76,6 +79,8 @@ impl Model {
             sensor: p.ambient_c,
             sensor_in: p.ambient_c,
             sensor_at: 0,
+            ambient: p.ambient_c,
+            ff: 0.0,
             started: false,
         }
     }
@@ -93,7 +98,10 @@ impl Model {
     /// Starts (or restarts) the model at `now` from the reading `celsius`, as if the heater had
     /// stood at it for the dead time; `on_total` is the line's cumulative on time, ns.
     pub fn restart(&mut self, now: Nanos, on_total: Nanos, celsius: f64) {
+        let (ambient, ff) = (self.ambient, self.ff);
         *self = Model::new(self.p);
+        self.ambient = ambient;
+        self.ff = ff;
         self.x = celsius;
         self.sensor = celsius;
         self.sensor_in = celsius;
@@ -117,6 +125,25 @@ impl Model {
         self.len += 1;
     }
 
+    /// The ambient in force, °C.
+    pub fn ambient(&self) -> f64 {
+        self.ambient
+    }
+
+    /// The announced disturbance in force, %.
+    pub fn feedforward(&self) -> f64 {
+        self.ff
+    }
+
+    /// Sets the ambient (°C, a measured one) and the disturbance announced by the
+    /// feed-forward (% of full power) in force from `now` on, the model advanced to `now`
+    /// first: what the model is told of does not move its residual.
+    pub fn set_inputs(&mut self, now: Nanos, on_total: Nanos, ambient_c: f64, ff_pct: f64) {
+        self.advance(now, on_total);
+        self.ambient = ambient_c;
+        self.ff = ff_pct;
+    }
+
     /// Advances the undelayed state to `now`, with the line's cumulative on time `on_total`
     /// (ns) then.
     pub fn advance(&mut self, now: Nanos, on_total: Nanos) {
@@ -125,7 +152,7 @@ impl Model {
         }
         let h = (now - self.at) as f64;
         let u_pct = (on_total.saturating_sub(self.on_at) as f64 / h * 100.0).clamp(0.0, 100.0);
-        let target = self.p.ambient_c + self.p.gain_c_per_pct * u_pct;
+        let target = self.ambient + self.p.gain_c_per_pct * (u_pct - self.ff);
         let tau_ns = self.p.tau_s * 1e9;
         self.x = target + (self.x - target) * (-h / tau_ns).exp();
         self.at = now;
