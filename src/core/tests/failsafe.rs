@@ -730,7 +730,7 @@ impl Lean {
 /// One healthy run of `hours` simulated hours: setpoint changes, disturbance steps of up to
 /// 30 % of full power, the ambient drifting by up to ±5 °C, autotunes, the channel disabled
 /// and enabled again. Returns the fault if one latched (none may), with what was going on.
-fn healthy_run(seed: u64, hours: f64) -> Result<u32, String> {
+fn healthy_run(seed: u64, hours: f64, control: Control) -> Result<u32, String> {
     let mut g = Gen::new(seed ^ 0xA5A5);
     let plant = arb_plant(&mut g);
     let quantum = g.pick(&[0.0, 0.0, 0.0625, 0.25]);
@@ -740,7 +740,7 @@ fn healthy_run(seed: u64, hours: f64) -> Result<u32, String> {
     let temp_max = plant.ambient_c + top_share * full + 15.0 + 10.0;
     let ch = ChannelParams {
         period_ms: 1000,
-        heater: required(&plant, temp_max),
+        heater: for_loop(required(&plant, temp_max), &plant, control, dist_max),
         ..ChannelParams::default()
     };
     let cfg = ch.validate().map_err(|e| e.to_string())?;
@@ -833,7 +833,7 @@ fn healthy_heaters_never_trip() {
     let start = std::time::Instant::now();
     let mut autotunes = 0;
     for seed in 0..runs {
-        match healthy_run(seed, hours) {
+        match healthy_run(seed, hours, Control::Pid) {
             Ok(n) => autotunes += n,
             Err(e) => panic!("{e}"),
         }
@@ -843,6 +843,28 @@ fn healthy_heaters_never_trip() {
          ({:.1} s)",
         runs as f64 * hours,
         start.elapsed().as_secs_f64()
+    );
+}
+
+/// The same healthy runs under `mpc` on the plant's model.
+#[test]
+fn healthy_heaters_never_trip_under_mpc() {
+    let runs: u64 = std::env::var("PWM_HEALTHY_RUNS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(125);
+    let hours = 8.0;
+    let mut autotunes = 0;
+    for seed in 0..runs {
+        match healthy_run(seed, hours, Control::Mpc) {
+            Ok(n) => autotunes += n,
+            Err(e) => panic!("{e}"),
+        }
+    }
+    println!(
+        "healthy heaters under mpc: {runs} runs, {:.0} simulated hours, {autotunes} autotunes, \
+         0 trips",
+        runs as f64 * hours
     );
 }
 

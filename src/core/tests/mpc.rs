@@ -381,6 +381,57 @@ fn the_feedforward_is_bounded_and_goes_stale() {
     assert!(r.faults().is_empty());
 }
 
+/// An ambient reading outside `temp_min_c..=temp_max_c` or not a number is refused; a fresh
+/// one is the ambient in force; one older than `ambient_timeout_ms` is stale, and the model's
+/// ambient is back in force.
+#[test]
+fn the_ambient_is_bounded_and_goes_stale() {
+    let plant = lagging(4);
+    let m = ModelParams {
+        gain_c_per_pct: plant.rate_c_per_s * plant.tau_s / 100.0,
+        tau_s: plant.tau_s,
+        dead_time_s: plant.dead_time_s,
+        ambient_c: plant.ambient_c,
+        sensor_tau_s: plant.sensor_tau_s,
+    };
+    let g = Gains {
+        kp: 8.0,
+        ki: 0.2,
+        kd: 0.0,
+        d_filter_s: 0.0,
+    };
+    let mut ch = channel(&plant, Loop::Mpc, g, m);
+    ch.heater.ambient = true;
+    ch.heater.ambient_timeout_ms = 10_000;
+    let max = ch.heater.temp_max_c;
+    let mut r = Rig::new(ch, plant, 9);
+    r.secs(1.0).setpoint(40.0).enable().secs(20.0);
+    assert!(r.ch.status(r.now).heater.ambient_stale);
+    for bad in [f64::NAN, max + 1.0, -300.0] {
+        r.act(|c, now, emit| c.ambient_reading(now, bad, None, emit));
+        assert!(
+            matches!(
+                r.notes.last(),
+                Some((
+                    _,
+                    crate::core::Event::Refused(crate::core::heater::Refusal::Ambient { .. })
+                ))
+            ),
+            "{bad}"
+        );
+    }
+    r.act(|c, now, emit| c.ambient_reading(now, 25.0, None, emit));
+    r.secs(1.0);
+    let st = r.ch.status(r.now).heater;
+    assert_eq!(st.ambient_c, Some(25.0));
+    assert!(!st.ambient_stale);
+    r.secs(10.0);
+    let st = r.ch.status(r.now).heater;
+    assert_eq!(st.ambient_c, Some(plant.ambient_c));
+    assert!(st.ambient_stale);
+    assert!(r.faults().is_empty());
+}
+
 #[test]
 #[ignore]
 fn explore() {
