@@ -8,7 +8,9 @@ action), then in one run the same setpoint and the same fan (30 % of the heater'
 - under `mpc` the heater holds its setpoint within ±0.5 °C once settled;
 - the fan's step is rejected faster under `mpc` than under `pid` (both printed): the integrated
   absolute error over the 20 s after the step is smaller, and the reading is back within
-  0.5 °C of the setpoint sooner.
+  0.5 °C of the setpoint sooner;
+- `feedforward_topic`: a value published is the one in force on /diagnostics; with none fresh
+  the channel is WARN, saying the feed-forward is stale.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from std_msgs.msg import Float64
 
 from pwm_actuator_msgs.action import Autotune
 
-from helpers_rules import MS, NODE, diag_values, mono_ns
+from helpers_rules import MS, NODE, diag_level, diag_values, mono_ns
 from test_channel_rules import observe_until, start
 from test_heater import PARAMS, PLANT, TOPIC
 
@@ -126,3 +128,50 @@ def test_mpc_after_a_model_autotune_holds_and_rejects_a_fan_faster_than_pid(
     v = diag_values(d)
     assert v["model"].startswith("gain "), v
     assert math.isfinite(float(v["mpc_predicted_c"])), v
+
+
+def test_the_feedforward_topic_is_used_while_fresh_and_warns_when_stale(
+    node_process, process_launcher, node_binary, ros
+):
+    model = dict(
+        pw01__control="mpc",
+        pw01__model_gain_c_per_pct=1.0,
+        pw01__model_tau_s=20.0,
+        pw01__model_dead_time_s=0.5,
+        pw01__model_sensor_tau_s=0.5,
+        pw01__model_ambient_c=20.0,
+        pw01__model_tolerance_c=45.0,
+        pw01__feedforward_topic="/heater/fan_ff",
+        pw01__feedforward_timeout_ms=1000,
+    )
+    proc, ch = start(node_process, ros, **{**PARAMS, **model})
+    process_launcher.launch([node_binary, "sim-heater", *LAGGING], name="sim")
+    ch.wait_status(
+        lambda s: math.isfinite(s.temperature_c), "a first temperature reading", timeout=60
+    )
+    # None yet: stale, WARN.
+    d = ch.wait_diag(lambda d: diag_values(d).get("feedforward_stale") == "true", "stale")
+    assert diag_level(d) == 1 and d.message.startswith("feed-forward input stale"), d
+    ff = ros.publisher(Float64, "/heater/fan_ff")
+    ros.wait_for_subscribers(ff, 1)
+    fresh = None
+    t_end = mono_ns() + 5_000 * MS
+    while mono_ns() < t_end:
+        ff.publish(Float64(data=30.0))
+        ros.spin_for(0.2)
+        mine = [m for m in map(ch.my_diag, ch.diagnostics.messages[-3:]) if m is not None]
+        if mine and diag_values(mine[-1]).get("feedforward_pct") == "30.000":
+            fresh = mine[-1]
+            break
+    assert fresh is not None, "the feed-forward never in force"
+    assert diag_values(fresh)["feedforward_stale"] == "false", diag_values(fresh)
+    # Publishing stops: stale again after feedforward_timeout_ms, the value no longer used.
+    start_at = len(ch.diagnostics.messages)
+    d = ch.wait_diag(
+        lambda d: diag_values(d).get("feedforward_stale") == "true",
+        "stale after the timeout",
+        start=start_at,
+        timeout=10,
+    )
+    assert diag_values(d)["feedforward_pct"] == "0.000", diag_values(d)
+    assert diag_level(d) == 1, d
