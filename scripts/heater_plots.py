@@ -9,9 +9,12 @@ the plant's true one), the setpoint, the duty (the line's on time in each period
 
   settle        80 °C setpoint from 20 °C: the loop settling          -> docs/heater-settle.png
   fallen_off    settled, then the sensor falls off its block: no_rise trips -> docs/heater-fallen-off.png
+  pid_mpc       the same plant (its sensor lagging 1 s) and the same 80 °C step and unannounced fan
+                (30 % of the power at 150 s) under pid and under mpc, side by side
+                                                                      -> docs/heater-pid-mpc.png
 
 Usage:
-  scripts/heater_plots.py                     both scenarios, into docs/
+  scripts/heater_plots.py                     every scenario, into docs/
   scripts/heater_plots.py --scenario settle --out /tmp/a.png
 
 Needs the release build (cargo build --release) and matplotlib (scripts/requirements-docs.txt,
@@ -50,6 +53,17 @@ SCENARIOS = {
                        out="docs/heater-fallen-off.png",
                        title="settled at 80 °C, the sensor falls off its block at 110 s: no_rise"),
 }  # fmt: skip
+#: pid_mpc: the loops compared, each a run of its own (on its own ROS domain, at once). mpc on
+#: the plant's model (gain 2 °C/s × 60 s / 100 %), the tolerance of model_deviation above
+#: what the unannounced fan moves its residual by (docs/heater.md).
+COMPARE = dict(seconds=300.0, plant=["--sensor-tau", "1"], sim=["--fan", "0.3", "--fan-after", "150"],
+               out="docs/heater-pid-mpc.png",
+               title="80 °C from 20 °C, then a fan taking 30 % of the power at 150 s (unannounced)")
+MPC_PARAMS = [
+    "pw01.control:=mpc", "pw01.model_gain_c_per_pct:=1.2", "pw01.model_tau_s:=60.0",
+    "pw01.model_dead_time_s:=2.0", "pw01.model_sensor_tau_s:=1.0", "pw01.model_ambient_c:=20.0",
+    "pw01.model_tolerance_c:=46.0",
+]  # fmt: skip
 
 
 def ensure_matplotlib() -> None:
@@ -62,20 +76,28 @@ def ensure_matplotlib() -> None:
         sys.exit("heater_plots: matplotlib is missing (see scripts/requirements-docs.txt)")
 
 
-def run(scenario: dict, workdir: Path) -> tuple[Path, str]:
-    """Runs node and simulated heater; returns the record and the node's log."""
+def start(scenario: dict, workdir: Path, params=(), domain=None):
+    """Starts simulated heater and node; returns both processes and the record's path."""
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if domain is not None:
+        env["ROS_DOMAIN_ID"] = str(domain)
     record = workdir / "record.csv"
     sim = subprocess.Popen(
-        [NODE, "sim-heater", *PLANT, "--setpoint", str(SETPOINT), "--record", record,
-         "--duration", str(scenario["seconds"]), *scenario["sim"]],
+        [NODE, "sim-heater", *PLANT, *scenario.get("plant", []), "--setpoint", str(SETPOINT),
+         "--record", record, "--duration", str(scenario["seconds"]), *scenario["sim"]],
         env=env, stdout=subprocess.DEVNULL, stderr=open(workdir / "sim.log", "wb"),
     )  # fmt: skip
     node = subprocess.Popen(
-        [NODE, "--output", "sim", "--ros-args", *[a for p in PARAMS for a in ("-p", p)]],
+        [NODE, "--output", "sim", "--ros-args",
+         *[a for p in [*PARAMS, *params] for a in ("-p", p)]],
         env=env, stdout=subprocess.DEVNULL, stderr=open(workdir / "node.log", "wb"),
     )  # fmt: skip
+    return sim, node, record
+
+
+def finish(scenario: dict, workdir: Path, sim, node, record) -> tuple[Path, str]:
+    """Waits for the simulated heater's end, stops the node; the record and the node's log."""
     try:
         sim.wait(timeout=scenario["seconds"] + 60)
     finally:
@@ -87,12 +109,13 @@ def run(scenario: dict, workdir: Path) -> tuple[Path, str]:
     return record, (workdir / "node.log").read_text(errors="replace")
 
 
-def draw(record: Path, log: str, title: str, out: Path) -> None:
-    import matplotlib
+def run(scenario: dict, workdir: Path) -> tuple[Path, str]:
+    """Runs node and simulated heater; returns the record and the node's log."""
+    return finish(scenario, workdir, *start(scenario, workdir))
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
+def load(record: Path):
+    """The readings, the true temperatures, the line's edges and the duty of each period."""
     readings, true_c, edges = [], [], []
     with open(record) as f:
         for t, kind, value, true in csv.reader(f):
@@ -101,9 +124,7 @@ def draw(record: Path, log: str, title: str, out: Path) -> None:
                 true_c.append((float(t), float(true)))
             elif kind == "line":
                 edges.append((float(t), int(float(value))))
-    # Time from the simulated heater's start (the node enables pw01 a moment later).
     end = readings[-1][0] if readings else 1.0
-    # The duty: the line's on time in each period after the enable.
     duty = []
     k = int(edges[0][0] / PERIOD_S) if edges else 0
     while (k + 1) * PERIOD_S <= end:
@@ -117,6 +138,71 @@ def draw(record: Path, log: str, title: str, out: Path) -> None:
             on += max(0.0, b - max(since, a))
         duty.append((a, 100.0 * on / PERIOD_S))
         k += 1
+    return readings, true_c, edges, duty
+
+
+def compare(out: Path) -> None:
+    """pid_mpc: both loops at once on their own domains, drawn on one figure, with the
+    integrated absolute error of the plant's true temperature after the step and the fan."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = COMPARE
+    base = int(os.environ.get("ROS_DOMAIN_ID", "0"))
+    with tempfile.TemporaryDirectory() as d:
+        runs = {}
+        for i, (name, params) in enumerate((("pid", []), ("mpc", MPC_PARAMS))):
+            w = Path(d) / name
+            w.mkdir()
+            runs[name] = (w, start(s, w, params, domain=base + 1 + i))
+        got = {name: load(finish(s, w, *procs)[0]) for name, (w, procs) in runs.items()}
+        logs = {name: (w / "node.log").read_text(errors="replace") for name, (w, _) in runs.items()}
+    fan_at = float(s["sim"][s["sim"].index("--fan-after") + 1])
+    fig, (ax_t, ax_d) = plt.subplots(
+        2, 1, figsize=(10, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1.5]}
+    )
+    for name, (readings, true_c, _, duty) in got.items():
+        dt = [b[0] - a[0] for a, b in zip(true_c, true_c[1:])]
+        step = sum(abs(v - SETPOINT) * h for (t, v), h in zip(true_c, dt) if t < fan_at)
+        fan = sum(abs(v - SETPOINT) * h for (t, v), h in zip(true_c, dt) if t >= fan_at)
+        dip = max((SETPOINT - v for t, v in true_c if t >= fan_at), default=0.0)
+        over = max((v - SETPOINT for t, v in true_c if t < fan_at), default=0.0)
+        label = (f"{name}: IAE step {step:.0f}, fan {fan:.0f} °C·s; overshoot {over:.2f} °C, "
+                 f"fan dip {dip:.2f} °C")  # fmt: skip
+        print(f"heater_plots: {label}")
+        ax_t.plot([t for t, _ in true_c], [v for _, v in true_c], lw=0.9, label=label)
+        ax_d.step([t for t, _ in duty], [v for _, v in duty], where="post", lw=0.8, label=name)
+        if "heater fault latched" in logs[name]:
+            print(f"heater_plots: {name}: a heater fault latched")
+    ax_t.axhline(SETPOINT, color="k", lw=0.8, ls=":", label=f"setpoint {SETPOINT:g} °C")
+    for ax in (ax_t, ax_d):
+        ax.axvline(fan_at, color="grey", lw=0.8, ls="--")
+    ax_t.set_ylabel("°C (plant, true)")
+    ax_t.set_ylim(SETPOINT - 15, SETPOINT + 5)
+    ax_t.legend(loc="lower right", fontsize=8)
+    ax_d.set_ylabel("duty %")
+    ax_d.set_ylim(-5, 105)
+    ax_d.legend(loc="lower right", fontsize=8)
+    ax_d.set_xlabel("s since the simulated heater started")
+    fig.suptitle(s["title"])
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    print(f"heater_plots: {out}")
+
+
+def draw(record: Path, log: str, title: str, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    # Time from the simulated heater's start (the node enables pw01 a moment later); the
+    # duty: the line's on time in each period after the enable.
+    readings, true_c, edges, duty = load(record)
+    end = readings[-1][0] if readings else 1.0
     fault = next((ln for ln in log.splitlines() if "heater fault latched" in ln), None)
     last_fall = next((t for t, v in reversed(edges) if v == 0), None)
 
@@ -156,14 +242,19 @@ def draw(record: Path, log: str, title: str, out: Path) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenario", choices=sorted(SCENARIOS), action="append")
+    p.add_argument("--scenario", choices=sorted([*SCENARIOS, "pid_mpc"]), action="append")
     p.add_argument("--out", type=Path, help="output file (with one --scenario)")
     a = p.parse_args()
     ensure_matplotlib()
     if not os.access(NODE, os.X_OK):
         sys.exit(f"heater_plots: {NODE} not found: run cargo build --release")
-    names = a.scenario or sorted(SCENARIOS)
+    names = a.scenario or sorted([*SCENARIOS, "pid_mpc"])
     for name in names:
+        if name == "pid_mpc":
+            started = time.monotonic()
+            compare(a.out if (a.out and len(names) == 1) else REPO / COMPARE["out"])
+            print(f"heater_plots: {name} ran {time.monotonic() - started:.0f} s")
+            continue
         s = SCENARIOS[name]
         out = a.out if (a.out and len(names) == 1) else REPO / s["out"]
         with tempfile.TemporaryDirectory() as d:

@@ -2,12 +2,15 @@
 //! so the whole loop can be tried without hardware (part of the binary only).
 //!
 //! It listens to a channel's `~/<ch>/edges` (the node's real edges, as they reached the line)
-//! and runs the core's first-order-plus-dead-time [`Plant`] on them in real time, publishing
-//! its sensor as `sensor_msgs/Temperature` at a fixed rate. Faults are injected from the
-//! command line (`--fault`, `--fault-after`) or at run time on `~/fault` (`std_msgs/String`:
-//! `none`, `heater_disconnected`, `heater_stuck_on`, `heater_half_power`, `sensor_stuck`,
-//! `sensor_silent`, `sensor_shorted`, `sensor_fallen_off`). With `--record` it writes every reading and every edge to a CSV file
-//! (`t_s,kind,value,true_c`), for the pictures of docs/heater.md.
+//! and runs the core's first-order-plus-dead-time [`Plant`] on them in real time, its sensor
+//! lagging the block by `--sensor-tau`, publishing the sensor as `sensor_msgs/Temperature` at
+//! a fixed rate. Faults are injected from the command line (`--fault`, `--fault-after`) or at
+//! run time on `/sim_heater/fault` (`std_msgs/String`: `none`, `heater_disconnected`,
+//! `heater_stuck_on`, `heater_half_power`, `sensor_stuck`, `sensor_silent`, `sensor_shorted`,
+//! `sensor_fallen_off`). A fan that takes a share of the heater's full power away is set from
+//! the command line (`--fan`, `--fan-after`) or at run time on `/sim_heater/fan`
+//! (`std_msgs/Float64`, 0..1). With `--record` it writes every reading, every edge and every
+//! fan change to a CSV file (`t_s,kind,value,true_c`), for the pictures of docs/heater.md.
 
 use crate::sim_ros::{self, make_topic};
 use clap::{ArgAction, Args, FromArgMatches};
@@ -53,6 +56,16 @@ pub struct SimHeaterOptions {
     /// Peak sensor noise, °C (uniform), 0..100
     #[arg(long, value_name = "C", default_value_t = 0.05)]
     pub noise: f64,
+    /// The sensor's own time constant behind its block, s (0: it reads the block), 0..10000
+    #[arg(long, value_name = "S", default_value_t = 0.0)]
+    pub sensor_tau: f64,
+    /// A fan (or an open door) that takes this share of the heater's full power away, 0..1;
+    /// at run time on /sim_heater/fan (std_msgs/Float64)
+    #[arg(long, value_name = "SHARE", default_value_t = 0.0)]
+    pub fan: f64,
+    /// Switch --fan on this many seconds after start (0: from the start)
+    #[arg(long, value_name = "S", default_value_t = 0.0)]
+    pub fan_after: f64,
     /// A fault to inject: none, heater_disconnected, heater_stuck_on, heater_half_power,
     /// sensor_stuck, sensor_silent, sensor_shorted (reads ambient), sensor_fallen_off (cools
     /// toward ambient with a 20 s time constant)
@@ -89,7 +102,9 @@ pub fn command() -> clap::Command {
         .about(
             "A simulated heater (first order plus dead time) driven by a channel's ~/<ch>/edges, \
              publishing sensor_msgs/Temperature; faults injected with --fault or on \
-             ~/fault (std_msgs/String). Its own ROS participant (node sim_heater).",
+             /sim_heater/fault (std_msgs/String), a fan with --fan or on /sim_heater/fan \
+             (std_msgs/Float64, share of full power). Its own ROS participant (node \
+             sim_heater).",
         )
         .disable_help_flag(true)
         .arg(
@@ -149,6 +164,9 @@ fn check(o: &SimHeaterOptions) -> Result<(PlantParams, PlantFault), OptionError>
     within("dead-time", o.dead_time, 0.0, 600.0)?;
     within("ambient", o.ambient, -100.0, 1000.0)?;
     within("noise", o.noise, 0.0, 100.0)?;
+    within("sensor-tau", o.sensor_tau, 0.0, 10_000.0)?;
+    within("fan", o.fan, 0.0, 1.0)?;
+    within("fan-after", o.fan_after, 0.0, 1e6)?;
     within("quantum", o.quantum, 0.0, 10.0)?;
     within("fault-after", o.fault_after, 0.0, 1e6)?;
     within("duration", o.duration, 0.0, 1e7)?;
@@ -165,6 +183,7 @@ fn check(o: &SimHeaterOptions) -> Result<(PlantParams, PlantFault), OptionError>
             dead_time_s: o.dead_time,
             ambient_c: o.ambient,
             noise_c: o.noise,
+            sensor_tau_s: o.sensor_tau,
         },
         fault,
     ))
@@ -187,8 +206,8 @@ fn plant_line(plant: &Mutex<Plant>) -> (bool, u64) {
     plant.lock().unwrap_or_else(|p| p.into_inner()).line_state()
 }
 
-/// The CSV record, if asked for.
-struct Record(Option<std::io::BufWriter<std::fs::File>>);
+/// The CSV record, if asked for, and the instant its times count from (monotonic ns).
+struct Record(Option<std::io::BufWriter<std::fs::File>>, u64);
 
 impl Record {
     fn line(&mut self, t: f64, kind: &str, value: f64, true_c: f64) {
@@ -196,6 +215,18 @@ impl Record {
             let _ = writeln!(w, "{t:.3},{kind},{value:.4},{true_c:.4}");
         }
     }
+}
+
+/// Sets the fan's share at `now` (the plant advanced to it first) and records the change.
+fn fan(p: &mut Plant, record: &mut Record, now: u64, share: f64) {
+    p.advance(now);
+    p.set_disturbance(share);
+    let t = p.temperature();
+    record.line(secs_since(record.1, now), "fan", share, t);
+}
+
+fn secs_since(start: u64, t: u64) -> f64 {
+    t.saturating_sub(start) as f64 / 1e9
 }
 
 async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> Result<(), String> {
@@ -207,6 +238,12 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
         &node,
         "/sim_heater/fault",
         msg::StringMsg::type_name(),
+        &reliable,
+    )?;
+    let fan_t = make_topic(
+        &node,
+        "/sim_heater/fan",
+        msg::Float64::type_name(),
         &reliable,
     )?;
     let out_qos = if o.reliable {
@@ -223,6 +260,9 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
     let faults = node
         .create_subscription::<msg::StringMsg>(&fault_t, Some(reliable.clone()))
         .map_err(|e| format!("subscription /sim_heater/fault: {e}"))?;
+    let fans = node
+        .create_subscription::<msg::Float64>(&fan_t, Some(reliable.clone()))
+        .map_err(|e| format!("subscription /sim_heater/fan: {e}"))?;
     let publisher = node
         .create_publisher::<msg::Temperature>(&temp_t, Some(out_qos))
         .map_err(|e| format!("publisher {}: {e}", o.topic))?;
@@ -242,17 +282,26 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
     let mut plant = Plant::new(params, start, 0x5eed);
     plant.set_quantum(o.quantum);
     let plant = Arc::new(Mutex::new(plant));
-    let record = Arc::new(Mutex::new(Record(match &o.record {
-        Some(p) => Some(std::io::BufWriter::new(
-            std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?,
-        )),
-        None => None,
-    })));
+    let record = Arc::new(Mutex::new(Record(
+        match &o.record {
+            Some(p) => Some(std::io::BufWriter::new(
+                std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?,
+            )),
+            None => None,
+        },
+        start,
+    )));
     let secs = move |t: u64| t.saturating_sub(start) as f64 / 1e9;
     eprintln!(
-        "sim-heater: {} °C/s at 100 %, tau {} s, dead time {} s, ambient {} °C; edges from \
-         {edges_topic}, temperature on {} at {} Hz",
-        params.rate_c_per_s, params.tau_s, params.dead_time_s, params.ambient_c, o.topic, o.rate_hz
+        "sim-heater: {} °C/s at 100 %, tau {} s, dead time {} s, sensor tau {} s, ambient {} \
+         °C; edges from {edges_topic}, temperature on {} at {} Hz",
+        params.rate_c_per_s,
+        params.tau_s,
+        params.dead_time_s,
+        params.sensor_tau_s,
+        params.ambient_c,
+        o.topic,
+        o.rate_hz
     );
     {
         let (plant, record) = (Arc::clone(&plant), Arc::clone(&record));
@@ -290,11 +339,35 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
             }
         });
     }
+    {
+        let (plant, record) = (Arc::clone(&plant), Arc::clone(&record));
+        tokio::spawn(async move {
+            let stream = fans.async_stream();
+            futures::pin_mut!(stream);
+            while let Some(Ok((m, _))) = stream.next().await {
+                if !(0.0..=1.0).contains(&m.data) {
+                    eprintln!("sim-heater: fan share {} outside 0..1 ignored", m.data);
+                    continue;
+                }
+                let now = clock::monotonic_ns();
+                eprintln!("sim-heater: fan {}", m.data);
+                let mut p = plant.lock().unwrap_or_else(|p| p.into_inner());
+                fan(
+                    &mut p,
+                    &mut record.lock().unwrap_or_else(|r| r.into_inner()),
+                    now,
+                    m.data,
+                );
+            }
+        });
+    }
     let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / o.rate_hz));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let fault_at = start + (o.fault_after * 1e9) as u64;
     let end = (o.duration > 0.0).then(|| start + (o.duration * 1e9) as u64);
     let mut injected = fault == PlantFault::None;
+    let fan_at = start + (o.fan_after * 1e9) as u64;
+    let mut fan_on = o.fan == 0.0;
     let mut next_setpoint = start;
     let every = (o.print_every * 1e9) as u64;
     let mut next_print = start + every;
@@ -319,6 +392,16 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
             injected = true;
             eprintln!("sim-heater: fault {}", o.fault);
             p.set_fault(fault);
+        }
+        if !fan_on && now >= fan_at {
+            fan_on = true;
+            eprintln!("sim-heater: fan {}", o.fan);
+            fan(
+                &mut p,
+                &mut record.lock().unwrap_or_else(|r| r.into_inner()),
+                now,
+                o.fan,
+            );
         }
         let reading = p.reading(now);
         let true_c = p.temperature();
@@ -405,6 +488,16 @@ mod tests {
             .unwrap_err()
             .to_string()
             .starts_with("--noise NaN"));
+        let bad = SimHeaterOptions { fan: 1.5, ..opts() };
+        assert_eq!(
+            check(&bad).unwrap_err().to_string(),
+            "--fan 1.5 is outside 0..1"
+        );
+        let lag = SimHeaterOptions {
+            sensor_tau: 3.0,
+            ..opts()
+        };
+        assert_eq!(check(&lag).unwrap().0.sensor_tau_s, 3.0);
         let bad = SimHeaterOptions {
             fault: "melted".into(),
             ..opts()

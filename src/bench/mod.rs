@@ -55,12 +55,19 @@ pub struct BenchOptions {
     /// 10 Hz and a setpoint that give --duty
     #[arg(long)]
     pub pid: bool,
+    /// Every channel under control mpc (sampled every period) on a model whose steady state
+    /// at the setpoint is --duty, fed the setpoint as its reading at 10 Hz
+    #[arg(long, conflicts_with = "pid")]
+    pub mpc: bool,
 }
 
 /// Under `--pid`: the setpoint, °C, and the proportional gain, % per °C; the readings lie
 /// duty / kp below the setpoint, so the loop's duty is --duty.
 const PID_SETPOINT_C: f64 = 50.0;
 const PID_KP: f64 = 10.0;
+/// Under `--mpc`: the model's gain (°C per %), time constant, dead time and sensor lag (s);
+/// its ambient lies gain × duty below the setpoint, so the loop's steady duty is --duty.
+const MPC_MODEL: (f64, f64, f64, f64) = (1.0, 60.0, 2.0, 1.0);
 
 /// Parses `--phase`.
 fn phase(s: &str) -> Result<Phase, pwm_actuator::core::config::UnknownName> {
@@ -80,6 +87,7 @@ impl Default for BenchOptions {
             phase: Phase::Sync,
             max_simultaneous_on: 0,
             pid: false,
+            mpc: false,
         }
     }
 }
@@ -206,6 +214,19 @@ pub fn run(opts: BenchOptions) -> i32 {
         // The loop needs the heater's maximum; the bench's readings stay far below it.
         params.heater.temp_max_c = 2.0 * PID_SETPOINT_C;
     }
+    if opts.mpc {
+        let (gain, tau, dead, sensor) = MPC_MODEL;
+        params.heater.feedback = true;
+        params.heater.control = pwm_actuator::core::heater::Control::Mpc;
+        params.heater.model = pwm_actuator::core::heater::ModelParams {
+            gain_c_per_pct: gain,
+            tau_s: tau,
+            dead_time_s: dead,
+            ambient_c: PID_SETPOINT_C - gain * opts.duty_percent,
+            sensor_tau_s: sensor,
+        };
+        params.heater.temp_max_c = 2.0 * PID_SETPOINT_C;
+    }
     if let Err(e) = params.validate() {
         eprintln!("--period-ms: {e}");
         return 2;
@@ -214,7 +235,13 @@ pub fn run(opts: BenchOptions) -> i32 {
         println!(
             "pwm_actuator bench: {} channels{}, period {} ms, duty {} %, offset {} ms, phase {}, max on {}, {} s per side, sim output{}",
             opts.channels,
-            if opts.pid { " under pid" } else { "" },
+            if opts.pid {
+                " under pid"
+            } else if opts.mpc {
+                " under mpc"
+            } else {
+                ""
+            },
             opts.period_ms,
             opts.duty_percent,
             opts.offset_ms,
@@ -429,9 +456,13 @@ fn run_side(
             .send(Request { channel, input })
             .map_err(|e| e.to_string())
     };
-    let reading = PID_SETPOINT_C - opts.duty_percent / PID_KP;
+    let reading = if opts.mpc {
+        PID_SETPOINT_C
+    } else {
+        PID_SETPOINT_C - opts.duty_percent / PID_KP
+    };
     for ch in 0..opts.channels {
-        if opts.pid {
+        if opts.pid || opts.mpc {
             send(&mut requests, ch, Input::Setpoint(PID_SETPOINT_C))?;
             send(
                 &mut requests,
@@ -464,7 +495,7 @@ fn run_side(
     // Measure a whole window after the last enable.
     let window = Window::start();
     let end = window.wall0 + (opts.seconds * 1e9) as Nanos;
-    if opts.pid {
+    if opts.pid || opts.mpc {
         // A sensor at 10 Hz, as a feedback_topic would deliver it.
         let mut next = window.wall0;
         while next < end {

@@ -409,8 +409,12 @@ impl Channel {
     /// valid command stays; out-of-range values are clamped and flagged. Under `control` `pid`
     /// the loop sets the duty: a command is refused ([`Event::Refused`]).
     pub fn command(&mut self, now: Nanos, command: Command, emit: &mut dyn FnMut(Event)) {
-        if self.pid_on() {
-            emit(Event::Refused(crate::core::heater::Refusal::DutyUnderPid));
+        if self.loop_on() {
+            emit(Event::Refused(if self.pid_on() {
+                crate::core::heater::Refusal::DutyUnderPid
+            } else {
+                crate::core::heater::Refusal::DutyUnderMpc
+            }));
             return;
         }
         if self.heat.autotune.is_some() {

@@ -54,6 +54,17 @@ pub enum Input {
     /// A setpoint for the channel's loop, °C (see
     /// [`Channel::set_setpoint`](crate::core::Channel::set_setpoint)).
     Setpoint(f64),
+    /// A feed-forward for the channel's loop: a known disturbance in % of the heater's full
+    /// power (see [`Channel::feedforward`](crate::core::Channel::feedforward)).
+    Feedforward(f64),
+    /// An ambient reading for the channel's model, °C; `age` as for `Feedback` (see
+    /// [`Channel::ambient_reading`](crate::core::Channel::ambient_reading)).
+    Ambient {
+        /// The reading, °C.
+        celsius: f64,
+        /// Arrival less stamp, ns.
+        age: Option<i64>,
+    },
     /// Clears the channel's heater fault if its condition is gone; the answer comes back as
     /// the core's `FaultReset` event with this ticket.
     ResetFault(u32),

@@ -481,6 +481,8 @@ impl<O: Output> Worker<O> {
             }
             Input::Feedback { celsius, age } => ch.feedback_stamped(now, celsius, age, emit),
             Input::Setpoint(c) => ch.set_setpoint(now, c, emit),
+            Input::Feedforward(pct) => ch.feedforward(now, pct, emit),
+            Input::Ambient { celsius, age } => ch.ambient_reading(now, celsius, age, emit),
             Input::ResetFault(ticket) => ch.reset_heater_fault(now, ticket, emit),
             Input::Autotune {
                 ticket,

@@ -666,6 +666,8 @@ async fn serve(
             channel,
             name: c.name.clone(),
             feedback_topic: c.feedback_topic.clone(),
+            feedforward_topic: c.feedforward_topic.clone(),
+            ambient_topic: c.ambient_topic.clone(),
         })
         .collect();
     tasks.extend(heater::listen_heaters(&mut ep, &inputs, &heaters)?);

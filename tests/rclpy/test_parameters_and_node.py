@@ -118,6 +118,12 @@ CHANNEL_PARAMS = (
     "model_tau_s",
     "model_dead_time_s",
     "model_ambient_c",
+    "model_sensor_tau_s",
+    "feedforward_topic",
+    "feedforward_timeout_ms",
+    "ambient_topic",
+    "ambient_timeout_ms",
+    "setpoint_ramp_c_per_s",
     "model_tolerance_c",
     "model_time_s",
 )

@@ -8,8 +8,8 @@
 
 use super::super::command::Command;
 use super::super::heater::{
-    delivered_span, Control, Delivered, HeaterConfig, HeaterFault, HeaterStatus, Model, Refusal,
-    ResetRefusal, StuckOn, CHECK_TICK, DEFAULT_FEEDBACK_TIMEOUT_MS,
+    delivered_span, Control, Delivered, HeaterConfig, HeaterFault, HeaterStatus, Model, Mpc,
+    Refusal, ResetRefusal, StuckOn, CHECK_TICK, DEFAULT_FEEDBACK_TIMEOUT_MS, MAX_FEEDFORWARD_PCT,
 };
 use super::super::NS_PER_MS;
 use super::{Channel, Event, Level, Nanos};
@@ -18,9 +18,53 @@ use super::{Channel, Event, Level, Nanos};
 const JUMP_CALM: Nanos = 10_000_000_000;
 
 impl Channel {
-    /// Whether the loop sets the duty (`control` `pid`).
+    /// Whether the PID sets the duty (`control` `pid`).
     pub(super) fn pid_on(&self) -> bool {
         self.cfg.heater.params.control == Control::Pid
+    }
+
+    /// Whether a loop sets the duty (`control` `pid` or `mpc`).
+    pub(super) fn loop_on(&self) -> bool {
+        self.cfg.heater.params.control.closed()
+    }
+
+    /// Whether the model-predictive loop sets the duty (`control` `mpc`).
+    fn mpc_on(&self) -> bool {
+        self.cfg.heater.params.control == Control::Mpc
+    }
+
+    /// The loop's target at `now`: the setpoint, or on its way there from where the ramp
+    /// stood at `setpoint_ramp_c_per_s`; never above the setpoint ceiling in force.
+    pub(super) fn loop_target(&self, now: Nanos) -> Option<f64> {
+        let (sp, _) = self.heat.setpoint?;
+        let rate = self.cfg.heater.params.setpoint_ramp_c_per_s;
+        let t = match self.heat.ramp {
+            Some((from, at)) if rate > 0.0 => {
+                let reach = rate * now.saturating_sub(at) as f64 / 1e9;
+                if sp >= from {
+                    (from + reach).min(sp)
+                } else {
+                    (from - reach).max(sp)
+                }
+            }
+            _ => sp,
+        };
+        Some(t.min(self.cfg.heater.params.setpoint_ceiling()))
+    }
+
+    /// The last reading if it is fresh at `now`.
+    fn fresh_reading(&self, now: Nanos) -> Option<f64> {
+        let timeout = self.feedback_timeout();
+        self.heat
+            .reading
+            .filter(|(c, at)| c.is_finite() && (timeout == 0 || now.saturating_sub(*at) < timeout))
+            .map(|(c, _)| c)
+    }
+
+    /// The ramp starts again at `now` from the present reading (an enable, a reset): the
+    /// heater may have cooled meanwhile.
+    fn restart_ramp(&mut self, now: Nanos) {
+        self.heat.ramp = self.fresh_reading(now).map(|c| (c, now));
     }
 
     /// The latched heater fault, if any.
@@ -104,7 +148,7 @@ impl Channel {
 
     /// The stretch the delivered duty is averaged over, ns: a PWM period (or the PID's sample
     /// when longer), at least a second.
-    fn duty_window(&self) -> Nanos {
+    pub(super) fn duty_window(&self) -> Nanos {
         self.cfg.period.max(self.sample()).max(CHECK_TICK)
     }
 
@@ -159,29 +203,47 @@ impl Channel {
             self.latch_heater_fault(now, self.silence(now), emit);
             return false;
         }
-        // The stuck check starts afresh with the run.
+        // The stuck check starts afresh with the run, and a ramp from where the heater is.
         self.heat.still.clear();
-        if self.pid_on() && self.heat.fault.is_none() {
+        self.restart_ramp(now);
+        if self.loop_on() && self.heat.fault.is_none() {
             self.pid_sample(now, emit);
         }
         true
     }
 
-    /// One PID sample at `t`: the loop's duty for the latest reading goes the way of a duty
-    /// command. Without a setpoint or a reading the duty in force stays. The loop is frozen
-    /// while the watchdog has tripped.
+    /// One sample of the loop at `t` (the PID's, or the model-predictive loop's): its duty for
+    /// the latest reading and the target goes the way of a duty command. Without a setpoint
+    /// or a reading the duty in force stays. The loop is frozen while the watchdog has
+    /// tripped.
     fn pid_sample(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         let sample = self.sample();
         self.heat.next_sample = Some(t.saturating_add(sample));
+        self.refresh_inputs(t);
         if self.watchdog_tripped || self.heat.fault.is_some() || self.heat.autotune.is_some() {
+            self.mpc_period(t);
             return;
         }
-        let (Some((setpoint, _)), Some((reading, read_at))) =
-            (self.heat.setpoint, self.heat.reading)
+        let (Some(setpoint), Some((reading, read_at))) = (self.loop_target(t), self.heat.reading)
         else {
             return;
         };
         if !reading.is_finite() || t.saturating_sub(read_at) >= self.feedback_timeout().max(1) {
+            return;
+        }
+        if self.mpc_on() {
+            let (lo, hi) = self.pid_limits();
+            let on = self.on_total(t);
+            let start = self.heat.mpc_start.take();
+            let Some(m) = self.heat.mpc.as_mut() else {
+                return;
+            };
+            if let Some(from) = start {
+                m.start_from(t, on, setpoint, from);
+            }
+            let out = m.sample(t, on, setpoint, lo, hi).output;
+            self.take_command(t, Command::Percent(out), false, emit);
+            self.mpc_period(t);
             return;
         }
         // The time since the last sample; after a pause (disabled) the nominal sample, so the
@@ -199,18 +261,134 @@ impl Channel {
             None => Some(dt as f64 / 1e9),
         };
         self.heat.sampled_reading_at = Some(read_at);
+        // The feed-forward is added to the PID's output: the PID works within the limits
+        // less it.
+        let ff = self.heat.ff_used;
         let out = self
             .heat
             .pid
-            .sample(setpoint, reading, reading_dt, dt as f64 / 1e9, lo, hi)
-            .output;
-        self.take_command(t, Command::Percent(out), false, emit);
+            .sample(
+                setpoint,
+                reading,
+                reading_dt,
+                dt as f64 / 1e9,
+                lo - ff,
+                hi - ff,
+            )
+            .output
+            + ff;
+        self.take_command(t, Command::Percent(out.clamp(lo, hi)), false, emit);
+        self.mpc_period(t);
+    }
+
+    /// A sample at `t` begins a period for the model-predictive loop's estimate: the duty
+    /// the line is to deliver from here (the one in force while the channel runs, else 0).
+    fn mpc_period(&mut self, t: Nanos) {
+        let runs = self.enabled && !self.estop && self.live && !self.watchdog_tripped;
+        let duty = if runs && self.heat.fault.is_none() {
+            self.cfg.limit_duty(self.accepted) * 100.0
+        } else {
+            0.0
+        };
+        let on = self.on_total(t);
+        if let Some(m) = self.heat.mpc.as_mut() {
+            m.period(t, on, duty);
+        }
+    }
+
+    /// The feed-forward and the ambient in force at `now`: a configured input older than its
+    /// timeout is stale and ignored. A feed-forward that goes stale hands its value to the
+    /// loop's own estimate (the PID's integral, the disturbance the model-predictive loop
+    /// estimates) and one that becomes fresh takes its value back from it, so neither moves
+    /// the duty; a new value while fresh does.
+    fn refresh_inputs(&mut self, now: Nanos) {
+        let h = &self.cfg.heater;
+        let p = &h.params;
+        let fresh = |v: Option<(f64, Nanos)>, timeout: Nanos| {
+            v.filter(|(_, at)| timeout == 0 || now.saturating_sub(*at) < timeout)
+                .map(|(x, _)| x)
+        };
+        let ff = fresh(self.heat.ff_in, h.feedforward_timeout).filter(|_| p.feedforward);
+        let ff_stale = p.feedforward && ff.is_none();
+        let ff = ff.unwrap_or(0.0);
+        if ff_stale != self.heat.ff_stale {
+            let hand = if ff_stale { self.heat.ff_used } else { -ff };
+            self.heat.pid.shift_integral(hand);
+            if let Some(m) = self.heat.mpc.as_mut() {
+                m.shift_disturbance(hand);
+            }
+        }
+        self.heat.ff_used = ff;
+        self.heat.ff_stale = ff_stale;
+        let ambient = fresh(self.heat.ambient_in, h.ambient_timeout).filter(|_| p.ambient);
+        self.heat.ambient_stale = p.ambient && ambient.is_none();
+        let ambient = ambient.unwrap_or(p.model.ambient_c);
+        let on = self.on_total(now);
+        if let Some(m) = self.heat.mpc.as_mut() {
+            if m.ambient() != ambient || m.feedforward() != ff {
+                m.set_inputs(now, on, ambient, ff);
+            }
+        }
+        if let Some(m) = self.heat.model.as_mut() {
+            if m.started() && (m.ambient() != ambient || m.feedforward() != ff) {
+                m.set_inputs(now, on, ambient, ff);
+            }
+        }
+    }
+
+    /// A feed-forward at `now`: the disturbance it announces, % of full power (a fan's duty
+    /// through the share of the heater's power it takes). Refused unless finite and within
+    /// ±100 %; ignored without `feedforward_topic`.
+    pub fn feedforward(&mut self, now: Nanos, pct: f64, emit: &mut dyn FnMut(Event)) {
+        if !self.cfg.heater.params.feedforward {
+            return;
+        }
+        if !(pct.is_finite() && pct.abs() <= MAX_FEEDFORWARD_PCT) {
+            emit(Event::Refused(Refusal::Feedforward(pct)));
+            return;
+        }
+        self.heat.ff_in = Some((pct, now));
+        self.refresh_inputs(now);
+    }
+
+    /// An ambient reading `celsius` arriving at `now`, `age` ns after its stamp (`None`:
+    /// unstamped): the ambient the model's loss is computed against while fresh. Refused
+    /// unless finite and between absolute zero and `temp_max_c`; ignored without
+    /// `ambient_topic`.
+    pub fn ambient_reading(
+        &mut self,
+        now: Nanos,
+        celsius: f64,
+        age: Option<i64>,
+        emit: &mut dyn FnMut(Event),
+    ) {
+        let p = self.cfg.heater.params;
+        if !p.ambient {
+            return;
+        }
+        let (min_c, max_c) = (super::super::heater::MIN_TEMP_C, p.temp_max_c);
+        if !(celsius.is_finite() && celsius >= min_c && celsius <= max_c) {
+            emit(Event::Refused(Refusal::Ambient {
+                value: celsius,
+                min_c,
+                max_c,
+            }));
+            return;
+        }
+        // Stamped in the future beyond the skew allowed: counted from its arrival.
+        let at = match age {
+            Some(a) if a > 0 => now.saturating_sub(a as Nanos),
+            _ => now,
+        };
+        self.heat.ambient_in = Some((celsius, at));
+        self.refresh_inputs(now);
     }
 
     /// `not_heating`'s tick at `t` (Klipper's `verify_heater`, once a second): the target is
     /// the setpoint while the loop runs (under `pid`, enabled, no fault), else none.
     fn not_heating_tick(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         self.autotune_tick(t, emit);
+        self.refresh_inputs(t);
         let timeout = self.feedback_timeout();
         let Some((temp, _)) = self
             .heat
@@ -219,15 +397,20 @@ impl Channel {
         else {
             return;
         };
-        let runs = self.pid_on() && self.enabled && self.heat.fault.is_none();
-        let target = match (self.autotune_target(), self.heat.setpoint) {
+        let runs = self.loop_on() && self.enabled && self.heat.fault.is_none();
+        // The ramped target is the check's, the setpoint what makes an approach new.
+        let (target, goal) = match (self.autotune_target(), self.heat.setpoint) {
             // An autotune's target is the check's while it runs.
-            (Some(target), _) => target,
-            (None, Some((sp, _))) if runs => sp,
-            _ => 0.0,
+            (Some(target), _) => (target, target),
+            (None, Some((sp, _))) if runs => (self.loop_target(t).unwrap_or(sp), sp),
+            _ => (0.0, 0.0),
         };
         let runaway = self.cfg.heater.runaway;
-        if self.heat.not_heating.tick(t, temp, target, &runaway) {
+        if self
+            .heat
+            .not_heating
+            .tick_ramped(t, temp, target, goal, &runaway)
+        {
             let fault = HeaterFault::NotHeating {
                 celsius: temp,
                 target_c: target,
@@ -334,12 +517,19 @@ impl Channel {
             self.latch_heater_fault(now, fault, emit);
             return;
         }
+        if let Some(m) = self.heat.mpc.as_mut() {
+            m.reading(now, on_now, celsius);
+        }
         if self.heater_driven() {
             let delivered = self.heat.delivered;
             let limits = self.cfg.heater.stuck;
             // During an autotune's cycles the power that holds the heater is the relay's
             // mean, not the half cycle's.
-            let reference = self.heat.autotune.and_then(|(_, a)| a.mean_power());
+            let reference = self
+                .heat
+                .autotune
+                .as_ref()
+                .and_then(|(_, a)| a.mean_power());
             if let Some(still) = self.heat.still.reading(
                 now,
                 celsius,
@@ -365,7 +555,7 @@ impl Channel {
         let limits = self.cfg.heater.stuck;
         // The loop (or an autotune) has asked for full power for the check's time.
         let full = self.heater_driven()
-            && (self.pid_on() || self.heat.autotune.is_some())
+            && (self.loop_on() || self.heat.autotune.is_some())
             && self
                 .heat
                 .delivered
@@ -410,11 +600,12 @@ impl Channel {
         )
     }
 
-    /// A setpoint (°C) at `now`, under `pid`; refused under `open`, when not finite, or
-    /// outside `temp_min_c..=temp_max_c`.
+    /// A setpoint (°C) at `now`, under `pid` or `mpc`; refused under `open`, when not
+    /// finite, or outside `temp_min_c..=temp_max_c`. With `setpoint_ramp_c_per_s` the loop's
+    /// target moves to it from where it stood (from the present reading at the first).
     pub fn set_setpoint(&mut self, now: Nanos, celsius: f64, emit: &mut dyn FnMut(Event)) {
         let p = self.cfg.heater.params;
-        let refusal = if !self.pid_on() {
+        let refusal = if !self.loop_on() {
             Some(Refusal::SetpointUnderOpen)
         } else if self.heat.autotune.is_some() {
             Some(Refusal::Autotuning)
@@ -433,6 +624,8 @@ impl Channel {
             emit(Event::Refused(r));
             return;
         }
+        let from = self.loop_target(now).or_else(|| self.fresh_reading(now));
+        self.heat.ramp = from.map(|c| (c, now));
         self.heat.setpoint = Some((celsius, now));
         self.heat.lowered_from = None;
         self.feed_watchdog(now, emit);
@@ -441,7 +634,7 @@ impl Channel {
     /// Under `pid` the watchdog watches the setpoint and the feedback: it counts from the
     /// older of the two, and recovers once both are fresh.
     fn feed_watchdog(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
-        if !self.pid_on() {
+        if !self.loop_on() {
             return;
         }
         let (Some((_, sp)), Some((_, rd))) = (self.heat.setpoint, self.heat.reading) else {
@@ -603,6 +796,13 @@ impl Channel {
                 let on = self.heat.on_closed;
                 m.restart(now, on, c);
             }
+            // The model-predictive loop starts from the present reading, its estimate of the
+            // disturbance forgotten.
+            if let (Some(m), Some((c, _))) = (self.heat.mpc.as_mut(), self.heat.reading) {
+                let on = self.heat.on_closed;
+                m.restart(now, on, c);
+            }
+            self.heat.mpc_start = None;
             // The silence counts from now: the reset was allowed on a fresh reading.
             self.heat.expected_since = now;
         }
@@ -628,25 +828,40 @@ impl Channel {
         self.cfg.heater = new;
         self.cfg.params.heater = new.params;
         let (lo, hi) = self.pid_limits();
+        let in_force = self.cfg.limit_duty(self.accepted) * 100.0;
         match (old.params.control, new.params.control) {
             (Control::Open, Control::Pid) => {
                 self.heat.pid = super::super::heater::Pid::new(new.gains);
-                self.heat
-                    .pid
-                    .start_from(self.cfg.limit_duty(self.accepted) * 100.0);
+                self.heat.pid.start_from(in_force - self.heat.ff_used);
                 self.heat.last_sample = None;
                 self.heat.setpoint = None;
                 if self.enabled && self.heat.fault.is_none() {
                     self.heat.next_sample = Some(now);
                 }
             }
-            (Control::Pid, Control::Open) => {
+            (Control::Open, Control::Mpc) => {
+                self.heat.mpc_start = Some(in_force);
+                self.heat.setpoint = None;
+                if self.enabled && self.heat.fault.is_none() {
+                    self.heat.next_sample = Some(now);
+                }
+            }
+            (Control::Pid | Control::Mpc, Control::Open) => {
                 self.heat.next_sample = None;
                 self.heat.setpoint = None;
                 // Open loop heats on commands only: 0 % until the first one. The watchdog
                 // counts commands from now.
                 self.take_command(now, Command::Percent(0.0), false, emit);
                 self.last_command_at = now;
+            }
+            // Between the loops the setpoint stays, and the new loop starts from the duty the
+            // old one left.
+            (Control::Pid, Control::Mpc) => self.heat.mpc_start = Some(in_force),
+            (Control::Mpc, Control::Pid) => {
+                self.heat.pid = super::super::heater::Pid::new(new.gains);
+                self.heat.pid.start_from(in_force - self.heat.ff_used);
+                self.heat.last_sample = None;
+                self.heat.sampled_reading_at = None;
             }
             _ => self.heat.pid.set_gains(new.gains, lo, hi),
         }
@@ -667,6 +882,21 @@ impl Channel {
                 .then(|| Model::new(new.params.model));
             self.heat.prediction = None;
             self.heat.deviating_since = None;
+            // A new model: the model-predictive loop starts again from the present reading,
+            // and under mpc bumpless from the duty in force.
+            let on = self.on_total(now);
+            let reading = self.fresh_reading(now);
+            self.heat.mpc = new.params.model.is_set().then(|| {
+                let mut m = Mpc::new(new.params.model);
+                if let Some(c) = reading {
+                    m.restart(now, on, c);
+                }
+                m
+            });
+            if self.mpc_on() {
+                self.heat.mpc_start = Some(in_force);
+            }
+            self.refresh_inputs(now);
         }
         if old.stuck != new.stuck || old.sample != new.sample {
             self.heat.still.clear();
@@ -688,9 +918,28 @@ impl Channel {
 
     /// The heater's report at `now`.
     pub(super) fn heater_status(&self, now: Nanos) -> HeaterStatus {
+        let p = &self.cfg.heater.params;
         HeaterStatus {
-            feedback: self.cfg.heater.params.feedback,
+            feedback: p.feedback,
             pid: self.pid_on(),
+            control: p.control,
+            target: self.loop_target(now),
+            mpc: self
+                .heat
+                .mpc
+                .as_ref()
+                .filter(|_| self.mpc_on())
+                .map(|m| m.terms()),
+            model_params: p.model.is_set().then_some(p.model),
+            feedforward_pct: self.heat.ff_used,
+            feedforward_stale: self.heat.ff_stale,
+            ambient_c: (p.ambient || p.model.is_set()).then(|| {
+                self.heat
+                    .mpc
+                    .as_ref()
+                    .map_or(p.model.ambient_c, |m| m.ambient())
+            }),
+            ambient_stale: self.heat.ambient_stale,
             reading: self.heat.reading,
             setpoint: self.heat.setpoint.map(|(c, _)| c),
             terms: self.heat.pid.terms(),

@@ -15,7 +15,7 @@ use super::{Channel, Event, Nanos};
 impl Channel {
     /// Whether an autotune runs, and its target (°C).
     pub fn autotune_target(&self) -> Option<f64> {
-        self.heat.autotune.map(|(_, a)| a.goal().target_c)
+        self.heat.autotune.as_ref().map(|(_, a)| a.goal().target_c)
     }
 
     /// Starts an autotune of `goal` at `now`, answered with [`Event::Autotune`] and `ticket`:
@@ -71,12 +71,22 @@ impl Channel {
             });
             return;
         }
+        // The duty the heater had before the run: what the line delivered over the last
+        // duty window, else the duty in force.
+        let on_now = self.on_total(now);
+        let before = self
+            .heat
+            .delivered
+            .duty(now.saturating_sub(self.duty_window()), now, on_now)
+            .unwrap_or(self.cfg.limit_duty(self.accepted))
+            * 100.0;
         let run = Autotune::new(
             goal,
             self.cfg.heater.autotune,
             now,
             reading.unwrap_or(goal.target_c),
             self.cfg.period,
+            before,
         );
         self.heat.autotune = Some((ticket, run));
         self.last_command_at = now;
@@ -94,7 +104,12 @@ impl Channel {
 
     /// Cancels the run with `ticket` at `now` (another ticket is ignored).
     pub fn cancel_autotune(&mut self, now: Nanos, ticket: u32, emit: &mut dyn FnMut(Event)) {
-        if self.heat.autotune.is_some_and(|(t, _)| t == ticket) {
+        if self
+            .heat
+            .autotune
+            .as_ref()
+            .is_some_and(|(t, _)| *t == ticket)
+        {
             self.finish_autotune(now, Stop::Canceled, emit);
         }
     }
@@ -107,35 +122,37 @@ impl Channel {
         celsius: f64,
         emit: &mut dyn FnMut(Event),
     ) {
-        let Some((ticket, mut run)) = self.heat.autotune else {
+        let on_total = self.on_total(now);
+        let Some((ticket, run)) = self.heat.autotune.as_mut() else {
             return;
         };
+        let ticket = *ticket;
         self.last_command_at = now;
         let (before, out) = (run.progress(), run.output_pct());
-        let stop = run.reading_delivered(now, celsius, self.on_total(now));
-        self.heat.autotune = Some((ticket, run));
-        if run.progress() != before {
+        let stop = run.reading_delivered(now, celsius, on_total);
+        let (progress, output) = (run.progress(), run.output_pct());
+        if progress != before {
             emit(Event::Autotune {
                 ticket,
-                report: Report::Progress(run.progress()),
+                report: Report::Progress(progress),
             });
         }
         if let Some(stop) = stop {
             self.finish_autotune(now, stop, emit);
             return;
         }
-        if run.output_pct() != out {
-            self.take_command(now, Command::Percent(run.output_pct()), false, emit);
+        if output != out {
+            self.take_command(now, Command::Percent(output), false, emit);
         }
     }
 
     /// The run's timeout, checked at `not_heating`'s tick.
     pub(super) fn autotune_tick(&mut self, now: Nanos, emit: &mut dyn FnMut(Event)) {
-        let Some((ticket, mut run)) = self.heat.autotune else {
-            return;
-        };
-        let stop = run.tick(now);
-        self.heat.autotune = Some((ticket, run));
+        let stop = self
+            .heat
+            .autotune
+            .as_mut()
+            .and_then(|(_, run)| run.tick(now));
         if let Some(stop) = stop {
             self.finish_autotune(now, stop, emit);
         }
@@ -143,13 +160,15 @@ impl Channel {
 
     /// Ends a run, if one goes, for `stop` at `now`.
     pub(super) fn finish_autotune(&mut self, now: Nanos, stop: Stop, emit: &mut dyn FnMut(Event)) {
-        let Some((ticket, run)) = self.heat.autotune.take() else {
+        let Some((ticket, run)) = self.heat.autotune.as_ref() else {
             return;
         };
+        let (ticket, progress) = (*ticket, run.progress());
         let estimate = run.estimate().filter(|_| stop == Stop::Converged);
+        self.heat.autotune = None;
         let gains = estimate.map(|e| Rule::TyreusLuyben.gains(e.ku, e.tu_s));
         let sizing = gains.map(|g| self.tune_sizing(g));
-        if self.pid_on() {
+        if self.loop_on() {
             // The loop holds 0 % until a new setpoint.
             self.heat.setpoint = None;
             self.heat.pid.start_from(0.0);
@@ -160,7 +179,7 @@ impl Channel {
             ticket,
             report: Report::Finished(Outcome {
                 stop,
-                progress: run.progress(),
+                progress,
                 estimate,
                 gains,
                 sizing,

@@ -37,19 +37,32 @@ pub enum Control {
     Open,
     /// The PID, from the feedback and `~/<ch>/setpoint`.
     Pid,
+    /// Model-predictive control: the thermal model predicts the heater over its dead time and
+    /// the duty brings the prediction to the setpoint (needs a model).
+    Mpc,
 }
 
 impl Control {
-    /// The parameter spelling: `open` or `pid`.
+    /// The parameter spelling: `open`, `pid` or `mpc`.
     pub const fn as_str(self) -> &'static str {
         match self {
             Control::Open => "open",
             Control::Pid => "pid",
+            Control::Mpc => "mpc",
         }
+    }
+
+    /// Whether a loop sets the duty from the feedback and the setpoint (`pid` or `mpc`).
+    pub const fn closed(self) -> bool {
+        matches!(self, Control::Pid | Control::Mpc)
     }
 }
 
-super::named_enum!(Control, "open|pid", [Control::Open, Control::Pid]);
+super::named_enum!(
+    Control,
+    "open|pid|mpc",
+    [Control::Open, Control::Pid, Control::Mpc]
+);
 
 /// Lowest temperature a limit may be set to, °C (absolute zero).
 pub const MIN_TEMP_C: f64 = -273.15;
@@ -150,11 +163,22 @@ pub struct HeaterParams {
     pub model_tolerance_c: f64,
     /// ...lasting this long, s, latches the fault.
     pub model_time_s: f64,
+    /// A feed-forward topic is configured (`feedforward_topic` not empty).
+    pub feedforward: bool,
+    /// A feed-forward older than this is stale and ignored, ms; 0 = never stale.
+    pub feedforward_timeout_ms: u64,
+    /// An ambient topic is configured (`ambient_topic` not empty).
+    pub ambient: bool,
+    /// An ambient reading older than this is stale and ignored, ms; 0 = never stale.
+    pub ambient_timeout_ms: u64,
+    /// The loop's target moves toward a new setpoint at this rate, °C/s; 0 = a step.
+    pub setpoint_ramp_c_per_s: f64,
 }
 
-/// A heater's thermal model: first order plus dead time, driven by the line's real on time.
-/// With the line on a share `u` (%) of the time, after the dead time:
-/// `dT/dt = (ambient + gain·u − T) / tau`.
+/// A heater's thermal model: first order plus dead time, driven by the line's real on time,
+/// and a sensor that lags its block. With the line on a share `u` (%) of the time, after the
+/// dead time: `dT/dt = (ambient + gain·u − T) / tau`, and the sensor reads `S` with
+/// `dS/dt = (T − S) / sensor_tau` (`sensor_tau` 0: it reads `T`).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct ModelParams {
     /// Steady-state rise per % of duty, °C/%; 0 = no model.
@@ -165,6 +189,8 @@ pub struct ModelParams {
     pub dead_time_s: f64,
     /// Ambient, °C: the temperature at 0 %.
     pub ambient_c: f64,
+    /// The sensor's time constant behind the block, s; 0 = the sensor reads the block.
+    pub sensor_tau_s: f64,
 }
 
 impl ModelParams {
@@ -208,12 +234,27 @@ impl Default for HeaterParams {
                 tau_s: 60.0,
                 dead_time_s: 0.0,
                 ambient_c: 20.0,
+                sensor_tau_s: 0.0,
             },
             model_tolerance_c: DEFAULT_MODEL_TOLERANCE_C,
             model_time_s: DEFAULT_MODEL_TIME_S,
+            feedforward: false,
+            feedforward_timeout_ms: DEFAULT_FEEDFORWARD_TIMEOUT_MS,
+            ambient: false,
+            ambient_timeout_ms: DEFAULT_AMBIENT_TIMEOUT_MS,
+            setpoint_ramp_c_per_s: 0.0,
         }
     }
 }
+
+/// `feedforward_timeout_ms`'s default, ms.
+pub const DEFAULT_FEEDFORWARD_TIMEOUT_MS: u64 = 5000;
+/// `ambient_timeout_ms`'s default, ms: a room sensor publishes every few seconds to a minute.
+pub const DEFAULT_AMBIENT_TIMEOUT_MS: u64 = 120_000;
+/// Largest feed-forward accepted, % of full power (either sign).
+pub const MAX_FEEDFORWARD_PCT: f64 = 100.0;
+/// Largest `setpoint_ramp_c_per_s`, °C/s.
+pub const MAX_RAMP_C_PER_S: f64 = 1000.0;
 
 /// `sensor_stuck_time_s`'s default, s.
 pub const DEFAULT_STUCK_TIME_S: f64 = 6.0;
@@ -252,21 +293,28 @@ pub enum HeaterConfigError {
         /// The refused value, ms.
         value_ms: u64,
     },
-    /// `control` `pid` without feedback.
-    #[error("control pid needs a feedback_topic (set at start-up)")]
-    PidWithoutFeedback,
-    /// `control` `pid` with `temp_max_c` left at its unset default.
+    /// `control` `pid` (or `mpc`) without feedback.
+    #[error("control {0} needs a feedback_topic (set at start-up)")]
+    PidWithoutFeedback(&'static str),
+    /// `control` `pid` (or `mpc`) with `temp_max_c` left at its unset default.
     #[error(
-        "control pid needs temp_max_c: the highest temperature the heater may reach, below \
+        "control {0} needs temp_max_c: the highest temperature the heater may reach, below \
          {MAX_TEMP_C} °C (Klipper refuses a heater without max_temp)"
     )]
-    PidWithoutTempMax,
-    /// `control` `pid` with `feedback_timeout_ms` 0.
+    PidWithoutTempMax(&'static str),
+    /// `control` `pid` (or `mpc`) with `feedback_timeout_ms` 0.
     #[error(
-        "control pid needs feedback_timeout_ms above 0: the loop must not heat on a reading \
+        "control {0} needs feedback_timeout_ms above 0: the loop must not heat on a reading \
          that stopped coming (default {DEFAULT_FEEDBACK_TIMEOUT_MS} ms)"
     )]
-    PidWithoutTimeout,
+    PidWithoutTimeout(&'static str),
+    /// `control` `mpc` without a thermal model.
+    #[error(
+        "control mpc needs the heater's thermal model: model_gain_c_per_pct above 0 (run \
+         ~/<ch>/autotune with apply, or set model_gain_c_per_pct, model_tau_s, \
+         model_dead_time_s and model_ambient_c)"
+    )]
+    MpcWithoutModel,
     /// The setpoint margin leaves no setpoint between the limits.
     #[error(
         "setpoint_margin_c {margin_c} leaves no setpoint between temp_min_c {min_c} and \
@@ -328,6 +376,10 @@ pub struct HeaterConfig {
     pub stuck_window: Nanos,
     /// The autotune's limits.
     pub autotune: AutotuneLimits,
+    /// A feed-forward or an ambient reading older than these is stale, ns; 0 = never.
+    pub feedforward_timeout: Nanos,
+    /// See `feedforward_timeout`.
+    pub ambient_timeout: Nanos,
     /// The parameters this was made from.
     pub params: HeaterParams,
 }
@@ -441,6 +493,12 @@ impl HeaterParams {
         )?;
         OutOfRange::check("model_ambient_c", m.ambient_c, MIN_TEMP_C, MAX_TEMP_C)?;
         OutOfRange::check(
+            "model_sensor_tau_s",
+            m.sensor_tau_s,
+            0.0,
+            MAX_MODEL_DEAD_TIME_S,
+        )?;
+        OutOfRange::check(
             "model_tolerance_c",
             self.model_tolerance_c,
             0.1,
@@ -486,16 +544,38 @@ impl HeaterParams {
             1.0,
             MAX_TIME_S,
         )?;
-        if self.control == Control::Pid {
+        OutOfRange::check(
+            "feedforward_timeout_ms",
+            self.feedforward_timeout_ms as f64,
+            0.0,
+            MAX_TIMEOUT_MS as f64,
+        )?;
+        OutOfRange::check(
+            "ambient_timeout_ms",
+            self.ambient_timeout_ms as f64,
+            0.0,
+            MAX_TIMEOUT_MS as f64,
+        )?;
+        OutOfRange::check(
+            "setpoint_ramp_c_per_s",
+            self.setpoint_ramp_c_per_s,
+            0.0,
+            MAX_RAMP_C_PER_S,
+        )?;
+        if self.control.closed() {
+            let c = self.control.as_str();
             if !self.feedback {
-                return Err(HeaterConfigError::PidWithoutFeedback);
+                return Err(HeaterConfigError::PidWithoutFeedback(c));
             }
             if !self.temp_max_set() {
-                return Err(HeaterConfigError::PidWithoutTempMax);
+                return Err(HeaterConfigError::PidWithoutTempMax(c));
             }
             if self.feedback_timeout_ms == 0 {
-                return Err(HeaterConfigError::PidWithoutTimeout);
+                return Err(HeaterConfigError::PidWithoutTimeout(c));
             }
+        }
+        if self.control == Control::Mpc && !self.model.is_set() {
+            return Err(HeaterConfigError::MpcWithoutModel);
         }
         if self.temp_max_set() && self.setpoint_ceiling() < self.temp_min_c {
             return Err(HeaterConfigError::NoSetpointRoom {
@@ -533,6 +613,8 @@ impl HeaterParams {
                 max_overshoot_c: self.autotune_max_overshoot_c,
                 timeout: seconds(self.autotune_timeout_s),
             },
+            feedforward_timeout: self.feedforward_timeout_ms * NS_PER_MS,
+            ambient_timeout: self.ambient_timeout_ms * NS_PER_MS,
             params: *self,
         })
     }
@@ -565,7 +647,10 @@ mod tests {
             control: Control::Pid,
             ..HeaterParams::default()
         };
-        assert_eq!(pid.validate(), Err(HeaterConfigError::PidWithoutTempMax));
+        assert_eq!(
+            pid.validate(),
+            Err(HeaterConfigError::PidWithoutTempMax("pid"))
+        );
         assert!(pid
             .validate()
             .unwrap_err()
@@ -583,7 +668,7 @@ mod tests {
         };
         assert_eq!(
             no_timeout.validate(),
-            Err(HeaterConfigError::PidWithoutTimeout)
+            Err(HeaterConfigError::PidWithoutTimeout("pid"))
         );
         // Open loop may switch the timeout off.
         let open = HeaterParams {
@@ -636,7 +721,47 @@ mod tests {
         };
         assert_eq!(
             no_feedback.validate(),
-            Err(HeaterConfigError::PidWithoutFeedback)
+            Err(HeaterConfigError::PidWithoutFeedback("pid"))
         );
+    }
+
+    #[test]
+    fn mpc_needs_what_pid_needs_and_a_model() {
+        let mpc = HeaterParams {
+            feedback: true,
+            control: Control::Mpc,
+            temp_max_c: 250.0,
+            ..HeaterParams::default()
+        };
+        let e = mpc.validate().unwrap_err();
+        assert_eq!(e, HeaterConfigError::MpcWithoutModel);
+        assert!(e
+            .to_string()
+            .starts_with("control mpc needs the heater's thermal model"));
+        let with_model = HeaterParams {
+            model: ModelParams {
+                gain_c_per_pct: 1.2,
+                ..mpc.model
+            },
+            ..mpc
+        };
+        assert!(with_model.validate().is_ok());
+        let no_max = HeaterParams {
+            temp_max_c: MAX_TEMP_C,
+            ..with_model
+        };
+        assert_eq!(
+            no_max.validate().unwrap_err().to_string().split(':').next(),
+            Some("control mpc needs temp_max_c")
+        );
+        let ramp = HeaterParams {
+            setpoint_ramp_c_per_s: -1.0,
+            ..with_model
+        };
+        assert!(ramp
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .starts_with("setpoint_ramp_c_per_s -1"));
     }
 }

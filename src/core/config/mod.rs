@@ -370,9 +370,9 @@ pub enum ConfigError {
     /// A heater setting was refused.
     #[error(transparent)]
     Heater(#[from] HeaterConfigError),
-    /// A fault value with no end under `pid`.
+    /// A fault value with no end under `pid` or `mpc`.
     #[error(
-        "fault_duty_pct {fault_duty_pct} under control pid needs fault_hold_ms above 0: \
+        "fault_duty_pct {fault_duty_pct} under control pid or mpc needs fault_hold_ms above 0: \
          nothing but the loop commands the duty, so the fault value would heat open loop \
          for ever"
     )]
@@ -646,10 +646,7 @@ impl ChannelParams {
         }
         let mut heater = self.heater.validate()?;
         heater.stuck.full = self.max_duty_pct / 100.0;
-        if heater.params.control == heater::Control::Pid
-            && self.fault_duty_pct > 0.0
-            && self.fault_hold_ms == 0
-        {
+        if heater.params.control.closed() && self.fault_duty_pct > 0.0 && self.fault_hold_ms == 0 {
             // Under pid nothing commands the duty but the loop: a fault value held "until a
             // command" would heat open loop for ever.
             return Err(ConfigError::FaultValueUnderPid {

@@ -37,6 +37,7 @@
 //! to a quarter of the step: their integral, four times faster, fills during the approach.
 
 use super::super::Nanos;
+use super::fit::{Fit, Trace};
 use super::{Gains, ModelParams};
 use std::f64::consts::PI;
 
@@ -46,6 +47,10 @@ const BINS: usize = 128;
 const FIRST_BIN: Nanos = 250_000_000;
 /// Points kept of the approach's first leg.
 const APPROACH_POINTS: usize = 64;
+/// Evaluations of the model's fit run per reading once the cycles have converged (see
+/// [`super::fit`]): the work of one reading stays bounded, and a fit of a few hundred
+/// evaluations ends within tens of readings.
+pub const FIT_EVALS_PER_READING: u32 = 8;
 
 /// Cycles that must agree for a run to converge.
 pub const CONVERGE_CYCLES: usize = 4;
@@ -530,6 +535,11 @@ pub struct Autotune {
     n: usize,
     best_spread: f64,
     estimate: Option<Estimate>,
+    /// The run's record for the model's fit, the fit once the cycles converged, and the
+    /// estimate waiting for it.
+    trace: Trace,
+    fit: Option<Fit>,
+    pending: Option<Estimate>,
 }
 
 fn spread(values: impl Iterator<Item = f64> + Clone) -> f64 {
@@ -553,8 +563,17 @@ impl Autotune {
     /// on below `target + noise_band`, off above. `grid` (ns) is how finely the relay's
     /// switching reaches the heater: a channel's new duty takes effect at its next period
     /// start, so each switch lands up to a period late and the cycles may spread by twice the
-    /// period more than [`MAX_SPREAD`]; 0 when the line follows at once.
-    pub fn new(goal: Goal, limits: Limits, now: Nanos, celsius: f64, grid: Nanos) -> Autotune {
+    /// period more than [`MAX_SPREAD`]; 0 when the line follows at once. `before_pct` is the
+    /// duty the heater had before the run (its effect still reaches the sensor a dead time
+    /// later).
+    pub fn new(
+        goal: Goal,
+        limits: Limits,
+        now: Nanos,
+        celsius: f64,
+        grid: Nanos,
+        before_pct: f64,
+    ) -> Autotune {
         Autotune {
             goal,
             limits,
@@ -582,6 +601,9 @@ impl Autotune {
             n: 0,
             best_spread: f64::INFINITY,
             estimate: None,
+            trace: Trace::new(before_pct),
+            fit: None,
+            pending: None,
         }
     }
 
@@ -648,6 +670,10 @@ impl Autotune {
     /// protections, the minimum times and the PWM's period-late switching did to it — over
     /// the temperature's amplitude is the describing function.
     pub fn reading_delivered(&mut self, now: Nanos, celsius: f64, on_total: Nanos) -> Option<Stop> {
+        if let Some(stop) = self.fit_step() {
+            return Some(stop);
+        }
+        self.trace.record(now, celsius, on_total);
         if let Some(on_at) = self.on_at {
             let (t0, e0) = self.last;
             let energy = on_total.saturating_sub(e0) as f64;
@@ -679,6 +705,9 @@ impl Autotune {
         let band = self.goal.noise_band_c;
         if self.on && celsius > self.goal.target_c + band {
             self.on = false;
+            if self.approach_open {
+                self.trace.split(now);
+            }
             self.approach_open = false;
             self.off_at = Some(now);
             self.off_energy = on_total;
@@ -686,6 +715,9 @@ impl Autotune {
             self.high = celsius;
         } else if !self.on && celsius < self.goal.target_c - band {
             self.on = true;
+            if self.approach_open {
+                self.trace.split(now);
+            }
             self.approach_open = false;
             let stop = self.cycle_ends(now, on_total);
             self.on_at = Some(now);
@@ -696,6 +728,24 @@ impl Autotune {
             return stop;
         }
         None
+    }
+
+    /// Runs the model's fit for one reading, while it goes: its end converges the run.
+    fn fit_step(&mut self) -> Option<Stop> {
+        let fit = self.fit.as_mut()?;
+        if !fit.run(&self.trace, FIT_EVALS_PER_READING) {
+            return None;
+        }
+        let mut est = self.pending.take()?;
+        est.model = fit.model(&self.trace);
+        self.fit = None;
+        self.estimate = Some(est);
+        Some(Stop::Converged)
+    }
+
+    /// Whether the model's fit runs (the cycles have converged).
+    pub fn fitting(&self) -> bool {
+        self.fit.is_some()
     }
 
     fn approach_point(&mut self, now: Nanos, celsius: f64, on_total: Nanos) {
@@ -786,6 +836,7 @@ impl Autotune {
             tau_s: tau,
             dead_time_s: dead_s,
             ambient_c: t_inf - gain * power_pct,
+            sensor_tau_s: 0.0,
         };
         let sane = gain > 0.0
             && gain <= super::MAX_MODEL_GAIN
@@ -802,6 +853,13 @@ impl Autotune {
             self.phase = Phase::Relay;
             return None;
         };
+        if self.fit.is_some() {
+            // Converged: the relay goes on while the model's fit runs; the cycles are done.
+            self.bins = [0.0; BINS];
+            self.bin_w = FIRST_BIN;
+            self.since = now;
+            return None;
+        }
         let period_s = (now - on_at) as f64 / 1e9;
         let t_on = off_at.saturating_sub(on_at).max(1);
         let t_off = now.saturating_sub(off_at).max(1);
@@ -891,6 +949,14 @@ impl Autotune {
                     amplitude_c: est.amplitude_c,
                 });
             }
+            // With a model to refine, the fit over the whole record runs first (a few
+            // evaluations per reading); without one the run ends here.
+            if let Some(m) = est.model {
+                self.trace.freeze();
+                self.fit = Some(Fit::new(m.tau_s, m.dead_time_s));
+                self.pending = Some(est);
+                return None;
+            }
             self.estimate = Some(est);
             return Some(Stop::Converged);
         }
@@ -973,7 +1039,7 @@ pub(crate) mod tests {
     ) -> (Autotune, Option<Stop>, Nanos) {
         let mut p = Plant::new(plant, 0, seed);
         let first = p.reading(0).unwrap();
-        let mut at = Autotune::new(goal, limits(), 0, first, 0);
+        let mut at = Autotune::new(goal, limits(), 0, first, 0, 0.0);
         p.line(0, at.output_pct() > 0.0);
         let mut t = 0;
         while t < until {
@@ -1003,6 +1069,7 @@ pub(crate) mod tests {
             dead_time_s: l,
             ambient_c: 20.0,
             noise_c: 0.0,
+            sensor_tau_s: 0.0,
         })
         .collect()
     }
@@ -1260,7 +1327,7 @@ pub(crate) mod tests {
         assert_eq!(stop, Some(Stop::Timeout { timeout_s: 1200.0 }));
         assert_eq!(at.progress().phase, Phase::Approach);
         // A tick alone ends it too, without readings.
-        let mut at = Autotune::new(goal, limits(), 5 * S, 20.0, 0);
+        let mut at = Autotune::new(goal, limits(), 5 * S, 20.0, 0, 0.0);
         assert_eq!(at.tick(1204 * S), None);
         assert!(at.tick(1205 * S).is_some());
     }
@@ -1366,6 +1433,7 @@ pub(crate) mod tests {
                 dead_time_s: dead_ratio * tau,
                 ambient_c: 20.0,
                 noise_c: noise_ratio * band,
+                sensor_tau_s: 0.0,
             };
             let target = 20.0 + share * rate * tau;
             let goal = Goal { target_c: target, amplitude_pct: 100.0, noise_band_c: band };

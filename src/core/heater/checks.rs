@@ -506,6 +506,21 @@ impl NotHeating {
     /// heater switched off in Klipper). Returns true when the heater is not heating at the
     /// expected rate. Follows `klippy/extras/verify_heater.py` `check_event` step for step.
     pub fn tick(&mut self, now: Nanos, temp: f64, target: f64, p: &Runaway) -> bool {
+        self.tick_ramped(now, temp, target, target, p)
+    }
+
+    /// [`NotHeating::tick`] with a target on its way to the setpoint `goal` (a setpoint ramp):
+    /// the error is summed against `target`, and a new approach starts only when `goal`
+    /// changes, so a ramp's every step is not a new target that would re-arm the approach for
+    /// ever.
+    pub fn tick_ramped(
+        &mut self,
+        now: Nanos,
+        temp: f64,
+        target: f64,
+        goal: f64,
+        p: &Runaway,
+    ) -> bool {
         if temp >= target - p.hysteresis_c || target <= 0.0 {
             // Near the target (or none): the approach ends. Above the band the error is held,
             // not reset: a heater that overshot and then falls keeps what it had.
@@ -514,13 +529,13 @@ impl NotHeating {
             if temp <= target + p.hysteresis_c {
                 self.error = 0.0;
             }
-            self.last_target = target;
+            self.last_target = goal;
             return false;
         }
         self.error += (target - p.hysteresis_c) - temp;
         let mut fault = false;
         if !self.approaching {
-            if target != self.last_target {
+            if goal != self.last_target {
                 // A new target: watch the approach; it must gain heating_gain within
                 // check_gain_time, again and again.
                 self.approaching = true;
@@ -543,7 +558,7 @@ impl NotHeating {
             // Right after a new target the temperature may still fall: the goal follows it.
             self.goal_temp = self.goal_temp.min(temp + p.heating_gain_c);
         }
-        self.last_target = target;
+        self.last_target = goal;
         fault
     }
 }
@@ -675,6 +690,31 @@ mod tests {
         // The approach runs out at 20 s; the error (175 °C per tick) then exceeds 120 at the
         // next tick.
         assert_eq!(tripped, Some(21));
+    }
+
+    /// A ramped target changes every tick; only a new setpoint starts an approach, so a dead
+    /// heater under a ramp trips as it would on a step (a target taken as new every tick would
+    /// re-arm the approach for ever).
+    #[test]
+    fn a_ramp_is_one_approach_not_one_per_tick() {
+        let p = klipper();
+        let (mut ramped, mut naive) = (NotHeating::default(), NotHeating::default());
+        let (mut tripped, mut naive_tripped) = (None, None);
+        for s in 0..200 {
+            // From 30 °C at 1 °C/s toward 200 °C; the heater stays at 20 °C.
+            let target = (30.0 + s as f64).min(200.0);
+            if tripped.is_none() && ramped.tick_ramped(s * S, 20.0, target, 200.0, &p) {
+                tripped = Some(s);
+            }
+            if naive_tripped.is_none() && naive.tick(s * S, 20.0, target, &p) {
+                naive_tripped = Some(s);
+            }
+        }
+        // The approach runs out at 20 s; the error reaches 120 °C·s soon after.
+        assert!(tripped.is_some_and(|s| s <= 22), "{tripped:?}");
+        // Taken tick by tick, each new target restarts the approach: only once the ramp has
+        // reached its setpoint (170 s) does the error decide.
+        assert!(naive_tripped.is_some_and(|s| s > 170), "{naive_tripped:?}");
     }
 
     #[test]

@@ -8,6 +8,8 @@
 //! `not_heating`), and `pid` refuses to start without `temp_max_c`.
 //!
 //! - [`pid`]: the loop.
+//! - [`mpc`]: model-predictive control, on the thermal model.
+//! - [`fit`]: the model fitted to an autotune's record.
 //! - [`checks`]: `not_heating` (Klipper's `verify_heater`), `stuck_on`, `sensor_stuck`,
 //!   `sensor_jump`.
 //! - [`model`]: the thermal model behind `model_deviation`.
@@ -16,21 +18,25 @@
 
 pub mod autotune;
 pub mod checks;
+pub mod fit;
 pub mod model;
+pub mod mpc;
 pub mod pid;
 pub mod plant;
 
 pub use super::config::heater::{
     Control, Gains, HeaterConfig, HeaterConfigError, HeaterParams, ModelParams, Runaway,
-    StuckLimits, DEFAULT_FEEDBACK_TIMEOUT_MS, DEFAULT_MAX_RATE_C_PER_S, DEFAULT_MODEL_TIME_S,
+    StuckLimits, DEFAULT_AMBIENT_TIMEOUT_MS, DEFAULT_FEEDBACK_TIMEOUT_MS,
+    DEFAULT_FEEDFORWARD_TIMEOUT_MS, DEFAULT_MAX_RATE_C_PER_S, DEFAULT_MODEL_TIME_S,
     DEFAULT_MODEL_TOLERANCE_C, DEFAULT_NO_RISE_TIME_S, DEFAULT_STUCK_ENERGY_S,
-    DEFAULT_STUCK_ON_RISE_C, DEFAULT_STUCK_TIME_S, MAX_DELTA_C, MAX_GAIN, MAX_MODEL_DEAD_TIME_S,
-    MAX_MODEL_GAIN, MAX_RATE_C_PER_S, MAX_RUNAWAY_ERROR, MAX_SKEW_MS, MAX_TEMP_C, MAX_TIME_S,
-    MIN_SAMPLE_MS, MIN_TEMP_C,
+    DEFAULT_STUCK_ON_RISE_C, DEFAULT_STUCK_TIME_S, MAX_DELTA_C, MAX_FEEDFORWARD_PCT, MAX_GAIN,
+    MAX_MODEL_DEAD_TIME_S, MAX_MODEL_GAIN, MAX_RAMP_C_PER_S, MAX_RATE_C_PER_S, MAX_RUNAWAY_ERROR,
+    MAX_SKEW_MS, MAX_TEMP_C, MAX_TIME_S, MIN_SAMPLE_MS, MIN_TEMP_C,
 };
 use super::Nanos;
 pub use checks::{Delivered, Flat, Jump, Leap, NoRise, NotHeating, Rise, Still, Stuck, StuckOn};
 pub use model::{Model, Prediction};
+pub use mpc::{Mpc, MpcTerms};
 pub use pid::{Pid, Terms};
 pub use plant::{Plant, PlantFault, PlantParams};
 use std::fmt;
@@ -240,8 +246,24 @@ pub enum Refusal {
     /// A duty command while `control` is `pid`.
     #[error("duty command refused: control is pid (send a setpoint, or set control open)")]
     DutyUnderPid,
+    /// A duty command while `control` is `mpc`.
+    #[error("duty command refused: control is mpc (send a setpoint, or set control open)")]
+    DutyUnderMpc,
+    /// A feed-forward that is not a number within ±100 % of full power.
+    #[error("feedforward {0} refused: not a number within -100..100 % of full power")]
+    Feedforward(f64),
+    /// An ambient reading that is not a temperature below `temp_max_c`.
+    #[error("ambient {value} °C refused: not a temperature within {min_c}..{max_c} °C")]
+    Ambient {
+        /// The reading.
+        value: f64,
+        /// The lowest accepted, °C.
+        min_c: f64,
+        /// `temp_max_c`.
+        max_c: f64,
+    },
     /// A setpoint while `control` is `open`.
-    #[error("setpoint refused: control is open (set control pid)")]
+    #[error("setpoint refused: control is open (set control pid or mpc)")]
     SetpointUnderOpen,
     /// A duty command or a setpoint while an autotune runs.
     #[error("refused: an autotune is running on this channel (cancel it first)")]
@@ -283,6 +305,25 @@ pub struct HeaterStatus {
     pub feedback: bool,
     /// `control` is `pid`.
     pub pid: bool,
+    /// `control` in force.
+    pub control: Control,
+    /// The loop's target now: the setpoint, or on its way there at `setpoint_ramp_c_per_s`,
+    /// °C.
+    pub target: Option<f64>,
+    /// Under `mpc`: the loop's terms at its last sample.
+    pub mpc: Option<MpcTerms>,
+    /// The thermal model in force.
+    pub model_params: Option<ModelParams>,
+    /// The feed-forward in force, % of full power (0 while none is fresh), and whether a
+    /// configured one is stale (none yet, or the last older than `feedforward_timeout_ms`).
+    pub feedforward_pct: f64,
+    /// See `feedforward_pct`.
+    pub feedforward_stale: bool,
+    /// The ambient in force (the ambient topic's, else the model's), °C, and whether a
+    /// configured ambient topic is stale.
+    pub ambient_c: Option<f64>,
+    /// See `ambient_c`.
+    pub ambient_stale: bool,
     /// The last reading, °C, and when it arrived (monotonic ns).
     pub reading: Option<(f64, Nanos)>,
     /// The setpoint in force, °C.
@@ -425,6 +466,20 @@ pub(crate) struct Heat {
     pub(crate) lowered_from: Option<f64>,
     /// The last reading that jumped.
     pub(crate) last_jump_at: Option<Nanos>,
+    /// The model-predictive loop's estimate, run whenever a model is set (so a switch to
+    /// `mpc` finds it warm), and the output its next sample starts from (bumpless).
+    pub(crate) mpc: Option<Mpc>,
+    pub(crate) mpc_start: Option<f64>,
+    /// The last feed-forward (%) and ambient (°C) received, with their instants (the
+    /// ambient's from its stamp).
+    pub(crate) ff_in: Option<(f64, Nanos)>,
+    pub(crate) ambient_in: Option<(f64, Nanos)>,
+    /// The feed-forward in force (0 while stale), and whether each configured input is stale.
+    pub(crate) ff_used: f64,
+    pub(crate) ff_stale: bool,
+    pub(crate) ambient_stale: bool,
+    /// Where the setpoint ramp stood, °C, and when.
+    pub(crate) ramp: Option<(f64, Nanos)>,
 }
 
 /// How far back the delivered-duty history reaches, ns: `sensor_stuck`'s time and window.
@@ -474,6 +529,18 @@ impl Heat {
             stale_now: false,
             lowered_from: None,
             last_jump_at: None,
+            mpc: cfg
+                .params
+                .model
+                .is_set()
+                .then(|| Mpc::new(cfg.params.model)),
+            mpc_start: None,
+            ff_in: None,
+            ambient_in: None,
+            ff_used: 0.0,
+            ff_stale: cfg.params.feedforward,
+            ambient_stale: cfg.params.ambient,
+            ramp: None,
         }
     }
 }

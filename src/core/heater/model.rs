@@ -6,10 +6,11 @@
 //! which only the channel knows.
 //!
 //! The model is first order plus dead time: with the line on a share `u` (%) of the time,
-//! `dX/dt = (ambient + gain·u − X) / tau`, and the sensor sees `X` one dead time later. Between
+//! `dX/dt = (ambient + gain·u − X) / tau`, and the sensor follows `X` one dead time later
+//! through its own lag, `dS/dt = (X(t − L) − S) / sensor_tau` (0: it reads `X(t − L)`). Between
 //! two updates `u` is the line's mean on share over the interval (exact for the energy, and the
 //! interval — a reading's — is short against `tau`), and the step is the exact solution of
-//! the linear equation.
+//! the linear equation; the sensor's, for its input moving linearly between two readings.
 //!
 //! The residual is the reading less the prediction. What a model cannot know shifts it slowly
 //! (an ambient a few degrees off, a gain a few percent off, a draught): a slow offset, tracked
@@ -42,6 +43,13 @@ pub struct Model {
     spacing: Nanos,
     /// The residual's slow offset, °C.
     offset: f64,
+    /// The sensor's temperature and its input (the delayed state) at the last reading, °C.
+    sensor: f64,
+    sensor_in: f64,
+    sensor_at: Nanos,
+    /// The ambient (°C) and the announced disturbance (feed-forward, %) in force.
+    ambient: f64,
+    ff: f64,
     started: bool,
 }
 
@@ -68,6 +76,11 @@ impl Model {
             len: 0,
             spacing: (dead / (SLOTS as Nanos / 2)).max(1_000_000),
             offset: 0.0,
+            sensor: p.ambient_c,
+            sensor_in: p.ambient_c,
+            sensor_at: 0,
+            ambient: p.ambient_c,
+            ff: 0.0,
             started: false,
         }
     }
@@ -85,8 +98,14 @@ impl Model {
     /// Starts (or restarts) the model at `now` from the reading `celsius`, as if the heater had
     /// stood at it for the dead time; `on_total` is the line's cumulative on time, ns.
     pub fn restart(&mut self, now: Nanos, on_total: Nanos, celsius: f64) {
+        let (ambient, ff) = (self.ambient, self.ff);
         *self = Model::new(self.p);
+        self.ambient = ambient;
+        self.ff = ff;
         self.x = celsius;
+        self.sensor = celsius;
+        self.sensor_in = celsius;
+        self.sensor_at = now;
         self.at = now;
         self.on_at = on_total;
         self.started = true;
@@ -106,6 +125,25 @@ impl Model {
         self.len += 1;
     }
 
+    /// The ambient in force, °C.
+    pub fn ambient(&self) -> f64 {
+        self.ambient
+    }
+
+    /// The announced disturbance in force, %.
+    pub fn feedforward(&self) -> f64 {
+        self.ff
+    }
+
+    /// Sets the ambient (°C, a measured one) and the disturbance announced by the
+    /// feed-forward (% of full power) in force from `now` on, the model advanced to `now`
+    /// first: what the model is told of does not move its residual.
+    pub fn set_inputs(&mut self, now: Nanos, on_total: Nanos, ambient_c: f64, ff_pct: f64) {
+        self.advance(now, on_total);
+        self.ambient = ambient_c;
+        self.ff = ff_pct;
+    }
+
     /// Advances the undelayed state to `now`, with the line's cumulative on time `on_total`
     /// (ns) then.
     pub fn advance(&mut self, now: Nanos, on_total: Nanos) {
@@ -114,7 +152,7 @@ impl Model {
         }
         let h = (now - self.at) as f64;
         let u_pct = (on_total.saturating_sub(self.on_at) as f64 / h * 100.0).clamp(0.0, 100.0);
-        let target = self.p.ambient_c + self.p.gain_c_per_pct * u_pct;
+        let target = self.ambient + self.p.gain_c_per_pct * (u_pct - self.ff);
         let tau_ns = self.p.tau_s * 1e9;
         self.x = target + (self.x - target) * (-h / tau_ns).exp();
         self.at = now;
@@ -159,7 +197,12 @@ impl Model {
         let dt = now.saturating_sub(self.at) as f64 / 1e9;
         self.advance(now, on_total);
         let dead = (self.p.dead_time_s * 1e9) as Nanos;
-        let raw = celsius - self.x_at(now.saturating_sub(dead));
+        let input = self.x_at(now.saturating_sub(dead));
+        let h = now.saturating_sub(self.sensor_at) as f64 / 1e9;
+        self.sensor = lag(self.sensor, self.sensor_in, input, h, self.p.sensor_tau_s);
+        self.sensor_in = input;
+        self.sensor_at = now;
+        let raw = celsius - self.sensor;
         let residual = raw - self.offset;
         let k = (dt / (OFFSET_TAUS * self.p.tau_s)).min(1.0);
         self.offset += k * residual;
@@ -168,6 +211,17 @@ impl Model {
             residual_c: residual,
         }
     }
+}
+
+/// A first-order lag `tau` (s) from `s` after `h` s, its input moving linearly from `from` to
+/// `to`: `S(t) = X(t) − tau·k + (S − X₀ + tau·k)·e^(−t/tau)`, `k` the input's slope. A lag of 0
+/// follows its input.
+pub(crate) fn lag(s: f64, from: f64, to: f64, h: f64, tau: f64) -> f64 {
+    if tau <= 0.0 || h <= 0.0 {
+        return if tau <= 0.0 { to } else { s };
+    }
+    let k = (to - from) / h;
+    to - tau * k + (s - from + tau * k) * (-h / tau).exp()
 }
 
 #[cfg(test)]
@@ -184,6 +238,7 @@ mod tests {
             tau_s: p.tau_s,
             dead_time_s: p.dead_time_s,
             ambient_c: p.ambient_c,
+            sensor_tau_s: p.sensor_tau_s,
         }
     }
 
@@ -226,6 +281,29 @@ mod tests {
         let worst2 = run(&mut plant, &mut m, &mut on, &mut t, 0.4, 200);
         // The mean of each interval stands for a PWM inside it: the ripple is the only error.
         assert!(worst.max(worst2) < 1.5, "{worst} {worst2}");
+    }
+
+    #[test]
+    fn a_lagging_sensor_is_followed_through_its_own_lag() {
+        let p = PlantParams {
+            sensor_tau_s: 3.0,
+            ..PlantParams::default()
+        };
+        let mut plant = Plant::new(p, 0, 1);
+        let mut m = Model::new(model_of(&p));
+        let (mut on, mut t) = (0, 0);
+        let worst = run(&mut plant, &mut m, &mut on, &mut t, 1.0, 30);
+        let worst2 = run(&mut plant, &mut m, &mut on, &mut t, 0.4, 200);
+        assert!(worst.max(worst2) < 1.5, "{worst} {worst2}");
+        // Without the sensor's lag the model is ahead of the reading by about rate × lag.
+        let mut plant = Plant::new(p, 0, 1);
+        let mut blind = Model::new(ModelParams {
+            sensor_tau_s: 0.0,
+            ..model_of(&p)
+        });
+        let (mut on, mut t) = (0, 0);
+        let off = run(&mut plant, &mut blind, &mut on, &mut t, 1.0, 30);
+        assert!(off > 4.0, "{off}");
     }
 
     #[test]

@@ -74,6 +74,18 @@ impl Pid {
         self.d = 0.0;
     }
 
+    /// Moves the integral by `pct` (%): a feed-forward added to the output handing its value
+    /// to the integral when it goes stale (or taking it back when it returns), so the output
+    /// does not jump.
+    pub fn shift_integral(&mut self, pct: f64) {
+        if let Some(from) = self.start_from.as_mut() {
+            *from += pct;
+        } else {
+            self.integral += pct;
+            self.terms.i = self.integral;
+        }
+    }
+
     /// Takes new gains without a jump of the output: the derivative keeps its filtered slope
     /// (rescaled to the new gain) and the integral takes up what the new proportional term
     /// changes, so the output the old gains gave at the last sample is what the new ones give

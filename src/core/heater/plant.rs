@@ -1,11 +1,15 @@
-//! A heater as a first-order-plus-dead-time plant, driven by the real line's edges: for the
-//! core's tests in virtual time and for the simulated heater (`sim-heater`). Pure: the caller
-//! passes the instants.
+//! A heater as a first-order-plus-dead-time plant with a lagging sensor, driven by the real
+//! line's edges: for the core's tests in virtual time and for the simulated heater
+//! (`sim-heater`). Pure: the caller passes the instants.
 //!
 //! With the heater at power `u` (0 or 1: the line), after the dead time `L`:
-//! `dT/dt = (ambient + rate·tau·u − T) / tau`, so at full power the temperature rises at
-//! `rate` °C/s from ambient and settles `rate·tau` above it. Between changes of the delayed
-//! input the solution is exact: `T(t+h) = T∞ + (T − T∞)·e^(−h/tau)`.
+//! `dT/dt = (ambient + rate·tau·u − T) / tau`, so at full power the block's temperature rises
+//! at `rate` °C/s from ambient and settles `rate·tau` above it. The sensor lags its block with
+//! its own time constant `tau_s` (a probe in a bore, a thermistor glued to a bed):
+//! `dS/dt = (T − S) / tau_s`, and reads `S` with its noise (`tau_s` 0: it reads `T`). Between
+//! changes of the delayed input the solution is exact: `T(t+h) = T∞ + (T − T∞)·a` and
+//! `S(t+h) = T∞ + (T − T∞)·tau/(tau − tau_s)·(a − b) + (S − T∞)·b`, with `a = e^(−h/tau)`,
+//! `b = e^(−h/tau_s)`.
 
 use super::super::Nanos;
 use std::collections::VecDeque;
@@ -23,6 +27,8 @@ pub struct PlantParams {
     pub ambient_c: f64,
     /// Peak sensor noise, °C (uniform in ±noise).
     pub noise_c: f64,
+    /// The sensor's own time constant behind its block, s; 0 = it reads the block.
+    pub sensor_tau_s: f64,
 }
 
 impl Default for PlantParams {
@@ -33,6 +39,7 @@ impl Default for PlantParams {
             dead_time_s: 2.0,
             ambient_c: 20.0,
             noise_c: 0.0,
+            sensor_tau_s: 0.0,
         }
     }
 }
@@ -113,6 +120,8 @@ impl PlantFault {
 pub struct Plant {
     p: PlantParams,
     temp: f64,
+    /// The sensor's temperature (behind the block by its time constant), °C.
+    sensor: f64,
     at: Nanos,
     /// The power in effect at the heater now (after the dead time), 0 or 1.
     power: f64,
@@ -138,6 +147,7 @@ impl Plant {
         Plant {
             p,
             temp: p.ambient_c,
+            sensor: p.ambient_c,
             at: now,
             power: 0.0,
             pending: VecDeque::new(),
@@ -192,9 +202,15 @@ impl Plant {
         self.fault
     }
 
-    /// The true temperature at the last instant advanced to, °C.
+    /// The block's true temperature at the last instant advanced to, °C.
     pub fn temperature(&self) -> f64 {
         self.temp
+    }
+
+    /// The sensor's own temperature at the last instant advanced to (what a healthy sensor
+    /// reads before its noise), °C.
+    pub fn sensor_temperature(&self) -> f64 {
+        self.sensor
     }
 
     /// The line as last told, and since when (ns).
@@ -225,10 +241,27 @@ impl Plant {
             _ => self.power,
         } - self.disturbance;
         let target = self.p.ambient_c + self.p.rate_c_per_s * self.p.tau_s * power;
-        self.temp = target + (self.temp - target) * (-h / self.p.tau_s).exp();
+        let (tau, tau_s) = (self.p.tau_s, self.p.sensor_tau_s);
+        let a = (-h / tau).exp();
+        let from = self.temp - target;
+        self.temp = target + from * a;
+        self.sensor = if tau_s <= 0.0 {
+            self.temp
+        } else {
+            let b = (-h / tau_s).exp();
+            // The block's part of the sensor's response: tau/(tau − tau_s)·(a − b), and its
+            // limit (h/tau)·a when the two time constants meet.
+            let block = if (tau - tau_s).abs() > 1e-9 * tau {
+                tau / (tau - tau_s) * (a - b)
+            } else {
+                h / tau * a
+            };
+            target + from * block + (self.sensor - target) * b
+        };
         if target < self.p.ambient_c {
             // A disturbance takes heat away, down to the ambient, never below it.
             self.temp = self.temp.max(self.p.ambient_c);
+            self.sensor = self.sensor.max(self.p.ambient_c);
         }
         self.at = t;
     }
@@ -263,14 +296,14 @@ impl Plant {
             PlantFault::SensorShorted => self.p.ambient_c,
             PlantFault::SensorFallenOff => {
                 // The probe cools toward ambient from where it fell off.
-                let (c, at) = *self.fallen.get_or_insert((self.temp, t));
+                let (c, at) = *self.fallen.get_or_insert((self.sensor, t));
                 let h = t.saturating_sub(at) as f64 / 1e9;
                 let amb = self.p.ambient_c;
                 let c = amb + (c - amb) * (-h / FALLEN_SENSOR_TAU_S).exp();
                 self.fallen = Some((c, t));
                 c
             }
-            _ => self.temp,
+            _ => self.sensor,
         };
         let mut noisy = sensed + self.noise();
         if self.quantum_c > 0.0 {
@@ -298,6 +331,7 @@ mod tests {
             dead_time_s: 5.0,
             ambient_c: 20.0,
             noise_c: 0.0,
+            sensor_tau_s: 0.0,
         };
         let mut plant = Plant::new(p, 0, 1);
         plant.line(0, true);
@@ -312,6 +346,50 @@ mod tests {
         // Still heating for the dead time.
         assert!(plant.reading(110 * S).unwrap() > t);
         assert!(plant.reading(200 * S).unwrap() < t);
+    }
+
+    #[test]
+    fn the_sensor_lags_its_block_by_its_own_time_constant() {
+        let p = PlantParams {
+            rate_c_per_s: 1.0,
+            tau_s: 100.0,
+            dead_time_s: 0.0,
+            ambient_c: 20.0,
+            noise_c: 0.0,
+            sensor_tau_s: 5.0,
+        };
+        let mut plant = Plant::new(p, 0, 1);
+        plant.line(0, true);
+        // The two-pole step response: 100·(1 − (τ·e^(−t/τ) − τs·e^(−t/τs))/(τ − τs)).
+        let step = |t: f64| {
+            20.0 + 100.0 * (1.0 - (100.0 * (-t / 100.0).exp() - 5.0 * (-t / 5.0).exp()) / 95.0)
+        };
+        for t in [1u64, 3, 10, 50, 200] {
+            let c = plant.reading(t * S).unwrap();
+            assert!(
+                (c - step(t as f64)).abs() < 1e-9,
+                "{t}: {c} vs {}",
+                step(t as f64)
+            );
+            assert!(c < plant.temperature());
+        }
+        // Small steps agree with one large one (the solution is exact between edges).
+        let mut fine = Plant::new(p, 0, 1);
+        fine.line(0, true);
+        for k in 1..=2000u64 {
+            fine.advance(k * S / 10);
+        }
+        assert!((fine.reading(200 * S).unwrap() - step(200.0)).abs() < 1e-9);
+        // Equal time constants: the limit.
+        let q = PlantParams {
+            sensor_tau_s: 100.0,
+            ..p
+        };
+        let mut eq = Plant::new(q, 0, 1);
+        eq.line(0, true);
+        let t = 100.0;
+        let want = 20.0 + 100.0 * (1.0 - (1.0 + t / 100.0) * (-t / 100.0f64).exp());
+        assert!((eq.reading(100 * S).unwrap() - want).abs() < 1e-9);
     }
 
     #[test]

@@ -40,6 +40,8 @@ pub(super) struct Case {
     /// The ambient drift over the run, °C.
     pub drift_c: f64,
     pub seed: u64,
+    /// The loop: `pid` with the SIMC gains, or `mpc` on the plant's true model.
+    pub control: Control,
 }
 
 /// What a run showed.
@@ -60,7 +62,8 @@ pub(super) struct Outcome {
     pub duty: Vec<(f64, f64)>,
     /// The duty commanded when the fault struck, fraction.
     pub duty_at_fault: f64,
-    /// The PID's integral gain, % per °C·s.
+    /// The PID's integral gain, % per °C·s (0 under `mpc`: no integral ramps on a frozen
+    /// error there, the duty goes to full power within a few of the model's lags).
     pub ki: f64,
     /// `temp_max_c`.
     pub temp_max_c: f64,
@@ -88,6 +91,33 @@ pub(super) fn required(plant: &PlantParams, temp_max_c: f64) -> HeaterParams {
     }
 }
 
+/// `h` under `control`: under `mpc` with the plant's true model, and `model_tolerance_c`
+/// above what an unannounced disturbance of `disturbance` (share of full power) moves the
+/// model's residual by (docs/heater.md).
+pub(super) fn for_loop(
+    h: HeaterParams,
+    plant: &PlantParams,
+    control: Control,
+    disturbance: f64,
+) -> HeaterParams {
+    if control != Control::Mpc {
+        return h;
+    }
+    let gain = plant.rate_c_per_s * plant.tau_s / 100.0;
+    HeaterParams {
+        control,
+        model: crate::core::heater::ModelParams {
+            gain_c_per_pct: gain,
+            tau_s: plant.tau_s,
+            dead_time_s: plant.dead_time_s,
+            ambient_c: plant.ambient_c,
+            sensor_tau_s: plant.sensor_tau_s,
+        },
+        model_tolerance_c: h.model_tolerance_c + gain * disturbance * 100.0,
+        ..h
+    }
+}
+
 fn trips(r: &Rig) -> Option<(Nanos, HeaterFault)> {
     r.notes.iter().find_map(|(t, e)| match e {
         Event::HeaterFault(f) => Some((*t, *f)),
@@ -105,7 +135,7 @@ pub(super) fn run(case: &Case, watch_s: f64) -> Outcome {
     let temp_max = setpoint + 15.0 + 10.0;
     let ch = ChannelParams {
         period_ms: 1000,
-        heater: required(&p, temp_max),
+        heater: for_loop(required(&p, temp_max), &p, case.control, case.disturbance.0),
         ..ChannelParams::default()
     };
     let mut r = Rig::new(ch, p, case.seed);
@@ -224,7 +254,11 @@ pub(super) fn run(case: &Case, watch_s: f64) -> Outcome {
         early,
         duty,
         duty_at_fault,
-        ki: r.ch.config().heater.gains.ki,
+        ki: if case.control == Control::Pid {
+            r.ch.config().heater.gains.ki
+        } else {
+            0.0
+        },
         temp_max_c: temp_max,
         ambient_at_fault_c: ambient_at_fault,
         true_at_fault_c: true_at_fault,
@@ -265,6 +299,7 @@ fn explore() {
                             dead_time_s: dead,
                             ambient_c: 20.0,
                             noise_c: 0.1,
+                            sensor_tau_s: 0.0,
                         },
                         quantum_c: 0.0,
                         setpoint_share: share,
@@ -274,6 +309,7 @@ fn explore() {
                         disturbance: (0.0, 0.0, 0.0),
                         drift_c: 0.0,
                         seed: 7,
+                        control: Control::Pid,
                     };
                     let o = run(&case, 600.0);
                     let bound = o.setpoint_c.max(o.reading_at_fault_c) + 10.0;
@@ -326,6 +362,7 @@ pub(super) fn arb_plant(g: &mut Gen) -> PlantParams {
         dead_time_s: g.range(0.5, 3.0),
         ambient_c: g.range(15.0, 25.0),
         noise_c: g.range(0.0, 0.2),
+        sensor_tau_s: 0.0,
     }
 }
 
@@ -342,7 +379,7 @@ const FAULTS: [PlantFault; 7] = [
 /// The case of `seed`: a plant of the sizing range, a sensor with or without steps, a
 /// setpoint that leaves 40 % of the rise after the largest disturbance, the fault `fault`
 /// at a random instant of a random phase.
-fn arb_case(seed: u64, fault: PlantFault) -> Case {
+fn arb_case(seed: u64, fault: PlantFault, control: Control) -> Case {
     let mut g = Gen::new(seed);
     let plant = arb_plant(&mut g);
     let quantum_c = g.pick(&[0.0, 0.0, 0.0625, 0.25]);
@@ -361,6 +398,7 @@ fn arb_case(seed: u64, fault: PlantFault) -> Case {
         disturbance,
         drift_c,
         seed,
+        control,
     }
 }
 
@@ -431,7 +469,7 @@ fn derived_bound(case: &Case, o: &Outcome) -> (&'static [&'static str], Option<(
             // within 4E/0.1 s.
             let e = (o.setpoint_c - o.reading_at_fault_c).abs() - 2.0 * p.noise_c;
             let rho = o.ki * e / 100.0;
-            let swing = (e > 0.0).then(|| {
+            let swing = (e > 0.0 && rho > 0.0).then(|| {
                 let w = (8.0 * (d.sensor_stuck_energy_s + period / 4.0) / rho).sqrt();
                 (
                     1.2 * w + d.sensor_stuck_time_s / 2.0 + d.sensor_stuck_time_s + 2.0 * tick,
@@ -523,6 +561,21 @@ fn every_fault_is_named_within_its_bound_and_the_plant_kept_within_10_c() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(12);
+    fault_cases(Control::Pid, per_fault);
+}
+
+/// The same faults, cases and bounds under `control` `mpc` on the plant's model: every check
+/// holds under the model-predictive loop as under the PID.
+#[test]
+fn under_mpc_every_fault_is_named_within_its_bound_and_the_plant_kept_within_10_c() {
+    let per_fault: u64 = std::env::var("PWM_FAULT_CASES")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(12);
+    fault_cases(Control::Mpc, per_fault);
+}
+
+fn fault_cases(control: Control, per_fault: u64) {
     let mut lines = Vec::new();
     let mut unseen = 0;
     for fault in FAULTS {
@@ -530,7 +583,7 @@ fn every_fault_is_named_within_its_bound_and_the_plant_kept_within_10_c() {
         let mut named = std::collections::BTreeMap::new();
         for k in 0..per_fault {
             let seed = k * 31 + fault as u64;
-            let case = arb_case(seed, fault);
+            let case = arb_case(seed, fault, control);
             let o = run(&case, 900.0);
             let ctx = format!("seed {seed} {case:?}");
             assert!(
@@ -582,8 +635,9 @@ fn every_fault_is_named_within_its_bound_and_the_plant_kept_within_10_c() {
         ));
     }
     println!(
-        "heater faults, {per_fault} cases each (sizing range r 0.3..0.7 °C/s, tau 30..600 s, \
+        "heater faults under {}, {per_fault} cases each (sizing range r 0.3..0.7 °C/s, tau 30..600 s, \
          L 0.5..3 s), {unseen} harmless and unseen:\n{}",
+        control.as_str(),
         lines.join("\n")
     );
 }
@@ -597,7 +651,7 @@ fn explore_random() {
         .unwrap_or(200);
     for seed in 0..n {
         let mut g = Gen::new(seed ^ 77);
-        let case = arb_case(seed, g.pick(&FAULTS));
+        let case = arb_case(seed, g.pick(&FAULTS), Control::Pid);
         let plant = case.plant;
         let o = run(&case, 900.0);
         let bound = o.setpoint_c.max(o.reading_at_fault_c) + 10.0;
@@ -676,7 +730,7 @@ impl Lean {
 /// One healthy run of `hours` simulated hours: setpoint changes, disturbance steps of up to
 /// 30 % of full power, the ambient drifting by up to ±5 °C, autotunes, the channel disabled
 /// and enabled again. Returns the fault if one latched (none may), with what was going on.
-fn healthy_run(seed: u64, hours: f64) -> Result<u32, String> {
+fn healthy_run(seed: u64, hours: f64, control: Control) -> Result<u32, String> {
     let mut g = Gen::new(seed ^ 0xA5A5);
     let plant = arb_plant(&mut g);
     let quantum = g.pick(&[0.0, 0.0, 0.0625, 0.25]);
@@ -686,7 +740,7 @@ fn healthy_run(seed: u64, hours: f64) -> Result<u32, String> {
     let temp_max = plant.ambient_c + top_share * full + 15.0 + 10.0;
     let ch = ChannelParams {
         period_ms: 1000,
-        heater: required(&plant, temp_max),
+        heater: for_loop(required(&plant, temp_max), &plant, control, dist_max),
         ..ChannelParams::default()
     };
     let cfg = ch.validate().map_err(|e| e.to_string())?;
@@ -779,7 +833,7 @@ fn healthy_heaters_never_trip() {
     let start = std::time::Instant::now();
     let mut autotunes = 0;
     for seed in 0..runs {
-        match healthy_run(seed, hours) {
+        match healthy_run(seed, hours, Control::Pid) {
             Ok(n) => autotunes += n,
             Err(e) => panic!("{e}"),
         }
@@ -792,12 +846,38 @@ fn healthy_heaters_never_trip() {
     );
 }
 
+/// The same healthy runs under `mpc` on the plant's model.
+#[test]
+fn healthy_heaters_never_trip_under_mpc() {
+    let runs: u64 = std::env::var("PWM_HEALTHY_RUNS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(125);
+    let hours = 8.0;
+    let mut autotunes = 0;
+    for seed in 0..runs {
+        match healthy_run(seed, hours, Control::Mpc) {
+            Ok(n) => autotunes += n,
+            Err(e) => panic!("{e}"),
+        }
+    }
+    println!(
+        "healthy heaters under mpc: {runs} runs, {:.0} simulated hours, {autotunes} autotunes, \
+         0 trips",
+        runs as f64 * hours
+    );
+}
+
 #[test]
 #[ignore]
 fn one_case() {
     let seed: u64 = std::env::var("SEED").unwrap().parse().unwrap();
     let fault = PlantFault::parse(&std::env::var("FAULT").unwrap()).unwrap();
-    let case = arb_case(seed, fault);
+    let control = match std::env::var("CONTROL").as_deref() {
+        Ok("mpc") => Control::Mpc,
+        _ => Control::Pid,
+    };
+    let case = arb_case(seed, fault, control);
     let o = run(&case, 900.0);
     println!(
         "{case:?}\n tripped {:?}\n sp {} reading {} relay {} duty0 {}",

@@ -366,6 +366,7 @@ fn arb_plant() -> impl Strategy<Value = PlantParams> {
             dead_time_s: dead,
             ambient_c: ambient,
             noise_c: noise,
+            sensor_tau_s: 0.0,
         })
 }
 
@@ -512,6 +513,7 @@ fn envelope_plant() -> PlantParams {
         dead_time_s: 1.5,
         ambient_c: 20.0,
         noise_c: 0.05,
+        sensor_tau_s: 0.0,
     }
 }
 
@@ -694,6 +696,7 @@ fn the_thermal_model_sees_an_ssr_stuck_on_while_the_loop_switches() {
         tau_s: plant.tau_s,
         dead_time_s: plant.dead_time_s,
         ambient_c: plant.ambient_c,
+        sensor_tau_s: 0.0,
     };
     h.stuck_on_rise_c = 0.0;
     let mut r = Rig::new(params(h), plant, 1);

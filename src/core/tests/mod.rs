@@ -6,6 +6,7 @@ mod bank;
 mod failsafe;
 mod harness;
 mod heater;
+mod mpc;
 mod props;
 mod rules;
 mod timebase;

@@ -302,6 +302,7 @@ fn finish(
                 r.model_tau_s = m.tau_s;
                 r.model_dead_time_s = m.dead_time_s;
                 r.model_ambient_c = m.ambient_c;
+                r.model_sensor_tau_s = m.sensor_tau_s;
             }
             if let Some(s) = o.sizing {
                 r.period_ok = s.period_ok;
@@ -316,6 +317,7 @@ fn finish(
                         ("model_tau_s", m.tau_s),
                         ("model_dead_time_s", m.dead_time_s),
                         ("model_ambient_c", m.ambient_c),
+                        ("model_sensor_tau_s", m.sensor_tau_s),
                     ]
                 });
                 let items = [

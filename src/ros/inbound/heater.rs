@@ -31,6 +31,10 @@ pub struct HeaterChannel {
     /// The `sensor_msgs/Temperature` topic, as configured (relative names resolve in the
     /// node's namespace, and remapping applies).
     pub feedback_topic: String,
+    /// The feed-forward topic (`std_msgs/Float64`, % of full power), empty for none.
+    pub feedforward_topic: String,
+    /// The ambient topic (`sensor_msgs/Temperature`, °C), empty for none.
+    pub ambient_topic: String,
 }
 
 /// The feedback subscription, `~/<ch>/setpoint` and `~/<ch>/reset_fault` of each channel in
@@ -58,6 +62,30 @@ pub fn listen_heaters(
                 );
             },
         )?);
+        if !h.feedforward_topic.is_empty() {
+            info!("{}: feed-forward from {}", h.name, h.feedforward_topic);
+            let b = Arc::clone(inputs);
+            tasks.push(ep.listen(&h.feedforward_topic, move |m: msg::Float64| {
+                let _ = b.send(ch, Input::Feedforward(m.data));
+            })?);
+        }
+        if !h.ambient_topic.is_empty() {
+            info!("{}: ambient temperature from {}", h.name, h.ambient_topic);
+            let b = Arc::clone(inputs);
+            tasks.push(ep.listen_with(
+                &h.ambient_topic,
+                qos::sensor(),
+                move |m: msg::Temperature| {
+                    let _ = b.send(
+                        ch,
+                        Input::Ambient {
+                            celsius: m.temperature,
+                            age: stamp_age(&m.header, crate::clock::wall_ns()),
+                        },
+                    );
+                },
+            )?);
+        }
         let b = Arc::clone(inputs);
         tasks.push(
             ep.listen(&format!("~/{}/setpoint", h.name), move |m: msg::Float64| {

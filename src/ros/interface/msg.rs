@@ -481,6 +481,8 @@ pub struct AutotuneResult {
     pub model_dead_time_s: f64,
     /// Its ambient, °C.
     pub model_ambient_c: f64,
+    /// Its sensor's time constant, s.
+    pub model_sensor_tau_s: f64,
 }
 impl Message for AutotuneResult {}
 

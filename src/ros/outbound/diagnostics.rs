@@ -95,7 +95,7 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         off_time_input_ms: ms(s.t_off_input),
         remaining_on_s: whole_seconds(rem_on),
         remaining_off_s: whole_seconds(rem_off),
-        control: if s.heater.pid { "pid" } else { "open" }.into(),
+        control: s.heater.control.as_str().into(),
         temperature_c: s.heater.reading.map_or(f64::NAN, |(c, _)| c),
         temperature_age_ms: s
             .heater
@@ -462,6 +462,7 @@ impl ChannelHealth {
             || self.recent_refusal(now).is_some()
             || s.is_some_and(|s| s.heater.sizing[0].is_some())
             || s.is_some_and(|s| s.heater.stale_now || s.heater.setpoint_lowered_from.is_some())
+            || s.is_some_and(|s| s.heater.feedforward_stale || s.heater.ambient_stale)
             || s.is_some_and(|s| s.e1 || (s.limited && !s.rule.extended()) || s.command_clamped)
             || s.is_some_and(|s| s.sizing.is_some())
         {
@@ -521,6 +522,17 @@ impl ChannelHealth {
             return format!(
                 "setpoint lowered from {from} °C to {sp} °C: temp_max_c was lowered below it \
                  (the setpoint stays setpoint_margin_c under temp_max_c)"
+            );
+        }
+        if s.heater.feedforward_stale || s.heater.ambient_stale {
+            let which = match (s.heater.feedforward_stale, s.heater.ambient_stale) {
+                (true, true) => "feed-forward and ambient",
+                (true, false) => "feed-forward",
+                _ => "ambient",
+            };
+            return format!(
+                "{which} input stale (none yet, or older than its timeout): ignored; the \
+                 feed-forward counts as 0 %, the ambient is model_ambient_c"
             );
         }
         let refused_at = self.last_refusal.as_ref().map_or(0, |(_, at)| *at);
@@ -682,13 +694,14 @@ impl ChannelHealth {
             if h.feedback {
                 let num = |v: Option<f64>| v.map_or("none".into(), |v| format!("{v:.3}"));
                 kv.extend([
-                    ("control", if h.pid { "pid" } else { "open" }.to_string()),
+                    ("control", h.control.as_str().to_string()),
                     ("temperature_c", num(h.reading.map(|(c, _)| c))),
                     (
                         "temperature_age_ms",
                         num(h.reading.map(|(_, at)| ms(now.saturating_sub(at)))),
                     ),
                     ("setpoint_c", num(h.setpoint)),
+                    ("target_c", num(h.target)),
                     ("pid_p_pct", format!("{:.3}", h.terms.p)),
                     ("pid_i_pct", format!("{:.3}", h.terms.i)),
                     ("pid_d_pct", format!("{:.3}", h.terms.d)),
@@ -696,6 +709,28 @@ impl ChannelHealth {
                     ("runaway_error", format!("{:.1}", h.runaway_error)),
                     ("model_predicted_c", num(h.model.map(|m| m.predicted_c))),
                     ("model_residual_c", num(h.model.map(|m| m.residual_c))),
+                    (
+                        "model",
+                        h.model_params.map_or("none".into(), |m| {
+                            format!(
+                                "gain {:.4} °C/%, tau {:.2} s, dead time {:.2} s, sensor {:.2} \
+                                 s, ambient {:.2} °C",
+                                m.gain_c_per_pct,
+                                m.tau_s,
+                                m.dead_time_s,
+                                m.sensor_tau_s,
+                                m.ambient_c
+                            )
+                        }),
+                    ),
+                    ("mpc_predicted_c", num(h.mpc.map(|m| m.predicted_c))),
+                    ("mpc_steady_pct", num(h.mpc.map(|m| m.steady_pct))),
+                    ("mpc_disturbance_pct", num(h.mpc.map(|m| m.disturbance_pct))),
+                    ("mpc_output_pct", num(h.mpc.map(|m| m.output))),
+                    ("feedforward_pct", format!("{:.3}", h.feedforward_pct)),
+                    ("feedforward_stale", h.feedforward_stale.to_string()),
+                    ("ambient_c", num(h.ambient_c)),
+                    ("ambient_stale", h.ambient_stale.to_string()),
                     ("stale_readings", h.stale.0.to_string()),
                     (
                         "last_stale_age_ms",
@@ -1116,6 +1151,50 @@ mod tests {
         assert_eq!(h.level(0), DiagnosticStatus::OK);
         let d = h.to_status("n", 0, NodeCounters::default());
         assert_eq!(kv(&d, "sizing_advice"), "");
+    }
+
+    #[test]
+    fn mpc_shows_its_model_target_and_terms_and_a_stale_input_warns() {
+        let mut h = ChannelHealth::new("pw01", "sim");
+        let mut s = status();
+        s.heater.feedback = true;
+        s.heater.control = crate::core::heater::Control::Mpc;
+        s.heater.setpoint = Some(80.0);
+        s.heater.target = Some(61.5);
+        s.heater.model_params = Some(crate::core::heater::ModelParams {
+            gain_c_per_pct: 1.8,
+            tau_s: 120.0,
+            dead_time_s: 2.0,
+            ambient_c: 21.0,
+            sensor_tau_s: 0.5,
+        });
+        s.heater.mpc = Some(crate::core::heater::MpcTerms {
+            predicted_c: 60.0,
+            steady_pct: 22.0,
+            disturbance_pct: 3.0,
+            output: 100.0,
+        });
+        h.status = Some(s);
+        assert_eq!(h.level(0), DiagnosticStatus::OK);
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(kv(&d, "control"), "mpc");
+        assert_eq!(kv(&d, "target_c"), "61.500");
+        assert_eq!(
+            kv(&d, "model"),
+            "gain 1.8000 °C/%, tau 120.00 s, dead time 2.00 s, sensor 0.50 s, ambient 21.00 °C"
+        );
+        assert_eq!(kv(&d, "mpc_disturbance_pct"), "3.000");
+        assert_eq!(status_msg(0, &s, 0, 5).control, "mpc");
+        s.heater.feedforward_stale = true;
+        h.status = Some(s);
+        assert_eq!(h.level(0), DiagnosticStatus::WARN);
+        assert!(
+            h.message(0).starts_with("feed-forward input stale"),
+            "{}",
+            h.message(0)
+        );
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(kv(&d, "feedforward_stale"), "true");
     }
 
     #[test]

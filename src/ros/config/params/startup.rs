@@ -108,6 +108,11 @@ pub struct ChannelStart {
     pub duty_percent: f64,
     /// `feedback_topic`: the temperature topic, empty for none.
     pub feedback_topic: String,
+    /// `feedforward_topic`: the feed-forward topic (`std_msgs/Float64`, %), empty for none.
+    pub feedforward_topic: String,
+    /// `ambient_topic`: the ambient temperature topic (`sensor_msgs/Temperature`), empty for
+    /// none.
+    pub ambient_topic: String,
 }
 
 /// What the node needs at start-up, read from the store.
@@ -136,6 +141,16 @@ impl StartupConfig {
                 feedback_topic: store
                     .string(&format!("{name}.feedback_topic"))
                     .unwrap_or("")
+                    .to_string(),
+                feedforward_topic: store
+                    .string(&format!("{name}.feedforward_topic"))
+                    .unwrap_or("")
+                    .trim()
+                    .to_string(),
+                ambient_topic: store
+                    .string(&format!("{name}.ambient_topic"))
+                    .unwrap_or("")
+                    .trim()
                     .to_string(),
                 name,
             });

@@ -21,7 +21,8 @@ use crate::core::config::{
 };
 use crate::core::heater::{
     Control, HeaterParams, MAX_DELTA_C, MAX_GAIN, MAX_MODEL_DEAD_TIME_S, MAX_MODEL_GAIN,
-    MAX_RATE_C_PER_S, MAX_RUNAWAY_ERROR, MAX_SKEW_MS, MAX_TEMP_C, MAX_TIME_S, MIN_TEMP_C,
+    MAX_RAMP_C_PER_S, MAX_RATE_C_PER_S, MAX_RUNAWAY_ERROR, MAX_SKEW_MS, MAX_TEMP_C, MAX_TIME_S,
+    MIN_TEMP_C,
 };
 use crate::core::valve::{
     OnTimeout, ReferenceAtStart, ValveParams, MAX_BACKLASH_PCT, MAX_COMMAND_TIMEOUT_MS,
@@ -1049,11 +1050,16 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
-            description: "Who sets the duty: open (duty commands, as without a heater loop) \
-                          or pid (the loop, from the feedback and ~/<ch>/setpoint). Under pid \
-                          a duty command is refused, and command_timeout_ms watches the \
-                          setpoint and the feedback; under open a setpoint is refused.",
-            constraints: "open|pid; pid needs feedback_topic; a switch is bumpless",
+            description: "Who sets the duty: open (duty commands, as without a heater loop), \
+                          pid (the PID, from the feedback and ~/<ch>/setpoint) or mpc \
+                          (model-predictive control on the thermal model model_*: the model \
+                          predicts the heater over its dead time and the duty brings the \
+                          prediction to the setpoint, plus the loss to the ambient and the \
+                          feed-forward; no gains). Under pid and mpc a duty command is \
+                          refused, and command_timeout_ms watches the setpoint and the \
+                          feedback; under open a setpoint is refused.",
+            constraints: "open|pid|mpc; pid and mpc need feedback_topic, mpc a model \
+                          (model_gain_c_per_pct above 0); a switch is bumpless",
             choices: Some(|s| spelled::<Control>(s, false)),
             core: Some(|c, v| {
                 c.heater.control = text(v).parse()?;
@@ -1430,6 +1436,90 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             ..Decl::new("model_ambient_c", Double, || {
                 V::Double(heater_defaults().model.ambient_c)
             })
+        },
+        Decl {
+            description: "The thermal model's sensor: its time constant behind the block, s \
+                          (a probe in a bore, a thermistor on a bed lags what it measures). 0: \
+                          the sensor reads the block.",
+            range: Range::Double(0.0, MAX_MODEL_DEAD_TIME_S),
+            core: Some(|c, v| {
+                c.heater.model.sensor_tau_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("model_sensor_tau_s", Double, || {
+                V::Double(heater_defaults().model.sensor_tau_s)
+            })
+        },
+        Decl {
+            description: "Feed-forward: a std_msgs/Float64 topic carrying a known disturbance \
+                          in % of the heater's full power it costs (a part-cooling fan's duty \
+                          through a gain, filament flow). Used by mpc, added to pid's output. \
+                          Values beyond ±100 % are refused; one older than \
+                          feedforward_timeout_ms is stale, ignored, and /diagnostics warns. \
+                          Empty: none.",
+            constraints: "start-up only",
+            read_only: Some(START_UP),
+            core: Some(|c, v| {
+                c.heater.feedforward = !text(v).trim().is_empty();
+                Ok(())
+            }),
+            ..Decl::new("feedforward_topic", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "A feed-forward older than this is stale and ignored, ms (a stale \
+                          value is handed to the loop's own estimate, so the duty does not \
+                          jump). 0: never stale.",
+            range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
+            core: Some(|c, v| {
+                c.heater.feedforward_timeout_ms = ms(v);
+                Ok(())
+            }),
+            ..Decl::new("feedforward_timeout_ms", Integer, || {
+                V::Integer(heater_defaults().feedforward_timeout_ms as i64)
+            })
+        },
+        Decl {
+            description: "Ambient temperature: a sensor_msgs/Temperature topic (°C), the \
+                          ambient the model's loss is computed against instead of \
+                          model_ambient_c. Readings outside temp_min_c..temp_max_c are \
+                          refused; one older than ambient_timeout_ms is stale, the model's \
+                          ambient is used, and /diagnostics warns. Empty: none.",
+            constraints: "start-up only",
+            read_only: Some(START_UP),
+            core: Some(|c, v| {
+                c.heater.ambient = !text(v).trim().is_empty();
+                Ok(())
+            }),
+            ..Decl::new("ambient_topic", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "An ambient reading older than this is stale and ignored, ms. 0: \
+                          never stale.",
+            range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
+            core: Some(|c, v| {
+                c.heater.ambient_timeout_ms = ms(v);
+                Ok(())
+            }),
+            ..Decl::new("ambient_timeout_ms", Integer, || {
+                V::Integer(heater_defaults().ambient_timeout_ms as i64)
+            })
+        },
+        Decl {
+            description: "Setpoint ramp, °C/s: under pid and mpc the loop's target moves \
+                          toward a new setpoint at this rate, from where it stood (from the \
+                          reading at the first setpoint, an enable or a reset); not_heating \
+                          watches the ramped target. /diagnostics shows it as target_c. 0: a \
+                          step.",
+            range: Range::Double(0.0, MAX_RAMP_C_PER_S),
+            core: Some(|c, v| {
+                c.heater.setpoint_ramp_c_per_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new("setpoint_ramp_c_per_s", Double, || V::Double(0.0))
         },
         Decl {
             description: "model_deviation: a residual (the reading less the model's \
