@@ -1987,12 +1987,15 @@ mod tests {
     let prefix = crate::structure::entity::RTPSEntity::guid(&dp).prefix.bytes;
     assert!(spdp_announcement_of(&socket, &prefix, std::time::Duration::from_secs(10)).is_some());
     // Each thread of the participant (the event loop and discovery) blocks in
-    // epoll_wait; signal each one a few times while it waits.
+    // epoll_wait; signal each one a few times while it waits. Other tests' participants
+    // in this process are signalled too and may come and go meanwhile (ESRCH then), so
+    // what decides is whether this participant still works afterwards.
     let threads = threads_named("RustDDS");
     assert!(threads.len() >= 2, "the participant's threads: {threads:?}");
+    let mut delivered = 0;
     for _ in 0..5 {
       std::thread::sleep(std::time::Duration::from_millis(50));
-      for (tid, name) in &threads {
+      for (tid, _) in &threads {
         let r = unsafe {
           libc::syscall(
             libc::SYS_tgkill,
@@ -2001,13 +2004,13 @@ mod tests {
             libc::SIGUSR2 as libc::c_long,
           )
         };
-        // ESRCH: the thread ended at an earlier signal.
-        assert_eq!(r, 0, "thread {tid} ({name}) is gone after a signal");
+        delivered += usize::from(r == 0);
       }
     }
+    assert!(delivered >= 2, "signals delivered: {delivered}");
     // Both threads still work: the discovery thread still announces the participant and
     // the event loop still sends it (what came before drained first). Before, either
-    // thread ended at its first EINTR.
+    // thread ended at its first EINTR, and the announcements stopped.
     while spdp_announcement_of(&socket, &prefix, std::time::Duration::from_millis(10)).is_some() {}
     assert!(
       spdp_announcement_of(&socket, &prefix, std::time::Duration::from_secs(15)).is_some(),
