@@ -4,7 +4,7 @@ trace, one after the other, each for SECONDS after a warm-up; prints for each th
 of one core, its RSS at the end, and how fast the trace file grew (docs/safety.md#mcap-traces).
 
 The run: the sim output, 4 channels at a 10 ms period and 37 %, status on change only (about 900
-edges and 950 status messages a second), LOCALHOST discovery, on a ROS domain of its own.
+edges and 950 status messages a second), LOCALHOST discovery, on a ROS domain of its own (taken as the test suite takes them).
 Nothing subscribes: what is measured is what the node spends publishing and writing.
 
 Usage: scripts/trace-cost.sh [--seconds S] [--warmup S]   (the .sh builds the release binary)
@@ -21,22 +21,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from proclib import cpu_seconds, proc_status, take_domain
+
 REPO = Path(__file__).resolve().parents[1]
 CHANNELS = 4
-TICKS = os.sysconf("SC_CLK_TCK")
-
-
-def cpu_s(pid: int) -> float:
-    """User + system CPU of the process (all its threads), s."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / TICKS
-
-
-def rss_mib(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def run(node: str, trace: Path | None, seconds: float, warmup: float, domain: int) -> dict:
@@ -53,12 +41,12 @@ def run(node: str, trace: Path | None, seconds: float, warmup: float, domain: in
         time.sleep(warmup)
         if proc.poll() is not None:
             sys.exit(f"trace-cost: the node exited ({proc.returncode}): {' '.join(argv)}")
-        c0, t0 = cpu_s(proc.pid), time.monotonic()
+        c0, t0 = cpu_seconds(proc.pid), time.monotonic()
         s0 = trace.stat().st_size if trace is not None and trace.exists() else 0
         time.sleep(seconds)
-        c1, t1 = cpu_s(proc.pid), time.monotonic()
+        c1, t1 = cpu_seconds(proc.pid), time.monotonic()
         s1 = trace.stat().st_size if trace is not None and trace.exists() else 0
-        rss = rss_mib(proc.pid)
+        rss = proc_status(proc.pid, ("VmRSS",))["VmRSS"] / 1024
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=10)
@@ -74,8 +62,8 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--warmup", type=float, default=5.0)
     ap.add_argument("--node", default=str(REPO / "target/release/pwm_actuator_node"))
-    ap.add_argument("--domain", type=int, default=97)
     a = ap.parse_args()
+    domain, _lock = take_domain("trace-cost")
     rev = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
                          capture_output=True, text=True).stdout.strip()
     print(f"trace-cost: {time.strftime('%Y-%m-%d')}, commit {rev}, {os.cpu_count()} CPUs, "
@@ -84,7 +72,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as d:
         for label, trace in (("none", None), ("csv", Path(d) / "run.csv"),
                              ("mcap", Path(d) / "run.mcap")):
-            r = run(a.node, trace, a.seconds, a.warmup, a.domain)
+            r = run(a.node, trace, a.seconds, a.warmup, domain)
             size = "-" if trace is None else f"{r['kb_per_s']:.0f}"
             print(f"{label:<8} {r['cpu_pct']:>16.2f} {r['rss_mib']:>9.1f} {size:>10}", flush=True)
     return 0
