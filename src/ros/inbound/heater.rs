@@ -48,19 +48,12 @@ pub fn listen_heaters(
     for h in heaters {
         let ch = h.channel;
         info!("{}: temperature feedback from {}", h.name, h.feedback_topic);
-        let b = Arc::clone(inputs);
-        tasks.push(ep.listen_with(
+        tasks.push(listen_temperature(
+            ep,
             &h.feedback_topic,
-            qos::sensor(),
-            move |m: msg::Temperature| {
-                let _ = b.send(
-                    ch,
-                    Input::Feedback {
-                        celsius: m.temperature,
-                        age: stamp_age(&m.header, crate::clock::wall_ns()),
-                    },
-                );
-            },
+            inputs,
+            ch,
+            |celsius, age| Input::Feedback { celsius, age },
         )?);
         if !h.feedforward_topic.is_empty() {
             info!("{}: feed-forward from {}", h.name, h.feedforward_topic);
@@ -71,19 +64,12 @@ pub fn listen_heaters(
         }
         if !h.ambient_topic.is_empty() {
             info!("{}: ambient temperature from {}", h.name, h.ambient_topic);
-            let b = Arc::clone(inputs);
-            tasks.push(ep.listen_with(
+            tasks.push(listen_temperature(
+                ep,
                 &h.ambient_topic,
-                qos::sensor(),
-                move |m: msg::Temperature| {
-                    let _ = b.send(
-                        ch,
-                        Input::Ambient {
-                            celsius: m.temperature,
-                            age: stamp_age(&m.header, crate::clock::wall_ns()),
-                        },
-                    );
-                },
+                inputs,
+                ch,
+                |celsius, age| Input::Ambient { celsius, age },
             )?);
         }
         let b = Arc::clone(inputs);
@@ -104,6 +90,24 @@ pub fn listen_heaters(
         )?);
     }
     Ok(tasks)
+}
+
+/// Subscribes `topic` (`sensor_msgs/Temperature`, sensor QoS) and hands each reading to
+/// channel `ch` as `input(°C, arrival less stamp in ns)`.
+fn listen_temperature(
+    ep: &mut Endpoints<'_>,
+    topic: &str,
+    inputs: &Arc<Inputs>,
+    ch: usize,
+    input: fn(f64, Option<i64>) -> Input,
+) -> Result<JoinHandle<()>, EndpointError> {
+    let b = Arc::clone(inputs);
+    ep.listen_with(topic, qos::sensor(), move |m: msg::Temperature| {
+        let _ = b.send(
+            ch,
+            input(m.temperature, stamp_age(&m.header, crate::clock::wall_ns())),
+        );
+    })
 }
 
 /// How long after its stamp a reading arrived at `now_wall` (ns since the Unix epoch), ns;
