@@ -808,13 +808,19 @@ impl Valve {
         }
         self.target = Some(pct.clamp(0.0, 100.0));
         self.target_forced = false;
+        self.take_command(now, emit);
+        Ok(())
+    }
+
+    /// A command (a position, a setpoint) taken at `now`: it feeds the command timeout, arms
+    /// the valve unless an e-stop or a fault holds it, and the valve steps at once.
+    fn take_command(&mut self, now: Nanos, emit: &mut dyn FnMut(ValveEvent)) {
         self.last_command = now;
         self.timed_out = false;
         if !self.estop && self.fault.is_none() {
             self.armed = true;
         }
         self.step(now, emit);
-        Ok(())
     }
 
     /// A setpoint for the loop at `now`, in the process's unit; refused under `control`
@@ -830,12 +836,7 @@ impl Valve {
         if let Err(r) = self.ctl.set_setpoint(value) {
             return self.refuse(r);
         }
-        self.last_command = now;
-        self.timed_out = false;
-        if !self.estop && self.fault.is_none() {
-            self.armed = true;
-        }
-        self.step(now, emit);
+        self.take_command(now, emit);
         Ok(())
     }
 
