@@ -234,6 +234,7 @@ vendor_tests() {
         --target-dir "$REPO/target/vendor-rustdds" -- \
         data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
         reply_written_before_its_reader_matched_goes_to_it_on_match cache_cleaning_ acknowledged_samples_beyond_depth_go_on_insert \
+        reply_outlives_the_history_depth_until_its_reader_matches held_reply_ \
         unanswered_nack_is_repeated_until_the_samples_come \
         endpoints_announce_their_user_data_in_sedp gone_participants_and_endpoints_leave_nothing_behind \
         a_participant_back_within_its_attic_time_gets_its_endpoints_back \

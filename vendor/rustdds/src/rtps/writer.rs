@@ -2157,6 +2157,9 @@ impl Writer {
             new_proxy.send_written_before_match(sn);
           }
         }
+        self
+          .send_buffer
+          .reader_matched(new_proxy.remote_reader_guid);
         new_proxy.resolve_send_route(
           &self.interface_observations.borrow(),
           &multicast_ifaces,
@@ -2204,6 +2207,7 @@ impl Writer {
 
   fn matched_reader_remove(&mut self, guid: GUID) -> Option<RtpsReaderProxy> {
     let removed = self.readers.remove(&guid);
+    self.send_buffer.reader_unmatched(guid);
     if let Some(ref removed_reader) = removed {
       info!(
         "Removed reader proxy. topic={:?} reader={:?}",
@@ -3193,6 +3197,91 @@ mod tests {
       let proxy = &writer.readers[&other_reader];
       assert_eq!(proxy.get_pending_gap().len(), 2);
       assert_eq!(proxy.first_unsent_change(), Some(SequenceNumber::new(1)));
+    }
+
+    // pwm_actuator: a reply whose reader is discovered only after more samples
+    // than the History depth were written to others is still there when the
+    // reader matches (held up to REPLY_HOLD / REPLY_HOLD_SPAN), and goes to it.
+    #[test]
+    fn reply_outlives_the_history_depth_until_its_reader_matches() {
+      use crate::{dds::with_key::datawriter::WriteOptionsBuilder, structure::rpc::SampleIdentity};
+      let qos = QosPolicyBuilder::new()
+        .reliability(Reliability::Reliable {
+          max_blocking_time: Duration::from_millis(100),
+        })
+        .history(History::KeepLast { depth: 10 })
+        .durability(Durability::Volatile)
+        .build();
+      let writer_id = EntityId::new([0, 0, 1], EntityKind::WRITER_NO_KEY_USER_DEFINED);
+      let guid = GUID::new(GuidPrefix::new(&[1; 12]), writer_id);
+      let reader_id = EntityId::new([0, 0, 2], EntityKind::READER_NO_KEY_USER_DEFINED);
+      let reply_reader = GUID::new(GuidPrefix::new(&[2; 12]), reader_id);
+      let send_buffer = WriterSendBuffer::new(
+        guid,
+        "reply_test".to_string(),
+        true,  // reliable
+        false, // not built-in
+        true,  // volatile
+        10,
+        100, // unsent backlog: nothing transmits here
+        10,
+      );
+      let write = |related: Option<GUID>| {
+        let mut options = WriteOptionsBuilder::new();
+        if let Some(writer_guid) = related {
+          options = options.related_sample_identity(SampleIdentity {
+            writer_guid,
+            sequence_number: SequenceNumber::new(1),
+          });
+        }
+        let data = DDSData::new(SerializedPayload::new(
+          RepresentationIdentifier::CDR_LE,
+          vec![0; 8],
+        ));
+        match send_buffer.admit_blocking(options.build(), data, Some(StdDuration::ZERO)) {
+          Admission::Admitted(sn) => sn,
+          _ => panic!("not admitted"),
+        }
+      };
+      let reply = write(Some(reply_reader));
+      // Six times the History depth written after it.
+      for _ in 0..60 {
+        write(None);
+      }
+      let (status_sender, _status) = sync_status_channel(4).unwrap();
+      let (participant_status_sender, _participant_status) = sync_status_channel(16).unwrap();
+      let timer = new_shared_timer();
+      let mut writer = Writer::new(
+        WriterIngredients {
+          guid,
+          send_buffer: send_buffer.clone(),
+          topic_name: "reply_test".to_string(),
+          like_stateless: false,
+          qos_policies: qos.clone(),
+          status_sender,
+          security_plugins: None,
+        },
+        Rc::new(UDPSender::new(0).unwrap()),
+        Rc::clone(&timer),
+        participant_status_sender,
+        Rc::new(RefCell::new(InterfaceObservations::default())),
+        Rc::from(Vec::<IfAddr>::new()),
+      );
+      writer.process_pending();
+      writer.handle_cache_cleaning();
+      assert!(
+        send_buffer.get_by_sn(reply).is_some(),
+        "the reply was evicted before its reader matched"
+      );
+      writer.update_reader_proxy(
+        &RtpsReaderProxy::new(reply_reader, qos.clone(), false),
+        &qos,
+      );
+      assert_eq!(
+        writer.readers[&reply_reader].first_unsent_change(),
+        Some(reply),
+        "the reply is to be sent to its reader"
+      );
     }
 
     // While the reader's send socket has queued control datagrams, a round

@@ -1,6 +1,6 @@
 use std::{
   cmp::max,
-  collections::BTreeMap,
+  collections::{BTreeMap, BTreeSet, VecDeque},
   sync::{Arc, Condvar, Mutex},
   time::{Duration as StdDuration, Instant},
 };
@@ -13,6 +13,24 @@ use crate::{
   dds::{ddsdata::DDSData, with_key::datawriter::WriteOptions},
   structure::{cache_change::CacheChange, guid::GUID, sequence_number::SequenceNumber},
 };
+
+/// pwm_actuator: how long a sample addressed to a reader that is not matched yet
+/// (a service reply whose related sample identity names the client's reply
+/// reader) is kept from eviction while that reader is being discovered.
+pub(crate) const REPLY_HOLD: StdDuration = StdDuration::from_secs(10);
+/// pwm_actuator: ... and for at most this many samples written after it, which
+/// bounds the memory a hold keeps (the samples from the held one to the newest).
+pub(crate) const REPLY_HOLD_SPAN: i64 = 256;
+/// pwm_actuator: the most samples held at once; the oldest hold goes first.
+const REPLY_HOLDS_MAX: usize = 64;
+
+/// pwm_actuator: a retained sample addressed to a reader not matched when it was
+/// written.
+struct Hold {
+  reader: GUID,
+  sn: SequenceNumber,
+  since: Instant,
+}
 
 /// Result of an admission attempt into the [`WriterSendBuffer`].
 pub(crate) enum Admission {
@@ -69,6 +87,13 @@ struct Inner {
   // Does NOT apply to reliable / opted-in writers, which are bounded by the
   // send window / unsent-backlog and must retain samples for repair.
   max_retain: usize,
+
+  // pwm_actuator: the readers the Writer has matched (kept by the Writer), and
+  // the samples addressed to a reader not among them when written. Eviction
+  // stops below the oldest hold (see `hold_floor`).
+  matched_readers: BTreeSet<GUID>,
+  holds: VecDeque<Hold>,
+  hold_for: StdDuration,
 
   // Wakers of async producers / ack-waiters parked because the window was full
   // or acknowledgements were still pending. Drained (woken) on any advance.
@@ -130,6 +155,9 @@ impl WriterSendBuffer {
           backlog_limit: backlog_limit.max(1),
           sent_frontier: SequenceNumber::new(0),
           max_retain: max_retain.max(1),
+          matched_readers: BTreeSet::new(),
+          holds: VecDeque::new(),
+          hold_for: REPLY_HOLD,
           wakers: Vec::new(),
         }),
         progress: Condvar::new(),
@@ -268,9 +296,28 @@ impl WriterSendBuffer {
     may_block: bool,
   ) -> SequenceNumber {
     let seq = inner.last_seq.plus_1();
+    // pwm_actuator: a reliable sample addressed to a reader this writer has not
+    // matched yet is held (see `Writer::matched_reader_update`).
+    if shared.reliable_writer && !shared.is_builtin {
+      if let Some(identity) = write_options.related_sample_identity() {
+        let reader = identity.writer_guid;
+        if reader.entity_id.entity_kind.is_reader() && !inner.matched_readers.contains(&reader) {
+          if inner.holds.len() >= REPLY_HOLDS_MAX {
+            inner.holds.pop_front();
+          }
+          inner.holds.push_back(Hold {
+            reader,
+            sn: seq,
+            since: Instant::now(),
+          });
+        }
+      }
+    }
     let cc = CacheChange::new(shared.writer_guid, seq, write_options, data);
     inner.changes.insert(seq, cc);
     inner.last_seq = seq;
+    let hold_floor = Self::hold_floor(inner);
+    let evictable = |sn: SequenceNumber| hold_floor.is_none_or(|floor| sn < floor);
 
     // KeepLast "newest wins" bound. Applied on insert for:
     //  - non-blocking best-effort writes: never throttled at admission (`has_room`
@@ -295,8 +342,8 @@ impl WriterSendBuffer {
       while inner.changes.len() > inner.max_retain {
         // BTreeMap keeps keys sorted, so the first entry is the oldest SN.
         let oldest = match inner.changes.keys().next().copied() {
-          Some(sn) => sn,
-          None => break,
+          Some(sn) if evictable(sn) => sn,
+          _ => break,
         };
         inner.changes.remove(&oldest);
         inner.first_seq = oldest.plus_1();
@@ -313,7 +360,7 @@ impl WriterSendBuffer {
     if !shared.is_builtin && shared.reliable_writer && inner.reliable_readers_present {
       while inner.changes.len() > inner.max_retain {
         let oldest = match inner.changes.keys().next().copied() {
-          Some(sn) if sn < inner.acked_before => sn,
+          Some(sn) if sn < inner.acked_before && evictable(sn) => sn,
           _ => break,
         };
         inner.changes.remove(&oldest);
@@ -410,10 +457,47 @@ impl WriterSendBuffer {
       .collect()
   }
 
-  /// Evict all samples with sequence number strictly less than `remove_before`.
+  /// pwm_actuator: the oldest held sample, after dropping the holds whose reader
+  /// has not matched within `hold_for` or that more than `REPLY_HOLD_SPAN`
+  /// samples have followed. Nothing at or after it is evicted.
+  fn hold_floor(inner: &mut Inner) -> Option<SequenceNumber> {
+    let now = Instant::now();
+    let (hold_for, last_seq) = (inner.hold_for, inner.last_seq);
+    inner.holds.retain(|h| {
+      now.duration_since(h.since) < hold_for
+        && last_seq - h.sn < SequenceNumber::new(REPLY_HOLD_SPAN)
+    });
+    inner.holds.iter().map(|h| h.sn).min()
+  }
+
+  /// pwm_actuator: the Writer has matched `reader`: what was held for it is sent
+  /// to it now (`related_to`), and no longer held.
+  pub fn reader_matched(&self, reader: GUID) {
+    let mut inner = self.shared.inner.lock().unwrap();
+    inner.matched_readers.insert(reader);
+    inner.holds.retain(|h| h.reader != reader);
+  }
+
+  /// pwm_actuator: the Writer no longer has `reader` matched.
+  pub fn reader_unmatched(&self, reader: GUID) {
+    self
+      .shared
+      .inner
+      .lock()
+      .unwrap()
+      .matched_readers
+      .remove(&reader);
+  }
+
+  /// Evict all samples with sequence number strictly less than `remove_before`,
+  /// but none at or after a held sample (see `hold_floor`).
   pub fn remove_changes_before(&self, remove_before: SequenceNumber) {
     let shared = &*self.shared;
     let mut inner = shared.inner.lock().unwrap();
+    let remove_before = match Self::hold_floor(&mut inner) {
+      Some(floor) => remove_before.min(floor),
+      None => remove_before,
+    };
     let count_before = inner.changes.len();
     inner.changes = inner.changes.split_off(&remove_before);
     if remove_before > inner.first_seq {
@@ -497,6 +581,104 @@ mod tests {
       buf.admit_blocking(opts, sample(), Some(StdDuration::ZERO)),
       Admission::Admitted(_)
     )
+  }
+
+  // pwm_actuator: a sample addressed to an unmatched reader is held from
+  // eviction for at most REPLY_HOLD_SPAN later samples, for at most `hold_for`,
+  // and only until its reader matches.
+  fn reply_to(reader: GUID) -> WriteOptions {
+    WriteOptionsBuilder::new()
+      .related_sample_identity(crate::structure::rpc::SampleIdentity {
+        writer_guid: reader,
+        sequence_number: SequenceNumber::new(1),
+      })
+      .build()
+  }
+
+  fn reply_reader() -> GUID {
+    use crate::structure::guid::{EntityId, EntityKind, GuidPrefix};
+    GUID::new(
+      GuidPrefix::new(&[2; 12]),
+      EntityId::new([0, 0, 2], EntityKind::READER_NO_KEY_USER_DEFINED),
+    )
+  }
+
+  // Admits a sample and counts it as transmitted, as the Writer would.
+  fn admit_sent(buf: &WriterSendBuffer, opts: WriteOptions) -> bool {
+    let admitted = admit_now(buf, opts);
+    buf.set_sent_frontier(buf.last_change_sequence_number());
+    admitted
+  }
+
+  fn volatile_reliable(depth: usize) -> WriterSendBuffer {
+    WriterSendBuffer::new(
+      GUID::dummy_test_guid(crate::structure::guid::EntityKind::WRITER_NO_KEY_USER_DEFINED),
+      "t".into(),
+      true,
+      false,
+      true,
+      depth,
+      depth,
+      depth,
+    )
+  }
+
+  #[test]
+  fn held_reply_stays_within_its_span_and_goes_after_it() {
+    let buf = volatile_reliable(10);
+    assert!(admit_sent(&buf, reply_to(reply_reader())));
+    for _ in 0..REPLY_HOLD_SPAN - 1 {
+      assert!(admit_sent(&buf, WriteOptions::default()));
+    }
+    assert!(buf.get_by_sn(SequenceNumber::new(1)).is_some(), "held");
+    assert_eq!(buf.retained_len(), REPLY_HOLD_SPAN as usize);
+    assert!(admit_sent(&buf, WriteOptions::default()));
+    assert!(buf.get_by_sn(SequenceNumber::new(1)).is_none(), "span over");
+    assert_eq!(buf.retained_len(), 10);
+  }
+
+  #[test]
+  fn held_reply_goes_when_its_reader_matches_or_its_time_is_up() {
+    let buf = volatile_reliable(10);
+    buf.reader_matched(GUID::dummy_test_guid(
+      crate::structure::guid::EntityKind::READER_NO_KEY_USER_DEFINED,
+    ));
+    assert!(admit_sent(&buf, reply_to(reply_reader())));
+    for _ in 0..20 {
+      assert!(admit_sent(&buf, WriteOptions::default()));
+    }
+    buf.remove_changes_before(SequenceNumber::new(15));
+    assert!(
+      buf.get_by_sn(SequenceNumber::new(1)).is_some(),
+      "held from cleaning"
+    );
+    buf.reader_matched(reply_reader());
+    assert!(admit_sent(&buf, WriteOptions::default()));
+    assert!(
+      buf.get_by_sn(SequenceNumber::new(1)).is_none(),
+      "matched: no longer held"
+    );
+
+    // A reply to a reader already matched is not held.
+    assert!(admit_sent(&buf, reply_to(reply_reader())));
+    let sn = buf.last_change_sequence_number();
+    for _ in 0..10 {
+      assert!(admit_sent(&buf, WriteOptions::default()));
+    }
+    assert!(buf.get_by_sn(sn).is_none());
+
+    // A reader that never matches: held for `hold_for` only.
+    buf.reader_unmatched(reply_reader());
+    buf.shared.inner.lock().unwrap().hold_for = StdDuration::from_millis(50);
+    assert!(admit_sent(&buf, reply_to(reply_reader())));
+    let sn = buf.last_change_sequence_number();
+    for _ in 0..10 {
+      assert!(admit_sent(&buf, WriteOptions::default()));
+    }
+    assert!(buf.get_by_sn(sn).is_some(), "held");
+    std::thread::sleep(StdDuration::from_millis(60));
+    assert!(admit_sent(&buf, WriteOptions::default()));
+    assert!(buf.get_by_sn(sn).is_none(), "time up");
   }
 
   fn may_block_opts() -> WriteOptions {
