@@ -11,6 +11,9 @@ action), then in one run the same setpoint and the same fan (30 % of the heater'
   0.5 °C of the setpoint sooner;
 - `feedforward_topic`: a value published is the one in force on /diagnostics; with none fresh
   the channel is WARN, saying the feed-forward is stale.
+- `ambient_topic`: the same for the ambient (a stamped `sensor_msgs/Temperature`); a reading
+  that is not a temperature is refused and leaves the ambient in force as it was; stale, the
+  model's ambient is in force again.
 """
 
 from __future__ import annotations
@@ -174,4 +177,71 @@ def test_the_feedforward_topic_is_used_while_fresh_and_warns_when_stale(
         timeout=10,
     )
     assert diag_values(d)["feedforward_pct"] == "0.000", diag_values(d)
+    assert diag_level(d) == 1, d
+
+
+def test_the_ambient_topic_is_used_while_fresh_and_warns_when_stale(
+    node_process, process_launcher, node_binary, ros
+):
+    model = dict(
+        pw01__control="mpc",
+        pw01__model_gain_c_per_pct=1.0,
+        pw01__model_tau_s=20.0,
+        pw01__model_dead_time_s=0.5,
+        pw01__model_sensor_tau_s=0.5,
+        pw01__model_ambient_c=20.0,
+        pw01__model_tolerance_c=45.0,
+        pw01__ambient_topic="/heater/ambient",
+        pw01__ambient_timeout_ms=3000,
+    )
+    proc, ch = start(node_process, ros, **{**PARAMS, **model})
+    process_launcher.launch([node_binary, "sim-heater", *LAGGING], name="sim")
+    ch.wait_status(
+        lambda s: math.isfinite(s.temperature_c), "a first temperature reading", timeout=60
+    )
+    # None yet: stale, WARN, the model's ambient in force.
+    d = ch.wait_diag(lambda d: diag_values(d).get("ambient_stale") == "true", "stale")
+    assert diag_level(d) == 1 and d.message.startswith("ambient input stale"), d
+    assert diag_values(d)["ambient_c"] == "20.000", diag_values(d)
+    amb = ros.publisher(Temperature, "/heater/ambient")
+    ros.wait_for_subscribers(amb, 1)
+
+    def publish_until(celsius: float, want: str, what: str):
+        t_end = mono_ns() + 5_000 * MS
+        while mono_ns() < t_end:
+            m = Temperature(temperature=celsius)
+            m.header.stamp = ros.node.get_clock().now().to_msg()
+            amb.publish(m)
+            ros.spin_for(0.2)
+            mine = [m for m in map(ch.my_diag, ch.diagnostics.messages[-3:]) if m is not None]
+            if mine and diag_values(mine[-1]).get("ambient_c") == want:
+                return mine[-1]
+        raise AssertionError(f"{what}: ambient_c never {want}")
+
+    fresh = publish_until(26.5, "26.500", "a fresh ambient")
+    assert diag_values(fresh)["ambient_stale"] == "false", diag_values(fresh)
+    # Not a temperature: refused, the ambient in force stays 26.5 °C while it is published
+    # (for half the timeout: a refused reading does not keep the last good one fresh).
+    start_at = len(ch.diagnostics.messages)
+    t_end = mono_ns() + 1_500 * MS
+    while mono_ns() < t_end:
+        m = Temperature(temperature=5000.0)
+        m.header.stamp = ros.node.get_clock().now().to_msg()
+        amb.publish(m)
+        ros.spin_for(0.2)
+    mine = [v for v in map(ch.my_diag, ch.diagnostics.messages[start_at:]) if v is not None]
+    assert mine, "no diagnostics while the refused ambient was published"
+    assert {diag_values(v)["ambient_c"] for v in mine} == {"26.500"}, [
+        diag_values(v)["ambient_c"] for v in mine
+    ]
+    # Publishing stops: stale after ambient_timeout_ms (counted from the last good reading's
+    # stamp), the model's ambient in force again.
+    start_at = len(ch.diagnostics.messages)
+    d = ch.wait_diag(
+        lambda d: diag_values(d).get("ambient_stale") == "true",
+        "stale after the timeout",
+        start=start_at,
+        timeout=10,
+    )
+    assert diag_values(d)["ambient_c"] == "20.000", diag_values(d)
     assert diag_level(d) == 1, d
