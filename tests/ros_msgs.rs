@@ -113,6 +113,7 @@ fn own_messages_match_their_msg_files() {
             model_residual_c: 0.0,
             stale_readings: 0,
             last_stale_age_ms: 0.0,
+            target_c: 0.0,
         }),
     );
     check_file(

@@ -14,6 +14,8 @@ action), then in one run the same setpoint and the same fan (30 % of the heater'
 - `ambient_topic`: the same for the ambient (a stamped `sensor_msgs/Temperature`); a reading
   that is not a temperature is refused and leaves the ambient in force as it was; stale, the
   model's ambient is in force again.
+- `setpoint_ramp_c_per_s`: the ramped target on the status moves from the reading at the
+  enable toward the setpoint at that rate, never beyond it.
 """
 
 from __future__ import annotations
@@ -245,3 +247,39 @@ def test_the_ambient_topic_is_used_while_fresh_and_warns_when_stale(
     )
     assert diag_values(d)["ambient_c"] == "20.000", diag_values(d)
     assert diag_level(d) == 1, d
+
+
+def test_a_ramped_setpoint_moves_the_status_target_at_its_rate(
+    node_process, process_launcher, node_binary, ros
+):
+    rate = 2.0
+    proc, ch = start(node_process, ros, **PARAMS, pw01__setpoint_ramp_c_per_s=rate)
+    process_launcher.launch([node_binary, "sim-heater", *PLANT], name="sim")
+    first = ch.wait_status(
+        lambda s: math.isfinite(s.temperature_c), "a first temperature reading", timeout=60
+    )
+    sp = ros.publisher(Float64, f"{NODE}/pw01/setpoint")
+    ros.wait_for_subscribers(sp, 1)
+    ch.send(
+        sp,
+        Float64(data=SETPOINT),
+        ch.status,
+        lambda s: s.setpoint_c == SETPOINT,
+        "status confirming the setpoint",
+    )
+    start_at = len(ch.status.messages)
+    ch.enable(True)
+    ros.spin_for(4.0)
+    ramping = [s for s in ch.status.messages[start_at:] if s.enabled]
+    assert len(ramping) > 20, len(ramping)
+    stamp = [s.stamp.sec + s.stamp.nanosec * 1e-9 for s in ramping]
+    target = [s.target_c for s in ramping]
+    assert all(math.isfinite(t) and t <= SETPOINT for t in target), target
+    # From where the heater was at the enable (about ambient; the reading moves little in the
+    # ramp's first status period).
+    assert abs(target[0] - first.temperature_c) < 3.0, (target[0], first.temperature_c)
+    slope = (target[-1] - target[0]) / (stamp[-1] - stamp[0])
+    print(f"ramp: target {target[0]:.2f} -> {target[-1]:.2f} °C over "
+          f"{stamp[-1] - stamp[0]:.2f} s: {slope:.3f} °C/s (rate {rate})")
+    assert abs(slope - rate) < 0.2, slope
+    assert all(b >= a for a, b in zip(target, target[1:])), target

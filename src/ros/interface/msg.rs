@@ -344,7 +344,7 @@ pub struct ChannelStatus {
     pub remaining_on_s: u32,
     /// Remaining time of the running off step in whole seconds (002's UDINT nRemTiOff).
     pub remaining_off_s: u32,
-    /// `open` or `pid`.
+    /// `open`, `pid` or `mpc`.
     pub control: String,
     /// The last reading, °C (NaN: none).
     pub temperature_c: f64,
@@ -374,6 +374,9 @@ pub struct ChannelStatus {
     pub stale_readings: u64,
     /// The age of the last one, ms (negative: stamped ahead); NaN: none.
     pub last_stale_age_ms: f64,
+    /// The loop's target, °C: the setpoint, or on its way there at `setpoint_ramp_c_per_s`
+    /// (NaN: no setpoint).
+    pub target_c: f64,
 }
 ros_message!(ChannelStatus, "pwm_actuator_msgs", "ChannelStatus");
 

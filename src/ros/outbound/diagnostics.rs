@@ -120,6 +120,7 @@ pub fn status_msg(channel: usize, s: &Status, now: Nanos, stamp_ns: i64) -> Chan
         } else {
             s.heater.stale.1 as f64 / 1e6
         },
+        target_c: s.heater.target.unwrap_or(f64::NAN),
     }
 }
 
