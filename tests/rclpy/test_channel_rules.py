@@ -807,8 +807,9 @@ def test_watchdog_switches_off_at_the_deadline_and_recovers(node_process, ros):
     period, timeout = 200, 1000
     proc, ch = start(node_process, ros, pw01__period_ms=period, pw01__enable=True,
                      pw01__command_timeout_ms=timeout)
-    # The channel was enabled at start-up with no command: the watchdog has tripped then, at 0 %
-    # commanded. Only an ERROR at 100 % commanded, after the command, is the trip it causes.
+    # The channel was enabled at start-up with no command: on a slow start the watchdog trips
+    # before the command, at 0 % commanded. Only an ERROR at 100 % commanded, after the command,
+    # is the trip it causes.
     diag_from = len(ch.diagnostics.messages)
     first = ch.duty(100.0, confirm=lambda s: s.duty_commanded == 100.0 and not s.watchdog_tripped)
     tripped = ch.wait_status(lambda s: s.watchdog_tripped, "watchdog tripped",
