@@ -153,14 +153,24 @@ def test_the_loop_holds_its_setpoint_within_one_degree(
                      start=len(ch.diagnostics.messages))
     assert diag_level(d) != ERROR, d
     assert 25.0 < float(diag_values(d)["pid_output_pct"]) < 55.0, d
-    # A duty command is refused under pid, with the reason.
+    # A duty command is refused under pid, with the reason. The reason stays on /diagnostics
+    # after any earlier refusal: only a count above the one before the command is this one's.
     refused_from = len(ch.diagnostics.messages)
+    before = rejected_commands(ch, ch.diagnostics.messages[:refused_from])
     ch.duty_pub.publish(Float64(data=10.0))
     d = ch.wait_diag(
-        lambda d: "control is pid" in diag_values(d).get("last_rejection", ""),
+        lambda d: int(diag_values(d).get("rejected_commands", "0")) > before
+        and "control is pid" in diag_values(d).get("last_rejection", ""),
         "the duty command refused",
         start=refused_from,
     )
+
+
+def rejected_commands(ch, arrays) -> int:
+    """The channel's `rejected_commands` in the latest of `arrays` (the count only grows)."""
+    counts = [int(diag_values(s).get("rejected_commands", "0"))
+              for s in map(ch.my_diag, arrays) if s is not None]
+    return counts[-1] if counts else 0
 
 
 @pytest.mark.parametrize(
