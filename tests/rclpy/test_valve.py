@@ -330,3 +330,48 @@ def test_the_motion_settings_change_while_running_the_travel_times_do_not(node_p
     got = ros.get_parameters(NODE, ["mix.min_pulse_ms", "mix.travel_open_ms"])
     assert got == {"mix.min_pulse_ms": MIN_PULSE_MS, "mix.travel_open_ms": TRAVEL_OPEN_MS}, got
     assert proc.terminate() == 0, proc.output()
+
+
+def test_the_loop_parameters_are_checked_and_pid_refuses_position_commands(node_process, ros):
+    """docs/parameters.md: a valve's loop settings are bounded and checked with its others;
+    `control` `pid` needs a process topic (read at start-up) and a gain, and under `pid` the
+    position commands set nothing."""
+    proc = node_process(
+        node_args(**VALVE, mix__control="pid", mix__pid_kp=5.0), name="pid-without-process"
+    )
+    assert proc.wait_exit() == 2, proc.output()
+    assert "needs a process_topic" in proc.output(), proc.output()
+
+    proc = node_process(
+        node_args(**VALVE, mix__control="pid", mix__process_topic="/supply", mix__pid_kp=5.0)
+    )
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    pub = ros.publisher(Float64, f"{NODE}/valve/mix/position")
+    ros.wait_for_subscribers(pub, 1)
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+
+    def set_one(name: str, value):
+        return ros.set_parameters(NODE, {name: value})[name]
+
+    start = len(states.messages)
+    pub.publish(Float64(data=40.0))
+    ros.spin_for(1.5)
+    seen = states.messages[start:]
+    assert seen and all(math.isnan(s.target_pct) and s.motion == "stopped" for s in seen), seen[-1]
+    # Refused with the reason, and nothing changes: no gain left, a sample below 10 ms, another
+    # process topic while running.
+    r = ros.set_parameters(NODE, {"mix.pid_kp": 0.0})["mix.pid_kp"]
+    assert not r.successful and "pid_kp or pid_ki above 0" in r.reason, r.reason
+    r = set_one("mix.pid_sample_ms", 5)
+    assert not r.successful, r.reason
+    r = set_one("mix.process_topic", "/other")
+    assert not r.successful and "restart the node" in r.reason, r.reason
+    # Back to position: the commands set the target again.
+    r = set_one("mix.control", "position")
+    assert r.successful, r.reason
+    start = len(states.messages)
+    pub.publish(Float64(data=40.0))
+    states.wait_for(lambda s: s.target_pct == 40.0, start=start, timeout=5.0)
+    got = ros.get_parameters(NODE, ["mix.pid_kp", "mix.control"])
+    assert got == {"mix.pid_kp": 5.0, "mix.control": "position"}, got
+    assert proc.terminate() == 0, proc.output()
