@@ -375,3 +375,67 @@ def test_the_loop_parameters_are_checked_and_pid_refuses_position_commands(node_
     got = ros.get_parameters(NODE, ["mix.pid_kp", "mix.control"])
     assert got == {"mix.pid_kp": 5.0, "mix.control": "position"}, got
     assert proc.terminate() == 0, proc.output()
+
+
+def test_the_loop_follows_its_process_value_holds_when_it_goes_stale_and_obeys_manual(
+    node_process, ros
+):
+    """docs/valve.md: under `control` `pid` the valve follows its loop from the process value
+    (`std_msgs/Float64` here) and `~/valve/NAME/setpoint`; with no fresh reading for
+    `process_timeout_ms` it holds where it is; `~/valve/NAME/manual` (std_msgs/String) opens,
+    stops and returns to automatic, and a bad word is refused while the node keeps running."""
+    from std_msgs.msg import String
+
+    proc = node_process(
+        node_args(
+            **VALVE,
+            mix__control="pid",
+            mix__process_topic="/supply",
+            mix__process_type="float64",
+            mix__pid_kp=0.0,
+            mix__pid_ki=2.0,
+            mix__pid_sample_ms=100,
+            mix__process_timeout_ms=1000,
+            mix__max_starts_per_h=0,
+        )
+    )
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    process = ros.publisher(Float64, "/supply")
+    setpoint = ros.publisher(Float64, f"{NODE}/valve/mix/setpoint")
+    manual = ros.publisher(String, f"{NODE}/valve/mix/manual")
+    for p in (process, setpoint, manual):
+        ros.wait_for_subscribers(p, 1)
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+    closed = states.messages[-1].position_pct
+
+    # 5 units below the setpoint, integral only (2 %/unit·s): the loop opens the valve.
+    setpoint.publish(Float64(data=50.0))
+    for _ in range(25):
+        process.publish(Float64(data=45.0))
+        ros.spin_for(0.1)
+    opened = states.messages[-1].position_pct
+    assert opened > closed + 5.0, (closed, opened)
+    # No more readings: after process_timeout_ms the valve holds where it is.
+    ros.spin_for(1.6)
+    start = len(states.messages)
+    held = states.messages[-1].position_pct
+    ros.spin_for(2.0)
+    later = states.messages[start:]
+    assert later and all(
+        s.motion == "stopped" and abs(s.position_pct - held) < 0.01 for s in later
+    ), (held, later[-1])
+    assert held < 100.0 - 5.0, held
+
+    # Manual: open drives, stop stops, a bad word is refused, auto returns.
+    start = len(states.messages)
+    manual.publish(String(data="open"))
+    states.wait_for(lambda s: s.motion == "opening", start=start, timeout=5.0)
+    manual.publish(String(data="stop"))
+    stopped = states.wait_for(lambda s: s.motion == "stopped", start=start, timeout=5.0)
+    assert stopped.position_pct > held, (held, stopped)
+    manual.publish(String(data="wide open"))
+    ros.spin_for(0.5)
+    assert "manual command refused" in proc.output(), proc.output()
+    manual.publish(String(data="auto"))
+    ros.spin_for(0.5)
+    assert proc.terminate() == 0, proc.output()
