@@ -439,3 +439,49 @@ def test_the_loop_follows_its_process_value_holds_when_it_goes_stale_and_obeys_m
     manual.publish(String(data="auto"))
     ros.spin_for(0.5)
     assert proc.terminate() == 0, proc.output()
+
+
+def test_a_temperature_process_value_counts_only_when_fresh(node_process, ros):
+    """docs/valve.md: a `sensor_msgs/Temperature` process value is aged by its stamp; readings
+    older than `process_timeout_ms` on arrival move nothing, fresh ones drive the loop."""
+    from sensor_msgs.msg import Temperature
+
+    proc = node_process(
+        node_args(
+            **VALVE,
+            mix__control="pid",
+            mix__process_topic="/supply_c",
+            mix__pid_kp=0.0,
+            mix__pid_ki=2.0,
+            mix__pid_sample_ms=100,
+            mix__process_timeout_ms=1000,
+            mix__max_starts_per_h=0,
+        )
+    )
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    process = ros.publisher(Temperature, "/supply_c")
+    setpoint = ros.publisher(Float64, f"{NODE}/valve/mix/setpoint")
+    for p in (process, setpoint):
+        ros.wait_for_subscribers(p, 1)
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+    closed = states.messages[-1].position_pct
+    setpoint.publish(Float64(data=50.0))
+
+    def reading(age_s: float) -> Temperature:
+        m = Temperature(temperature=45.0)
+        now = ros.node.get_clock().now().nanoseconds - int(age_s * 1e9)
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(now, 1_000_000_000)
+        return m
+
+    # Five seconds old on arrival: stale, the valve stays closed.
+    for _ in range(20):
+        process.publish(reading(5.0))
+        ros.spin_for(0.1)
+    assert all(abs(s.position_pct - closed) < 0.01 for s in states.messages), states.messages[-1]
+    # Fresh: the loop opens the valve.
+    for _ in range(25):
+        process.publish(reading(0.0))
+        ros.spin_for(0.1)
+    opened = states.messages[-1].position_pct
+    assert opened > closed + 5.0, (closed, opened)
+    assert proc.terminate() == 0, proc.output()
