@@ -106,6 +106,30 @@ pub enum Input {
         /// Target, percent.
         pct: f64,
     },
+    /// A setpoint for valve `valve`'s loop, in the process's unit; the request's channel is
+    /// ignored.
+    ValveSetpoint {
+        /// Valve index.
+        valve: usize,
+        /// The setpoint.
+        value: f64,
+    },
+    /// A process value reading for valve `valve`'s loop; the request's channel is ignored.
+    ValveProcess {
+        /// Valve index.
+        valve: usize,
+        /// The reading, in the process's unit.
+        value: f64,
+        /// How long after its stamp it arrived, ns; `None` when unstamped.
+        age: Option<i64>,
+    },
+    /// A manual command for valve `valve`; the request's channel is ignored.
+    ValveManual {
+        /// Valve index.
+        valve: usize,
+        /// Open, close, stop, a position or auto.
+        manual: crate::core::valve::Manual,
+    },
     /// New settings for valve `valve`; the request's channel is ignored.
     ValveConfig {
         /// Valve index.

@@ -442,6 +442,22 @@ impl<O: Output> Worker<O> {
                     let _ = v.command(now, pct, emit);
                 });
             }
+            Input::ValveSetpoint { valve, value } => {
+                // Refused (not a number, out of bounds, not under pid) and counted by the valve.
+                return self.on_valve(valve, now, |v, now, emit| {
+                    let _ = v.setpoint(now, value, emit);
+                });
+            }
+            Input::ValveProcess { valve, value, age } => {
+                return self.on_valve(valve, now, |v, now, _| {
+                    let _ = v.process_value(now, value, age);
+                });
+            }
+            Input::ValveManual { valve, manual } => {
+                return self.on_valve(valve, now, |v, now, emit| {
+                    let _ = v.manual(now, manual, emit);
+                });
+            }
             Input::ValveConfig { valve, config } => {
                 return self.on_valve(valve, now, |v, now, emit| v.set_config(now, config, emit));
             }
@@ -500,6 +516,9 @@ impl<O: Output> Worker<O> {
             | Input::HeaterEstop(_)
             | Input::AddValve { .. }
             | Input::ValvePosition { .. }
+            | Input::ValveSetpoint { .. }
+            | Input::ValveProcess { .. }
+            | Input::ValveManual { .. }
             | Input::ValveConfig { .. }
             | Input::ValveFeedback { .. }
             | Input::ValveReset { .. }

@@ -279,6 +279,13 @@ fn valve_runs(
                     feedback: !feedback_topic.is_empty(),
                 },
                 feedback_topic,
+                process_topic: store
+                    .string(&format!("{}.process_topic", v.name))
+                    .unwrap_or("")
+                    .trim()
+                    .to_string(),
+                process_temperature: store.string(&format!("{}.process_type", v.name))
+                    != Some("float64"),
             }
         })
         .collect();

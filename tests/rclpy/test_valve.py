@@ -330,3 +330,158 @@ def test_the_motion_settings_change_while_running_the_travel_times_do_not(node_p
     got = ros.get_parameters(NODE, ["mix.min_pulse_ms", "mix.travel_open_ms"])
     assert got == {"mix.min_pulse_ms": MIN_PULSE_MS, "mix.travel_open_ms": TRAVEL_OPEN_MS}, got
     assert proc.terminate() == 0, proc.output()
+
+
+def test_the_loop_parameters_are_checked_and_pid_refuses_position_commands(node_process, ros):
+    """docs/parameters.md: a valve's loop settings are bounded and checked with its others;
+    `control` `pid` needs a process topic (read at start-up) and a gain, and under `pid` the
+    position commands set nothing."""
+    proc = node_process(
+        node_args(**VALVE, mix__control="pid", mix__pid_kp=5.0), name="pid-without-process"
+    )
+    assert proc.wait_exit() == 2, proc.output()
+    assert "needs a process_topic" in proc.output(), proc.output()
+
+    proc = node_process(
+        node_args(**VALVE, mix__control="pid", mix__process_topic="/supply", mix__pid_kp=5.0)
+    )
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    pub = ros.publisher(Float64, f"{NODE}/valve/mix/position")
+    ros.wait_for_subscribers(pub, 1)
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+
+    def set_one(name: str, value):
+        return ros.set_parameters(NODE, {name: value})[name]
+
+    start = len(states.messages)
+    pub.publish(Float64(data=40.0))
+    ros.spin_for(1.5)
+    seen = states.messages[start:]
+    assert seen and all(math.isnan(s.target_pct) and s.motion == "stopped" for s in seen), seen[-1]
+    # Refused with the reason, and nothing changes: no gain left, a sample below 10 ms, another
+    # process topic while running.
+    r = ros.set_parameters(NODE, {"mix.pid_kp": 0.0})["mix.pid_kp"]
+    assert not r.successful and "pid_kp or pid_ki above 0" in r.reason, r.reason
+    r = set_one("mix.pid_sample_ms", 5)
+    assert not r.successful, r.reason
+    r = set_one("mix.process_topic", "/other")
+    assert not r.successful and "restart the node" in r.reason, r.reason
+    # Back to position: the commands set the target again.
+    r = set_one("mix.control", "position")
+    assert r.successful, r.reason
+    start = len(states.messages)
+    pub.publish(Float64(data=40.0))
+    states.wait_for(lambda s: s.target_pct == 40.0, start=start, timeout=5.0)
+    got = ros.get_parameters(NODE, ["mix.pid_kp", "mix.control"])
+    assert got == {"mix.pid_kp": 5.0, "mix.control": "position"}, got
+    assert proc.terminate() == 0, proc.output()
+
+
+def test_the_loop_follows_its_process_value_holds_when_it_goes_stale_and_obeys_manual(
+    node_process, ros
+):
+    """docs/valve.md: under `control` `pid` the valve follows its loop from the process value
+    (`std_msgs/Float64` here) and `~/valve/NAME/setpoint`; with no fresh reading for
+    `process_timeout_ms` it holds where it is; `~/valve/NAME/manual` (std_msgs/String) opens,
+    stops and returns to automatic, and a bad word is refused while the node keeps running."""
+    from std_msgs.msg import String
+
+    proc = node_process(
+        node_args(
+            **VALVE,
+            mix__control="pid",
+            mix__process_topic="/supply",
+            mix__process_type="float64",
+            mix__pid_kp=0.0,
+            mix__pid_ki=2.0,
+            mix__pid_sample_ms=100,
+            mix__process_timeout_ms=1000,
+            mix__max_starts_per_h=0,
+        )
+    )
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    process = ros.publisher(Float64, "/supply")
+    setpoint = ros.publisher(Float64, f"{NODE}/valve/mix/setpoint")
+    manual = ros.publisher(String, f"{NODE}/valve/mix/manual")
+    for p in (process, setpoint, manual):
+        ros.wait_for_subscribers(p, 1)
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+    closed = states.messages[-1].position_pct
+
+    # 5 units below the setpoint, integral only (2 %/unit·s): the loop opens the valve.
+    setpoint.publish(Float64(data=50.0))
+    for _ in range(25):
+        process.publish(Float64(data=45.0))
+        ros.spin_for(0.1)
+    opened = states.messages[-1].position_pct
+    assert opened > closed + 5.0, (closed, opened)
+    # No more readings: after process_timeout_ms the valve holds where it is.
+    ros.spin_for(1.6)
+    start = len(states.messages)
+    held = states.messages[-1].position_pct
+    ros.spin_for(2.0)
+    later = states.messages[start:]
+    assert later and all(
+        s.motion == "stopped" and abs(s.position_pct - held) < 0.01 for s in later
+    ), (held, later[-1])
+    assert held < 100.0 - 5.0, held
+
+    # Manual: open drives, stop stops, a bad word is refused, auto returns.
+    start = len(states.messages)
+    manual.publish(String(data="open"))
+    states.wait_for(lambda s: s.motion == "opening", start=start, timeout=5.0)
+    manual.publish(String(data="stop"))
+    stopped = states.wait_for(lambda s: s.motion == "stopped", start=start, timeout=5.0)
+    assert stopped.position_pct > held, (held, stopped)
+    manual.publish(String(data="wide open"))
+    ros.spin_for(0.5)
+    assert "manual command refused" in proc.output(), proc.output()
+    manual.publish(String(data="auto"))
+    ros.spin_for(0.5)
+    assert proc.terminate() == 0, proc.output()
+
+
+def test_a_temperature_process_value_counts_only_when_fresh(node_process, ros):
+    """docs/valve.md: a `sensor_msgs/Temperature` process value is aged by its stamp; readings
+    older than `process_timeout_ms` on arrival move nothing, fresh ones drive the loop."""
+    from sensor_msgs.msg import Temperature
+
+    proc = node_process(
+        node_args(
+            **VALVE,
+            mix__control="pid",
+            mix__process_topic="/supply_c",
+            mix__pid_kp=0.0,
+            mix__pid_ki=2.0,
+            mix__pid_sample_ms=100,
+            mix__process_timeout_ms=1000,
+            mix__max_starts_per_h=0,
+        )
+    )
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    process = ros.publisher(Temperature, "/supply_c")
+    setpoint = ros.publisher(Float64, f"{NODE}/valve/mix/setpoint")
+    for p in (process, setpoint):
+        ros.wait_for_subscribers(p, 1)
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+    closed = states.messages[-1].position_pct
+    setpoint.publish(Float64(data=50.0))
+
+    def reading(age_s: float) -> Temperature:
+        m = Temperature(temperature=45.0)
+        now = ros.node.get_clock().now().nanoseconds - int(age_s * 1e9)
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(now, 1_000_000_000)
+        return m
+
+    # Five seconds old on arrival: stale, the valve stays closed.
+    for _ in range(20):
+        process.publish(reading(5.0))
+        ros.spin_for(0.1)
+    assert all(abs(s.position_pct - closed) < 0.01 for s in states.messages), states.messages[-1]
+    # Fresh: the loop opens the valve.
+    for _ in range(25):
+        process.publish(reading(0.0))
+        ros.spin_for(0.1)
+    opened = states.messages[-1].position_pct
+    assert opened > closed + 5.0, (closed, opened)
+    assert proc.terminate() == 0, proc.output()

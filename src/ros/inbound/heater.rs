@@ -94,12 +94,12 @@ pub fn listen_heaters(
 
 /// Subscribes `topic` (`sensor_msgs/Temperature`, sensor QoS) and hands each reading to
 /// channel `ch` as `input(°C, arrival less stamp in ns)`.
-fn listen_temperature(
+pub(crate) fn listen_temperature(
     ep: &mut Endpoints<'_>,
     topic: &str,
     inputs: &Arc<Inputs>,
     ch: usize,
-    input: fn(f64, Option<i64>) -> Input,
+    input: impl Fn(f64, Option<i64>) -> Input + Send + Sync + 'static,
 ) -> Result<JoinHandle<()>, EndpointError> {
     let b = Arc::clone(inputs);
     ep.listen_with(topic, qos::sensor(), move |m: msg::Temperature| {
@@ -112,7 +112,7 @@ fn listen_temperature(
 
 /// How long after its stamp a reading arrived at `now_wall` (ns since the Unix epoch), ns;
 /// `None` for an unstamped reading (a zero stamp, as a message left at its defaults has).
-fn stamp_age(header: &msg::Header, now_wall: i64) -> Option<i64> {
+pub(crate) fn stamp_age(header: &msg::Header, now_wall: i64) -> Option<i64> {
     let stamp = header.stamp.to_nanos();
     (stamp != 0).then(|| now_wall.saturating_sub(stamp))
 }

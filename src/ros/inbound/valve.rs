@@ -13,7 +13,7 @@
 //! exit 2) and read by one thread per line ([`spawn_switch_readers`]): the level at start, then
 //! every change, each sent as `Input::ValveSwitch` through the request queue.
 
-use crate::core::valve::{Dir, ResetAnswer, ValveFault, ValveStart};
+use crate::core::valve::{Dir, Manual, ResetAnswer, ValveFault, ValveStart};
 use crate::core::ValveConfig;
 use crate::engine::Input;
 use crate::output::gpio_input::{InputError, InputLine, InputRequest};
@@ -160,6 +160,10 @@ pub struct ValveRun {
     /// The `std_msgs/Float64` feedback topic, as configured (relative names resolve in the
     /// node's namespace, and remapping applies); empty for none.
     pub feedback_topic: String,
+    /// The loop's process value topic, as configured; empty for none.
+    pub process_topic: String,
+    /// The process value is a `sensor_msgs/Temperature` (else a `std_msgs/Float64`).
+    pub process_temperature: bool,
 }
 
 /// How long `~/valve/<NAME>/reset` waits for the output thread's answer.
@@ -275,6 +279,70 @@ pub fn listen_valves(
                 },
             )?);
         }
+        if !run.process_topic.is_empty() {
+            info!(
+                "valve {}: process value from {} ({})",
+                v.name,
+                run.process_topic,
+                if run.process_temperature {
+                    "sensor_msgs/Temperature"
+                } else {
+                    "std_msgs/Float64"
+                }
+            );
+            if run.process_temperature {
+                tasks.push(crate::ros::inbound::heater::listen_temperature(
+                    ep,
+                    &run.process_topic,
+                    inputs,
+                    0,
+                    move |value, age| Input::ValveProcess {
+                        valve: k,
+                        value,
+                        age,
+                    },
+                )?);
+            } else {
+                let b = Arc::clone(inputs);
+                tasks.push(ep.listen_with(
+                    &run.process_topic,
+                    qos::sensor(),
+                    move |m: msg::Float64| {
+                        // Unstamped: its age is not known, so only the timeout judges it.
+                        let _ = b.send(
+                            0,
+                            Input::ValveProcess {
+                                valve: k,
+                                value: m.data,
+                                age: None,
+                            },
+                        );
+                    },
+                )?);
+            }
+        }
+        let b = Arc::clone(inputs);
+        let topic = format!("~/valve/{}/setpoint", v.name);
+        tasks.push(ep.listen(&topic, move |m: msg::Float64| {
+            let _ = b.send(
+                0,
+                Input::ValveSetpoint {
+                    valve: k,
+                    value: m.data,
+                },
+            );
+        })?);
+        let (b, name) = (Arc::clone(inputs), v.name.clone());
+        let topic = format!("~/valve/{}/manual", v.name);
+        tasks.push(ep.listen(
+            &topic,
+            move |m: msg::StringMsg| match m.data.trim().parse::<Manual>() {
+                Ok(manual) => {
+                    let _ = b.send(0, Input::ValveManual { valve: k, manual });
+                }
+                Err(e) => warn!("valve {name}: manual command refused: {e}"),
+            },
+        )?);
         let (b, a, name) = (Arc::clone(inputs), Arc::clone(answers), v.name.clone());
         let reset = move |_: msg::EmptyRequest| reset(&b, &a, k, &name);
         let mut maker = ep.services();

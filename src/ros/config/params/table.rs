@@ -24,11 +24,15 @@ use crate::core::heater::{
     MAX_RAMP_C_PER_S, MAX_RATE_C_PER_S, MAX_RUNAWAY_ERROR, MAX_SKEW_MS, MAX_TEMP_C, MAX_TIME_S,
     MIN_TEMP_C,
 };
+use crate::core::valve::control::{
+    MAX_D_FILTER_S, MAX_LOOP_GAIN, MAX_LOOP_SAMPLE_MS, MAX_PROCESS_SKEW_MS, MAX_PROCESS_TIMEOUT_MS,
+    MIN_LOOP_SAMPLE_MS,
+};
 use crate::core::valve::{
-    OnTimeout, ReferenceAtStart, ValveParams, MAX_BACKLASH_PCT, MAX_COMMAND_TIMEOUT_MS,
-    MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT, MAX_EXERCISE_EVERY_H, MAX_FEEDBACK_TOLERANCE_PCT,
-    MAX_RECALIBRATE_AFTER_S, MAX_REVERSAL_PAUSE_MS, MAX_STARTS_PER_H, MAX_TRAVEL_MS,
-    MIN_REVERSAL_PAUSE_MS, MIN_TRAVEL_MS,
+    Control as ValveControl, ControlParams, LoopOutput, OnTimeout, ReferenceAtStart, ValveParams,
+    MAX_BACKLASH_PCT, MAX_COMMAND_TIMEOUT_MS, MAX_DEADBAND_PCT, MAX_END_OVERRUN_PCT,
+    MAX_EXERCISE_EVERY_H, MAX_FEEDBACK_TOLERANCE_PCT, MAX_RECALIBRATE_AFTER_S,
+    MAX_REVERSAL_PAUSE_MS, MAX_STARTS_PER_H, MAX_TRAVEL_MS, MIN_REVERSAL_PAUSE_MS, MIN_TRAVEL_MS,
 };
 use crate::core::{ApplyAt, ChannelParams, OnDisable, OutputKind, Phase, Profile, ShortPulse};
 use crate::output::gpio::parse_line_addr;
@@ -184,10 +188,25 @@ fn limit_line_spelling(s: &str) -> Result<(), UnknownName> {
     }
 }
 
+/// Accepts the spellings of a valve's `process_type`.
+fn process_type_spelling(s: &str) -> Result<(), UnknownName> {
+    match s {
+        "temperature" | "float64" => Ok(()),
+        _ => Err(UnknownName {
+            value: ShortStr::new(s),
+            accepted: "temperature|float64",
+        }),
+    }
+}
+
 /// Why a valve's end switch settings, feedback, backlash and reference at start cannot change
 /// while running.
 const VALVE_START_UP: &str = "the end switch lines and the feedback are requested, and the \
                               reference at start runs, at start-up; restart the node";
+
+/// Why a valve's process value topic and type cannot change while running.
+const VALVE_PROCESS: &str =
+    "the process value topic and its type are fixed at start-up; restart the node";
 
 /// Why a valve's travel times cannot change while running.
 const VALVE_TRAVEL: &str = "the position estimate and the moves under way count in the travel \
@@ -373,6 +392,121 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             })
         },
         Decl {
+            description: "Who sets the valve's target: position (the position commands on \
+                          ~/valve/NAME/position) or pid (the valve's own loop, Siemens \
+                          PID_3Step: from the process value on process_topic to the setpoint \
+                          on ~/valve/NAME/setpoint).",
+            constraints: "pid needs a process_topic and pid_kp or pid_ki above 0",
+            choices: Some(|s| spelled::<ValveControl>(s, false)),
+            ..Decl::new("control", String, || {
+                V::String(valve_defaults().control.control.as_str().to_string())
+            })
+        },
+        Decl {
+            description: "The loop's process value topic: sensor_msgs/Temperature (°C) or \
+                          std_msgs/Float64 (a pressure or a flow in its unit), as process_type \
+                          says. Empty: none (control pid is refused).",
+            read_only: Some(VALVE_PROCESS),
+            ..Decl::new("process_topic", String, || {
+                V::String(std::string::String::new())
+            })
+        },
+        Decl {
+            description: "The message type of process_topic: temperature (sensor_msgs/\
+                          Temperature, whose stamp gives the reading's age) or float64 \
+                          (std_msgs/Float64, aged from its arrival).",
+            constraints: "temperature|float64",
+            choices: Some(process_type_spelling),
+            read_only: Some(VALVE_PROCESS),
+            ..Decl::new("process_type", String, || V::String("temperature".into()))
+        },
+        Decl {
+            description: "What the loop's output drives: position (the valve's target; the \
+                          estimate must be good), step (step pulses, PID_3Step without position \
+                          feedback) or auto (position with a feedback_topic, step without).",
+            choices: Some(|s| spelled::<LoopOutput>(s, false)),
+            ..Decl::new("loop_output", String, || {
+                V::String(valve_defaults().control.output.as_str().to_string())
+            })
+        },
+        Decl {
+            description: "The loop's proportional gain, % of the stroke per unit of the process \
+                          value.",
+            range: Range::Double(0.0, MAX_LOOP_GAIN),
+            ..Decl::new("pid_kp", Double, || {
+                V::Double(valve_defaults().control.pid_kp)
+            })
+        },
+        Decl {
+            description: "The loop's integral gain, % per unit·s.",
+            range: Range::Double(0.0, MAX_LOOP_GAIN),
+            ..Decl::new("pid_ki", Double, || {
+                V::Double(valve_defaults().control.pid_ki)
+            })
+        },
+        Decl {
+            description: "The loop's derivative gain, % per unit/s, on the measurement.",
+            range: Range::Double(0.0, MAX_LOOP_GAIN),
+            ..Decl::new("pid_kd", Double, || {
+                V::Double(valve_defaults().control.pid_kd)
+            })
+        },
+        Decl {
+            description: "The derivative's first-order filter, s. 0: unfiltered.",
+            range: Range::Double(0.0, MAX_D_FILTER_S),
+            ..Decl::new("pid_d_filter_s", Double, || {
+                V::Double(valve_defaults().control.pid_d_filter_s)
+            })
+        },
+        Decl {
+            description: "Reverse acting: opening the valve lowers the process value (a \
+                          cooling valve).",
+            ..Decl::new("pid_reverse", Bool, || {
+                V::Boolean(valve_defaults().control.pid_reverse)
+            })
+        },
+        Decl {
+            description: "The loop's sample, ms.",
+            range: Range::Integer(MIN_LOOP_SAMPLE_MS as i64, MAX_LOOP_SAMPLE_MS as i64),
+            ..Decl::new("pid_sample_ms", Integer, || {
+                V::Integer(valve_defaults().control.pid_sample_ms as i64)
+            })
+        },
+        Decl {
+            description: "The process value's freshness, ms: a reading older than this on \
+                          arrival is stale and used by nothing; with no fresh reading for this \
+                          long the loop stops and the valve holds where it is (WARN).",
+            range: Range::Integer(1, MAX_PROCESS_TIMEOUT_MS as i64),
+            ..Decl::new("process_timeout_ms", Integer, || {
+                V::Integer(valve_defaults().control.process_timeout_ms as i64)
+            })
+        },
+        Decl {
+            description: "How far a reading's stamp may lie ahead of this node's clock, ms; \
+                          beyond it the reading is stale.",
+            range: Range::Integer(0, MAX_PROCESS_SKEW_MS as i64),
+            ..Decl::new("process_max_skew_ms", Integer, || {
+                V::Integer(valve_defaults().control.process_max_skew_ms as i64)
+            })
+        },
+        Decl {
+            description: "Where the valve goes, percent, once the loop has held for \
+                          safe_after_ms without a fresh process value. Negative: nowhere (it \
+                          holds).",
+            range: Range::Double(-1.0, 100.0),
+            ..Decl::new("safe_position_pct", Double, || {
+                V::Double(valve_defaults().control.safe_position_pct)
+            })
+        },
+        Decl {
+            description: "How long the loop holds before the valve goes to safe_position_pct, \
+                          ms.",
+            range: Range::Integer(0, MAX_PROCESS_TIMEOUT_MS as i64),
+            ..Decl::new("safe_after_ms", Integer, || {
+                V::Integer(valve_defaults().control.safe_after_ms as i64)
+            })
+        },
+        Decl {
             description: "End switch at the open end: a GPIO input line [CHIP:]OFFSET (a bare \
                           offset, quoted to stay a string, is on /dev/gpiochip0), read with \
                           edge events. Active, it \
@@ -443,8 +577,25 @@ pub(super) fn valve_params(get: impl Fn(&str) -> Option<V>) -> ValveParams {
             .unwrap_or(d.on_timeout),
         feedback_tolerance_pct: dbl_or("feedback_tolerance_pct", d.feedback_tolerance_pct),
         max_starts_per_h: int_or("max_starts_per_h", d.max_starts_per_h),
-        // The loop is not a parameter of the node: the position commands set the target.
-        control: d.control,
+        control: ControlParams {
+            control: get("control")
+                .and_then(|v| text(&v).parse().ok())
+                .unwrap_or(d.control.control),
+            process: get("process_topic").is_some_and(|v| !text(&v).trim().is_empty()),
+            output: get("loop_output")
+                .and_then(|v| text(&v).parse().ok())
+                .unwrap_or(d.control.output),
+            pid_kp: dbl_or("pid_kp", d.control.pid_kp),
+            pid_ki: dbl_or("pid_ki", d.control.pid_ki),
+            pid_kd: dbl_or("pid_kd", d.control.pid_kd),
+            pid_d_filter_s: dbl_or("pid_d_filter_s", d.control.pid_d_filter_s),
+            pid_reverse: get("pid_reverse").map_or(d.control.pid_reverse, |v| boolean(&v)),
+            pid_sample_ms: int_or("pid_sample_ms", d.control.pid_sample_ms),
+            process_timeout_ms: int_or("process_timeout_ms", d.control.process_timeout_ms),
+            process_max_skew_ms: int_or("process_max_skew_ms", d.control.process_max_skew_ms),
+            safe_position_pct: dbl_or("safe_position_pct", d.control.safe_position_pct),
+            safe_after_ms: int_or("safe_after_ms", d.control.safe_after_ms),
+        },
     }
 }
 

@@ -656,3 +656,99 @@ fn a_valves_motion_settings_change_while_running_checked_whole() {
     }
     assert_eq!(s.valve_params("hot").travel_open_ms, 30_000);
 }
+
+#[test]
+fn a_valves_loop_parameters_reach_the_core_and_bad_ones_are_refused() {
+    use crate::core::valve::{Control, LoopOutput};
+    let base = || {
+        vec![
+            sv("valve", V::String("mix:pw01:pw02".into())),
+            sv("mix.process_topic", V::String("/supply".into())),
+            sv("mix.process_type", V::String("float64".into())),
+        ]
+    };
+    // By default the position commands set the target: today's behaviour.
+    let su = start_up(&base()).unwrap();
+    let c = su.store.valve_params("mix").control;
+    assert_eq!(c.control, Control::Position);
+    assert!(c.process, "a process topic is configured");
+    // Every loop parameter is handed to the core.
+    let mut all = base();
+    all.extend([
+        sv("mix.control", V::String("pid".into())),
+        sv("mix.loop_output", V::String("step".into())),
+        sv("mix.pid_kp", V::Double(5.0)),
+        sv("mix.pid_ki", V::Double(0.04)),
+        sv("mix.pid_kd", V::Double(1.5)),
+        sv("mix.pid_d_filter_s", V::Double(2.0)),
+        sv("mix.pid_reverse", V::Boolean(true)),
+        sv("mix.pid_sample_ms", V::Integer(500)),
+        sv("mix.process_timeout_ms", V::Integer(4_000)),
+        sv("mix.process_max_skew_ms", V::Integer(200)),
+        sv("mix.safe_position_pct", V::Double(30.0)),
+        sv("mix.safe_after_ms", V::Integer(10_000)),
+    ]);
+    let su = start_up(&all).unwrap();
+    let c = su.store.valve_params("mix").control;
+    assert_eq!(
+        (c.control, c.output, c.pid_reverse),
+        (Control::Pid, LoopOutput::Step, true)
+    );
+    assert_eq!(
+        (c.pid_kp, c.pid_ki, c.pid_kd, c.pid_d_filter_s),
+        (5.0, 0.04, 1.5, 2.0)
+    );
+    assert_eq!(
+        (c.pid_sample_ms, c.process_timeout_ms, c.process_max_skew_ms),
+        (500, 4_000, 200)
+    );
+    assert_eq!((c.safe_position_pct, c.safe_after_ms), (30.0, 10_000));
+    let cfg = su.store.valve_params("mix").validate().unwrap();
+    assert_eq!(cfg.control.safe, Some(30.0));
+    assert_eq!(cfg.control.sample, 500 * crate::core::NS_PER_MS);
+    // The loop can be switched and tuned while running; the topic and its type cannot.
+    let s = &su.store;
+    let a = live(s, "mix.control", V::String("position".into())).unwrap();
+    assert_eq!(
+        a.valve_configs[0].1.control.params.control,
+        Control::Position
+    );
+    let a = live(s, "mix.pid_kp", V::Double(2.0)).unwrap();
+    assert_eq!(a.valve_configs[0].1.control.gains.kp, 2.0);
+    for (name, v) in [
+        ("mix.process_topic", V::String("/other".into())),
+        ("mix.process_type", V::String("temperature".into())),
+    ] {
+        let e = live(s, name, v).unwrap_err();
+        assert!(matches!(e, ParamError::ReadOnly { .. }), "{name}: {e}");
+    }
+    // Gains to zero under pid: refused whole with the core's reason, the rest stays.
+    let two = [
+        item("mix.pid_kp", V::Double(0.0)),
+        item("mix.pid_ki", V::Double(0.0)),
+    ];
+    let e = s.check(&two, Stage::Live).unwrap_err();
+    assert!(e.to_string().contains("pid_kp or pid_ki above 0"), "{e}");
+    // Refused at start-up: out of range, a bad spelling, pid without a topic.
+    for bad in [
+        sv("mix.control", V::String("pi".into())),
+        sv("mix.process_type", V::String("pressure".into())),
+        sv("mix.loop_output", V::String("servo".into())),
+        sv("mix.pid_kp", V::Double(-1.0)),
+        sv("mix.pid_ki", V::Double(f64::NAN)),
+        sv("mix.pid_sample_ms", V::Integer(5)),
+        sv("mix.process_timeout_ms", V::Integer(0)),
+        sv("mix.safe_position_pct", V::Double(100.5)),
+    ] {
+        let mut v = base();
+        v.push(bad.clone());
+        assert!(start_up(&v).is_err(), "{bad:?}");
+    }
+    let e = start_up(&[
+        sv("valve", V::String("mix:pw01:pw02".into())),
+        sv("mix.control", V::String("pid".into())),
+        sv("mix.pid_kp", V::Double(5.0)),
+    ])
+    .unwrap_err();
+    assert!(e.to_string().contains("needs a process_topic"), "{e}");
+}
