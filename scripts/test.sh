@@ -13,7 +13,9 @@
 #
 # What waits on the network or times nothing runs beside the compiles: the Kilted set-up from
 # the start, and the two long rclpy memory tests (BESIDE_TESTS below) from the release build on,
-# each on a ROS domain of its own. Each step's time is printed, and all of them at the end.
+# each on a ROS domain of its own. The rest of the rclpy suite runs as two pytest processes at
+# once: the tests that time what the node does one at a time, and the tests marked `untimed`
+# beside them (5). Each step's time is printed, and all of them at the end.
 #
 # Usage: scripts/test.sh [--quick] [-- PYTEST_ARGS...]
 #   --quick   skip `cargo fmt --check` and `cargo clippy`
@@ -30,7 +32,7 @@ while (($#)); do
     case "$1" in
         --quick) quick=1 ;;
         --) shift; pytest_extra=("$@"); break ;;
-        -h | --help) sed -n '2,16p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h | --help) awk 'NR > 1 && !/^#/ { exit } NR > 1' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
         *) echo "test: unknown argument '$1' (try --help)" >&2; exit 2 ;;
     esac
     shift
@@ -356,10 +358,50 @@ else
 fi
 
 # 5. The rclpy suite (less BESIDE_TESTS, run at 3a), with the venv's python and the built
-# messages.
+# messages, as two pytest processes at once: the tests that time what the node does, one at a
+# time as ever (`--timing-group timed`), and beside them those marked `untimed`, which assert no
+# time bound, latency, rate or edge timing, so the load of the others cannot change their result
+# (tests/rclpy/pytest.ini). Each has its own results file, and both are counted; the step fails
+# if either part fails or leaves no results file. A part that PYTEST_ARGS select nothing of
+# (pytest exit 5) is not a failure while the other part ran tests; both selecting nothing is.
 # shellcheck disable=SC2317  # called through run_step
 rclpy_suite() {
-    run_pytest jazzy "$LOG_DIR/rclpy-junit.xml" "${pytest_extra[@]}"
+    local start=$SECONDS timed_rc=0 untimed_rc=0 untimed_pid timed_s untimed_s t
+    local ignore=()
+    for t in "${BESIDE_TESTS[@]}"; do
+        ignore+=("--ignore=$t")
+    done
+    rm -f "$LOG_DIR/rclpy-untimed.seconds"
+    (
+        run_pytest_paths jazzy "$LOG_DIR/rclpy-untimed-junit.xml" tests/rclpy -- "${ignore[@]}" \
+            --timing-group=untimed "${pytest_extra[@]}" >"$LOG_DIR/rclpy-untimed.log" 2>&1
+        rc=$?
+        echo $((SECONDS - start)) >"$LOG_DIR/rclpy-untimed.seconds"
+        exit "$rc"
+    ) &
+    untimed_pid=$!
+    echo "rclpy tests: the untimed ones run beside these (output in rclpy-untimed.log, printed below)"
+    run_pytest_paths jazzy "$LOG_DIR/rclpy-junit.xml" tests/rclpy -- "${ignore[@]}" \
+        --timing-group=timed "${pytest_extra[@]}" || timed_rc=$?
+    timed_s=$((SECONDS - start))
+    wait "$untimed_pid" || untimed_rc=$?
+    untimed_s=$(cat "$LOG_DIR/rclpy-untimed.seconds" 2>/dev/null || echo $((SECONDS - start)))
+    banner "rclpy tests: the untimed ones (beside the timed ones)"
+    cat "$LOG_DIR/rclpy-untimed.log"
+    if ((${#pytest_extra[@]})); then
+        if ((timed_rc == 5 && untimed_rc != 5)); then
+            timed_rc=0
+        elif ((untimed_rc == 5 && timed_rc != 5)); then
+            untimed_rc=0
+        fi
+    fi
+    add_junit_counts "$LOG_DIR/rclpy-junit.xml"
+    add_junit_counts "$LOG_DIR/rclpy-untimed-junit.xml"
+    printf -- '---- rclpy tests, timed, one at a time: exit %d (%d s)\n' "$timed_rc" "$timed_s"
+    printf -- '---- rclpy tests, untimed, beside them: exit %d (%d s)\n' "$untimed_rc" "$untimed_s"
+    step_times+=("$(printf '%6d s  %s' "$timed_s" "rclpy tests, timed (one at a time)")")
+    step_times+=("$(printf '%6d s  %s' "$untimed_s" "rclpy tests, untimed (beside them)")")
+    ((timed_rc == 0 && untimed_rc == 0))
 }
 if ((release_ok)); then
     run_step "rclpy tests" rclpy_suite

@@ -110,6 +110,40 @@ def wait_until(
 
 
 # ---------------------------------------------------------------------------------------------
+# Timing groups
+# ---------------------------------------------------------------------------------------------
+
+#: The marker of a test that times nothing (pytest.ini): it asserts no time bound, latency,
+#: rate, lateness or length of anything on the line, so the load of tests run beside it cannot
+#: change its result. scripts/test.sh runs these (`--timing-group untimed`) in a pytest process
+#: of their own beside all the others (`--timing-group timed`), which run one at a time.
+UNTIMED = "untimed"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--timing-group",
+        choices=("all", "timed", "untimed"),
+        default="all",
+        help="run only the tests marked untimed, only the others (timed), or all (default)",
+    )
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Deselects the tests outside the `--timing-group` asked for (reported as deselected)."""
+    group = config.getoption("--timing-group")
+    if group == "all":
+        return
+    keep, drop = [], []
+    for item in items:
+        untimed = item.get_closest_marker(UNTIMED) is not None
+        (keep if untimed == (group == "untimed") else drop).append(item)
+    if drop:
+        config.hook.pytest_deselected(items=drop)
+        items[:] = keep
+
+
+# ---------------------------------------------------------------------------------------------
 # ROS domains
 # ---------------------------------------------------------------------------------------------
 

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Optional
 
+import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lifecycle_msgs.msg import Transition
@@ -214,6 +215,7 @@ def test_the_node_status_shows_lateness_lifecycle_and_the_estop(node_process, ro
     assert diag_values(released)["estop_latches"] == "1"
 
 
+@pytest.mark.untimed
 def test_the_node_status_follows_a_managed_node_s_lifecycle(node_process, ros):
     node_process(["--managed"])
     ch = ChannelClient(ros, "pw01")
@@ -283,6 +285,7 @@ def aggregated_name(cfg: dict[str, Any], name: str) -> str:
     return out
 
 
+@pytest.mark.untimed
 def test_the_aggregator_analyzers_take_every_status_the_node_publishes(node_process, ros):
     doc = yaml.safe_load(ANALYZERS.read_text())
     params = doc["analyzers"]["ros__parameters"]

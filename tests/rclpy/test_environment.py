@@ -27,6 +27,10 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.utilities import get_rmw_implementation_identifier
 from std_msgs.msg import Bool
 
+# Times nothing (pytest.ini, `untimed`): bindings, serialisation, exchange between
+# participants and the parameter helpers, each checked by what arrives.
+pytestmark = pytest.mark.untimed
+
 MSG_FILES = sorted(MSG_DIR.glob("*.msg"))
 MSG_PACKAGE = "pwm_actuator_msgs"
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import pytest
 from conftest import ManagedProcess, RosClient
 from diagnostic_msgs.msg import DiagnosticArray
 from pwm_actuator_msgs.msg import ChannelParams, ChannelStatus
@@ -60,6 +61,7 @@ def test_a_status_rate_the_node_cannot_keep_is_refused_and_a_new_rate_applies_at
     assert proc.is_running(), proc.output()
 
 
+@pytest.mark.untimed
 def test_a_start_up_status_rate_the_node_cannot_keep_is_a_configuration_error(node_process):
     for i, argv in enumerate(
         (["--status-rate", "5e-324"], ["--ros-args", "-p", "status_rate_hz:=1e-20"])

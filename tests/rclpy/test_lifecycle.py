@@ -103,6 +103,7 @@ def test_the_lifecycle_walk_keeps_the_line_inactive_except_while_active(node_pro
     assert edges[-1].level == 0
 
 
+@pytest.mark.untimed
 def test_a_configure_that_cannot_open_its_line_fails_and_stays_unconfigured(node_process, ros):
     proc = node_process(
         ["--managed", "--output", "gpio", "--line", "pw01=/dev/gpiochip-missing:3",

@@ -448,6 +448,7 @@ def test_period_change_through_set_parameters_applies_at_a_period_boundary(ros, 
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.untimed
 def test_params_topic_applies_all_named_fields_at_once(ros, node_process, svc):
     events = subscribe_events(ros)
     start_node(node_process)
@@ -483,6 +484,7 @@ def test_params_topic_applies_all_named_fields_at_once(ros, node_process, svc):
     assert changed(announced[0]) == expected
 
 
+@pytest.mark.untimed
 def test_params_topic_refuses_the_whole_message_when_one_field_is_bad(ros, node_process, svc):
     events = subscribe_events(ros)
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics")
@@ -527,6 +529,7 @@ def test_refused_parameter_puts_the_channel_at_warn(ros, node_process, svc):
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.untimed
 def test_invalid_values_are_refused_with_a_reason_and_the_old_values_stay(ros, node_process, svc):
     events = subscribe_events(ros)
     start_node(
@@ -612,6 +615,7 @@ def test_invalid_values_are_refused_with_a_reason_and_the_old_values_stay(ros, n
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.untimed
 @pytest.mark.smoke
 def test_descriptors_ranges_and_listing(ros, node_process, svc):
     start_node(node_process)
@@ -653,6 +657,7 @@ FRAGMENTED_REPLY_BYTES = 2048
 MANY_CHANNELS = 8
 
 
+@pytest.mark.untimed
 def test_every_parameter_service_answers_for_all_parameters_at_once(ros, node_process):
     # docs/parameters.md: the parameter services answer requests of any size, e.g. for every parameter at
     # once as `ros2 param dump` asks. Replies above one datagram are fragmented; each must reach
@@ -750,6 +755,7 @@ def test_every_parameter_service_answers_for_all_parameters_at_once(ros, node_pr
     print("reply sizes (bytes):", sizes)
 
 
+@pytest.mark.untimed
 def test_whole_doubles_are_taken_for_integers_and_fractions_refused(ros, node_process, svc):
     proc = start_node(node_process)
     [result] = svc.set_parameters({"pw01.period_ms": 500.0}).values()
@@ -778,6 +784,7 @@ def test_whole_doubles_are_taken_for_integers_and_fractions_refused(ros, node_pr
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.untimed
 @pytest.mark.smoke
 def test_diagnostics_ok_for_a_normal_channel(ros, node_process):
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics")
@@ -825,6 +832,7 @@ def test_diagnostics_ok_for_a_normal_channel(ros, node_process):
     ], names
 
 
+@pytest.mark.untimed
 def test_diagnostics_warn_while_e1_acts(ros, node_process):
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics")
     # 5 % of 1000 ms is a 50 ms pulse, below the 100 ms minimum: pico_gfx suppresses it (E1).
@@ -908,6 +916,7 @@ def test_diagnostics_error_when_the_watchdog_trips_and_ok_after_a_command(ros, n
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.untimed
 @pytest.mark.smoke
 def test_node_and_namespace_remapping(ros, node_process):
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics")
@@ -1021,6 +1030,7 @@ def test_params_file_then_command_line_overrides(ros, node_process, svc, tmp_pat
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.untimed
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_signal_stop_leaves_every_output_off(node_process, sig):
     proc = start_node(

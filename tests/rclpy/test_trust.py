@@ -16,6 +16,10 @@ import pytest
 from pwm_actuator_msgs.msg import OutputEdge
 from std_msgs.msg import Bool, Float64
 
+# Times nothing (pytest.ini, `untimed`): which addresses the node's sockets are bound to, and that
+# rclpy's commands arrive.
+pytestmark = pytest.mark.untimed
+
 NODE = "/pwm_actuator"
 
 

@@ -22,6 +22,7 @@ import os
 from functools import lru_cache
 from pathlib import Path
 
+import pytest
 from rclpy.action import ActionServer
 from rclpy.node import Node
 from std_srvs.srv import Trigger
@@ -30,6 +31,9 @@ from pwm_actuator_msgs.action import Autotune
 
 from conftest import REPO_ROOT
 from helpers_rules import node_args
+
+# Times nothing (pytest.ini, `untimed`): the type hashes each endpoint announces.
+pytestmark = pytest.mark.untimed
 
 NAME = "pwm_actuator"
 #: Every kind of endpoint the node has: the channels' topics, a split-range pair, a heater's

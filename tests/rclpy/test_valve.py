@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import Transition
 from pwm_actuator_msgs.msg import ValveState
@@ -175,6 +176,7 @@ def test_a_valve_references_follows_positions_and_keeps_its_lines_apart(node_pro
     assert math.isclose(last.position_pct, want, abs_tol=0.2), (last, integral)
 
 
+@pytest.mark.untimed
 def test_a_refused_valve_stops_the_node_with_the_reason(node_process):
     for params, reason in (
         (dict(channels=2, valve="mix:pw01:pw01"), "used twice"),

@@ -5,8 +5,13 @@ from __future__ import annotations
 
 import math
 
+import pytest
 from helpers_rules import ChannelClient, node_args
 from std_msgs.msg import Float64
+
+# Times nothing (pytest.ini, `untimed`): the figures of a status message checked against each
+# other and against the command.
+pytestmark = pytest.mark.untimed
 
 
 def test_fraction_topic_takes_a_0_to_1_input_004(node_process, ros):
