@@ -1005,8 +1005,9 @@ static WITHIN_ONE_TICK_CHECKED: AtomicU32 = AtomicU32::new(0);
 /// the on time delivered is within one tick of the command's (the duty after the power limits
 /// times the period in force), each period's on time a whole number of ticks, under every
 /// policy and profile — wherever the minimum-time rules leave the rounded pulses alone (where
-/// they act, E1 says so, as without a time base). At least a quarter of the cases reach the
-/// sum's check, so the property cannot pass on cases that all step around it.
+/// they act, E1 says so, as without a time base). At least an eighth of the cases reach the
+/// sum's check, so the property cannot pass on cases that all step around it (from 52 to 83
+/// of 256 did in 16 runs with random seeds: a quarter failed one run in four).
 #[test]
 fn with_a_time_base_the_delivered_on_time_is_within_one_tick_over_any_run() {
     WITHIN_ONE_TICK_CHECKED.store(0, Ordering::Relaxed);
@@ -1015,7 +1016,7 @@ fn with_a_time_base_the_delivered_on_time_is_within_one_tick_over_any_run() {
     let checked = WITHIN_ONE_TICK_CHECKED.load(Ordering::Relaxed);
     eprintln!("{checked} of {cases} cases reached the sum's check");
     assert!(
-        checked >= cases / 4,
+        checked >= cases / 8,
         "only {checked} of {cases} cases reached the sum's check"
     );
 }
@@ -1105,7 +1106,7 @@ static LATE_WRITES_CHECKED: AtomicU32 = AtomicU32::new(0);
 /// A pulse or break of exactly its minimum is not lengthened a whole tick by its edge's
 /// microseconds of lateness, nor is a phase 003's re-evaluation re-times (the command
 /// sent again at a rate).
-/// At least a quarter of the cases reach the sums' check.
+/// At least an eighth of the cases reach the sums' check (82 to 106 of 256 did in 16 runs).
 #[test]
 fn with_a_time_base_late_writes_keep_the_delivered_on_time_or_e1_names_the_rule() {
     LATE_WRITES_CHECKED.store(0, Ordering::Relaxed);
@@ -1114,7 +1115,7 @@ fn with_a_time_base_late_writes_keep_the_delivered_on_time_or_e1_names_the_rule(
     let checked = LATE_WRITES_CHECKED.load(Ordering::Relaxed);
     eprintln!("{checked} of {cases} cases reached the sums' check");
     assert!(
-        checked >= cases / 4,
+        checked >= cases / 8,
         "only {checked} of {cases} cases reached the sums' check"
     );
 }
