@@ -195,7 +195,12 @@ def test_avg_duty_caps_the_on_time_of_every_window(node_process, ros):
     assert not capped.e1 and close(capped.duty_target, 100.0), capped
     d = ch.wait_diag(lambda d: diag_values(d).get("protections") == "avg_duty", "avg_duty")
     assert diag_level(d) == OK and "protections acting: avg_duty" in d.message, d
-    assert 20.0 <= float(diag_values(d)["avg_duty_pct"]) <= 25.0, d
+    # A fall later than every one before it may exceed the cap by that extra lateness once
+    # (docs/protections.md); it is at most the largest lateness seen, which diagnostics give.
+    # The figure is rounded to 0.001 %.
+    over_pct = 100 * float(diag_values(d)["max_lateness_us"]) * 1000 / window
+    avg = float(diag_values(d)["avg_duty_pct"])
+    assert 20.0 <= avg <= 25.0 + over_pct + 0.0005, (avg, over_pct, d)
     observe_until(ch, sent.confirmed_ns + 4 * window + 300 * MS)
     r = ros.set_parameters(NODE, {"pw01.avg_window_s": 0})["pw01.avg_window_s"]
     assert not r.successful and "avg_window_s 0 is outside 1..86400 s" in r.reason, r.reason
