@@ -49,6 +49,19 @@ PARAMS = dict(
 SETPOINT = 60.0
 
 
+def send_setpoint(ros, ch, celsius: float) -> None:
+    """Publishes `celsius` on pw01's setpoint topic, confirmed by a status showing it."""
+    sp = ros.publisher(Float64, f"{NODE}/pw01/setpoint")
+    ros.wait_for_subscribers(sp, 1)
+    ch.send(
+        sp,
+        Float64(data=celsius),
+        ch.status,
+        lambda s: s.setpoint_c == celsius,
+        "status confirming the setpoint",
+    )
+
+
 def run_loop(node_process, process_launcher, node_binary, ros):
     """Starts node and simulated heater, waits for a first reading, sends the setpoint and
     enables pw01; returns (node, channel client, simulated heater, its fault publisher)."""
@@ -57,15 +70,7 @@ def run_loop(node_process, process_launcher, node_binary, ros):
     ch.wait_status(
         lambda s: math.isfinite(s.temperature_c), "a first temperature reading", timeout=60
     )
-    sp = ros.publisher(Float64, f"{NODE}/pw01/setpoint")
-    ros.wait_for_subscribers(sp, 1)
-    ch.send(
-        sp,
-        Float64(data=SETPOINT),
-        ch.status,
-        lambda s: s.setpoint_c == SETPOINT,
-        "status confirming the setpoint",
-    )
+    send_setpoint(ros, ch, SETPOINT)
     ch.enable(True)
     faults = ros.publisher(String, "/sim_heater/fault")
     ros.wait_for_subscribers(faults, 1)

@@ -33,12 +33,22 @@ from pwm_actuator_msgs.action import Autotune
 
 from helpers_rules import MS, NODE, diag_level, diag_values, mono_ns
 from test_channel_rules import observe_until, start
-from test_heater import PARAMS, PLANT, TOPIC
+from test_heater import PARAMS, PLANT, TOPIC, send_setpoint
 
 SETPOINT = 60.0
 FAN = 0.3
 #: The quick plant's sensor lags its block by 0.5 s.
 LAGGING = [*PLANT, "--sensor-tau", "0.5"]
+#: `mpc` on the quick plant's model (with the lagging sensor), set as parameters.
+MPC_MODEL = dict(
+    pw01__control="mpc",
+    pw01__model_gain_c_per_pct=1.0,
+    pw01__model_tau_s=20.0,
+    pw01__model_dead_time_s=0.5,
+    pw01__model_sensor_tau_s=0.5,
+    pw01__model_ambient_c=20.0,
+    pw01__model_tolerance_c=45.0,
+)
 #: The fan's response is measured over this long, s.
 WATCH_S = 20.0
 
@@ -139,13 +149,7 @@ def test_the_feedforward_topic_is_used_while_fresh_and_warns_when_stale(
     node_process, process_launcher, node_binary, ros
 ):
     model = dict(
-        pw01__control="mpc",
-        pw01__model_gain_c_per_pct=1.0,
-        pw01__model_tau_s=20.0,
-        pw01__model_dead_time_s=0.5,
-        pw01__model_sensor_tau_s=0.5,
-        pw01__model_ambient_c=20.0,
-        pw01__model_tolerance_c=45.0,
+        **MPC_MODEL,
         pw01__feedforward_topic="/heater/fan_ff",
         pw01__feedforward_timeout_ms=1000,
     )
@@ -186,13 +190,7 @@ def test_the_ambient_topic_is_used_while_fresh_and_warns_when_stale(
     node_process, process_launcher, node_binary, ros
 ):
     model = dict(
-        pw01__control="mpc",
-        pw01__model_gain_c_per_pct=1.0,
-        pw01__model_tau_s=20.0,
-        pw01__model_dead_time_s=0.5,
-        pw01__model_sensor_tau_s=0.5,
-        pw01__model_ambient_c=20.0,
-        pw01__model_tolerance_c=45.0,
+        **MPC_MODEL,
         pw01__ambient_topic="/heater/ambient",
         pw01__ambient_timeout_ms=3000,
     )
@@ -258,15 +256,7 @@ def test_a_ramped_setpoint_moves_the_status_target_at_its_rate(
     first = ch.wait_status(
         lambda s: math.isfinite(s.temperature_c), "a first temperature reading", timeout=60
     )
-    sp = ros.publisher(Float64, f"{NODE}/pw01/setpoint")
-    ros.wait_for_subscribers(sp, 1)
-    ch.send(
-        sp,
-        Float64(data=SETPOINT),
-        ch.status,
-        lambda s: s.setpoint_c == SETPOINT,
-        "status confirming the setpoint",
-    )
+    send_setpoint(ros, ch, SETPOINT)
     start_at = len(ch.status.messages)
     ch.enable(True)
     ros.spin_for(4.0)
