@@ -57,6 +57,15 @@ VALVE = dict(
     # 10 % of the run time over the travel time grows past 20 % over this test's strokes.
     mix__max_uncertainty_pct=50.0,
 )
+#: The valve's loop in the loop tests: integral only, sampled every 100 ms, stale after 1 s,
+#: no motor budget.
+LOOP = dict(
+    mix__pid_kp=0.0,
+    mix__pid_ki=2.0,
+    mix__pid_sample_ms=100,
+    mix__process_timeout_ms=1000,
+    mix__max_starts_per_h=0,
+)
 
 
 def assert_lines_apart(open_edges, close_edges) -> int:
@@ -394,11 +403,7 @@ def test_the_loop_follows_its_process_value_holds_when_it_goes_stale_and_obeys_m
             mix__control="pid",
             mix__process_topic="/supply",
             mix__process_type="float64",
-            mix__pid_kp=0.0,
-            mix__pid_ki=2.0,
-            mix__pid_sample_ms=100,
-            mix__process_timeout_ms=1000,
-            mix__max_starts_per_h=0,
+            **LOOP,
         )
     )
     states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
@@ -453,11 +458,7 @@ def test_a_temperature_process_value_counts_only_when_fresh(node_process, ros):
             **VALVE,
             mix__control="pid",
             mix__process_topic="/supply_c",
-            mix__pid_kp=0.0,
-            mix__pid_ki=2.0,
-            mix__pid_sample_ms=100,
-            mix__process_timeout_ms=1000,
-            mix__max_starts_per_h=0,
+            **LOOP,
         )
     )
     states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
