@@ -3,7 +3,7 @@
 //! read exactly as the node reads them.
 
 use clap::{ArgAction, Args, FromArgMatches};
-use pwm_actuator::ros::config::params::channel_of;
+use pwm_actuator::ros::config::params::channel_index;
 use std::path::PathBuf;
 
 /// Options of `pwm_actuator_node safe-off`.
@@ -68,7 +68,7 @@ pub fn node_args(opts: &SafeOffOptions, ros_blocks: &[String]) -> Vec<String> {
             .iter()
             .filter_map(|l| {
                 let (ch, _) = l.split_once('=')?;
-                channel_of(&format!("{ch}.x")).map(|(i, _)| i + 1)
+                channel_index(ch).map(|i| i + 1)
             })
             .max()
     });

@@ -9,7 +9,7 @@
 //! anything.
 
 use crate::output::gpio::parse_line_addr;
-use crate::ros::config::params::{channel_of, StartValue};
+use crate::ros::config::params::{channel_index, StartValue};
 use clap::error::{ContextKind, ContextValue, ErrorKind};
 use clap::{ArgAction, Args, FromArgMatches};
 use ros2_client::ParameterValue;
@@ -250,7 +250,7 @@ fn parse_line(v: &str) -> Result<(String, Option<String>, i64), ValueError> {
     let (ch, rest) = v
         .split_once('=')
         .ok_or_else(|| ValueError::NotALineAssignment(v.to_string()))?;
-    if channel_of(&format!("{ch}.x")).is_none() {
+    if channel_index(ch).is_none() {
         return Err(ValueError::NotAChannel(ch.to_string()));
     }
     let (chip, offset) =

@@ -417,12 +417,17 @@ fn check_range(d: &Descriptor, v: &ParameterValue) -> Result<(), ParamError> {
 /// `(index, suffix)` when `name` is a channel parameter `pwNN.suffix`.
 pub fn channel_of(name: &str) -> Option<(usize, &str)> {
     let (prefix, rest) = name.split_once('.')?;
-    let digits = prefix.strip_prefix("pw")?;
+    channel_index(prefix).map(|i| (i, rest))
+}
+
+/// The index of channel `name` (`pw01` = 0) when it has a channel's form `pwNN`.
+pub fn channel_index(name: &str) -> Option<usize> {
+    let digits = name.strip_prefix("pw")?;
     if digits.len() != 2 || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }
     let n: usize = digits.parse().ok()?;
-    n.checked_sub(1).map(|i| (i, rest))
+    n.checked_sub(1)
 }
 
 /// Checks a string against its accepted choices.

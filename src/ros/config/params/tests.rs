@@ -542,6 +542,12 @@ fn channel_names() {
     assert_eq!(channel_of("pw1.duty"), None);
     assert_eq!(channel_of("pw00.duty"), None);
     assert_eq!(channel_of("channels"), None);
+    assert_eq!(channel_index("pw01"), Some(0));
+    assert_eq!(channel_index("pw99"), Some(98));
+    assert_eq!(channel_index("pw1"), None);
+    assert_eq!(channel_index("pw00"), None);
+    assert_eq!(channel_index("pw100"), None);
+    assert_eq!(channel_index("mix"), None);
 }
 
 #[test]
