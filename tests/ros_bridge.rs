@@ -194,7 +194,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     );
     assert!(matches!(r, Err(ChangeError::Engine { .. })), "{r:?}");
     assert_eq!(
-        bridge.with_params(|s| s.int("pw01.period_ms")),
+        bridge.with_params(|s| s.channel(0).map(|c| c.period_ms)),
         Some(50),
         "the store keeps the old value"
     );

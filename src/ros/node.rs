@@ -249,11 +249,8 @@ fn valve_runs(
         .iter()
         .zip(limits)
         .map(|((v, config), l)| {
-            let feedback_topic = store
-                .string(&format!("{}.feedback_topic", v.name))
-                .unwrap_or("")
-                .trim()
-                .to_string();
+            let values = store.valve(&v.name).cloned().unwrap_or_default();
+            let feedback_topic = values.feedback_topic.trim().to_string();
             // Read now, restored once the output holds the lines low (see `restore_valves`).
             let record = state_dir.and_then(|dir| match valve_state::read_state(dir, &v.name) {
                 Ok(Some(r)) => Some(r),
@@ -279,13 +276,8 @@ fn valve_runs(
                     feedback: !feedback_topic.is_empty(),
                 },
                 feedback_topic,
-                process_topic: store
-                    .string(&format!("{}.process_topic", v.name))
-                    .unwrap_or("")
-                    .trim()
-                    .to_string(),
-                process_temperature: store.string(&format!("{}.process_type", v.name))
-                    != Some("float64"),
+                process_topic: values.process_topic.trim().to_string(),
+                process_temperature: values.process_type != "float64",
             }
         })
         .collect();
@@ -323,16 +315,12 @@ fn valve_limits(
     valves
         .iter()
         .map(|(v, _)| {
-            let text = |suffix: &str| store.string(&format!("{}.{suffix}", v.name)).unwrap_or("");
+            let values = store.valve(&v.name).cloned().unwrap_or_default();
             Ok(ValveLimits {
-                open: valve::limit_line(&v.name, "open_limit_line", text("open_limit_line"))?,
-                close: valve::limit_line(&v.name, "close_limit_line", text("close_limit_line"))?,
-                active_low: store
-                    .bool(&format!("{}.limit_active_low", v.name))
-                    .unwrap_or(false),
-                debounce_ms: store
-                    .int(&format!("{}.limit_debounce_ms", v.name))
-                    .map_or(0, |ms| ms.max(0) as u64),
+                open: valve::limit_line(&v.name, "open_limit_line", &values.open_limit_line)?,
+                close: valve::limit_line(&v.name, "close_limit_line", &values.close_limit_line)?,
+                active_low: values.limit_active_low,
+                debounce_ms: values.limit_debounce_ms.max(0) as u64,
             })
         })
         .collect()

@@ -21,6 +21,7 @@
 use crate::clock::monotonic_ns;
 use crate::core::heater::autotune::{Goal, Outcome, Progress, Report, Stop};
 use crate::engine::Input;
+use crate::ros::config::params::ChannelValues;
 use crate::ros::inbound::heater::HeaterChannel;
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::interface::msg::{AutotuneFeedback, AutotuneGoal, AutotuneResult, MSG_PACKAGE};
@@ -137,12 +138,9 @@ async fn serve(mut server: Server, inputs: Arc<Inputs>, ch: usize, name: String)
     }
 }
 
-/// A channel parameter's value as f64, if it is a double.
-fn param(inputs: &Inputs, name: &str, key: &str) -> Option<f64> {
-    inputs.with_params(|s| match s.get(&format!("{name}.{key}")) {
-        Some(ParameterValue::Double(v)) => Some(*v),
-        _ => None,
-    })
+/// A value read from channel `ch`'s settings.
+fn param<T>(inputs: &Inputs, ch: usize, read: impl FnOnce(&ChannelValues) -> T) -> Option<T> {
+    inputs.with_params(|s| s.channel(ch).map(read))
 }
 
 fn ended(stop: &str, message: String) -> (GoalEndStatus, AutotuneResult) {
@@ -177,7 +175,7 @@ fn start(
     let (id, g) = server.accept(g);
     server.execute(&id);
     let amplitude_pct = if g.amplitude_pct == 0.0 {
-        param(inputs, name, "max_duty_pct").unwrap_or(100.0)
+        param(inputs, ch, |c| c.max_duty_pct).unwrap_or(100.0)
     } else {
         g.amplitude_pct
     };
@@ -188,8 +186,9 @@ fn start(
     };
     // A report of the core never comes later than the run's timeout after the last one; a
     // minute more, and the run is taken as lost (its end dropped by a full report queue).
-    let stale =
-        Duration::from_secs_f64(param(inputs, name, "autotune_timeout_s").unwrap_or(1200.0) + 60.0);
+    let stale = Duration::from_secs_f64(
+        param(inputs, ch, |c| c.autotune_timeout_s).unwrap_or(1200.0) + 60.0,
+    );
     let ticket = inputs.state().reset_ticket();
     // Reports of an earlier run that nobody took.
     inputs.state().take_autotune(ch, 0);

@@ -10,7 +10,7 @@
 //! due rather than looking again and again.
 
 use crate::engine::ReportWaker;
-use crate::ros::config::params::{channel_name, ParamStore};
+use crate::ros::config::params::ParamStore;
 pub use crate::ros::config::params::{
     DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW, MAX_COMMAND_HZ_WINDOW,
     MAX_EXPECTED_COMMAND_HZ,
@@ -282,12 +282,11 @@ impl NodeState {
     /// accepted change); values the store does not hold keep their defaults.
     pub fn apply_params(&self, store: &ParamStore) {
         for (ch, c) in self.channels.iter().enumerate() {
-            let name = channel_name(ch);
-            let get = |suffix: &str| store.double(&format!("{name}.{suffix}")).unwrap_or(0.0);
-            c.min_hz
-                .store(get("expected_command_hz_min").to_bits(), Ordering::Relaxed);
-            c.max_hz
-                .store(get("expected_command_hz_max").to_bits(), Ordering::Relaxed);
+            let (min, max) = store.channel(ch).map_or((0.0, 0.0), |v| {
+                (v.expected_command_hz_min, v.expected_command_hz_max)
+            });
+            c.min_hz.store(min.to_bits(), Ordering::Relaxed);
+            c.max_hz.store(max.to_bits(), Ordering::Relaxed);
         }
         let settings = store.node_settings();
         self.window

@@ -29,7 +29,7 @@ fn get(b: &Inputs, req: GetParametersRequest) -> GetParametersResponse {
         values: req
             .names
             .iter()
-            .map(|n| s.get(n).cloned().unwrap_or(ParameterValue::NotSet).into())
+            .map(|n| s.get(n).unwrap_or(ParameterValue::NotSet).into())
             .collect(),
     })
 }

@@ -2,8 +2,9 @@
 //! store every door writes through (command line, parameter files, the parameter services, the
 //! `~/<ch>/params` topic), and the checks a change must pass before it is applied.
 //!
-//! A change is checked whole: every value is coerced to its declared type, range-checked, and
-//! every channel it touches is rebuilt as a [`ChannelParams`] and validated by the core
+//! A change is checked whole, on a copy of the store's typed settings ([`ChannelValues`], ...):
+//! every value is coerced to its declared type, range-checked, and written to its field; then
+//! every channel it touches is mapped once into a [`ChannelParams`] and validated by the core
 //! ([`ChannelParams::validate`]), every valve it touches as a `ValveParams` (its
 //! `validate`), so cross-parameter rules (`min_on_ms <= period_ms`, the minima fitting the
 //! period, a valve's minimum pulse within its travel times) hold whatever order the values
@@ -21,7 +22,7 @@ mod store;
 mod table;
 
 pub use reference::{reference_markdown, REFERENCE_COMMAND, REFERENCE_PATH};
-pub use settings::NodeSettings;
+pub use settings::{ChannelValues, NodeSettings, NodeValues, Value, ValveValues};
 pub use startup::{start_up, ChannelStart, StartUp, StartValue, StartupConfig};
 pub use store::{items_from_msg, Accepted, ParamStore, Stage};
 pub use table::msg_fields;
@@ -138,6 +139,10 @@ pub struct Descriptor {
     pub note: &'static str,
     checked: Checked,
     choices: Option<table::Choices>,
+    /// The typed field that holds the value.
+    access: table::Access,
+    /// Which channel's or valve's settings hold it (0 for a node parameter).
+    at: usize,
 }
 
 impl Descriptor {
@@ -443,8 +448,9 @@ fn check_choice(d: &Descriptor, v: &ParameterValue) -> Result<(), ParamError> {
     }
 }
 
-/// The descriptor of parameter `name` declared by `d`.
-fn make(name: String, d: &table::Decl) -> Descriptor {
+/// The descriptor of parameter `name` declared by `d`, of channel or valve `at` (0 for a node
+/// parameter).
+fn make(name: String, d: &table::Decl, at: usize) -> Descriptor {
     Descriptor {
         name,
         ptype: d.ptype,
@@ -457,6 +463,8 @@ fn make(name: String, d: &table::Decl) -> Descriptor {
         note: d.note,
         checked: d.checked,
         choices: d.choices,
+        access: d.access,
+        at,
     }
 }
 

@@ -2,9 +2,9 @@
 //! store and the configuration the node starts with.
 
 use super::table::node_decls;
-use super::NodeSettings;
 use super::DEFAULT_CHANNELS;
 use super::{channel_name, check_range, coerce, make, ParamError, ParamStore, Stage};
+use super::{ChannelValues, NodeSettings};
 use crate::core::ChannelConfig;
 use crate::output::{Backend, GpioLine, OutputSpec, TraceLimit};
 
@@ -43,7 +43,7 @@ pub struct StartUp {
 /// count comes from the last `channels` value; values for parameters the node does not
 /// declare are ignored and listed.
 pub fn start_up(values: &[StartValue]) -> Result<StartUp, ParamError> {
-    let channels_decl = make("channels".into(), &node_decls()[0]);
+    let channels_decl = make("channels".into(), &node_decls()[0], 0);
     let mut channels = DEFAULT_CHANNELS;
     for v in values.iter().filter(|v| v.name == "channels") {
         let (c, _) = coerce(&channels_decl, &v.value)?;
@@ -132,50 +132,34 @@ impl StartupConfig {
     pub fn from_store(store: &ParamStore) -> Result<StartupConfig, ParamError> {
         let settings = store.node_settings();
         let mut channels = Vec::new();
-        for ch in 0..store.channels() {
-            let name = channel_name(ch);
+        let values: Vec<&ChannelValues> = (0..store.channels())
+            .filter_map(|ch| store.channel(ch))
+            .collect();
+        for (ch, v) in values.iter().enumerate() {
             channels.push(ChannelStart {
+                name: channel_name(ch),
                 config: store.channel_config(ch)?,
-                enable: store.bool(&format!("{name}.enable")).unwrap_or(false),
-                duty_percent: store.double(&format!("{name}.duty")).unwrap_or(0.0),
-                feedback_topic: store
-                    .string(&format!("{name}.feedback_topic"))
-                    .unwrap_or("")
-                    .to_string(),
-                feedforward_topic: store
-                    .string(&format!("{name}.feedforward_topic"))
-                    .unwrap_or("")
-                    .trim()
-                    .to_string(),
-                ambient_topic: store
-                    .string(&format!("{name}.ambient_topic"))
-                    .unwrap_or("")
-                    .trim()
-                    .to_string(),
-                name,
+                enable: v.enable,
+                duty_percent: v.duty,
+                feedback_topic: v.feedback_topic.clone(),
+                feedforward_topic: v.feedforward_topic.trim().to_string(),
+                ambient_topic: v.ambient_topic.trim().to_string(),
             });
         }
         let heartbeat = settings.heartbeat_line;
         let backend = if settings.gpio {
             let mut lines = Vec::new();
-            for c in &channels {
-                let offset = store.int(&format!("{}.gpio_line", c.name)).unwrap_or(-1);
-                if offset < 0 {
+            for (c, v) in channels.iter().zip(&values) {
+                if v.gpio_line < 0 {
                     return Err(ParamError::MissingLine {
                         channel: c.name.clone(),
                     });
                 }
                 lines.push(GpioLine {
                     name: c.name.clone(),
-                    chip: PathBuf::from(
-                        store
-                            .string(&format!("{}.gpio_chip", c.name))
-                            .unwrap_or("/dev/gpiochip0"),
-                    ),
-                    offset: offset.min(u32::MAX as i64) as u32,
-                    active_low: store
-                        .bool(&format!("{}.active_low", c.name))
-                        .unwrap_or(false),
+                    chip: PathBuf::from(&v.gpio_chip),
+                    offset: v.gpio_line.min(u32::MAX as i64) as u32,
+                    active_low: v.active_low,
                 });
             }
             if let Some(offset) = heartbeat {

@@ -2,9 +2,10 @@
 //! services, the `~/<ch>/params` topic), and the whole-change check a change must pass before
 //! it is applied (see the module documentation of [`super`]).
 
-use super::table::{self, channel_decls, node_decls};
+use super::table::{self, channel_decls, node_decls, Access};
+use super::MAX_CHANNELS;
 use super::{channel_name, channel_of, check_choice, check_range, coerce, make, Descriptor};
-use super::{shown, NodeSettings, ParamError, MAX_CHANNELS};
+use super::{shown, ChannelValues, NodeSettings, NodeValues, ParamError, ValveValues};
 use crate::core::{ChannelConfig, ChannelParams, ValveConfig};
 use crate::ros::interface::msg;
 use ros2_client::parameters::raw;
@@ -38,14 +39,44 @@ pub struct Accepted {
     pub valve_configs: Vec<(usize, ValveConfig)>,
 }
 
-/// Every parameter of the node with its current value.
+/// Every parameter of the node with its current value: the declarations by name (the ROS
+/// edge) and the values in typed settings, one struct for the node, one a channel and one a
+/// valve.
 #[derive(Debug, Clone)]
 pub struct ParamStore {
     decls: BTreeMap<String, Descriptor>,
-    values: BTreeMap<String, ParameterValue>,
-    channels: usize,
-    /// The valves' names, in the order they were declared (their index in the output thread).
+    values: Values,
+    /// The valves' names, in the order they were declared (their index in the output thread
+    /// and in `values.valves`).
     valves: Vec<String>,
+}
+
+/// The typed settings a store holds; a change is made on a copy.
+#[derive(Debug, Clone, PartialEq, Default)]
+struct Values {
+    node: NodeValues,
+    channels: Vec<ChannelValues>,
+    valves: Vec<ValveValues>,
+}
+
+impl Values {
+    /// The value of the parameter `d` declares.
+    fn get(&self, d: &Descriptor) -> ParameterValue {
+        match d.access {
+            Access::Node(f) => (f.get)(&self.node),
+            Access::Channel(f) => (f.get)(&self.channels[d.at]),
+            Access::Valve(f) => (f.get)(&self.valves[d.at]),
+        }
+    }
+
+    /// Sets the parameter `d` declares to `v` (of its declared type).
+    fn set(&mut self, d: &Descriptor, v: &ParameterValue) {
+        match d.access {
+            Access::Node(f) => (f.set)(&mut self.node, v),
+            Access::Channel(f) => (f.set)(&mut self.channels[d.at], v),
+            Access::Valve(f) => (f.set)(&mut self.valves[d.at], v),
+        }
+    }
 }
 
 impl ParamStore {
@@ -55,25 +86,27 @@ impl ParamStore {
         let channels = channels.clamp(1, MAX_CHANNELS);
         let mut decls = BTreeMap::new();
         for d in node_decls() {
-            decls.insert(d.suffix.to_string(), make(d.suffix.to_string(), &d));
+            decls.insert(d.suffix.to_string(), make(d.suffix.to_string(), &d, 0));
         }
         for ch in 0..channels {
             for d in channel_decls() {
                 let name = format!("{}.{}", channel_name(ch), d.suffix);
-                decls.insert(name.clone(), make(name, &d));
+                decls.insert(name.clone(), make(name, &d, ch));
             }
         }
         if let Some(d) = decls.get_mut("channels") {
             d.default = ParameterValue::Integer(channels as i64);
         }
-        let values = decls
-            .iter()
-            .map(|(k, d)| (k.clone(), d.default.clone()))
-            .collect();
+        let mut values = Values {
+            channels: vec![ChannelValues::default(); channels],
+            ..Values::default()
+        };
+        for d in decls.values() {
+            values.set(d, &d.default);
+        }
         ParamStore {
             decls,
             values,
-            channels,
             valves: Vec::new(),
         }
     }
@@ -83,39 +116,53 @@ impl ParamStore {
     /// collide with a declared parameter is skipped.
     pub fn declare_valves(&mut self, names: &[String]) {
         for valve in names {
+            let k = self.valves.len();
             self.valves.push(valve.clone());
+            let mut values = ValveValues::default();
             for d in table::valve_decls() {
                 let name = format!("{valve}.{}", d.suffix);
-                if self.decls.contains_key(&name) {
-                    continue;
+                let desc = make(name.clone(), &d, k);
+                if let Access::Valve(f) = d.access {
+                    (f.set)(&mut values, &desc.default);
                 }
-                let desc = make(name.clone(), &d);
-                self.values.insert(name.clone(), desc.default.clone());
-                self.decls.insert(name, desc);
+                self.decls.entry(name).or_insert(desc);
             }
+            self.values.valves.push(values);
         }
-    }
-
-    /// Valve `valve`'s settings from its parameters (see [`ParamStore::declare_valves`]).
-    pub fn valve_params(&self, valve: &str) -> crate::core::ValveParams {
-        Self::valve_params_in(&self.values, valve)
-    }
-
-    fn valve_params_in(
-        values: &BTreeMap<String, ParameterValue>,
-        valve: &str,
-    ) -> crate::core::ValveParams {
-        table::valve_params(|suffix| values.get(&format!("{valve}.{suffix}")).cloned())
     }
 
     /// Number of channels.
     pub fn channels(&self) -> usize {
-        self.channels
+        self.values.channels.len()
+    }
+
+    /// The node-level parameters' values.
+    pub fn node(&self) -> &NodeValues {
+        &self.values.node
+    }
+
+    /// Channel `ch`'s parameters' values.
+    pub fn channel(&self, ch: usize) -> Option<&ChannelValues> {
+        self.values.channels.get(ch)
+    }
+
+    /// Valve `valve`'s parameters' values (see [`ParamStore::declare_valves`]).
+    pub fn valve(&self, valve: &str) -> Option<&ValveValues> {
+        let k = self.valves.iter().position(|v| v == valve)?;
+        self.values.valves.get(k)
+    }
+
+    /// Valve `valve`'s settings from its parameters (the defaults for a valve not declared).
+    pub fn valve_params(&self, valve: &str) -> crate::core::ValveParams {
+        match self.valve(valve) {
+            Some(v) => table::valve_params(v),
+            None => crate::core::ValveParams::default(),
+        }
     }
 
     /// The current value of a parameter.
-    pub fn get(&self, name: &str) -> Option<&ParameterValue> {
-        self.values.get(name)
+    pub fn get(&self, name: &str) -> Option<ParameterValue> {
+        self.decls.get(name).map(|d| self.values.get(d))
     }
 
     /// The declaration of a parameter.
@@ -125,60 +172,20 @@ impl ParamStore {
 
     /// Every parameter name, sorted.
     pub fn names(&self) -> Vec<String> {
-        self.values.keys().cloned().collect()
+        self.decls.keys().cloned().collect()
     }
 
     /// Every parameter with its current value, sorted by name.
     pub fn all(&self) -> Vec<(String, ParameterValue)> {
-        self.values
+        self.decls
             .iter()
-            .map(|(k, v)| (k.clone(), v.clone()))
+            .map(|(k, d)| (k.clone(), self.values.get(d)))
             .collect()
     }
 
-    /// An integer parameter's value.
-    pub fn int(&self, name: &str) -> Option<i64> {
-        match self.values.get(name) {
-            Some(ParameterValue::Integer(i)) => Some(*i),
-            _ => None,
-        }
-    }
-
-    /// A double parameter's value.
-    pub fn double(&self, name: &str) -> Option<f64> {
-        match self.values.get(name) {
-            Some(ParameterValue::Double(x)) => Some(*x),
-            _ => None,
-        }
-    }
-
-    /// A bool parameter's value.
-    pub fn bool(&self, name: &str) -> Option<bool> {
-        match self.values.get(name) {
-            Some(ParameterValue::Boolean(b)) => Some(*b),
-            _ => None,
-        }
-    }
-
-    /// A string parameter's value.
-    pub fn string(&self, name: &str) -> Option<&str> {
-        match self.values.get(name) {
-            Some(ParameterValue::String(s)) => Some(s),
-            _ => None,
-        }
-    }
-
-    /// The node-level settings the store's values give (the table's defaults where a value
-    /// is not in the store).
+    /// The node-level settings the store's values give.
     pub fn node_settings(&self) -> NodeSettings {
-        let mut n = NodeSettings::default();
-        for d in node_decls() {
-            if let Some(to_node) = d.node {
-                let v = self.values.get(d.suffix).cloned().unwrap_or_else(d.default);
-                to_node(&mut n, &v);
-            }
-        }
-        n
+        table::node_settings(&self.values.node)
     }
 
     /// Answers `list_parameters` the way rclcpp does: with no prefixes, names with fewer than
@@ -190,7 +197,7 @@ impl ParamStore {
         let mut found: BTreeSet<&str> = BTreeSet::new();
         if prefixes.is_empty() {
             found.extend(
-                self.values
+                self.decls
                     .keys()
                     .map(String::as_str)
                     .filter(|n| within(n.matches('.').count())),
@@ -209,12 +216,12 @@ impl ParamStore {
                 return (Vec::new(), Vec::new());
             }
             for p in distinct {
-                if let Some((name, _)) = self.values.get_key_value(p) {
+                if let Some((name, _)) = self.decls.get_key_value(p) {
                     found.insert(name.as_str());
                 }
                 let under = format!("{p}.");
                 for name in self
-                    .values
+                    .decls
                     .range::<str, _>((Bound::Included(under.as_str()), Bound::Unbounded))
                     .map(|(n, _)| n.as_str())
                     .take_while(|n| n.starts_with(under.as_str()))
@@ -239,22 +246,14 @@ impl ParamStore {
         )
     }
 
-    /// The channel's parameters as the core's [`ChannelParams`], from `values`, each mapped
-    /// by its entry in the table.
-    fn channel_params_in(
-        values: &BTreeMap<String, ParameterValue>,
-        ch: usize,
-    ) -> Result<ChannelParams, ParamError> {
-        let prefix = channel_name(ch);
-        let mut params = ChannelParams::default();
-        for d in channel_decls() {
-            let Some(to_core) = d.core else { continue };
-            let name = format!("{prefix}.{}", d.suffix);
-            let value = values.get(&name).cloned().unwrap_or_else(d.default);
-            to_core(&mut params, &value)
-                .map_err(|source| ParamError::BadChoice { name, source })?;
-        }
-        Ok(params)
+    /// The channel's settings in `values` as the core's [`ChannelParams`].
+    fn channel_params_in(values: &Values, ch: usize) -> Result<ChannelParams, ParamError> {
+        table::channel_params(&values.channels[ch]).map_err(|(suffix, source)| {
+            ParamError::BadChoice {
+                name: format!("{}.{suffix}", channel_name(ch)),
+                source,
+            }
+        })
     }
 
     /// Channel `ch`'s settings as the core's [`ChannelParams`].
@@ -272,7 +271,9 @@ impl ParamStore {
             })
     }
 
-    /// Checks a change as a whole (see the module documentation). Nothing is modified.
+    /// Checks a change as a whole (see the module documentation): it is applied to a copy of
+    /// the typed settings, and each channel and valve it touches is validated once. Nothing
+    /// is modified.
     pub fn check(
         &self,
         items: &[(String, ParameterValue)],
@@ -280,7 +281,7 @@ impl ParamStore {
     ) -> Result<Accepted, ParamError> {
         let mut working = self.values.clone();
         let mut notes = Vec::new();
-        let mut order: Vec<String> = Vec::new();
+        let mut order: Vec<&Descriptor> = Vec::new();
         for (name, value) in items {
             let d = self.decls.get(name).ok_or_else(|| ParamError::Undeclared {
                 name: shown(name),
@@ -292,39 +293,39 @@ impl ParamStore {
             if name == "use_sim_time" && v == ParameterValue::Boolean(true) {
                 return Err(ParamError::SimTime);
             }
-            if stage == Stage::Live && d.read_only && self.values.get(name) != Some(&v) {
+            if stage == Stage::Live && d.read_only && self.values.get(d) != v {
                 return Err(ParamError::ReadOnly {
                     name: name.clone(),
                     why: d.why_read_only,
                 });
             }
             notes.extend(note);
-            working.insert(name.clone(), v);
-            order.retain(|n| n != name);
-            order.push(name.clone());
+            working.set(d, &v);
+            order.retain(|n| n.name != d.name);
+            order.push(d);
         }
-        let changes: Vec<(String, ParameterValue)> = order
+        let changed: Vec<&Descriptor> = order
             .into_iter()
-            .filter_map(|n| {
-                let v = working.get(&n)?;
-                (self.values.get(&n) != Some(v)).then(|| (n, v.clone()))
-            })
+            .filter(|d| working.get(d) != self.values.get(d))
             .collect();
-        let mut touched: Vec<usize> = changes
-            .iter()
-            .filter_map(|(n, _)| channel_of(n).map(|(ch, _)| ch))
-            .collect();
-        touched.sort_unstable();
-        touched.dedup();
-        for &ch in &touched {
-            let rate = |suffix: &str| match working.get(&format!("{}.{suffix}", channel_name(ch))) {
-                Some(ParameterValue::Double(x)) => *x,
-                _ => 0.0,
-            };
-            let (min, max) = (
-                rate("expected_command_hz_min"),
-                rate("expected_command_hz_max"),
-            );
+        let touched = |valves: bool| {
+            let mut at: Vec<usize> = changed
+                .iter()
+                .filter(|d| match d.access {
+                    Access::Channel(_) => !valves,
+                    Access::Valve(_) => valves,
+                    Access::Node(_) => false,
+                })
+                .map(|d| d.at)
+                .collect();
+            at.sort_unstable();
+            at.dedup();
+            at
+        };
+        let channels = touched(false);
+        for &ch in &channels {
+            let c = &working.channels[ch];
+            let (min, max) = (c.expected_command_hz_min, c.expected_command_hz_max);
             if max > 0.0 && min > max {
                 return Err(ParamError::RateBounds {
                     channel: channel_name(ch),
@@ -334,7 +335,7 @@ impl ParamStore {
             }
         }
         let mut configs = Vec::new();
-        for ch in touched {
+        for ch in channels {
             let new = Self::channel_params_in(&working, ch)?;
             let config = new.validate().map_err(|source| ParamError::Channel {
                 channel: channel_name(ch),
@@ -346,22 +347,21 @@ impl ParamStore {
         }
         // A valve's settings are checked together, as a channel's.
         let mut valve_configs = Vec::new();
-        for (k, valve) in self.valves.iter().enumerate() {
-            let prefix = format!("{valve}.");
-            if !changes.iter().any(|(n, _)| n.starts_with(&prefix)) {
-                continue;
-            }
-            let new = Self::valve_params_in(&working, valve);
+        for k in touched(true) {
+            let new = table::valve_params(&working.valves[k]);
             let config = new.validate().map_err(|source| ParamError::Valve {
-                valve: valve.clone(),
+                valve: self.valves[k].clone(),
                 source,
             })?;
-            if Self::valve_params_in(&self.values, valve) != new {
+            if table::valve_params(&self.values.valves[k]) != new {
                 valve_configs.push((k, config));
             }
         }
         Ok(Accepted {
-            changes,
+            changes: changed
+                .into_iter()
+                .map(|d| (d.name.clone(), working.get(d)))
+                .collect(),
             notes,
             configs,
             valve_configs,
@@ -370,11 +370,11 @@ impl ParamStore {
 
     fn undeclared_hint(&self, name: &str) -> String {
         match channel_of(name) {
-            Some((ch, _)) if ch >= self.channels => format!(
+            Some((ch, _)) if ch >= self.channels() => format!(
                 " (this node has {} channel{}: pw01..{})",
-                self.channels,
-                if self.channels == 1 { "" } else { "s" },
-                channel_name(self.channels - 1)
+                self.channels(),
+                if self.channels() == 1 { "" } else { "s" },
+                channel_name(self.channels() - 1)
             ),
             _ => String::new(),
         }
@@ -386,12 +386,13 @@ impl ParamStore {
         accepted
             .changes
             .iter()
-            .map(|(name, value)| {
-                self.values.insert(name.clone(), value.clone());
-                raw::Parameter {
+            .filter_map(|(name, value)| {
+                let d = self.decls.get(name)?;
+                self.values.set(d, value);
+                Some(raw::Parameter {
                     name: name.clone(),
                     value: value.clone().into(),
-                }
+                })
             })
             .collect()
     }

@@ -1,15 +1,17 @@
-//! The one table of the node's parameters. Every node and channel parameter is declared here
-//! once: name, type, default, range, whether it is read-only, its description with units, what
-//! its special values mean, its accepted spellings, and — for a channel parameter — how it maps
-//! into the core's [`ChannelParams`] and from the `pwm_actuator_msgs/ChannelParams` message. The
-//! parameter services' declarations and descriptors, the validation messages, the message
-//! mapping and the parameter page `docs/parameters.md` (generated, compared by a test) all
-//! derive from it.
+//! The one table of the node's parameters. Every node, channel and valve parameter is declared
+//! here once: the typed field that holds its value (in [`NodeValues`], [`ChannelValues`] or
+//! [`ValveValues`], as generate_parameter_library's YAML names a field of its generated
+//! struct; the parameter's name and type are the field's), default, range, whether it is
+//! read-only, its description with units, what its special values mean, its accepted
+//! spellings, and — for a channel parameter — how it maps into the core's [`ChannelParams`]
+//! and from the `pwm_actuator_msgs/ChannelParams` message. The parameter services'
+//! declarations and descriptors, the validation messages, the message mapping and the
+//! parameter page `docs/parameters.md` (generated, compared by a test) all derive from it.
 //!
 //! Defaults and limits of the channel settings come from the core (`ChannelParams::default()`,
 //! `MAX_PERIOD_MS`, `MAX_TIMEOUT_MS`), so none is written twice.
 
-use super::settings::NodeSettings;
+use super::settings::{ChannelValues, NodeSettings, NodeValues, Value, ValveValues};
 use super::{ParamType, Range, DEFAULT_CHANNELS, MAX_CHANNELS, MAX_STATUS_RATE_HZ};
 use super::{ParameterValue as V, MIN_STATUS_RATE_HZ};
 use super::{DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW};
@@ -62,10 +64,92 @@ pub(super) type FromMsg = fn(&msg::ChannelParams) -> V;
 /// Accepts or refuses a string parameter's spelling.
 pub(super) type Choices = fn(&str) -> Result<(), UnknownName>;
 
+/// A parameter's typed field in the settings of type `S`: its name, its declared type (the
+/// field's), and how its value is read and written.
+pub(super) struct Field<S> {
+    pub name: &'static str,
+    pub ptype: ParamType,
+    pub get: fn(&S) -> V,
+    pub set: fn(&mut S, &V),
+}
+
+impl<S> Clone for Field<S> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<S> Copy for Field<S> {}
+
+impl<S> std::fmt::Debug for Field<S> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name)
+    }
+}
+
+/// Where a parameter's value lives: the field of the node's, a channel's or a valve's
+/// settings.
+#[derive(Debug, Clone, Copy)]
+pub(super) enum Access {
+    /// A field of [`NodeValues`].
+    Node(Field<NodeValues>),
+    /// A field of each channel's [`ChannelValues`].
+    Channel(Field<ChannelValues>),
+    /// A field of each valve's [`ValveValues`].
+    Valve(Field<ValveValues>),
+}
+
+impl Access {
+    fn name(self) -> &'static str {
+        match self {
+            Access::Node(f) => f.name,
+            Access::Channel(f) => f.name,
+            Access::Valve(f) => f.name,
+        }
+    }
+
+    fn ptype(self) -> ParamType {
+        match self {
+            Access::Node(f) => f.ptype,
+            Access::Channel(f) => f.ptype,
+            Access::Valve(f) => f.ptype,
+        }
+    }
+}
+
+/// The declared type of a field, from its Rust type.
+pub(super) fn type_of<S, T: Value>(_: fn(&S) -> &T) -> ParamType {
+    T::TYPE
+}
+
+/// The [`Access`] of field `$field` of the node's (`node`), a channel's (`channel`) or a
+/// valve's (`valve`) settings: the parameter's name is the field's, its type the field's.
+macro_rules! field {
+    (node, $field:ident) => {
+        Access::Node(field!(@ NodeValues, $field))
+    };
+    (channel, $field:ident) => {
+        Access::Channel(field!(@ ChannelValues, $field))
+    };
+    (valve, $field:ident) => {
+        Access::Valve(field!(@ ValveValues, $field))
+    };
+    (@ $settings:ty, $field:ident) => {
+        Field::<$settings> {
+            name: stringify!($field),
+            ptype: type_of(|s: &$settings| &s.$field),
+            get: |s| Value::to_value(&s.$field),
+            set: |s, v| s.$field = Value::from_value(v),
+        }
+    };
+}
+
 /// One parameter (for a channel parameter, without its `pwNN.` prefix).
 pub(super) struct Decl {
     pub suffix: &'static str,
     pub ptype: ParamType,
+    /// The typed field that holds its value.
+    pub access: Access,
     pub default: fn() -> V,
     /// What it is, with its unit.
     pub description: &'static str,
@@ -94,10 +178,11 @@ pub(super) type ToNode = fn(&mut NodeSettings, &V);
 const START_UP: &str = "it is read at start-up only; restart the node to change it";
 
 impl Decl {
-    const fn new(suffix: &'static str, ptype: ParamType, default: fn() -> V) -> Decl {
+    fn new(access: Access, default: fn() -> V) -> Decl {
         Decl {
-            suffix,
-            ptype,
+            suffix: access.name(),
+            ptype: access.ptype(),
+            access,
             default,
             description: "",
             constraints: "",
@@ -138,7 +223,7 @@ fn int(v: &V) -> i64 {
 
 /// A time in ms; negative values were refused by the range checks, `max(0)` guards the cast.
 fn ms(v: &V) -> u64 {
-    int(v).max(0) as u64
+    count(int(v))
 }
 
 /// An optional policy: empty means "as the profile says".
@@ -217,7 +302,6 @@ const VALVE_TRAVEL: &str = "the position estimate and the moves under way count 
 /// channel's); the travel times, the end switches and the reference at start are read at
 /// start-up. The vendor practice behind each is in docs/valve.md.
 pub(super) fn valve_decls() -> Vec<Decl> {
-    use ParamType::*;
     let travel = Range::Integer(MIN_TRAVEL_MS as i64, MAX_TRAVEL_MS as i64);
     vec![
         Decl {
@@ -225,7 +309,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           TransitTime, OSCAT ACTUATOR_3P T_RUN).",
             range: travel,
             read_only: Some(VALVE_TRAVEL),
-            ..Decl::new("travel_open_ms", Integer, || {
+            ..Decl::new(field!(valve, travel_open_ms), || {
                 V::Integer(valve_defaults().travel_open_ms as i64)
             })
         },
@@ -234,7 +318,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           FB_BA_Anlg3Pnt keeps the two apart).",
             range: travel,
             read_only: Some(VALVE_TRAVEL),
-            ..Decl::new("travel_close_ms", Integer, || {
+            ..Decl::new(field!(valve, travel_close_ms), || {
                 V::Integer(valve_defaults().travel_close_ms as i64)
             })
         },
@@ -243,7 +327,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           differ by less than this either way (a half width: Beckhoff's fHys is \
                           the full width, fHys/2 either way, so deadband_pct = fHys/2).",
             range: Range::Double(0.0, MAX_DEADBAND_PCT),
-            ..Decl::new("deadband_pct", Double, || {
+            ..Decl::new(field!(valve, deadband_pct), || {
                 V::Double(valve_defaults().deadband_pct)
             })
         },
@@ -253,7 +337,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             constraints: "at most the shorter travel time",
             range: Range::Integer(0, MAX_TRAVEL_MS as i64),
             checked: Checked::Core,
-            ..Decl::new("min_pulse_ms", Integer, || {
+            ..Decl::new(field!(valve, min_pulse_ms), || {
                 V::Integer(valve_defaults().min_pulse_ms as i64)
             })
         },
@@ -264,7 +348,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           next current zero (up to 10 ms at 50 Hz).",
             range: Range::Integer(MIN_REVERSAL_PAUSE_MS as i64, MAX_REVERSAL_PAUSE_MS as i64),
             checked: Checked::Core,
-            ..Decl::new("reversal_pause_ms", Integer, || {
+            ..Decl::new(field!(valve, reversal_pause_ms), || {
                 V::Integer(valve_defaults().reversal_pause_ms as i64)
             })
         },
@@ -276,7 +360,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             constraints: "at most 10 % of the shorter travel time",
             range: Range::Integer(0, MAX_TRAVEL_MS as i64 / 10),
             checked: Checked::Core,
-            ..Decl::new("start_lag_ms", Integer, || {
+            ..Decl::new(field!(valve, start_lag_ms), || {
                 V::Integer(valve_defaults().start_lag_ms as i64)
             })
         },
@@ -287,7 +371,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           the play.",
             range: Range::Double(0.0, MAX_BACKLASH_PCT),
             read_only: Some(VALVE_START_UP),
-            ..Decl::new("backlash_pct", Double, || {
+            ..Decl::new(field!(valve, backlash_pct), || {
                 V::Double(valve_defaults().backlash_pct)
             })
         },
@@ -297,7 +381,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           uncertainty allows (at the slowest travel time), and then this much \
                           longer (OSCAT ACTUATOR_3P); 150 % of the travel time at most.",
             range: Range::Double(0.0, MAX_END_OVERRUN_PCT),
-            ..Decl::new("end_overrun_pct", Double, || {
+            ..Decl::new(field!(valve, end_overrun_pct), || {
                 V::Double(valve_defaults().end_overrun_pct)
             })
         },
@@ -309,7 +393,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           (the restored position, or unreferenced until an end is reached).",
             choices: Some(|s| spelled::<ReferenceAtStart>(s, false)),
             read_only: Some(VALVE_START_UP),
-            ..Decl::new("reference_at_start", String, || {
+            ..Decl::new(field!(valve, reference_at_start), || {
                 V::String(valve_defaults().reference_at_start.as_str().to_string())
             })
         },
@@ -321,7 +405,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           uncertainty past max_uncertainty_pct goes through the nearer end \
                           whatever the target. 0: by the uncertainty only.",
             range: Range::Integer(0, MAX_RECALIBRATE_AFTER_S as i64),
-            ..Decl::new("recalibrate_after_s", Integer, || {
+            ..Decl::new(field!(valve, recalibrate_after_s), || {
                 V::Integer(valve_defaults().recalibrate_after_s as i64)
             })
         },
@@ -330,7 +414,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           returns, one valve at a time, h (OSCAT T_DIAG, ACTUATOR_2P \
                           self-activation). 0: never.",
             range: Range::Integer(0, MAX_EXERCISE_EVERY_H as i64),
-            ..Decl::new("exercise_every_h", Integer, || {
+            ..Decl::new(field!(valve, exercise_every_h), || {
                 V::Integer(valve_defaults().exercise_every_h as i64)
             })
         },
@@ -340,7 +424,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           the backlash, over every drive since the last reference); a move that \
                           would pass it recalibrates first.",
             range: Range::Double(0.0, 100.0),
-            ..Decl::new("max_uncertainty_pct", Double, || {
+            ..Decl::new(field!(valve, max_uncertainty_pct), || {
                 V::Double(valve_defaults().max_uncertainty_pct)
             })
         },
@@ -348,14 +432,14 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             description: "Command timeout, ms: no position command for this long triggers \
                           on_timeout. 0: off.",
             range: Range::Integer(0, MAX_COMMAND_TIMEOUT_MS as i64),
-            ..Decl::new("command_timeout_ms", Integer, || {
+            ..Decl::new(field!(valve, command_timeout_ms), || {
                 V::Integer(valve_defaults().command_timeout_ms as i64)
             })
         },
         Decl {
             description: "What a command timeout does: stop (where it is), close or open.",
             choices: Some(|s| spelled::<OnTimeout>(s, false)),
-            ..Decl::new("on_timeout", String, || {
+            ..Decl::new(field!(valve, on_timeout), || {
                 V::String(valve_defaults().on_timeout.as_str().to_string())
             })
         },
@@ -366,7 +450,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           does not move it is motor_stalled, and the travel times are measured. \
                           Empty: none.",
             read_only: Some(VALVE_START_UP),
-            ..Decl::new("feedback_topic", String, || {
+            ..Decl::new(field!(valve, feedback_topic), || {
                 V::String(std::string::String::new())
             })
         },
@@ -374,7 +458,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             description: "Accuracy of the position feedback, percent of the stroke: at rest the \
                           position lies within this of the feedback.",
             range: Range::Double(0.0, MAX_FEEDBACK_TOLERANCE_PCT),
-            ..Decl::new("feedback_tolerance_pct", Double, || {
+            ..Decl::new(field!(valve, feedback_tolerance_pct), || {
                 V::Double(valve_defaults().feedback_tolerance_pct)
             })
         },
@@ -387,7 +471,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           command timeout's end move are never held back, only counted. 0: no \
                           budget.",
             range: Range::Integer(0, MAX_STARTS_PER_H as i64),
-            ..Decl::new("max_starts_per_h", Integer, || {
+            ..Decl::new(field!(valve, max_starts_per_h), || {
                 V::Integer(valve_defaults().max_starts_per_h as i64)
             })
         },
@@ -398,7 +482,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           on ~/valve/NAME/setpoint).",
             constraints: "pid needs a process_topic and pid_kp or pid_ki above 0",
             choices: Some(|s| spelled::<ValveControl>(s, false)),
-            ..Decl::new("control", String, || {
+            ..Decl::new(field!(valve, control), || {
                 V::String(valve_defaults().control.control.as_str().to_string())
             })
         },
@@ -407,7 +491,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           std_msgs/Float64 (a pressure or a flow in its unit), as process_type \
                           says. Empty: none (control pid is refused).",
             read_only: Some(VALVE_PROCESS),
-            ..Decl::new("process_topic", String, || {
+            ..Decl::new(field!(valve, process_topic), || {
                 V::String(std::string::String::new())
             })
         },
@@ -418,14 +502,16 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             constraints: "temperature|float64",
             choices: Some(process_type_spelling),
             read_only: Some(VALVE_PROCESS),
-            ..Decl::new("process_type", String, || V::String("temperature".into()))
+            ..Decl::new(field!(valve, process_type), || {
+                V::String("temperature".into())
+            })
         },
         Decl {
             description: "What the loop's output drives: position (the valve's target; the \
                           estimate must be good), step (step pulses, PID_3Step without position \
                           feedback) or auto (position with a feedback_topic, step without).",
             choices: Some(|s| spelled::<LoopOutput>(s, false)),
-            ..Decl::new("loop_output", String, || {
+            ..Decl::new(field!(valve, loop_output), || {
                 V::String(valve_defaults().control.output.as_str().to_string())
             })
         },
@@ -433,42 +519,42 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             description: "The loop's proportional gain, % of the stroke per unit of the process \
                           value.",
             range: Range::Double(0.0, MAX_LOOP_GAIN),
-            ..Decl::new("pid_kp", Double, || {
+            ..Decl::new(field!(valve, pid_kp), || {
                 V::Double(valve_defaults().control.pid_kp)
             })
         },
         Decl {
             description: "The loop's integral gain, % per unit·s.",
             range: Range::Double(0.0, MAX_LOOP_GAIN),
-            ..Decl::new("pid_ki", Double, || {
+            ..Decl::new(field!(valve, pid_ki), || {
                 V::Double(valve_defaults().control.pid_ki)
             })
         },
         Decl {
             description: "The loop's derivative gain, % per unit/s, on the measurement.",
             range: Range::Double(0.0, MAX_LOOP_GAIN),
-            ..Decl::new("pid_kd", Double, || {
+            ..Decl::new(field!(valve, pid_kd), || {
                 V::Double(valve_defaults().control.pid_kd)
             })
         },
         Decl {
             description: "The derivative's first-order filter, s. 0: unfiltered.",
             range: Range::Double(0.0, MAX_D_FILTER_S),
-            ..Decl::new("pid_d_filter_s", Double, || {
+            ..Decl::new(field!(valve, pid_d_filter_s), || {
                 V::Double(valve_defaults().control.pid_d_filter_s)
             })
         },
         Decl {
             description: "Reverse acting: opening the valve lowers the process value (a \
                           cooling valve).",
-            ..Decl::new("pid_reverse", Bool, || {
+            ..Decl::new(field!(valve, pid_reverse), || {
                 V::Boolean(valve_defaults().control.pid_reverse)
             })
         },
         Decl {
             description: "The loop's sample, ms.",
             range: Range::Integer(MIN_LOOP_SAMPLE_MS as i64, MAX_LOOP_SAMPLE_MS as i64),
-            ..Decl::new("pid_sample_ms", Integer, || {
+            ..Decl::new(field!(valve, pid_sample_ms), || {
                 V::Integer(valve_defaults().control.pid_sample_ms as i64)
             })
         },
@@ -477,7 +563,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           arrival is stale and used by nothing; with no fresh reading for this \
                           long the loop stops and the valve holds where it is (WARN).",
             range: Range::Integer(1, MAX_PROCESS_TIMEOUT_MS as i64),
-            ..Decl::new("process_timeout_ms", Integer, || {
+            ..Decl::new(field!(valve, process_timeout_ms), || {
                 V::Integer(valve_defaults().control.process_timeout_ms as i64)
             })
         },
@@ -485,7 +571,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             description: "How far a reading's stamp may lie ahead of this node's clock, ms; \
                           beyond it the reading is stale.",
             range: Range::Integer(0, MAX_PROCESS_SKEW_MS as i64),
-            ..Decl::new("process_max_skew_ms", Integer, || {
+            ..Decl::new(field!(valve, process_max_skew_ms), || {
                 V::Integer(valve_defaults().control.process_max_skew_ms as i64)
             })
         },
@@ -494,7 +580,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           safe_after_ms without a fresh process value. Negative: nowhere (it \
                           holds).",
             range: Range::Double(-1.0, 100.0),
-            ..Decl::new("safe_position_pct", Double, || {
+            ..Decl::new(field!(valve, safe_position_pct), || {
                 V::Double(valve_defaults().control.safe_position_pct)
             })
         },
@@ -502,7 +588,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             description: "How long the loop holds before the valve goes to safe_position_pct, \
                           ms.",
             range: Range::Integer(0, MAX_PROCESS_TIMEOUT_MS as i64),
-            ..Decl::new("safe_after_ms", Integer, || {
+            ..Decl::new(field!(valve, safe_after_ms), || {
                 V::Integer(valve_defaults().control.safe_after_ms as i64)
             })
         },
@@ -516,7 +602,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           switch's line",
             choices: Some(limit_line_spelling),
             read_only: Some(VALVE_START_UP),
-            ..Decl::new("open_limit_line", String, || {
+            ..Decl::new(field!(valve, open_limit_line), || {
                 V::String(std::string::String::new())
             })
         },
@@ -527,7 +613,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           switch's line",
             choices: Some(limit_line_spelling),
             read_only: Some(VALVE_START_UP),
-            ..Decl::new("close_limit_line", String, || {
+            ..Decl::new(field!(valve, close_limit_line), || {
                 V::String(std::string::String::new())
             })
         },
@@ -535,7 +621,7 @@ pub(super) fn valve_decls() -> Vec<Decl> {
             description: "Both end switches are active with their line electrically low \
                           (normally closed contacts to ground with a pull-up).",
             read_only: Some(VALVE_START_UP),
-            ..Decl::new("limit_active_low", Bool, || V::Boolean(false))
+            ..Decl::new(field!(valve, limit_active_low), || V::Boolean(false))
         },
         Decl {
             description: "Debounce period of the end switch lines, ms (the kernel's: the chip's \
@@ -543,72 +629,94 @@ pub(super) fn valve_decls() -> Vec<Decl> {
                           reported once the line has been stable this long. 0: none.",
             range: Range::Integer(0, MAX_DEBOUNCE_MS as i64),
             read_only: Some(VALVE_START_UP),
-            ..Decl::new("limit_debounce_ms", Integer, || {
+            ..Decl::new(field!(valve, limit_debounce_ms), || {
                 V::Integer(DEFAULT_LIMIT_DEBOUNCE_MS as i64)
             })
         },
     ]
 }
 
-/// A valve's settings from its parameters' values (`get` answers `suffix` with the value in
-/// force); an unknown spelling falls back to the default (the store refused it already).
-pub(super) fn valve_params(get: impl Fn(&str) -> Option<V>) -> ValveParams {
+/// A valve's settings from its parameters' values; an unknown spelling falls back to the
+/// default (the store refused it already).
+pub(super) fn valve_params(v: &ValveValues) -> ValveParams {
     let d = valve_defaults();
-    let int_or = |k: &str, or: u64| get(k).map_or(or, |v| ms(&v));
-    let dbl_or = |k: &str, or: f64| get(k).map_or(or, |v| double(&v));
     ValveParams {
-        travel_open_ms: int_or("travel_open_ms", d.travel_open_ms),
-        travel_close_ms: int_or("travel_close_ms", d.travel_close_ms),
-        deadband_pct: dbl_or("deadband_pct", d.deadband_pct),
-        min_pulse_ms: int_or("min_pulse_ms", d.min_pulse_ms),
-        reversal_pause_ms: int_or("reversal_pause_ms", d.reversal_pause_ms),
-        start_lag_ms: int_or("start_lag_ms", d.start_lag_ms),
-        backlash_pct: dbl_or("backlash_pct", d.backlash_pct),
-        end_overrun_pct: dbl_or("end_overrun_pct", d.end_overrun_pct),
-        reference_at_start: get("reference_at_start")
-            .and_then(|v| text(&v).parse().ok())
-            .unwrap_or(d.reference_at_start),
-        recalibrate_after_s: int_or("recalibrate_after_s", d.recalibrate_after_s),
-        exercise_every_h: int_or("exercise_every_h", d.exercise_every_h),
-        max_uncertainty_pct: dbl_or("max_uncertainty_pct", d.max_uncertainty_pct),
-        command_timeout_ms: int_or("command_timeout_ms", d.command_timeout_ms),
-        on_timeout: get("on_timeout")
-            .and_then(|v| text(&v).parse().ok())
-            .unwrap_or(d.on_timeout),
-        feedback_tolerance_pct: dbl_or("feedback_tolerance_pct", d.feedback_tolerance_pct),
-        max_starts_per_h: int_or("max_starts_per_h", d.max_starts_per_h),
+        travel_open_ms: count(v.travel_open_ms),
+        travel_close_ms: count(v.travel_close_ms),
+        deadband_pct: v.deadband_pct,
+        min_pulse_ms: count(v.min_pulse_ms),
+        reversal_pause_ms: count(v.reversal_pause_ms),
+        start_lag_ms: count(v.start_lag_ms),
+        backlash_pct: v.backlash_pct,
+        end_overrun_pct: v.end_overrun_pct,
+        reference_at_start: v.reference_at_start.parse().unwrap_or(d.reference_at_start),
+        recalibrate_after_s: count(v.recalibrate_after_s),
+        exercise_every_h: count(v.exercise_every_h),
+        max_uncertainty_pct: v.max_uncertainty_pct,
+        command_timeout_ms: count(v.command_timeout_ms),
+        on_timeout: v.on_timeout.parse().unwrap_or(d.on_timeout),
+        feedback_tolerance_pct: v.feedback_tolerance_pct,
+        max_starts_per_h: count(v.max_starts_per_h),
         control: ControlParams {
-            control: get("control")
-                .and_then(|v| text(&v).parse().ok())
-                .unwrap_or(d.control.control),
-            process: get("process_topic").is_some_and(|v| !text(&v).trim().is_empty()),
-            output: get("loop_output")
-                .and_then(|v| text(&v).parse().ok())
-                .unwrap_or(d.control.output),
-            pid_kp: dbl_or("pid_kp", d.control.pid_kp),
-            pid_ki: dbl_or("pid_ki", d.control.pid_ki),
-            pid_kd: dbl_or("pid_kd", d.control.pid_kd),
-            pid_d_filter_s: dbl_or("pid_d_filter_s", d.control.pid_d_filter_s),
-            pid_reverse: get("pid_reverse").map_or(d.control.pid_reverse, |v| boolean(&v)),
-            pid_sample_ms: int_or("pid_sample_ms", d.control.pid_sample_ms),
-            process_timeout_ms: int_or("process_timeout_ms", d.control.process_timeout_ms),
-            process_max_skew_ms: int_or("process_max_skew_ms", d.control.process_max_skew_ms),
-            safe_position_pct: dbl_or("safe_position_pct", d.control.safe_position_pct),
-            safe_after_ms: int_or("safe_after_ms", d.control.safe_after_ms),
+            control: v.control.parse().unwrap_or(d.control.control),
+            process: !v.process_topic.trim().is_empty(),
+            output: v.loop_output.parse().unwrap_or(d.control.output),
+            pid_kp: v.pid_kp,
+            pid_ki: v.pid_ki,
+            pid_kd: v.pid_kd,
+            pid_d_filter_s: v.pid_d_filter_s,
+            pid_reverse: v.pid_reverse,
+            pid_sample_ms: count(v.pid_sample_ms),
+            process_timeout_ms: count(v.process_timeout_ms),
+            process_max_skew_ms: count(v.process_max_skew_ms),
+            safe_position_pct: v.safe_position_pct,
+            safe_after_ms: count(v.safe_after_ms),
         },
     }
 }
 
+/// A count or a time in ms; negative values were refused by the range checks, `max(0)` guards
+/// the cast.
+pub(super) fn count(i: i64) -> u64 {
+    i.max(0) as u64
+}
+
+/// The node's settings from its parameters' values, each mapped by its entry in the table.
+pub(super) fn node_settings(values: &NodeValues) -> NodeSettings {
+    let mut n = NodeSettings::default();
+    for d in node_decls() {
+        if let (Some(to_node), Access::Node(f)) = (d.node, d.access) {
+            to_node(&mut n, &(f.get)(values));
+        }
+    }
+    n
+}
+
+/// A channel's settings as the core's [`ChannelParams`], each value mapped by its entry in
+/// the table; `Err` names the parameter whose spelling the core does not know.
+pub(super) fn channel_params(
+    values: &ChannelValues,
+) -> Result<ChannelParams, (&'static str, UnknownName)> {
+    let mut params = ChannelParams::default();
+    for d in channel_decls() {
+        if let (Some(to_core), Access::Channel(f)) = (d.core, d.access) {
+            to_core(&mut params, &(f.get)(values)).map_err(|e| (d.suffix, e))?;
+        }
+    }
+    Ok(params)
+}
+
 /// The node-level parameters.
 pub(super) fn node_decls() -> Vec<Decl> {
-    use ParamType::*;
     vec![
         Decl {
             description: "Number of PWM channels, named pw01, pw02, ...",
             read_only: Some(START_UP),
             range: Range::Integer(1, MAX_CHANNELS as i64),
             node: Some(|n, v| n.channels = int(v).max(0) as usize),
-            ..Decl::new("channels", Integer, || V::Integer(DEFAULT_CHANNELS as i64))
+            ..Decl::new(field!(node, channels), || {
+                V::Integer(DEFAULT_CHANNELS as i64)
+            })
         },
         Decl {
             description: "Output backend: sim (simulated sink, optional trace) or gpio (Linux \
@@ -623,7 +731,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                 }),
             }),
             node: Some(|n, v| n.gpio = text(v) == "gpio"),
-            ..Decl::new("output", String, || V::String("sim".into()))
+            ..Decl::new(field!(node, output), || V::String("sim".into()))
         },
         Decl {
             description: "A managed (lifecycle) node: the lines are requested on configure, \
@@ -632,7 +740,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "start-up only (--managed)",
             read_only: Some(START_UP),
             node: Some(|n, v| n.managed = boolean(v)),
-            ..Decl::new("managed", Bool, || V::Boolean(false))
+            ..Decl::new(field!(node, managed), || V::Boolean(false))
         },
         Decl {
             description: "Trace file(s), comma-separated: .vcd and .csv hold what is written \
@@ -648,7 +756,10 @@ pub(super) fn node_decls() -> Vec<Decl> {
                     .map(std::path::PathBuf::from)
                     .collect()
             }),
-            ..Decl::new("trace", String, || V::String(std::string::String::new()))
+            ..Decl::new(
+                field!(node, trace),
+                || V::String(std::string::String::new()),
+            )
         },
         Decl {
             description: "What the files of each trace may hold together, MB (10^6 bytes): \
@@ -660,7 +771,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             read_only: Some(START_UP),
             range: Range::Integer(MIN_TRACE_MAX_MB as i64, MAX_TRACE_MAX_MB as i64),
             node: Some(|n, v| n.trace_max_mb = int(v).max(0) as u64),
-            ..Decl::new("trace_max_mb", Integer, || {
+            ..Decl::new(field!(node, trace_max_mb), || {
                 V::Integer(DEFAULT_TRACE_MAX_MB as i64)
             })
         },
@@ -672,14 +783,14 @@ pub(super) fn node_decls() -> Vec<Decl> {
             checked: Checked::OffOr(MIN_STATUS_RATE_HZ),
             note: " (0 = on change only)",
             node: Some(|n, v| n.status_rate_hz = double(v)),
-            ..Decl::new("status_rate_hz", Double, || V::Double(10.0))
+            ..Decl::new(field!(node, status_rate_hz), || V::Double(10.0))
         },
         Decl {
             description: "Console lines per second and channel showing edges (info level); \
                           edges beyond are summarised once a second. 0: no edge lines.",
             range: Range::Integer(0, 1000),
             node: Some(|n, v| n.edge_log_rate = int(v).clamp(0, 1000) as u32),
-            ..Decl::new("edge_log_rate", Integer, || V::Integer(10))
+            ..Decl::new(field!(node, edge_log_rate), || V::Integer(10))
         },
         Decl {
             description: "How the channels' periods lie against each other. sync: each \
@@ -692,7 +803,9 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           channel joining the grid waits, off, for its next instant)",
             choices: Some(|s| spelled::<Phase>(s, false)),
             node: Some(|n, v| n.set_phase(text(v))),
-            ..Decl::new("phase", String, || V::String(Phase::Sync.as_str().into()))
+            ..Decl::new(field!(node, phase), || {
+                V::String(Phase::Sync.as_str().into())
+            })
         },
         Decl {
             description: "At most this many lines on at once, over all channels: an on phase \
@@ -705,7 +818,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             range: Range::Integer(0, MAX_CHANNELS as i64),
             note: " (0 = no limit)",
             node: Some(|n, v| n.bank.max_on = int(v).max(0) as usize),
-            ..Decl::new("max_simultaneous_on", Integer, || V::Integer(0))
+            ..Decl::new(field!(node, max_simultaneous_on), || V::Integer(0))
         },
         Decl {
             description: "Window of the command-rate check on /diagnostics (`<node>: <ch> \
@@ -715,7 +828,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "a change starts a new, empty window",
             range: Range::Integer(1, MAX_COMMAND_HZ_WINDOW as i64),
             node: Some(|n, v| n.command_hz_window = int(v).max(1) as usize),
-            ..Decl::new("command_hz_window", Integer, || {
+            ..Decl::new(field!(node, command_hz_window), || {
                 V::Integer(DEFAULT_COMMAND_HZ_WINDOW as i64)
             })
         },
@@ -726,7 +839,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
                           tolerance).",
             range: Range::Double(0.0, 1.0),
             node: Some(|n, v| n.command_hz_tolerance = double(v)),
-            ..Decl::new("command_hz_tolerance", Double, || {
+            ..Decl::new(field!(node, command_hz_tolerance), || {
                 V::Double(DEFAULT_COMMAND_HZ_TOLERANCE)
             })
         },
@@ -738,7 +851,10 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "each channel in one pair at most",
             read_only: Some(START_UP),
             node: Some(|n, v| n.split = text(v).to_string()),
-            ..Decl::new("split", String, || V::String(std::string::String::new()))
+            ..Decl::new(
+                field!(node, split),
+                || V::String(std::string::String::new()),
+            )
         },
         Decl {
             description: "Three-point valves, comma-separated NAME:OPEN:CLOSE: channel OPEN \
@@ -749,7 +865,10 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "each channel in one valve or split pair at most; NAME not a channel's",
             read_only: Some(START_UP),
             node: Some(|n, v| n.valve = text(v).to_string()),
-            ..Decl::new("valve", String, || V::String(std::string::String::new()))
+            ..Decl::new(
+                field!(node, valve),
+                || V::String(std::string::String::new()),
+            )
         },
         Decl {
             description: "Directory of the valves' state files (NAME.state): each valve's \
@@ -759,11 +878,9 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "start-up only; an existing, writable directory",
             read_only: Some(START_UP),
             node: Some(|n, v| n.state_dir = text(v).to_string()),
-            ..Decl::new(
-                "state_dir",
-                String,
-                || V::String(std::string::String::new()),
-            )
+            ..Decl::new(field!(node, state_dir), || {
+                V::String(std::string::String::new())
+            })
         },
         Decl {
             description: "Heartbeat line: offset on heartbeat_chip (with output sim, a simulated \
@@ -776,14 +893,14 @@ pub(super) fn node_decls() -> Vec<Decl> {
             read_only: Some(START_UP),
             range: Range::Integer(-1, u32::MAX as i64),
             node: Some(|n, v| n.heartbeat_line = u32::try_from(int(v)).ok()),
-            ..Decl::new("heartbeat_line", Integer, || V::Integer(-1))
+            ..Decl::new(field!(node, heartbeat_line), || V::Integer(-1))
         },
         Decl {
             description: "Chip of the heartbeat line (output gpio).",
             constraints: "start-up only",
             read_only: Some(START_UP),
             node: Some(|n, v| n.heartbeat_chip = text(v).into()),
-            ..Decl::new("heartbeat_chip", String, || {
+            ..Decl::new(field!(node, heartbeat_chip), || {
                 V::String("/dev/gpiochip0".into())
             })
         },
@@ -793,7 +910,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             read_only: Some(START_UP),
             range: Range::Double(MIN_HEARTBEAT_HZ, MAX_HEARTBEAT_HZ),
             node: Some(|n, v| n.heartbeat_hz = double(v)),
-            ..Decl::new("heartbeat_hz", Double, || V::Double(10.0))
+            ..Decl::new(field!(node, heartbeat_hz), || V::Double(10.0))
         },
         Decl {
             description: "Heartbeat e-stop, ms: when no false arrives on ~/estop within this \
@@ -803,7 +920,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             read_only: Some(START_UP),
             range: Range::Integer(0, MAX_TIMEOUT_MS as i64),
             node: Some(|n, v| n.estop_timeout_ms = ms(v)),
-            ..Decl::new("estop_timeout_ms", Integer, || V::Integer(0))
+            ..Decl::new(field!(node, estop_timeout_ms), || V::Integer(0))
         },
         Decl {
             description: "SCHED_FIFO priority of the output thread (with mlockall). 0: normal \
@@ -814,7 +931,7 @@ pub(super) fn node_decls() -> Vec<Decl> {
             node: Some(|n, v| {
                 n.rt_priority = Some(int(v)).filter(|p| *p > 0).map(|p| p.min(99) as i32)
             }),
-            ..Decl::new("rt_priority", Integer, || V::Integer(0))
+            ..Decl::new(field!(node, rt_priority), || V::Integer(0))
         },
         Decl {
             description: "A heater fault of any channel (any check: \
@@ -824,20 +941,21 @@ pub(super) fn node_decls() -> Vec<Decl> {
             constraints: "start-up only",
             read_only: Some(START_UP),
             node: Some(|n, v| n.heater_fault_latches_estop = boolean(v)),
-            ..Decl::new("heater_fault_latches_estop", Bool, || V::Boolean(false))
+            ..Decl::new(field!(node, heater_fault_latches_estop), || {
+                V::Boolean(false)
+            })
         },
         Decl {
             description: "Standard ROS parameter; always false here.",
             constraints: "only false: pulses are timed on CLOCK_MONOTONIC",
             node: Some(|n, v| n.use_sim_time = boolean(v)),
-            ..Decl::new("use_sim_time", Bool, || V::Boolean(false))
+            ..Decl::new(field!(node, use_sim_time), || V::Boolean(false))
         },
     ]
 }
 
 /// The parameters of each channel, `pwNN.<suffix>`.
 pub(super) fn channel_decls() -> Vec<Decl> {
-    use ParamType::*;
     vec![
         Decl {
             description: "Period T, ms. 0: no pulses, output held off (000).",
@@ -850,7 +968,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::Integer(m.period_ms)),
-            ..Decl::new("period_ms", Integer, || {
+            ..Decl::new(field!(channel, period_ms), || {
                 V::Integer(core_defaults().period_ms as i64)
             })
         },
@@ -868,7 +986,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::Integer(m.min_on_ms)),
-            ..Decl::new("min_on_ms", Integer, || {
+            ..Decl::new(field!(channel, min_on_ms), || {
                 V::Integer(core_defaults().min_on_ms as i64)
             })
         },
@@ -884,7 +1002,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::Integer(m.min_off_ms)),
-            ..Decl::new("min_off_ms", Integer, || {
+            ..Decl::new(field!(channel, min_off_ms), || {
                 V::Integer(core_defaults().min_off_ms.map_or(-1, |v| v as i64))
             })
         },
@@ -898,7 +1016,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::String(m.output_kind.clone())),
-            ..Decl::new("output_kind", String, || {
+            ..Decl::new(field!(channel, output_kind), || {
                 V::String(core_defaults().output_kind.as_str().into())
             })
         },
@@ -912,7 +1030,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::String(m.profile.clone())),
-            ..Decl::new("profile", String, || {
+            ..Decl::new(field!(channel, profile), || {
                 V::String(core_defaults().profile.as_str().into())
             })
         },
@@ -928,7 +1046,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::String(m.short_pulse.clone())),
-            ..Decl::new("short_pulse", String, || {
+            ..Decl::new(field!(channel, short_pulse), || {
                 V::String(std::string::String::new())
             })
         },
@@ -942,7 +1060,9 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::Double(m.edge_band)),
-            ..Decl::new("edge_band", Double, || V::Double(core_defaults().edge_band))
+            ..Decl::new(field!(channel, edge_band), || {
+                V::Double(core_defaults().edge_band)
+            })
         },
         Decl {
             description: "Longest period short_pulse extend may grow to, a factor of \
@@ -955,7 +1075,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.extend_max = double(v);
                 Ok(())
             }),
-            ..Decl::new("extend_max", Double, || {
+            ..Decl::new(field!(channel, extend_max), || {
                 V::Double(core_defaults().extend_max)
             })
         },
@@ -972,7 +1092,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.time_base_ms = double(v);
                 Ok(())
             }),
-            ..Decl::new("time_base_ms", Double, || {
+            ..Decl::new(field!(channel, time_base_ms), || {
                 V::Double(core_defaults().time_base_ms)
             })
         },
@@ -986,7 +1106,9 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::String(m.apply_at.clone())),
-            ..Decl::new("apply_at", String, || V::String(std::string::String::new()))
+            ..Decl::new(field!(channel, apply_at), || {
+                V::String(std::string::String::new())
+            })
         },
         Decl {
             description: "Output on disable: off or hold. Empty: as the profile says.",
@@ -997,7 +1119,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::String(m.on_disable.clone())),
-            ..Decl::new("on_disable", String, || {
+            ..Decl::new(field!(channel, on_disable), || {
                 V::String(std::string::String::new())
             })
         },
@@ -1011,7 +1133,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 Ok(())
             }),
             msg: Some(|m| V::Integer(m.command_timeout_ms)),
-            ..Decl::new("command_timeout_ms", Integer, || {
+            ..Decl::new(field!(channel, command_timeout_ms), || {
                 V::Integer(core_defaults().command_timeout_ms as i64)
             })
         },
@@ -1026,7 +1148,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.fault_duty_pct = double(v);
                 Ok(())
             }),
-            ..Decl::new("fault_duty_pct", Double, || {
+            ..Decl::new(field!(channel, fault_duty_pct), || {
                 V::Double(core_defaults().fault_duty_pct)
             })
         },
@@ -1040,7 +1162,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.fault_hold_ms = ms(v);
                 Ok(())
             }),
-            ..Decl::new("fault_hold_ms", Integer, || {
+            ..Decl::new(field!(channel, fault_hold_ms), || {
                 V::Integer(core_defaults().fault_hold_ms as i64)
             })
         },
@@ -1055,7 +1177,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                           only: commands are never refused for their rate",
             range: Range::Double(0.0, MAX_EXPECTED_COMMAND_HZ),
             note: " (0 = no lower bound)",
-            ..Decl::new("expected_command_hz_min", Double, || V::Double(0.0))
+            ..Decl::new(field!(channel, expected_command_hz_min), || V::Double(0.0))
         },
         Decl {
             description: "Highest expected rate of duty commands, Hz. Above it, plus \
@@ -1064,7 +1186,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             constraints: "0, or at least expected_command_hz_min; reporting only",
             range: Range::Double(0.0, MAX_EXPECTED_COMMAND_HZ),
             note: " (0 = no upper bound)",
-            ..Decl::new("expected_command_hz_max", Double, || V::Double(0.0))
+            ..Decl::new(field!(channel, expected_command_hz_max), || V::Double(0.0))
         },
         Decl {
             description: "Maximum continuous on time of the line, ms: a line high this long \
@@ -1080,7 +1202,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.max_on_ms = ms(v);
                 Ok(())
             }),
-            ..Decl::new("max_on_ms", Integer, || {
+            ..Decl::new(field!(channel, max_on_ms), || {
                 V::Integer(core_defaults().max_on_ms as i64)
             })
         },
@@ -1095,7 +1217,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.max_duty_pct = double(v);
                 Ok(())
             }),
-            ..Decl::new("max_duty_pct", Double, || {
+            ..Decl::new(field!(channel, max_duty_pct), || {
                 V::Double(core_defaults().max_duty_pct)
             })
         },
@@ -1109,7 +1231,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.min_duty_pct = double(v);
                 Ok(())
             }),
-            ..Decl::new("min_duty_pct", Double, || {
+            ..Decl::new(field!(channel, min_duty_pct), || {
                 V::Double(core_defaults().min_duty_pct)
             })
         },
@@ -1120,7 +1242,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.zero_means_zero = matches!(v, V::Boolean(true));
                 Ok(())
             }),
-            ..Decl::new("zero_means_zero", Bool, || {
+            ..Decl::new(field!(channel, zero_means_zero), || {
                 V::Boolean(core_defaults().zero_means_zero)
             })
         },
@@ -1135,7 +1257,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.duty_slew_pct_per_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("duty_slew_pct_per_s", Double, || {
+            ..Decl::new(field!(channel, duty_slew_pct_per_s), || {
                 V::Double(core_defaults().duty_slew_pct_per_s)
             })
         },
@@ -1151,7 +1273,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.duty_deadband_pct = double(v);
                 Ok(())
             }),
-            ..Decl::new("duty_deadband_pct", Double, || {
+            ..Decl::new(field!(channel, duty_deadband_pct), || {
                 V::Double(core_defaults().duty_deadband_pct)
             })
         },
@@ -1168,7 +1290,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.avg_duty_limit_pct = double(v);
                 Ok(())
             }),
-            ..Decl::new("avg_duty_limit_pct", Double, || {
+            ..Decl::new(field!(channel, avg_duty_limit_pct), || {
                 V::Double(core_defaults().avg_duty_limit_pct)
             })
         },
@@ -1181,7 +1303,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.avg_window_s = int(v).max(0) as u64;
                 Ok(())
             }),
-            ..Decl::new("avg_window_s", Integer, || {
+            ..Decl::new(field!(channel, avg_window_s), || {
                 V::Integer(core_defaults().avg_window_s as i64)
             })
         },
@@ -1196,7 +1318,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.feedback = !text(v).is_empty();
                 Ok(())
             }),
-            ..Decl::new("feedback_topic", String, || {
+            ..Decl::new(field!(channel, feedback_topic), || {
                 V::String(std::string::String::new())
             })
         },
@@ -1216,7 +1338,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.control = text(v).parse()?;
                 Ok(())
             }),
-            ..Decl::new("control", String, || {
+            ..Decl::new(field!(channel, control), || {
                 V::String(heater_defaults().control.as_str().into())
             })
         },
@@ -1231,7 +1353,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.pid_sample_ms = ms(v);
                 Ok(())
             }),
-            ..Decl::new("pid_sample_ms", Integer, || V::Integer(0))
+            ..Decl::new(field!(channel, pid_sample_ms), || V::Integer(0))
         },
         Decl {
             description: "Proportional gain, % per °C.",
@@ -1241,7 +1363,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.pid_kp = double(v);
                 Ok(())
             }),
-            ..Decl::new("pid_kp", Double, || V::Double(0.0))
+            ..Decl::new(field!(channel, pid_kp), || V::Double(0.0))
         },
         Decl {
             description: "Integral gain, % per °C·s (TI = pid_kp / pid_ki). The integral \
@@ -1252,7 +1374,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.pid_ki = double(v);
                 Ok(())
             }),
-            ..Decl::new("pid_ki", Double, || V::Double(0.0))
+            ..Decl::new(field!(channel, pid_ki), || V::Double(0.0))
         },
         Decl {
             description: "Derivative gain, % per °C/s, on the measurement (no kick on a \
@@ -1263,7 +1385,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.pid_kd = double(v);
                 Ok(())
             }),
-            ..Decl::new("pid_kd", Double, || V::Double(0.0))
+            ..Decl::new(field!(channel, pid_kd), || V::Double(0.0))
         },
         Decl {
             description: "Time constant of the derivative's first-order filter, s. 0: none.",
@@ -1272,7 +1394,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.pid_d_filter_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("pid_d_filter_s", Double, || V::Double(0.0))
+            ..Decl::new(field!(channel, pid_d_filter_s), || V::Double(0.0))
         },
         Decl {
             description: "Lowest valid reading, °C: below it (and NaN or ±inf) the heater \
@@ -1284,7 +1406,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.temp_min_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("temp_min_c", Double, || {
+            ..Decl::new(field!(channel, temp_min_c), || {
                 V::Double(heater_defaults().temp_min_c)
             })
         },
@@ -1302,7 +1424,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.temp_max_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("temp_max_c", Double, || {
+            ..Decl::new(field!(channel, temp_max_c), || {
                 V::Double(heater_defaults().temp_max_c)
             })
         },
@@ -1321,7 +1443,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.feedback_timeout_ms = ms(v);
                 Ok(())
             }),
-            ..Decl::new("feedback_timeout_ms", Integer, || {
+            ..Decl::new(field!(channel, feedback_timeout_ms), || {
                 V::Integer(heater_defaults().feedback_timeout_ms as i64)
             })
         },
@@ -1337,7 +1459,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.feedback_max_skew_ms = ms(v);
                 Ok(())
             }),
-            ..Decl::new("feedback_max_skew_ms", Integer, || {
+            ..Decl::new(field!(channel, feedback_max_skew_ms), || {
                 V::Integer(heater_defaults().feedback_max_skew_ms as i64)
             })
         },
@@ -1350,7 +1472,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.setpoint_margin_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("setpoint_margin_c", Double, || {
+            ..Decl::new(field!(channel, setpoint_margin_c), || {
                 V::Double(heater_defaults().setpoint_margin_c)
             })
         },
@@ -1366,7 +1488,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.sensor_stuck_time_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("sensor_stuck_time_s", Double, || {
+            ..Decl::new(field!(channel, sensor_stuck_time_s), || {
                 V::Double(heater_defaults().sensor_stuck_time_s)
             })
         },
@@ -1379,7 +1501,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.sensor_stuck_band_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("sensor_stuck_band_c", Double, || {
+            ..Decl::new(field!(channel, sensor_stuck_band_c), || {
                 V::Double(heater_defaults().sensor_stuck_band_c)
             })
         },
@@ -1393,7 +1515,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.sensor_stuck_energy_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("sensor_stuck_energy_s", Double, || {
+            ..Decl::new(field!(channel, sensor_stuck_energy_s), || {
                 V::Double(heater_defaults().sensor_stuck_energy_s)
             })
         },
@@ -1408,7 +1530,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.no_rise_time_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("no_rise_time_s", Double, || {
+            ..Decl::new(field!(channel, no_rise_time_s), || {
                 V::Double(heater_defaults().no_rise_time_s)
             })
         },
@@ -1423,7 +1545,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.sensor_max_rate_c_per_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("sensor_max_rate_c_per_s", Double, || {
+            ..Decl::new(field!(channel, sensor_max_rate_c_per_s), || {
                 V::Double(heater_defaults().sensor_max_rate_c_per_s)
             })
         },
@@ -1435,7 +1557,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.runaway_hysteresis_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("runaway_hysteresis_c", Double, || {
+            ..Decl::new(field!(channel, runaway_hysteresis_c), || {
                 V::Double(heater_defaults().runaway_hysteresis_c)
             })
         },
@@ -1447,7 +1569,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.runaway_max_error = double(v);
                 Ok(())
             }),
-            ..Decl::new("runaway_max_error", Double, || {
+            ..Decl::new(field!(channel, runaway_max_error), || {
                 V::Double(heater_defaults().runaway_max_error)
             })
         },
@@ -1460,7 +1582,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.runaway_gain_time_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("runaway_gain_time_s", Double, || {
+            ..Decl::new(field!(channel, runaway_gain_time_s), || {
                 V::Double(heater_defaults().runaway_gain_time_s)
             })
         },
@@ -1471,7 +1593,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.runaway_heating_gain_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("runaway_heating_gain_c", Double, || {
+            ..Decl::new(field!(channel, runaway_heating_gain_c), || {
                 V::Double(heater_defaults().runaway_heating_gain_c)
             })
         },
@@ -1487,7 +1609,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.stuck_on_rise_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("stuck_on_rise_c", Double, || {
+            ..Decl::new(field!(channel, stuck_on_rise_c), || {
                 V::Double(heater_defaults().stuck_on_rise_c)
             })
         },
@@ -1498,7 +1620,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.stuck_on_time_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("stuck_on_time_s", Double, || {
+            ..Decl::new(field!(channel, stuck_on_time_s), || {
                 V::Double(heater_defaults().stuck_on_time_s)
             })
         },
@@ -1510,7 +1632,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.autotune_max_overshoot_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("autotune_max_overshoot_c", Double, || {
+            ..Decl::new(field!(channel, autotune_max_overshoot_c), || {
                 V::Double(heater_defaults().autotune_max_overshoot_c)
             })
         },
@@ -1524,7 +1646,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.autotune_timeout_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("autotune_timeout_s", Double, || {
+            ..Decl::new(field!(channel, autotune_timeout_s), || {
                 V::Double(heater_defaults().autotune_timeout_s)
             })
         },
@@ -1536,7 +1658,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.autotune_margin_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("autotune_margin_c", Double, || {
+            ..Decl::new(field!(channel, autotune_margin_c), || {
                 V::Double(heater_defaults().autotune_margin_c)
             })
         },
@@ -1551,7 +1673,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.model.gain_c_per_pct = double(v);
                 Ok(())
             }),
-            ..Decl::new("model_gain_c_per_pct", Double, || {
+            ..Decl::new(field!(channel, model_gain_c_per_pct), || {
                 V::Double(heater_defaults().model.gain_c_per_pct)
             })
         },
@@ -1562,7 +1684,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.model.tau_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("model_tau_s", Double, || {
+            ..Decl::new(field!(channel, model_tau_s), || {
                 V::Double(heater_defaults().model.tau_s)
             })
         },
@@ -1573,7 +1695,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.model.dead_time_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("model_dead_time_s", Double, || {
+            ..Decl::new(field!(channel, model_dead_time_s), || {
                 V::Double(heater_defaults().model.dead_time_s)
             })
         },
@@ -1584,7 +1706,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.model.ambient_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("model_ambient_c", Double, || {
+            ..Decl::new(field!(channel, model_ambient_c), || {
                 V::Double(heater_defaults().model.ambient_c)
             })
         },
@@ -1597,7 +1719,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.model.sensor_tau_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("model_sensor_tau_s", Double, || {
+            ..Decl::new(field!(channel, model_sensor_tau_s), || {
                 V::Double(heater_defaults().model.sensor_tau_s)
             })
         },
@@ -1614,7 +1736,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.feedforward = !text(v).trim().is_empty();
                 Ok(())
             }),
-            ..Decl::new("feedforward_topic", String, || {
+            ..Decl::new(field!(channel, feedforward_topic), || {
                 V::String(std::string::String::new())
             })
         },
@@ -1627,7 +1749,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.feedforward_timeout_ms = ms(v);
                 Ok(())
             }),
-            ..Decl::new("feedforward_timeout_ms", Integer, || {
+            ..Decl::new(field!(channel, feedforward_timeout_ms), || {
                 V::Integer(heater_defaults().feedforward_timeout_ms as i64)
             })
         },
@@ -1643,7 +1765,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.ambient = !text(v).trim().is_empty();
                 Ok(())
             }),
-            ..Decl::new("ambient_topic", String, || {
+            ..Decl::new(field!(channel, ambient_topic), || {
                 V::String(std::string::String::new())
             })
         },
@@ -1655,7 +1777,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.ambient_timeout_ms = ms(v);
                 Ok(())
             }),
-            ..Decl::new("ambient_timeout_ms", Integer, || {
+            ..Decl::new(field!(channel, ambient_timeout_ms), || {
                 V::Integer(heater_defaults().ambient_timeout_ms as i64)
             })
         },
@@ -1670,7 +1792,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.setpoint_ramp_c_per_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("setpoint_ramp_c_per_s", Double, || V::Double(0.0))
+            ..Decl::new(field!(channel, setpoint_ramp_c_per_s), || V::Double(0.0))
         },
         Decl {
             description: "model_deviation: a residual (the reading less the model's \
@@ -1682,7 +1804,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.model_tolerance_c = double(v);
                 Ok(())
             }),
-            ..Decl::new("model_tolerance_c", Double, || {
+            ..Decl::new(field!(channel, model_tolerance_c), || {
                 V::Double(heater_defaults().model_tolerance_c)
             })
         },
@@ -1693,7 +1815,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 c.heater.model_time_s = double(v);
                 Ok(())
             }),
-            ..Decl::new("model_time_s", Double, || {
+            ..Decl::new(field!(channel, model_time_s), || {
                 V::Double(heater_defaults().model_time_s)
             })
         },
@@ -1704,13 +1826,13 @@ pub(super) fn channel_decls() -> Vec<Decl> {
                 "changing the polarity of a live line could glitch it; restart the node",
             ),
             msg: Some(|m| V::Boolean(m.active_low)),
-            ..Decl::new("active_low", Bool, || V::Boolean(false))
+            ..Decl::new(field!(channel, active_low), || V::Boolean(false))
         },
         Decl {
             description: "Enable the channel at start-up. While running, use ~/<ch>/enable.",
             constraints: "start-up only",
             read_only: Some("it is the start-up value; while running, publish on ~/<ch>/enable"),
-            ..Decl::new("enable", Bool, || V::Boolean(false))
+            ..Decl::new(field!(channel, enable), || V::Boolean(false))
         },
         Decl {
             description: "Duty at start-up, percent 0..100. While running, use ~/<ch>/duty or \
@@ -1718,12 +1840,14 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             constraints: "start-up only",
             read_only: Some("it is the start-up value; while running, publish on ~/<ch>/duty"),
             range: Range::Double(0.0, 100.0),
-            ..Decl::new("duty", Double, || V::Double(0.0))
+            ..Decl::new(field!(channel, duty), || V::Double(0.0))
         },
         Decl {
             description: "GPIO character device of the channel's line (output gpio).",
             read_only: Some(START_UP),
-            ..Decl::new("gpio_chip", String, || V::String("/dev/gpiochip0".into()))
+            ..Decl::new(field!(channel, gpio_chip), || {
+                V::String("/dev/gpiochip0".into())
+            })
         },
         Decl {
             description: "Line offset on gpio_chip (output gpio). -1: unset.",
@@ -1731,7 +1855,7 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             read_only: Some(START_UP),
             range: Range::Integer(-1, u32::MAX as i64),
             note: " (-1 = unset)",
-            ..Decl::new("gpio_line", Integer, || V::Integer(-1))
+            ..Decl::new(field!(channel, gpio_line), || V::Integer(-1))
         },
     ]
 }

@@ -24,11 +24,12 @@ fn live(s: &ParamStore, name: &str, value: V) -> Result<Accepted, ParamError> {
 #[test]
 fn declares_node_and_channel_parameters_with_defaults() {
     let s = ParamStore::new(2);
-    assert_eq!(s.int("channels"), Some(2));
-    assert_eq!(s.int("pw01.period_ms"), Some(1000));
-    assert_eq!(s.int("pw02.min_off_ms"), Some(-1));
-    assert_eq!(s.string("pw02.profile"), Some("pico_gfx"));
+    assert_eq!(s.node().channels, 2);
+    assert_eq!(s.get("pw01.period_ms"), Some(V::Integer(1000)));
+    assert_eq!(s.channel(1).unwrap().min_off_ms, -1);
+    assert_eq!(s.channel(1).unwrap().profile, "pico_gfx");
     assert_eq!(s.get("pw03.period_ms"), None);
+    assert!(s.channel(2).is_none());
     assert_eq!(s.channel_config(0).unwrap(), ChannelConfig::default());
     let d = s.descriptor("pw01.period_ms").unwrap().to_raw();
     assert_eq!(d.r#type, raw::ParameterType::INTEGER);
@@ -236,8 +237,8 @@ fn a_refused_change_leaves_the_store_as_it_was() {
         item("pw01.output_kind", V::String("relay".into())),
     ];
     assert!(s.check(&bad, Stage::Live).is_err());
-    assert_eq!(s.int("pw01.period_ms"), Some(500));
-    assert_eq!(s.int("pw01.min_on_ms"), Some(0));
+    assert_eq!(s.channel(0).unwrap().period_ms, 500);
+    assert_eq!(s.channel(0).unwrap().min_on_ms, 0);
 }
 
 #[test]
@@ -432,7 +433,7 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
     ])
     .unwrap();
     assert_eq!(su.store.channels(), 3);
-    assert_eq!(su.store.int("pw03.period_ms"), Some(300));
+    assert_eq!(su.store.channel(2).unwrap().period_ms, 300);
     assert_eq!(
         su.ignored,
         vec!["other_node_param (-p)", "pw04.period_ms (-p)"]
@@ -458,7 +459,7 @@ fn start_up_reads_channels_first_and_ignores_unknown_names() {
     assert!(start_up(&[sv("channels", V::Integer(100))]).is_err());
     assert!(start_up(&[sv("pw01.duty", V::Double(150.0))]).is_err());
     let su = start_up(&[sv("use_sim_time", V::Boolean(true))]).unwrap();
-    assert_eq!(su.store.bool("use_sim_time"), Some(false));
+    assert!(!su.store.node().use_sim_time);
     assert!(su.warnings[0].starts_with("use_sim_time true (-p) ignored: "));
 }
 
@@ -757,4 +758,111 @@ fn a_valves_loop_parameters_reach_the_core_and_bad_ones_are_refused() {
     ])
     .unwrap_err();
     assert!(e.to_string().contains("needs a process_topic"), "{e}");
+}
+
+/// A value of `v`'s type other than `v`.
+fn other(v: &V) -> V {
+    match v {
+        V::Integer(i) => V::Integer(i.wrapping_add(1)),
+        V::Double(x) => V::Double(x + 0.5),
+        V::Boolean(b) => V::Boolean(!b),
+        V::String(s) => V::String(format!("{s}x")),
+        other => panic!("no parameter is {other:?}"),
+    }
+}
+
+/// Round-trips every entry of `decls` through its field of the settings `S`: the entry's type
+/// is its default's, a value set is the value read back, and no other field changes.
+fn round_trip<S: Default>(
+    decls: &[table::Decl],
+    fields: &[&str],
+    field: fn(&table::Decl) -> table::Field<S>,
+) {
+    let names: Vec<&str> = decls.iter().map(|d| d.suffix).collect();
+    assert_eq!(
+        names, fields,
+        "every field has one entry, in the order written"
+    );
+    let mut s = S::default();
+    for d in decls {
+        let f = field(d);
+        assert_eq!(f.name, d.suffix);
+        let default = (d.default)();
+        assert!(
+            coerce(&make(d.suffix.into(), d, 0), &default)
+                .unwrap()
+                .1
+                .is_none(),
+            "{}: type",
+            d.suffix
+        );
+        for v in [default.clone(), other(&default)] {
+            let before: Vec<V> = decls.iter().map(|e| (field(e).get)(&s)).collect();
+            (f.set)(&mut s, &v);
+            assert_eq!((f.get)(&s), v, "{}", d.suffix);
+            for (e, was) in decls.iter().zip(before) {
+                if e.suffix != d.suffix {
+                    assert_eq!((field(e).get)(&s), was, "{} wrote {}", d.suffix, e.suffix);
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn every_table_entry_round_trips_through_its_typed_field() {
+    round_trip(&table::node_decls(), NodeValues::FIELDS, |d| {
+        match d.access {
+            table::Access::Node(f) => f,
+            _ => panic!("{} is not a node field", d.suffix),
+        }
+    });
+    round_trip(
+        &table::channel_decls(),
+        ChannelValues::FIELDS,
+        |d| match d.access {
+            table::Access::Channel(f) => f,
+            _ => panic!("{} is not a channel field", d.suffix),
+        },
+    );
+    round_trip(&table::valve_decls(), ValveValues::FIELDS, |d| {
+        match d.access {
+            table::Access::Valve(f) => f,
+            _ => panic!("{} is not a valve field", d.suffix),
+        }
+    });
+}
+
+#[test]
+fn the_store_holds_every_parameter_in_its_typed_settings() {
+    let mut s = ParamStore::new(2);
+    s.declare_valves(&["mix".to_string()]);
+    let all = s.all();
+    assert_eq!(
+        all.len(),
+        table::node_decls().len() + 2 * table::channel_decls().len() + table::valve_decls().len()
+    );
+    for (name, v) in &all {
+        assert_eq!(Some(v), s.descriptor(name).map(|d| &d.default), "{name}");
+    }
+    // Each parameter set alone changes it and nothing else, and reads back.
+    for (name, v) in &all {
+        let d = s.descriptor(name).unwrap();
+        let mut working = s.clone();
+        let w = other(v);
+        working.commit(&Accepted {
+            changes: vec![(name.clone(), w.clone())],
+            ..Accepted::default()
+        });
+        assert_eq!(working.get(name), Some(w), "{name}");
+        let changed: Vec<String> = working
+            .all()
+            .into_iter()
+            .zip(&all)
+            .filter(|(now, was)| now != *was)
+            .map(|(now, _)| now.0)
+            .collect();
+        assert_eq!(changed, vec![d.name.clone()]);
+    }
+    assert_eq!(s.check(&all, Stage::Live).unwrap().changes, vec![]);
 }
