@@ -46,6 +46,8 @@ pub struct Accepted {
 pub struct ParamStore {
     decls: BTreeMap<String, Descriptor>,
     values: Values,
+    /// What the node-level values give, kept with them (made anew when a commit changes one).
+    settings: NodeSettings,
     /// The valves' names, in the order they were declared (their index in the output thread
     /// and in `values.valves`).
     valves: Vec<String>,
@@ -106,6 +108,7 @@ impl ParamStore {
         }
         ParamStore {
             decls,
+            settings: table::node_settings(&values.node),
             values,
             valves: Vec::new(),
         }
@@ -185,7 +188,7 @@ impl ParamStore {
 
     /// The node-level settings the store's values give.
     pub fn node_settings(&self) -> NodeSettings {
-        table::node_settings(&self.values.node)
+        self.settings.clone()
     }
 
     /// Answers `list_parameters` the way rclcpp does: with no prefixes, names with fewer than
@@ -383,7 +386,8 @@ impl ParamStore {
     /// Applies a checked change; returns the changed parameters in wire form, for
     /// `/parameter_events`.
     pub fn commit(&mut self, accepted: &Accepted) -> Vec<raw::Parameter> {
-        accepted
+        let node = self.values.node.clone();
+        let changed = accepted
             .changes
             .iter()
             .filter_map(|(name, value)| {
@@ -394,7 +398,11 @@ impl ParamStore {
                     value: value.clone().into(),
                 })
             })
-            .collect()
+            .collect();
+        if self.values.node != node {
+            self.settings = table::node_settings(&self.values.node);
+        }
+        changed
     }
 }
 

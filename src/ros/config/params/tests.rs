@@ -866,3 +866,35 @@ fn the_store_holds_every_parameter_in_its_typed_settings() {
     }
     assert_eq!(s.check(&all, Stage::Live).unwrap().changes, vec![]);
 }
+
+#[test]
+fn the_node_settings_follow_each_committed_change() {
+    let mut s = ParamStore::new(2);
+    let before = s.node_settings();
+    let a = live(&s, "pw01.period_ms", V::Integer(500)).unwrap();
+    s.commit(&a);
+    assert_eq!(s.node_settings(), before);
+    let a = s
+        .check(
+            &[
+                item("status_rate_hz", V::Double(5.0)),
+                item("phase", V::String("stagger".into())),
+                item("max_simultaneous_on", V::Integer(1)),
+            ],
+            Stage::Live,
+        )
+        .unwrap();
+    s.commit(&a);
+    let after = s.node_settings();
+    assert_eq!(after.status_rate_hz, 5.0);
+    assert_eq!(after.bank.phase, crate::core::Phase::Stagger);
+    assert_eq!(after.bank.max_on, 1);
+    assert_eq!(
+        after,
+        NodeSettings {
+            status_rate_hz: 5.0,
+            bank: after.bank,
+            ..before
+        }
+    );
+}
