@@ -4,17 +4,19 @@
 //! latched (`motor_stalled`, `switch_implausible`, `travel_mismatch`, with its figures), WARN
 //! while unreferenced, when the uncertainty of the estimate exceeds `NAME.max_uncertainty_pct`,
 //! while the position feedback is silent, or after a command timeout; OK otherwise; STALE
-//! before the first snapshot.
+//! before the first snapshot. Inputs the valve refused are counted by it and logged here
+//! (rate-limited per place, as every warning).
 
 use crate::clock;
-use crate::core::valve::{Activity, Dir, Motion, StallCause, ValveFault};
+use crate::core::valve::{Activity, Dir, Motion, StallCause, ValveFault, ValveRefusal};
 use crate::core::{ValveConfig, ValveStatus};
+use crate::ros::config::logging::escape_controls;
 use crate::ros::config::valve_state::{write_state, Stamp, StateRecord, STATE_MARGIN_PCT};
 use crate::ros::inbound::valve::ValveAnswers;
 use crate::ros::interface::msg::{self, DiagnosticStatus, KeyValue};
 use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
-use log::{debug, error, info};
+use log::{debug, error, info, warn};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::Publisher;
 use std::path::PathBuf;
@@ -186,6 +188,21 @@ impl ValveOut {
                 on_off(status.switches[1])
             );
         }
+        let before = self.last.map_or(0, |s| s.refused.total());
+        let refused = status.refused.total().saturating_sub(before);
+        if let (true, Some(r)) = (refused > 0, status.last_refusal) {
+            // Counted by the valve; logged here, where the log is rate-limited per place.
+            let more = if refused > 1 {
+                format!(" ({refused} refused since the last report)")
+            } else {
+                String::new()
+            };
+            warn!(
+                "valve {}: {}{more}",
+                self.name,
+                refusal_text(&self.name, &r)
+            );
+        }
         self.last = Some(status);
         if let Err(e) = self.state.publish(state_msg(&self.name, &status)) {
             debug!("valve {}: cannot publish state: {e}", self.name);
@@ -235,6 +252,17 @@ pub fn state_msg(name: &str, s: &ValveStatus) -> msg::ValveState {
         fault: s.fault.map_or("", |f| f.name()).to_string(),
         feedback_pct: s.feedback_pct,
         moves: s.moves,
+        control: s.control.control.as_str().into(),
+        loop_state: s.control.state.as_str().into(),
+        manual: s.control.manual.map_or("", |m| m.as_str()).into(),
+        setpoint: s.control.setpoint,
+        process_value: s.control.process_value,
+        process_age_s: s.control.process_age.map_or(f64::NAN, |a| a as f64 / 1e9),
+        stale_readings: s.control.stale.0,
+        position_commands_refused: s.refused.position,
+        setpoints_refused: s.refused.setpoint,
+        process_values_refused: s.refused.process_value,
+        manual_refused: s.refused.manual,
     }
 }
 
@@ -416,6 +444,14 @@ pub fn diagnostic(
     }
 }
 
+/// A refusal for the log and the diagnostics: control characters in an echoed word escaped.
+fn refusal_text(name: &str, r: &ValveRefusal) -> String {
+    let text = r
+        .to_string()
+        .replace("~/valve/NAME/", &format!("~/valve/{name}/"));
+    escape_controls(&text).into_owned()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -452,7 +488,7 @@ mod tests {
             max_starts_per_h: 0,
             deadband_in_force_pct: 0.5,
             control: ControlStatus::default(),
-            refusals: 0,
+            refused: Default::default(),
             last_refusal: None,
         }
     }
@@ -586,5 +622,83 @@ mod tests {
             (m.motion.as_str(), m.run_since_reference_s),
             ("stopped", 30.0)
         );
+    }
+
+    /// The loop's state, the manual command, the process value and the refusals on the state
+    /// topic; a refusal's echoed word escaped.
+    #[test]
+    fn the_state_carries_the_loop_and_the_refusals() {
+        use crate::core::valve::{Control, LoopOutput, LoopState, Manual, Refused};
+        let running = ValveStatus {
+            control: ControlStatus {
+                control: Control::Pid,
+                output: LoopOutput::Step,
+                state: LoopState::Running,
+                setpoint: 45.0,
+                process_value: 44.5,
+                process_age: Some(200_000_000),
+                stale: (3, 5_000_000_000),
+                ..ControlStatus::default()
+            },
+            ..status()
+        };
+        let m = state_msg("mix", &running);
+        assert_eq!(
+            (m.control.as_str(), m.loop_state.as_str(), m.manual.as_str()),
+            ("pid", "running", "")
+        );
+        assert_eq!(
+            (
+                m.setpoint,
+                m.process_value,
+                m.process_age_s,
+                m.stale_readings
+            ),
+            (45.0, 44.5, 0.2, 3)
+        );
+        let never = ValveStatus {
+            control: ControlStatus {
+                process_age: None,
+                process_value: f64::NAN,
+                ..running.control
+            },
+            ..running
+        };
+        assert!(state_msg("mix", &never).process_age_s.is_nan());
+        let bad = "wide\nopen".parse::<Manual>().unwrap_err();
+        let manual = ValveStatus {
+            control: ControlStatus {
+                state: LoopState::Manual,
+                manual: Some(Manual::Position(35.0)),
+                ..running.control
+            },
+            refused: Refused {
+                position: 1,
+                setpoint: 2,
+                process_value: 3,
+                manual: 4,
+            },
+            ..running
+        };
+        let m = state_msg("mix", &manual);
+        assert_eq!(
+            (m.loop_state.as_str(), m.manual.as_str()),
+            ("manual", "position")
+        );
+        assert_eq!(
+            (
+                m.position_commands_refused,
+                m.setpoints_refused,
+                m.process_values_refused,
+                m.manual_refused
+            ),
+            (1, 2, 3, 4)
+        );
+        assert_eq!(
+            refusal_text("mix", &ValveRefusal::BadManual(bad)),
+            "manual command refused: manual `wide\\nopen` is none of auto, open, close, stop \
+             or a position in percent"
+        );
+        assert!(refusal_text("mix", &ValveRefusal::PositionInManual).contains("~/valve/mix/manual"));
     }
 }
