@@ -146,6 +146,17 @@ fn own_messages_match_their_msg_files() {
             fault: String::new(),
             feedback_pct: 0.0,
             moves: 0,
+            control: String::new(),
+            loop_state: String::new(),
+            manual: String::new(),
+            setpoint: 0.0,
+            process_value: 0.0,
+            process_age_s: 0.0,
+            stale_readings: 0,
+            position_commands_refused: 0,
+            setpoints_refused: 0,
+            process_values_refused: 0,
+            manual_refused: 0,
         }),
     );
     assert_eq!(ValveState::PACKAGE, MSG_PACKAGE);

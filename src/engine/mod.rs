@@ -127,8 +127,9 @@ pub enum Input {
     ValveManual {
         /// Valve index.
         valve: usize,
-        /// Open, close, stop, a position or auto.
-        manual: crate::core::valve::Manual,
+        /// Open, close, stop, a position or auto; or the word that is none of them, to be
+        /// counted with the valve's refusals.
+        manual: Result<crate::core::valve::Manual, crate::core::valve::BadManual>,
     },
     /// New settings for valve `valve`; the request's channel is ignored.
     ValveConfig {

@@ -455,7 +455,10 @@ impl<O: Output> Worker<O> {
             }
             Input::ValveManual { valve, manual } => {
                 return self.on_valve(valve, now, |v, now, emit| {
-                    let _ = v.manual(now, manual, emit);
+                    let _ = match manual {
+                        Ok(m) => v.manual(now, m, emit),
+                        Err(bad) => v.manual_refused(bad),
+                    };
                 });
             }
             Input::ValveConfig { valve, config } => {

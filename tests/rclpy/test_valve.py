@@ -11,7 +11,11 @@ and checks the node's CSV trace of the two lines.
 - a refused `valve` or valve parameter stops the node with exit code 2 and the reason;
 - the e-stop and a lifecycle deactivate stop a moving valve with both lines off at once; after
   the reset it waits for a fresh command, after activation it resumes; at exit both are off;
-- the motion settings change while running (set_parameters), the travel times do not.
+- the motion settings change while running (set_parameters), the travel times do not;
+- the valve's own loop (`control` `pid`): its parameters checked, it follows a process value,
+  holds when the readings stop, and `~/valve/mix/state` and /diagnostics say so (`holding`, a
+  WARN with the reading's age and the timeout); manual mode shows on both and a bad word is
+  counted; with `safe_position_pct` the valve goes there after `safe_after_ms`.
 """
 
 from __future__ import annotations
@@ -487,4 +491,238 @@ def test_a_temperature_process_value_counts_only_when_fresh(node_process, ros):
         ros.spin_for(0.1)
     opened = states.messages[-1].position_pct
     assert opened > closed + 5.0, (closed, opened)
+    assert proc.terminate() == 0, proc.output()
+
+
+WARN = 1
+
+
+def start_loop(node_process, ros, **extra):
+    """The node with a pid valve on the `std_msgs/Float64` process value `/supply` (LOOP's
+    settings, and `extra`), referenced and at rest; its state and /diagnostics subscribed."""
+    from std_msgs.msg import String
+
+    params = {
+        **VALVE,
+        "mix__control": "pid",
+        "mix__process_topic": "/supply",
+        "mix__process_type": "float64",
+        **LOOP,
+        **extra,
+    }
+    proc = node_process(node_args(**params))
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
+    diags = ros.subscribe(DiagnosticArray, "/diagnostics")
+    process = ros.publisher(Float64, "/supply")
+    setpoint = ros.publisher(Float64, f"{NODE}/valve/mix/setpoint")
+    manual = ros.publisher(String, f"{NODE}/valve/mix/manual")
+    for p in (process, setpoint, manual):
+        ros.wait_for_subscribers(p, 1)
+    states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
+    return proc, states, diags, process, setpoint, manual
+
+
+def feed_until(ros, process, value: float, log, predicate, start: int, timeout: float):
+    """Publishes `value` on the process topic every 100 ms until a message of `log` (at index
+    >= `start`) satisfies `predicate`; returns it."""
+    deadline = mono_ns() + int(timeout * 1e9)
+    while mono_ns() < deadline:
+        process.publish(Float64(data=value))
+        ros.spin_for(0.1)
+        for m in log.messages[start:]:
+            if predicate(m):
+                return m
+    last = log.messages[-1] if log.messages else None
+    if last is not None and hasattr(last, "status"):
+        last = mix_diag(last)
+    raise AssertionError(f"not seen within {timeout} s while feeding {value}; last: {last}")
+
+
+def mix_diag(array):
+    """The valve's status in a DiagnosticArray, or None."""
+    return next((s for s in array.status if s.name.endswith("valve mix")), None)
+
+
+def test_a_stale_process_value_shows_as_holding_and_warns_with_its_age_and_timeout(
+    node_process, ros
+):
+    """docs/valve.md, the loop's state and diagnostics: the readings stop, and within
+    `process_timeout_ms` and a sample `~/valve/mix/state` says `holding` (published at the
+    loop's sample, not at a move) and /diagnostics WARNs with the reading's age and the timeout;
+    fresh readings again: `running`, and the WARN is gone."""
+    proc, states, diags, process, setpoint, _ = start_loop(node_process, ros)
+    setpoint.publish(Float64(data=50.0))
+    feed_until(
+        ros,
+        process,
+        45.0,
+        states,
+        lambda s: s.loop_state == "running" and s.process_value == 45.0,
+        start=0,
+        timeout=5.0,
+    )
+    running = mix_diag(
+        feed_until(
+            ros,
+            process,
+            45.0,
+            diags,
+            lambda a: (d := mix_diag(a)) is not None and diag_values(d)["loop_state"] == "running",
+            len(diags.messages),
+            5.0,
+        )
+    )
+    assert diag_values(running)["setpoint"] == "50" and diag_values(running)["control"] == "pid"
+    assert "process value stale" not in running.message, running
+    # At the setpoint the integral stands still and so does the valve.
+    feed_until(ros, process, 50.0, states, lambda s: s.motion == "stopped", len(states.messages), 5.0)
+    for _ in range(5):
+        process.publish(Float64(data=50.0))
+        ros.spin_for(0.1)
+    at_rest = states.messages[-1]
+    assert at_rest.motion == "stopped" and at_rest.loop_state == "running", at_rest
+
+    # The readings stop: the hold is published at the loop's sample, with nothing moving.
+    stopped_at = mono_ns()
+    start = len(states.messages)
+    held = states.wait_for(lambda s: s.loop_state == "holding", start=start, timeout=5.0)
+    after_s = (mono_ns() - stopped_at) / 1e9
+    # process_timeout_ms 1000, a sample of 100 ms, and ROS on a loaded machine.
+    assert 0.9 <= after_s <= 2.5, after_s
+    assert held.motion == "stopped" and held.moves == at_rest.moves, (at_rest, held)
+    assert held.process_age_s >= 1.0 and held.process_value == 50.0, held
+    assert held.control == "pid" and held.setpoint == 50.0 and held.manual == "", held
+    d = diags.wait_for(
+        lambda a: (d := mix_diag(a)) is not None and "process value stale" in d.message,
+        start=len(diags.messages),
+        timeout=3.0,
+    )
+    warn = mix_diag(d)
+    assert diag_level(warn) == WARN, warn
+    assert "(process_timeout_ms 1000)" in warn.message, warn.message
+    age = float(warn.message.split("the last fresh reading is ")[1].split(" s old")[0])
+    assert age >= 1.0, warn.message
+    assert diag_values(warn)["loop_state"] == "holding", warn
+    assert float(diag_values(warn)["process_age_s"]) >= 1.0, warn
+
+    # Readings again: running, and the WARN is gone.
+    start = len(states.messages)
+    feed_until(ros, process, 45.0, states, lambda s: s.loop_state == "running", start, 5.0)
+    back = mix_diag(
+        feed_until(
+            ros,
+            process,
+            45.0,
+            diags,
+            lambda a: (d := mix_diag(a)) is not None and diag_values(d)["loop_state"] == "running",
+            len(diags.messages),
+            5.0,
+        )
+    )
+    assert diag_level(back) == OK and "process value stale" not in back.message, back
+    assert proc.terminate() == 0, proc.output()
+
+
+def test_manual_mode_shows_on_the_state_and_on_diagnostics_and_bad_words_are_counted(
+    node_process, ros
+):
+    """docs/valve.md, manual mode: `open` puts the valve in manual mode, and
+    `~/valve/mix/state` says `manual` with the command `open` while /diagnostics WARNs that
+    the loop is set aside; a word that is no command is refused and counted; `auto` returns
+    to the loop, and the manual WARN is gone."""
+    from std_msgs.msg import String
+
+    proc, states, diags, process, setpoint, manual = start_loop(node_process, ros)
+    setpoint.publish(Float64(data=50.0))
+    feed_until(ros, process, 45.0, states, lambda s: s.loop_state == "running", 0, 5.0)
+
+    start = len(states.messages)
+    manual.publish(String(data="open"))
+    m = feed_until(ros, process, 45.0, states, lambda s: s.manual == "open", start, 5.0)
+    assert m.loop_state == "manual", m
+    d = mix_diag(
+        feed_until(
+            ros,
+            process,
+            45.0,
+            diags,
+            lambda a: (d := mix_diag(a)) is not None and "manual mode: open" in d.message,
+            len(diags.messages),
+            5.0,
+        )
+    )
+    assert diag_level(d) == WARN, d
+    assert "until auto on ~/valve/mix/manual" in d.message, d.message
+    assert diag_values(d)["manual"] == "open" and diag_values(d)["loop_state"] == "manual", d
+
+    before = states.messages[-1].manual_refused
+    start = len(states.messages)
+    manual.publish(String(data="wide open"))
+    counted = feed_until(
+        ros, process, 45.0, states, lambda s: s.manual_refused == before + 1, start, 5.0
+    )
+    assert counted.manual == "open", counted
+    assert "manual command refused" in proc.output(), proc.output()
+
+    start = len(states.messages)
+    manual.publish(String(data="auto"))
+    back = feed_until(ros, process, 45.0, states, lambda s: s.manual == "", start, 5.0)
+    assert back.loop_state == "running", back
+    d = mix_diag(
+        feed_until(
+            ros,
+            process,
+            45.0,
+            diags,
+            lambda a: (d := mix_diag(a)) is not None and diag_values(d)["manual"] == "",
+            len(diags.messages),
+            5.0,
+        )
+    )
+    assert "manual mode" not in d.message and diag_values(d)["loop_state"] == "running", d
+    assert proc.terminate() == 0, proc.output()
+
+
+SAFE_PCT = 80.0
+
+
+def test_a_stale_process_value_drives_the_valve_to_its_safe_position_after_safe_after_ms(
+    node_process, ros
+):
+    """docs/valve.md, freshness: with `safe_position_pct`, once the loop has held for
+    `safe_after_ms` the valve goes to the safe position: `~/valve/mix/state` says `safe` and
+    its estimate reaches it; /diagnostics WARNs with the figures."""
+    proc, states, diags, process, setpoint, _ = start_loop(
+        node_process, ros, mix__safe_position_pct=SAFE_PCT, mix__safe_after_ms=500
+    )
+    setpoint.publish(Float64(data=50.0))
+    feed_until(ros, process, 45.0, states, lambda s: s.loop_state == "running", 0, 5.0)
+    for _ in range(10):
+        process.publish(Float64(data=45.0))
+        ros.spin_for(0.1)
+    opened = states.messages[-1].position_pct
+    assert opened < SAFE_PCT - 20.0, opened
+
+    # The readings stop: holding after process_timeout_ms, safe after safe_after_ms more.
+    start = len(states.messages)
+    states.wait_for(lambda s: s.loop_state == "holding", start=start, timeout=5.0)
+    safe = states.wait_for(lambda s: s.loop_state == "safe", start=start, timeout=5.0)
+    assert safe.target_pct == SAFE_PCT, safe
+    there = states.wait_for(
+        lambda s: s.loop_state == "safe"
+        and s.motion == "stopped"
+        and abs(s.position_pct - SAFE_PCT) <= 2.0,
+        start=start,
+        timeout=10.0,
+    )
+    d = diags.wait_for(
+        lambda a: (d := mix_diag(a)) is not None and diag_values(d)["loop_state"] == "safe",
+        start=len(diags.messages),
+        timeout=3.0,
+    )
+    warn = mix_diag(d)
+    assert diag_level(warn) == WARN, warn
+    assert f"driven to safe_position_pct {SAFE_PCT:g} %" in warn.message, warn.message
+    assert "process_timeout_ms 1000, then safe_after_ms 500" in warn.message, warn.message
+    assert there.position_pct > opened + 20.0, (opened, there)
     assert proc.terminate() == 0, proc.output()

@@ -383,6 +383,46 @@ pub enum ValveRefusal {
     BadProcessValue(f64),
     /// A manual command while the e-stop is latched, the lines are held or a fault is latched.
     ManualHeld,
+    /// A manual command that is none of the words nor a position.
+    BadManual(BadManual),
+}
+
+/// Refused inputs of a valve since it was made, by kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Refused {
+    /// Position commands: NaN, infinite, under `control` `pid`, in manual mode.
+    pub position: u64,
+    /// Setpoints: not finite, beyond [`MAX_PROCESS_VALUE`], under `control` `position`.
+    pub setpoint: u64,
+    /// Process values: not finite or beyond [`MAX_PROCESS_VALUE`].
+    pub process_value: u64,
+    /// Manual commands: no such word, or held by the e-stop, the lifecycle or a fault.
+    pub manual: u64,
+}
+
+impl Refused {
+    /// Counts `r` under its kind.
+    pub fn count(&mut self, r: &ValveRefusal) {
+        let n = match r {
+            ValveRefusal::Command(_)
+            | ValveRefusal::PositionUnderPid
+            | ValveRefusal::PositionInManual => &mut self.position,
+            ValveRefusal::SetpointUnderPosition | ValveRefusal::BadSetpoint(_) => {
+                &mut self.setpoint
+            }
+            ValveRefusal::BadProcessValue(_) => &mut self.process_value,
+            ValveRefusal::ManualHeld | ValveRefusal::BadManual(_) => &mut self.manual,
+        };
+        *n = n.saturating_add(1);
+    }
+
+    /// All of them.
+    pub fn total(&self) -> u64 {
+        self.position
+            .saturating_add(self.setpoint)
+            .saturating_add(self.process_value)
+            .saturating_add(self.manual)
+    }
 }
 
 impl fmt::Display for ValveRefusal {
@@ -413,6 +453,7 @@ impl fmt::Display for ValveRefusal {
             ValveRefusal::ManualHeld => f.write_str(
                 "manual command refused: the e-stop, the lifecycle or a fault holds the lines",
             ),
+            ValveRefusal::BadManual(b) => write!(f, "manual command refused: {b}"),
         }
     }
 }
@@ -477,6 +518,12 @@ pub struct ControlStatus {
     pub stale: (u64, i64),
     /// The latest reading was stale.
     pub stale_now: bool,
+    /// `process_timeout_ms` in force, ns.
+    pub timeout: Nanos,
+    /// `safe_position_pct` in force, percent; `None`: the valve holds.
+    pub safe: Option<f64>,
+    /// `safe_after_ms` in force, ns.
+    pub safe_after: Nanos,
 }
 
 impl Default for ControlStatus {
@@ -492,6 +539,9 @@ impl Default for ControlStatus {
             terms: Terms::default(),
             stale: (0, 0),
             stale_now: false,
+            timeout: DEFAULT_PROCESS_TIMEOUT_MS * NS_PER_MS,
+            safe: None,
+            safe_after: 0,
         }
     }
 }
@@ -591,6 +641,14 @@ impl Loop {
                 }
             }
             (Control::Position, Control::Position) => {}
+        }
+    }
+
+    /// Makes a sample due at `now` (under `pid`): what the loop does follows a change of the
+    /// valve's mode (manual mode, its end, a command timeout) at once, not a sample later.
+    pub(super) fn sample_now(&mut self, now: Nanos) {
+        if self.on() {
+            self.next_sample = Some(now);
         }
     }
 
@@ -777,6 +835,9 @@ impl Loop {
             terms: self.pid.terms(),
             stale: self.stale,
             stale_now: self.stale_now,
+            timeout: self.cfg.timeout,
+            safe: self.cfg.safe,
+            safe_after: self.cfg.safe_after,
         }
     }
 }

@@ -316,6 +316,8 @@ fn manual_to_auto_moves_the_valve_less_than_the_dead_band() {
     let held = p.position();
     p.act(|v, now, e| v.manual(now, Manual::Close, e))
         .expect("manual");
+    // The state says so at once, not a sample later.
+    assert_eq!(p.v.status(p.now).control.state, LoopState::Manual);
     p.run_to(p.now + 3 * S);
     p.act(|v, now, e| v.manual(now, Manual::Stop, e))
         .expect("manual");
@@ -334,6 +336,7 @@ fn manual_to_auto_moves_the_valve_less_than_the_dead_band() {
     );
     p.act(|v, now, e| v.manual(now, Manual::Auto, e))
         .expect("auto");
+    assert_eq!(p.v.status(p.now).control.state, LoopState::Running);
     let off = SETPOINT - p.mix.temperature();
     assert!(off > 2.0, "the water is {off:.2} K below the setpoint");
     let until = p.now + 5 * SAMPLE;
@@ -361,4 +364,87 @@ fn manual_to_auto_moves_the_valve_less_than_the_dead_band() {
         p.tick(t, &mut |_, _| {});
     }
     assert!((p.mix.temperature() - SETPOINT).abs() < 1.0);
+}
+
+/// What the valve reports of its loop is true when it is taken: manual mode and its end change
+/// the loop's state in the same call, the hold comes at the first sample after
+/// `process_timeout_ms` without a fresh reading, a command timeout shows at once, and each
+/// refused input is counted under its kind.
+#[test]
+fn the_loop_state_is_reported_as_it_changes_and_refusals_are_counted_by_kind() {
+    let mut p = Plant::new(valve_params(Control::Pid, 0), 0.0);
+    p.act(|v, now, e| v.setpoint(now, SETPOINT, e))
+        .expect("setpoint");
+    let mut t = 0;
+    while t < 10 * S {
+        t += TICK;
+        p.tick(t, &mut |_, _| {});
+    }
+    let s = p.v.status(p.now);
+    assert_eq!(
+        (s.control.state, s.control.manual, s.control.process_age),
+        (LoopState::Running, None, Some(0))
+    );
+    p.act(|v, now, e| v.manual(now, Manual::Position(30.0), e))
+        .expect("manual");
+    let s = p.v.status(p.now);
+    assert_eq!(
+        (s.control.state, s.control.manual),
+        (LoopState::Manual, Some(Manual::Position(30.0)))
+    );
+    p.act(|v, now, e| v.manual(now, Manual::Auto, e))
+        .expect("auto");
+    let s = p.v.status(p.now);
+    assert_eq!(
+        (s.control.state, s.control.manual),
+        (LoopState::Running, None)
+    );
+
+    p.act(|v, now, e| v.setpoint(now, f64::NAN, e))
+        .expect_err("NaN setpoint");
+    p.act(|v, now, e| v.setpoint(now, 2e9, e))
+        .expect_err("setpoint beyond 1e9");
+    p.v.process_value(p.now, f64::INFINITY, None)
+        .expect_err("infinite reading");
+    p.act(|v, now, e| v.command(now, 40.0, e))
+        .expect_err("a position under pid");
+    let bad = "wide open".parse::<Manual>().expect_err("no such word");
+    p.v.manual_refused(bad).expect_err("counted");
+    let s = p.v.status(p.now);
+    assert_eq!(
+        s.refused,
+        Refused {
+            position: 1,
+            setpoint: 2,
+            process_value: 1,
+            manual: 1
+        }
+    );
+    assert_eq!(s.refused.total(), 5);
+    assert_eq!(s.last_refusal, Some(ValveRefusal::BadManual(bad)));
+    assert_eq!(s.control.setpoint, SETPOINT, "the setpoint in force stays");
+
+    // The readings stop: running until the timeout, holding at the first sample after it.
+    let last = p.now;
+    let timeout = control::DEFAULT_PROCESS_TIMEOUT_MS * MS;
+    p.run_to(last + timeout - MS);
+    assert_eq!(p.v.status(p.now).control.state, LoopState::Running);
+    p.run_to(last + timeout + SAMPLE);
+    let s = p.v.status(p.now);
+    assert_eq!(s.control.state, LoopState::Holding);
+    assert_eq!(s.control.process_age, Some(timeout + SAMPLE));
+    assert_eq!(s.control.timeout, timeout);
+
+    // A command timeout shows in the same call that acts on it.
+    let mut q = valve_params(Control::Pid, 0);
+    q.command_timeout_ms = 5_000;
+    let mut p = Plant::new(q, 0.0);
+    p.act(|v, now, e| v.setpoint(now, SETPOINT, e))
+        .expect("setpoint");
+    p.run_to(5 * S - MS);
+    assert_ne!(p.v.status(p.now).control.state, LoopState::TimedOut);
+    p.run_to(5 * S);
+    let s = p.v.status(p.now);
+    assert!(s.timed_out);
+    assert_eq!(s.control.state, LoopState::TimedOut);
 }

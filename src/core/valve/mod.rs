@@ -45,7 +45,7 @@ pub use config::{
 };
 pub use control::{
     BadManual, Control, ControlConfig, ControlError, ControlParams, ControlStatus, LoopOutput,
-    LoopState, Manual, ValveRefusal,
+    LoopState, Manual, Refused, ValveRefusal,
 };
 pub use lines::MIN_BREAK;
 
@@ -451,9 +451,9 @@ pub struct ValveStatus {
     pub deadband_in_force_pct: f64,
     /// The loop (`control`), and the manual mode.
     pub control: ControlStatus,
-    /// Inputs refused since the valve was made (position commands, setpoints, process values,
-    /// manual commands).
-    pub refusals: u64,
+    /// Inputs refused since the valve was made, by kind (position commands, setpoints, process
+    /// values, manual commands).
+    pub refused: Refused,
     /// The last refusal.
     pub last_refusal: Option<ValveRefusal>,
 }
@@ -611,7 +611,7 @@ pub struct Valve {
     odo_at_rise: Odo,
     /// The last fall's drive, for the frame's correction by its real write time.
     odo_fix: Option<(Dir, Nanos)>,
-    refusals: u64,
+    refused: Refused,
     last_refusal: Option<ValveRefusal>,
 }
 
@@ -708,7 +708,7 @@ impl Valve {
                 slack_open: b / 2.0,
             },
             odo_fix: None,
-            refusals: 0,
+            refused: Refused::default(),
             last_refusal: None,
         }
     }
@@ -780,7 +780,7 @@ impl Valve {
 
     /// Counts a refused input and gives it back as the error.
     fn refuse(&mut self, r: ValveRefusal) -> Result<(), ValveRefusal> {
-        self.refusals += 1;
+        self.refused.count(&r);
         self.last_refusal = Some(r);
         Err(r)
     }
@@ -873,12 +873,16 @@ impl Valve {
                 self.timed_out = false;
                 // The manual target stays (forced no longer): automatic takes over from it.
                 self.target_forced = false;
+                self.ctl.sample_now(now);
             }
             self.step(now, emit);
             return Ok(());
         }
         if self.estop || !self.live || self.fault.is_some() {
             return self.refuse(ValveRefusal::ManualHeld);
+        }
+        if self.manual.is_none() {
+            self.ctl.sample_now(now);
         }
         self.manual = Some(m);
         self.armed = true;
@@ -892,6 +896,12 @@ impl Valve {
         }
         self.step(now, emit);
         Ok(())
+    }
+
+    /// A manual command that is none of the words nor a position (`~/valve/NAME/manual`):
+    /// counted with the refusals; nothing changes.
+    pub fn manual_refused(&mut self, bad: BadManual) -> Result<(), ValveRefusal> {
+        self.refuse(ValveRefusal::BadManual(bad))
     }
 
     /// Calls due deadlines at `now`.
@@ -1263,7 +1273,7 @@ impl Valve {
             max_starts_per_h: self.budget.per_h(),
             deadband_in_force_pct: self.deadband(now),
             control: self.ctl.status(now, self.manual, self.loop_output()),
-            refusals: self.refusals,
+            refused: self.refused,
             last_refusal: self.last_refusal,
         }
     }
@@ -1883,6 +1893,7 @@ impl Valve {
             return;
         }
         self.timed_out = true;
+        self.ctl.sample_now(now);
         self.target_forced = true;
         self.step_aim = None;
         self.target = match self.cfg.on_timeout {

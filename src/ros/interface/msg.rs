@@ -286,6 +286,29 @@ pub struct ValveState {
     pub feedback_pct: f64,
     /// Moves completed since start.
     pub moves: u64,
+    /// Who sets the target: `position` or `pid`.
+    pub control: String,
+    /// What the loop is doing: `off`, `waiting`, `running`, `holding`, `safe`, `manual`,
+    /// `paused` or `timed_out`.
+    pub loop_state: String,
+    /// The manual command in force (`open`, `close`, `stop`, `position`); empty in automatic.
+    pub manual: String,
+    /// The loop's setpoint, in the process value's unit; NaN before the first.
+    pub setpoint: f64,
+    /// The last fresh process value, in its unit; NaN before the first.
+    pub process_value: f64,
+    /// Its age when the state was taken, s; NaN before the first.
+    pub process_age_s: f64,
+    /// Stale process values since start.
+    pub stale_readings: u64,
+    /// Position commands refused since start.
+    pub position_commands_refused: u64,
+    /// Setpoints refused since start.
+    pub setpoints_refused: u64,
+    /// Process values refused since start.
+    pub process_values_refused: u64,
+    /// Manual commands refused since start.
+    pub manual_refused: u64,
 }
 ros_message!(ValveState, "pwm_actuator_msgs", "ValveState");
 

@@ -3,18 +3,24 @@
 //! `~/valve/<NAME>/reset`, and one `/diagnostics` status per valve — ERROR while a fault is
 //! latched (`motor_stalled`, `switch_implausible`, `travel_mismatch`, with its figures), WARN
 //! while unreferenced, when the uncertainty of the estimate exceeds `NAME.max_uncertainty_pct`,
-//! while the position feedback is silent, or after a command timeout; OK otherwise; STALE
-//! before the first snapshot.
+//! while the position feedback is silent, after a command timeout, while the valve's loop holds
+//! for want of a fresh process value or has driven the valve to its safe position (with the
+//! reading's age and the timeouts), and in manual mode; OK otherwise; STALE before the first
+//! snapshot. Inputs the valve refused are counted by it and logged here (rate-limited per
+//! place, as every warning).
 
 use crate::clock;
-use crate::core::valve::{Activity, Dir, Motion, StallCause, ValveFault};
-use crate::core::{ValveConfig, ValveStatus};
+use crate::core::valve::{
+    Activity, Control, Dir, LoopState, Manual, Motion, StallCause, ValveFault, ValveRefusal,
+};
+use crate::core::{ValveConfig, ValveStatus, NS_PER_MS};
+use crate::ros::config::logging::escape_controls;
 use crate::ros::config::valve_state::{write_state, Stamp, StateRecord, STATE_MARGIN_PCT};
 use crate::ros::inbound::valve::ValveAnswers;
 use crate::ros::interface::msg::{self, DiagnosticStatus, KeyValue};
 use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
-use log::{debug, error, info};
+use log::{debug, error, info, warn};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::Publisher;
 use std::path::PathBuf;
@@ -186,6 +192,21 @@ impl ValveOut {
                 on_off(status.switches[1])
             );
         }
+        let before = self.last.map_or(0, |s| s.refused.total());
+        let refused = status.refused.total().saturating_sub(before);
+        if let (true, Some(r)) = (refused > 0, status.last_refusal) {
+            // Counted by the valve; logged here, where the log is rate-limited per place.
+            let more = if refused > 1 {
+                format!(" ({refused} refused since the last report)")
+            } else {
+                String::new()
+            };
+            warn!(
+                "valve {}: {}{more}",
+                self.name,
+                refusal_text(&self.name, &r)
+            );
+        }
         self.last = Some(status);
         if let Err(e) = self.state.publish(state_msg(&self.name, &status)) {
             debug!("valve {}: cannot publish state: {e}", self.name);
@@ -235,6 +256,17 @@ pub fn state_msg(name: &str, s: &ValveStatus) -> msg::ValveState {
         fault: s.fault.map_or("", |f| f.name()).to_string(),
         feedback_pct: s.feedback_pct,
         moves: s.moves,
+        control: s.control.control.as_str().into(),
+        loop_state: s.control.state.as_str().into(),
+        manual: s.control.manual.map_or("", |m| m.as_str()).into(),
+        setpoint: s.control.setpoint,
+        process_value: s.control.process_value,
+        process_age_s: s.control.process_age.map_or(f64::NAN, |a| a as f64 / 1e9),
+        stale_readings: s.control.stale.0,
+        position_commands_refused: s.refused.position,
+        setpoints_refused: s.refused.setpoint,
+        process_values_refused: s.refused.process_value,
+        manual_refused: s.refused.manual,
     }
 }
 
@@ -337,38 +369,54 @@ pub fn diagnostic(
             values: Vec::new(),
         };
     };
+    let c = &s.control;
     let (level, message) = if let Some(f) = &s.fault {
         (DiagnosticStatus::ERROR, fault_text(name, f))
-    } else if !s.referenced {
-        (
-            DiagnosticStatus::WARN,
-            "unreferenced: the position is not known".to_string(),
-        )
-    } else if s.uncertainty_pct > s.max_uncertainty_pct {
-        (
-            DiagnosticStatus::WARN,
-            format!(
+    } else {
+        // What the valve knows first, then what its loop does, then manual mode: each says
+        // why it warns; several at once are all given.
+        let mut warns: Vec<String> = Vec::new();
+        if !s.referenced {
+            warns.push("unreferenced: the position is not known".into());
+        } else if s.uncertainty_pct > s.max_uncertainty_pct {
+            warns.push(format!(
                 "uncertainty {:.1} % above max_uncertainty_pct {} %",
                 s.uncertainty_pct, s.max_uncertainty_pct
-            ),
-        )
-    } else if s.feedback_silent {
-        (
-            DiagnosticStatus::WARN,
-            "position feedback silent: the position counts on the drive times alone".to_string(),
-        )
-    } else if s.timed_out {
-        (
-            DiagnosticStatus::WARN,
-            "no position command within command_timeout_ms".to_string(),
-        )
-    } else {
-        (DiagnosticStatus::OK, "ok".to_string())
+            ));
+        } else if s.feedback_silent {
+            warns.push(
+                "position feedback silent: the position counts on the drive times alone".into(),
+            );
+        }
+        if s.timed_out {
+            warns.push(if c.control == Control::Pid {
+                "no setpoint within command_timeout_ms: on_timeout acted".into()
+            } else {
+                "no position command within command_timeout_ms".into()
+            });
+        }
+        if let Some(w) = loop_warning(s) {
+            warns.push(w);
+        }
+        if let Some(m) = c.manual {
+            warns.push(manual_text(name, m, s.target_pct));
+        }
+        if warns.is_empty() {
+            let ok = if c.state == LoopState::Waiting {
+                format!("ok; the loop waits for a setpoint on ~/valve/{name}/setpoint")
+            } else {
+                "ok".to_string()
+            };
+            (DiagnosticStatus::OK, ok)
+        } else {
+            (DiagnosticStatus::WARN, warns.join("; "))
+        }
     };
     let kv = |key: &str, value: String| KeyValue {
         key: key.into(),
         value,
     };
+    let secs = |ns: Option<crate::core::Nanos>| ns.map_or(f64::NAN, |a| a as f64 / 1e9);
     DiagnosticStatus {
         level,
         name: full,
@@ -412,8 +460,79 @@ pub fn diagnostic(
                 "deadband_in_force_pct",
                 format!("{:.2}", s.deadband_in_force_pct),
             ),
+            kv("control", c.control.as_str().into()),
+            kv("loop_output", c.output.as_str().into()),
+            kv("loop_state", c.state.as_str().into()),
+            kv("manual", c.manual.map_or("", |m| m.as_str()).into()),
+            kv("setpoint", format!("{}", c.setpoint)),
+            kv("process_value", format!("{}", c.process_value)),
+            kv("process_age_s", format!("{:.2}", secs(c.process_age))),
+            kv("process_timeout_ms", (c.timeout / NS_PER_MS).to_string()),
+            kv("stale_readings", c.stale.0.to_string()),
+            kv("position_commands_refused", s.refused.position.to_string()),
+            kv("setpoints_refused", s.refused.setpoint.to_string()),
+            kv(
+                "process_values_refused",
+                s.refused.process_value.to_string(),
+            ),
+            kv("manual_refused", s.refused.manual.to_string()),
+            kv(
+                "last_refusal",
+                s.last_refusal
+                    .map_or(String::new(), |r| refusal_text(name, &r)),
+            ),
         ],
     }
+}
+
+/// Why the loop makes the valve warn, with its figures: it holds for want of a fresh process
+/// value, or it drove the valve to its safe position.
+fn loop_warning(s: &ValveStatus) -> Option<String> {
+    let c = &s.control;
+    let timeout_ms = c.timeout / NS_PER_MS;
+    let age = match c.process_age {
+        Some(a) => format!("the last fresh reading is {:.1} s old", a as f64 / 1e9),
+        None => "no fresh reading since the loop started".to_string(),
+    };
+    match c.state {
+        LoopState::Holding => Some(format!(
+            "process value stale: {age} (process_timeout_ms {timeout_ms}): the loop stopped and \
+             the valve holds at {:.1} %{}",
+            s.position_pct,
+            c.safe.map_or(String::new(), |p| format!(
+                "; after safe_after_ms {} it goes to safe_position_pct {p} %",
+                c.safe_after / NS_PER_MS
+            ))
+        )),
+        LoopState::Safe => Some(format!(
+            "safe position: {age} (process_timeout_ms {timeout_ms}, then safe_after_ms {}): \
+             the loop stopped and the valve is driven to safe_position_pct {} %, at {:.1} % now",
+            c.safe_after / NS_PER_MS,
+            c.safe.unwrap_or(f64::NAN),
+            s.position_pct
+        )),
+        _ => None,
+    }
+}
+
+/// Manual mode, for the diagnostics' message.
+fn manual_text(name: &str, m: Manual, target_pct: f64) -> String {
+    let what = match m {
+        Manual::Position(_) => format!("position {target_pct:.1} %"),
+        m => m.as_str().to_string(),
+    };
+    format!(
+        "manual mode: {what}; the loop and the position commands are set aside until auto on \
+         ~/valve/{name}/manual"
+    )
+}
+
+/// A refusal for the log and the diagnostics: control characters in an echoed word escaped.
+fn refusal_text(name: &str, r: &ValveRefusal) -> String {
+    let text = r
+        .to_string()
+        .replace("~/valve/NAME/", &format!("~/valve/{name}/"));
+    escape_controls(&text).into_owned()
 }
 
 #[cfg(test)]
@@ -452,7 +571,7 @@ mod tests {
             max_starts_per_h: 0,
             deadband_in_force_pct: 0.5,
             control: ControlStatus::default(),
-            refusals: 0,
+            refused: Default::default(),
             last_refusal: None,
         }
     }
@@ -586,5 +705,243 @@ mod tests {
             (m.motion.as_str(), m.run_since_reference_s),
             ("stopped", 30.0)
         );
+    }
+
+    /// The loop's state on the topic and on /diagnostics: a WARN with the reading's age and
+    /// the timeout while it holds, with the safe position once it went there, in manual mode;
+    /// the counts of what was refused.
+    #[test]
+    fn the_loop_holding_safe_or_manual_warns_with_its_figures() {
+        use crate::core::valve::{Control, LoopOutput, Refused};
+        let d = |s: &ValveStatus| diagnostic("n", "mix", "pw01/pw02", Some(s));
+        let value = |s: &DiagnosticStatus, key: &str| {
+            s.values
+                .iter()
+                .find(|kv| kv.key == key)
+                .map(|kv| kv.value.clone())
+                .unwrap_or_else(|| panic!("no {key}"))
+        };
+        let running = ValveStatus {
+            control: ControlStatus {
+                control: Control::Pid,
+                output: LoopOutput::Step,
+                state: LoopState::Running,
+                setpoint: 45.0,
+                process_value: 44.5,
+                process_age: Some(200_000_000),
+                timeout: 1_000_000_000,
+                safe: Some(20.0),
+                safe_after: 500_000_000,
+                ..ControlStatus::default()
+            },
+            ..status()
+        };
+        let r = d(&running);
+        assert_eq!((r.level, r.message.as_str()), (DiagnosticStatus::OK, "ok"));
+        assert_eq!(value(&r, "loop_state"), "running");
+        assert_eq!(value(&r, "process_age_s"), "0.20");
+
+        let holding = ValveStatus {
+            control: ControlStatus {
+                state: LoopState::Holding,
+                process_age: Some(1_340_000_000),
+                stale: (3, 5_000_000_000),
+                ..running.control
+            },
+            ..running
+        };
+        let h = d(&holding);
+        assert_eq!(h.level, DiagnosticStatus::WARN);
+        assert!(
+            h.message.starts_with(
+                "process value stale: the last fresh reading is 1.3 s old (process_timeout_ms \
+                 1000): the loop stopped and the valve holds at 40.0 %; after safe_after_ms 500 \
+                 it goes to safe_position_pct 20 %"
+            ),
+            "{}",
+            h.message
+        );
+        assert_eq!(value(&h, "stale_readings"), "3");
+        let never = ValveStatus {
+            control: ControlStatus {
+                process_age: None,
+                process_value: f64::NAN,
+                ..holding.control
+            },
+            ..holding
+        };
+        assert!(d(&never)
+            .message
+            .contains("no fresh reading since the loop started"));
+
+        let safe = ValveStatus {
+            control: ControlStatus {
+                state: LoopState::Safe,
+                process_age: Some(1_600_000_000),
+                ..holding.control
+            },
+            position_pct: 31.0,
+            ..holding
+        };
+        let m = d(&safe).message;
+        assert_eq!(d(&safe).level, DiagnosticStatus::WARN);
+        assert!(
+            m.contains("1.6 s old (process_timeout_ms 1000, then safe_after_ms 500)")
+                && m.contains("driven to safe_position_pct 20 %, at 31.0 % now"),
+            "{m}"
+        );
+
+        let bad = "wide\nopen".parse::<Manual>().unwrap_err();
+        let manual = ValveStatus {
+            control: ControlStatus {
+                state: LoopState::Manual,
+                manual: Some(Manual::Position(35.0)),
+                ..running.control
+            },
+            target_pct: 35.0,
+            refused: Refused {
+                position: 1,
+                setpoint: 2,
+                process_value: 3,
+                manual: 4,
+            },
+            last_refusal: Some(ValveRefusal::BadManual(bad)),
+            ..running
+        };
+        let g = d(&manual);
+        assert_eq!(g.level, DiagnosticStatus::WARN);
+        assert!(
+            g.message
+                .starts_with("manual mode: position 35.0 %; the loop and the position commands")
+                && g.message.ends_with("until auto on ~/valve/mix/manual"),
+            "{}",
+            g.message
+        );
+        assert_eq!(
+            value(&g, "last_refusal"),
+            "manual command refused: manual `wide\\nopen` is none of auto, open, close, stop \
+             or a position in percent"
+        );
+        assert_eq!(
+            [
+                "position_commands_refused",
+                "setpoints_refused",
+                "process_values_refused",
+                "manual_refused"
+            ]
+            .map(|k| value(&g, k)),
+            ["1", "2", "3", "4"]
+        );
+        let waiting = ValveStatus {
+            control: ControlStatus {
+                state: LoopState::Waiting,
+                ..running.control
+            },
+            ..running
+        };
+        assert_eq!(
+            d(&waiting).message,
+            "ok; the loop waits for a setpoint on ~/valve/mix/setpoint"
+        );
+        let timed_out = ValveStatus {
+            timed_out: true,
+            control: ControlStatus {
+                state: LoopState::TimedOut,
+                ..running.control
+            },
+            ..running
+        };
+        assert_eq!(
+            d(&timed_out).message,
+            "no setpoint within command_timeout_ms: on_timeout acted"
+        );
+        // Several reasons at once are all given.
+        let both = ValveStatus {
+            referenced: false,
+            ..holding
+        };
+        let b = d(&both).message;
+        assert!(
+            b.starts_with("unreferenced") && b.contains("; process value stale"),
+            "{b}"
+        );
+    }
+
+    /// The loop's state, the manual command, the process value and the refusals on the state
+    /// topic; a refusal's echoed word escaped.
+    #[test]
+    fn the_state_carries_the_loop_and_the_refusals() {
+        use crate::core::valve::{Control, LoopOutput, LoopState, Manual, Refused};
+        let running = ValveStatus {
+            control: ControlStatus {
+                control: Control::Pid,
+                output: LoopOutput::Step,
+                state: LoopState::Running,
+                setpoint: 45.0,
+                process_value: 44.5,
+                process_age: Some(200_000_000),
+                stale: (3, 5_000_000_000),
+                ..ControlStatus::default()
+            },
+            ..status()
+        };
+        let m = state_msg("mix", &running);
+        assert_eq!(
+            (m.control.as_str(), m.loop_state.as_str(), m.manual.as_str()),
+            ("pid", "running", "")
+        );
+        assert_eq!(
+            (
+                m.setpoint,
+                m.process_value,
+                m.process_age_s,
+                m.stale_readings
+            ),
+            (45.0, 44.5, 0.2, 3)
+        );
+        let never = ValveStatus {
+            control: ControlStatus {
+                process_age: None,
+                process_value: f64::NAN,
+                ..running.control
+            },
+            ..running
+        };
+        assert!(state_msg("mix", &never).process_age_s.is_nan());
+        let bad = "wide\nopen".parse::<Manual>().unwrap_err();
+        let manual = ValveStatus {
+            control: ControlStatus {
+                state: LoopState::Manual,
+                manual: Some(Manual::Position(35.0)),
+                ..running.control
+            },
+            refused: Refused {
+                position: 1,
+                setpoint: 2,
+                process_value: 3,
+                manual: 4,
+            },
+            ..running
+        };
+        let m = state_msg("mix", &manual);
+        assert_eq!(
+            (m.loop_state.as_str(), m.manual.as_str()),
+            ("manual", "position")
+        );
+        assert_eq!(
+            (
+                m.position_commands_refused,
+                m.setpoints_refused,
+                m.process_values_refused,
+                m.manual_refused
+            ),
+            (1, 2, 3, 4)
+        );
+        assert_eq!(
+            refusal_text("mix", &ValveRefusal::BadManual(bad)),
+            "manual command refused: manual `wide\\nopen` is none of auto, open, close, stop \
+             or a position in percent"
+        );
+        assert!(refusal_text("mix", &ValveRefusal::PositionInManual).contains("~/valve/mix/manual"));
     }
 }
