@@ -642,7 +642,13 @@ impl MixRun {
             }
         }
         if o.print_every > 0.0 && t >= self.next_print {
-            self.next_print = t + (o.print_every * 1e9) as u64;
+            // Every --print-every from the start, whatever the readings' phase; after a stall
+            // (the runtime starved) from now on.
+            let every = (o.print_every * 1e9) as u64;
+            self.next_print += every;
+            if self.next_print <= t {
+                self.next_print = t + every;
+            }
             println!(
                 "t={:7.1} s  temperature {:6.2} °C  valve {:5.1} %  hot {:5.1} °C",
                 t as f64 / 1e9,
