@@ -7,6 +7,8 @@
 # position and the hot supply every 5 s, then stops both.
 #
 # Usage: scripts/valve-demo.sh [SECONDS] [SETPOINT_C]      (defaults: 150 s, 45 °C)
+# With VALVE_DEMO_RECORD=FILE.csv the simulator records its run there (scripts/valve_loop_plot.py
+# draws docs/valve-loop.png from it).
 # Needs the release build (cargo build --release). Uses ROS_DOMAIN_ID (default 0) and keeps
 # discovery on this machine unless ROS_AUTOMATIC_DISCOVERY_RANGE says otherwise.
 
@@ -35,5 +37,6 @@ echo "valve-demo: node started (log $LOG/node.log); mixing plant, setpoint $SETP
 "$NODE" sim-valve --travel-open-ms 20000 --travel-close-ms 20000 --start-pct 30 \
     --mix --tau 20 --dead-time 3 --noise 0.5 --hot 70 --cold 15 \
     --hot-step-to 60 --hot-step-after $((SECONDS_TO_RUN * 3 / 5)) \
-    --setpoint "$SETPOINT" --print-every 5 --duration "$SECONDS_TO_RUN" 2>"$LOG/sim.log"
+    --setpoint "$SETPOINT" --print-every 5 --duration "$SECONDS_TO_RUN" \
+    ${VALVE_DEMO_RECORD:+--record "$VALVE_DEMO_RECORD"} 2>"$LOG/sim.log"
 grep -E "refused|fault|ERROR" "$LOG/node.log" || true
