@@ -204,6 +204,19 @@ mod tests {
     }
 
     #[test]
+    fn the_history_holds_no_more_than_the_dead_time_needs() {
+        // Advanced every 100 ms for an hour with a 20 s dead time: at most 20 s / 100 ms
+        // positions, plus the one before the window and the newest.
+        let mut m = Mixing::new(MixingParams::default(), 0.0, 0, 1);
+        let mut most = 0;
+        for k in 1..=36_000u64 {
+            m.advance(k * S / 10, (k % 100) as f64);
+            most = most.max(m.history.len());
+        }
+        assert!(most <= 200 + 2, "{most}");
+    }
+
+    #[test]
     fn a_supply_step_moves_the_mixed_water() {
         let p = MixingParams {
             noise_c: 0.0,
