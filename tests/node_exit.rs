@@ -47,6 +47,7 @@ fn start(csv: &Path, env: &[(&str, &str)]) -> NodeProc {
         "pw02.enable:=true",
         "pw02.duty:=50.0",
         "pw02.period_ms:=20",
+        "edge_log_rate:=10",
     ]);
     NodeProc::start_with(&[&["--trace", &csv][..], &params].concat(), env)
 }

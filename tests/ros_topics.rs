@@ -31,7 +31,7 @@ async fn pw01_until(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn commands_in_edges_and_status_out() {
-    let node = NodeProc::launch(&ros_params(&["pw01.period_ms:=100"]));
+    let node = NodeProc::launch(&ros_params(&["pw01.period_ms:=100", "edge_log_rate:=10"]));
     let mut ros = Ros::new(node.domain);
     let ChannelTopics {
         edges,

@@ -618,10 +618,17 @@ fn a_status_the_full_report_queue_refused_is_sent_at_the_next_wake_up() {
         last
     };
     assert!(statuses(&mut reports).is_none(), "the queue was full");
-    set_now(now() + MS);
+    // The e-stopped channel has no edge to come: the thread wakes for the resend alone.
+    let resend = worker
+        .next_deadline()
+        .expect("a wake-up for the refused status");
+    assert_eq!(resend, now() + super::worker::STATUS_RESEND_NS);
+    set_now(resend);
     assert!(worker.run(&mut rx).is_ok());
     let status = statuses(&mut reports).expect("the status, sent again");
     assert!(status.estopped && !status.enabled, "{status:?}");
+    // Sent: nothing more is due.
+    assert_eq!(worker.next_deadline(), None);
 }
 
 #[test]

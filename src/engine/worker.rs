@@ -53,7 +53,14 @@ pub(crate) struct Worker<O: Output> {
     valve_touched: Vec<bool>,
     /// For each channel's line, the valve and direction it drives, if it belongs to a valve.
     owner: Vec<Option<(usize, Dir)>>,
+    /// A status snapshot the full report queue refused is sent again at this instant, ns: the
+    /// thread wakes for it even when no edge or request is due.
+    resend_at: Option<Nanos>,
 }
+
+/// How long after the full report queue refused a status snapshot it is offered again, ns:
+/// time for the reader to drain the queue.
+pub(crate) const STATUS_RESEND_NS: Nanos = 10_000_000;
 
 /// The heartbeat line: toggled every half period on an absolute grid while the thread runs.
 struct Heartbeat {
@@ -116,6 +123,7 @@ impl<O: Output> Worker<O> {
             valve_lines: Vec::with_capacity(n / 2),
             valve_touched: Vec::with_capacity(n / 2),
             owner: vec![None; n],
+            resend_at: None,
         }
     }
 
@@ -158,11 +166,10 @@ impl<O: Output> Worker<O> {
             (a, b) => a.or(b),
         };
         let heartbeat = self.heartbeat.as_ref().filter(|_| self.heartbeat_runs());
-        match (heartbeat, channels) {
-            (Some(hb), Some(c)) => Some(hb.next.min(c)),
-            (Some(hb), None) => Some(hb.next),
-            (None, c) => c,
-        }
+        [heartbeat.map(|hb| hb.next), channels, self.resend_at]
+            .into_iter()
+            .flatten()
+            .min()
     }
 
     /// Whether a report was pushed since the last call (the caller then wakes the reader once).
@@ -707,6 +714,10 @@ impl<O: Output> Worker<O> {
                 self.touched[i] = !sent;
             }
         }
+        // That next wake-up comes even when nothing else is due (a channel at 0 or 100 %, a
+        // stopped valve): the state the reader shows never waits for an unrelated edge.
+        let refused = self.touched.iter().chain(&self.valve_touched).any(|t| *t);
+        self.resend_at = refused.then_some(now + STATUS_RESEND_NS);
     }
 
     /// Drives every line inactive (recording the edges of lines that were on) and returns the

@@ -452,11 +452,11 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
         // A managed node starts unconfigured: every line held inactive.
         start_held: cfg.settings.managed,
         bank: cfg.settings.bank,
-        // The 100 ms tick stays on: an e-stop the emergency handle acted on while the thread
-        // was stopped is taken into the thread's state (and reported latched) at its next
-        // wake-up, and a channel at 0 or 100 % has no edge to wake it
-        // (test_an_estop_acts_while_the_output_thread_is_stopped_behind_a_full_queue).
-        liveness_tick_ns: Some(engine::LIVENESS_TICK_NS),
+        // The tick is for the systemd watchdog's pinger alone; without one the thread sleeps
+        // until its next edge, request or status resend (a snapshot the full report queue
+        // refused, e.g. the e-stop's after the thread was stopped behind a full queue:
+        // test_an_estop_acts_while_the_output_thread_is_stopped_behind_a_full_queue).
+        liveness_tick_ns: crate::service::watchdog_interval().map(|_| engine::LIVENESS_TICK_NS),
         ..EngineOptions::default()
     };
     let engine = engine::spawn(configs, output, opts).map_err(NodeError::Engine)?;

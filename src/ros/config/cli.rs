@@ -69,8 +69,10 @@ pub struct Flags {
     /// Print the version
     #[arg(short = 'V', long = "version", action = ArgAction::SetTrue)]
     pub version: bool,
-    /// Enable pw01 at 37 % and pw02 at 5 %; sets the start-up value of `pwNN.enable`, `pwNN.duty`.
-    #[arg(help = "Enable pw01 at 37 % and pw02 at 5 % [pwNN.enable, pwNN.duty]")]
+    /// Enable pw01 at 37 % and pw02 at 5 % and show their edges on the console; sets the
+    /// start-up value of `pwNN.enable`, `pwNN.duty`, `edge_log_rate`.
+    #[arg(help = "Enable pw01 at 37 % and pw02 at 5 %, edges on the console \
+                  [pwNN.enable, pwNN.duty, edge_log_rate]")]
     #[arg(long)]
     pub demo: bool,
     /// Run as a managed (lifecycle) node: lines requested on configure and live only while
@@ -123,7 +125,7 @@ pub struct Flags {
     /// Periodic `~/<ch>/status` rate in Hz, 0 = on change only (default 10); sets the start-up
     /// value of `status_rate_hz`.
     #[arg(
-        help = "Periodic ~/<ch>/status rate in Hz, 0 = on change only (default 10) [status_rate_hz]"
+        help = "Periodic ~/<ch>/status rate in Hz, 0 = on change only (default 1) [status_rate_hz]"
     )]
     #[arg(
         long = "status-rate",
@@ -325,6 +327,12 @@ impl Flags {
             push("managed".into(), ParameterValue::Boolean(true), "--managed");
         }
         if self.demo {
+            // The demo shows its edges on the console; an always-on node logs none by default.
+            push(
+                "edge_log_rate".into(),
+                ParameterValue::Integer(10),
+                DEMO_ORIGIN,
+            );
             for (ch, duty) in [("pw01", 37.0), ("pw02", 5.0)] {
                 push(
                     format!("{ch}.duty"),
@@ -396,6 +404,7 @@ mod tests {
                 "pw02.gpio_line",
                 "status_rate_hz",
                 "rt_priority",
+                "edge_log_rate",
                 "pw01.duty",
                 "pw01.enable",
                 "pw02.duty",
@@ -404,7 +413,8 @@ mod tests {
         );
         assert_eq!(v[2].value, ParameterValue::String("a.vcd,b.csv".into()));
         assert_eq!(v[3].value, ParameterValue::Integer(64));
-        assert_eq!(v[9].value, ParameterValue::Double(37.0));
+        assert_eq!(v[9].value, ParameterValue::Integer(10));
+        assert_eq!(v[10].value, ParameterValue::Double(37.0));
     }
 
     #[test]

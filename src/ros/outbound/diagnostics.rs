@@ -6,7 +6,8 @@
 //! a while after a command was refused; ERROR on a tripped watchdog, a latched
 //! e-stop or an output fault. The other protections of the load (power limits, slew, dead
 //! band, the rolling-average cap) are named in the message and the `protections` key while
-//! they act, at level OK: they do what they were set for.
+//! they act, at level OK: they do what they were set for. Every condition, its level and its
+//! message are one row of [`CONDITIONS`], in precedence order.
 //!
 //! The node itself has one more status, `<node name>: node` ([`NodeHealth`]): the output
 //! thread's lateness over the last second, lost reports, the lifecycle state and the e-stop.
@@ -451,154 +452,35 @@ impl ChannelHealth {
         recent(&self.last_refusal, now)
     }
 
-    /// The diagnostic level at monotonic time `now`.
-    pub fn level(&self, now: Nanos) -> u8 {
-        let s = self.status.as_ref();
-        if self.output_fault
-            || self.watchdog_tripped()
-            || s.is_some_and(|s| s.estopped || s.heater.fault.is_some())
-        {
-            DiagnosticStatus::ERROR
-        } else if self.recent_rejection(now).is_some()
-            || self.recent_refusal(now).is_some()
-            || s.is_some_and(|s| s.heater.sizing[0].is_some())
-            || s.is_some_and(|s| s.heater.stale_now || s.heater.setpoint_lowered_from.is_some())
-            || s.is_some_and(|s| s.heater.feedforward_stale || s.heater.ambient_stale)
-            || s.is_some_and(|s| s.e1 || (s.limited && !s.rule.extended()) || s.command_clamped)
-            || s.is_some_and(|s| s.sizing.is_some())
-        {
-            DiagnosticStatus::WARN
-        } else {
-            DiagnosticStatus::OK
-        }
+    /// The conditions of [`CONDITIONS`] that hold at monotonic time `now`, in precedence
+    /// order, each with what it says (not formatted yet).
+    fn conditions(&self, now: Nanos) -> impl Iterator<Item = (&'static Condition, Says)> + '_ {
+        CONDITIONS
+            .iter()
+            .filter_map(move |c| (c.check)(self, now).map(|m| (c, m)))
     }
 
-    /// The one-line summary at `now`.
+    /// The diagnostic level at monotonic time `now`: the highest level of the conditions that
+    /// hold ([`CONDITIONS`]). Formats nothing.
+    pub fn level(&self, now: Nanos) -> u8 {
+        self.conditions(now)
+            .map(|(c, _)| c.level)
+            .max()
+            .unwrap_or(DiagnosticStatus::OK)
+    }
+
+    /// The one-line summary at `now`: the message of the first condition that holds
+    /// ([`CONDITIONS`]).
     pub fn message(&self, now: Nanos) -> String {
+        self.conditions(now)
+            .next()
+            .map_or_else(|| "starting".into(), |(_, says)| says.render(self, now))
+    }
+
+    /// What the channel does: enabled or not, its duty and times, the cycle extension, an
+    /// autotune's relay said first, a vendor's sizing advice last.
+    fn state_line(&self, s: &Status) -> String {
         let pct = percent;
-        if self.output_fault {
-            return "output fault: writing the line failed; every output driven off".into();
-        }
-        let Some(s) = self.status.as_ref() else {
-            return "starting".into();
-        };
-        if let Some(f) = s.heater.fault {
-            let after = if s.heater.fault_lasts {
-                "the condition lasts; ~/<ch>/reset_fault is refused until it is gone"
-            } else {
-                "the condition is gone; ~/<ch>/reset_fault clears it"
-            };
-            return format!("heater fault {f}; line off and held off ({after})");
-        }
-        if s.estopped {
-            return "e-stop latched: output held off until ~/reset_estop and a fresh enable".into();
-        }
-        if self.watchdog_tripped() && s.fault_active {
-            return format!(
-                "watchdog: no duty command within command_timeout_ms; running the fault value \
-                 {:.1} % until the next command or fault_hold_ms",
-                percent(s.duty_applied)
-            );
-        }
-        if self.watchdog_tripped() {
-            return "watchdog: no duty command within command_timeout_ms; output forced off \
-                    until the next command"
-                .into();
-        }
-        if s.heater.stale_now {
-            let age = s.heater.stale.1 as f64 / 1e6;
-            let (how, ms_) = if age < 0.0 {
-                ("ahead of this node's clock", -age)
-            } else {
-                ("old on arrival", age)
-            };
-            return format!(
-                "feedback readings refused as stale: {} so far, the last stamped {ms_:.0} ms \
-                 {how}; the loop holds off them (check the hosts' clocks; \
-                 feedback_max_skew_ms, feedback_timeout_ms)",
-                s.heater.stale.0
-            );
-        }
-        if let (Some(from), Some(sp)) = (s.heater.setpoint_lowered_from, s.heater.setpoint) {
-            return format!(
-                "setpoint lowered from {from} °C to {sp} °C: temp_max_c was lowered below it \
-                 (the setpoint stays setpoint_margin_c under temp_max_c)"
-            );
-        }
-        if s.heater.feedforward_stale || s.heater.ambient_stale {
-            let which = match (s.heater.feedforward_stale, s.heater.ambient_stale) {
-                (true, true) => "feed-forward and ambient",
-                (true, false) => "feed-forward",
-                _ => "ambient",
-            };
-            return format!(
-                "{which} input stale (none yet, or older than its timeout): ignored; the \
-                 feed-forward counts as 0 %, the ambient is model_ambient_c"
-            );
-        }
-        let refused_at = self.last_refusal.as_ref().map_or(0, |(_, at)| *at);
-        let newest_input = self
-            .last_rejection
-            .iter()
-            .chain(&self.last_clamp)
-            .map(|(_, at)| *at)
-            .max();
-        if let Some(r) = self.recent_refusal(now) {
-            if newest_input.is_none_or(|at| refused_at >= at) {
-                return format!("parameter change refused: {r}");
-            }
-        }
-        let clamp = s
-            .command_clamped
-            .then_some(self.last_clamp.as_ref())
-            .flatten();
-        let rejected_at = self.last_rejection.as_ref().map_or(0, |(_, at)| *at);
-        match (self.recent_rejection(now), clamp) {
-            // Whichever happened last is the news.
-            (Some(_), Some((c, at))) if *at > rejected_at => {
-                return format!("duty command out of range: {c}");
-            }
-            (Some(r), _) => return format!("last duty command refused: {r}"),
-            (None, Some((c, _))) => return format!("duty command out of range: {c}"),
-            (None, None) if s.command_clamped => {
-                return format!(
-                    "duty command out of range, clamped to {:.1} %",
-                    pct(s.duty_commanded)
-                )
-            }
-            (None, None) => {}
-        }
-        if s.e1 && s.protections.max_on {
-            return format!(
-                "E1: max_on_ms cuts the line: {:.1} % cannot be held on that long; it goes off \
-                 for its minimum off time",
-                pct(s.duty_applied)
-            );
-        }
-        if s.e1 && s.protections.delayed && !s.limited {
-            return format!(
-                "E1: a pulse was skipped: no line went off in time for it (max_simultaneous_on, \
-                 or another channel of its stagger group still on); {} skipped so far",
-                s.skipped_pulses
-            );
-        }
-        if s.e1 {
-            return format!(
-                "E1: {:.1} % cannot be reproduced because of a minimum time ({}); {:.1} % \
-                 applied",
-                pct(s.duty_commanded),
-                s.rule.as_str(),
-                pct(s.duty_applied)
-            );
-        }
-        if s.limited && !s.rule.extended() {
-            return format!(
-                "minimum time limit acts ({}); {:.1} % applied for {:.1} % commanded",
-                s.rule.as_str(),
-                pct(s.duty_applied),
-                pct(s.duty_commanded)
-            );
-        }
         let state = if !s.enabled {
             "disabled".into()
         } else if s.period == 0 {
@@ -627,24 +509,35 @@ impl ChannelHealth {
             None => state,
         };
         // Sizing advice: the channel runs as set; a vendor recommends otherwise (WARN).
-        let state = match s.sizing {
+        match s.sizing {
             Some(advice) => format!("{state}; sizing: {advice}"),
             None => state,
-        };
-        if let Some(rule) = s.heater.sizing[0] {
-            return format!("{state}; {rule}");
         }
-        if s.protections.any() {
-            let acting: Vec<&str> = s.protections.names().collect();
-            format!(
-                "{state}; {:.1} % commanded, {:.1} % in force; protections acting: {}",
-                pct(s.duty_commanded),
-                pct(s.duty_target),
-                acting.join(", ")
-            )
-        } else {
-            state
-        }
+    }
+
+    /// The newest of a recent parameter refusal, a recent command refusal and a clamp in
+    /// force, with its text (empty for a clamp whose text is unknown): whichever happened
+    /// last is the news.
+    fn input_news(&self, now: Nanos) -> Option<(News, &str)> {
+        let s = self.status.as_ref()?;
+        let at = |e: &Option<(String, Nanos)>| e.as_ref().map_or(0, |(_, at)| *at);
+        let refusal = self
+            .recent_refusal(now)
+            .map(|r| (at(&self.last_refusal), News::Refusal, r));
+        let rejection = self
+            .recent_rejection(now)
+            .map(|r| (at(&self.last_rejection), News::Rejection, r));
+        let clamp = s.command_clamped.then(|| {
+            let text = self.last_clamp.as_ref().map_or("", |(c, _)| c.as_str());
+            (at(&self.last_clamp), News::Clamp, text)
+        });
+        // Newest wins; at the same instant a refused parameter is said before a refused
+        // command, which is said before a clamp.
+        [refusal, rejection, clamp]
+            .into_iter()
+            .flatten()
+            .max_by_key(|(at, kind, _)| (*at, std::cmp::Reverse(*kind)))
+            .map(|(_, kind, text)| (kind, text))
     }
 
     /// The diagnostic status at `now`, named `<node_name>: <ch>`, with the node-wide
@@ -807,6 +700,13 @@ impl ChannelHealth {
             ("publish_failures", self.publish_failures.to_string()),
             ("reports_dropped", counters.reports_dropped.to_string()),
             ("samples_too_large", counters.samples_too_large.to_string()),
+            (
+                "conditions",
+                self.conditions(now)
+                    .map(|(c, _)| c.name)
+                    .collect::<Vec<_>>()
+                    .join(","),
+            ),
         ]);
         DiagnosticStatus {
             level: self.level(now),
@@ -817,6 +717,299 @@ impl ChannelHealth {
         }
     }
 }
+
+/// Which input was the news (see `ChannelHealth::input_news`), in the order they are said when
+/// they happened at the same instant.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum News {
+    Refusal,
+    Rejection,
+    Clamp,
+}
+
+/// What a condition says when its message is the one shown: a fixed text, or a text formatted
+/// from the channel's status then (and only then: a level is found without formatting).
+#[derive(Clone, Copy)]
+pub enum Says {
+    /// A fixed message.
+    Text(&'static str),
+    /// A message formatted from the channel and its latest status at the time passed.
+    Status(fn(&ChannelHealth, &Status, Nanos) -> String),
+}
+
+impl Says {
+    fn render(self, h: &ChannelHealth, now: Nanos) -> String {
+        match self {
+            Says::Text(t) => t.to_string(),
+            Says::Status(f) => h.status.as_ref().map_or_else(String::new, |s| f(h, s, now)),
+        }
+    }
+}
+
+/// A condition a channel's diagnostics report: its name (listed under the `conditions` key
+/// while it holds), its level, and its check, which says whether it holds at the monotonic
+/// time passed and what its message would be.
+pub struct Condition {
+    /// Short name, `snake_case`.
+    pub name: &'static str,
+    /// [`DiagnosticStatus::OK`], `WARN` or `ERROR`.
+    pub level: u8,
+    /// What the condition says when it holds at `now` (monotonic ns), `None` when it does not.
+    pub check: fn(&ChannelHealth, Nanos) -> Option<Says>,
+}
+
+/// The status when it satisfies `f`.
+fn status_if(h: &ChannelHealth, f: impl Fn(&Status) -> bool) -> Option<&Status> {
+    h.status.as_ref().filter(|s| f(s))
+}
+
+/// Every condition of a channel's diagnostics, in precedence order: the status's level is the
+/// highest level of those that hold, its message the first one's, and the `conditions` key
+/// names them all. A new condition is one more row here.
+pub static CONDITIONS: &[Condition] = &[
+    Condition {
+        name: "output_fault",
+        level: DiagnosticStatus::ERROR,
+        check: |h, _| {
+            h.output_fault.then_some(Says::Text(
+                "output fault: writing the line failed; every output driven off",
+            ))
+        },
+    },
+    Condition {
+        name: "heater_fault",
+        level: DiagnosticStatus::ERROR,
+        check: |h, _| {
+            status_if(h, |s| s.heater.fault.is_some())?;
+            Some(Says::Status(|_, s, _| {
+                let after = if s.heater.fault_lasts {
+                    "the condition lasts; ~/<ch>/reset_fault is refused until it is gone"
+                } else {
+                    "the condition is gone; ~/<ch>/reset_fault clears it"
+                };
+                match s.heater.fault {
+                    Some(f) => format!("heater fault {f}; line off and held off ({after})"),
+                    None => String::new(),
+                }
+            }))
+        },
+    },
+    Condition {
+        name: "estop",
+        level: DiagnosticStatus::ERROR,
+        check: |h, _| {
+            status_if(h, |s| s.estopped)?;
+            Some(Says::Text(
+                "e-stop latched: output held off until ~/reset_estop and a fresh enable",
+            ))
+        },
+    },
+    Condition {
+        name: "watchdog",
+        level: DiagnosticStatus::ERROR,
+        check: |h, _| {
+            if !h.watchdog_tripped() {
+                return None;
+            }
+            Some(match status_if(h, |s| s.fault_active) {
+                Some(_) => Says::Status(|_, s, _| {
+                    format!(
+                        "watchdog: no duty command within command_timeout_ms; running the fault \
+                         value {:.1} % until the next command or fault_hold_ms",
+                        percent(s.duty_applied)
+                    )
+                }),
+                None => Says::Text(
+                    "watchdog: no duty command within command_timeout_ms; output forced off \
+                     until the next command",
+                ),
+            })
+        },
+    },
+    Condition {
+        name: "starting",
+        level: DiagnosticStatus::OK,
+        check: |h, _| h.status.is_none().then_some(Says::Text("starting")),
+    },
+    Condition {
+        name: "feedback_stale",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| s.heater.stale_now)?;
+            Some(Says::Status(|_, s, _| {
+                let age = s.heater.stale.1 as f64 / 1e6;
+                let (how, ms_) = if age < 0.0 {
+                    ("ahead of this node's clock", -age)
+                } else {
+                    ("old on arrival", age)
+                };
+                format!(
+                    "feedback readings refused as stale: {} so far, the last stamped {ms_:.0} \
+                     ms {how}; the loop holds off them (check the hosts' clocks; \
+                     feedback_max_skew_ms, feedback_timeout_ms)",
+                    s.heater.stale.0
+                )
+            }))
+        },
+    },
+    Condition {
+        name: "setpoint_lowered",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| {
+                s.heater.setpoint_lowered_from.is_some() && s.heater.setpoint.is_some()
+            })?;
+            Some(Says::Status(|_, s, _| {
+                let num = |v: Option<f64>| v.unwrap_or(f64::NAN);
+                format!(
+                    "setpoint lowered from {} °C to {} °C: temp_max_c was lowered below it \
+                     (the setpoint stays setpoint_margin_c under temp_max_c)",
+                    num(s.heater.setpoint_lowered_from),
+                    num(s.heater.setpoint)
+                )
+            }))
+        },
+    },
+    Condition {
+        name: "input_stale",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| s.heater.feedforward_stale || s.heater.ambient_stale)?;
+            Some(Says::Status(|_, s, _| {
+                let which = match (s.heater.feedforward_stale, s.heater.ambient_stale) {
+                    (true, true) => "feed-forward and ambient",
+                    (true, false) => "feed-forward",
+                    _ => "ambient",
+                };
+                format!(
+                    "{which} input stale (none yet, or older than its timeout): ignored; the \
+                     feed-forward counts as 0 %, the ambient is model_ambient_c"
+                )
+            }))
+        },
+    },
+    Condition {
+        name: "input_refused",
+        level: DiagnosticStatus::WARN,
+        check: |h, now| {
+            h.input_news(now)?;
+            Some(Says::Status(|h, s, now| match h.input_news(now) {
+                Some((News::Refusal, r)) => format!("parameter change refused: {r}"),
+                Some((News::Rejection, r)) => format!("last duty command refused: {r}"),
+                Some((News::Clamp, "")) => format!(
+                    "duty command out of range, clamped to {:.1} %",
+                    percent(s.duty_commanded)
+                ),
+                Some((News::Clamp, c)) => format!("duty command out of range: {c}"),
+                None => String::new(),
+            }))
+        },
+    },
+    Condition {
+        name: "e1_max_on",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| s.e1 && s.protections.max_on)?;
+            Some(Says::Status(|_, s, _| {
+                format!(
+                    "E1: max_on_ms cuts the line: {:.1} % cannot be held on that long; it goes \
+                     off for its minimum off time",
+                    percent(s.duty_applied)
+                )
+            }))
+        },
+    },
+    Condition {
+        name: "e1_skipped_pulse",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| s.e1 && s.protections.delayed && !s.limited)?;
+            Some(Says::Status(|_, s, _| {
+                format!(
+                    "E1: a pulse was skipped: no line went off in time for it \
+                     (max_simultaneous_on, or another channel of its stagger group still on); \
+                     {} skipped so far",
+                    s.skipped_pulses
+                )
+            }))
+        },
+    },
+    Condition {
+        name: "e1",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| s.e1)?;
+            Some(Says::Status(|_, s, _| {
+                format!(
+                    "E1: {:.1} % cannot be reproduced because of a minimum time ({}); {:.1} % \
+                     applied",
+                    percent(s.duty_commanded),
+                    s.rule.as_str(),
+                    percent(s.duty_applied)
+                )
+            }))
+        },
+    },
+    Condition {
+        name: "min_time_limited",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| s.limited && !s.rule.extended())?;
+            Some(Says::Status(|_, s, _| {
+                format!(
+                    "minimum time limit acts ({}); {:.1} % applied for {:.1} % commanded",
+                    s.rule.as_str(),
+                    percent(s.duty_applied),
+                    percent(s.duty_commanded)
+                )
+            }))
+        },
+    },
+    Condition {
+        name: "heater_sizing",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| s.heater.sizing[0].is_some())?;
+            Some(Says::Status(|h, s, _| match s.heater.sizing[0] {
+                Some(rule) => format!("{}; {rule}", h.state_line(s)),
+                None => h.state_line(s),
+            }))
+        },
+    },
+    Condition {
+        name: "protections",
+        level: DiagnosticStatus::OK,
+        check: |h, _| {
+            status_if(h, |s| s.protections.any())?;
+            Some(Says::Status(|h, s, _| {
+                let acting: Vec<&str> = s.protections.names().collect();
+                format!(
+                    "{}; {:.1} % commanded, {:.1} % in force; protections acting: {}",
+                    h.state_line(s),
+                    percent(s.duty_commanded),
+                    percent(s.duty_target),
+                    acting.join(", ")
+                )
+            }))
+        },
+    },
+    Condition {
+        name: "sizing",
+        level: DiagnosticStatus::WARN,
+        check: |h, _| {
+            status_if(h, |s| s.sizing.is_some())?;
+            Some(Says::Status(|h, s, _| h.state_line(s)))
+        },
+    },
+    Condition {
+        name: "running",
+        level: DiagnosticStatus::OK,
+        check: |h, _| {
+            h.status.as_ref()?;
+            Some(Says::Status(|h, s, _| h.state_line(s)))
+        },
+    },
+];
 
 #[cfg(test)]
 mod tests {
@@ -864,6 +1057,153 @@ mod tests {
             .find(|k| k.key == key)
             .map(|k| k.value.as_str())
             .unwrap_or_else(|| panic!("no key {key}"))
+    }
+
+    /// A health in which the condition named holds, from the plain running channel.
+    fn holding(name: &str) -> ChannelHealth {
+        use crate::core::heater::{HeaterFault, Sizing};
+        let mut h = ChannelHealth::new("pw01", "sim");
+        let mut s = status();
+        match name {
+            "output_fault" => h.output_fault = true,
+            "heater_fault" => {
+                s.heater.fault = Some(HeaterFault::SensorTimeout {
+                    silent_ms: 3_000,
+                    timeout_ms: 2_000,
+                })
+            }
+            "estop" => s.estopped = true,
+            "watchdog" => h.watchdog = true,
+            "starting" => {
+                h.status = None;
+                return h;
+            }
+            "feedback_stale" => {
+                s.heater.stale_now = true;
+                s.heater.stale = (2, 5_000_000_000);
+            }
+            "setpoint_lowered" => {
+                s.heater.setpoint = Some(90.0);
+                s.heater.setpoint_lowered_from = Some(120.0);
+            }
+            "input_stale" => s.heater.ambient_stale = true,
+            "input_refused" => h.last_refusal = Some(("bad".into(), 1_000)),
+            "e1_max_on" => {
+                s.e1 = true;
+                s.protections.max_on = true;
+            }
+            "e1_skipped_pulse" => {
+                s.e1 = true;
+                s.protections.delayed = true;
+            }
+            "e1" => s.e1 = true,
+            "min_time_limited" => {
+                s.limited = true;
+                s.rule = Rule::SuppressedPulse;
+            }
+            "heater_sizing" => {
+                s.heater.sizing[0] = Some(Sizing::PeriodAboveTi5 {
+                    period_ms: 10_000.0,
+                    ti_s: 20.0,
+                })
+            }
+            "protections" => s.protections.slew = true,
+            "sizing" => {
+                s.sizing = crate::core::ChannelParams {
+                    profile: crate::core::Profile::TcontCp,
+                    period_ms: 1000,
+                    time_base_ms: 100.0,
+                    ..crate::core::ChannelParams::default()
+                }
+                .validate()
+                .unwrap()
+                .sizing()
+            }
+            "running" => {}
+            other => panic!("no case for the condition {other}: add one here"),
+        }
+        h.status = Some(s);
+        h
+    }
+
+    #[test]
+    fn each_condition_of_the_table_sets_its_level_message_and_name() {
+        for c in CONDITIONS {
+            let h = holding(c.name);
+            let d = h.to_status("n", 2_000, NodeCounters::default());
+            let holds: Vec<&str> = kv(&d, "conditions").split(',').collect();
+            assert!(holds.contains(&c.name), "{}: {holds:?}", c.name);
+            // Alone or with the conditions below it (a plain running channel): first in line.
+            assert_eq!(holds[0], c.name, "{}", c.name);
+            assert_eq!(
+                d.message,
+                (c.check)(&h, 2_000).unwrap().render(&h, 2_000),
+                "{}",
+                c.name
+            );
+            let highest = CONDITIONS
+                .iter()
+                .filter(|b| holds.contains(&b.name))
+                .map(|b| b.level)
+                .max()
+                .unwrap();
+            assert_eq!(d.level, highest, "{}", c.name);
+            assert!(d.level >= c.level, "{}", c.name);
+        }
+        // The names are distinct: each is one row.
+        let mut names: Vec<&str> = CONDITIONS.iter().map(|c| c.name).collect();
+        names.sort_unstable();
+        names.dedup();
+        assert_eq!(names.len(), CONDITIONS.len());
+    }
+
+    #[test]
+    fn the_interface_page_lists_the_conditions_in_their_order() {
+        let page = include_str!("../../../docs/interface.md");
+        let line = page
+            .split("- Conditions, in precedence order:")
+            .nth(1)
+            .and_then(|rest| rest.split("\n- ").next())
+            .expect("docs/interface.md lists the channel's conditions");
+        let listed: Vec<&str> = line
+            .split('`')
+            .skip(1)
+            .step_by(2)
+            .take(CONDITIONS.len())
+            .collect();
+        let names: Vec<&str> = CONDITIONS.iter().map(|c| c.name).collect();
+        assert_eq!(listed, names);
+    }
+
+    #[test]
+    fn the_first_condition_speaks_and_the_highest_level_counts() {
+        // A protection acting (OK) over a sizing advice (WARN): the message names the
+        // protection and the advice; the level is the advice's.
+        let mut h = holding("sizing");
+        h.status.as_mut().unwrap().protections.slew = true;
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(d.level, DiagnosticStatus::WARN);
+        assert_eq!(kv(&d, "conditions"), "protections,sizing,running");
+        assert!(d.message.contains("sizing: 003"), "{}", d.message);
+        assert!(
+            d.message.contains("protections acting: slew"),
+            "{}",
+            d.message
+        );
+        // A watchdog tripped before the first snapshot: ERROR, and the message says why.
+        let mut h = holding("starting");
+        h.watchdog = true;
+        assert_eq!(h.level(0), DiagnosticStatus::ERROR);
+        assert!(h.message(0).starts_with("watchdog: "), "{}", h.message(0));
+        // A refused parameter newer than a clamp no longer in force is the news.
+        let mut h = holding("running");
+        h.last_clamp = Some(("150 % is outside 0..100, clamped to 100.0 %".into(), 500));
+        h.last_refusal = Some(("period_ms 4 is below 5 ms".into(), 400));
+        assert_eq!(h.level(1_000), DiagnosticStatus::WARN);
+        assert_eq!(
+            h.message(1_000),
+            "parameter change refused: period_ms 4 is below 5 ms"
+        );
     }
 
     #[test]

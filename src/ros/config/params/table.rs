@@ -777,20 +777,24 @@ pub(super) fn node_decls() -> Vec<Decl> {
         },
         Decl {
             description: "Rate of the periodic ~/<ch>/status messages, Hz (they are also sent \
-                          on every change). 0: on change only.",
+                          on every change: each edge, command and parameter; 1 Hz keeps \
+                          002's whole-second countdowns current). 0: on change only.",
             constraints: "0, or 0.01..1000",
             range: Range::Double(0.0, MAX_STATUS_RATE_HZ),
             checked: Checked::OffOr(MIN_STATUS_RATE_HZ),
             note: " (0 = on change only)",
             node: Some(|n, v| n.status_rate_hz = double(v)),
-            ..Decl::new(field!(node, status_rate_hz), || V::Double(10.0))
+            ..Decl::new(field!(node, status_rate_hz), || V::Double(1.0))
         },
         Decl {
-            description: "Console lines per second and channel showing edges (info level); \
-                          edges beyond are summarised once a second. 0: no edge lines.",
+            description: "Console lines per second and channel showing edges (info level, \
+                          also on /rosout); edges beyond are summarised once a second. 0: no \
+                          edge lines, the default, so that an always-on node's log and \
+                          /rosout carry events rather than every pulse (`--demo` sets 10; \
+                          the edges are on ~/<ch>/edges and in the traces either way).",
             range: Range::Integer(0, 1000),
             node: Some(|n, v| n.edge_log_rate = int(v).clamp(0, 1000) as u32),
-            ..Decl::new(field!(node, edge_log_rate), || V::Integer(10))
+            ..Decl::new(field!(node, edge_log_rate), || V::Integer(0))
         },
         Decl {
             description: "How the channels' periods lie against each other. sync: each \
