@@ -355,3 +355,34 @@ def test_the_estop_reaches_the_line_at_once_while_a_huge_parameter_request_is_se
     close_all_traces(proc, ["pw01"])
     print(f"e-stop to line with a 32,000-prefix list_parameters in flight: {delays} ms")
     assert max(delays) < 100, delays
+
+
+def test_services_waiting_for_a_stopped_output_thread_hold_up_no_other_endpoint(node_process, ros):
+    """Three `reset_fault` calls wait for the output thread's verdict (up to 1 s each) while the
+    thread is stopped: more waiting handlers than the node has async workers (2). The node's
+    other endpoints are served meanwhile: `get_parameters` answers at once, not after them."""
+    from std_srvs.srv import Trigger
+
+    names = ("pw01", "pw02", "pw03")
+    # Heaters (the reset is theirs), reading nothing: each latches its sensor timeout.
+    heaters = {f"{ch}__feedback_topic": f"/heater_{ch}/temperature" for ch in names}
+    proc, *_ = launch(node_process, ros, names, 3, **heaters)
+    clients = [ros.node.create_client(Trigger, f"{NODE}/{ch}/reset_fault") for ch in names]
+    for c in clients:
+        ros.spin_until(c.service_is_ready, "reset_fault", 10.0)
+    # Every client made and matched before the stop (the first call makes the parameter one).
+    ros.get_parameters(NODE, ["status_rate_hz"])
+    ros.spin_for(0.25)
+    with Stopped(proc.pid):
+        resets = [c.call_async(Trigger.Request()) for c in clients]
+        # The three handlers are now waiting for the stopped thread.
+        ros.spin_for(0.2)
+        asked = time.monotonic()
+        ros.get_parameters(NODE, ["status_rate_hz"], timeout=5.0)
+        took = time.monotonic() - asked
+        ros.spin_until(lambda: all(f.done() for f in resets), "the resets' answers", 10.0)
+    answers = [f.result() for f in resets]
+    print(f"get_parameters beside three waiting resets: {took * 1000:.0f} ms")
+    for a in answers:
+        assert not a.success and "no answer from the output thread" in a.message, a
+    assert took < 0.5, f"get_parameters waited {took:.2f} s behind the resets"

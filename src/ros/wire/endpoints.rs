@@ -222,13 +222,16 @@ impl ServiceMaker<'_> {
     }
 
     /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
-    /// of type `package/type_name` and the task that answers each request with `handler`.
+    /// of type `package/type_name` and the task that answers each request with `handler`, one
+    /// request at a time, in order. The handler runs on tokio's blocking pool: it may wait for
+    /// the output thread (a reset's verdict, a safety input taken, up to about a second), and
+    /// must not hold an async worker that every other endpoint shares meanwhile.
     pub fn serve<Req, Resp>(
         &mut self,
         name: &str,
         package: &str,
         type_name: &str,
-        handler: impl Fn(Req) -> Resp + Send + 'static,
+        handler: impl Fn(Req) -> Resp + Send + Sync + 'static,
     ) -> Result<JoinHandle<()>, EndpointError>
     where
         Req: Request,
@@ -246,6 +249,7 @@ impl ServiceMaker<'_> {
                 qos,
             )
             .map_err(create_err(format!("service {full}")))?;
+        let handler = std::sync::Arc::new(handler);
         Ok(tokio::spawn(async move {
             let stream = server.receive_request_stream();
             futures::pin_mut!(stream);
@@ -253,7 +257,14 @@ impl ServiceMaker<'_> {
                 match r {
                     Ok((id, req)) => {
                         debug!("{full}: request");
-                        let resp = handler(req);
+                        let h = std::sync::Arc::clone(&handler);
+                        let resp = match tokio::task::spawn_blocking(move || h(req)).await {
+                            Ok(resp) => resp,
+                            Err(e) => {
+                                warn!("{full}: the request's handler failed: {e}");
+                                continue;
+                            }
+                        };
                         if let Err(e) = server.async_send_response(id, resp).await {
                             warn!("{full}: cannot send the response: {e}");
                         }
