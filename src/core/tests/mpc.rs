@@ -155,13 +155,11 @@ pub(super) fn least_step_iae(plant: &PlantParams, sp0: f64, sp1: f64) -> f64 {
 /// standard errors it gives); on a setpoint step (20 % to 30 % of the full rise)
 /// and then a fan taking 30 % of full power, `mpc` with the fan announced by the feed-forward
 /// errs by at most half of what the autotune's PID errs beyond the least any loop can (full
-/// power from the first sample after the step), on all plants but the one whose error is its
-/// sensor's noise (see below), and never by more than 0.7 of it; overshoot below 1 °C; with
+/// power from the first sample after the step), on every plant; overshoot below 1 °C; with
 /// the fan unannounced, no worse than the PID.
 #[test]
 fn mpc_against_the_autotuned_pid_on_a_step_and_a_fan() {
     let mut lines = Vec::new();
-    let mut above_half = Vec::new();
     for i in 0..LAGGING_PLANTS.len() {
         let plant = lagging(i);
         let o = identify(plant, 3 + i as u64);
@@ -209,12 +207,9 @@ fn mpc_against_the_autotuned_pid_on_a_step_and_a_fan() {
             "{plant:?}: mpc {blind:?}, pid {pid:?}"
         );
         assert!(
-            ratio <= 0.7,
+            ratio <= 0.5,
             "{plant:?}: mpc+ff {ff:?}, pid {pid:?}, least {least}"
         );
-        if ratio > 0.5 {
-            above_half.push(i);
-        }
         lines.push(format!(
             "  {i}: rate {} tau {} L {} sensor {} noise {}: model gain {e_gain:+.1} % tau \
              {e_tau:+.1} % L {e_dead:+.1} % (± {:.1} %{}) L+sensor {e_lags:+.1} %\n     IAE °C·s (least \
@@ -257,10 +252,6 @@ fn mpc_against_the_autotuned_pid_on_a_step_and_a_fan() {
         LAGGING_PLANTS.len(),
         lines.join("\n")
     );
-    // Plant 0 (τ 600 s, noise 0.2 °C) holds its step at full power within 3 % of the least
-    // error any loop can reach; what is left is the sensor's noise through the observer over
-    // 1,400 s, of the order of the PID's whole excess.
-    assert!(above_half.len() <= 1, "above half: {above_half:?}");
 }
 
 /// Switching `pid` → `mpc` → `pid` on a settled heater moves the duty by no more than the
