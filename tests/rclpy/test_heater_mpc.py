@@ -103,6 +103,9 @@ def test_mpc_after_a_model_autotune_holds_and_rejects_a_fan_faster_than_pid(
         f"{r.model_ambient_c:.1f} °C (plant: 1, 20, 0.5, 0.5, 20)"
     )
     assert r.model_gain_c_per_pct > 0.0, r
+    # The message gives the model in words with the dead time's standard error.
+    print(r.message)
+    assert f"dead time {r.model_dead_time_s:.2f} ± " in r.message, r.message
 
     readings = ros.subscribe(Temperature, TOPIC, qos_profile_sensor_data)
     fan = ros.publisher(Float64, "/sim_heater/fan")

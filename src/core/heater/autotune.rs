@@ -63,6 +63,9 @@ pub const MAX_CYCLES: usize = 12;
 pub const MAX_SPREAD: f64 = 0.1;
 /// The relay must be on for at least this fraction of a cycle, and off for as much.
 pub const MIN_ON_FRACTION: f64 = 0.1;
+/// The largest standard error of the identified dead time, as a share of it, at which the run
+/// tells the dead time within 10 % (2.5 standard errors).
+pub const MAX_DEAD_TIME_SE: f64 = 0.04;
 /// The noise band may be at most this fraction of the amplitude `a`.
 pub const MAX_BAND_RATIO: f64 = 0.5;
 /// Largest noise band accepted, °C.
@@ -400,6 +403,49 @@ pub struct Estimate {
     pub delivered_on_pct: f64,
     /// The heater's thermal model the cycles give (see [`identify`]), when they give one.
     pub model: Option<ModelParams>,
+    /// The standard error of the model's dead time, s, when the fit over the run's record
+    /// gave the model (see [`super::fit::Fit::dead_time_se`]); infinite when the record does
+    /// not tell the dead time from the sensor's lag at all.
+    pub dead_time_se_s: Option<f64>,
+}
+
+impl Estimate {
+    /// Whether the run tells the model's dead time within 10 %: its standard error at most
+    /// [`MAX_DEAD_TIME_SE`] of it (10 % is then 2.5 standard errors). Where it does not, the
+    /// two lags' sum is what the run identified, and the dead time is uncertain by
+    /// [`Estimate::dead_time_se_s`].
+    pub fn dead_time_certain(&self) -> bool {
+        match (self.model, self.dead_time_se_s) {
+            (Some(m), Some(se)) => se <= MAX_DEAD_TIME_SE * m.dead_time_s,
+            _ => false,
+        }
+    }
+
+    /// The model in words with how far its dead time can be trusted, `None` without a model:
+    /// `model: gain 1.804 °C/%, tau 601.1 s, dead time 0.66 ± 0.11 s, sensor lag 0.94 s,
+    /// ambient 19.87 °C`, and where the dead time is not told within 10 % (see
+    /// [`Estimate::dead_time_certain`]) what the run did tell: the two lags' sum.
+    pub fn model_summary(&self) -> Option<String> {
+        let m = self.model?;
+        let se = match self.dead_time_se_s {
+            Some(se) if se.is_finite() => format!(" ± {se:.2}"),
+            Some(_) => " ± ?".into(),
+            None => String::new(),
+        };
+        let mut s = format!(
+            "model: gain {:.4} °C/%, tau {:.1} s, dead time {:.2}{se} s, sensor lag {:.2} s, \
+             ambient {:.2} °C",
+            m.gain_c_per_pct, m.tau_s, m.dead_time_s, m.sensor_tau_s, m.ambient_c
+        );
+        if self.dead_time_se_s.is_some() && !self.dead_time_certain() {
+            s.push_str(&format!(
+                " (the dead time is uncertain: the sensor's noise hides its split from the \
+                 sensor's lag; their sum {:.2} s is what the run identified)",
+                m.dead_time_s + m.sensor_tau_s
+            ));
+        }
+        Some(s)
+    }
 }
 
 /// A relay's limit cycle as measured: what [`cycle_rate`] takes.
@@ -738,6 +784,7 @@ impl Autotune {
         }
         let mut est = self.pending.take()?;
         est.model = fit.model(&self.trace);
+        est.dead_time_se_s = est.model.and_then(|_| fit.dead_time_se(&self.trace));
         self.fit = None;
         self.estimate = Some(est);
         Some(Stop::Converged)
@@ -938,6 +985,7 @@ impl Autotune {
                 on_fraction,
                 delivered_on_pct: mean(|c| c.power_on) * 100.0,
                 model,
+                dead_time_se_s: None,
             };
             let d = est.on_fraction;
             if !(MIN_ON_FRACTION..=1.0 - MIN_ON_FRACTION).contains(&d) {

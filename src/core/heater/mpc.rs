@@ -11,8 +11,10 @@
 //! input piece). At each fresh reading an observer corrects all three by the reading less the
 //! model's sensor, with the gains that put the error's three poles at `e^(−h/T_o)` for the
 //! time `h` since the last correction (Ackermann's formula for the current estimator), `T_o`
-//! the model's total lag `L + τ_s` (at least [`MIN_PACE_S`]): the estimate of an unannounced
-//! disturbance settles within a few total lags.
+//! the model's total lag `L + τ_s` (at least [`MIN_PACE_S`]), or a hundredth of the time
+//! constant `τ` where that is longer ([`OBSERVER_MIN_TAU_SHARE`]: a slow block behind a short
+//! lag, whose readings' noise a faster observer would hand to the duty): the estimate of an
+//! unannounced disturbance settles within a few of those.
 //!
 //! **The law.** At each sample the estimate runs forward over the dead time on the power
 //! already sent (the ring of the line's on time), which gives the block's temperature `T_L`
@@ -48,6 +50,12 @@ pub const MIN_PACE_S: f64 = 1.0;
 
 /// The observer's time constant in the model's total lags.
 pub const OBSERVER_PACES: f64 = 1.0;
+/// The observer's time constant is at least this share of the model's time constant: in that
+/// time an unannounced disturbance moves the block by about this share of what it will, and an
+/// observer much faster than that only hands the sensor's noise to the duty (on a block of
+/// 600 s behind a 1.5 s total lag and ±0.2 °C of noise, the noise it passed at 1.5 s was most
+/// of the loop's error).
+pub const OBSERVER_MIN_TAU_SHARE: f64 = 0.01;
 
 /// What the loop's last sample decided, for the status.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -152,9 +160,10 @@ impl Mpc {
         (self.p.dead_time_s + self.p.sensor_tau_s).max(MIN_PACE_S)
     }
 
-    /// The observer's time constant, s: [`OBSERVER_PACES`] times [`Mpc::pace_s`].
+    /// The observer's time constant, s: [`OBSERVER_PACES`] times [`Mpc::pace_s`], at least
+    /// [`OBSERVER_MIN_TAU_SHARE`] of the model's time constant.
     pub fn observer_s(&self) -> f64 {
-        OBSERVER_PACES * self.pace_s()
+        (OBSERVER_PACES * self.pace_s()).max(OBSERVER_MIN_TAU_SHARE * self.p.tau_s)
     }
 
     /// Restarts the estimate at `now` from the reading `celsius`, the heater taken at rest

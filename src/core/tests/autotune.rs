@@ -519,7 +519,9 @@ fn a_run_identifies_the_heaters_model() {
         let plant = lagging(i);
         let o = identify(plant, 3 + i as u64);
         assert_eq!(o.stop, Stop::Converged, "{plant:?}: {o:?}");
-        let m = o.estimate.unwrap().model.expect("a model");
+        let est = o.estimate.unwrap();
+        let m = est.model.expect("a model");
+        let se = est.dead_time_se_s.expect("the dead time's standard error");
         let k = plant.rate_c_per_s * plant.tau_s / 100.0;
         let err = |a: f64, b: f64| (a / b - 1.0) * 100.0;
         let lags = plant.dead_time_s + plant.sensor_tau_s;
@@ -527,8 +529,8 @@ fn a_run_identifies_the_heaters_model() {
         let split = snr >= 2.5 || plant.sensor_tau_s == 0.0;
         println!(
             "rate {} °C/s, tau {} s, L {} s, sensor {} s, noise {} °C: gain {:+.1} %, tau \
-             {:+.1} %, L {:.2} s ({:+.1} %), sensor {:.2} s, L + sensor {:+.1} %, ambient \
-             {:.2} °C{}",
+             {:+.1} %, L {:.2} ± {se:.2} s ({:+.1} %{}), sensor {:.2} s, L + sensor {:+.1} %, \
+             ambient {:.2} °C{}",
             plant.rate_c_per_s,
             plant.tau_s,
             plant.dead_time_s,
@@ -538,6 +540,11 @@ fn a_run_identifies_the_heaters_model() {
             err(m.tau_s, plant.tau_s),
             m.dead_time_s,
             err(m.dead_time_s, plant.dead_time_s),
+            if est.dead_time_certain() {
+                ""
+            } else {
+                ", said uncertain"
+            },
             m.sensor_tau_s,
             err(m.dead_time_s + m.sensor_tau_s, lags),
             m.ambient_c,
@@ -557,11 +564,23 @@ fn a_run_identifies_the_heaters_model() {
             (m.ambient_c - plant.ambient_c).abs() < 2.0,
             "{plant:?}: {m:?}"
         );
-        if split {
+        // The dead time: within 10 % wherever the run claims it; where the run says it is
+        // uncertain, its error within three of the standard errors it gives.
+        let e_dead = err(m.dead_time_s, plant.dead_time_s).abs();
+        if est.dead_time_certain() {
+            assert!(e_dead < 10.0, "{plant:?}: {m:?} ± {se}");
+        } else {
             assert!(
-                err(m.dead_time_s, plant.dead_time_s).abs() < 10.0,
-                "{plant:?}: {m:?}"
+                (m.dead_time_s - plant.dead_time_s).abs() <= 3.0 * se,
+                "{plant:?}: {m:?} ± {se}"
             );
+        }
+        let summary = est.model_summary().unwrap();
+        assert!(summary.contains(&format!("dead time {:.2} ± ", m.dead_time_s)));
+        assert_eq!(summary.contains("uncertain"), !est.dead_time_certain());
+        assert!(e_dead < 10.0 || !est.dead_time_certain());
+        if split {
+            assert!(e_dead < 10.0, "{plant:?}: {m:?}");
             assert!(
                 (m.sensor_tau_s - plant.sensor_tau_s).abs() < (0.2 * plant.sensor_tau_s).max(0.2),
                 "{plant:?}: {m:?}"

@@ -303,6 +303,9 @@ fn finish(
                 r.model_ambient_c = m.ambient_c;
                 r.model_sensor_tau_s = m.sensor_tau_s;
             }
+            if let Some(summary) = e.model_summary() {
+                r.message.push_str(&format!("; {summary}"));
+            }
             if let Some(s) = o.sizing {
                 r.period_ok = s.period_ok;
                 r.min_times_ok = s.min_times_ok;
@@ -338,13 +341,16 @@ fn finish(
             }
             info!(
                 "{name}: autotune converged: Ku {:.4} %/°C, Tu {:.2} s; pid_kp {:.4} pid_ki {:.5} \
-                 pid_kd {:.4}{}",
+                 pid_kd {:.4}{}{}",
                 e.ku,
                 e.tu_s,
                 g.kp,
                 g.ki,
                 g.kd,
-                if r.applied { " (applied)" } else { "" }
+                if r.applied { " (applied)" } else { "" },
+                e.model_summary()
+                    .map(|s| format!("; {s}"))
+                    .unwrap_or_default()
             );
             if canceling {
                 GoalEndStatus::Canceled
