@@ -157,6 +157,9 @@ fn own_messages_match_their_msg_files() {
             setpoints_refused: 0,
             process_values_refused: 0,
             manual_refused: 0,
+            starts: 0,
+            starts_last_hour: 0,
+            max_starts_per_h: 0,
         }),
     );
     assert_eq!(ValveState::PACKAGE, MSG_PACKAGE);

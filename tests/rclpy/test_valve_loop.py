@@ -24,6 +24,8 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Temperature
 from std_msgs.msg import Float64
 
+from pwm_actuator_msgs.msg import ValveState
+
 from helpers_rules import NODE, node_args, trace_edges
 
 TOPIC = "/mixing/temperature"
@@ -87,6 +89,7 @@ def test_the_loop_holds_the_mixed_water_and_rejects_a_supply_step(node_process, 
     )
     readings = ros.subscribe(Temperature, TOPIC, qos_profile_sensor_data)
     truth = ros.subscribe(Float64, "/sim_valve/position")
+    states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
     setpoint = ros.publisher(Float64, f"{NODE}/valve/mix/setpoint")
     hot = ros.publisher(Float64, "/mixing/hot")
     ros.wait_for_subscribers(setpoint, 1, timeout=20.0)
@@ -141,5 +144,13 @@ def test_the_loop_holds_the_mixed_water_and_rejects_a_supply_step(node_process, 
     assert moved > 5.0, (before, truth.messages[-1].data)
     assert sum(1 for t, _ in after if t >= RECOVER_S) >= (END_S - STEP_S - RECOVER_S) * 2 * 0.8
     assert worst_after <= BAND_C, after
+    # The motor's starts on the valve's state: counted, all within the hour under way, and
+    # within the default budget (docs/valve.md).
+    last = states.messages[-1]
+    print(f"state: {last.starts} starts, {last.starts_last_hour} in the last hour, budget "
+          f"{last.max_starts_per_h} an hour")
+    assert last.max_starts_per_h == 1200, last
+    assert 0 < last.starts == last.starts_last_hour <= last.max_starts_per_h, last
+    assert abs(last.starts - rises) <= 2, (last.starts, rises)
     assert node.terminate() == 0, node.output()
     assert sim.terminate() == 0, sim.output()

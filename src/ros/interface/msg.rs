@@ -309,6 +309,12 @@ pub struct ValveState {
     pub process_values_refused: u64,
     /// Manual commands refused since start.
     pub manual_refused: u64,
+    /// Motor starts (rises of either line) since start.
+    pub starts: u64,
+    /// Motor starts within the last hour.
+    pub starts_last_hour: u64,
+    /// The budget in force, starts an hour; 0 = none.
+    pub max_starts_per_h: u64,
 }
 ros_message!(ValveState, "pwm_actuator_msgs", "ValveState");
 

@@ -267,6 +267,9 @@ pub fn state_msg(name: &str, s: &ValveStatus) -> msg::ValveState {
         setpoints_refused: s.refused.setpoint,
         process_values_refused: s.refused.process_value,
         manual_refused: s.refused.manual,
+        starts: s.starts,
+        starts_last_hour: s.starts_last_hour,
+        max_starts_per_h: s.max_starts_per_h,
     }
 }
 
