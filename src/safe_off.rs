@@ -16,7 +16,7 @@ use crate::ros::config::args;
 use crate::ros::config::cli;
 use crate::ros::config::names::NodeIdentity;
 use crate::ros::config::params::{self, StartValue, StartupConfig};
-use crate::ros::config::start::{start_values, ConfigError};
+use crate::ros::config::start::{start_values, StartupError};
 use gpiocdev::line::Values;
 use std::path::PathBuf;
 
@@ -36,7 +36,7 @@ pub use crate::ros::config::cli::EXIT_USAGE;
 pub enum SafeOffError {
     /// The node's command line or configuration is refused, as the node would refuse it.
     #[error(transparent)]
-    Config(#[from] ConfigError),
+    Config(#[from] StartupError),
     /// A line cannot be requested (busy: names the holder) or written.
     #[error(transparent)]
     Gpio(#[from] GpioError),
@@ -67,18 +67,18 @@ impl SafeOffError {
 /// The GPIO lines the node would drive with the command line `args` (node syntax, without the
 /// program name); `--output gpio` is implied.
 pub fn lines_from_node_args(args: &[String]) -> Result<Vec<GpioLine>, SafeOffError> {
-    let parsed = args::parse(args).map_err(ConfigError::from)?;
-    let flags = cli::parse_flags(&parsed.app).map_err(ConfigError::from)?;
-    let id =
-        NodeIdentity::from_remaps(NODE_NAME, "/", &parsed.ros.remaps).map_err(ConfigError::from)?;
+    let parsed = args::parse(args).map_err(StartupError::from)?;
+    let flags = cli::parse_flags(&parsed.app).map_err(StartupError::from)?;
+    let id = NodeIdentity::from_remaps(NODE_NAME, "/", &parsed.ros.remaps)
+        .map_err(StartupError::from)?;
     let mut values = start_values(&flags, &parsed.ros, &id, &id.fully_qualified())?;
     values.push(StartValue {
         name: "output".into(),
         value: ros2_client::ParameterValue::String("gpio".into()),
         origin: "safe-off".into(),
     });
-    let su = params::start_up(&values).map_err(ConfigError::from)?;
-    let cfg = StartupConfig::from_store(&su.store).map_err(ConfigError::from)?;
+    let su = params::start_up(&values).map_err(StartupError::from)?;
+    let cfg = StartupConfig::from_store(&su.store).map_err(StartupError::from)?;
     let Backend::Gpio { lines } = cfg.output.backend else {
         unreachable!("output gpio was set last");
     };

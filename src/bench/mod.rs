@@ -154,7 +154,7 @@ fn number<T: std::str::FromStr>(v: &str) -> Result<T, NotANumber> {
 /// An option's value outside the range the benchmark accepts.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("--{option} {value} {accepted}")]
-pub struct OutOfRange {
+pub struct BenchOptionOutOfRange {
     /// The option, without its dashes.
     pub option: &'static str,
     /// The value given.
@@ -165,10 +165,10 @@ pub struct OutOfRange {
 
 impl BenchOptions {
     /// Checks the ranges clap does not know.
-    pub fn validate(&self) -> Result<(), OutOfRange> {
+    pub fn validate(&self) -> Result<(), BenchOptionOutOfRange> {
         let o = self;
         let out = |option, value, accepted| {
-            Err(OutOfRange {
+            Err(BenchOptionOutOfRange {
                 option,
                 value,
                 accepted,

@@ -27,7 +27,7 @@ use crate::ros::config::names::{NameError, NodeIdentity, NODE_NAME};
 use crate::ros::config::params::{self, ParamError, ParamStore, StartupConfig};
 use crate::ros::config::security::{self, SecurityError, SecurityRequest};
 use crate::ros::config::split::{self, SplitError};
-use crate::ros::config::start::{domain_id_from, start_values, ConfigError, FaultSpecError};
+use crate::ros::config::start::{domain_id_from, start_values, FaultSpecError, StartupError};
 use crate::ros::config::valve::{self, ValveError, ValveLimits, ValveSpec};
 use crate::ros::config::valve_state::{self, StateRecord};
 use crate::ros::inbound::autotune;
@@ -61,7 +61,7 @@ use tokio::task::JoinHandle;
 pub enum NodeError {
     /// The configuration is refused (command line, names, parameters, discovery, security).
     #[error(transparent)]
-    Config(#[from] ConfigError),
+    Config(#[from] StartupError),
     /// The output cannot be built (trace files, line bindings, chips, busy lines).
     #[error(transparent)]
     Output(#[from] OpenError),
@@ -88,12 +88,12 @@ pub enum NodeError {
     Watchdog(#[source] std::io::Error),
 }
 
-/// Each configuration error converts into a [`NodeError`] through [`ConfigError`].
+/// Each configuration error converts into a [`NodeError`] through [`StartupError`].
 macro_rules! config_from {
     ($($t:ty),*) => {$(
         impl From<$t> for NodeError {
             fn from(e: $t) -> NodeError {
-                NodeError::Config(ConfigError::from(e))
+                NodeError::Config(StartupError::from(e))
             }
         }
     )*};

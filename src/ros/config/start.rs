@@ -1,6 +1,6 @@
 //! What the node and `safe-off` make of their configuration before anything runs: the start-up
 //! values (node options first, then the ROS arguments in order), the domain id, and every way
-//! a configuration can be refused ([`ConfigError`], exit status 2).
+//! a configuration can be refused ([`StartupError`], exit status 2).
 
 pub use crate::output::fault::FaultSpecError;
 use crate::ros::config::args::{ArgsError, RosArgs};
@@ -18,7 +18,7 @@ pub const MAX_DOMAIN_ID: u16 = 232;
 
 /// A configuration the node refuses before it touches any output (exit status 2).
 #[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
+pub enum StartupError {
     /// Bad `--ros-args` or parameter file.
     #[error(transparent)]
     Args(#[from] ArgsError),
@@ -57,14 +57,14 @@ pub enum ConfigError {
 }
 
 /// Reads `ROS_DOMAIN_ID` (unset or empty: 0).
-pub fn domain_id_from(value: Option<&str>) -> Result<u16, ConfigError> {
+pub fn domain_id_from(value: Option<&str>) -> Result<u16, StartupError> {
     match value.map(str::trim) {
         None | Some("") => Ok(0),
         Some(v) => v
             .parse::<u16>()
             .ok()
             .filter(|d| *d <= MAX_DOMAIN_ID)
-            .ok_or_else(|| ConfigError::DomainId {
+            .ok_or_else(|| StartupError::DomainId {
                 value: v.to_string(),
                 max: MAX_DOMAIN_ID,
             }),
@@ -78,7 +78,7 @@ pub fn start_values(
     ros: &RosArgs,
     id: &NodeIdentity,
     fqn: &str,
-) -> Result<Vec<StartValue>, ConfigError> {
+) -> Result<Vec<StartValue>, StartupError> {
     let mut v = flags.start_values();
     let from_options: Vec<(String, String)> = v
         .iter()
