@@ -62,9 +62,16 @@ def assert_no_phase_below(edges: Sequence[Edge], min_on: int, min_off: int, what
 # ---------------------------------------------------------------------------------------------
 
 
+#: The status rate the boundary tests watch the countdown at: a status every 100 ms lands in
+#: the first 150 ms of some period; at the default 1 Hz, on a channel without edges, the
+#: periodic status keeps one phase against a 1 s period and may never land there.
+WATCH_STATUS_HZ = 10.0
+
+
 def just_after_boundary(ch, remaining: str, period_ms: float = 1000.0) -> None:
     """Waits for a status taken less than 150 ms into a period (its `remaining` field, the
-    running step's remaining time, above period - 150 ms)."""
+    running step's remaining time, above period - 150 ms). The node must publish its status at
+    `WATCH_STATUS_HZ`."""
     ch.wait_status(lambda s: getattr(s, remaining) > period_ms - 150.0,
                    f"{remaining} above {period_ms - 150.0} ms", start=len(ch.status.messages))
 
@@ -76,7 +83,8 @@ def test_immediate_starts_the_impulse_at_once_after_a_long_break(node_process, r
     command is handled, not at the next boundary of a period the output never showed, and lasts
     500 ms."""
     proc, ch = start(node_process, ros, pw01__profile="tcont_cp", pw01__period_ms=1000,
-                     pw01__min_on_ms=100, pw01__duty=5.0, pw01__enable=True)
+                     pw01__min_on_ms=100, pw01__duty=5.0, pw01__enable=True,
+                     status_rate_hz=WATCH_STATUS_HZ)
     ch.wait_status(lambda s: s.enabled and s.rule == "suppressed_pulse", "5 % suppressed")
     observe_until(ch, mono_ns() + 1100 * MS)
     # Just after a period boundary the output did not show (under 150 ms into the period):
@@ -100,7 +108,8 @@ def test_immediate_ends_the_impulse_at_once_after_a_long_pulse(node_process, ros
     """003, the mirror case: 95 % of 1 s (break 50 ms < 100 ms suppressed) holds the line high;
     50 % ends the impulse the instant it is handled, and the break then lasts 500 ms."""
     proc, ch = start(node_process, ros, pw01__profile="tcont_cp", pw01__period_ms=1000,
-                     pw01__min_on_ms=100, pw01__duty=95.0, pw01__enable=True)
+                     pw01__min_on_ms=100, pw01__duty=95.0, pw01__enable=True,
+                     status_rate_hz=WATCH_STATUS_HZ)
     wait_trace(proc, lambda es: len(es) >= 2 and es[-1].level == 1, "the line high",
                spin=ch.ros.spin_once)
     observe_until(ch, mono_ns() + 1100 * MS)
