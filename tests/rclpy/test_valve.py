@@ -543,6 +543,21 @@ def mix_diag(array):
     return next((s for s in array.status if s.name.endswith("valve mix")), None)
 
 
+def feed_until_diag(ros, process, value: float, diags, predicate, timeout: float = 5.0):
+    """`feed_until` on /diagnostics: the valve's status of the first array published from now
+    on whose valve status satisfies `predicate`."""
+    array = feed_until(
+        ros,
+        process,
+        value,
+        diags,
+        lambda a: (d := mix_diag(a)) is not None and predicate(d),
+        len(diags.messages),
+        timeout,
+    )
+    return mix_diag(array)
+
+
 def test_a_stale_process_value_shows_as_holding_and_warns_with_its_age_and_timeout(
     node_process, ros
 ):
@@ -561,16 +576,8 @@ def test_a_stale_process_value_shows_as_holding_and_warns_with_its_age_and_timeo
         start=0,
         timeout=5.0,
     )
-    running = mix_diag(
-        feed_until(
-            ros,
-            process,
-            45.0,
-            diags,
-            lambda a: (d := mix_diag(a)) is not None and diag_values(d)["loop_state"] == "running",
-            len(diags.messages),
-            5.0,
-        )
+    running = feed_until_diag(
+        ros, process, 45.0, diags, lambda d: diag_values(d)["loop_state"] == "running"
     )
     assert diag_values(running)["setpoint"] == "50" and diag_values(running)["control"] == "pid"
     assert "process value stale" not in running.message, running
@@ -608,16 +615,8 @@ def test_a_stale_process_value_shows_as_holding_and_warns_with_its_age_and_timeo
     # Readings again: running, and the WARN is gone.
     start = len(states.messages)
     feed_until(ros, process, 45.0, states, lambda s: s.loop_state == "running", start, 5.0)
-    back = mix_diag(
-        feed_until(
-            ros,
-            process,
-            45.0,
-            diags,
-            lambda a: (d := mix_diag(a)) is not None and diag_values(d)["loop_state"] == "running",
-            len(diags.messages),
-            5.0,
-        )
+    back = feed_until_diag(
+        ros, process, 45.0, diags, lambda d: diag_values(d)["loop_state"] == "running"
     )
     assert diag_level(back) == OK and "process value stale" not in back.message, back
     assert proc.terminate() == 0, proc.output()
@@ -640,16 +639,8 @@ def test_manual_mode_shows_on_the_state_and_on_diagnostics_and_bad_words_are_cou
     manual.publish(String(data="open"))
     m = feed_until(ros, process, 45.0, states, lambda s: s.manual == "open", start, 5.0)
     assert m.loop_state == "manual", m
-    d = mix_diag(
-        feed_until(
-            ros,
-            process,
-            45.0,
-            diags,
-            lambda a: (d := mix_diag(a)) is not None and "manual mode: open" in d.message,
-            len(diags.messages),
-            5.0,
-        )
+    d = feed_until_diag(
+        ros, process, 45.0, diags, lambda d: "manual mode: open" in d.message
     )
     assert diag_level(d) == WARN, d
     assert "until auto on ~/valve/mix/manual" in d.message, d.message
@@ -668,16 +659,8 @@ def test_manual_mode_shows_on_the_state_and_on_diagnostics_and_bad_words_are_cou
     manual.publish(String(data="auto"))
     back = feed_until(ros, process, 45.0, states, lambda s: s.manual == "", start, 5.0)
     assert back.loop_state == "running", back
-    d = mix_diag(
-        feed_until(
-            ros,
-            process,
-            45.0,
-            diags,
-            lambda a: (d := mix_diag(a)) is not None and diag_values(d)["manual"] == "",
-            len(diags.messages),
-            5.0,
-        )
+    d = feed_until_diag(
+        ros, process, 45.0, diags, lambda d: diag_values(d)["manual"] == ""
     )
     assert "manual mode" not in d.message and diag_values(d)["loop_state"] == "running", d
     assert proc.terminate() == 0, proc.output()
