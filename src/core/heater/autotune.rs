@@ -838,27 +838,28 @@ impl Autotune {
         }
         // The power of the leg, as delivered.
         let power_pct = en.saturating_sub(el) as f64 / (tn - tl) as f64 * 100.0;
-        // Least squares of T ≈ a + b·e^(−(t − tl)/τ) for one τ: (sse, a).
-        let solve = |tau: f64| -> Option<(f64, f64)> {
-            let (mut n, mut sx, mut sy, mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        // Least squares of T ≈ a + b·x(t) for one shape x: (sse, a). The sums are taken about
+        // their means, as a slow shape (x near 1 everywhere) leaves too little of them to
+        // subtract otherwise.
+        let secs = |t: Nanos| (t - tl) as f64 / 1e9;
+        let regress = |x: &dyn Fn(Nanos) -> f64| -> Option<(f64, f64)> {
+            let n = used.len() as f64;
+            let mx = used.iter().map(|&(t, _, _)| x(t)).sum::<f64>() / n;
+            let my = used.iter().map(|&(_, y, _)| y).sum::<f64>() / n;
+            let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
             for &(t, y, _) in used {
-                let x = (-((t - tl) as f64 / 1e9) / tau).exp();
-                n += 1.0;
-                sx += x;
-                sy += y;
-                sxx += x * x;
-                sxy += x * y;
-                syy += y * y;
+                let (dx, dy) = (x(t) - mx, y - my);
+                sxx += dx * dx;
+                sxy += dx * dy;
+                syy += dy * dy;
             }
-            let det = n * sxx - sx * sx;
-            if det.abs() < 1e-12 {
+            if sxx < 1e-18 * n {
                 return None;
             }
-            let b = (n * sxy - sx * sy) / det;
-            let a = (sy - b * sx) / n;
-            let sse = syy - a * sy - b * sxy;
-            Some((sse.max(0.0), a))
+            let b = sxy / sxx;
+            Some(((syy - b * sxy).max(0.0), my - b * mx))
         };
+        let solve = |tau: f64| regress(&|t| (-secs(t) / tau).exp());
         // Scan τ from 1 s to 10^5 s, 1/24 decade apart.
         let mut best: Option<(f64, f64, f64, usize)> = None;
         let steps = 120;
@@ -871,9 +872,9 @@ impl Autotune {
             }
         }
         let (sse, tau, t_inf, k) = best?;
-        // A curvature: the best τ lies inside the scan, and the straight line (τ at the
-        // scan's top) explains the leg clearly worse.
-        let line = solve(1e7)?.0;
+        // A curvature: the best τ lies inside the scan, and the straight line (the limit of a
+        // long τ) explains the leg clearly worse.
+        let line = regress(&secs)?.0;
         if k == 0 || k == steps || sse > 0.5 * line {
             return None;
         }
