@@ -80,7 +80,10 @@ def test_an_unreferenced_valve_at_63_percent_closes_fully_on_a_0_percent_command
     diags = ros.subscribe(DiagnosticArray, "/diagnostics")
     pub = ros.publisher(Float64, f"{NODE}/valve/mix/position")
     ros.wait_for_subscribers(pub, 1)
-    first = valve_diagnostics(ros, diags)
+    # Matched both ways before the first wait: a discovery that is slow shows as such, not as
+    # /diagnostics missing.
+    diags.wait_for_publishers(1)
+    first = valve_diagnostics(ros, diags, timeout=20.0)
     values = diag_values(first)
     assert diag_level(first) == WARN and "unreferenced" in first.message, first
     assert values["position_pct"] == "0.00" and values["uncertainty_pct"] == "100.00", values
