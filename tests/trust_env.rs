@@ -1,7 +1,7 @@
 //! The node as a process under the ROS environment that concerns trust: SROS2 security
 //! variables (refused when enforced, warned about when permissive), the discovery range
-//! (`ROS_AUTOMATIC_DISCOVERY_RANGE`, `ROS_LOCALHOST_ONLY`, `ROS_STATIC_PEERS`) and two nodes
-//! with one name on a domain.
+//! (`ROS_AUTOMATIC_DISCOVERY_RANGE`, `ROS_LOCALHOST_ONLY`, `ROS_STATIC_PEERS`), the middleware
+//! asked for (`RMW_IMPLEMENTATION`) and two nodes with one name on a domain.
 
 #[path = "common/ros_harness.rs"]
 mod ros_harness;
@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 /// Every variable these tests set, removed from the child's environment first so the
 /// caller's shell cannot change a result.
-const TRUST_VARS: [&str; 7] = [
+const TRUST_VARS: [&str; 8] = [
     "ROS_SECURITY_ENABLE",
     "ROS_SECURITY_STRATEGY",
     "ROS_SECURITY_KEYSTORE",
@@ -21,6 +21,7 @@ const TRUST_VARS: [&str; 7] = [
     "ROS_LOCALHOST_ONLY",
     "ROS_AUTOMATIC_DISCOVERY_RANGE",
     "ROS_STATIC_PEERS",
+    "RMW_IMPLEMENTATION",
 ];
 
 /// Runs the node with `env` and `args` until it exits by itself (or kills it after 20 s);
@@ -295,6 +296,27 @@ fn subnet_is_unchanged_and_off_discovers_no_one() {
         "OFF, yet heard: {}",
         node.log()
     );
+}
+
+#[test]
+fn zenoh_asked_for_is_refused_before_any_output_and_a_dds_middleware_runs() {
+    // A system on rmw_zenoh could neither command the node nor see its diagnostics: refused,
+    // exit 2, before the output is opened, saying what to do.
+    let (code, err, traced) = run_to_exit(&[("RMW_IMPLEMENTATION", "rmw_zenoh_cpp")], &[]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(
+        err.contains("RMW_IMPLEMENTATION=rmw_zenoh_cpp: this node speaks DDS only"),
+        "{err}"
+    );
+    assert!(!traced, "the output was opened before the refusal");
+    // A DDS middleware is met on the wire: no word; an unknown one: a warning, and it runs.
+    let dom = Domain::acquire();
+    let node = Spawned::start(&dom, &[("RMW_IMPLEMENTATION", "rmw_cyclonedds_cpp")]);
+    assert!(!node.log().contains("RMW_IMPLEMENTATION"), "{}", node.log());
+    drop(node);
+    let dom = Domain::acquire();
+    let node = Spawned::start(&dom, &[("RMW_IMPLEMENTATION", "rmw_somethingelse")]);
+    node.assert_logged("RMW_IMPLEMENTATION=rmw_somethingelse is not a middleware this node knows");
 }
 
 #[test]

@@ -31,6 +31,13 @@
 //!   unknown name, an IPv6 address) is skipped with a warning that echoes it escaped; more than
 //!   [`MAX_STATIC_PEERS`] entries are refused.
 //!
+//! `RMW_IMPLEMENTATION` names the middleware the rest of a ROS 2 system loads. The node speaks
+//! DDS (RTPS) itself and loads none, so it meets every DDS-based one (`rmw_fastrtps_cpp`,
+//! `rmw_fastrtps_dynamic_cpp`, `rmw_cyclonedds_cpp`, `rmw_connextdds`, `rmw_gurumdds_cpp`) on the
+//! wire. `rmw_zenoh_cpp` (or any `rmw_zenoh*`) it cannot join: asked for it, the node refuses to
+//! start rather than run where no Zenoh peer can command it or see its diagnostics. Any other
+//! value is warned about (echoed escaped) and the node runs on DDS.
+//!
 //! This module reads variables, resolves peer names (the system's resolver may ask a DNS
 //! server), builds the participant and sets socket options; it must not send or receive
 //! anything else itself.
@@ -48,6 +55,16 @@ pub const RANGE_ENV: &str = "ROS_AUTOMATIC_DISCOVERY_RANGE";
 pub const PEERS_ENV: &str = "ROS_STATIC_PEERS";
 /// `ROS_LOCALHOST_ONLY` (deprecated in Jazzy).
 pub const LOCALHOST_ONLY_ENV: &str = "ROS_LOCALHOST_ONLY";
+/// `RMW_IMPLEMENTATION`.
+pub const RMW_ENV: &str = "RMW_IMPLEMENTATION";
+/// The middlewares of `RMW_IMPLEMENTATION` the node meets on the wire: the DDS-based ones.
+pub const DDS_RMWS: [&str; 5] = [
+    "rmw_fastrtps_cpp",
+    "rmw_fastrtps_dynamic_cpp",
+    "rmw_cyclonedds_cpp",
+    "rmw_connextdds",
+    "rmw_gurumdds_cpp",
+];
 /// Most entries `ROS_STATIC_PEERS` may name, and most addresses the node sends to (a name
 /// may resolve to several): each address costs ten datagrams per SPDP announcement.
 pub const MAX_STATIC_PEERS: usize = 32;
@@ -94,6 +111,18 @@ pub struct Discovery {
 /// What cannot be honoured.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum DiscoveryError {
+    /// `RMW_IMPLEMENTATION` asks for a middleware the node cannot speak.
+    #[error(
+        "{RMW_ENV}={value}: this node speaks DDS only (RTPS through RustDDS) and cannot join a \
+         Zenoh network, where no peer could command it or see its diagnostics. Run it without \
+         {RMW_ENV} (or with a DDS one: {dds}) and the nodes that talk to it on a DDS-based \
+         middleware (docs/deployment.md)",
+        dds = DDS_RMWS.join(", ")
+    )]
+    Middleware {
+        /// The variable's value (escaped).
+        value: String,
+    },
     /// `ROS_STATIC_PEERS` names more peers than the node sends to.
     #[error(
         "{PEERS_ENV} names {count} peers; the node takes at most {MAX_STATIC_PEERS} (each is \
@@ -134,6 +163,19 @@ pub fn read_resolving(
     resolve: impl Fn(&str) -> std::io::Result<Vec<IpAddr>>,
 ) -> Result<Discovery, DiscoveryError> {
     let mut warnings = Vec::new();
+    if let Some(rmw) = var(RMW_ENV).filter(|v| !v.is_empty()) {
+        if rmw.starts_with("rmw_zenoh") {
+            return Err(DiscoveryError::Middleware { value: shown(&rmw) });
+        }
+        if !DDS_RMWS.contains(&rmw.as_str()) {
+            warnings.push(format!(
+                "{RMW_ENV}={} is not a middleware this node knows; it speaks DDS (RTPS) and \
+                 meets only DDS-based ones ({})",
+                shown(&rmw),
+                DDS_RMWS.join(", ")
+            ));
+        }
+    }
     let range_var = var(RANGE_ENV).filter(|v| !v.is_empty());
     let names: Vec<String> = var(PEERS_ENV)
         .unwrap_or_default()
@@ -459,6 +501,32 @@ mod tests {
             assert_eq!(d.range, Range::Subnet, "{v:?}");
             assert!(d.warnings.is_empty(), "{v:?}");
         }
+    }
+
+    #[test]
+    fn a_dds_middleware_is_met_zenoh_is_refused_and_an_unknown_one_warned_about() {
+        for rmw in DDS_RMWS {
+            let d = read_with(&[(RMW_ENV, rmw)]).unwrap();
+            assert!(d.warnings.is_empty(), "{rmw}: {:?}", d.warnings);
+        }
+        for rmw in ["rmw_zenoh_cpp", "rmw_zenoh"] {
+            let e = read_with(&[(RMW_ENV, rmw)]).unwrap_err();
+            assert_eq!(e, DiscoveryError::Middleware { value: rmw.into() });
+            let text = e.to_string();
+            assert!(
+                text.starts_with(&format!("{RMW_ENV}={rmw}: this node speaks DDS only"))
+                    && text.contains("rmw_cyclonedds_cpp"),
+                "{text}"
+            );
+        }
+        let d = read_with(&[(RMW_ENV, "rmw_other\u{1b}[2J")]).unwrap();
+        assert_eq!(d.warnings.len(), 1);
+        assert!(
+            d.warnings[0].contains("is not a middleware this node knows")
+                && !d.warnings[0].contains('\u{1b}'),
+            "{:?}",
+            d.warnings
+        );
     }
 
     #[test]
