@@ -50,6 +50,8 @@ mod report;
 mod tune;
 mod watchdog;
 
+use watchdog::Watchdog;
+
 pub use report::{Event, Protections, Status};
 
 /// The shortest stretch a heater's delivered duty is averaged over, ns.
@@ -142,10 +144,8 @@ pub struct Channel {
     step: Option<Step>,
     plan: Plan,
     period_start: Nanos,
-    last_command_at: Nanos,
-    watchdog_tripped: bool,
-    /// While the watchdog's fault value runs: when it ends (`Nanos::MAX`: until a command).
-    fault_until: Option<Nanos>,
+    /// The command watchdog: its last feed, its trip and the fault value's end.
+    watchdog: Watchdog,
     flags: (bool, bool),
     /// The emergency stop is latched: the line never goes high.
     estop: bool,
@@ -228,9 +228,7 @@ impl Channel {
             step: None,
             plan: Plan::new(0.0, &cfg),
             period_start: now,
-            last_command_at: now,
-            watchdog_tripped: false,
-            fault_until: None,
+            watchdog: Watchdog::new(now),
             flags: (false, false),
             estop: false,
             live: true,
@@ -337,7 +335,7 @@ impl Channel {
             self.step.map(|s| s.end),
             self.watchdog_deadline(),
             self.heat_deadline(),
-            self.fault_until.filter(|t| *t != Nanos::MAX),
+            self.watchdog.fault_value_ends(),
             self.line.cut,
             self.line
                 .held
@@ -449,7 +447,7 @@ impl Channel {
         }
         self.duty = duty;
         if fed {
-            self.last_command_at = now;
+            self.watchdog.feed(now);
         }
         // The dead band (relay wear): a change of the limited duty smaller than the band is
         // ignored; the command still counts for the watchdog. The ends always pass, so the
@@ -466,9 +464,7 @@ impl Channel {
         } else {
             self.accepted = duty.fraction;
         }
-        if self.watchdog_tripped && fed {
-            self.watchdog_tripped = false;
-            self.fault_until = None;
+        if fed && self.watchdog.rearm() {
             emit(Event::Watchdog { tripped: false });
         }
         if !self.enabled {
@@ -610,9 +606,9 @@ impl Channel {
             self.trip(t, emit);
             return;
         }
-        if self.fault_until == Some(t) {
+        if self.watchdog.fault_value_ends() == Some(t) {
             // The fault value has run its hold time: off, as a trip without one.
-            self.fault_until = None;
+            self.watchdog.end_fault_value();
             self.trip_off(t, false, emit);
             return;
         }

@@ -20,11 +20,11 @@ impl Channel {
     /// brought it), or the watchdog's fault value (limited to `max_duty_pct`) or 0. A disabled
     /// channel computes for the command in force (002), which it ramps toward once enabled.
     pub(super) fn effective_duty(&self) -> f64 {
-        match (self.watchdog_tripped, self.fault_until) {
+        match (self.watchdog.tripped(), self.watchdog.fault_value_runs()) {
             (false, _) if self.slewing() => self.slewed,
             (false, _) => self.target(),
-            (true, Some(_)) => self.cfg.fault_duty.min(self.cfg.max_duty),
-            (true, None) => 0.0,
+            (true, true) => self.cfg.fault_duty.min(self.cfg.max_duty),
+            (true, false) => 0.0,
         }
     }
 
@@ -35,7 +35,7 @@ impl Channel {
     pub(super) fn decide(&mut self, t: Nanos) -> f64 {
         let elapsed = self.slewed_at.map_or(0, |at| t.saturating_sub(at));
         self.slewed_at = Some(self.slewed_at.map_or(t, |at| at.max(t)));
-        if self.slewing() && !self.watchdog_tripped {
+        if self.slewing() && !self.watchdog.tripped() {
             let step = self.cfg.slew_per_s * elapsed as f64 / 1e9;
             let target = self.target();
             self.slewed = if self.slewed < target {

@@ -44,7 +44,7 @@ impl Channel {
         if latched {
             self.finish_autotune(now, crate::core::heater::autotune::Stop::EStop, emit);
             self.estop = true;
-            self.fault_until = None;
+            self.watchdog.end_fault_value();
             self.set_enable(now, false, emit);
             self.force_low(now, emit);
         } else {

@@ -12,6 +12,7 @@ use super::super::heater::{
     Refusal, ResetRefusal, StuckOn, CHECK_TICK, DEFAULT_FEEDBACK_TIMEOUT_MS, MAX_FEEDFORWARD_PCT,
 };
 use super::super::NS_PER_MS;
+use super::watchdog::Watchdog;
 use super::{Channel, Event, Level, Nanos};
 
 /// How long the readings must be steady after a `sensor_jump` before a reset is taken, ns.
@@ -220,7 +221,7 @@ impl Channel {
         let sample = self.sample();
         self.heat.next_sample = Some(t.saturating_add(sample));
         self.refresh_inputs(t);
-        if self.watchdog_tripped || self.heat.fault.is_some() || self.heat.autotune.is_some() {
+        if self.watchdog.tripped() || self.heat.fault.is_some() || self.heat.autotune.is_some() {
             self.mpc_period(t);
             return;
         }
@@ -284,7 +285,7 @@ impl Channel {
     /// A sample at `t` begins a period for the model-predictive loop's estimate: the duty
     /// the line is to deliver from here (the one in force while the channel runs, else 0).
     fn mpc_period(&mut self, t: Nanos) {
-        let runs = self.enabled && !self.estop && self.live && !self.watchdog_tripped;
+        let runs = self.enabled && !self.estop && self.live && !self.watchdog.tripped();
         let duty = if runs && self.heat.fault.is_none() {
             self.cfg.limit_duty(self.accepted) * 100.0
         } else {
@@ -641,12 +642,10 @@ impl Channel {
             return;
         };
         let fed = sp.min(rd);
-        self.last_command_at = self.last_command_at.max(fed);
-        let fresh =
-            self.cfg.command_timeout == 0 || now < fed.saturating_add(self.cfg.command_timeout);
-        if self.watchdog_tripped && fresh {
-            self.watchdog_tripped = false;
-            self.fault_until = None;
+        self.watchdog.feed_no_earlier(fed);
+        let fresh = Watchdog::fresh(now, fed, self.cfg.command_timeout);
+        if self.watchdog.tripped() && fresh {
+            self.watchdog.rearm();
             emit(Event::Watchdog { tripped: false });
             // The loop takes over from where it stands (the line was off).
             self.heat.pid.start_from(0.0);
@@ -670,7 +669,7 @@ impl Channel {
         );
         self.heat.fault = Some(fault);
         self.heat.next_sample = None;
-        self.fault_until = None;
+        self.watchdog.end_fault_value();
         emit(Event::HeaterFault(fault));
         self.set_enable(now, false, emit);
         self.force_low(now, emit);
@@ -852,7 +851,7 @@ impl Channel {
                 // Open loop heats on commands only: 0 % until the first one. The watchdog
                 // counts commands from now.
                 self.take_command(now, Command::Percent(0.0), false, emit);
-                self.last_command_at = now;
+                self.watchdog.feed(now);
             }
             // Between the loops the setpoint stays, and the new loop starts from the duty the
             // old one left.

@@ -232,7 +232,7 @@ impl Channel {
             enabled: self.enabled,
             active: self.enabled
                 && self.cfg.period > 0
-                && !self.watchdog_tripped
+                && !self.watchdog.tripped()
                 && !self.latched()
                 && self.live,
             level: self.line.level,
@@ -249,15 +249,15 @@ impl Channel {
             step_end: self.step.map(|s| s.end),
             e1: self.flags.0,
             limited: self.flags.1,
-            watchdog_tripped: self.watchdog_tripped,
-            fault_active: self.fault_until.is_some(),
+            watchdog_tripped: self.watchdog.tripped(),
+            fault_active: self.watchdog.fault_value_runs(),
             estopped: self.estop,
             rule: self.plan.rule,
             protections: Protections {
                 max_on: self.max_on_acts(),
                 max_duty: self.target() < self.accepted,
                 min_duty: self.target() > self.accepted,
-                slew: self.slewing() && !self.watchdog_tripped && self.slewed != self.target(),
+                slew: self.slewing() && !self.watchdog.tripped() && self.slewed != self.target(),
                 deadband: self.last_ignored,
                 stagger: self.grid && self.enabled && self.cfg.period > 0,
                 delayed: self.slot_now.max(self.slot_before) != super::SlotUse::None,

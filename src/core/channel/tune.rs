@@ -89,7 +89,7 @@ impl Channel {
             before,
         );
         self.heat.autotune = Some((ticket, run));
-        self.last_command_at = now;
+        self.watchdog.feed(now);
         emit(Event::Autotune {
             ticket,
             report: Report::Started,
@@ -127,7 +127,7 @@ impl Channel {
             return;
         };
         let ticket = *ticket;
-        self.last_command_at = now;
+        self.watchdog.feed(now);
         let (before, out) = (run.progress(), run.output_pct());
         let stop = run.reading_delivered(now, celsius, on_total);
         let (progress, output) = (run.progress(), run.output_pct());

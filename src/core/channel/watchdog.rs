@@ -3,15 +3,106 @@
 
 use super::{Channel, Event, Level, Nanos, Plan, Step, StepKind};
 
+/// The command watchdog's own state: when it was last fed, whether it has tripped, and until
+/// when the fault value runs.
+///
+/// Invariant, checked at every change: the fault value runs only while the watchdog is
+/// tripped (`fault_until` is `Some` only when `tripped`), and a tripped watchdog has no
+/// deadline until it is fed and re-armed.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Watchdog {
+    /// The last command, goal or fresh loop input, ns.
+    last_fed: Nanos,
+    tripped: bool,
+    /// While the fault value runs: when it ends, ns (`Nanos::MAX`: until a command).
+    fault_until: Option<Nanos>,
+}
+
+impl Watchdog {
+    /// Armed, fed at `now` (ns).
+    pub(super) fn new(now: Nanos) -> Watchdog {
+        Watchdog {
+            last_fed: now,
+            tripped: false,
+            fault_until: None,
+        }
+    }
+
+    fn check(&self) {
+        debug_assert!(
+            self.fault_until.is_none() || self.tripped,
+            "a fault value runs only while the watchdog is tripped: {self:?}"
+        );
+    }
+
+    /// A command or goal at `now` (ns): counts from there.
+    pub(super) fn feed(&mut self, now: Nanos) {
+        self.last_fed = now;
+    }
+
+    /// A loop input taken at `at` (ns) feeds it, never moving the last feed back.
+    pub(super) fn feed_no_earlier(&mut self, at: Nanos) {
+        self.last_fed = self.last_fed.max(at);
+    }
+
+    /// Re-arms a tripped watchdog (the fault value ends with it); whether it was tripped.
+    pub(super) fn rearm(&mut self) -> bool {
+        let was = self.tripped;
+        self.tripped = false;
+        self.fault_until = None;
+        self.check();
+        was
+    }
+
+    /// Trips; with `fault_until` (ns, `Nanos::MAX`: until a command) the fault value runs.
+    pub(super) fn trip(&mut self, fault_until: Option<Nanos>) {
+        self.tripped = true;
+        self.fault_until = fault_until;
+        self.check();
+    }
+
+    /// The fault value stops (its hold ended, an e-stop, a heater fault); still tripped.
+    pub(super) fn end_fault_value(&mut self) {
+        self.fault_until = None;
+        self.check();
+    }
+
+    /// It has tripped and not been fed since.
+    pub(super) fn tripped(&self) -> bool {
+        self.tripped
+    }
+
+    /// The fault value runs.
+    pub(super) fn fault_value_runs(&self) -> bool {
+        self.fault_until.is_some()
+    }
+
+    /// When the fault value's hold time ends, ns; `None` when none runs or it runs until a
+    /// command.
+    pub(super) fn fault_value_ends(&self) -> Option<Nanos> {
+        self.fault_until.filter(|t| *t != Nanos::MAX)
+    }
+
+    /// When it trips with `timeout` (ns, 0: never) if not fed before; `None` once tripped.
+    pub(super) fn deadline(&self, timeout: Nanos) -> Option<Nanos> {
+        (timeout > 0 && !self.tripped).then(|| self.last_fed.saturating_add(timeout))
+    }
+
+    /// Whether input taken at `fed` (ns) is still fresh at `now` under `timeout` (ns, 0:
+    /// always).
+    pub(super) fn fresh(now: Nanos, fed: Nanos, timeout: Nanos) -> bool {
+        timeout == 0 || now < fed.saturating_add(timeout)
+    }
+}
+
 impl Channel {
     /// The watchdog guards every state in which the line is or will be high: enabled, or
     /// disabled with the line held on (004's hold).
     pub(super) fn watchdog_deadline(&self) -> Option<Nanos> {
         let guarding = self.enabled || self.level == Level::High || self.line.level == Level::High;
-        (guarding && self.cfg.command_timeout > 0 && !self.watchdog_tripped).then(|| {
-            self.last_command_at
-                .saturating_add(self.cfg.command_timeout)
-        })
+        guarding
+            .then(|| self.watchdog.deadline(self.cfg.command_timeout))
+            .flatten()
     }
 
     /// Trips at once when the watchdog deadline already lies in the past (a timeout set, or a
@@ -27,16 +118,17 @@ impl Channel {
     /// minimum times hold; without one the output goes off at once, duty 0 until a command.
     pub(super) fn trip(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         self.finish_autotune(t, crate::core::heater::autotune::Stop::Watchdog, emit);
-        self.watchdog_tripped = true;
-        emit(Event::Watchdog { tripped: true });
         if self.cfg.fault_duty > 0.0 && self.enabled && self.cfg.period > 0 {
-            self.fault_until = Some(match self.cfg.fault_hold {
+            self.watchdog.trip(Some(match self.cfg.fault_hold {
                 0 => Nanos::MAX,
                 hold => t.saturating_add(hold),
-            });
+            }));
+            emit(Event::Watchdog { tripped: true });
             self.reevaluate(t, emit);
             return;
         }
+        self.watchdog.trip(None);
+        emit(Event::Watchdog { tripped: true });
         self.trip_off(t, true, emit);
     }
 
@@ -76,5 +168,50 @@ impl Channel {
         } else {
             self.set_level(Level::Low, t, emit);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_watchdog_keeps_its_rules() {
+        let mut w = Watchdog::new(100);
+        assert_eq!(w.deadline(0), None, "0: no timeout");
+        assert_eq!(w.deadline(50), Some(150));
+        // A late reading's instant never moves the feed back.
+        w.feed_no_earlier(90);
+        assert_eq!(w.deadline(50), Some(150));
+        w.feed_no_earlier(120);
+        assert_eq!(w.deadline(50), Some(170));
+        // Tripped with a fault value for a hold time: no deadline, the hold's end instead.
+        w.trip(Some(400));
+        assert!(w.tripped() && w.fault_value_runs());
+        assert_eq!((w.deadline(50), w.fault_value_ends()), (None, Some(400)));
+        // The hold ends: still tripped, duty 0 until fed.
+        w.end_fault_value();
+        assert!(w.tripped() && !w.fault_value_runs());
+        // Until a command: runs, but has no end to wait for.
+        w.trip(Some(Nanos::MAX));
+        assert_eq!(w.fault_value_ends(), None);
+        assert!(w.fault_value_runs());
+        w.feed(500);
+        assert!(w.rearm(), "it was tripped");
+        assert!(!w.tripped() && !w.fault_value_runs());
+        assert_eq!(w.deadline(50), Some(550));
+        assert!(!w.rearm(), "already armed");
+        assert!(
+            Watchdog::fresh(10, 5, 0) && Watchdog::fresh(10, 5, 6) && !Watchdog::fresh(10, 5, 5)
+        );
+    }
+
+    #[test]
+    #[cfg(debug_assertions)]
+    #[should_panic(expected = "only while the watchdog is tripped")]
+    fn a_fault_value_without_a_trip_is_caught_where_it_is_kept() {
+        let mut w = Watchdog::new(0);
+        w.fault_until = Some(10);
+        w.check();
     }
 }
