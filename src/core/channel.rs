@@ -50,6 +50,7 @@ mod report;
 mod tune;
 mod watchdog;
 
+use duty::Slew;
 use watchdog::Watchdog;
 
 pub use report::{Event, Protections, Status};
@@ -159,11 +160,9 @@ pub struct Channel {
     ignored: u64,
     /// The last valid command was ignored by the dead band.
     last_ignored: bool,
-    /// The duty the slew limit has reached, fraction, and the decision instant it was
-    /// advanced to (ns); `None` while no pulses run (disabled, period 0): the ramp starts at
-    /// the next decision.
-    slewed: f64,
-    slewed_at: Option<Nanos>,
+    /// The slew limit: the duty it has reached and its last decision instant (no instant
+    /// while no pulses run: the ramp starts at the next decision).
+    slew: Slew,
     /// `max_on_ms` cut the line in the running period, and in the period before.
     cut_now: bool,
     cut_before: bool,
@@ -235,8 +234,7 @@ impl Channel {
             accepted: 0.0,
             ignored: 0,
             last_ignored: false,
-            slewed: 0.0,
-            slewed_at: None,
+            slew: Slew::default(),
             cut_now: false,
             cut_before: false,
             grid: false,
@@ -489,8 +487,7 @@ impl Channel {
         self.enabled = enable;
         if enable {
             // Soft start: the slew limit ramps the duty applied from 0 at each enable.
-            self.slewed = 0.0;
-            self.slewed_at = None;
+            self.slew.stop();
             // A new run of periods: no rounding remainder is carried over from the last one.
             self.carry = 0.0;
             // A stale command does not get a fresh lease: the watchdog counts from the last

@@ -5,6 +5,66 @@
 
 use super::{Channel, Nanos};
 
+/// The slew limit's own state: the duty it has brought the channel to and the decision
+/// instant it was advanced to.
+///
+/// Invariant, checked at every change: the duty lies in 0..=1, and the instant never moves
+/// back (a ramp is exact in virtual time: each step is the rate times the time since the last
+/// decision).
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Slew {
+    /// The duty reached, fraction.
+    reached: f64,
+    /// The last decision instant, ns; `None` while no pulses run.
+    at: Option<Nanos>,
+}
+
+impl Slew {
+    fn check(&self) {
+        debug_assert!(
+            (0.0..=1.0).contains(&self.reached),
+            "the slew limit's duty lies in 0..=1: {self:?}"
+        );
+    }
+
+    /// Takes `t` (ns) as the new decision instant; the time since the last one, ns.
+    fn decision(&mut self, t: Nanos) -> Nanos {
+        let elapsed = self.at.map_or(0, |at| t.saturating_sub(at));
+        self.at = Some(self.at.map_or(t, |at| at.max(t)));
+        elapsed
+    }
+
+    /// A decision at `t` (ns) while the limit acts: the duty moves toward `target` (fraction)
+    /// by at most `rate_per_s` (fraction per second) times the time since the last decision.
+    pub(super) fn ramp(&mut self, t: Nanos, rate_per_s: f64, target: f64) {
+        let step = rate_per_s * self.decision(t) as f64 / 1e9;
+        self.reached = if self.reached < target {
+            (self.reached + step).min(target)
+        } else {
+            (self.reached - step).max(target)
+        };
+        self.check();
+    }
+
+    /// A decision at `t` (ns) while the limit does not act: the duty that runs (fraction) is
+    /// where a later ramp starts.
+    pub(super) fn follow(&mut self, t: Nanos, duty: f64) {
+        self.decision(t);
+        self.reached = duty;
+        self.check();
+    }
+
+    /// No pulses run: the next ramp starts from 0 at the next decision.
+    pub(super) fn stop(&mut self) {
+        *self = Slew::default();
+    }
+
+    /// The duty reached, fraction.
+    pub(super) fn reached(&self) -> f64 {
+        self.reached
+    }
+}
+
 impl Channel {
     /// The command in force after the power limits: what the slew limit moves toward.
     pub(super) fn target(&self) -> f64 {
@@ -21,7 +81,7 @@ impl Channel {
     /// channel computes for the command in force (002), which it ramps toward once enabled.
     pub(super) fn effective_duty(&self) -> f64 {
         match (self.watchdog.tripped(), self.watchdog.fault_value_runs()) {
-            (false, _) if self.slewing() => self.slewed,
+            (false, _) if self.slewing() => self.slew.reached(),
             (false, _) => self.target(),
             (true, true) => self.cfg.fault_duty.min(self.cfg.max_duty),
             (true, false) => 0.0,
@@ -33,21 +93,13 @@ impl Channel {
     /// decision, so it is exact in virtual time. Returns the duty to plan for. Where nothing
     /// ramps, the duty applied is what runs (0 with no pulses), and a later ramp starts there.
     pub(super) fn decide(&mut self, t: Nanos) -> f64 {
-        let elapsed = self.slewed_at.map_or(0, |at| t.saturating_sub(at));
-        self.slewed_at = Some(self.slewed_at.map_or(t, |at| at.max(t)));
         if self.slewing() && !self.watchdog.tripped() {
-            let step = self.cfg.slew_per_s * elapsed as f64 / 1e9;
-            let target = self.target();
-            self.slewed = if self.slewed < target {
-                (self.slewed + step).min(target)
-            } else {
-                (self.slewed - step).max(target)
-            };
+            self.slew.ramp(t, self.cfg.slew_per_s, self.target());
         } else if !self.enabled || self.cfg.period == 0 {
-            self.slewed = 0.0;
-            self.slewed_at = None;
+            self.slew.stop();
         } else {
-            self.slewed = self.effective_duty();
+            let runs = self.effective_duty();
+            self.slew.follow(t, runs);
         }
         self.effective_duty()
     }
@@ -56,5 +108,36 @@ impl Channel {
     /// cut the line in this period or the one before.
     pub(super) fn max_on_acts(&self) -> bool {
         self.plan.max_on || self.cut_now || self.cut_before
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_slew_limit_ramps_exactly_in_virtual_time_and_restarts_from_zero() {
+        const S: Nanos = 1_000_000_000;
+        let mut s = Slew::default();
+        // The first decision only starts the clock.
+        s.ramp(10 * S, 0.1, 1.0);
+        assert_eq!(s.reached(), 0.0);
+        s.ramp(12 * S, 0.1, 1.0);
+        assert!((s.reached() - 0.2).abs() < 1e-12);
+        // An instant before the last one moves nothing and keeps the clock.
+        s.ramp(11 * S, 0.1, 1.0);
+        assert!((s.reached() - 0.2).abs() < 1e-12);
+        s.ramp(13 * S, 0.1, 1.0);
+        assert!((s.reached() - 0.3).abs() < 1e-12);
+        // Down toward a lower target, never past it.
+        s.ramp(23 * S, 0.1, 0.25);
+        assert_eq!(s.reached(), 0.25);
+        // Not acting: the running duty is where the next ramp starts.
+        s.follow(24 * S, 0.6);
+        s.ramp(25 * S, 0.1, 1.0);
+        assert!((s.reached() - 0.7).abs() < 1e-12);
+        s.stop();
+        s.ramp(30 * S, 0.1, 1.0);
+        assert_eq!(s.reached(), 0.0);
     }
 }

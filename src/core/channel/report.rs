@@ -257,7 +257,9 @@ impl Channel {
                 max_on: self.max_on_acts(),
                 max_duty: self.target() < self.accepted,
                 min_duty: self.target() > self.accepted,
-                slew: self.slewing() && !self.watchdog.tripped() && self.slewed != self.target(),
+                slew: self.slewing()
+                    && !self.watchdog.tripped()
+                    && self.slew.reached() != self.target(),
                 deadband: self.last_ignored,
                 stagger: self.grid && self.enabled && self.cfg.period > 0,
                 delayed: self.slot_now.max(self.slot_before) != super::SlotUse::None,
