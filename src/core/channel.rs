@@ -37,7 +37,7 @@ use super::board::{LineBoard, Seat};
 use super::command::{Command, Duty};
 use super::config::{ApplyAt, ChannelConfig, OnDisable};
 use super::heater::Heat;
-use super::plan::{definitely_less, Plan};
+use super::plan::Plan;
 use super::{Level, Nanos};
 
 mod budget;
@@ -50,7 +50,7 @@ mod report;
 mod tune;
 mod watchdog;
 
-use duty::Slew;
+use duty::{DeadBand, Slew};
 use watchdog::Watchdog;
 
 pub use report::{Event, Protections, Status};
@@ -90,6 +90,36 @@ enum SlotUse {
     Delayed,
     /// It was skipped: the duty was not delivered (E1).
     Skipped,
+}
+
+/// What happened to the line in the running period and in the one before, as the flags report
+/// it: a mark made now stays visible through the next period, then goes.
+#[derive(Debug, Clone, Copy, Default)]
+struct Marks<T> {
+    now: T,
+    before: T,
+}
+
+impl<T: Ord + Copy + Default> Marks<T> {
+    /// Marks the running period with `v`, keeping a higher mark made earlier in it.
+    fn raise(&mut self, v: T) {
+        self.now = self.now.max(v);
+    }
+
+    /// A period ends: its mark becomes the one before.
+    fn roll(&mut self) {
+        self.before = std::mem::take(&mut self.now);
+    }
+
+    /// No pulses run: no marks.
+    fn clear(&mut self) {
+        *self = Marks::default();
+    }
+
+    /// The higher mark of the two periods.
+    fn recent(&self) -> T {
+        self.now.max(self.before)
+    }
 }
 
 /// What a step is for, which decides what follows it.
@@ -153,19 +183,13 @@ pub struct Channel {
     /// The line may follow the schedule (a managed node's ACTIVE state); when not, it is held
     /// inactive and a rise the schedule asks for waits for the release.
     live: bool,
-    /// The fraction of the command in force: the last valid command the dead band let
-    /// through, before the power limits.
-    accepted: f64,
-    /// Valid commands the dead band ignored.
-    ignored: u64,
-    /// The last valid command was ignored by the dead band.
-    last_ignored: bool,
+    /// The dead band: the command in force and the commands it ignored.
+    band: DeadBand,
     /// The slew limit: the duty it has reached and its last decision instant (no instant
     /// while no pulses run: the ramp starts at the next decision).
     slew: Slew,
     /// `max_on_ms` cut the line in the running period, and in the period before.
-    cut_now: bool,
-    cut_before: bool,
+    cuts: Marks<bool>,
     /// The stagger grid (see [`Channel::set_grid`]).
     grid: bool,
     /// Where the on phases other channels placed in this staggered period end, ns after the
@@ -182,8 +206,7 @@ pub struct Channel {
     period_end: Option<Nanos>,
     /// An on phase waited for a slot (or was skipped) in the running period, and in the one
     /// before.
-    slot_now: SlotUse,
-    slot_before: SlotUse,
+    slots: Marks<SlotUse>,
     /// Pulses skipped because no slot was free before their latest start.
     skipped: u64,
     /// The line's on time over the rolling-average window (`avg_duty_limit_pct`).
@@ -231,20 +254,16 @@ impl Channel {
             flags: (false, false),
             estop: false,
             live: true,
-            accepted: 0.0,
-            ignored: 0,
-            last_ignored: false,
+            band: DeadBand::default(),
             slew: Slew::default(),
-            cut_now: false,
-            cut_before: false,
+            cuts: Marks::default(),
             grid: false,
             lead: (0, 0),
             placed: 0,
             on_len: 0,
             slot: true,
             period_end: None,
-            slot_now: SlotUse::None,
-            slot_before: SlotUse::None,
+            slots: Marks::default(),
             skipped: 0,
             avg: budget::Budget::new(cfg.avg_window),
             seat: None,
@@ -447,21 +466,8 @@ impl Channel {
         if fed {
             self.watchdog.feed(now);
         }
-        // The dead band (relay wear): a change of the limited duty smaller than the band is
-        // ignored; the command still counts for the watchdog. The ends always pass, so the
-        // load can always be switched fully off or to its maximum.
-        let candidate = self.cfg.limit_duty(duty.fraction);
-        let in_force = self.cfg.limit_duty(self.accepted);
-        let end = candidate <= self.cfg.min_duty || candidate >= self.cfg.max_duty;
-        self.last_ignored = self.cfg.deadband > 0.0
-            && candidate != in_force
-            && !end
-            && definitely_less((candidate - in_force).abs(), self.cfg.deadband);
-        if self.last_ignored {
-            self.ignored += 1;
-        } else {
-            self.accepted = duty.fraction;
-        }
+        // The dead band; the command counts for the watchdog even when it ignores it.
+        self.band.offer(duty.fraction, &self.cfg);
         if fed && self.watchdog.rearm() {
             emit(Event::Watchdog { tripped: false });
         }
@@ -508,10 +514,8 @@ impl Channel {
             self.heat.next_sample = None;
             self.step = None;
             self.avg.acts = false;
-            self.cut_now = false;
-            self.cut_before = false;
-            self.slot_now = SlotUse::None;
-            self.slot_before = SlotUse::None;
+            self.cuts.clear();
+            self.slots.clear();
             if let Some(p) = self.pending.take() {
                 self.put_config(p, now);
             }
@@ -584,8 +588,8 @@ impl Channel {
     /// Reports E1 and the limit flag when they changed: the plan's, or a cut by the maximum
     /// on time.
     fn report_flags(&mut self, emit: &mut dyn FnMut(Event)) {
-        let cut = self.cut_now || self.cut_before;
-        let skipped = self.slot_now.max(self.slot_before) == SlotUse::Skipped;
+        let cut = self.cuts.recent();
+        let skipped = self.slots.recent() == SlotUse::Skipped;
         let flags = (self.plan.e1 || cut || skipped, self.plan.limited || cut);
         if flags != self.flags {
             self.flags = flags;
@@ -652,8 +656,8 @@ impl Channel {
             self.set_level(Level::Low, t, emit);
             return;
         }
-        self.cut_before = std::mem::take(&mut self.cut_now);
-        self.slot_before = std::mem::take(&mut self.slot_now);
+        self.cuts.roll();
+        self.slots.roll();
         // Every decision of this period plans with the remainder the last period left.
         self.carry_in = self.carry;
         let duty = self.decide(t);

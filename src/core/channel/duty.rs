@@ -3,6 +3,8 @@
 //! rolling-average cap comes after them (`budget`): it limits the duty applied, not the
 //! command in force.
 
+use super::super::config::ChannelConfig;
+use super::super::plan::definitely_less;
 use super::{Channel, Nanos};
 
 /// The slew limit's own state: the duty it has brought the channel to and the decision
@@ -65,10 +67,65 @@ impl Slew {
     }
 }
 
+/// The dead band (relay wear): the command in force, and the valid commands it ignored.
+///
+/// Rule: a change of the limited duty smaller than the band is ignored; the ends (at or beyond
+/// `min_duty_pct` or `max_duty_pct`) always pass, so the load can always be switched fully off
+/// or to its maximum. The command in force lies in 0..=1 (checked at every change).
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct DeadBand {
+    /// The fraction of the command in force: the last valid command let through, before the
+    /// power limits.
+    accepted: f64,
+    /// Valid commands ignored.
+    ignored: u64,
+    /// The last valid command was ignored.
+    last_ignored: bool,
+}
+
+impl DeadBand {
+    /// A valid command of `fraction` (0..=1, before the power limits) under `cfg`: taken, or
+    /// ignored and counted. Whether it was taken.
+    pub(super) fn offer(&mut self, fraction: f64, cfg: &ChannelConfig) -> bool {
+        let candidate = cfg.limit_duty(fraction);
+        let in_force = cfg.limit_duty(self.accepted);
+        let end = candidate <= cfg.min_duty || candidate >= cfg.max_duty;
+        self.last_ignored = cfg.deadband > 0.0
+            && candidate != in_force
+            && !end
+            && definitely_less((candidate - in_force).abs(), cfg.deadband);
+        if self.last_ignored {
+            self.ignored += 1;
+        } else {
+            self.accepted = fraction;
+        }
+        debug_assert!(
+            (0.0..=1.0).contains(&self.accepted),
+            "the command in force lies in 0..=1: {self:?}"
+        );
+        !self.last_ignored
+    }
+
+    /// The command in force, fraction before the power limits.
+    pub(super) fn accepted(&self) -> f64 {
+        self.accepted
+    }
+
+    /// Valid commands ignored since start.
+    pub(super) fn ignored(&self) -> u64 {
+        self.ignored
+    }
+
+    /// The last valid command was ignored.
+    pub(super) fn last_ignored(&self) -> bool {
+        self.last_ignored
+    }
+}
+
 impl Channel {
     /// The command in force after the power limits: what the slew limit moves toward.
     pub(super) fn target(&self) -> f64 {
-        self.cfg.limit_duty(self.accepted)
+        self.cfg.limit_duty(self.band.accepted())
     }
 
     /// Whether the slew limit shapes the duty applied: set, and the channel pulsing.
@@ -107,7 +164,7 @@ impl Channel {
     /// Whether the maximum on time acts: the plan in force keeps the line high longer, or it
     /// cut the line in this period or the one before.
     pub(super) fn max_on_acts(&self) -> bool {
-        self.plan.max_on || self.cut_now || self.cut_before
+        self.plan.max_on || self.cuts.recent()
     }
 }
 

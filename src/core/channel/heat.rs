@@ -287,7 +287,7 @@ impl Channel {
     fn mpc_period(&mut self, t: Nanos) {
         let runs = self.enabled && !self.estop && self.live && !self.watchdog.tripped();
         let duty = if runs && self.heat.fault.is_none() {
-            self.cfg.limit_duty(self.accepted) * 100.0
+            self.cfg.limit_duty(self.band.accepted()) * 100.0
         } else {
             0.0
         };
@@ -827,7 +827,7 @@ impl Channel {
         self.cfg.heater = new;
         self.cfg.params.heater = new.params;
         let (lo, hi) = self.pid_limits();
-        let in_force = self.cfg.limit_duty(self.accepted) * 100.0;
+        let in_force = self.cfg.limit_duty(self.band.accepted()) * 100.0;
         match (old.params.control, new.params.control) {
             (Control::Open, Control::Pid) => {
                 self.heat.pid = super::super::heater::Pid::new(new.gains);

@@ -200,7 +200,7 @@ impl Channel {
         } else {
             self.level = Level::Low;
         }
-        self.cut_now = true;
+        self.cuts.raise(true);
         self.report_flags(emit);
     }
 }

@@ -85,7 +85,7 @@ impl Channel {
         }
         let t = at.max(wait.start);
         if t > wait.start {
-            self.slot_now = self.slot_now.max(SlotUse::Delayed);
+            self.slots.raise(SlotUse::Delayed);
         }
         self.begin_on(t, emit);
     }
@@ -99,7 +99,7 @@ impl Channel {
             return;
         }
         let end = self.fix_period_end().max(at);
-        self.slot_now = SlotUse::Skipped;
+        self.slots.raise(SlotUse::Skipped);
         self.report_flags(emit);
         self.step = Some(Step::off(StepKind::Run, at, end));
         self.set_level(Level::Low, at, emit);
@@ -183,7 +183,7 @@ impl Channel {
     /// the rest of the period.
     pub(super) fn skip(&mut self, t: Nanos, emit: &mut dyn FnMut(Event)) {
         self.skipped += 1;
-        self.slot_now = SlotUse::Skipped;
+        self.slots.raise(SlotUse::Skipped);
         emit(Event::Skipped { at: t });
         self.report_flags(emit);
         let end = self.fix_period_end();

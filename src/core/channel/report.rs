@@ -255,17 +255,17 @@ impl Channel {
             rule: self.plan.rule,
             protections: Protections {
                 max_on: self.max_on_acts(),
-                max_duty: self.target() < self.accepted,
-                min_duty: self.target() > self.accepted,
+                max_duty: self.target() < self.band.accepted(),
+                min_duty: self.target() > self.band.accepted(),
                 slew: self.slewing()
                     && !self.watchdog.tripped()
                     && self.slew.reached() != self.target(),
-                deadband: self.last_ignored,
+                deadband: self.band.last_ignored(),
                 stagger: self.grid && self.enabled && self.cfg.period > 0,
-                delayed: self.slot_now.max(self.slot_before) != super::SlotUse::None,
+                delayed: self.slots.recent() != super::SlotUse::None,
                 avg_duty: self.avg.acts && self.running(),
             },
-            ignored_commands: self.ignored,
+            ignored_commands: self.band.ignored(),
             skipped_pulses: self.skipped,
             avg_duty: self.avg_duty(now),
             time_base: self.cfg.tick,

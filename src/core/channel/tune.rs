@@ -78,7 +78,7 @@ impl Channel {
             .heat
             .delivered
             .duty(now.saturating_sub(self.duty_window()), now, on_now)
-            .unwrap_or(self.cfg.limit_duty(self.accepted))
+            .unwrap_or(self.cfg.limit_duty(self.band.accepted()))
             * 100.0;
         let run = Autotune::new(
             goal,
