@@ -122,6 +122,49 @@ impl<T: Ord + Copy + Default> Marks<T> {
     }
 }
 
+/// With a time base: the rounding remainder of the on time carried from period to period,
+/// ticks (see [`Plan::carried`]).
+///
+/// Rule, checked at every change: each remainder lies within half a tick, so the on time
+/// delivered over any run stays within a tick of the one commanded.
+#[derive(Debug, Clone, Copy, Default)]
+struct Carry {
+    /// The remainder the running period took in.
+    taken: f64,
+    /// The remainder the last plan made leaves for the next period.
+    left: f64,
+}
+
+impl Carry {
+    fn check(&self) {
+        debug_assert!(
+            self.taken.abs() <= 0.5 && self.left.abs() <= 0.5,
+            "a remainder within half a tick: {self:?}"
+        );
+    }
+
+    /// A period starts: it takes in what the last one left.
+    fn period_starts(&mut self) {
+        self.taken = self.left;
+    }
+
+    /// A plan for the running period leaves `left` (ticks).
+    fn leave(&mut self, left: f64) {
+        self.left = left;
+        self.check();
+    }
+
+    /// A new run of periods (an enable): nothing is carried over from the last one.
+    fn restart(&mut self) {
+        self.left = 0.0;
+    }
+
+    /// The remainder the running period plans with.
+    fn taken(&self) -> f64 {
+        self.taken
+    }
+}
+
 /// What a step is for, which decides what follows it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 enum StepKind {
@@ -214,10 +257,8 @@ pub struct Channel {
     /// The board of the node's real line levels this channel's line guard consults before a
     /// rise (see [`Channel::seat_on`]); `None` for a channel on its own.
     seat: Option<Seat>,
-    /// With a time base: the rounding remainder the running period took in, and the one the
-    /// last plan made leaves for the next period, ticks (see [`Plan::carried`]).
-    carry_in: f64,
-    carry: f64,
+    /// With a time base: the rounding remainder carried from period to period.
+    carry: Carry,
     /// The heater loop and its checks (issue 22); inert without feedback.
     heat: Heat,
 }
@@ -267,8 +308,7 @@ impl Channel {
             skipped: 0,
             avg: budget::Budget::new(cfg.avg_window),
             seat: None,
-            carry_in: 0.0,
-            carry: 0.0,
+            carry: Carry::default(),
             heat: Heat::new(&cfg.heater, cfg.period.max(CHECK_WINDOW), now),
         }
     }
@@ -495,7 +535,7 @@ impl Channel {
             // Soft start: the slew limit ramps the duty applied from 0 at each enable.
             self.slew.stop();
             // A new run of periods: no rounding remainder is carried over from the last one.
-            self.carry = 0.0;
+            self.carry.restart();
             // A stale command does not get a fresh lease: the watchdog counts from the last
             // command, not from the enable.
             self.trip_if_stale(now, emit);
@@ -659,7 +699,7 @@ impl Channel {
         self.cuts.roll();
         self.slots.roll();
         // Every decision of this period plans with the remainder the last period left.
-        self.carry_in = self.carry;
+        self.carry.period_starts();
         let duty = self.decide(t);
         // An extended period spans whole periods of the grid.
         let plan = self.capped_plan(t, duty, self.grid.then_some(period));

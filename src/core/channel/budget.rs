@@ -262,7 +262,7 @@ impl Channel {
     /// `allowance / T`, or 0 if a minimum-time rule would still exceed it.
     fn allowed_plan(&mut self, t: Nanos, duty: f64, grid: Option<Nanos>) -> Plan {
         let shape = |duty: f64| {
-            let plan = Plan::carried(duty, &self.cfg, self.carry_in);
+            let plan = Plan::carried(duty, &self.cfg, self.carry.taken());
             grid.map_or(plan, |g| plan.on_grid(g, self.cfg.tick))
         };
         let plan = shape(duty);
@@ -291,7 +291,7 @@ impl Channel {
             allowed
         };
         self.avg.acts = allowed.t_on < plan.t_on;
-        self.carry = allowed.carry;
+        self.carry.leave(allowed.carry);
         allowed
     }
 }

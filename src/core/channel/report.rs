@@ -222,7 +222,7 @@ impl Channel {
     pub fn status(&self, now: Nanos) -> Status {
         // 002: the times are computed continuously from the input, whatever the running step
         // latched.
-        let input = Plan::carried(self.effective_duty(), &self.cfg, self.carry_in);
+        let input = Plan::carried(self.effective_duty(), &self.cfg, self.carry.taken());
         let (remaining_on, remaining_off) = match self.step {
             Some(s) if s.level == Level::High => (s.end.saturating_sub(now), 0),
             Some(s) => (0, s.end.saturating_sub(now)),
