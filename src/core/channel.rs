@@ -32,6 +32,15 @@
 //! the command at most at its rate, advanced at every decision point (a period or step start,
 //! a re-evaluation) by the virtual time since the last one. After them, the rolling-average
 //! cap keeps the line's on time over a window within its energy budget (see `budget`).
+//!
+//! The channel's state is kept in parts, each changed only through its own steps and each
+//! checking its rule where it is kept (debug assertions, run by every test): the line and what
+//! really happened on it (`Line`), the command watchdog (`Watchdog`: a fault value runs only
+//! while tripped), the dead band (`DeadBand`: the ends always pass), the slew limit (`Slew`:
+//! exact in virtual time), the time base's carried remainder (`Carry`: within half a tick),
+//! the rolling-average budget (`budget::Budget`), the flags of this period and the one before
+//! (`Marks`), and the heater loop (`Heat`). What is left on `Channel` itself is the schedule:
+//! the step, the plan, and where the running period's on phase lies.
 
 use super::board::{LineBoard, Seat};
 use super::command::{Command, Duty};
