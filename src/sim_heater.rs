@@ -12,7 +12,7 @@
 //! (`std_msgs/Float64`, 0..1). With `--record` it writes every reading, every edge and every
 //! fan change to a CSV file (`t_s,kind,value,true_c`), for the pictures of docs/heater.md.
 
-use crate::sim_ros::{self, make_topic};
+use crate::sim_ros::{self, make_topic, SimError};
 use clap::{ArgAction, Args, FromArgMatches};
 use futures::StreamExt;
 use pwm_actuator::clock;
@@ -229,7 +229,11 @@ fn secs_since(start: u64, t: u64) -> f64 {
     t.saturating_sub(start) as f64 / 1e9
 }
 
-async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> Result<(), String> {
+async fn serve(
+    o: SimHeaterOptions,
+    params: PlantParams,
+    fault: PlantFault,
+) -> Result<(), SimError> {
     let mut node = sim_ros::start_node("sim_heater")?;
     let reliable = QosProfile::publisher_default().history(History::KeepLast { depth: 100 });
     let edges_topic = format!("{}/{}/edges", o.node.trim_end_matches('/'), o.channel);
@@ -256,23 +260,23 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
     let temp_t = make_topic(&node, &o.topic, msg::Temperature::type_name(), &out_qos)?;
     let edges = node
         .create_subscription::<msg::OutputEdge>(&edges_t, Some(reliable.clone()))
-        .map_err(|e| format!("subscription {edges_topic}: {e}"))?;
+        .map_err(SimError::endpoint("subscription", &edges_topic))?;
     let faults = node
         .create_subscription::<msg::StringMsg>(&fault_t, Some(reliable.clone()))
-        .map_err(|e| format!("subscription /sim_heater/fault: {e}"))?;
+        .map_err(SimError::endpoint("subscription", "/sim_heater/fault"))?;
     let fans = node
         .create_subscription::<msg::Float64>(&fan_t, Some(reliable.clone()))
-        .map_err(|e| format!("subscription /sim_heater/fan: {e}"))?;
+        .map_err(SimError::endpoint("subscription", "/sim_heater/fan"))?;
     let publisher = node
         .create_publisher::<msg::Temperature>(&temp_t, Some(out_qos))
-        .map_err(|e| format!("publisher {}: {e}", o.topic))?;
+        .map_err(SimError::endpoint("publisher", &o.topic))?;
     let setpoint_topic = format!("{}/{}/setpoint", o.node.trim_end_matches('/'), o.channel);
     let setpoints = match o.setpoint {
         Some(_) => {
             let t = make_topic(&node, &setpoint_topic, msg::Float64::type_name(), &reliable)?;
             Some(
                 node.create_publisher::<msg::Float64>(&t, Some(reliable.clone()))
-                    .map_err(|e| format!("publisher {setpoint_topic}: {e}"))?,
+                    .map_err(SimError::endpoint("publisher", &setpoint_topic))?,
             )
         }
         None => None,
@@ -285,7 +289,7 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
     let record = Arc::new(Mutex::new(Record(
         match &o.record {
             Some(p) => Some(std::io::BufWriter::new(
-                std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?,
+                std::fs::File::create(p).map_err(SimError::record(p))?,
             )),
             None => None,
         },
@@ -375,7 +379,7 @@ async fn serve(o: SimHeaterOptions, params: PlantParams, fault: PlantFault) -> R
     let mut on_since: Option<u64> = None;
     let mut on_ns = 0u64;
     let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| format!("SIGTERM: {e}"))?;
+        .map_err(SimError::Signal)?;
     loop {
         // SIGINT and SIGTERM end the run with the record flushed.
         tokio::select! {

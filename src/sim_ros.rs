@@ -2,15 +2,102 @@
 //! runtime they run on, their node on the environment's domain and discovery settings, and
 //! topic creation.
 
-use pwm_actuator::ros::config::discovery;
-use pwm_actuator::ros::config::start::domain_id_from;
-use pwm_actuator::ros::interface::type_hash;
-use ros2_client::{Context, NodeName, NodeOptions, QosProfile};
+use pwm_actuator::error::chain;
+use pwm_actuator::ros::config::discovery::{self, DiscoveryError};
+use pwm_actuator::ros::config::start::{domain_id_from, StartupError};
+use pwm_actuator::ros::interface::type_hash::{self, TypeHashError};
+use ros2_client::dds::NodeCreateError;
+use ros2_client::names::NameError;
+use ros2_client::{Context, CreateError, NodeName, NodeOptions, QosProfile};
 use std::future::Future;
+use std::path::PathBuf;
+
+/// Why a simulated plant cannot run, or stops (exit status 1). The text follows the tool's
+/// name on stderr.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// `ROS_DOMAIN_ID` is not a domain id.
+    #[error(transparent)]
+    DomainId(#[from] StartupError),
+    /// The discovery settings of the environment cannot be honoured.
+    #[error(transparent)]
+    Discovery(#[from] DiscoveryError),
+    /// The compiled-in message definitions give no type hashes.
+    #[error(transparent)]
+    TypeHash(#[from] TypeHashError),
+    /// RustDDS cannot create the participant.
+    #[error("the DDS participant: {0}")]
+    Participant(#[source] rustdds::dds::CreateError),
+    /// ros2-client cannot make a context of the participant.
+    #[error("the DDS participant: {0}")]
+    Context(#[source] CreateError),
+    /// The node's name is not a ROS name.
+    #[error(transparent)]
+    NodeName(NameError),
+    /// ros2-client cannot create the node.
+    #[error("node: {0}")]
+    Node(#[source] NodeCreateError),
+    /// ros2-client cannot create the node's spinner.
+    #[error("spinner: {0}")]
+    Spinner(#[source] CreateError),
+    /// A topic name is not a full ROS name.
+    #[error("topic {topic}: {source}")]
+    TopicName {
+        /// The name given.
+        topic: String,
+        /// Why.
+        #[source]
+        source: NameError,
+    },
+    /// A topic, publisher or subscription cannot be created.
+    #[error("{what} {topic}: {source}")]
+    Endpoint {
+        /// `topic`, `publisher` or `subscription`.
+        what: &'static str,
+        /// The topic's full name.
+        topic: String,
+        /// ros2-client's error.
+        #[source]
+        source: CreateError,
+    },
+    /// The `--record` file cannot be created.
+    #[error("{}: {source}", path.display())]
+    Record {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// SIGTERM cannot be caught.
+    #[error("SIGTERM: {0}")]
+    Signal(#[source] std::io::Error),
+}
+
+impl SimError {
+    /// Maps ros2-client's error creating a `what` (`topic`, `publisher`, `subscription`) on
+    /// `topic` to [`SimError::Endpoint`].
+    pub fn endpoint(what: &'static str, topic: &str) -> impl FnOnce(CreateError) -> SimError {
+        let topic = topic.to_string();
+        move |source| SimError::Endpoint {
+            what,
+            topic,
+            source,
+        }
+    }
+
+    /// Maps an error creating the `--record` file `path` to [`SimError::Record`].
+    pub fn record(path: &std::path::Path) -> impl FnOnce(std::io::Error) -> SimError + '_ {
+        move |source| SimError::Record {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+}
 
 /// Runs `serve` on a one-worker runtime; the exit status: 0 when it returns `Ok`, 1 when the
 /// runtime cannot start or `serve` fails (the reason printed after `tool`).
-pub fn block_on(tool: &str, serve: impl Future<Output = Result<(), String>>) -> i32 {
+pub fn block_on(tool: &str, serve: impl Future<Output = Result<(), SimError>>) -> i32 {
     let rt = match tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
@@ -25,7 +112,7 @@ pub fn block_on(tool: &str, serve: impl Future<Output = Result<(), String>>) -> 
     match rt.block_on(serve) {
         Ok(()) => 0,
         Err(e) => {
-            eprintln!("{tool}: {e}");
+            eprintln!("{tool}: {}", chain(&e));
             1
         }
     }
@@ -34,21 +121,19 @@ pub fn block_on(tool: &str, serve: impl Future<Output = Result<(), String>>) -> 
 /// The node `/<name>` on `ROS_DOMAIN_ID` with the environment's discovery settings, without
 /// rosout, its endpoints announcing their type hashes as the node's do, spun on the runtime.
 /// Call it inside [`block_on`]'s future.
-pub fn start_node(name: &str) -> Result<ros2_client::Node, String> {
-    let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())
-        .map_err(|e| e.to_string())?;
-    let disc = discovery::read(|k| std::env::var(k).ok()).map_err(|e| e.to_string())?;
-    type_hash::announce().map_err(|e| e.to_string())?;
+pub fn start_node(name: &str) -> Result<ros2_client::Node, SimError> {
+    let domain = domain_id_from(std::env::var("ROS_DOMAIN_ID").ok().as_deref())?;
+    let disc = discovery::read(|k| std::env::var(k).ok())?;
+    type_hash::announce()?;
     let participant = disc
         .participant(domain, None)
-        .map_err(|e| format!("the DDS participant: {e}"))?;
-    let context = Context::from_domain_participant(participant)
-        .map_err(|e| format!("the DDS participant: {e}"))?;
-    let name = NodeName::new("/", name).map_err(|e| e.to_string())?;
+        .map_err(SimError::Participant)?;
+    let context = Context::from_domain_participant(participant).map_err(SimError::Context)?;
+    let name = NodeName::new("/", name).map_err(SimError::NodeName)?;
     let mut node = context
         .new_node(name, NodeOptions::new().enable_rosout(false))
-        .map_err(|e| format!("node: {e}"))?;
-    let spinner = node.spinner().map_err(|e| format!("spinner: {e}"))?;
+        .map_err(SimError::Node)?;
+    let spinner = node.spinner().map_err(SimError::Spinner)?;
     tokio::spawn(async move {
         let _ = spinner.spin().await;
     });
@@ -61,8 +146,49 @@ pub fn make_topic(
     name: &str,
     ty: ros2_client::MessageTypeName,
     qos: &QosProfile,
-) -> Result<rustdds::Topic, String> {
-    let ros_name = ros2_client::Name::parse(name).map_err(|e| format!("topic {name}: {e}"))?;
+) -> Result<rustdds::Topic, SimError> {
+    let ros_name = make_topic_name(name)?;
     node.create_topic(&ros_name, ty, qos)
-        .map_err(|e| format!("topic {name}: {e}"))
+        .map_err(SimError::endpoint("topic", name))
+}
+
+/// `name` as a full ROS name.
+fn make_topic_name(name: &str) -> Result<ros2_client::Name, SimError> {
+    ros2_client::Name::parse(name).map_err(|source| SimError::TopicName {
+        topic: name.to_string(),
+        source,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The texts printed after the tool's name: the endpoint and the cause, each once.
+    #[test]
+    fn errors_name_what_failed_and_why_once() {
+        let bad = || CreateError::BadParameter {
+            reason: "no such QoS".into(),
+        };
+        let e = SimError::endpoint("subscription", "/pwm_actuator/pw01/edges")(bad());
+        assert_eq!(
+            chain(&e),
+            "subscription /pwm_actuator/pw01/edges: create bad parameter: no such QoS"
+        );
+        let e = make_topic_name("not a name").unwrap_err();
+        assert!(chain(&e).starts_with("topic not a name: "), "{}", chain(&e));
+        let dir = std::path::Path::new("/nonexistent-dir/record.csv");
+        let e = std::fs::File::create(dir)
+            .map_err(SimError::record(dir))
+            .unwrap_err();
+        assert_eq!(
+            chain(&e),
+            "/nonexistent-dir/record.csv: No such file or directory (os error 2)"
+        );
+        let e = SimError::from(domain_id_from(Some("300")).unwrap_err());
+        assert_eq!(
+            chain(&e),
+            "ROS_DOMAIN_ID `300` is not a domain id: expected an integer 0..=232"
+        );
+    }
 }

@@ -23,7 +23,7 @@
 //! the temperature and the true position. The record then also holds kinds `reading` (°C
 //! published), `mixed` (°C, the true mixed water) and `hot` (°C, each supply change).
 
-use crate::sim_ros::{self, make_topic};
+use crate::sim_ros::{self, make_topic, SimError};
 use clap::{ArgAction, Args, FromArgMatches};
 use futures::StreamExt;
 use pwm_actuator::clock;
@@ -187,14 +187,54 @@ pub fn options(m: &clap::ArgMatches) -> Result<SimValveOptions, clap::Error> {
     SimValveOptions::from_arg_matches(m)
 }
 
+/// Why the simulated valve's options are refused (exit status 2).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum OptionError {
+    /// A value outside its range.
+    #[error("--{option} {value} is outside {lo}..{hi}")]
+    OutOfRange {
+        /// The option, without its dashes.
+        option: &'static str,
+        /// The value given.
+        value: f64,
+        /// The lowest value accepted.
+        lo: f64,
+        /// The highest value accepted.
+        hi: f64,
+    },
+    /// A supply temperature outside [`SUPPLY_C`].
+    #[error("--{option} {source}")]
+    Supply {
+        /// The option, without its dashes.
+        option: &'static str,
+        /// The value and the range.
+        #[source]
+        source: SupplyOutOfRange,
+    },
+    /// An option that only the mixing plant uses, without `--mix`.
+    #[error("--{option} needs --mix")]
+    NeedsMix {
+        /// The option, without its dashes.
+        option: &'static str,
+    },
+}
+
 /// Why the options are refused.
-fn check(o: &SimValveOptions) -> Result<(), String> {
-    let within = |name: &str, v: f64, lo: f64, hi: f64| {
-        if (lo..=hi).contains(&v) {
+fn check(o: &SimValveOptions) -> Result<(), OptionError> {
+    let within = |option: &'static str, value: f64, lo: f64, hi: f64| {
+        if (lo..=hi).contains(&value) {
             Ok(())
         } else {
-            Err(format!("--{name} {v} is outside {lo}..{hi}"))
+            Err(OptionError::OutOfRange {
+                option,
+                value,
+                lo,
+                hi,
+            })
         }
+    };
+    let within_supply = |option: &'static str, c: f64| {
+        supply(c).map_err(|source| OptionError::Supply { option, source })
     };
     within("travel-open-ms", o.travel_open_ms, 100.0, 3_600_000.0)?;
     within("travel-close-ms", o.travel_close_ms, 100.0, 3_600_000.0)?;
@@ -208,13 +248,13 @@ fn check(o: &SimValveOptions) -> Result<(), String> {
     within("rate-hz", o.rate_hz, 0.1, 1000.0)?;
     within("duration", o.duration, 0.0, 1e7)?;
     within("mix-rate-hz", o.mix_rate_hz, 0.1, MIX_TICKS_PER_S)?;
-    supply("--hot", o.hot)?;
-    supply("--cold", o.cold)?;
+    within_supply("hot", o.hot)?;
+    within_supply("cold", o.cold)?;
     within("tau", o.tau, 0.1, 10_000.0)?;
     within("dead-time", o.dead_time, 0.0, 600.0)?;
     within("noise", o.noise, 0.0, 10.0)?;
     if let Some(c) = o.hot_step_to {
-        supply("--hot-step-to", c)?;
+        within_supply("hot-step-to", c)?;
     }
     within("hot-step-after", o.hot_step_after, 0.0, 1e7)?;
     within("print-every", o.print_every, 0.0, 1e7)?;
@@ -222,12 +262,12 @@ fn check(o: &SimValveOptions) -> Result<(), String> {
         within("setpoint", c, SUPPLY_C.0, SUPPLY_C.1)?;
     }
     let needs_mix = [
-        (o.hot_step_to.is_some(), "--hot-step-to"),
-        (o.setpoint.is_some(), "--setpoint"),
-        (o.print_every > 0.0, "--print-every"),
+        (o.hot_step_to.is_some(), "hot-step-to"),
+        (o.setpoint.is_some(), "setpoint"),
+        (o.print_every > 0.0, "print-every"),
     ];
     match needs_mix.iter().find(|(set, _)| *set && !o.mix) {
-        Some((_, name)) => Err(format!("{name} needs --mix")),
+        Some(&(_, option)) => Err(OptionError::NeedsMix { option }),
         None => Ok(()),
     }
 }
@@ -236,16 +276,34 @@ fn check(o: &SimValveOptions) -> Result<(), String> {
 /// room for a test.
 const SUPPLY_C: (f64, f64) = (-50.0, 200.0);
 
-/// A supply temperature, or why it is refused (`name`: the option or the topic it came on).
-fn supply(name: &str, c: f64) -> Result<f64, String> {
+/// A supply temperature outside [`SUPPLY_C`] (or not a number).
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[error("{value} is outside {}..{}", SUPPLY_C.0, SUPPLY_C.1)]
+pub struct SupplyOutOfRange {
+    /// The value given, °C.
+    pub value: f64,
+}
+
+/// A supply temperature, °C, or why it is refused.
+fn supply(c: f64) -> Result<f64, SupplyOutOfRange> {
     if (SUPPLY_C.0..=SUPPLY_C.1).contains(&c) {
         Ok(c)
     } else {
-        Err(format!(
-            "{name} {c} is outside {}..{}",
-            SUPPLY_C.0, SUPPLY_C.1
-        ))
+        Err(SupplyOutOfRange { value: c })
     }
+}
+
+/// A hot supply value refused on `--hot-topic`, as printed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{topic} {source}: refused ({count} so far)")]
+struct HotRefused {
+    /// The topic it came on.
+    topic: String,
+    /// The value and the range.
+    #[source]
+    source: SupplyOutOfRange,
+    /// Values refused since the start, this one included.
+    count: u64,
 }
 
 /// The mixing plant advances this often a second (the plant's model asks for at least every
@@ -321,7 +379,7 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-async fn serve(o: SimValveOptions) -> Result<(), String> {
+async fn serve(o: SimValveOptions) -> Result<(), SimError> {
     let mut node = sim_ros::start_node("sim_valve")?;
     let reliable = QosProfile::publisher_default().history(History::KeepLast { depth: 100 });
     let valve = Arc::new(Mutex::new(true_valve(&o)));
@@ -331,7 +389,7 @@ async fn serve(o: SimValveOptions) -> Result<(), String> {
     let secs = |t: i64| t as f64 / 1e9;
     let record = Arc::new(Mutex::new(Record(match &o.record {
         Some(p) => Some(std::io::BufWriter::new(
-            std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?,
+            std::fs::File::create(p).map_err(SimError::record(p))?,
         )),
         None => None,
     })));
@@ -340,7 +398,7 @@ async fn serve(o: SimValveOptions) -> Result<(), String> {
         let t = make_topic(&node, &topic, msg::OutputEdge::type_name(), &reliable)?;
         let edges = node
             .create_subscription::<msg::OutputEdge>(&t, Some(reliable.clone()))
-            .map_err(|e| format!("subscription {topic}: {e}"))?;
+            .map_err(SimError::endpoint("subscription", &topic))?;
         let (valve, record) = (Arc::clone(&valve), Arc::clone(&record));
         tokio::spawn(async move {
             let stream = edges.async_stream();
@@ -356,13 +414,13 @@ async fn serve(o: SimValveOptions) -> Result<(), String> {
     let out_t = make_topic(&node, &o.topic, msg::Float64::type_name(), &reliable)?;
     let publisher = node
         .create_publisher::<msg::Float64>(&out_t, Some(reliable.clone()))
-        .map_err(|e| format!("publisher {}: {e}", o.topic))?;
+        .map_err(SimError::endpoint("publisher", &o.topic))?;
     let feedback = match &o.feedback_topic {
         Some(topic) => {
             let t = make_topic(&node, topic, msg::Float64::type_name(), &reliable)?;
             Some(
                 node.create_publisher::<msg::Float64>(&t, Some(reliable.clone()))
-                    .map_err(|e| format!("publisher {topic}: {e}"))?,
+                    .map_err(SimError::endpoint("publisher", topic))?,
             )
         }
         None => None,
@@ -373,7 +431,7 @@ async fn serve(o: SimValveOptions) -> Result<(), String> {
         let t = make_topic(&node, &topic, msg::Bool::type_name(), &reliable)?;
         switches.push(
             node.create_publisher::<msg::Bool>(&t, Some(reliable.clone()))
-                .map_err(|e| format!("publisher {topic}: {e}"))?,
+                .map_err(SimError::endpoint("publisher", &topic))?,
         );
     }
     let mut noise = Noise(start_wall as u64 | 1);
@@ -395,7 +453,7 @@ async fn serve(o: SimValveOptions) -> Result<(), String> {
     mix_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let end = (o.duration > 0.0).then(|| start_wall + (o.duration * 1e9) as i64);
     let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| format!("SIGTERM: {e}"))?;
+        .map_err(SimError::Signal)?;
     loop {
         tokio::select! {
             _ = tick.tick() => {}
@@ -467,17 +525,22 @@ struct HotSupply {
 impl HotSupply {
     /// Takes a value from the topic; a refused one is counted, and its reason returned for the
     /// first ten and every thousandth (a flood cannot flood the log).
-    fn offer(&mut self, c: f64, topic: &str) -> Result<(), Option<String>> {
-        match supply(topic, c) {
+    fn offer(&mut self, c: f64, topic: &str) -> Result<(), Option<HotRefused>> {
+        match supply(c) {
             Ok(c) => {
                 self.pending = Some(c);
                 Ok(())
             }
-            Err(why) => {
+            Err(source) => {
                 self.refused += 1;
-                let n = self.refused;
-                Err((n <= 10 || n.is_multiple_of(1000))
-                    .then(|| format!("{why}: refused ({n} so far)")))
+                let count = self.refused;
+                Err(
+                    (count <= 10 || count.is_multiple_of(1000)).then(|| HotRefused {
+                        topic: topic.to_string(),
+                        source,
+                        count,
+                    }),
+                )
             }
         }
     }
@@ -510,7 +573,7 @@ impl MixRun {
         valve: &Arc<Mutex<TrueValve>>,
         record: &Arc<Mutex<Record>>,
         start_wall: i64,
-    ) -> Result<MixRun, String> {
+    ) -> Result<MixRun, SimError> {
         let reliable = QosProfile::publisher_default().history(History::KeepLast { depth: 100 });
         // A sensor publishes best effort (the node's reader matches both).
         let sensor = QosProfile::publisher_default()
@@ -519,7 +582,7 @@ impl MixRun {
         let t = make_topic(node, &o.mix_topic, msg::Temperature::type_name(), &sensor)?;
         let publisher = node
             .create_publisher::<msg::Temperature>(&t, Some(sensor))
-            .map_err(|e| format!("publisher {}: {e}", o.mix_topic))?;
+            .map_err(SimError::endpoint("publisher", &o.mix_topic))?;
         let setpoints = match o.setpoint {
             Some(_) => {
                 let topic = format!(
@@ -530,7 +593,7 @@ impl MixRun {
                 let t = make_topic(node, &topic, msg::Float64::type_name(), &reliable)?;
                 Some(
                     node.create_publisher::<msg::Float64>(&t, Some(reliable.clone()))
-                        .map_err(|e| format!("publisher {topic}: {e}"))?,
+                        .map_err(SimError::endpoint("publisher", &topic))?,
                 )
             }
             None => None,
@@ -538,7 +601,7 @@ impl MixRun {
         let t = make_topic(node, &o.hot_topic, msg::Float64::type_name(), &reliable)?;
         let hots = node
             .create_subscription::<msg::Float64>(&t, Some(reliable))
-            .map_err(|e| format!("subscription {}: {e}", o.hot_topic))?;
+            .map_err(SimError::endpoint("subscription", &o.hot_topic))?;
         let hot = Arc::new(Mutex::new(HotSupply::default()));
         {
             let (hot, topic) = (Arc::clone(&hot), o.hot_topic.clone());
@@ -691,9 +754,15 @@ mod tests {
         let m = command()
             .try_get_matches_from(["sim-valve", "--travel-open-ms", "10"])
             .unwrap();
-        assert!(check(&options(&m).unwrap())
-            .unwrap_err()
-            .contains("travel-open-ms"));
+        assert_eq!(
+            check(&options(&m).unwrap()),
+            Err(OptionError::OutOfRange {
+                option: "travel-open-ms",
+                value: 10.0,
+                lo: 100.0,
+                hi: 3_600_000.0
+            })
+        );
         let mut n = Noise(7);
         assert!((0..1000).map(|_| n.next(0.5)).all(|x| x.abs() <= 0.5));
     }
@@ -728,13 +797,16 @@ mod tests {
                 "--hot-step-to 300 is outside -50..200",
             ),
         ] {
-            assert_eq!(check(&mix_options(args)).unwrap_err(), why, "{args:?}");
+            let e = check(&mix_options(args)).unwrap_err();
+            assert_eq!(e.to_string(), why, "{args:?}");
         }
         let m = command()
             .try_get_matches_from(["sim-valve", "--hot-step-to", "60"])
             .expect("parses");
         assert_eq!(
-            check(&options(&m).expect("options")).unwrap_err(),
+            check(&options(&m).expect("options"))
+                .unwrap_err()
+                .to_string(),
             "--hot-step-to needs --mix"
         );
     }
@@ -746,7 +818,7 @@ mod tests {
         assert_eq!(h.pending, Some(60.0));
         let why = h.offer(f64::NAN, "/mixing/hot").unwrap_err();
         assert_eq!(
-            why.as_deref(),
+            why.map(|w| w.to_string()).as_deref(),
             Some("/mixing/hot NaN is outside -50..200: refused (1 so far)")
         );
         assert_eq!(h.pending, Some(60.0), "the last good value stays");

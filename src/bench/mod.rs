@@ -13,9 +13,10 @@ mod floor;
 
 use clap::Args;
 use pwm_actuator::clock;
-use pwm_actuator::core::{Bank, ChannelParams, Command, Nanos, Phase, NS_PER_MS};
-use pwm_actuator::engine::{self, Engine, EngineOptions, Input, Report, Request};
-use pwm_actuator::output::SimOutput;
+use pwm_actuator::core::{Bank, ChannelParams, Command, ConfigError, Nanos, Phase, NS_PER_MS};
+use pwm_actuator::engine::{self, Engine, EngineError, EngineOptions, Input, Report, Request};
+use pwm_actuator::error::chain;
+use pwm_actuator::output::{SimOutput, TraceError};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::time::Duration;
@@ -256,21 +257,21 @@ pub fn run(opts: BenchOptions) -> i32 {
     let (ours, deadlines) = match run_side(&opts, params, Side::Ours) {
         Ok(r) => r,
         Err(e) => {
-            eprintln!("bench (timerfd thread): {e}");
+            eprintln!("bench (timerfd thread): {}", chain(&e));
             return 1;
         }
     };
     let (baseline, _) = match run_side(&opts, params, Side::Baseline) {
         Ok(r) => r,
         Err(e) => {
-            eprintln!("bench (tokio baseline): {e}");
+            eprintln!("bench (tokio baseline): {}", chain(&e));
             return 1;
         }
     };
     let floor = match run_floor(&opts, params, &deadlines) {
         Ok(f) => f,
         Err(e) => {
-            eprintln!("bench (bare timer floor): {e}");
+            eprintln!("bench (bare timer floor): {}", chain(&e));
             return 1;
         }
     };
@@ -401,6 +402,27 @@ fn table(s: &Summary) -> String {
     t.trim_end().to_string()
 }
 
+/// Why one side of the benchmark could not be measured (exit status 1).
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    /// The channel's parameters are refused.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The simulated output cannot be made.
+    #[error(transparent)]
+    Output(#[from] TraceError),
+    /// The output thread (or the side's stand-in for it) failed to start, take a request or
+    /// stop.
+    #[error(transparent)]
+    Engine(#[from] EngineError),
+    /// The thread reading the reports panicked.
+    #[error("reader thread panicked")]
+    ReaderPanicked,
+    /// The floor's thread ended without sending its figures.
+    #[error("the floor thread sent no figures")]
+    NoFloorFigures,
+}
+
 /// Which sleeping loop a side runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Side {
@@ -416,10 +438,10 @@ fn run_side(
     opts: &BenchOptions,
     params: ChannelParams,
     side: Side,
-) -> Result<(Figures, Vec<Nanos>), String> {
-    let cfg = params.validate().map_err(|e| e.to_string())?;
+) -> Result<(Figures, Vec<Nanos>), BenchError> {
+    let cfg = params.validate()?;
     let names: Vec<String> = (1..=opts.channels).map(|i| format!("pw{i:02}")).collect();
-    let output = SimOutput::new(names, None).map_err(|e| e.to_string())?;
+    let output = SimOutput::new(names, None)?;
     let configs = vec![cfg; opts.channels];
     reset_peak_rss();
     let Engine {
@@ -429,8 +451,7 @@ fn run_side(
     } = match side {
         Side::Ours => engine::spawn(configs, output, engine_options(opts)),
         Side::Baseline => baseline::spawn(configs, output, engine_options(opts)),
-    }
-    .map_err(|e| e.to_string())?;
+    }?;
 
     // The reader: what the ROS side does, minus publishing.
     let expected = expected_edges(opts);
@@ -451,11 +472,8 @@ fn run_side(
         (edges, reports.dropped(), cpu_pct)
     });
 
-    let send = |requests: &mut engine::Requests, channel, input| {
-        requests
-            .send(Request { channel, input })
-            .map_err(|e| e.to_string())
-    };
+    let send =
+        |requests: &mut engine::Requests, channel, input| requests.send(Request { channel, input });
     let reading = if opts.mpc {
         PID_SETPOINT_C
     } else {
@@ -515,10 +533,10 @@ fn run_side(
     }
     sleep_until(end);
     let measured = window.end();
-    handle.shutdown().map_err(|e| e.to_string())?;
+    handle.shutdown()?;
     drop(requests);
     let (mut edges, dropped, reader_cpu_pct) =
-        reader.join().map_err(|_| "reader thread panicked")?;
+        reader.join().map_err(|_| BenchError::ReaderPanicked)?;
     // The shutdown edges are not scheduled by the core's timing: leave them out.
     edges.truncate(edges.len().saturating_sub(opts.channels));
     let mut deadlines: Vec<Nanos> = edges.iter().map(|e| e.1.saturating_sub(t0)).collect();
@@ -536,10 +554,10 @@ fn run_floor(
     opts: &BenchOptions,
     params: ChannelParams,
     deadlines: &[Nanos],
-) -> Result<Figures, String> {
-    let cfg = params.validate().map_err(|e| e.to_string())?;
+) -> Result<Figures, BenchError> {
+    let cfg = params.validate()?;
     let names: Vec<String> = (1..=opts.channels).map(|i| format!("pw{i:02}")).collect();
-    let output = SimOutput::new(names, None).map_err(|e| e.to_string())?;
+    let output = SimOutput::new(names, None)?;
     reset_peak_rss();
     let t0 = clock::monotonic_ns() + 20 * NS_PER_MS;
     let absolute: Vec<Nanos> = deadlines.iter().map(|d| t0 + d).collect();
@@ -549,19 +567,18 @@ fn run_floor(
         output,
         engine_options(opts),
         absolute,
-    )
-    .map_err(|e| e.to_string())?;
+    )?;
     // CPU is measured from the first deadline to the last, as long as the other sides' window.
     let first = deadlines.first().copied().unwrap_or(0);
     sleep_until(t0 + first);
     let window = Window::start();
     sleep_until(last + NS_PER_MS);
     let measured = window.end();
-    floor.handle.shutdown().map_err(|e| e.to_string())?;
+    floor.handle.shutdown()?;
     let mut lateness = floor
         .lateness
         .recv()
-        .map_err(|_| "the floor thread sent no figures")?;
+        .map_err(|_| BenchError::NoFloorFigures)?;
     Ok(figures(&mut lateness, measured, 0))
 }
 
@@ -710,16 +727,28 @@ fn read_steal() -> Option<(u64, u64)> {
 mod tests {
     use super::*;
 
+    /// Why `pwm_actuator_node bench ARGS` refuses its arguments.
+    #[derive(Debug, thiserror::Error)]
+    enum ArgsRefused {
+        /// clap's refusal, as it prints it.
+        #[error("{}", .0.render())]
+        Clap(#[from] clap::Error),
+        /// A value outside the benchmark's range.
+        #[error(transparent)]
+        Range(#[from] BenchOptionOutOfRange),
+    }
+
     /// Parses the bench's arguments as `pwm_actuator_node bench ARGS` does.
-    fn parse_args(args: &[String]) -> Result<BenchOptions, String> {
-        let m = command()
-            .no_binary_name(true)
-            .try_get_matches_from(args)
-            .map_err(|e| e.render().to_string())?;
-        let o = <BenchOptions as clap::FromArgMatches>::from_arg_matches(&m)
-            .map_err(|e| e.render().to_string())?;
-        o.validate().map_err(|e| e.to_string())?;
+    fn parse_args(args: &[String]) -> Result<BenchOptions, ArgsRefused> {
+        let m = command().no_binary_name(true).try_get_matches_from(args)?;
+        let o = <BenchOptions as clap::FromArgMatches>::from_arg_matches(&m)?;
+        o.validate()?;
         Ok(o)
+    }
+
+    /// The text of the refusal of `args`.
+    fn refusal(args: &[String]) -> String {
+        parse_args(args).unwrap_err().to_string()
     }
 
     fn args(s: &str) -> Vec<String> {
@@ -741,24 +770,29 @@ mod tests {
             (o.channels, o.period_ms, o.seconds, o.json),
             (64, 10, 2.0, true)
         );
-        assert!(parse_args(&args("--channels x"))
-            .unwrap_err()
-            .contains("`x` is not a valid number"));
-        assert!(parse_args(&args("--channels 0")).is_err());
-        assert!(parse_args(&args("--bogus"))
-            .unwrap_err()
-            .contains("--bogus"));
-        assert!(parse_args(&args("--seconds"))
-            .unwrap_err()
-            .contains("a value is required for '--seconds"));
+        assert!(refusal(&args("--channels x")).contains("`x` is not a valid number"));
+        assert_eq!(
+            refusal(&args("--channels 0")),
+            "--channels 0 is outside 1..256"
+        );
+        assert!(refusal(&args("--bogus")).contains("--bogus"));
+        assert!(refusal(&args("--seconds")).contains("a value is required for '--seconds"));
         assert_eq!(
             parse_args(&args("--rt-priority 50")).unwrap().rt_priority,
             Some(50)
         );
         // A negative value reaches the range check instead of passing for an option.
-        assert!(parse_args(&args("--offset-ms -1"))
-            .unwrap_err()
-            .contains("--offset-ms -1 must be >= 0"));
+        assert!(matches!(
+            parse_args(&args("--offset-ms -1")),
+            Err(ArgsRefused::Range(BenchOptionOutOfRange {
+                option: "offset-ms",
+                ..
+            }))
+        ));
+        assert_eq!(
+            refusal(&args("--offset-ms -1")),
+            "--offset-ms -1 must be >= 0"
+        );
     }
 
     #[test]
@@ -809,6 +843,21 @@ mod tests {
         let floor = run_floor(&opts, params, &deadlines).unwrap();
         assert_eq!(floor.edges, ours.edges);
         assert_eq!(floor.early, 0);
+    }
+
+    /// A channel the core refuses stops a side before any thread starts, with the core's reason.
+    #[test]
+    fn a_refused_channel_stops_a_side_with_the_reason() {
+        let params = ChannelParams {
+            period_ms: u64::MAX,
+            ..ChannelParams::default()
+        };
+        let opts = BenchOptions::default();
+        let e = run_side(&opts, params, Side::Ours).unwrap_err();
+        assert!(matches!(e, BenchError::Config(_)), "{e:?}");
+        assert_eq!(e.to_string(), params.validate().unwrap_err().to_string());
+        let e = run_floor(&opts, params, &[]).unwrap_err();
+        assert!(matches!(e, BenchError::Config(_)), "{e:?}");
     }
 
     #[test]

@@ -271,20 +271,40 @@ fn is_host_name(name: &str) -> bool {
         })
 }
 
+/// Why an entry of `ROS_STATIC_PEERS` is skipped (a warning at start-up, not a refusal).
+#[derive(Debug, thiserror::Error)]
+enum PeerSkipped {
+    /// The entry is longer than a host name can be.
+    #[error("longer than {MAX_PEER_LEN} bytes")]
+    TooLong,
+    /// Neither an address nor spelled as a host name.
+    #[error("not an address or a host name")]
+    NotAName,
+    /// The resolver gave no answer.
+    #[error("cannot be resolved ({0})")]
+    Unresolved(#[source] std::io::Error),
+    /// The resolver answered with no address.
+    #[error("no address")]
+    NoAddress,
+    /// The name has IPv6 addresses only.
+    #[error("no IPv4 address (the node's DDS transport is IPv4 only)")]
+    NoIpv4,
+}
+
 /// The IPv4 addresses of one entry of `ROS_STATIC_PEERS`: an address, or a name `resolve`
 /// knows; why none, if none.
 fn peer_addresses(
     name: &str,
     resolve: impl Fn(&str) -> std::io::Result<Vec<IpAddr>>,
-) -> Result<Vec<Ipv4Addr>, String> {
+) -> Result<Vec<Ipv4Addr>, PeerSkipped> {
     if name.len() > MAX_PEER_LEN {
-        return Err(format!("longer than {MAX_PEER_LEN} bytes"));
+        return Err(PeerSkipped::TooLong);
     }
     let addrs = match name.parse::<IpAddr>() {
         Ok(a) => vec![a],
         // Only what can be a host name goes to the resolver (and so to a DNS server).
-        Err(_) if !is_host_name(name) => return Err("not an address or a host name".to_string()),
-        Err(_) => resolve(name).map_err(|e| format!("cannot be resolved ({e})"))?,
+        Err(_) if !is_host_name(name) => return Err(PeerSkipped::NotAName),
+        Err(_) => resolve(name).map_err(PeerSkipped::Unresolved)?,
     };
     let v4: Vec<Ipv4Addr> = addrs
         .iter()
@@ -295,9 +315,9 @@ fn peer_addresses(
         .collect();
     if v4.is_empty() {
         return Err(if addrs.is_empty() {
-            "no address".to_string()
+            PeerSkipped::NoAddress
         } else {
-            "no IPv4 address (the node's DDS transport is IPv4 only)".to_string()
+            PeerSkipped::NoIpv4
         });
     }
     Ok(v4)

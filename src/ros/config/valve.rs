@@ -10,6 +10,7 @@ use crate::core::valve::ValveConfigError;
 use crate::output::bindings::normalize_chip_path;
 use crate::output::gpio::{parse_line_addr, GpioLine};
 use crate::ros::config::split::SplitPair;
+use crate::ros::config::valve_state::StateDirError;
 use std::path::PathBuf;
 
 /// At most this many valves (each needs two channels of at most 99).
@@ -110,8 +111,8 @@ pub enum ValveError {
         what: ShortStr,
     },
     /// `state_dir` is not a writable directory.
-    #[error("{0}")]
-    StateDir(String),
+    #[error(transparent)]
+    StateDir(#[from] StateDirError),
     /// A valve's settings refused by the core.
     #[error("valve `{name}`: {source}")]
     Settings {

@@ -90,12 +90,13 @@ pub struct NodeState {
 type AutotuneMailbox = std::sync::Mutex<std::collections::VecDeque<(u32, AutotuneReport)>>;
 
 pub use crate::core::heater::autotune::Report as AutotuneReport;
+use crate::core::heater::ResetRefusal;
 
 /// How many autotune reports wait per channel at most.
 pub const AUTOTUNE_REPORTS: usize = 64;
 
 /// The answer to a `~/<ch>/reset_fault`: its ticket, and cleared or why not.
-pub type ResetAnswer = (u32, Result<(), String>);
+pub type ResetAnswer = (u32, Result<(), ResetRefusal>);
 
 impl NodeState {
     /// The state of a node with `channels` channels: unmanaged (and so always `active`),
@@ -164,17 +165,17 @@ impl NodeState {
     }
 
     /// Records the output thread's answer to the reset with `ticket` of `channel`.
-    pub fn answer_reset(&self, channel: usize, ticket: u32, result: Result<(), String>) {
+    pub fn answer_reset(&self, channel: usize, ticket: u32, result: Result<(), ResetRefusal>) {
         if let Some(slot) = self.resets.get(channel) {
             *crate::output::safety::lock_ignore_poison(slot) = Some((ticket, result));
         }
     }
 
     /// The answer to the reset with `ticket` of `channel`, once it has come.
-    pub fn reset_answer(&self, channel: usize, ticket: u32) -> Option<Result<(), String>> {
+    pub fn reset_answer(&self, channel: usize, ticket: u32) -> Option<Result<(), ResetRefusal>> {
         let slot = self.resets.get(channel)?;
         match &*crate::output::safety::lock_ignore_poison(slot) {
-            Some((t, r)) if *t == ticket => Some(r.clone()),
+            Some((t, r)) if *t == ticket => Some(*r),
             _ => None,
         }
     }

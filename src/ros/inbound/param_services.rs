@@ -10,7 +10,7 @@
 //! same names, types and QoS, here. Handlers only read the store or call
 //! [`Inputs::set_params`]; they never block.
 
-use crate::ros::inbound::inputs::Inputs;
+use crate::ros::inbound::inputs::{ChangeError, Inputs};
 use crate::ros::wire::endpoints::{EndpointError, Endpoints, ServiceMaker};
 use crate::ros::wire::endpoints::{Request, Response};
 use ros2_client::parameters::raw;
@@ -76,15 +76,16 @@ fn describe(b: &Inputs, req: DescribeParametersRequest) -> DescribeParametersRes
     })
 }
 
-fn result(r: Result<(), String>) -> raw::SetParametersResult {
+/// The answer to one change: its refusal's text is the `reason` ROS clients see.
+fn result(r: Result<(), ChangeError>) -> raw::SetParametersResult {
     match r {
         Ok(()) => raw::SetParametersResult {
             successful: true,
             reason: String::new(),
         },
-        Err(reason) => raw::SetParametersResult {
+        Err(e) => raw::SetParametersResult {
             successful: false,
-            reason,
+            reason: e.to_string(),
         },
     }
 }
@@ -101,12 +102,7 @@ fn set(b: &Inputs, req: SetParametersRequest) -> SetParametersResponse {
     SetParametersResponse {
         results: items(req)
             .into_iter()
-            .map(|item| {
-                result(
-                    b.set_params(vec![item], "set_parameters")
-                        .map_err(|e| e.to_string()),
-                )
-            })
+            .map(|item| result(b.set_params(vec![item], "set_parameters")))
             .collect(),
     }
 }
@@ -114,10 +110,7 @@ fn set(b: &Inputs, req: SetParametersRequest) -> SetParametersResponse {
 /// `set_parameters_atomically`: all or nothing.
 fn set_atomically(b: &Inputs, req: SetParametersRequest) -> SetParametersAtomicallyResponse {
     SetParametersAtomicallyResponse {
-        result: result(
-            b.set_params(items(req), "set_parameters_atomically")
-                .map_err(|e| e.to_string()),
-        ),
+        result: result(b.set_params(items(req), "set_parameters_atomically")),
     }
 }
 

@@ -77,10 +77,12 @@ pub struct Topic {
 }
 
 /// The CDR bytes of `msg` as the node publishes them: the encapsulation header (`CDR_LE`,
-/// options 0), then the message.
-pub fn cdr_bytes<M: Serialize>(msg: &M) -> Result<Vec<u8>, String> {
+/// options 0), then the message; the serializer's error when `msg` cannot be written as CDR.
+pub fn cdr_bytes<M: Serialize>(
+    msg: &M,
+) -> Result<Vec<u8>, <CDRSerializerAdapter<M> as SerializerAdapter<M>>::Error> {
     type Adapter<M> = CDRSerializerAdapter<M>;
-    let body = <Adapter<M> as SerializerAdapter<M>>::to_bytes(msg).map_err(|e| e.to_string())?;
+    let body = <Adapter<M> as SerializerAdapter<M>>::to_bytes(msg)?;
     let payload = SerializedPayload::new_from_bytes(
         <Adapter<M> as SerializerAdapter<M>>::output_encoding(),
         body,
@@ -779,7 +781,10 @@ mod tests {
         assert_eq!(got_status.len(), 1);
         assert_eq!(got_status[0].stamp, status.stamp);
         assert!(got_status[0].temperature_c.is_nan());
-        assert_eq!(cdr_bytes(&got_status[0]), cdr_bytes(&status));
+        assert_eq!(
+            cdr_bytes(&got_status[0]).unwrap(),
+            cdr_bytes(&status).unwrap()
+        );
         assert_eq!(got_diag, [diag]);
     }
 

@@ -435,8 +435,7 @@ impl Reporter {
                     ),
                     Err(e) => warn!("{name}: heater fault reset refused: {e}"),
                 }
-                self.state
-                    .answer_reset(ch, ticket, result.map_err(|e| e.to_string()));
+                self.state.answer_reset(ch, ticket, result);
             }
             Event::Autotune { ticket, report } => {
                 use crate::core::heater::autotune::{Phase, Progress, Report};
