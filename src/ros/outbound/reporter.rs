@@ -43,11 +43,10 @@ use std::sync::mpsc::{Receiver, TryRecvError};
 use std::sync::Arc;
 use std::time::Duration;
 
-/// `/diagnostics` is published at least this often, ns (the diagnostic_updater's 1 Hz).
-const DIAGNOSTICS_PERIOD_NS: Nanos = 1_000_000_000;
-
 /// The diagnostics run (command rates, the lateness window) comes this often, ns: one
-/// diagnostic_updater run a second, so `command_hz_window` counts seconds.
+/// diagnostic_updater run a second, so `command_hz_window` counts seconds. The periodic
+/// `/diagnostics` follows each run, with its fresh figures, so `/diagnostics` is published at
+/// least this often (the diagnostic_updater's 1 Hz).
 const DIAGNOSTICS_RUN_NS: Nanos = 1_000_000_000;
 
 /// At most one extra `/diagnostics` message per this interval when levels change, ns.
@@ -165,6 +164,9 @@ pub struct Reporter {
     notes: Receiver<Note>,
     status: StatusClock,
     last_diagnostics: Nanos,
+    /// When the next periodic `/diagnostics` is due: at the start, then at each diagnostics
+    /// run (on the grid of `next_run`), monotonic ns.
+    next_periodic: Nanos,
     signal: Arc<StopSignal>,
     state: Arc<NodeState>,
     /// Per channel: the rate check and its latest result as a status.
@@ -230,6 +232,7 @@ impl Reporter {
             notes,
             status: StatusClock::new(status_rate_hz, now),
             last_diagnostics: 0,
+            next_periodic: 0,
             signal,
             state,
             rates,
@@ -562,10 +565,18 @@ impl Reporter {
         self.traces.poll(now, false);
         let since = now.saturating_sub(self.last_diagnostics);
         let levels_changed = self.levels(now) != self.levels_published;
-        if since >= DIAGNOSTICS_PERIOD_NS || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed) {
-            if since >= DIAGNOSTICS_PERIOD_NS {
+        let periodic = now >= self.periodic_due();
+        if periodic || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed) {
+            if periodic {
                 logging::flush_suppressed();
                 release_free_memory();
+                // The next one with the next run, which falls due with the periodic status
+                // (both count from the reporter's start): one wake-up for the three.
+                self.next_periodic = if self.next_run > now {
+                    self.next_run
+                } else {
+                    now + DIAGNOSTICS_RUN_NS
+                };
             }
             self.publish_diagnostics(now);
         }
@@ -574,7 +585,7 @@ impl Reporter {
             .then_some(self.last_diagnostics + DIAGNOSTICS_COALESCE_NS);
         let next = [
             coalesced,
-            Some(self.last_diagnostics + DIAGNOSTICS_PERIOD_NS),
+            Some(self.periodic_due()),
             Some(self.next_run),
             self.status.next(),
             self.lines.next_flush(),
@@ -585,6 +596,16 @@ impl Reporter {
         .min()
         .unwrap_or(now);
         Duration::from_nanos(next.saturating_sub(now))
+    }
+
+    /// When the periodic `/diagnostics` is due: at the next diagnostics run, but never sooner
+    /// than [`DIAGNOSTICS_COALESCE_NS`] after the last `/diagnostics` (one a level change
+    /// brought), so two never come closer than that and at most a period lies between two.
+    fn periodic_due(&self) -> Nanos {
+        self.next_periodic.max(
+            self.last_diagnostics
+                .saturating_add(DIAGNOSTICS_COALESCE_NS),
+        )
     }
 
     /// When a level `/diagnostics` carries will next change by itself after `now`, with no
