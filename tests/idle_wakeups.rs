@@ -1,7 +1,11 @@
 //! An idle output thread costs nothing: without a liveness tick (a node without a systemd
 //! watchdog) it sleeps until its next deadline or request, with one only every tick. Its own
 //! file, so that no other test's output thread runs in the process while the wake-ups of the
-//! thread named `pwm-output` are counted.
+//! thread named `pwm-output` are counted. And the node's report thread, with nothing but its
+//! clocks to keep, wakes once a second for all of them.
+
+#[path = "common/ros_harness.rs"]
+mod ros_harness;
 
 use pwm_actuator::core::{ChannelParams, Nanos};
 use pwm_actuator::engine::{self, EngineOptions};
@@ -14,7 +18,16 @@ fn one_channel() -> Vec<pwm_actuator::core::ChannelConfig> {
 
 /// The voluntary context switches (sleeps) so far of this process's thread named `name`.
 fn sleeps_of_thread(name: &str) -> u64 {
-    for task in std::fs::read_dir("/proc/self/task").unwrap().flatten() {
+    sleeps_of_thread_in("self", name)
+}
+
+/// The voluntary context switches (sleeps) so far of the thread named `name` of process `pid`
+/// (`self` for this one).
+fn sleeps_of_thread_in(pid: &str, name: &str) -> u64 {
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))
+        .unwrap()
+        .flatten()
+    {
         let comm = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
         if comm.trim() != name {
             continue;
@@ -82,4 +95,23 @@ fn a_reader_waiting_less_than_a_millisecond_sleeps_rather_than_spins() {
         );
     }
     e.handle.shutdown().unwrap();
+}
+
+#[test]
+fn an_idle_node_reports_its_status_and_diagnostics_in_one_wake_up_a_second() {
+    // Two disabled channels: no edge, no command. What the report thread keeps is the status
+    // (1 Hz by default), the diagnostics run and the periodic /diagnostics, all once a second:
+    // they fall due together, so one wake-up a second does all three (two a second when the
+    // periodic /diagnostics counted its second from its own last publication).
+    let node = ros_harness::NodeProc::launch(&["--channels", "2"]);
+    let pid = node.pid().to_string();
+    std::thread::sleep(Duration::from_secs(2));
+    let before = sleeps_of_thread_in(&pid, "pwm-reports");
+    std::thread::sleep(Duration::from_secs(6));
+    let woke = sleeps_of_thread_in(&pid, "pwm-reports") - before;
+    let log = node.stop_ok();
+    assert!(
+        (3..=8).contains(&woke),
+        "the report thread woke {woke} times in 6 s; log:\n{log}"
+    );
 }

@@ -484,11 +484,29 @@ fn pump(
 ) -> Reporter {
     // Both callbacks act on the reporter, one after the other on this thread.
     let reporter = std::cell::RefCell::new(reporter);
+    // What one batch publishes (an edge with its status, the two channels' rises, the periodic
+    // status with /diagnostics) is handed to the DDS event loop with one wake-up at the end of
+    // the batch, instead of one wake-up each: the loop's thread woke up to four times for one
+    // batch. A message waits at most until its batch ends (a batch is the reports queued when
+    // this thread woke, and its `after_batch`), and never more than the first write 1 ms
+    // after it (`rustdds::hold_writer_wakes`).
+    let hold = std::cell::RefCell::new(None);
     let ended = reports.serve(
         || quit.load(Ordering::SeqCst),
-        |r| reporter.borrow_mut().handle(r),
-        |r| reporter.borrow_mut().after_batch(r.dropped()),
+        |r| {
+            hold.borrow_mut()
+                .get_or_insert_with(rustdds::hold_writer_wakes);
+            reporter.borrow_mut().handle(r)
+        },
+        |r| {
+            let _batch = hold
+                .borrow_mut()
+                .take()
+                .unwrap_or_else(rustdds::hold_writer_wakes);
+            reporter.borrow_mut().after_batch(r.dropped())
+        },
     );
+    drop(hold);
     // What the output thread reported before the stop (the lines going off under the stop's
     // hold) is still published and traced.
     while let Some(r) = reports.try_recv() {

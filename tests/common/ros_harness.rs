@@ -223,6 +223,11 @@ impl NodeProc {
         );
     }
 
+    /// The node's process id (0 once it has been waited for).
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().map_or(0, Child::id)
+    }
+
     /// Whether the process is still alive.
     pub fn running(&mut self) -> bool {
         match self.child.as_mut() {

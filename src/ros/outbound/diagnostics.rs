@@ -18,6 +18,7 @@
 use crate::core::heater::autotune::{Phase, Progress};
 use crate::core::{Command, Nanos, Status, NS_PER_MS};
 use crate::ros::interface::msg::{ChannelStatus, DiagnosticStatus, KeyValue};
+use crate::ros::outbound::decimal::Fixed;
 
 /// How long a refused command keeps the channel at WARN, ns.
 pub const REFUSAL_WARN_NS: Nanos = 5_000_000_000;
@@ -324,15 +325,15 @@ impl NodeHealth {
             );
         }
         format!(
-            "lifecycle {}, e-stop released, lateness p99 {:.1} us",
+            "lifecycle {}, e-stop released, lateness p99 {} us",
             self.lifecycle,
-            self.lateness.quantile_ns(0.99) as f64 / 1000.0
+            Fixed(self.lateness.quantile_ns(0.99) as f64 / 1000.0, 1)
         )
     }
 
     /// The diagnostic status at `now`, named `<node_name>: node`, hardware id the node name.
     pub fn to_status(&self, node_name: &str, now: Nanos) -> DiagnosticStatus {
-        let us = |ns: u64| format!("{:.1}", ns as f64 / 1000.0);
+        let us = |ns: u64| Fixed(ns as f64 / 1000.0, 1).to_string();
         let kv: Vec<(&str, String)> = vec![
             ("lifecycle_state", self.lifecycle.to_string()),
             ("estop_latched", self.estop_latched.to_string()),
@@ -342,7 +343,7 @@ impl NodeHealth {
             ("lateness_window_edges", self.lateness.edges().to_string()),
             (
                 "lateness_window_s",
-                format!("{:.3}", self.lateness_window_s),
+                Fixed(self.lateness_window_s, 3).to_string(),
             ),
             ("reports_dropped", self.counters.reports_dropped.to_string()),
             (
@@ -487,20 +488,20 @@ impl ChannelHealth {
             "enabled, no pulses (period 0)".into()
         } else if s.rule.extended() {
             format!(
-                "enabled, {:.1} % ({:.1} ms on / {:.1} ms off); cycle extended to {:.1} ms to \
-                 keep the duty ({})",
-                pct(s.duty_applied),
-                ms(s.t_on),
-                ms(s.t_off),
-                ms(s.period),
+                "enabled, {} % ({} ms on / {} ms off); cycle extended to {} ms to keep the duty \
+                 ({})",
+                Fixed(pct(s.duty_applied), 1),
+                Fixed(ms(s.t_on), 1),
+                Fixed(ms(s.t_off), 1),
+                Fixed(ms(s.period), 1),
                 s.rule.as_str()
             )
         } else {
             format!(
-                "enabled, {:.1} % ({:.1} ms on / {:.1} ms off)",
-                pct(s.duty_applied),
-                ms(s.t_on),
-                ms(s.t_off)
+                "enabled, {} % ({} ms on / {} ms off)",
+                Fixed(pct(s.duty_applied), 1),
+                Fixed(ms(s.t_on), 1),
+                Fixed(ms(s.t_off), 1)
             )
         };
         // An autotune's relay sets the duty: said first, so the duty is not taken for the loop's.
@@ -556,17 +557,20 @@ impl ChannelHealth {
                 ("output", s.level.is_high().to_string()),
                 (
                     "duty_commanded_pct",
-                    format!("{:.3}", percent(s.duty_commanded)),
+                    Fixed(percent(s.duty_commanded), 3).to_string(),
                 ),
                 (
                     "duty_applied_pct",
-                    format!("{:.3}", percent(s.duty_applied)),
+                    Fixed(percent(s.duty_applied), 3).to_string(),
                 ),
                 ("command_clamped", s.command_clamped.to_string()),
-                ("duty_target_pct", format!("{:.3}", percent(s.duty_target))),
-                ("period_ms", format!("{:.3}", ms(s.period))),
-                ("on_time_ms", format!("{:.3}", ms(s.t_on))),
-                ("off_time_ms", format!("{:.3}", ms(s.t_off))),
+                (
+                    "duty_target_pct",
+                    Fixed(percent(s.duty_target), 3).to_string(),
+                ),
+                ("period_ms", Fixed(ms(s.period), 3).to_string()),
+                ("on_time_ms", Fixed(ms(s.t_on), 3).to_string()),
+                ("off_time_ms", Fixed(ms(s.t_off), 3).to_string()),
                 ("e1", s.e1.to_string()),
                 ("min_time_limited", s.limited.to_string()),
                 ("rule", s.rule.as_str().to_string()),
@@ -577,8 +581,8 @@ impl ChannelHealth {
                 ),
                 ("ignored_commands", s.ignored_commands.to_string()),
                 ("skipped_pulses", s.skipped_pulses.to_string()),
-                ("avg_duty_pct", format!("{:.3}", percent(s.avg_duty))),
-                ("time_base_ms", format!("{:.6}", ms(s.time_base))),
+                ("avg_duty_pct", Fixed(percent(s.avg_duty), 3).to_string()),
+                ("time_base_ms", Fixed(ms(s.time_base), 6).to_string()),
                 (
                     "sizing_advice",
                     s.sizing.map(|a| a.to_string()).unwrap_or_default(),
@@ -586,7 +590,7 @@ impl ChannelHealth {
             ]);
             let h = &s.heater;
             if h.feedback {
-                let num = |v: Option<f64>| v.map_or("none".into(), |v| format!("{v:.3}"));
+                let num = |v: Option<f64>| v.map_or("none".into(), |v| Fixed(v, 3).to_string());
                 kv.extend([
                     ("control", h.control.as_str().to_string()),
                     ("temperature_c", num(h.reading.map(|(c, _)| c))),
@@ -596,11 +600,11 @@ impl ChannelHealth {
                     ),
                     ("setpoint_c", num(h.setpoint)),
                     ("target_c", num(h.target)),
-                    ("pid_p_pct", format!("{:.3}", h.terms.p)),
-                    ("pid_i_pct", format!("{:.3}", h.terms.i)),
-                    ("pid_d_pct", format!("{:.3}", h.terms.d)),
-                    ("pid_output_pct", format!("{:.3}", h.terms.output)),
-                    ("runaway_error", format!("{:.1}", h.runaway_error)),
+                    ("pid_p_pct", Fixed(h.terms.p, 3).to_string()),
+                    ("pid_i_pct", Fixed(h.terms.i, 3).to_string()),
+                    ("pid_d_pct", Fixed(h.terms.d, 3).to_string()),
+                    ("pid_output_pct", Fixed(h.terms.output, 3).to_string()),
+                    ("runaway_error", Fixed(h.runaway_error, 1).to_string()),
                     ("model_predicted_c", num(h.model.map(|m| m.predicted_c))),
                     ("model_residual_c", num(h.model.map(|m| m.residual_c))),
                     (
@@ -621,7 +625,7 @@ impl ChannelHealth {
                     ("mpc_steady_pct", num(h.mpc.map(|m| m.steady_pct))),
                     ("mpc_disturbance_pct", num(h.mpc.map(|m| m.disturbance_pct))),
                     ("mpc_output_pct", num(h.mpc.map(|m| m.output))),
-                    ("feedforward_pct", format!("{:.3}", h.feedforward_pct)),
+                    ("feedforward_pct", Fixed(h.feedforward_pct, 3).to_string()),
                     ("feedforward_stale", h.feedforward_stale.to_string()),
                     ("ambient_c", num(h.ambient_c)),
                     ("ambient_stale", h.ambient_stale.to_string()),
@@ -631,7 +635,7 @@ impl ChannelHealth {
                         if h.stale.0 == 0 {
                             "none".into()
                         } else {
-                            format!("{:.1}", h.stale.1 as f64 / 1e6)
+                            Fixed(h.stale.1 as f64 / 1e6, 1).to_string()
                         },
                     ),
                     (
@@ -671,7 +675,7 @@ impl ChannelHealth {
             ("edges", self.edges.to_string()),
             (
                 "max_lateness_us",
-                format!("{:.1}", self.max_late_ns as f64 / 1000.0),
+                Fixed(self.max_late_ns as f64 / 1000.0, 1).to_string(),
             ),
             ("missed_edges", self.missed.to_string()),
             ("rejected_commands", self.rejected.to_string()),

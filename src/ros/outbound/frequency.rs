@@ -17,6 +17,7 @@
 use crate::core::Nanos;
 use crate::ros::inbound::node_state::RateSettings;
 use crate::ros::interface::msg::DiagnosticStatus;
+use crate::ros::outbound::decimal::Fixed;
 use crate::ros::outbound::diagnostics::key_values;
 
 /// The summary when neither bound is set.
@@ -138,24 +139,27 @@ impl FrequencyReport {
         let mut kv = vec![
             ("Events in window", self.events.to_string()),
             ("Events since startup", self.total.to_string()),
-            ("Duration of window (s)", format!("{:.6}", self.window_s)),
-            ("Actual frequency (Hz)", format!("{:.6}", self.hz)),
+            (
+                "Duration of window (s)",
+                Fixed(self.window_s, 6).to_string(),
+            ),
+            ("Actual frequency (Hz)", Fixed(self.hz, 6).to_string()),
         ];
         // As FrequencyStatus: a target when both bounds are the same, then each bound that
         // exists, widened by the tolerance.
         if s.min_hz == s.max_hz && s.min_hz > 0.0 {
-            kv.push(("Target frequency (Hz)", format!("{:.6}", s.min_hz)));
+            kv.push(("Target frequency (Hz)", Fixed(s.min_hz, 6).to_string()));
         }
         if s.min_hz > 0.0 {
             kv.push((
                 "Minimum acceptable frequency (Hz)",
-                format!("{:.6}", s.min_hz * (1.0 - s.tolerance)),
+                Fixed(s.min_hz * (1.0 - s.tolerance), 6).to_string(),
             ));
         }
         if s.max_hz > 0.0 {
             kv.push((
                 "Maximum acceptable frequency (Hz)",
-                format!("{:.6}", s.max_hz * (1.0 + s.tolerance)),
+                Fixed(s.max_hz * (1.0 + s.tolerance), 6).to_string(),
             ));
         }
         kv.push(("Window (diagnostics runs)", s.window.to_string()));

@@ -7,6 +7,7 @@
 //! Layer 5 of the ROS shell: may import every layer before it.
 
 pub mod console;
+pub mod decimal;
 pub mod diagnostics;
 pub mod frequency;
 pub mod mcap_trace;

@@ -43,15 +43,42 @@ use std::sync::mpsc::{Receiver, TryRecvError};
 use std::sync::Arc;
 use std::time::Duration;
 
-/// `/diagnostics` is published at least this often, ns (the diagnostic_updater's 1 Hz).
-const DIAGNOSTICS_PERIOD_NS: Nanos = 1_000_000_000;
-
 /// The diagnostics run (command rates, the lateness window) comes this often, ns: one
-/// diagnostic_updater run a second, so `command_hz_window` counts seconds.
+/// diagnostic_updater run a second, so `command_hz_window` counts seconds. The periodic
+/// `/diagnostics` follows each run, with its fresh figures, so `/diagnostics` is published at
+/// least this often (the diagnostic_updater's 1 Hz).
 const DIAGNOSTICS_RUN_NS: Nanos = 1_000_000_000;
 
 /// At most one extra `/diagnostics` message per this interval when levels change, ns.
 const DIAGNOSTICS_COALESCE_NS: Nanos = 50_000_000;
+
+/// The periodic work (status, diagnostics run, periodic `/diagnostics`) waits at most this long
+/// for an edge due just after it, so that one wake-up does both, ns; at most a twentieth of the
+/// status period (see [`periodic_wake`]).
+pub const PERIODIC_SLACK_NS: Nanos = 20_000_000;
+
+/// When the report thread wakes for periodic work due at `due`: at `due`, unless an edge (the
+/// end of a channel's running step, in `step_ends`) is due after it by no more than the slack —
+/// [`PERIODIC_SLACK_NS`], and at most a twentieth of `status_period` — in which case the edge's
+/// report wakes the thread and the periodic work is done with it; it then waits at most the
+/// slack, should the edge not come. Periodic messages keep their grid: each is at most the
+/// slack late, never early, and the rate is unchanged.
+pub fn periodic_wake(
+    due: Nanos,
+    step_ends: impl Iterator<Item = Nanos>,
+    status_period: Option<Nanos>,
+) -> Nanos {
+    let slack = status_period.map_or(PERIODIC_SLACK_NS, |p| (p / 20).min(PERIODIC_SLACK_NS));
+    let edge_soon = step_ends
+        .filter(|e| *e > due && *e - due <= slack)
+        .min()
+        .is_some();
+    if edge_soon {
+        due + slack
+    } else {
+        due
+    }
+}
 
 /// The per-channel publishers.
 pub struct ChannelPubs {
@@ -146,6 +173,11 @@ impl StatusClock {
     pub fn next(&self) -> Option<Nanos> {
         self.period.map(|_| self.next)
     }
+
+    /// The period of the periodic status, ns, if any.
+    pub fn period(&self) -> Option<Nanos> {
+        self.period
+    }
 }
 
 /// The report thread's state (see the module documentation).
@@ -165,6 +197,9 @@ pub struct Reporter {
     notes: Receiver<Note>,
     status: StatusClock,
     last_diagnostics: Nanos,
+    /// When the next periodic `/diagnostics` is due: at the start, then at each diagnostics
+    /// run (on the grid of `next_run`), monotonic ns.
+    next_periodic: Nanos,
     signal: Arc<StopSignal>,
     state: Arc<NodeState>,
     /// Per channel: the rate check and its latest result as a status.
@@ -230,6 +265,7 @@ impl Reporter {
             notes,
             status: StatusClock::new(status_rate_hz, now),
             last_diagnostics: 0,
+            next_periodic: 0,
             signal,
             state,
             rates,
@@ -561,21 +597,42 @@ impl Reporter {
         self.traces.poll(now, false);
         let since = now.saturating_sub(self.last_diagnostics);
         let levels_changed = self.levels(now) != self.levels_published;
-        if since >= DIAGNOSTICS_PERIOD_NS || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed) {
-            if since >= DIAGNOSTICS_PERIOD_NS {
+        let periodic = now >= self.periodic_due();
+        if periodic || (since >= DIAGNOSTICS_COALESCE_NS && levels_changed) {
+            if periodic {
                 logging::flush_suppressed();
                 release_free_memory();
+                // The next one with the next run, which falls due with the periodic status
+                // (both count from the reporter's start): one wake-up for the three.
+                self.next_periodic = if self.next_run > now {
+                    self.next_run
+                } else {
+                    now + DIAGNOSTICS_RUN_NS
+                };
             }
             self.publish_diagnostics(now);
         }
         // A change held back by the coalescing is published as soon as the interval has passed.
         let coalesced = (self.levels_published != self.levels(now))
             .then_some(self.last_diagnostics + DIAGNOSTICS_COALESCE_NS);
-        let next = [
-            coalesced,
-            Some(self.last_diagnostics + DIAGNOSTICS_PERIOD_NS),
+        let periodic = [
+            Some(self.periodic_due()),
             Some(self.next_run),
             self.status.next(),
+        ]
+        .into_iter()
+        .flatten()
+        .min()
+        .map(|due| {
+            let step_ends = self
+                .health
+                .iter()
+                .filter_map(|h| h.status.and_then(|s| s.step_end));
+            periodic_wake(due, step_ends, self.status.period())
+        });
+        let next = [
+            coalesced,
+            periodic,
             self.lines.next_flush(),
             self.next_level_change(now),
         ]
@@ -584,6 +641,16 @@ impl Reporter {
         .min()
         .unwrap_or(now);
         Duration::from_nanos(next.saturating_sub(now))
+    }
+
+    /// When the periodic `/diagnostics` is due: at the next diagnostics run, but never sooner
+    /// than [`DIAGNOSTICS_COALESCE_NS`] after the last `/diagnostics` (one a level change
+    /// brought), so two never come closer than that and at most a period lies between two.
+    fn periodic_due(&self) -> Nanos {
+        self.next_periodic.max(
+            self.last_diagnostics
+                .saturating_add(DIAGNOSTICS_COALESCE_NS),
+        )
     }
 
     /// When a level `/diagnostics` carries will next change by itself after `now`, with no
@@ -725,6 +792,46 @@ mod tests {
         c.set_rate(0.0, 2000 * MS);
         assert_eq!(c.next(), None);
         assert!(!c.take_due(u64::MAX));
+    }
+
+    #[test]
+    fn periodic_work_waits_for_an_edge_just_after_it_and_no_longer() {
+        let due = 1_000 * MS;
+        let slack = PERIODIC_SLACK_NS;
+        // No edge, an edge before, an edge too far after: at its time.
+        assert_eq!(periodic_wake(due, [].into_iter(), Some(1_000 * MS)), due);
+        assert_eq!(periodic_wake(due, [due - MS].into_iter(), None), due);
+        assert_eq!(periodic_wake(due, [due].into_iter(), None), due);
+        assert_eq!(
+            periodic_wake(due, [due + slack + 1].into_iter(), Some(1_000 * MS)),
+            due
+        );
+        // An edge 7 ms after it: the edge's wake-up does it, or the slack's end does.
+        assert_eq!(
+            periodic_wake(
+                due,
+                [due + slack + 1, due + 7 * MS].into_iter(),
+                Some(1_000 * MS)
+            ),
+            due + slack
+        );
+        assert_eq!(
+            periodic_wake(due, [due + slack].into_iter(), None),
+            due + slack
+        );
+        // At 10 Hz the slack is 5 ms, at 1 kHz 50 us.
+        assert_eq!(
+            periodic_wake(due, [due + 7 * MS].into_iter(), Some(100 * MS)),
+            due
+        );
+        assert_eq!(
+            periodic_wake(due, [due + 4 * MS].into_iter(), Some(100 * MS)),
+            due + 5 * MS
+        );
+        assert_eq!(
+            periodic_wake(due, [due + 40_000].into_iter(), Some(MS)),
+            due + 50_000
+        );
     }
 
     #[test]

@@ -235,6 +235,8 @@ pub use serialization::{
 pub use messages::submessages::elements::serialized_payload::SerializedPayload;
 // pwm_actuator: the bound on received sample size (see README.pwm_actuator.md).
 pub use rtps::reader::{received_samples_too_large, set_max_received_sample_size};
+// pwm_actuator: one event-loop wake-up for a batch of writes (README.pwm_actuator.md).
+pub use polling::{hold_writer_wakes, WriterWakeHold};
 // pwm_actuator: USER_DATA announced by the endpoints of a type (README.pwm_actuator.md).
 pub use dds::qos::set_user_data_for_type;
 pub use structure::{

@@ -269,7 +269,103 @@ impl Doorbell {
   }
 
   pub(crate) fn ring(&self) {
-    self.ready.notify(self.entity_id);
+    // pwm_actuator: the wake-up may be held back by the writing thread (see
+    // `hold_writer_wakes`, README.pwm_actuator.md).
+    if self.ready.tx.send(self.entity_id).is_ok() {
+      wake_or_hold(&self.ready.waker);
+    }
+  }
+}
+
+// pwm_actuator: writer wake-ups held back while a thread writes a batch.
+
+/// A held wake-up is delivered at the latest at the first ring this long after
+/// the first one held.
+const HOLD_AT_MOST: Duration = Duration::from_millis(1);
+/// At most this many rings are held before their wake-up is delivered.
+const HOLD_AT_MOST_RINGS: u32 = 32;
+
+struct Held {
+  /// Nested holds of this thread.
+  depth: u32,
+  wakers: Vec<LoopWaker>,
+  first: Option<Instant>,
+  rings: u32,
+}
+
+impl Held {
+  fn release(&mut self) {
+    for w in self.wakers.drain(..) {
+      w.wake();
+    }
+    self.first = None;
+    self.rings = 0;
+  }
+}
+
+thread_local! {
+  static HELD: std::cell::RefCell<Held> = const {
+    std::cell::RefCell::new(Held { depth: 0, wakers: Vec::new(), first: None, rings: 0 })
+  };
+}
+
+/// While the returned guard lives, the samples this thread writes with
+/// `DataWriter::write` are stored at once as ever, but the wake-up of their
+/// participant's event loop is held back and delivered once, when the guard is
+/// dropped, rather than once per sample: a thread that writes several samples
+/// in a row wakes the event loop once instead of once each. No wake-up is held
+/// longer than the first write at least `HOLD_AT_MOST` (1 ms) after the first
+/// held one, nor past 32 held writes, nor across a write that must wait for
+/// room in a reliable writer's window (which only the event loop can make).
+/// Holds nest; the outermost one delivers.
+#[must_use = "the wake-ups are delivered when the guard is dropped"]
+pub fn hold_writer_wakes() -> WriterWakeHold {
+  HELD.with(|h| h.borrow_mut().depth += 1);
+  WriterWakeHold {
+    _not_send: std::marker::PhantomData,
+  }
+}
+
+/// The guard of [`hold_writer_wakes`]; not `Send`, the hold is its thread's.
+pub struct WriterWakeHold {
+  _not_send: std::marker::PhantomData<*const ()>,
+}
+
+impl Drop for WriterWakeHold {
+  fn drop(&mut self) {
+    HELD.with(|h| {
+      let mut h = h.borrow_mut();
+      h.depth = h.depth.saturating_sub(1);
+      if h.depth == 0 {
+        h.release();
+      }
+    });
+  }
+}
+
+/// Delivers every wake-up this thread holds (before a write waits for room).
+pub(crate) fn release_held_wakes() {
+  HELD.with(|h| h.borrow_mut().release());
+}
+
+fn wake_or_hold(waker: &LoopWaker) {
+  let held = HELD.with(|h| {
+    let mut h = h.borrow_mut();
+    if h.depth == 0 {
+      return false;
+    }
+    if !h.wakers.iter().any(|w| Arc::ptr_eq(&w.slot, &waker.slot)) {
+      h.wakers.push(waker.clone());
+    }
+    h.rings += 1;
+    let first = *h.first.get_or_insert_with(Instant::now);
+    if h.rings >= HOLD_AT_MOST_RINGS || first.elapsed() >= HOLD_AT_MOST {
+      h.release();
+    }
+    true
+  });
+  if !held {
+    waker.wake();
   }
 }
 
@@ -358,6 +454,71 @@ pub(crate) fn timeout_until(deadline: Option<Instant>, cap: Duration) -> Duratio
       }
     }
     None => cap,
+  }
+}
+
+#[cfg(test)]
+mod hold_tests {
+  use super::*;
+
+  fn doorbell() -> (Poll, Doorbell, ReadyReceiver<EntityId>) {
+    let poll = Poll::new().unwrap();
+    let waker = LoopWaker::new();
+    waker.install(&poll, Token(7)).unwrap();
+    let (tx, rx) = ready_channel(&waker);
+    (poll, Doorbell::new(EntityId::UNKNOWN, tx), rx)
+  }
+
+  /// Wake-up events the poll sees now.
+  fn events(poll: &mut Poll) -> usize {
+    let mut ev = mio1::Events::with_capacity(8);
+    poll.poll(&mut ev, Some(Duration::ZERO)).unwrap();
+    ev.iter().count()
+  }
+
+  // Rings under a hold are queued at once, but the loop is woken only when
+  // the hold ends; without a hold each ring wakes it.
+  #[test]
+  fn rings_under_a_hold_wake_the_loop_once_when_it_ends() {
+    let (mut poll, bell, rx) = doorbell();
+    bell.ring();
+    assert_eq!(events(&mut poll), 1, "a ring without a hold wakes at once");
+    assert_eq!(rx.drain_unique().len(), 1);
+    {
+      let _hold = hold_writer_wakes();
+      let _inner = hold_writer_wakes();
+      drop(_inner);
+      for _ in 0..3 {
+        bell.ring();
+      }
+      assert_eq!(events(&mut poll), 0, "held");
+      assert_eq!(rx.drain_unique().len(), 1, "queued at once");
+    }
+    assert_eq!(events(&mut poll), 1, "woken when the hold ends");
+    assert_eq!(events(&mut poll), 0);
+  }
+
+  // A hold never keeps a wake-up back longer than its bounds: the 32nd ring,
+  // the first ring 1 ms after the first held one, and a write that must wait
+  // for room deliver it.
+  #[test]
+  fn a_hold_delivers_after_its_bounds() {
+    let (mut poll, bell, _rx) = doorbell();
+    let _hold = hold_writer_wakes();
+    for _ in 0..HOLD_AT_MOST_RINGS - 1 {
+      bell.ring();
+    }
+    assert_eq!(events(&mut poll), 0);
+    bell.ring();
+    assert_eq!(events(&mut poll), 1, "delivered at the 32nd ring");
+    bell.ring();
+    std::thread::sleep(HOLD_AT_MOST);
+    assert_eq!(events(&mut poll), 0);
+    bell.ring();
+    assert_eq!(events(&mut poll), 1, "delivered 1 ms after the first held");
+    bell.ring();
+    release_held_wakes();
+    assert_eq!(events(&mut poll), 1, "delivered before a write waits");
   }
 }
 

@@ -244,6 +244,9 @@ impl WriterSendBuffer {
         return Admission::Admitted(seq);
       }
       // Window full: wait for an acknowledgement to free up space.
+      // pwm_actuator: only the event loop can make room; deliver any wake-up
+      // this thread holds back first (README.pwm_actuator.md).
+      crate::polling::release_held_wakes();
       match deadline {
         None => {
           inner = shared.progress.wait(inner).unwrap();
