@@ -113,10 +113,13 @@ def wait_until(
 # Timing groups
 # ---------------------------------------------------------------------------------------------
 
-#: The marker of a test that times nothing (pytest.ini): it asserts no time bound, latency,
-#: rate, lateness or length of anything on the line, so the load of tests run beside it cannot
-#: change its result. scripts/test.sh runs these (`--timing-group untimed`) in a pytest process
-#: of their own beside all the others (`--timing-group timed`), which run one at a time.
+#: The marker of a test whose result the load of tests run beside it cannot change
+#: (pytest.ini): it times nothing the node does (no latency of an answer or a reaction, no rate,
+#: lateness or length of anything on the line), and what it asserts over time is of seconds
+#: with a second or a factor of two to spare (a simulated plant's temperature in a band, a check
+#: named within its window's seconds, a peer seen within a look). scripts/test.sh runs these
+#: (`--timing-group untimed`) in a pytest process of their own beside all the others
+#: (`--timing-group timed`), which run one at a time.
 UNTIMED = "untimed"
 
 

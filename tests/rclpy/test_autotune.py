@@ -27,6 +27,11 @@ from helpers_rules import MS, NODE, diag_values, mono_ns
 from test_channel_rules import close_trace, observe_until, start
 from test_heater import PARAMS, PLANT, TOPIC
 
+# Untimed (pytest.ini): the relay test of a simulated plant over seconds (Tu between 0.5 and
+# 10 s, the step settled within ±1 °C), how a run ends and the line off after it; no figure
+# of how soon the node answers or how its edges fall.
+pytestmark = pytest.mark.untimed
+
 TARGET = 60.0
 #: Gains before the run: deliberately soft, so a change is plain.
 OLD = dict(pw01__pid_kp=2.0, pw01__pid_ki=0.05, pw01__pid_kd=0.0)

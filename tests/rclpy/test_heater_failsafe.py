@@ -19,10 +19,16 @@ from __future__ import annotations
 import csv
 import math
 
+import pytest
 from std_msgs.msg import Float64
 
 from helpers_rules import MS, NODE, ChannelClient, diag_level, diag_values, mono_ns, trace_edges
 from test_channel_rules import observe_until
+
+# Untimed (pytest.ini): simulated plants over seconds (each fault named within the seconds
+# its check takes plus a second, the true temperature within 10 °C), the lines off after;
+# no figure of how soon the node answers or how its edges fall.
+pytestmark = pytest.mark.untimed
 
 ERROR = 2
 RATE, TAU, DEAD, AMBIENT = 0.7, 30.0, 1.0, 20.0

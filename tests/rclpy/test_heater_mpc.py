@@ -75,6 +75,7 @@ def fan_step(ch, ros, fan, readings, share: float) -> tuple[float, float, float]
 
 # The autotune, then 75 s under each loop.
 @pytest.mark.timeout(420)
+@pytest.mark.untimed
 def test_mpc_after_a_model_autotune_holds_and_rejects_a_fan_faster_than_pid(
     node_process, process_launcher, node_binary, ros
 ):
@@ -148,6 +149,7 @@ def test_mpc_after_a_model_autotune_holds_and_rejects_a_fan_faster_than_pid(
     assert math.isfinite(float(v["mpc_predicted_c"])), v
 
 
+@pytest.mark.untimed
 def test_the_feedforward_topic_is_used_while_fresh_and_warns_when_stale(
     node_process, process_launcher, node_binary, ros
 ):
@@ -189,6 +191,7 @@ def test_the_feedforward_topic_is_used_while_fresh_and_warns_when_stale(
     assert diag_level(d) == 1, d
 
 
+@pytest.mark.untimed
 def test_the_ambient_topic_is_used_while_fresh_and_warns_when_stale(
     node_process, process_launcher, node_binary, ros
 ):

@@ -40,10 +40,16 @@ LOOK_S = 25.0
 #: The node's logged line once its ROS entities exist.
 RUNNING = " running: "
 
-pytestmark = pytest.mark.skipif(
-    os.geteuid() != 0 or shutil.which("ip") is None,
-    reason="needs root and iproute2's `ip` to create network namespaces",
-)
+# Untimed (pytest.ini): each test on network namespaces of its own, what the client on B gets
+# within a 25 s look (seconds where everything arrives), no figure of how soon the node answers
+# or how its edges fall.
+pytestmark = [
+    pytest.mark.untimed,
+    pytest.mark.skipif(
+        os.geteuid() != 0 or shutil.which("ip") is None,
+        reason="needs root and iproute2's `ip` to create network namespaces",
+    ),
+]
 
 
 def sh(*argv: str) -> None:

@@ -347,6 +347,7 @@ def test_the_motion_settings_change_while_running_the_travel_times_do_not(node_p
     assert proc.terminate() == 0, proc.output()
 
 
+@pytest.mark.untimed
 def test_the_loop_parameters_are_checked_and_pid_refuses_position_commands(node_process, ros):
     """docs/parameters.md: a valve's loop settings are bounded and checked with its others;
     `control` `pid` needs a process topic (read at start-up) and a gain, and under `pid` the
@@ -622,6 +623,7 @@ def test_a_stale_process_value_shows_as_holding_and_warns_with_its_age_and_timeo
     assert proc.terminate() == 0, proc.output()
 
 
+@pytest.mark.untimed
 def test_manual_mode_shows_on_the_state_and_on_diagnostics_and_bad_words_are_counted(
     node_process, ros
 ):
