@@ -57,9 +57,9 @@ pub fn listen_heaters(
         )?);
         if !h.feedforward_topic.is_empty() {
             info!("{}: feed-forward from {}", h.name, h.feedforward_topic);
-            let b = Arc::clone(inputs);
+            let to_thread = Arc::clone(inputs);
             tasks.push(ep.listen(&h.feedforward_topic, move |m: msg::Float64| {
-                let _ = b.send(ch, Input::Feedforward(m.data));
+                let _ = to_thread.send(ch, Input::Feedforward(m.data));
             })?);
         }
         if !h.ambient_topic.is_empty() {
@@ -72,15 +72,15 @@ pub fn listen_heaters(
                 |celsius, age| Input::Ambient { celsius, age },
             )?);
         }
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         tasks.push(
             ep.listen(&format!("~/{}/setpoint", h.name), move |m: msg::Float64| {
-                let _ = b.send(ch, Input::Setpoint(m.data));
+                let _ = to_thread.send(ch, Input::Setpoint(m.data));
             })?,
         );
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         let name = h.name.clone();
-        let reset = move |_: msg::EmptyRequest| reset(&b, ch, &name);
+        let reset = move |_: msg::EmptyRequest| reset(&to_thread, ch, &name);
         let mut maker = ep.services();
         tasks.push(maker.serve(
             &format!("~/{}/reset_fault", h.name),
@@ -101,9 +101,9 @@ pub(crate) fn listen_temperature(
     ch: usize,
     input: impl Fn(f64, Option<i64>) -> Input + Send + Sync + 'static,
 ) -> Result<JoinHandle<()>, EndpointError> {
-    let b = Arc::clone(inputs);
+    let to_thread = Arc::clone(inputs);
     ep.listen_with(topic, qos::sensor(), move |m: msg::Temperature| {
-        let _ = b.send(
+        let _ = to_thread.send(
             ch,
             input(m.temperature, stamp_age(&m.header, crate::clock::wall_ns())),
         );

@@ -24,8 +24,8 @@ use ros2_client::ParameterValue;
 use std::sync::Arc;
 use tokio::task::JoinHandle;
 
-fn get(b: &Inputs, req: GetParametersRequest) -> GetParametersResponse {
-    b.with_params(|s| GetParametersResponse {
+fn get(inputs: &Inputs, req: GetParametersRequest) -> GetParametersResponse {
+    inputs.with_params(|s| GetParametersResponse {
         values: req
             .names
             .iter()
@@ -34,8 +34,8 @@ fn get(b: &Inputs, req: GetParametersRequest) -> GetParametersResponse {
     })
 }
 
-fn get_types(b: &Inputs, req: GetParameterTypesRequest) -> GetParameterTypesResponse {
-    b.with_params(|s| GetParameterTypesResponse {
+fn get_types(inputs: &Inputs, req: GetParameterTypesRequest) -> GetParameterTypesResponse {
+    inputs.with_params(|s| GetParameterTypesResponse {
         values: req
             .names
             .iter()
@@ -47,15 +47,15 @@ fn get_types(b: &Inputs, req: GetParameterTypesRequest) -> GetParameterTypesResp
     })
 }
 
-fn list(b: &Inputs, req: ListParametersRequest) -> ListParametersResponse {
-    let (names, prefixes) = b.with_params(|s| s.list(&req.prefixes, req.depth));
+fn list(inputs: &Inputs, req: ListParametersRequest) -> ListParametersResponse {
+    let (names, prefixes) = inputs.with_params(|s| s.list(&req.prefixes, req.depth));
     ListParametersResponse {
         result: ListParametersResult { names, prefixes },
     }
 }
 
-fn describe(b: &Inputs, req: DescribeParametersRequest) -> DescribeParametersResponse {
-    b.with_params(|s| DescribeParametersResponse {
+fn describe(inputs: &Inputs, req: DescribeParametersRequest) -> DescribeParametersResponse {
+    inputs.with_params(|s| DescribeParametersResponse {
         values: req
             .names
             .iter()
@@ -98,19 +98,19 @@ fn items(req: SetParametersRequest) -> Vec<(String, ParameterValue)> {
 }
 
 /// `set_parameters`: each parameter on its own, in order, as rclcpp does.
-fn set(b: &Inputs, req: SetParametersRequest) -> SetParametersResponse {
+fn set(inputs: &Inputs, req: SetParametersRequest) -> SetParametersResponse {
     SetParametersResponse {
         results: items(req)
             .into_iter()
-            .map(|item| result(b.set_params(vec![item], "set_parameters")))
+            .map(|item| result(inputs.set_params(vec![item], "set_parameters")))
             .collect(),
     }
 }
 
 /// `set_parameters_atomically`: all or nothing.
-fn set_atomically(b: &Inputs, req: SetParametersRequest) -> SetParametersAtomicallyResponse {
+fn set_atomically(inputs: &Inputs, req: SetParametersRequest) -> SetParametersAtomicallyResponse {
     SetParametersAtomicallyResponse {
-        result: result(b.set_params(items(req), "set_parameters_atomically")),
+        result: result(inputs.set_params(items(req), "set_parameters_atomically")),
     }
 }
 

@@ -248,10 +248,10 @@ pub fn listen_valves(
                 start: run.start,
             },
         );
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         let topic = format!("~/valve/{}/position", v.name);
         tasks.push(ep.listen(&topic, move |m: msg::Float64| {
-            let _ = b.send(
+            let _ = to_thread.send(
                 0,
                 Input::ValvePosition {
                     valve: k,
@@ -264,12 +264,12 @@ pub fn listen_valves(
                 "valve {}: position feedback from {}",
                 v.name, run.feedback_topic
             );
-            let b = Arc::clone(inputs);
+            let to_thread = Arc::clone(inputs);
             tasks.push(ep.listen_with(
                 &run.feedback_topic,
                 qos::sensor(),
                 move |m: msg::Float64| {
-                    let _ = b.send(
+                    let _ = to_thread.send(
                         0,
                         Input::ValveFeedback {
                             valve: k,
@@ -303,13 +303,13 @@ pub fn listen_valves(
                     },
                 )?);
             } else {
-                let b = Arc::clone(inputs);
+                let to_thread = Arc::clone(inputs);
                 tasks.push(ep.listen_with(
                     &run.process_topic,
                     qos::sensor(),
                     move |m: msg::Float64| {
                         // Unstamped: its age is not known, so only the timeout judges it.
-                        let _ = b.send(
+                        let _ = to_thread.send(
                             0,
                             Input::ValveProcess {
                                 valve: k,
@@ -321,10 +321,10 @@ pub fn listen_valves(
                 )?);
             }
         }
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         let topic = format!("~/valve/{}/setpoint", v.name);
         tasks.push(ep.listen(&topic, move |m: msg::Float64| {
-            let _ = b.send(
+            let _ = to_thread.send(
                 0,
                 Input::ValveSetpoint {
                     valve: k,
@@ -332,16 +332,16 @@ pub fn listen_valves(
                 },
             );
         })?);
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         let topic = format!("~/valve/{}/manual", v.name);
         tasks.push(ep.listen(&topic, move |m: msg::StringMsg| {
             // A word that is none of the commands goes on too (its first 32 bytes): the valve
             // counts it with its refusals, and the report side logs it.
             let manual = m.data.trim().parse::<Manual>();
-            let _ = b.send(0, Input::ValveManual { valve: k, manual });
+            let _ = to_thread.send(0, Input::ValveManual { valve: k, manual });
         })?);
-        let (b, a, name) = (Arc::clone(inputs), Arc::clone(answers), v.name.clone());
-        let reset = move |_: msg::EmptyRequest| reset(&b, &a, k, &name);
+        let (to_thread, a, name) = (Arc::clone(inputs), Arc::clone(answers), v.name.clone());
+        let reset = move |_: msg::EmptyRequest| reset(&to_thread, &a, k, &name);
         let mut maker = ep.services();
         tasks.push(maker.serve(
             &format!("~/valve/{}/reset", v.name),
