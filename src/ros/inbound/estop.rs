@@ -171,20 +171,20 @@ pub fn spawn(
     estop: &Arc<EStop>,
 ) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut tasks = Vec::new();
-    let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
-    tasks.push(ep.listen("~/estop", move |m: msg::Bool| e.input(&b, m.data))?);
-    let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
-    let reset = move |_: msg::EmptyRequest| e.reset(&b);
+    let (to_thread, e) = (Arc::clone(inputs), Arc::clone(estop));
+    tasks.push(ep.listen("~/estop", move |m: msg::Bool| e.input(&to_thread, m.data))?);
+    let (to_thread, e) = (Arc::clone(inputs), Arc::clone(estop));
+    let reset = move |_: msg::EmptyRequest| e.reset(&to_thread);
     let mut maker = ep.services();
     tasks.push(maker.serve("~/reset_estop", "std_srvs", "Trigger", reset)?);
     if let Some(period) = estop.timeout_check_period() {
-        let (b, e) = (Arc::clone(inputs), Arc::clone(estop));
+        let (to_thread, e) = (Arc::clone(inputs), Arc::clone(estop));
         tasks.push(tokio::spawn(async move {
             let mut tick = tokio::time::interval(period);
             tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
             loop {
                 tick.tick().await;
-                e.check_timeout(&b, clock::monotonic_ns());
+                e.check_timeout(&to_thread, clock::monotonic_ns());
             }
         }));
     }

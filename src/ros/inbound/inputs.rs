@@ -356,36 +356,36 @@ pub fn listen_channels(
 ) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut tasks = Vec::new();
     for (ch, name) in names.iter().enumerate() {
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         tasks.push(
             ep.listen(&format!("~/{name}/duty"), move |m: msg::Float64| {
-                b.command(ch, Command::Percent(m.data))
+                to_thread.command(ch, Command::Percent(m.data))
             })?,
         );
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         tasks.push(ep.listen(&format!("~/{name}/sv"), move |m: msg::UInt16| {
-            b.command(ch, Command::Sv(m.data))
+            to_thread.command(ch, Command::Sv(m.data))
         })?);
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         tasks.push(
             ep.listen(&format!("~/{name}/fraction"), move |m: msg::Float64| {
-                b.command(ch, Command::Fraction(m.data))
+                to_thread.command(ch, Command::Fraction(m.data))
             })?,
         );
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         tasks.push(ep.listen(&format!("~/{name}/enable"), move |m: msg::Bool| {
-            b.enable(ch, m.data)
+            to_thread.enable(ch, m.data)
         })?);
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         let door = format!("~/{name}/params");
         let topic = door.clone();
         tasks.push(ep.listen(&topic, move |m: msg::ChannelParams| {
             match params::items_from_msg(ch, &m) {
                 Ok(items) => {
                     // A refusal is logged and recorded by `set_params` itself.
-                    let _ = b.set_params(items, &door);
+                    let _ = to_thread.set_params(items, &door);
                 }
-                Err(e) => b.refused_message(ch, &door, &e.to_string()),
+                Err(e) => to_thread.refused_message(ch, &door, &e.to_string()),
             }
         })?);
     }
@@ -410,13 +410,13 @@ pub fn listen_splits(
         );
         let _ = inputs.send(pair.hot, Input::Pair(pair.cold));
         let _ = inputs.send(pair.cold, Input::Pair(pair.hot));
-        let b = Arc::clone(inputs);
+        let to_thread = Arc::clone(inputs);
         let (hot, cold, band) = (pair.hot, pair.cold, pair.deadband_pct);
         let topic = format!("~/split/{}/command", pair.name);
         tasks.push(ep.listen(&topic, move |m: msg::Float64| {
             let (h, c) = split_command(m.data, band);
-            b.command(hot, h);
-            b.command(cold, c);
+            to_thread.command(hot, h);
+            to_thread.command(cold, c);
         })?);
     }
     Ok(tasks)
