@@ -10,7 +10,7 @@
 //! call does nothing. A failure to notify is logged and never stops the node.
 
 use crate::clock;
-use crate::engine::Liveness;
+use crate::output_thread::Liveness;
 use sd_notify::NotifyState;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;

@@ -8,8 +8,8 @@
 mod ros_harness;
 
 use pwm_actuator::core::{ChannelParams, Nanos};
-use pwm_actuator::engine::{self, EngineOptions};
 use pwm_actuator::output::SimOutput;
+use pwm_actuator::output_thread::{self, OutputThreadOptions};
 use std::time::Duration;
 
 fn one_channel() -> Vec<pwm_actuator::core::ChannelConfig> {
@@ -48,11 +48,11 @@ fn without_a_liveness_tick_an_idle_output_thread_sleeps_until_a_request() {
     // (about 10 times in a second); without it, not once until a request or the stop.
     let run = |tick: Option<Nanos>| {
         let sim = SimOutput::new(vec!["pw01".into()], None).unwrap();
-        let opts = EngineOptions {
+        let opts = OutputThreadOptions {
             liveness_tick_ns: tick,
-            ..EngineOptions::default()
+            ..OutputThreadOptions::default()
         };
-        let e = engine::spawn(one_channel(), sim, opts).unwrap();
+        let e = output_thread::spawn(one_channel(), sim, opts).unwrap();
         std::thread::sleep(Duration::from_millis(200));
         let before = sleeps_of_thread("pwm-output");
         std::thread::sleep(Duration::from_millis(1000));
@@ -67,7 +67,7 @@ fn without_a_liveness_tick_an_idle_output_thread_sleeps_until_a_request() {
     let (woke, lag) = run(None);
     assert!(woke <= 1, "woke {woke} times in 1 s with nothing to do");
     assert_eq!(lag, Some(0), "asleep with nothing due is on schedule");
-    let (woke, _) = run(Some(engine::LIVENESS_TICK_NS));
+    let (woke, _) = run(Some(output_thread::LIVENESS_TICK_NS));
     assert!(woke >= 5, "with the tick: woke {woke} times in 1 s");
 }
 
@@ -76,11 +76,11 @@ fn a_reader_waiting_less_than_a_millisecond_sleeps_rather_than_spins() {
     // A wait shorter than the poll's millisecond resolution is rounded up, never down to 0:
     // a reader with a deadline 0.3 ms away sleeps once instead of spinning until it.
     let sim = SimOutput::new(vec!["pw01".into()], None).unwrap();
-    let opts = EngineOptions {
+    let opts = OutputThreadOptions {
         liveness_tick_ns: None,
-        ..EngineOptions::default()
+        ..OutputThreadOptions::default()
     };
-    let mut e = engine::spawn(one_channel(), sim, opts).unwrap();
+    let mut e = output_thread::spawn(one_channel(), sim, opts).unwrap();
     std::thread::sleep(Duration::from_millis(100));
     e.reports.clear_wake();
     while e.reports.try_recv().is_some() {}

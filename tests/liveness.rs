@@ -9,9 +9,9 @@ mod ros_harness;
 
 use nix::sys::signal::Signal;
 use pwm_actuator::core::{ChannelParams, Level, Nanos};
-use pwm_actuator::engine::{self, EngineError, EngineOptions, SHUTDOWN_WAIT};
 use pwm_actuator::output::fault::HangingOutput;
 use pwm_actuator::output::{read_csv, CsvRow, SimOutput, TraceSpec};
+use pwm_actuator::output_thread::{self, OutputThreadError, OutputThreadOptions, SHUTDOWN_WAIT};
 use ros_harness::*;
 use std::os::unix::net::UnixDatagram;
 use std::time::{Duration, Instant};
@@ -38,17 +38,17 @@ fn sorted_intervals(rows: &[CsvRow]) -> Vec<Nanos> {
 }
 
 #[test]
-fn the_engine_toggles_the_heartbeat_line_on_its_grid_and_ends_it_inactive() {
+fn the_output_thread_toggles_the_heartbeat_line_on_its_grid_and_ends_it_inactive() {
     let dir = tempfile::tempdir().unwrap();
     let csv = dir.path().join("hb.csv");
     let spec = TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap();
     let sim = SimOutput::new(vec!["pw01".into(), "heartbeat".into()], Some(spec)).unwrap();
     let probe = sim.probe();
-    let opts = EngineOptions {
+    let opts = OutputThreadOptions {
         heartbeat_half_period_ns: Some(10_000_000),
-        ..EngineOptions::default()
+        ..OutputThreadOptions::default()
     };
-    let e = engine::spawn(one_channel(), sim, opts).unwrap();
+    let e = output_thread::spawn(one_channel(), sim, opts).unwrap();
     std::thread::sleep(Duration::from_millis(400));
     let live = e.handle.liveness();
     let lag = live.lag_ns(pwm_actuator::clock::monotonic_ns());
@@ -91,18 +91,18 @@ fn a_hung_output_thread_falls_behind_and_a_stop_switches_off_without_it() {
     let probe = sim.probe();
     // The heartbeat writes every 5 ms; the first write after 300 ms never returns.
     let out = HangingOutput::new(sim, 300);
-    let opts = EngineOptions {
+    let opts = OutputThreadOptions {
         heartbeat_half_period_ns: Some(5_000_000),
-        ..EngineOptions::default()
+        ..OutputThreadOptions::default()
     };
-    let e = engine::spawn(one_channel(), out, opts).unwrap();
+    let e = output_thread::spawn(one_channel(), out, opts).unwrap();
     let live = e.handle.liveness();
     std::thread::sleep(Duration::from_millis(1300));
     let lag = live.lag_ns(pwm_actuator::clock::monotonic_ns()).unwrap();
     assert!(lag >= 500_000_000, "a hung thread falls behind: {lag} ns");
     let start = Instant::now();
     let r = e.handle.shutdown();
-    assert!(matches!(r, Err(EngineError::Hung { .. })), "{r:?}");
+    assert!(matches!(r, Err(OutputThreadError::Hung { .. })), "{r:?}");
     assert!(start.elapsed() < SHUTDOWN_WAIT + Duration::from_secs(2));
     assert_eq!(
         probe.levels(),

@@ -7,8 +7,8 @@
 mod ros_harness;
 
 use pwm_actuator::core::Command;
-use pwm_actuator::engine::{self, EngineError, EngineOptions};
 use pwm_actuator::output::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
+use pwm_actuator::output_thread::{self, OutputThreadError, OutputThreadOptions};
 use pwm_actuator::ros::config::names::to_ros_name;
 use pwm_actuator::ros::config::params::{ParamStore, Stage};
 use pwm_actuator::ros::inbound::inputs::{ChangeError, Inputs, NOTE_QUEUE};
@@ -99,10 +99,10 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         )
         .unwrap();
     store.commit(&a);
-    let engine = engine::spawn(
+    let started = output_thread::spawn(
         vec![store.channel_config(0).unwrap()],
         FailingOutput { ok_writes: 2 },
-        EngineOptions::default(),
+        OutputThreadOptions::default(),
     )
     .unwrap();
     let pubs = vec![ChannelPubs {
@@ -131,7 +131,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     let bridge = Arc::new(Inputs::new(
         "/bridge_test".into(),
         store,
-        engine.requests,
+        started.requests,
         events,
         notes_tx,
         state,
@@ -141,7 +141,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     let diag = ros.sub::<DiagnosticArray>("/diagnostics", default_qos());
 
     // The report thread, as the node runs it: it owns the reporter.
-    let mut reports = engine.reports;
+    let mut reports = started.reports;
     // It hands the reporter back: its publishers must outlive the ERROR they were given, as
     // in the node (a DDS writer dropped at once can take its last sample with it).
     let pump = std::thread::spawn(move || {
@@ -182,9 +182,12 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
 
     // The output thread ends with the fault (the stop is asked for when the fault is
     // reported, a moment before the thread is gone).
-    let result = engine.handle.shutdown();
+    let result = started.handle.shutdown();
     assert!(
-        matches!(result, Err(EngineError::OutputFault { channel: 0, .. })),
+        matches!(
+            result,
+            Err(OutputThreadError::OutputFault { channel: 0, .. })
+        ),
         "{result:?}"
     );
     // The output thread is gone: a parameter change cannot reach it and changes nothing.
@@ -192,7 +195,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         vec![("pw01.period_ms".into(), ParameterValue::Integer(200))],
         "test",
     );
-    assert!(matches!(r, Err(ChangeError::Engine { .. })), "{r:?}");
+    assert!(matches!(r, Err(ChangeError::OutputThread { .. })), "{r:?}");
     assert_eq!(
         bridge.with_params(|s| s.channel(0).map(|c| c.period_ms)),
         Some(50),

@@ -1,6 +1,6 @@
 //! The benchmark's floor: a bare timerfd loop that wakes at the very deadlines the output thread
 //! was given in the same run and does nothing else, on the same thread set-up (priority, timer
-//! slack, mlockall) because it is started with `engine::spawn_with` too. Its lateness is
+//! slack, mlockall) because it is started with `output_thread::spawn_with` too. Its lateness is
 //! measured when the timer's wake-up has been read, so it is what any user-space timer thread
 //! reaches on this kernel and machine; the output thread cannot do better than that.
 //!
@@ -9,14 +9,16 @@
 use nix::sys::timerfd::TimerFd;
 use pwm_actuator::clock;
 use pwm_actuator::core::{ChannelConfig, Nanos};
-use pwm_actuator::engine::{self, EngineError, EngineHandle, EngineOptions, OutputThread};
 use pwm_actuator::output::Output;
+use pwm_actuator::output_thread::{
+    self, OutputThreadError, OutputThreadHandle, OutputThreadOptions, ThreadLoop,
+};
 use std::sync::mpsc;
 
 /// A running floor loop.
 pub struct Floor {
     /// Stops the thread (after its last deadline, or early).
-    pub handle: EngineHandle,
+    pub handle: OutputThreadHandle,
     /// The lateness of every deadline, ns, in order; sent once the thread stops.
     pub lateness: mpsc::Receiver<Vec<i64>>,
 }
@@ -28,12 +30,12 @@ pub struct Floor {
 pub fn spawn<O: Output>(
     configs: Vec<ChannelConfig>,
     output: O,
-    opts: EngineOptions,
+    opts: OutputThreadOptions,
     deadlines: Vec<Nanos>,
-) -> Result<Floor, EngineError> {
-    let timer = engine::monotonic_timer()?;
+) -> Result<Floor, OutputThreadError> {
+    let timer = output_thread::monotonic_timer()?;
     let (tx, rx) = mpsc::channel();
-    let engine = engine::spawn_with(configs, output, opts, move |thread| {
+    let started = output_thread::spawn_with(configs, output, opts, move |thread| {
         // Allocated before the first deadline, as the output thread's buffers are.
         let mut lateness = Vec::with_capacity(deadlines.len());
         let result = sleep_until_each(thread, &timer, &deadlines, &mut lateness);
@@ -41,23 +43,23 @@ pub fn spawn<O: Output>(
         result
     })?;
     Ok(Floor {
-        handle: engine.handle,
+        handle: started.handle,
         lateness: rx,
     })
 }
 
 /// The loop: the same syscalls per wake-up as the output thread's loop (its
-/// [`OutputThread::sleep_on`]: arm the timer with an absolute deadline, poll it beside the
+/// [`ThreadLoop::sleep_on`]: arm the timer with an absolute deadline, poll it beside the
 /// request eventfd, read what fired), then one clock read.
 /// A deadline not yet due when the timer is armed cannot be taken early: the timer is
 /// absolute.
 /// After the last deadline it only waits for the stop.
 fn sleep_until_each<O: Output>(
-    thread: &mut OutputThread<O>,
+    thread: &mut ThreadLoop<O>,
     timer: &TimerFd,
     deadlines: &[Nanos],
     lateness: &mut Vec<i64>,
-) -> Result<(), EngineError> {
+) -> Result<(), OutputThreadError> {
     let mut next = 0;
     while !thread.stop_requested() {
         if thread.sleep_on(timer, deadlines.get(next).copied())? {

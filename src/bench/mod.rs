@@ -1,7 +1,7 @@
 //! `pwm_actuator_node bench`: edge lateness of the output thread against a tokio `sleep_until`
 //! baseline, in one run, with the same channels, period, duty and simulated output.
 //!
-//! Both sides run the very same output thread and per-wake-up work (`engine::spawn_with`);
+//! Both sides run the very same output thread and per-wake-up work (`output_thread::spawn_with`);
 //! only the loop that puts the thread to sleep differs ([`baseline`] for tokio). Lateness is
 //! the time the output write returned minus the time the core scheduled the edge, read from
 //! the edge reports the ROS side would publish.
@@ -14,9 +14,11 @@ mod floor;
 use clap::Args;
 use pwm_actuator::clock;
 use pwm_actuator::core::{Bank, ChannelParams, Command, ConfigError, Nanos, Phase, NS_PER_MS};
-use pwm_actuator::engine::{self, Engine, EngineError, EngineOptions, Input, Report, Request};
 use pwm_actuator::error::chain;
 use pwm_actuator::output::{SimOutput, TraceError};
+use pwm_actuator::output_thread::{
+    self, Input, OutputThread, OutputThreadError, OutputThreadOptions, Report, Request,
+};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::time::Duration;
@@ -414,7 +416,7 @@ pub enum BenchError {
     /// The output thread (or the side's stand-in for it) failed to start, take a request or
     /// stop.
     #[error(transparent)]
-    Engine(#[from] EngineError),
+    OutputThread(#[from] OutputThreadError),
     /// The thread reading the reports panicked.
     #[error("reader thread panicked")]
     ReaderPanicked,
@@ -426,7 +428,7 @@ pub enum BenchError {
 /// Which sleeping loop a side runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Side {
-    /// The node's own: `engine::spawn`, timerfd.
+    /// The node's own: `output_thread::spawn`, timerfd.
     Ours,
     /// tokio's `sleep_until` ([`baseline`]).
     Baseline,
@@ -444,13 +446,13 @@ fn run_side(
     let output = SimOutput::new(names, None)?;
     let configs = vec![cfg; opts.channels];
     reset_peak_rss();
-    let Engine {
+    let OutputThread {
         mut requests,
         mut reports,
         handle,
     } = match side {
-        Side::Ours => engine::spawn(configs, output, engine_options(opts)),
-        Side::Baseline => baseline::spawn(configs, output, engine_options(opts)),
+        Side::Ours => output_thread::spawn(configs, output, thread_options(opts)),
+        Side::Baseline => baseline::spawn(configs, output, thread_options(opts)),
     }?;
 
     // The reader: what the ROS side does, minus publishing.
@@ -472,8 +474,9 @@ fn run_side(
         (edges, reports.dropped(), cpu_pct)
     });
 
-    let send =
-        |requests: &mut engine::Requests, channel, input| requests.send(Request { channel, input });
+    let send = |requests: &mut output_thread::Requests, channel, input| {
+        requests.send(Request { channel, input })
+    };
     let reading = if opts.mpc {
         PID_SETPOINT_C
     } else {
@@ -565,7 +568,7 @@ fn run_floor(
     let floor = floor::spawn(
         vec![cfg; opts.channels],
         output,
-        engine_options(opts),
+        thread_options(opts),
         absolute,
     )?;
     // CPU is measured from the first deadline to the last, as long as the other sides' window.
@@ -582,15 +585,15 @@ fn run_floor(
     Ok(figures(&mut lateness, measured, 0))
 }
 
-fn engine_options(opts: &BenchOptions) -> EngineOptions {
-    EngineOptions {
+fn thread_options(opts: &BenchOptions) -> OutputThreadOptions {
+    OutputThreadOptions {
         rt_priority: opts.rt_priority,
         queue_capacity: 16_384,
         bank: Bank {
             phase: opts.phase,
             max_on: opts.max_simultaneous_on,
         },
-        ..EngineOptions::default()
+        ..OutputThreadOptions::default()
     }
 }
 

@@ -23,7 +23,7 @@ pub struct LineChange {
 /// Implementations must leave every line inactive when dropped, and must make
 /// [`Output::set_all_inactive`] work even after a failed write.
 pub trait Output: Send + 'static {
-    /// The backend's error: its own type, with a [`ErrorKind`] the engine can act on.
+    /// The backend's error: its own type, with a [`ErrorKind`] the output thread can act on.
     type Error: OutputError;
 
     /// Number of lines this backend drives.
@@ -41,7 +41,7 @@ pub trait Output: Send + 'static {
 }
 
 /// What went wrong in a backend, as a small comparable value (embedded-hal's `ErrorKind`
-/// style): the engine and the node act on the kind and keep the backend's own error as the
+/// style): the output thread and the node act on the kind and keep the backend's own error as the
 /// source for the message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 #[non_exhaustive]

@@ -96,7 +96,7 @@ impl SimShared {
         // Read once per call under the lock: records are in time order in the buffer.
         let now = monotonic_ns();
         for c in changes {
-            // The engine only hands bound lines; anything else is ignored, never a panic.
+            // The output thread only hands bound lines; anything else is ignored, never a panic.
             let Some(level) = self.levels.get(c.line) else {
                 continue;
             };

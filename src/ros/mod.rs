@@ -1,9 +1,9 @@
 //! The ROS 2 shell around the output thread: topics, services, parameters, diagnostics,
 //! logging and the command line.
 //!
-//! It only translates: ROS messages and parameter changes become engine requests, engine
+//! It only translates: ROS messages and parameter changes become requests to the output thread, its
 //! reports become ROS messages and log lines. It never decides timing (the core does) and
-//! never writes an output (the engine does).
+//! never writes an output (the output thread does).
 //!
 //! Five folders, each a layer that may import only the layers before it (checked by
 //! `scripts/check-layers.py`, run by the test command), and [`node`], which wires them:

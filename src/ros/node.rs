@@ -12,12 +12,14 @@ use crate::core::config::ShortStr;
 use crate::core::valve::ValveStart;
 use crate::core::ChannelConfig;
 use crate::core::ValveConfig;
-use crate::engine::{self, Engine, EngineError, EngineOptions, Input, Reports};
 use crate::error::chain;
 use crate::output::fault::{Fault, FAULT_ENV};
 use crate::output::{
     self, install_panic_hook, AnyOutput, Backend, LineSlot, OpenError, Output, TraceFormat,
     TraceHealth, TraceSpec,
+};
+use crate::output_thread::{
+    self, Input, OutputThread, OutputThreadError, OutputThreadOptions, Reports,
 };
 use crate::ros::config::args::{self, ArgsError, RosArgs};
 use crate::ros::config::cli::{self, CliError, DEMO_ORIGIN, EXIT_FAILURE, EXIT_USAGE};
@@ -67,7 +69,7 @@ pub enum NodeError {
     Output(#[from] OpenError),
     /// The output thread cannot start or failed.
     #[error("output thread: {0}")]
-    Engine(#[source] EngineError),
+    OutputThread(#[source] OutputThreadError),
     /// A ROS entity cannot be created.
     #[error("ROS: cannot create {what}")]
     Ros {
@@ -116,7 +118,7 @@ impl NodeError {
         match self {
             // Opening the output fails only on configuration: a trace path, a line bound
             // twice, a missing chip, a busy line, an offset the chip lacks, no permission.
-            // Write faults come later, as `Engine`.
+            // Write faults come later, as `OutputThread`.
             NodeError::Config(_) | NodeError::Output(_) => EXIT_USAGE,
             _ => EXIT_FAILURE,
         }
@@ -444,9 +446,9 @@ fn mcap_trace(
 }
 
 /// Starts the output thread on the opened output.
-fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeError> {
+fn start_output_thread(cfg: &StartupConfig, output: AnyOutput) -> Result<OutputThread, NodeError> {
     let configs: Vec<ChannelConfig> = cfg.channels.iter().map(|c| c.config).collect();
-    let opts = EngineOptions {
+    let opts = OutputThreadOptions {
         rt_priority: cfg.settings.rt_priority,
         heartbeat_half_period_ns: cfg.heartbeat_hz().map(|hz| (5e8 / hz).round() as u64),
         // A managed node starts unconfigured: every line held inactive.
@@ -456,10 +458,11 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
         // until its next edge, request or status resend (a snapshot the full report queue
         // refused, e.g. the e-stop's after the thread was stopped behind a full queue:
         // test_an_estop_acts_while_the_output_thread_is_stopped_behind_a_full_queue).
-        liveness_tick_ns: crate::service::watchdog_interval().map(|_| engine::LIVENESS_TICK_NS),
-        ..EngineOptions::default()
+        liveness_tick_ns: crate::service::watchdog_interval()
+            .map(|_| output_thread::LIVENESS_TICK_NS),
+        ..OutputThreadOptions::default()
     };
-    let engine = engine::spawn(configs, output, opts).map_err(NodeError::Engine)?;
+    let started = output_thread::spawn(configs, output, opts).map_err(NodeError::OutputThread)?;
     if let Some(Fault::PanicAfterMs(ms)) = Fault::from_env()? {
         warn!("{FAULT_ENV}: panicking in {ms} ms");
         std::thread::spawn(move || {
@@ -467,11 +470,11 @@ fn start_engine(cfg: &StartupConfig, output: AnyOutput) -> Result<Engine, NodeEr
             panic!("{FAULT_ENV}: injected panic after {ms} ms");
         });
     }
-    Ok(engine)
+    Ok(started)
 }
 
 /// Moves reports from the output thread to ROS until `quit` is set or the output thread ends.
-/// A plain thread that owns the reporter: it sleeps on the engine's eventfd ([`Reports::wait`])
+/// A plain thread that owns the reporter: it sleeps on The output thread's eventfd ([`Reports::wait`])
 /// or until the reporter's next periodic message, and publishes, which never waits for a
 /// subscriber. It hands the reporter back when it ends: its publishers must outlive the last
 /// messages they were given (a DDS writer dropped at once can take its last sample with it —
@@ -621,12 +624,12 @@ async fn serve(
         .create_publisher(&context.get_parameter_events_topic(), None)
         .map_err(ros_err("publisher /parameter_events"))?;
 
-    let engine = start_engine(&cfg, output)?;
-    let Engine {
+    let started = start_output_thread(&cfg, output)?;
+    let OutputThread {
         requests,
         reports,
         handle,
-    } = engine;
+    } = started;
     let (notes_tx, notes_rx) = std::sync::mpsc::sync_channel(NOTE_QUEUE);
     let health = channel_health(&cfg, &hardware_ids);
     let stop_signal = Arc::new(StopSignal::default());
@@ -780,7 +783,7 @@ async fn serve(
     }
 }
 
-fn output_fault(fault: Option<&str>, result: &Result<(), EngineError>) -> bool {
+fn output_fault(fault: Option<&str>, result: &Result<(), OutputThreadError>) -> bool {
     if let Some(f) = fault {
         error!("output fault: {f}");
     }

@@ -42,7 +42,7 @@ from test_estop import estop_publisher, release, reset
 
 PAIR = ("pw01", "pw02")
 #: The bound within which the output thread must take a safety input once the node has it, else
-#: the outputs are switched off by the emergency handle (engine::SAFETY_TAKE_BOUND; the 250 ms
+#: the outputs are switched off by the emergency handle (output_thread::SAFETY_TAKE_BOUND; the 250 ms
 #: of docs/safety.md).
 TAKE_BOUND_NS = 250 * MS
 #: What the test allows on top of it for the input's way to the node: DDS delivery behind the

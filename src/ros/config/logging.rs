@@ -19,7 +19,7 @@
 //! a parameter set, the e-stop; see [`rate_limited`]): an input flood cannot flood the log.
 //!
 //! Must not block for long or allocate without bound: it runs on every thread that logs, never
-//! on the output thread's hot path (the engine does not log there).
+//! on the output thread's hot path (the output thread does not log there).
 
 use crate::ros::config::args::RosArgs;
 use log::{LevelFilter, Log, Metadata, Record};

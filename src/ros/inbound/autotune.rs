@@ -20,7 +20,7 @@
 
 use crate::clock::monotonic_ns;
 use crate::core::heater::autotune::{Goal, Outcome, Progress, Report, Stop};
-use crate::engine::Input;
+use crate::output_thread::Input;
 use crate::ros::config::params::ChannelValues;
 use crate::ros::inbound::heater::HeaterChannel;
 use crate::ros::inbound::inputs::Inputs;

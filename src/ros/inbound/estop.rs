@@ -10,8 +10,8 @@
 
 use crate::clock;
 use crate::core::Nanos;
-use crate::engine::Input;
 use crate::output::safety::lock_ignore_poison as lock;
+use crate::output_thread::Input;
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::interface::msg::{self, TriggerResponse};
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};

@@ -8,7 +8,7 @@
 //! core, which alone knows whether the fault's condition is gone; the service waits for its
 //! answer, which the report thread files in the node state.
 
-use crate::engine::Input;
+use crate::output_thread::Input;
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::interface::msg::{self, TriggerResponse};
 use crate::ros::interface::qos;

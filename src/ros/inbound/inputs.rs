@@ -15,8 +15,8 @@
 
 use crate::clock;
 use crate::core::{split_command, Command, Nanos};
-use crate::engine::{EngineError, Input, Request, Requests, SafetyPath};
 use crate::output::safety::lock_ignore_poison as lock;
+use crate::output_thread::{Input, OutputThreadError, Request, Requests, SafetyPath};
 use crate::ros::config::params::ChannelStart;
 use crate::ros::config::params::{self, show_value, ParamError, ParamStore, Stage};
 use crate::ros::config::split::SplitPair;
@@ -61,10 +61,10 @@ pub enum ChangeError {
     Param(#[from] ParamError),
     /// The output thread did not take the new configuration; nothing changed.
     #[error("the output thread did not take the new settings ({source}); nothing changed")]
-    Engine {
-        /// The engine's error.
+    OutputThread {
+        /// The output thread's error.
         #[source]
-        source: EngineError,
+        source: OutputThreadError,
     },
 }
 
@@ -152,7 +152,7 @@ impl Inputs {
     }
 
     /// Queues a request for the output thread; a full or closed queue is logged.
-    pub fn send(&self, channel: usize, input: Input) -> Result<(), EngineError> {
+    pub fn send(&self, channel: usize, input: Input) -> Result<(), OutputThreadError> {
         let r = lock(&self.requests).send(Request { channel, input });
         if let Err(e) = &r {
             warn!(
@@ -231,7 +231,7 @@ impl Inputs {
             .collect();
         if let Err(source) = lock(&self.requests).send_all(&new) {
             drop(store);
-            let e = ChangeError::Engine { source };
+            let e = ChangeError::OutputThread { source };
             self.refused(&items, door, &e.to_string());
             return Err(e);
         }

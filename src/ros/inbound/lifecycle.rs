@@ -11,10 +11,10 @@
 //! no line requested; inactive, lines requested and held inactive; active, lines follow their
 //! channels; finalized, lines released.
 
-use crate::engine::{Input, NotTaken};
 use crate::error::chain;
 use crate::output::safety::lock_ignore_poison as lock;
 use crate::output::{GpioError, LineSlot};
+use crate::output_thread::{Input, NotTaken};
 use crate::ros::config::params::ParamError;
 use crate::ros::inbound::inputs::Inputs;
 pub use crate::ros::interface::lifecycle::{state, state_label, Edge, GRAPH, STATES};

@@ -9,7 +9,7 @@
 //! note queued for it) wakes it ([`NodeState::wake_reporter`]): it sleeps until something is
 //! due rather than looking again and again.
 
-use crate::engine::ReportWaker;
+use crate::output_thread::ReportWaker;
 use crate::ros::config::params::ParamStore;
 pub use crate::ros::config::params::{
     DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW, MAX_COMMAND_HZ_WINDOW,

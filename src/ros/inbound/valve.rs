@@ -15,8 +15,8 @@
 
 use crate::core::valve::{Dir, Manual, ResetAnswer, ValveFault, ValveStart};
 use crate::core::ValveConfig;
-use crate::engine::Input;
 use crate::output::gpio_input::{InputError, InputLine, InputRequest};
+use crate::output_thread::Input;
 use crate::ros::config::valve::{LimitLine, ValveLimits, ValveSpec};
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::interface::msg::{self, TriggerResponse};

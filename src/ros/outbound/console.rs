@@ -6,7 +6,7 @@
 //! passes the times in.
 
 use crate::core::{Level, Nanos};
-use crate::engine::EdgeReport;
+use crate::output_thread::EdgeReport;
 
 const WINDOW_NS: Nanos = 1_000_000_000;
 

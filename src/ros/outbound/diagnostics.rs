@@ -12,7 +12,7 @@
 //! The node itself has one more status, `<node name>: node` ([`NodeHealth`]): the output
 //! thread's lateness over the last second, lost reports, the lifecycle state and the e-stop.
 //!
-//! Pure bookkeeping fed by engine reports; it does not publish and does not read clocks (times
+//! Pure bookkeeping fed by the output thread's reports; it does not publish and does not read clocks (times
 //! are passed in).
 
 use crate::core::heater::autotune::{Phase, Progress};

@@ -16,7 +16,7 @@
 
 use crate::clock;
 use crate::core::{Event, Nanos, Status};
-use crate::engine::{EdgeReport, Report};
+use crate::output_thread::{EdgeReport, Report};
 use crate::ros::config::logging;
 use crate::ros::config::params::{MAX_STATUS_RATE_HZ, MIN_STATUS_RATE_HZ};
 use crate::ros::inbound::inputs::Note;

@@ -9,7 +9,7 @@
 //! `validate`), so cross-parameter rules (`min_on_ms <= period_ms`, the minima fitting the
 //! period, a valve's minimum pulse within its travel times) hold whatever order the values
 //! arrive in. A refused change leaves
-//! the store untouched and says why. Nothing here talks to ROS or to the engine.
+//! the store untouched and says why. Nothing here talks to ROS or to the output thread.
 //!
 //! Type coercion, the same through every door: an integer parameter accepts a double that is a
 //! whole number (`500.0` becomes `500`), a double parameter accepts an integer (`1` becomes

@@ -3,11 +3,13 @@
 //! shutdown leaves every output off.
 
 use pwm_actuator::core::{Channel, ChannelConfig, ChannelParams, Command, Event, Level, Nanos};
-use pwm_actuator::engine::{self, EngineError, EngineOptions, Input, Report, Request};
 use pwm_actuator::output::fault::FailingOutput;
 use pwm_actuator::output::{
     CsvRow, EmergencyOff, ErrorKind, LineChange, Output, OutputError, SimOutput, SimProbe,
     TraceSpec,
+};
+use pwm_actuator::output_thread::{
+    self, Input, OutputThreadError, OutputThreadOptions, Report, Request,
 };
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -31,20 +33,24 @@ fn read_csv(path: &Path) -> Vec<CsvRow> {
 
 /// Two channels with `cfgs` on a simulated output traced to `dir/<file>.csv`, running; the
 /// trace's path with it.
-fn spawn_traced(dir: &Path, file: &str, cfgs: Vec<ChannelConfig>) -> (PathBuf, engine::Engine) {
+fn spawn_traced(
+    dir: &Path,
+    file: &str,
+    cfgs: Vec<ChannelConfig>,
+) -> (PathBuf, output_thread::OutputThread) {
     let csv = dir.join(format!("{file}.csv"));
     let trace = TraceSpec::from_paths(std::slice::from_ref(&csv)).unwrap();
     let output = SimOutput::new(names(cfgs.len()), Some(trace)).unwrap();
     (
         csv,
-        engine::spawn(cfgs, output, EngineOptions::default()).unwrap(),
+        output_thread::spawn(cfgs, output, OutputThreadOptions::default()).unwrap(),
     )
 }
 
 /// One input or poll of a channel core, handing its events to the given sink.
 type CoreStep<'a> = &'a mut dyn FnMut(&mut Channel, &mut dyn FnMut(Event));
 
-fn send(requests: &mut engine::Requests, channel: usize, input: Input) {
+fn send(requests: &mut output_thread::Requests, channel: usize, input: Input) {
     requests.send(Request { channel, input }).expect("queued");
 }
 
@@ -69,7 +75,7 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
     std::thread::sleep(Duration::from_millis(600));
     e.handle.shutdown().unwrap();
 
-    // Collect the engine's own account of when each input was applied: the first edge of a
+    // Collect The output thread's own account of when each input was applied: the first edge of a
     // channel is its enable; the duty change shows in a Plan report.
     let mut reports = Vec::new();
     while let Some(r) = e.reports.try_recv() {
@@ -113,8 +119,8 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
             c.set_enable(enable_at, true, emit)
         });
         // Channel 2's duty change: under next_period it takes effect at the first period
-        // boundary after the engine applied it. That boundary is where the on time first
-        // becomes 7 ms; the engine's own status report of the 70 % command must lie in the
+        // boundary after the output thread applied it. That boundary is where the on time first
+        // becomes 7 ms; The output thread's own status report of the 70 % command must lie in the
         // period before it.
         let change_at = (ch == 1).then(|| {
             let rises: Vec<Nanos> = edges
@@ -276,7 +282,7 @@ fn a_failing_write_drives_the_other_outputs_inactive_and_stops() {
     let probe = sim.probe();
     let out = FailingOutput::new(sim, 5).on_line(1);
     let cfgs = vec![params(10).validate().unwrap(); 3];
-    let mut e = engine::spawn(cfgs, out, EngineOptions::default()).unwrap();
+    let mut e = output_thread::spawn(cfgs, out, OutputThreadOptions::default()).unwrap();
     // Channels 0 and 2 at 100 %: constantly on, until the fault.
     for (ch, duty) in [(0, 100.0), (1, 50.0), (2, 100.0)] {
         send(&mut e.requests, ch, Input::Command(Command::Percent(duty)));
@@ -307,10 +313,10 @@ fn a_failing_write_drives_the_other_outputs_inactive_and_stops() {
             channel: 0,
             input: Input::Enable(false)
         }),
-        Err(EngineError::Stopped)
+        Err(OutputThreadError::Stopped)
     ));
     match e.handle.shutdown() {
-        Err(EngineError::OutputFault {
+        Err(OutputThreadError::OutputFault {
             channel: 1,
             kind: ErrorKind::Injected,
             source,
@@ -363,14 +369,14 @@ fn a_shutdown_failure_names_the_channel_whose_line_failed() {
     let sim = SimOutput::new(names(3), None).unwrap();
     let out = OffFails { sim, line: 2 };
     let cfgs = vec![params(10).validate().unwrap(); 3];
-    let e = engine::spawn(cfgs, out, EngineOptions::default()).unwrap();
+    let e = output_thread::spawn(cfgs, out, OutputThreadOptions::default()).unwrap();
     match e.handle.shutdown() {
-        Err(err @ EngineError::ShutdownFault { .. }) => {
+        Err(err @ OutputThreadError::ShutdownFault { .. }) => {
             assert_eq!(err.channel(), Some(2));
             assert!(
                 matches!(
                     err,
-                    EngineError::ShutdownFault {
+                    OutputThreadError::ShutdownFault {
                         kind: ErrorKind::Write,
                         ..
                     }
@@ -392,11 +398,11 @@ fn a_lagging_reader_loses_reports_but_never_stalls_the_thread() {
     let sim = SimOutput::new(names(1), None).unwrap();
     let probe = sim.probe();
     let cfgs = vec![params(5).validate().unwrap()];
-    let opts = EngineOptions {
+    let opts = OutputThreadOptions {
         queue_capacity: 16,
-        ..EngineOptions::default()
+        ..OutputThreadOptions::default()
     };
-    let mut e = engine::spawn(cfgs, sim, opts).unwrap();
+    let mut e = output_thread::spawn(cfgs, sim, opts).unwrap();
     send(&mut e.requests, 0, Input::Command(Command::Percent(50.0)));
     send(&mut e.requests, 0, Input::Enable(true));
     // 400 edges a second with their status reports go into a 16-entry queue nobody reads; the
@@ -415,7 +421,7 @@ fn a_lagging_reader_loses_reports_but_never_stalls_the_thread() {
 }
 
 /// Commands every channel to `duty` % and enables it, then waits until every line is high.
-fn switch_on(e: &mut engine::Engine, probe: &SimProbe, duty: f64) {
+fn switch_on(e: &mut output_thread::OutputThread, probe: &SimProbe, duty: f64) {
     let n = probe.levels().len();
     for ch in 0..n {
         send(&mut e.requests, ch, Input::Command(Command::Percent(duty)));
@@ -436,7 +442,7 @@ fn shutdown_leaves_every_output_inactive() {
     let sim = SimOutput::new(names(2), None).unwrap();
     let probe = sim.probe();
     let cfgs = vec![params(1000).validate().unwrap(); 2];
-    let mut e = engine::spawn(cfgs, sim, EngineOptions::default()).unwrap();
+    let mut e = output_thread::spawn(cfgs, sim, OutputThreadOptions::default()).unwrap();
     switch_on(&mut e, &probe, 90.0);
     e.handle.shutdown().unwrap();
     assert_eq!(probe.levels(), vec![Level::Low; 2]);
@@ -463,25 +469,26 @@ fn a_loop_that_fails_still_leaves_every_output_inactive() {
     let cfgs = vec![params(1000).validate().unwrap(); 2];
     let seen_high = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let fail_now = std::sync::Arc::clone(&seen_high);
-    let mut e = engine::spawn_with(cfgs, sim, EngineOptions::default(), move |thread| {
-        let start = Instant::now();
-        while !fail_now.load(std::sync::atomic::Ordering::SeqCst)
-            && start.elapsed() < Duration::from_secs(20)
-        {
-            thread.work()?;
-            std::thread::sleep(Duration::from_millis(2));
-        }
-        Err(EngineError::Sys {
-            what: "poll",
-            source: nix::errno::Errno::EIO,
+    let mut e =
+        output_thread::spawn_with(cfgs, sim, OutputThreadOptions::default(), move |thread| {
+            let start = Instant::now();
+            while !fail_now.load(std::sync::atomic::Ordering::SeqCst)
+                && start.elapsed() < Duration::from_secs(20)
+            {
+                thread.work()?;
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            Err(OutputThreadError::Sys {
+                what: "poll",
+                source: nix::errno::Errno::EIO,
+            })
         })
-    })
-    .unwrap();
+        .unwrap();
     switch_on(&mut e, &probe, 100.0);
     seen_high.store(true, std::sync::atomic::Ordering::SeqCst);
     let r = e.handle.shutdown();
     assert!(
-        matches!(r, Err(EngineError::Sys { what: "poll", .. })),
+        matches!(r, Err(OutputThreadError::Sys { what: "poll", .. })),
         "{r:?}"
     );
     assert_eq!(probe.levels(), vec![Level::Low; 2]);

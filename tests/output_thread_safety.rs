@@ -5,10 +5,10 @@
 //! does not take within the bound has the outputs switched off by the emergency handle.
 
 use pwm_actuator::core::{Bank, ChannelParams, Command, Level, Phase};
-use pwm_actuator::engine::{
-    self, EngineError, EngineOptions, Input, NotTaken, Request, SAFETY_TAKE_BOUND,
-};
 use pwm_actuator::output::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
+use pwm_actuator::output_thread::{
+    self, Input, NotTaken, OutputThreadError, OutputThreadOptions, Request, SAFETY_TAKE_BOUND,
+};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
@@ -150,7 +150,7 @@ impl Shared {
 
 const QUEUE: usize = 16;
 
-fn start(channels: usize, duty: f64) -> (Arc<Shared>, engine::Engine) {
+fn start(channels: usize, duty: f64) -> (Arc<Shared>, output_thread::OutputThread) {
     let shared = Shared::new(channels);
     let cfg = ChannelParams {
         period_ms: 20,
@@ -158,11 +158,11 @@ fn start(channels: usize, duty: f64) -> (Arc<Shared>, engine::Engine) {
     }
     .validate()
     .unwrap();
-    let opts = EngineOptions {
+    let opts = OutputThreadOptions {
         queue_capacity: QUEUE,
-        ..EngineOptions::default()
+        ..OutputThreadOptions::default()
     };
-    let mut e = engine::spawn(
+    let mut e = output_thread::spawn(
         vec![cfg; channels],
         StallingOutput(Arc::clone(&shared)),
         opts,
@@ -177,13 +177,13 @@ fn start(channels: usize, duty: f64) -> (Arc<Shared>, engine::Engine) {
 }
 
 /// Fills the request queue with duty commands until it refuses one.
-fn fill(e: &mut engine::Engine) {
+fn fill(e: &mut output_thread::OutputThread) {
     for k in 0..10 * QUEUE {
         let r = e.requests.send(Request {
             channel: 0,
             input: Input::Command(Command::Percent(40.0 + (k % 20) as f64)),
         });
-        if matches!(r, Err(EngineError::QueueFull { .. })) {
+        if matches!(r, Err(OutputThreadError::QueueFull { .. })) {
             return;
         }
     }
@@ -192,7 +192,7 @@ fn fill(e: &mut engine::Engine) {
 
 /// With the thread stuck in a write and the queue full, `input` is sent: it is accepted, and
 /// taken as soon as the write returns (well within the bound), acknowledged only then.
-fn taken_behind_a_full_queue(e: &mut engine::Engine, shared: &Shared, input: Input) {
+fn taken_behind_a_full_queue(e: &mut output_thread::OutputThread, shared: &Shared, input: Input) {
     std::thread::sleep(Duration::from_millis(50));
     shared.stall();
     fill(e);
@@ -270,7 +270,7 @@ fn a_safety_input_not_taken_in_time_switches_the_outputs_off_by_the_emergency_ha
     assert!(!shared.any_high());
     assert!(matches!(
         e.handle.shutdown(),
-        Err(EngineError::OutputFault { .. })
+        Err(OutputThreadError::OutputFault { .. })
     ));
 }
 
@@ -291,10 +291,16 @@ fn send_all_queues_all_or_nothing() {
     }
     let two = [command(0), command(1)];
     let r = e.requests.send_all(&two);
-    assert!(matches!(r, Err(EngineError::QueueFull { .. })), "{r:?}");
+    assert!(
+        matches!(r, Err(OutputThreadError::QueueFull { .. })),
+        "{r:?}"
+    );
     assert_eq!(e.requests.room(), 1, "nothing of a refused batch is queued");
     let r = e.requests.send_all(&[command(1), command(2)]);
-    assert!(matches!(r, Err(EngineError::NoSuchChannel(2))), "{r:?}");
+    assert!(
+        matches!(r, Err(OutputThreadError::NoSuchChannel(2))),
+        "{r:?}"
+    );
     assert_eq!(e.requests.room(), 1);
     e.requests.send_all(&two[..1]).unwrap();
     assert_eq!(e.requests.room(), 0);

@@ -23,7 +23,7 @@ use std::time::Duration;
 
 /// Options of the output thread.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct EngineOptions {
+pub struct OutputThreadOptions {
     /// SCHED_FIFO priority 1..=99 for the output thread (and mlockall); `None` = normal
     /// scheduling.
     pub rt_priority: Option<i32>,
@@ -46,9 +46,9 @@ pub struct EngineOptions {
     pub liveness_tick_ns: Option<Nanos>,
 }
 
-impl Default for EngineOptions {
+impl Default for OutputThreadOptions {
     fn default() -> Self {
-        EngineOptions {
+        OutputThreadOptions {
             rt_priority: None,
             queue_capacity: 4096,
             heartbeat_half_period_ns: None,
@@ -61,7 +61,7 @@ impl Default for EngineOptions {
 
 /// Errors of the output thread.
 #[derive(Debug, thiserror::Error)]
-pub enum EngineError {
+pub enum OutputThreadError {
     /// No channel was configured.
     #[error("no channel configured")]
     NoChannels,
@@ -134,12 +134,12 @@ pub enum EngineError {
     Panicked,
 }
 
-impl EngineError {
+impl OutputThreadError {
     /// The channel (index) an output or shutdown fault concerns, when known.
     pub fn channel(&self) -> Option<usize> {
         match self {
-            EngineError::OutputFault { channel, .. } => Some(*channel),
-            EngineError::ShutdownFault { channel, .. } => *channel,
+            OutputThreadError::OutputFault { channel, .. } => Some(*channel),
+            OutputThreadError::ShutdownFault { channel, .. } => *channel,
             _ => None,
         }
     }
@@ -245,20 +245,22 @@ impl Requests {
     /// ([`Input::EStop`], [`Input::Live`], [`Input::Bank`]) go through the
     /// [`SafetyPath`] instead, which is never full; use [`Requests::safety`] to wait until
     /// the thread has taken them.
-    pub fn send(&mut self, request: Request) -> Result<(), EngineError> {
+    pub fn send(&mut self, request: Request) -> Result<(), OutputThreadError> {
         if request.channel >= self.channels {
-            return Err(EngineError::NoSuchChannel(request.channel));
+            return Err(OutputThreadError::NoSuchChannel(request.channel));
         }
         if self.tx.is_abandoned() {
-            return Err(EngineError::Stopped);
+            return Err(OutputThreadError::Stopped);
         }
         if let Input::EStop(_) | Input::Live(_) | Input::Bank(_) = request.input {
             self.safety.store(request.input);
             return Ok(());
         }
-        self.tx.push(request).map_err(|_| EngineError::QueueFull {
-            capacity: self.tx.buffer().capacity(),
-        })?;
+        self.tx
+            .push(request)
+            .map_err(|_| OutputThreadError::QueueFull {
+                capacity: self.tx.buffer().capacity(),
+            })?;
         // EAGAIN here means the counter is saturated, i.e. a wake-up is pending anyway.
         let _ = self.wake.write(1);
         Ok(())
@@ -268,15 +270,15 @@ impl Requests {
     /// channel, the thread has stopped, or the queue lacks room for them all. For changes that
     /// must reach the output thread together (a parameter change touching several channels
     /// and valves).
-    pub fn send_all(&mut self, requests: &[Request]) -> Result<(), EngineError> {
+    pub fn send_all(&mut self, requests: &[Request]) -> Result<(), OutputThreadError> {
         if let Some(r) = requests.iter().find(|r| r.channel >= self.channels) {
-            return Err(EngineError::NoSuchChannel(r.channel));
+            return Err(OutputThreadError::NoSuchChannel(r.channel));
         }
         if self.tx.is_abandoned() {
-            return Err(EngineError::Stopped);
+            return Err(OutputThreadError::Stopped);
         }
         if self.tx.slots() < requests.len() {
-            return Err(EngineError::QueueFull {
+            return Err(OutputThreadError::QueueFull {
                 capacity: self.tx.buffer().capacity(),
             });
         }
@@ -405,18 +407,18 @@ impl std::fmt::Debug for ReportWaker {
     }
 }
 
-/// How long [`EngineHandle::shutdown`] waits for the output thread to end before it switches
+/// How long [`OutputThreadHandle::shutdown`] waits for the output thread to end before it switches
 /// the outputs off through the emergency handle and leaves the thread behind.
 pub const SHUTDOWN_WAIT: Duration = Duration::from_secs(2);
 
-/// The output thread's default [`EngineOptions::liveness_tick_ns`]: it wakes at least this
+/// The output thread's default [`OutputThreadOptions::liveness_tick_ns`]: it wakes at least this
 /// often, even with nothing to do, so that its liveness can be seen from outside
 /// ([`Liveness`]), ns.
 pub const LIVENESS_TICK_NS: Nanos = 100_000_000;
 
 /// Whether the output thread keeps its schedule, readable from any thread (the systemd
 /// watchdog's pinger reads it). Before each sleep the thread publishes the deadline it will
-/// wake at (never more than [`EngineOptions::liveness_tick_ns`] ahead, when set); a thread
+/// wake at (never more than [`OutputThreadOptions::liveness_tick_ns`] ahead, when set); a thread
 /// that is hung, stuck in a write, or starved of CPU falls behind that promise.
 #[derive(Clone)]
 pub struct Liveness(Arc<LivenessState>);
@@ -451,8 +453,8 @@ impl Liveness {
 }
 
 /// Controls the output thread's life.
-pub struct EngineHandle {
-    thread: Option<JoinHandle<Result<(), EngineError>>>,
+pub struct OutputThreadHandle {
+    thread: Option<JoinHandle<Result<(), OutputThreadError>>>,
     stop: Arc<AtomicBool>,
     wake: Arc<EventFd>,
     emergency: Arc<dyn EmergencyOff>,
@@ -460,7 +462,7 @@ pub struct EngineHandle {
     liveness: Liveness,
 }
 
-impl EngineHandle {
+impl OutputThreadHandle {
     /// The thread's liveness, for a watchdog.
     pub fn liveness(&self) -> Liveness {
         self.liveness.clone()
@@ -471,13 +473,13 @@ impl EngineHandle {
     ///
     /// A thread that has not ended after [`SHUTDOWN_WAIT`] (hung in a write) is left behind:
     /// every output is driven inactive through the emergency handle instead, and the result
-    /// is [`EngineError::Hung`].
-    pub fn shutdown(mut self) -> Result<(), EngineError> {
+    /// is [`OutputThreadError::Hung`].
+    pub fn shutdown(mut self) -> Result<(), OutputThreadError> {
         self.stop_and_join()
     }
 
-    /// [`EngineHandle::shutdown`]'s work, for it and for dropping the handle.
-    fn stop_and_join(&mut self) -> Result<(), EngineError> {
+    /// [`OutputThreadHandle::shutdown`]'s work, for it and for dropping the handle.
+    fn stop_and_join(&mut self) -> Result<(), OutputThreadError> {
         self.stop.store(true, Ordering::SeqCst);
         let _ = self.wake.write(1);
         let start = std::time::Instant::now();
@@ -486,7 +488,7 @@ impl EngineHandle {
                 self.emergency.all_inactive();
                 // Dropping the handle detaches the hung thread.
                 self.thread = None;
-                return Err(EngineError::Hung {
+                return Err(OutputThreadError::Hung {
                     waited_ms: start.elapsed().as_millis() as u64,
                 });
             }
@@ -494,7 +496,7 @@ impl EngineHandle {
         }
         match self.thread.take().map(JoinHandle::join) {
             Some(Ok(r)) => r,
-            Some(Err(_)) => Err(EngineError::Panicked),
+            Some(Err(_)) => Err(OutputThreadError::Panicked),
             None => Ok(()),
         }
     }
@@ -515,7 +517,7 @@ impl EngineHandle {
     }
 }
 
-impl Drop for EngineHandle {
+impl Drop for OutputThreadHandle {
     fn drop(&mut self) {
         if self.thread.is_some() {
             let _ = self.stop_and_join();
@@ -524,23 +526,23 @@ impl Drop for EngineHandle {
 }
 
 /// A running output thread and both ends of its queues.
-pub struct Engine {
+pub struct OutputThread {
     /// Requests in.
     pub requests: Requests,
     /// Reports out.
     pub reports: Reports,
     /// The thread's life.
-    pub handle: EngineHandle,
+    pub handle: OutputThreadHandle,
 }
 
 /// A non-blocking timerfd on CLOCK_MONOTONIC, for a loop that sleeps with
-/// [`OutputThread::sleep_on`].
-pub fn monotonic_timer() -> Result<TimerFd, EngineError> {
+/// [`ThreadLoop::sleep_on`].
+pub fn monotonic_timer() -> Result<TimerFd, OutputThreadError> {
     TimerFd::new(
         ClockId::CLOCK_MONOTONIC,
         TimerFlags::TFD_CLOEXEC | TimerFlags::TFD_NONBLOCK,
     )
-    .map_err(|source| EngineError::Sys {
+    .map_err(|source| OutputThreadError::Sys {
         what: "timerfd_create",
         source,
     })
@@ -552,8 +554,8 @@ pub fn monotonic_timer() -> Result<TimerFd, EngineError> {
 pub fn spawn<O: Output>(
     configs: Vec<ChannelConfig>,
     output: O,
-    opts: EngineOptions,
-) -> Result<Engine, EngineError> {
+    opts: OutputThreadOptions,
+) -> Result<OutputThread, OutputThreadError> {
     check_lines(&configs, &output, opts.heartbeat_half_period_ns.is_some())?;
     let timer = monotonic_timer()?;
     spawn_with(configs, output, opts, move |thread| {
@@ -571,7 +573,7 @@ fn prefault<T: Copy>(tx: &mut rtrb::Producer<T>, rx: &mut rtrb::Consumer<T>, fil
 }
 
 /// Starts the output thread like [`spawn`], but with `run` as the loop that puts it to sleep
-/// between wake-ups. `run` calls [`OutputThread::work`] at every wake-up until it returns
+/// between wake-ups. `run` calls [`ThreadLoop::work`] at every wake-up until it returns
 /// `Ok(false)` (stop requested) and then returns `Ok(())`; the thread then drives every line
 /// inactive. An `Err` from `work` (an output fault) should be returned as is.
 ///
@@ -581,15 +583,15 @@ fn prefault<T: Copy>(tx: &mut rtrb::Producer<T>, rx: &mut rtrb::Consumer<T>, fil
 pub fn spawn_with<O, R>(
     configs: Vec<ChannelConfig>,
     output: O,
-    opts: EngineOptions,
+    opts: OutputThreadOptions,
     run: R,
-) -> Result<Engine, EngineError>
+) -> Result<OutputThread, OutputThreadError>
 where
     O: Output,
-    R: FnOnce(&mut OutputThread<O>) -> Result<(), EngineError> + Send + 'static,
+    R: FnOnce(&mut ThreadLoop<O>) -> Result<(), OutputThreadError> + Send + 'static,
 {
     check_lines(&configs, &output, opts.heartbeat_half_period_ns.is_some())?;
-    let sys = |what| move |source| EngineError::Sys { what, source };
+    let sys = |what| move |source| OutputThreadError::Sys { what, source };
     let flags = EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK;
     let req_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
     let rep_wake = Arc::new(EventFd::from_flags(flags).map_err(sys("eventfd"))?);
@@ -633,7 +635,7 @@ where
                 if opts.start_held {
                     worker.set_live(now, false);
                 }
-                let mut thread = OutputThread {
+                let mut thread = ThreadLoop {
                     worker,
                     liveness,
                     liveness_tick_ns: opts.liveness_tick_ns,
@@ -654,9 +656,9 @@ where
                 alive.store(false, Ordering::Release);
                 ran.and(finished)
             })
-            .map_err(EngineError::Spawn)?
+            .map_err(OutputThreadError::Spawn)?
     };
-    Ok(Engine {
+    Ok(OutputThread {
         requests: Requests {
             tx: req_tx,
             wake: req_wake.clone(),
@@ -673,7 +675,7 @@ where
             wake: rep_wake,
             dropped,
         },
-        handle: EngineHandle {
+        handle: OutputThreadHandle {
             thread: Some(thread),
             stop,
             wake: req_wake,
@@ -689,13 +691,13 @@ fn check_lines<O: Output>(
     configs: &[ChannelConfig],
     output: &O,
     heartbeat: bool,
-) -> Result<(), EngineError> {
+) -> Result<(), OutputThreadError> {
     if configs.is_empty() {
-        return Err(EngineError::NoChannels);
+        return Err(OutputThreadError::NoChannels);
     }
     let needed = configs.len() + usize::from(heartbeat);
     if output.line_count() < needed {
-        return Err(EngineError::LineCount {
+        return Err(OutputThreadError::LineCount {
             lines: output.line_count(),
             channels: needed,
         });
@@ -704,14 +706,14 @@ fn check_lines<O: Output>(
 }
 
 /// The output thread as its sleeping loop sees it: the channel cores and the output (behind
-/// [`OutputThread::work`]), the thread's ends of the request and report queues, and the
+/// [`ThreadLoop::work`]), the thread's ends of the request and report queues, and the
 /// bookkeeping of reader wake-ups. Lives on the output thread only.
-pub struct OutputThread<O: Output> {
+pub struct ThreadLoop<O: Output> {
     worker: Worker<O>,
     liveness: Liveness,
-    /// [`EngineOptions::liveness_tick_ns`].
+    /// [`OutputThreadOptions::liveness_tick_ns`].
     liveness_tick_ns: Option<Nanos>,
-    /// When [`OutputThread::work`] last ran, monotonic ns.
+    /// When [`ThreadLoop::work`] last ran, monotonic ns.
     last_work: Nanos,
     requests: rtrb::Consumer<Request>,
     req_wake: Arc<EventFd>,
@@ -731,11 +733,11 @@ pub struct OutputThread<O: Output> {
 /// delivered within the interval.
 pub(crate) const READER_WAKE_INTERVAL_NS: Nanos = 2_000_000;
 
-impl<O: Output> OutputThread<O> {
+impl<O: Output> ThreadLoop<O> {
     /// One wake-up's work: apply the queued requests, write the edges that are due, report,
     /// and wake the reader when it is time. `Ok(false)` once a stop is requested (nothing was
     /// done); `Err` after an output fault (every line was driven inactive).
-    pub fn work(&mut self) -> Result<bool, EngineError> {
+    pub fn work(&mut self) -> Result<bool, OutputThreadError> {
         if self.stop_requested() {
             return Ok(false);
         }
@@ -745,7 +747,7 @@ impl<O: Output> OutputThread<O> {
                 *f = Some(error.to_string());
             }
             let _ = self.rep_wake.write(1);
-            return Err(EngineError::OutputFault {
+            return Err(OutputThreadError::OutputFault {
                 channel,
                 kind: error.kind(),
                 source: Box::new(error),
@@ -767,7 +769,7 @@ impl<O: Output> OutputThread<O> {
     }
 
     /// The earliest deadline of any channel or of the heartbeat line, and, with a liveness
-    /// tick ([`EngineOptions::liveness_tick_ns`]), at the latest one tick after the last
+    /// tick ([`OutputThreadOptions::liveness_tick_ns`]), at the latest one tick after the last
     /// wake-up, monotonic ns; `None`: nothing is due until a request comes.
     pub fn next_deadline(&self) -> Option<Nanos> {
         let tick = self
@@ -779,13 +781,13 @@ impl<O: Output> OutputThread<O> {
         }
     }
 
-    /// Whether [`EngineHandle::shutdown`] (or dropping the handle) asked the thread to stop.
+    /// Whether [`OutputThreadHandle::shutdown`] (or dropping the handle) asked the thread to stop.
     pub fn stop_requested(&self) -> bool {
         self.stop.load(Ordering::SeqCst)
     }
 
     /// An eventfd that becomes readable when a request (or a stop) arrives; a loop sleeps on
-    /// it beside its timer and calls [`OutputThread::clear_request_wake`] when it fired.
+    /// it beside its timer and calls [`ThreadLoop::clear_request_wake`] when it fired.
     pub fn request_wake_fd(&self) -> BorrowedFd<'_> {
         self.req_wake.as_fd()
     }
@@ -800,8 +802,12 @@ impl<O: Output> OutputThread<O> {
     /// request), or on the request eventfd, whichever fires first, and reads what fired. A late
     /// wake-up does not push later deadlines back: they are absolute. Returns whether the
     /// timer fired.
-    pub fn sleep_on(&self, timer: &TimerFd, deadline: Option<Nanos>) -> Result<bool, EngineError> {
-        let sys = |what| move |source| EngineError::Sys { what, source };
+    pub fn sleep_on(
+        &self,
+        timer: &TimerFd,
+        deadline: Option<Nanos>,
+    ) -> Result<bool, OutputThreadError> {
+        let sys = |what| move |source| OutputThreadError::Sys { what, source };
         self.liveness.promise(deadline.unwrap_or(Nanos::MAX));
         match deadline {
             Some(t) => timer
@@ -833,12 +839,12 @@ impl<O: Output> OutputThread<O> {
     }
 
     /// Drives every line inactive, drops the output (flushing traces) and wakes the reader.
-    fn finish(self) -> Result<(), EngineError> {
+    fn finish(self) -> Result<(), OutputThreadError> {
         self.liveness.0.stopped.store(true, Ordering::Release);
         let (output, result) = self.worker.shut_down();
         drop(output);
         let _ = self.rep_wake.write(1);
-        result.map_err(|e| EngineError::ShutdownFault {
+        result.map_err(|e| OutputThreadError::ShutdownFault {
             channel: e.line(),
             kind: e.kind(),
             source: Box::new(e),
@@ -849,9 +855,9 @@ impl<O: Output> OutputThread<O> {
 /// The node's loop: sleeps on `timer` armed with the next absolute CLOCK_MONOTONIC deadline,
 /// or on the request eventfd, whichever fires first.
 fn sleep_on_timerfd<O: Output>(
-    thread: &mut OutputThread<O>,
+    thread: &mut ThreadLoop<O>,
     timer: &TimerFd,
-) -> Result<(), EngineError> {
+) -> Result<(), OutputThreadError> {
     while thread.work()? {
         // A deferred reader wake-up always falls after the next deadline (see `work`), so the
         // channels' deadlines are the only ones.

@@ -247,7 +247,7 @@ pub(crate) mod worker;
 mod tests;
 
 pub use thread::{
-    monotonic_timer, spawn, spawn_with, Engine, EngineError, EngineHandle, EngineOptions, Liveness,
-    NotTaken, OutputThread, ReportWaker, Reports, Requests, SafetyPath, LIVENESS_TICK_NS,
-    SAFETY_TAKE_BOUND, SHUTDOWN_WAIT,
+    monotonic_timer, spawn, spawn_with, Liveness, NotTaken, OutputThread, OutputThreadError,
+    OutputThreadHandle, OutputThreadOptions, ReportWaker, Reports, Requests, SafetyPath,
+    ThreadLoop, LIVENESS_TICK_NS, SAFETY_TAKE_BOUND, SHUTDOWN_WAIT,
 };
