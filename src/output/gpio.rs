@@ -14,7 +14,7 @@
 //! timing, and must never release a line before driving it inactive.
 
 use super::bindings::{check_unique, normalize_chip_path, BindingError, LineAddr};
-use super::safety::{lock_bounded, lock_ignore_poison, warn, EMERGENCY_LOCK_BUDGET};
+use super::panic_off::{lock_bounded, lock_ignore_poison, warn, EMERGENCY_LOCK_BUDGET};
 use super::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
 use crate::core::Level;
 use gpiocdev::line::{Value, Values};

@@ -8,7 +8,7 @@
 //! thread (only when a trace is configured) that swaps the buffer every [`WRITER_PERIOD`], and
 //! in [`SimOutput::flush`]. The sink must not decide timing: it writes what it is told.
 
-use super::safety::{lock_bounded, lock_ignore_poison as lock, warn, EMERGENCY_LOCK_BUDGET};
+use super::panic_off::{lock_bounded, lock_ignore_poison as lock, warn, EMERGENCY_LOCK_BUDGET};
 use super::trace::{validate_channel_names, EdgeRecord, TraceError, TraceSpec, TraceWriter};
 use super::trace_files::{TraceHealth, TraceLimit};
 use super::{EmergencyOff, LineChange, Output};

@@ -11,7 +11,7 @@
 //! lost that mattered.
 
 use super::gpio::{ChipPlan, GpioError, GpioOutput};
-use super::safety::{lock_bounded, lock_ignore_poison as lock, EMERGENCY_LOCK_BUDGET};
+use super::panic_off::{lock_bounded, lock_ignore_poison as lock, EMERGENCY_LOCK_BUDGET};
 use super::{EmergencyOff, LineChange, Output};
 use std::sync::{Arc, Mutex};
 

@@ -369,7 +369,7 @@ impl TraceHealth {
 
     /// Adds a trace; its writer updates it through the slot returned.
     pub fn register(&self, state: TraceState) -> TraceSlot {
-        let mut traces = super::safety::lock_ignore_poison(&self.inner.traces);
+        let mut traces = super::panic_off::lock_ignore_poison(&self.inner.traces);
         traces.push(state);
         self.inner.changed();
         TraceSlot {
@@ -380,7 +380,7 @@ impl TraceHealth {
 
     /// Every trace's state, in the order they were added.
     pub fn snapshot(&self) -> Vec<TraceState> {
-        super::safety::lock_ignore_poison(&self.inner.traces).clone()
+        super::panic_off::lock_ignore_poison(&self.inner.traces).clone()
     }
 
     /// How many changes worth telling at once there have been: a new value means a new
@@ -401,7 +401,7 @@ impl TraceSlot {
     /// Changes the trace's state; a change of anything but its size counts as one worth
     /// telling ([`TraceHealth::changes`]).
     pub fn update(&self, f: impl FnOnce(&mut TraceState)) {
-        let mut traces = super::safety::lock_ignore_poison(&self.health.inner.traces);
+        let mut traces = super::panic_off::lock_ignore_poison(&self.health.inner.traces);
         let Some(state) = traces.get_mut(self.index) else {
             return;
         };

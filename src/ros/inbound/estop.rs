@@ -10,7 +10,7 @@
 
 use crate::clock;
 use crate::core::Nanos;
-use crate::output::safety::lock_ignore_poison as lock;
+use crate::output::panic_off::lock_ignore_poison as lock;
 use crate::output_thread::Input;
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::interface::msg::{self, TriggerResponse};

@@ -15,7 +15,7 @@
 
 use crate::clock;
 use crate::core::{split_command, Command, Nanos};
-use crate::output::safety::lock_ignore_poison as lock;
+use crate::output::panic_off::lock_ignore_poison as lock;
 use crate::output_thread::{Input, OutputThreadError, Request, Requests, SafetyPath};
 use crate::ros::config::params::ChannelStart;
 use crate::ros::config::params::{self, show_value, ParamError, ParamStore, Stage};

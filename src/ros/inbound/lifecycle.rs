@@ -12,7 +12,7 @@
 //! channels; finalized, lines released.
 
 use crate::error::chain;
-use crate::output::safety::lock_ignore_poison as lock;
+use crate::output::panic_off::lock_ignore_poison as lock;
 use crate::output::{GpioError, LineSlot};
 use crate::output_thread::{Input, NotTaken};
 use crate::ros::config::params::ParamError;

@@ -136,7 +136,7 @@ impl NodeState {
     /// is never dropped for one).
     pub fn file_autotune(&self, channel: usize, ticket: u32, report: AutotuneReport) {
         if let Some(slot) = self.autotunes.get(channel) {
-            let mut q = crate::output::safety::lock_ignore_poison(slot);
+            let mut q = crate::output::panic_off::lock_ignore_poison(slot);
             if q.len() >= AUTOTUNE_REPORTS {
                 if let Some(i) = q
                     .iter()
@@ -157,7 +157,7 @@ impl NodeState {
         let Some(slot) = self.autotunes.get(channel) else {
             return Vec::new();
         };
-        crate::output::safety::lock_ignore_poison(slot)
+        crate::output::panic_off::lock_ignore_poison(slot)
             .drain(..)
             .filter(|(t, _)| *t == ticket)
             .map(|(_, r)| r)
@@ -167,14 +167,14 @@ impl NodeState {
     /// Records the output thread's answer to the reset with `ticket` of `channel`.
     pub fn answer_reset(&self, channel: usize, ticket: u32, result: Result<(), ResetRefusal>) {
         if let Some(slot) = self.resets.get(channel) {
-            *crate::output::safety::lock_ignore_poison(slot) = Some((ticket, result));
+            *crate::output::panic_off::lock_ignore_poison(slot) = Some((ticket, result));
         }
     }
 
     /// The answer to the reset with `ticket` of `channel`, once it has come.
     pub fn reset_answer(&self, channel: usize, ticket: u32) -> Option<Result<(), ResetRefusal>> {
         let slot = self.resets.get(channel)?;
-        match &*crate::output::safety::lock_ignore_poison(slot) {
+        match &*crate::output::panic_off::lock_ignore_poison(slot) {
             Some((t, r)) if *t == ticket => Some(*r),
             _ => None,
         }

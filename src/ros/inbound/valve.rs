@@ -197,20 +197,20 @@ impl ValveAnswers {
     /// Valve `k`'s snapshot came with `fault` latched and `reset` the last answer.
     pub fn note(&self, k: usize, fault: Option<ValveFault>, reset: Option<ResetAnswer>) {
         if let Some(slot) = self.slots.get(k) {
-            *crate::output::safety::lock_ignore_poison(slot) = (reset, fault);
+            *crate::output::panic_off::lock_ignore_poison(slot) = (reset, fault);
         }
     }
 
     /// The fault valve `k` has latched, as last reported.
     pub fn fault(&self, k: usize) -> Option<ValveFault> {
         let slot = self.slots.get(k)?;
-        crate::output::safety::lock_ignore_poison(slot).1
+        crate::output::panic_off::lock_ignore_poison(slot).1
     }
 
     /// The answer to the reset with `ticket` of valve `k`, once it has come.
     pub fn answer(&self, k: usize, ticket: u32) -> Option<bool> {
         let slot = self.slots.get(k)?;
-        match crate::output::safety::lock_ignore_poison(slot).0 {
+        match crate::output::panic_off::lock_ignore_poison(slot).0 {
             Some(a) if a.ticket == ticket => Some(a.cleared),
             _ => None,
         }

@@ -319,7 +319,7 @@ mod tests {
         let child = std::process::Command::new(exe)
             .args([
                 "--exact",
-                "output::safety::tests::panic_child",
+                "output::panic_off::tests::panic_child",
                 "--ignored",
                 "--nocapture",
                 "--test-threads=1",
