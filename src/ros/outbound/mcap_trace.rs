@@ -271,10 +271,11 @@ fn write_options() -> mcap::WriteOptions {
         .chunk_size(Some(CHUNK_SIZE))
 }
 
-/// The I/O error inside an MCAP error, or the MCAP error as one.
+/// The I/O error inside an MCAP error — from the file directly, or from the record encoder
+/// that writes to it — or the MCAP error as one.
 fn io_error(e: mcap::McapError) -> std::io::Error {
     match e {
-        mcap::McapError::Io(e) => e,
+        mcap::McapError::Io(e) | mcap::McapError::Parse(binrw::Error::Io(e)) => e,
         e => std::io::Error::other(e),
     }
 }
@@ -704,6 +705,20 @@ mod tests {
             SerializedPayload::from_bytes(&rustdds::bytes::Bytes::copy_from_slice(bytes)).unwrap();
         CDRDeserializerAdapter::<M>::from_bytes(&payload.value, payload.representation_identifier)
             .unwrap()
+    }
+
+    #[test]
+    fn a_full_file_system_keeps_its_error_number_wherever_the_write_failed() {
+        let full = || std::io::Error::from_raw_os_error(libc::ENOSPC);
+        for e in [
+            mcap::McapError::Io(full()),
+            mcap::McapError::Parse(binrw::Error::Io(full())),
+        ] {
+            let shown = format!("{e:?}");
+            assert_eq!(io_error(e).raw_os_error(), Some(libc::ENOSPC), "{shown}");
+        }
+        let other = io_error(mcap::McapError::BadMagic);
+        assert_eq!(other.raw_os_error(), None);
     }
 
     #[test]
