@@ -1,4 +1,4 @@
-//! The node-level planner above the channel cores (issue 12): phase staggering and the limit
+//! The node-level planner above the channel cores: phase staggering and the limit
 //! on lines high at once, for the supply that feeds every load.
 //!
 //! Sans-IO like the channel: whoever drives the channels calls [`Bank::before`] before each

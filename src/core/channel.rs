@@ -15,7 +15,7 @@
 //! promise about the line too: a high phase is cut once it has lasted `max_on_ms` from its real
 //! rise, and the schedule's next rise waits out the minimum break after the cut.
 //!
-//! With a time base (issue 25) every time the schedule plans with is a whole number of ticks
+//! With a time base every time the schedule plans with is a whole number of ticks
 //! (the period, the on and off times, the minima, the maximum on time) and the line guard holds
 //! every change of level until an instant of the tick grid (`k * tick` on the monotonic clock):
 //! so every edge lies on the grid, and every pulse and break is whole ticks, whatever started
@@ -26,7 +26,7 @@
 //! end of a phase of exactly its minimum, which comes that minimum after the real edge, off the
 //! grid by the same lateness, rather than a whole tick later (see `Channel::earliest`).
 //!
-//! Between a command and the plan lie the load's protections (issue 12), each off by default:
+//! Between a command and the plan lie the load's protections, each off by default:
 //! the power limits (`max_duty_pct`, `min_duty_pct`, `zero_means_zero`) after clamping, the
 //! dead band that ignores small changes, and the slew limit that moves the duty applied toward
 //! the command at most at its rate, advanced at every decision point (a period or step start,
@@ -268,7 +268,7 @@ pub struct Channel {
     seat: Option<Seat>,
     /// With a time base: the rounding remainder carried from period to period.
     carry: Carry,
-    /// The heater loop and its checks (issue 22); inert without feedback.
+    /// The heater loop and its checks; inert without feedback.
     heat: Heat,
 }
 

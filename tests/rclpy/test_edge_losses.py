@@ -1,4 +1,4 @@
-"""Where edge messages are lost, and what the node counts of it (issue 9): a subscriber that
+"""Where edge messages are lost, and what the node counts of it: a subscriber that
 stops taking messages for 2 s, as an rclpy callback that blocks would, seen over ROS.
 
 docs/interface.md says: a gap in `seq` is edges this subscriber lost; a subscriber's own reader

@@ -1,4 +1,4 @@
-"""The heater loop from outside (issue 22): the node with pw01 under `pid`, and the simulated
+"""The heater loop from outside: the node with pw01 under `pid`, and the simulated
 heater (`pwm_actuator_node sim-heater`) as its own process and ROS participant, driven by
 pw01's edges and publishing sensor_msgs/Temperature best effort. The test is the user: it sends
 the setpoint and the enable, injects faults on the simulated heater's `/sim_heater/fault`, and

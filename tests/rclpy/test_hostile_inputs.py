@@ -1,4 +1,4 @@
-"""Careless and hostile inputs, as any participant on the ROS domain can send them (issue 9):
+"""Careless and hostile inputs, as any participant on the ROS domain can send them:
 parameter values the node cannot use, and strings made to forge or flood its log.
 
 Each test talks to the node only over ROS (and reads its stderr, as an operator would).
@@ -169,7 +169,7 @@ def rss_mib(pid: int) -> float:
 
 
 def test_large_channel_params_do_not_stay_in_memory(ros, node_process):
-    """Valid ChannelParams with a 16 and 32 MiB string field (issue 9: 12 x 16 MiB left the
+    """Valid ChannelParams with a 16 and 32 MiB string field (12 x 16 MiB left the
     node at 556 MB): after them RSS comes back to within RSS_SLACK_MIB of its steady state, a
     small message from the same publisher is still applied, and /diagnostics counts what was
     dropped."""

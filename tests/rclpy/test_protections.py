@@ -1,4 +1,4 @@
-"""The protections of the load (issue 12), proved from outside: rclpy clients command the built
+"""The protections of the load, proved from outside: rclpy clients command the built
 node over ROS, set the protections as parameters, and read what the node did in its CSV trace,
 on `~/<ch>/status` and on `/diagnostics`.
 

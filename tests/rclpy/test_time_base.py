@@ -1,4 +1,4 @@
-"""The time base (issue 25) from outside: a zero-cross SSR on 60 Hz mains switches only at the
+"""The time base from outside: a zero-cross SSR on 60 Hz mains switches only at the
 half-cycle zero crossings, so it turns every pulse into whole half cycles. Two channels run the
 same command side by side, one with `time_base_ms` = 8.333333 (a 60 Hz half cycle, 8 333 333 ns
 on the monotonic clock) and one without; the CSV trace's scheduled instants are checked to the

@@ -1,4 +1,4 @@
-"""The last vendor details of issue 25 seen over ROS: 004's fraction input, 002's continuously
+"""The last vendor details seen over ROS: 004's fraction input, 002's continuously
 calculated times and whole-second countdowns on `~/<ch>/status`."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-//! The rolling-average duty cap (`avg_duty_limit_pct` over `avg_window_s`, issue 12): an
+//! The rolling-average duty cap (`avg_duty_limit_pct` over `avg_window_s`): an
 //! energy budget. Over every window of `avg_window_s` the line is on for at most the limit
 //! times the window.
 //!

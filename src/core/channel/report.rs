@@ -79,7 +79,7 @@ pub enum Event {
     },
 }
 
-/// Which of the load's protections act on a channel (issue 12); each is off by default.
+/// Which of the load's protections act on a channel; each is off by default.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Protections {
     /// `max_on_ms` cuts the line: the plan keeps it high longer (a constant 1, or an on time

@@ -1,4 +1,4 @@
-//! The heater settings of a channel (issue 22): the loop's mode and gains, the temperature
+//! The heater settings of a channel: the loop's mode and gains, the temperature
 //! limits and the checks' parameters, their ranges and validation. Off by default.
 
 use super::{Nanos, OutOfRange, MAX_PERIOD_MS, MAX_TIMEOUT_MS, NS_PER_MS};
@@ -90,7 +90,7 @@ pub const MAX_MODEL_GAIN: f64 = 100.0;
 /// Largest rate accepted for `sensor_max_rate_c_per_s`, °C/s.
 pub const MAX_RATE_C_PER_S: f64 = 10_000.0;
 
-/// The heater settings of one channel as a user states them (issue 22). The defaults are
+/// The heater settings of one channel as a user states them. The defaults are
 /// Klipper's for `runaway_*` and "off" for the rest.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeaterParams {

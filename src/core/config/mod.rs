@@ -142,7 +142,7 @@ pub struct ChannelParams {
     /// accepted (8.3333 for 60 Hz half cycles); the tick is rounded to the nearest ns. 0, or
     /// 0.1 ..= `period_ms`.
     pub time_base_ms: f64,
-    /// The heater loop and its checks (issue 22); off by default.
+    /// The heater loop and its checks; off by default.
     pub heater: HeaterParams,
 }
 

@@ -1,4 +1,4 @@
-//! The heater loop of a channel (issue 22): temperature feedback, a PID to a setpoint, and the
+//! The heater loop of a channel: temperature feedback, a PID to a setpoint, and the
 //! heater checks that latch a fault and switch the line off. Pure: the channel drives it in
 //! virtual time (`Channel::feedback`, `Channel::set_setpoint`, its deadlines), and only the
 //! channel knows when its line was really on, which `stuck_on` needs.

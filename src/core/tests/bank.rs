@@ -700,7 +700,7 @@ fn a_late_wake_up_skips_a_wait_that_expired_before_the_slot_freed() {
     );
 }
 
-/// The time base under the planner (issue 25): staggered or limited to one line on, every
+/// The time base under the planner: staggered or limited to one line on, every
 /// edge lies on the tick grid, every pulse is whole ticks, and the lines still never overlap.
 #[test]
 fn the_planner_keeps_every_edge_on_the_tick_grid() {

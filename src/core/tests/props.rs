@@ -652,7 +652,7 @@ proptest! {
         late_run(start, &ops, &delays)?;
     }
 
-    /// The maximum on time (issue 12): no high run on the line lasts longer than `max_on_ms`
+    /// The maximum on time: no high run on the line lasts longer than `max_on_ms`
     /// from its rise, whatever commands (100 % included), enables, parameters and policies come
     /// in between. A maximum set or shortened during a run cuts it when it comes into force at
     /// the latest.
@@ -683,7 +683,7 @@ proptest! {
         }
     }
 
-    /// The rolling-average cap (issue 12): no window of `avg_window_s` (any start) holds more
+    /// The rolling-average cap: no window of `avg_window_s` (any start) holds more
     /// on time than the limit times the window, to the nanosecond, whatever commands (100 %
     /// included), enables, e-stops, holds, parameters, policies, minima and the other
     /// protections come in between. The cap decides only where an on phase may start or run,
@@ -871,7 +871,7 @@ fn exactly(p: ChannelParams, tb: f64) -> Option<ChannelParams> {
 }
 
 proptest! {
-    /// The time base (issue 25): every edge the schedule asks for lies on the tick grid (a
+    /// The time base: every edge the schedule asks for lies on the tick grid (a
     /// whole multiple of the tick on the monotonic clock), so every pulse and break between
     /// two of them is a whole number of ticks, and none is shorter than its minimum (whole
     /// ticks too) — whatever the policies, profiles, protections, minima, commands, enables,

@@ -1014,7 +1014,7 @@ fn a_held_line_stays_low_while_the_schedule_runs_and_follows_it_when_live() {
     assert_eq!(b.wave(), "H@1250 L@1500 H@2000 L@2500 H@3000 L@3100");
 }
 
-// ---- issue 12: protections of the load ---------------------------------------------------------
+// ---- protections of the load -----------------------------------------------------------------
 
 #[test]
 fn max_on_cuts_a_line_stuck_at_100_percent_and_keeps_it_off_for_min_off() {
@@ -1382,7 +1382,7 @@ fn slew_ramps_again_when_pulses_restart_from_period_zero() {
     );
 }
 
-// ---- issue 12: cycle extension -----------------------------------------------------------------
+// ---- cycle extension -------------------------------------------------------------------------
 
 /// 1 s period, 100 ms minimum on and off time, `extend`.
 fn extending(f: impl FnOnce(&mut ChannelParams)) -> ChannelParams {

@@ -1,4 +1,4 @@
-//! The time base (issue 25) in virtual time: pulses and breaks in whole ticks on the tick grid,
+//! The time base in virtual time: pulses and breaks in whole ticks on the tick grid,
 //! the rounding remainder carried into the next period, the minima and the maximum on time
 //! rounded to ticks, against 003's CYCLE_P and 001's task period.
 

@@ -1,4 +1,4 @@
-//! The last vendor details of issue 25, each against its document's sentence.
+//! The last vendor details, each against its document's sentence.
 
 use super::harness::{Bench, MS};
 use crate::core::{

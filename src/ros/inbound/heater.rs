@@ -1,4 +1,4 @@
-//! The heater loop's inputs (issue 22), for each channel with a `feedback_topic`: the
+//! The heater loop's inputs, for each channel with a `feedback_topic`: the
 //! temperature subscription (`sensor_msgs/Temperature`, best effort, so best-effort sensor
 //! publishers and reliable ones both match), `~/<ch>/setpoint` (`std_msgs/Float64`, °C) and
 //! `~/<ch>/reset_fault` (`std_srvs/Trigger`).
