@@ -12,7 +12,7 @@
 //! (`std_msgs/Float64`, 0..1). With `--record` it writes every reading, every edge and every
 //! fan change to a CSV file (`t_s,kind,value,true_c`), for the pictures of docs/heater.md.
 
-use crate::sim_ros::{self, make_topic, SimError};
+use crate::sim_ros::{self, make_topic, within, OptionOutOfRange, SimError};
 use clap::{ArgAction, Args, FromArgMatches};
 use futures::StreamExt;
 use pwm_actuator::clock;
@@ -125,17 +125,8 @@ pub fn options(m: &clap::ArgMatches) -> Result<SimHeaterOptions, clap::Error> {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum OptionError {
     /// A value outside its range.
-    #[error("--{option} {value} is outside {lo}..{hi}")]
-    OutOfRange {
-        /// The option, without its dashes.
-        option: &'static str,
-        /// The value given.
-        value: f64,
-        /// The lowest value accepted.
-        lo: f64,
-        /// The highest value accepted.
-        hi: f64,
-    },
+    #[error(transparent)]
+    OutOfRange(#[from] OptionOutOfRange),
     /// `--fault` names no fault.
     #[error(
         "--fault {0}: expected none, heater_disconnected, heater_stuck_on, heater_half_power, \
@@ -146,18 +137,6 @@ pub enum OptionError {
 
 /// The plant and the fault the options describe, or why they are refused.
 fn check(o: &SimHeaterOptions) -> Result<(PlantParams, PlantFault), OptionError> {
-    let within = |option: &'static str, value: f64, lo: f64, hi: f64| {
-        if (lo..=hi).contains(&value) {
-            Ok(())
-        } else {
-            Err(OptionError::OutOfRange {
-                option,
-                value,
-                lo,
-                hi,
-            })
-        }
-    };
     within("rate-hz", o.rate_hz, 0.1, 1000.0)?;
     within("heat-rate", o.heat_rate, 0.001, 1000.0)?;
     within("tau", o.tau, 0.1, 100_000.0)?;

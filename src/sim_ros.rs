@@ -12,6 +12,34 @@ use ros2_client::{Context, CreateError, NodeName, NodeOptions, QosProfile};
 use std::future::Future;
 use std::path::PathBuf;
 
+/// A simulated plant's option outside its range (exit status 2).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("--{option} {value} is outside {lo}..{hi}")]
+pub struct OptionOutOfRange {
+    /// The option, without its dashes.
+    pub option: &'static str,
+    /// The value given.
+    pub value: f64,
+    /// The lowest value accepted.
+    pub lo: f64,
+    /// The highest value accepted.
+    pub hi: f64,
+}
+
+/// `value` of `--option` if it lies within `lo..=hi` (a NaN does not).
+pub fn within(option: &'static str, value: f64, lo: f64, hi: f64) -> Result<(), OptionOutOfRange> {
+    if (lo..=hi).contains(&value) {
+        Ok(())
+    } else {
+        Err(OptionOutOfRange {
+            option,
+            value,
+            lo,
+            hi,
+        })
+    }
+}
+
 /// Why a simulated plant cannot run, or stops (exit status 1). The text follows the tool's
 /// name on stderr.
 #[derive(Debug, thiserror::Error)]
@@ -163,6 +191,17 @@ fn make_topic_name(name: &str) -> Result<ros2_client::Name, SimError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An option's range holds its ends and refuses what lies outside, a NaN included, with the
+    /// option's name, the value and the range.
+    #[test]
+    fn an_option_outside_its_range_is_refused_with_its_range() {
+        assert_eq!(within("tau", 0.1, 0.1, 10.0), Ok(()));
+        assert_eq!(within("tau", 10.0, 0.1, 10.0), Ok(()));
+        let e = within("tau", 10.5, 0.1, 10.0).unwrap_err();
+        assert_eq!(e.to_string(), "--tau 10.5 is outside 0.1..10");
+        assert!(within("tau", f64::NAN, 0.1, 10.0).is_err());
+    }
 
     /// The texts printed after the tool's name: the endpoint and the cause, each once.
     #[test]

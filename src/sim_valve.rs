@@ -23,7 +23,7 @@
 //! the temperature and the true position. The record then also holds kinds `reading` (°C
 //! published), `mixed` (°C, the true mixed water) and `hot` (°C, each supply change).
 
-use crate::sim_ros::{self, make_topic, SimError};
+use crate::sim_ros::{self, make_topic, within, OptionOutOfRange, SimError};
 use clap::{ArgAction, Args, FromArgMatches};
 use futures::StreamExt;
 use pwm_actuator::clock;
@@ -191,17 +191,8 @@ pub fn options(m: &clap::ArgMatches) -> Result<SimValveOptions, clap::Error> {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum OptionError {
     /// A value outside its range.
-    #[error("--{option} {value} is outside {lo}..{hi}")]
-    OutOfRange {
-        /// The option, without its dashes.
-        option: &'static str,
-        /// The value given.
-        value: f64,
-        /// The lowest value accepted.
-        lo: f64,
-        /// The highest value accepted.
-        hi: f64,
-    },
+    #[error(transparent)]
+    OutOfRange(#[from] OptionOutOfRange),
     /// A supply temperature outside [`SUPPLY_C`].
     #[error("--{option} {source}")]
     Supply {
@@ -221,18 +212,6 @@ pub enum OptionError {
 
 /// Why the options are refused.
 fn check(o: &SimValveOptions) -> Result<(), OptionError> {
-    let within = |option: &'static str, value: f64, lo: f64, hi: f64| {
-        if (lo..=hi).contains(&value) {
-            Ok(())
-        } else {
-            Err(OptionError::OutOfRange {
-                option,
-                value,
-                lo,
-                hi,
-            })
-        }
-    };
     let within_supply = |option: &'static str, c: f64| {
         supply(c).map_err(|source| OptionError::Supply { option, source })
     };
@@ -756,12 +735,12 @@ mod tests {
             .unwrap();
         assert_eq!(
             check(&options(&m).unwrap()),
-            Err(OptionError::OutOfRange {
+            Err(OptionError::OutOfRange(OptionOutOfRange {
                 option: "travel-open-ms",
                 value: 10.0,
                 lo: 100.0,
                 hi: 3_600_000.0
-            })
+            }))
         );
         let mut n = Noise(7);
         assert!((0..1000).map(|_| n.next(0.5)).all(|x| x.abs() <= 0.5));
