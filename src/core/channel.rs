@@ -39,8 +39,10 @@
 //! while tripped), the dead band (`DeadBand`: the ends always pass), the slew limit (`Slew`:
 //! exact in virtual time), the time base's carried remainder (`Carry`: within half a tick),
 //! the rolling-average budget (`budget::Budget`), the flags of this period and the one before
-//! (`Marks`), and the heater loop (`Heat`). What is left on `Channel` itself is the schedule:
-//! the step, the plan, and where the running period's on phase lies.
+//! (`Marks`), where the running period and its on phase lie (`Placement`: no lead off the
+//! stagger grid, a fixed end at or after the period's start), and the heater loop (`Heat`).
+//! What is left on `Channel` itself is the configuration, the command, the gates (enable, the
+//! emergency stop, the lifecycle) and the schedule: the step and the plan.
 
 use super::board::{LineBoard, Seat};
 use super::command::{Command, Duty};
@@ -60,6 +62,7 @@ mod tune;
 mod watchdog;
 
 use duty::{DeadBand, Slew};
+use placement::Placement;
 use watchdog::Watchdog;
 
 pub use report::{Event, Protections, Status};
@@ -226,7 +229,6 @@ pub struct Channel {
     line: Line,
     step: Option<Step>,
     plan: Plan,
-    period_start: Nanos,
     /// The command watchdog: its last feed, its trip and the fault value's end.
     watchdog: Watchdog,
     flags: (bool, bool),
@@ -242,25 +244,9 @@ pub struct Channel {
     slew: Slew,
     /// `max_on_ms` cut the line in the running period, and in the period before.
     cuts: Marks<bool>,
-    /// The stagger grid (see [`Channel::set_grid`]).
-    grid: bool,
-    /// Where the on phases other channels placed in this staggered period end, ns after the
-    /// period start, and the on time those of its group run per period, ns.
-    lead: (Nanos, Nanos),
-    /// Where the on phase of the running period starts, ns after the period start (as placed
-    /// on the stagger grid, or as started late for want of a slot), and how long it is, ns.
-    placed: Nanos,
-    on_len: Nanos,
-    /// A slot is free under `max_simultaneous_on` (see [`Channel::set_slot`]).
-    slot: bool,
-    /// The end of the running period, when it is fixed: by the stagger grid, or by an on phase
-    /// delayed for a slot (the break after it shrinks so the period keeps its length).
-    period_end: Option<Nanos>,
-    /// An on phase waited for a slot (or was skipped) in the running period, and in the one
-    /// before.
-    slots: Marks<SlotUse>,
-    /// Pulses skipped because no slot was free before their latest start.
-    skipped: u64,
+    /// Where the running period and its on phase lie: the stagger grid and lead, the slot
+    /// the on phase needs, what waiting for one did.
+    place: Placement,
     /// The line's on time over the rolling-average window (`avg_duty_limit_pct`).
     avg: budget::Budget,
     /// The board of the node's real line levels this channel's line guard consults before a
@@ -299,7 +285,6 @@ impl Channel {
             },
             step: None,
             plan: Plan::new(0.0, &cfg),
-            period_start: now,
             watchdog: Watchdog::new(now),
             flags: (false, false),
             estop: false,
@@ -307,14 +292,7 @@ impl Channel {
             band: DeadBand::default(),
             slew: Slew::default(),
             cuts: Marks::default(),
-            grid: false,
-            lead: (0, 0),
-            placed: 0,
-            on_len: 0,
-            slot: true,
-            period_end: None,
-            slots: Marks::default(),
-            skipped: 0,
+            place: Placement::new(now),
             avg: budget::Budget::new(cfg.avg_window),
             seat: None,
             carry: Carry::default(),
@@ -564,7 +542,7 @@ impl Channel {
             self.step = None;
             self.avg.acts = false;
             self.cuts.clear();
-            self.slots.clear();
+            self.place.slots.clear();
             if let Some(p) = self.pending.take() {
                 self.put_config(p, now);
             }
@@ -638,7 +616,7 @@ impl Channel {
     /// on time.
     fn report_flags(&mut self, emit: &mut dyn FnMut(Event)) {
         let cut = self.cuts.recent();
-        let skipped = self.slots.recent() == SlotUse::Skipped;
+        let skipped = self.place.slots.recent() == SlotUse::Skipped;
         let flags = (self.plan.e1 || cut || skipped, self.plan.limited || cut);
         if flags != self.flags {
             self.flags = flags;
@@ -697,7 +675,7 @@ impl Channel {
             self.put_config(p, t);
         }
         let period = self.cfg.period;
-        if self.grid && period > 0 && !t.is_multiple_of(period) {
+        if self.place.grid && period > 0 && !t.is_multiple_of(period) {
             // Staggered: periods start on the grid of whole periods the channels with this
             // period share; off until its next instant.
             let next = (t / period).saturating_add(1).saturating_mul(period);
@@ -706,17 +684,15 @@ impl Channel {
             return;
         }
         self.cuts.roll();
-        self.slots.roll();
+        self.place.slots.roll();
         // Every decision of this period plans with the remainder the last period left.
         self.carry.period_starts();
         let duty = self.decide(t);
         // An extended period spans whole periods of the grid.
-        let plan = self.capped_plan(t, duty, self.grid.then_some(period));
+        let plan = self.capped_plan(t, duty, self.place.grid.then_some(period));
         self.latch(plan, emit);
-        self.period_start = t;
-        self.placed = 0;
-        self.on_len = plan.t_on;
-        self.period_end = (self.grid && period > 0).then(|| t.saturating_add(plan.period()));
+        let end = (self.place.grid && period > 0).then(|| t.saturating_add(plan.period()));
+        self.place.period_starts(t, plan.t_on, end);
         if period == 0 {
             // 000: period 0, no pulses; the output is held at 0.
             self.step = None;
@@ -733,9 +709,13 @@ impl Channel {
         // its period is off).
         // The on phase starts no earlier than the line's minimum break allows, so its place
         // is where the line will really be on.
-        let (after, others) = if self.grid { self.lead } else { (0, 0) };
+        let (after, others) = if self.place.grid {
+            self.place.lead
+        } else {
+            (0, 0)
+        };
         let guard = match self.break_ends_at() {
-            Some(end) if self.grid => end.saturating_sub(t),
+            Some(end) if self.place.grid => end.saturating_sub(t),
             _ => 0,
         };
         let after = after.max(guard);
@@ -746,7 +726,7 @@ impl Channel {
             return;
         }
         let lead = after.min(room);
-        self.placed = lead;
+        self.place.placed = lead;
         if lead > 0 {
             self.step = Some(Step::off(StepKind::Lead, t, t + lead));
             self.set_level(Level::Low, t, emit);
@@ -775,7 +755,10 @@ impl Channel {
         };
         // A period with a fixed end (the stagger grid, an on phase delayed for a slot) keeps
         // it: the break is what is left of the period.
-        let t_off = self.period_end.map_or(t_off, |end| end.saturating_sub(t));
+        let t_off = self
+            .place
+            .period_end
+            .map_or(t_off, |end| end.saturating_sub(t));
         if t_off == 0 {
             // No break this period (100 % or a suppressed break): straight to the next period.
             self.start_period(t, emit);
@@ -814,7 +797,9 @@ impl Channel {
         if step.kind == StepKind::Wait {
             self.rewait(now, emit);
         }
-        if step.kind != StepKind::Run || (step.level == Level::Low && self.period_end.is_some()) {
+        if step.kind != StepKind::Run
+            || (step.level == Level::Low && self.place.period_end.is_some())
+        {
             // An off step placed by the stagger grid or a slot ends where it was placed.
             self.poll(now, emit);
             return;

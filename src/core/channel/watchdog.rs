@@ -144,7 +144,11 @@ impl Channel {
             // Keep the period grid: stay off for the rest of this period.
             let end = match (step.level, step.kind) {
                 (Level::Low, StepKind::Run | StepKind::Align) => step.end,
-                _ => self.period_end.unwrap_or(self.period_start + period).max(t),
+                _ => self
+                    .place
+                    .period_end
+                    .unwrap_or(self.place.period_start + period)
+                    .max(t),
             };
             let start = if step.level == Level::High {
                 t
