@@ -40,6 +40,10 @@ done
 
 LOG_DIR="$REPO/target/test-logs"
 mkdir -p "$LOG_DIR"
+# Tables of figures the rclpy tests show, from both timing groups' processes, printed together at
+# the end of the one that ends last (tests/rclpy/conftest.py, `show_figures`); of this run only.
+export PWM_TEST_FIGURES_DIR="$LOG_DIR/figures"
+rm -rf "$PWM_TEST_FIGURES_DIR"
 SECONDS=0
 failed_steps=()
 skipped_steps=()
