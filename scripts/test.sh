@@ -12,10 +12,12 @@
 # the reason; a failed preparation or a guest that hangs fails the run.
 #
 # What waits on the network or times nothing runs beside the compiles: the Kilted set-up from
-# the start, and the two long rclpy memory tests (BESIDE_TESTS below) from the release build on,
-# each on a ROS domain of its own. The rest of the rclpy suite runs as two pytest processes at
-# once: the tests that time what the node does one at a time, and the tests marked `untimed`
-# beside them (5). Each step's time is printed, and all of them at the end.
+# the start; from the release build on, the two long rclpy memory tests (BESIDE_TESTS below)
+# and, in a pytest process of their own, the rclpy tests marked `untimed`, each test on a ROS
+# domain of its own. The rclpy tests that time what the node does run one at a time after the
+# Rust tests (5), beside nothing but what is left of the untimed ones; the GPIO guest, whose
+# sampler is timed, after them, alone. Each step's time is printed, and all of them at the end,
+# with when each group that ran beside the steps started and ended.
 #
 # Usage: scripts/test.sh [--quick] [-- PYTEST_ARGS...]
 #   --quick   skip `cargo fmt --check` and `cargo clippy`
@@ -40,6 +42,10 @@ done
 
 LOG_DIR="$REPO/target/test-logs"
 mkdir -p "$LOG_DIR"
+# Tables of figures the rclpy tests show, from both timing groups' processes, printed together at
+# the end of the one that ends last (tests/rclpy/conftest.py, `show_figures`); of this run only.
+export PWM_TEST_FIGURES_DIR="$LOG_DIR/figures"
+rm -rf "$PWM_TEST_FIGURES_DIR"
 SECONDS=0
 failed_steps=()
 skipped_steps=()
@@ -173,15 +179,45 @@ run_step "cargo build --release" cargo build --release --bins --locked || releas
 # 3a. The two long rclpy tests that time no edge — memory under a 3-minute soak and after a
 # storm of 1,000 short-lived participants (they check that no edge is early and no phase short,
 # which load cannot excuse) — run from here beside clippy and the Rust tests, with PYTEST_ARGS;
-# the rest of the suite runs later without them. Their results are added when waited for (5).
+# the rest of the suite runs without them. Their results are added when waited for (4a'').
+# Beside them from here, in a second pytest process: the rest of the suite's tests marked
+# `untimed`, which time nothing the node does and bound only seconds with a second or a factor
+# of two to spare, so that no load beside them can change their result (tests/rclpy/pytest.ini),
+# with PYTEST_ARGS; waited for, their results added, after the timed ones (5). Both groups need
+# setup's venv and messages (1) and the release binary (3), and both end before the GPIO guest
+# starts (5a).
 BESIDE_TESTS=(tests/rclpy/test_soak.py tests/rclpy/test_participant_storm.py)
-beside_pid=""
+beside_ignore=()
+for t in "${BESIDE_TESTS[@]}"; do
+    beside_ignore+=("--ignore=$t")
+done
+beside_pid="" untimed_pid=""
 if ((release_ok)); then
     beside_started=$SECONDS
+    rm -f "$LOG_DIR/rclpy-beside.ended"
     (run_pytest_paths jazzy "$LOG_DIR/rclpy-beside-junit.xml" "${BESIDE_TESTS[@]}" -- \
-        "${pytest_extra[@]}" >"$LOG_DIR/rclpy-beside.log" 2>&1) &
+        "${pytest_extra[@]}" >"$LOG_DIR/rclpy-beside.log" 2>&1
+        rc=$?
+        echo "$SECONDS" >"$LOG_DIR/rclpy-beside.ended"
+        exit "$rc") &
     beside_pid=$!
+    untimed_started=$SECONDS
+    rm -f "$LOG_DIR/rclpy-untimed.ended"
+    (run_pytest_paths jazzy "$LOG_DIR/rclpy-untimed-junit.xml" tests/rclpy -- "${beside_ignore[@]}" \
+        --timing-group=untimed "${pytest_extra[@]}" >"$LOG_DIR/rclpy-untimed.log" 2>&1
+        rc=$?
+        echo "$SECONDS" >"$LOG_DIR/rclpy-untimed.ended"
+        exit "$rc") &
+    untimed_pid=$!
 fi
+
+# beside_span STARTED ENDED_FILE: "from S s to E s of the run", E the second a group beside the
+# steps wrote when it ended (now, if it wrote none).
+beside_span() {
+    local ended
+    ended=$(cat "$2" 2>/dev/null || echo "$SECONDS")
+    printf 'from %d s to %d s of the run' "$1" "$ended"
+}
 
 if ((!quick)); then
     run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
@@ -270,9 +306,9 @@ printf 'type hashes against rosidl: %d passed, %d failed\n' "$t_pass" "$t_fail"
 passed=$((passed + t_pass)) failed=$((failed + t_fail))
 skipped=$((skipped - 1)) # the ignored type_hashes test, counted above
 
-# 4a''. The rclpy tests started at 3a, waited for before the GPIO guest (whose sampler is
-# timed): their output, their time and their results. With PYTEST_ARGS that select none of them
-# (pytest exit 5) nothing is counted.
+# 4a''. The rclpy memory tests started at 3a, waited for before the timed rclpy tests (5) and the
+# GPIO guest (5a), whose sampler is timed: their output, their time and their results. With
+# PYTEST_ARGS that select none of them (pytest exit 5) nothing is counted.
 if [[ -n "$beside_pid" ]]; then
     banner "rclpy memory tests (beside the compiles since 3a)"
     beside_rc=0
@@ -283,49 +319,20 @@ if [[ -n "$beside_pid" ]]; then
         printf -- '---- %s: none selected by the pytest arguments\n' "$beside_name"
     else
         add_junit_counts "$LOG_DIR/rclpy-beside-junit.xml"
+        beside_ended=$(cat "$LOG_DIR/rclpy-beside.ended" 2>/dev/null || echo "$SECONDS")
+        beside_when="$(beside_span "$beside_started" "$LOG_DIR/rclpy-beside.ended")"
         if ((beside_rc != 0)); then
             failed_steps+=("$beside_name")
-            printf -- '---- %s: FAILED (exit %d, %d s)\n' "$beside_name" "$beside_rc" $((SECONDS - beside_started))
+            printf -- '---- %s: FAILED (exit %d, %d s, %s)\n' "$beside_name" "$beside_rc" \
+                $((beside_ended - beside_started)) "$beside_when"
         else
-            printf -- '---- %s: ok (%d s)\n' "$beside_name" $((SECONDS - beside_started))
+            printf -- '---- %s: ok (%d s, %s)\n' "$beside_name" \
+                $((beside_ended - beside_started)) "$beside_when"
         fi
-        step_times+=("$(printf '%6d s  %s (beside the steps from the release build on)' \
-            $((SECONDS - beside_started)) "$beside_name")")
+        step_times+=("$(printf '%6d s  %s (beside the steps, %s)' \
+            $((beside_ended - beside_started)) "$beside_name" "$beside_when")")
     fi
 fi
-
-# 4b. Real kernel GPIO lines: in a QEMU guest with a gpio-sim chip, the GPIO backend's
-# integration test (ignored by `cargo test` above, counted as skipped there) and the node-level
-# checks of the release binary in tests/gpio_vm/, by scripts/gpio-vm-tests.sh. Counted as passed
-# only when they ran and passed. They count as skipped only where this machine cannot run the
-# guest at all (not Debian, or packages missing and not root to install them), with the reason;
-# a preparation that fails, a guest that hangs (killed after GPIO_VM_TIMEOUT seconds, default
-# 900) or one that ends without a result fails them, with the reason.
-vm_total=$(($(python3 tests/gpio_vm/node_checks.py --list | wc -l) + 1))
-if ((!release_ok)); then
-    echo "gpio-vm tests: FAILED (no release build): $vm_total tests did not run"
-    failed=$((failed + vm_total))
-    failed_steps+=("gpio-vm tests (no release build)")
-else
-    banner "gpio-vm tests"
-    vm_start=$SECONDS
-    scripts/gpio-vm-tests.sh 2>&1 | tee "$LOG_DIR/gpio-vm-tests.log"
-    vm_rc=${PIPESTATUS[0]}
-    printf -- '---- gpio-vm tests: exit %d (%d s)\n' "$vm_rc" $((SECONDS - vm_start))
-    step_times+=("$(printf '%6d s  %s' $((SECONDS - vm_start)) "gpio-vm tests")")
-    read -r v_pass v_fail v_skip < <(sed -n 's/^gpio-vm tests: \([0-9]*\) passed, \([0-9]*\) failed, \([0-9]*\) skipped$/\1 \2 \3/p' \
-        "$LOG_DIR/gpio-vm-tests.log" | tail -n1 | grep . || echo "0 $vm_total 0")
-    case $vm_rc in
-        0) ;;
-        120) skipped_steps+=("gpio-vm tests (this machine cannot run the guest: see above)") ;;
-        *) failed_steps+=("gpio-vm tests") ;;
-    esac
-    # A run that failed without saying what counts one failure at least.
-    ((vm_rc != 0 && vm_rc != 120 && v_fail == 0)) && v_fail=1
-    passed=$((passed + v_pass)) failed=$((failed + v_fail))
-    skipped=$((skipped + v_skip))
-fi
-skipped=$((skipped - 1)) # the ignored output_gpio_sim test, counted above
 
 # 4c. The systemd unit in launch-notes/: `systemd-analyze verify` with the binary paths pointed
 # at the release build (/usr/local/bin is not installed here). One check; skipped, with the
@@ -357,37 +364,25 @@ else
     failed=$((failed + 1))
 fi
 
-# 5. The rclpy suite (less BESIDE_TESTS, run at 3a), with the venv's python and the built
-# messages, as two pytest processes at once: the tests that time what the node does, one at a
-# time as ever (`--timing-group timed`), and beside them those marked `untimed`, which time
-# nothing the node does and bound only seconds with a second or a factor of two to spare, so the
-# load of the others cannot change their result (tests/rclpy/pytest.ini). Each has its own
-# results file, and both are counted; the step fails if either part fails or leaves no results
-# file. A part that PYTEST_ARGS select nothing of (pytest exit 5) is not a failure while the
-# other part ran tests; both selecting nothing is.
+# 5. The rest of the rclpy suite (less BESIDE_TESTS and the untimed tests, which run beside the
+# steps since 3a), with the venv's python and the built messages: the tests that time what the
+# node does, one at a time as ever (`--timing-group timed`), beside nothing but what is left of
+# the untimed ones; then the untimed ones are waited for, their output printed. Each group has
+# its own results file, and both are counted; the step fails if either part fails or leaves no
+# results file. A part that PYTEST_ARGS select nothing of (pytest exit 5) is not a failure while
+# the other part ran tests; both selecting nothing is.
 # shellcheck disable=SC2317  # called through run_step
 rclpy_suite() {
-    local start=$SECONDS timed_rc=0 untimed_rc=0 untimed_pid timed_s untimed_s t
-    local ignore=()
-    for t in "${BESIDE_TESTS[@]}"; do
-        ignore+=("--ignore=$t")
-    done
-    rm -f "$LOG_DIR/rclpy-untimed.seconds"
-    (
-        run_pytest_paths jazzy "$LOG_DIR/rclpy-untimed-junit.xml" tests/rclpy -- "${ignore[@]}" \
-            --timing-group=untimed "${pytest_extra[@]}" >"$LOG_DIR/rclpy-untimed.log" 2>&1
-        rc=$?
-        echo $((SECONDS - start)) >"$LOG_DIR/rclpy-untimed.seconds"
-        exit "$rc"
-    ) &
-    untimed_pid=$!
-    echo "rclpy tests: the untimed ones run beside these (output in rclpy-untimed.log, printed below)"
-    run_pytest_paths jazzy "$LOG_DIR/rclpy-junit.xml" tests/rclpy -- "${ignore[@]}" \
+    local start=$SECONDS timed_rc=0 untimed_rc=0 timed_end untimed_end
+    if [[ -n "$untimed_pid" ]] && [[ ! -f "$LOG_DIR/rclpy-untimed.ended" ]]; then
+        echo "rclpy tests: the untimed ones run beside these since $untimed_started s (output in rclpy-untimed.log, printed below)"
+    fi
+    run_pytest_paths jazzy "$LOG_DIR/rclpy-junit.xml" tests/rclpy -- "${beside_ignore[@]}" \
         --timing-group=timed "${pytest_extra[@]}" || timed_rc=$?
-    timed_s=$((SECONDS - start))
+    timed_end=$SECONDS
     wait "$untimed_pid" || untimed_rc=$?
-    untimed_s=$(cat "$LOG_DIR/rclpy-untimed.seconds" 2>/dev/null || echo $((SECONDS - start)))
-    banner "rclpy tests: the untimed ones (beside the timed ones)"
+    untimed_end=$(cat "$LOG_DIR/rclpy-untimed.ended" 2>/dev/null || echo "$SECONDS")
+    banner "rclpy tests: the untimed ones (beside the steps since the release build)"
     cat "$LOG_DIR/rclpy-untimed.log"
     if ((${#pytest_extra[@]})); then
         if ((timed_rc == 5 && untimed_rc != 5)); then
@@ -398,10 +393,15 @@ rclpy_suite() {
     fi
     add_junit_counts "$LOG_DIR/rclpy-junit.xml"
     add_junit_counts "$LOG_DIR/rclpy-untimed-junit.xml"
-    printf -- '---- rclpy tests, timed, one at a time: exit %d (%d s)\n' "$timed_rc" "$timed_s"
-    printf -- '---- rclpy tests, untimed, beside them: exit %d (%d s)\n' "$untimed_rc" "$untimed_s"
-    step_times+=("$(printf '%6d s  %s' "$timed_s" "rclpy tests, timed (one at a time)")")
-    step_times+=("$(printf '%6d s  %s' "$untimed_s" "rclpy tests, untimed (beside them)")")
+    printf -- '---- rclpy tests, timed, one at a time: exit %d (%d s, from %d s to %d s of the run)\n' \
+        "$timed_rc" $((timed_end - start)) "$start" "$timed_end"
+    printf -- '---- rclpy tests, untimed, beside the steps: exit %d (%d s, %s)\n' \
+        "$untimed_rc" $((untimed_end - untimed_started)) \
+        "$(beside_span "$untimed_started" "$LOG_DIR/rclpy-untimed.ended")"
+    step_times+=("$(printf '%6d s  %s' $((timed_end - start)) \
+        "rclpy tests, timed (one at a time, from $start s to $timed_end s of the run)")")
+    step_times+=("$(printf '%6d s  %s (beside the steps, %s)' $((untimed_end - untimed_started)) \
+        "rclpy tests, untimed" "$(beside_span "$untimed_started" "$LOG_DIR/rclpy-untimed.ended")")")
     ((timed_rc == 0 && untimed_rc == 0))
 }
 if ((release_ok)); then
@@ -411,7 +411,41 @@ else
     failed_steps+=("rclpy tests")
 fi
 
-# 5a. ROS 2 Kilted: the smoke subset of the rclpy suite (`pytest -m smoke`: a duty command's
+# 5a. Real kernel GPIO lines, after the rclpy tests so that nothing runs beside the guest's timed
+# sampler: in a QEMU guest with a gpio-sim chip, the GPIO backend's integration test (ignored by
+# `cargo test` above, counted as skipped there) and the node-level checks of the release binary
+# in tests/gpio_vm/, by scripts/gpio-vm-tests.sh. Counted as passed only when they ran and
+# passed. They count as skipped only where this machine cannot run the guest at all (not Debian,
+# or packages missing and not root to install them), with the reason; a preparation that fails,
+# a guest that hangs (killed after GPIO_VM_TIMEOUT seconds, default 900) or one that ends
+# without a result fails them, with the reason.
+vm_total=$(($(python3 tests/gpio_vm/node_checks.py --list | wc -l) + 1))
+if ((!release_ok)); then
+    echo "gpio-vm tests: FAILED (no release build): $vm_total tests did not run"
+    failed=$((failed + vm_total))
+    failed_steps+=("gpio-vm tests (no release build)")
+else
+    banner "gpio-vm tests"
+    vm_start=$SECONDS
+    scripts/gpio-vm-tests.sh 2>&1 | tee "$LOG_DIR/gpio-vm-tests.log"
+    vm_rc=${PIPESTATUS[0]}
+    printf -- '---- gpio-vm tests: exit %d (%d s)\n' "$vm_rc" $((SECONDS - vm_start))
+    step_times+=("$(printf '%6d s  %s' $((SECONDS - vm_start)) "gpio-vm tests")")
+    read -r v_pass v_fail v_skip < <(sed -n 's/^gpio-vm tests: \([0-9]*\) passed, \([0-9]*\) failed, \([0-9]*\) skipped$/\1 \2 \3/p' \
+        "$LOG_DIR/gpio-vm-tests.log" | tail -n1 | grep . || echo "0 $vm_total 0")
+    case $vm_rc in
+        0) ;;
+        120) skipped_steps+=("gpio-vm tests (this machine cannot run the guest: see above)") ;;
+        *) failed_steps+=("gpio-vm tests") ;;
+    esac
+    # A run that failed without saying what counts one failure at least.
+    ((vm_rc != 0 && vm_rc != 120 && v_fail == 0)) && v_fail=1
+    passed=$((passed + v_pass)) failed=$((failed + v_fail))
+    skipped=$((skipped + v_skip))
+fi
+skipped=$((skipped - 1)) # the ignored output_gpio_sim test, counted above
+
+# 5b. ROS 2 Kilted: the smoke subset of the rclpy suite (`pytest -m smoke`: a duty command's
 # edges, the parameter services and /parameter_events, diagnostics, the lifecycle, the node in
 # the graph) with Kilted's rclpy from .venv-kilted/ (scripts/setup.sh --distro kilted) against
 # the same release binary. PYTEST_ARGS are not passed: the subset always runs whole. A setup

@@ -147,6 +147,54 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 # ---------------------------------------------------------------------------------------------
+# Figures shown, not asserted
+# ---------------------------------------------------------------------------------------------
+
+#: A directory where tests leave the tables of figures they show, so that tables of one group
+#: measured in different pytest processes are printed together. scripts/test.sh points both of
+#: its timing groups at one directory of the run's logs and empties it at the start of the run.
+#: Unset, tables stay within the pytest process.
+FIGURES_DIR = os.environ.get("PWM_TEST_FIGURES_DIR")
+
+_FIGURES = pytest.StashKey[dict[str, dict[str, str]]]()
+
+
+@pytest.fixture
+def show_figures(request: pytest.FixtureRequest) -> Callable[[str, str, str], None]:
+    """`show_figures(group, key, text)`: a table of figures the test shows (asserts nothing of).
+
+    It is printed at the end of the pytest run with the other tables of `group`, in the order of
+    their `key`s: those of this process, and with PWM_TEST_FIGURES_DIR those that any process
+    wrote there so far. Each process that showed a table of a group prints the group, so the
+    process that ends last prints all of it.
+    """
+    config = request.config
+
+    def show(group: str, key: str, text: str) -> None:
+        config.stash.setdefault(_FIGURES, {}).setdefault(group, {})[key] = text
+        if FIGURES_DIR:
+            directory = Path(FIGURES_DIR) / group
+            directory.mkdir(parents=True, exist_ok=True)
+            partial = directory / f".{key}.{os.getpid()}"
+            partial.write_text(text)
+            partial.replace(directory / f"{key}.txt")
+
+    return show
+
+
+def pytest_terminal_summary(terminalreporter: Any, config: pytest.Config) -> None:
+    """Prints each group of tables shown through `show_figures` (above)."""
+    for group, own in sorted(config.stash.get(_FIGURES, {}).items()):
+        tables = dict(own)
+        if FIGURES_DIR:
+            for path in (Path(FIGURES_DIR) / group).glob("*.txt"):
+                tables.setdefault(path.stem, path.read_text())
+        terminalreporter.write_sep("=", f"{group}: {len(tables)} table(s) of this run")
+        for key in sorted(tables):
+            terminalreporter.write_line(tables[key])
+
+
+# ---------------------------------------------------------------------------------------------
 # ROS domains
 # ---------------------------------------------------------------------------------------------
 

@@ -13,17 +13,22 @@ first request or sample costs a Fast DDS heartbeat period (3 s), while the delay
 2-core machine (p99 up to ~0.7 s for the rclpy reference at a load average of 15) stay below
 it.
 
-The same trials run in the same test against an rclpy node of the same shape
-(reference_node.py) as the yardstick; both tables (p50, p99, max per kind) are printed. Before
-the vendored rustdds's third change (vendor/rustdds/README.pwm_actuator.md) about half of the
-node's trials took 3 s, a Fast DDS heartbeat period.
+The same trials run against an rclpy node of the same shape (reference_node.py), the yardstick,
+in a test of their own: that node must answer every call and apply every command within
+CONFIRM_TIMEOUT_S (6 s), but its times are only shown, since a Python node on a loaded 2-core
+machine is itself sometimes late. Its trials take under a second even then, so the 6 s bound has
+far more than a factor of two to spare: that test is `untimed` (pytest.ini) and scripts/test.sh
+runs it beside the others, while the node's trials, timed, run one test at a time. Both tables (p50, p99, max per kind) are printed together
+at the end of the run (conftest.py's `show_figures`), also when the two tests ran in different
+pytest processes. Before the vendored rustdds's third change (vendor/rustdds/README.pwm_actuator.md)
+about half of the node's trials took 3 s, a Fast DDS heartbeat period.
 
 Trials run in LANES concurrent lanes (one channel each, so the enable flags alternate per lane;
 every change_state in lane 0, so each transition is valid), a lane's next trial starting once
 the previous one was confirmed or given up.
 
-Environment: PWM_FRESH_TRIALS (default 100), PWM_FRESH_LANES (default 6), PWM_FRESH_TARGETS
-("reference,node"; "node" alone to check a binary quickly).
+Environment: PWM_FRESH_TRIALS (default 100), PWM_FRESH_LANES (default 6). `-k reference` or
+`-k node` runs one of the two tests.
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ from typing import Any, Callable, Optional
 
 import pytest
 import rclpy
-from conftest import DomainAllocator, wait_until
+from conftest import wait_until
 from helpers_fresh import SERVICE_KINDS, TOPIC_KINDS, Trial, TrialProcess
 from helpers_rules import NODE, node_args
 from pwm_actuator_msgs.msg import ChannelStatus
@@ -60,8 +65,6 @@ LIMIT_S = 0.200
 ASSERT_S = 1.0
 #: What a lane waits for a command to take effect before it counts it as not applied, s.
 CONFIRM_TIMEOUT_S = 6.0
-#: Which to run: "reference" (reference_node.py), "node" (the binary), or both (the default).
-TARGETS = os.environ.get("PWM_FRESH_TARGETS", "reference,node").split(",")
 REFERENCE_NODE = Path(__file__).with_name("reference_node.py")
 KINDS = SERVICE_KINDS + TOPIC_KINDS
 
@@ -189,8 +192,6 @@ class Outcome:
     latency_s: float  # math.inf: never answered or applied
     wait_s: float = math.nan  # from creating the client or publisher until it was matched
     pid: int = 0  # the trial's process (Fast DDS puts it in the participant's GUID prefix)
-    wait_s: float = math.nan  # from creating the client or publisher until it was matched
-    pid: int = 0  # the trial's process (Fast DDS puts it in the participant's GUID prefix)
     problem: str = ""  # why it failed, beyond being late
 
 
@@ -254,8 +255,6 @@ def table(label: str, outcomes: list[Outcome]) -> str:
         lat = [o.latency_s for o in outcomes if o.trial.kind == kind]
         waits = [o.wait_s for o in outcomes if o.trial.kind == kind and not math.isnan(o.wait_s)]
         waits = waits or [math.inf]
-        waits = [o.wait_s for o in outcomes if o.trial.kind == kind and not math.isnan(o.wait_s)]
-        waits = waits or [math.inf]
         ok = sum(1 for o in outcomes if o.trial.kind == kind and o.latency_s <= LIMIT_S)
         lines.append(
             f"  {kind:<15}{len(lat):>5}{ok:>9}{ms(percentile(lat, 0.5)):>10}"
@@ -285,43 +284,43 @@ def failures(label: str, outcomes: list[Outcome], limit_s: float) -> list[str]:
     ]
 
 
-# 2 x 700 processes: about 1.5 min for the node and 2-3 for the reference on a loaded 2-core
-# machine, beyond pytest.ini's 180 s per test.
+def measure(
+    domain_id: int, show_figures: Callable[[str, str, str], None], key: str, label: str
+) -> list[Outcome]:
+    """All trials against the node on `domain_id`; their table shown (`show_figures`) with
+    when they started, so that the two tables printed together are seen to be of one run."""
+    when = time.strftime("%H:%M:%S")
+    started = time.monotonic()
+    outcomes = run_all(domain_id)
+    label = f"{label} ({time.monotonic() - started:.0f} s from {when})"
+    show_figures("fresh clients", key, table(label, outcomes))
+    return outcomes
+
+
+# 700 processes: about 3 min for the reference on a loaded 2-core machine, beyond pytest.ini's
+# 180 s per test.
+@pytest.mark.untimed
+@pytest.mark.timeout(600)
+def test_the_rclpy_reference_node_answers_every_fresh_client_and_one_shot_publisher(
+    process_launcher, ros_domain_id: int, show_figures
+):
+    """The yardstick: every call answered and every command applied within 6 s; times shown."""
+    reference = process_launcher.launch(
+        [sys.executable, str(REFERENCE_NODE), str(LANES)], name="reference"
+    )
+    reference.wait_for_output("reference node ready")
+    outcomes = measure(ros_domain_id, show_figures, "1-reference", "rclpy reference node")
+    reference.terminate()
+    problems = failures("rclpy reference node", outcomes, CONFIRM_TIMEOUT_S)
+    assert not problems, f"{len(problems)} trials failed:\n" + "\n".join(problems[:40])
+
+
+# 700 processes: about 1.5-2 min on a loaded 2-core machine, beyond pytest.ini's 180 s at worst.
 @pytest.mark.timeout(600)
 def test_fresh_clients_and_one_shot_publishers_are_served_at_once(
-    node_process, process_launcher, domain_allocator: DomainAllocator, ros_domain_id: int, capsys
+    node_process, ros_domain_id: int, show_figures
 ):
-    results: dict[str, tuple[list[Outcome], float]] = {}
-    if "reference" in TARGETS:
-        # On a domain of its own, before the node starts.
-        ref_domain, ref_lock = domain_allocator.acquire()
-        try:
-            reference = process_launcher.launch(
-                [sys.executable, str(REFERENCE_NODE), str(LANES)],
-                name="reference",
-                env={"ROS_DOMAIN_ID": str(ref_domain)},
-            )
-            reference.wait_for_output("reference node ready")
-            started = time.monotonic()
-            outcomes = run_all(ref_domain)
-            results["rclpy reference node"] = (outcomes, time.monotonic() - started)
-            reference.terminate()
-        finally:
-            DomainAllocator.release(ref_lock)
-    if "node" in TARGETS:
-        node_process(["--managed"] + node_args(channels=LANES))
-        started = time.monotonic()
-        outcomes = run_all(ros_domain_id)
-        results["pwm_actuator"] = (outcomes, time.monotonic() - started)
-
-    with capsys.disabled():
-        print()
-        for label, (outcomes, seconds) in results.items():
-            print(table(f"{label} ({seconds:.0f} s)", outcomes))
-    problems = []
-    for label, (outcomes, _) in results.items():
-        # The reference is the yardstick: it must answer everything, but its times are only
-        # shown (a Python node on a loaded 2-core machine is itself sometimes late).
-        limit = ASSERT_S if label == "pwm_actuator" else CONFIRM_TIMEOUT_S
-        problems += failures(label, outcomes, limit)
+    node_process(["--managed"] + node_args(channels=LANES))
+    outcomes = measure(ros_domain_id, show_figures, "2-node", "pwm_actuator")
+    problems = failures("pwm_actuator", outcomes, ASSERT_S)
     assert not problems, f"{len(problems)} trials failed:\n" + "\n".join(problems[:40])

@@ -156,14 +156,11 @@ impl Channel {
     /// The heater's next deadline: `sensor_timeout`, the next `not_heating` tick, the next
     /// PID sample.
     pub(super) fn heat_deadline(&self) -> Option<Nanos> {
-        [
+        super::earliest(&[
             self.sensor_deadline(),
             self.heat.next_tick,
             self.heat.next_sample,
-        ]
-        .into_iter()
-        .flatten()
-        .min()
+        ])
     }
 
     /// Handles a heater deadline falling at `t`, if one does; returns whether one did.

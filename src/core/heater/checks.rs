@@ -50,19 +50,27 @@ impl Delivered {
 
     /// The cumulative on time at `t`, interpolated; `None` before the oldest snapshot.
     fn at(&self, t: Nanos, now: Nanos, on_now: Nanos) -> Option<Nanos> {
-        let mut prev: Option<(Nanos, Nanos)> = None;
-        for k in 0..self.len {
-            let (tk, ek) = self.ring[(self.head + k) % ENERGY_SLOTS];
-            if tk >= t {
-                return match prev {
-                    Some((tp, ep)) if tk > tp => Some(
-                        ep + ((ek - ep) as u128 * (t - tp) as u128 / (tk - tp) as u128) as Nanos,
-                    ),
-                    Some(_) => Some(ek),
-                    None => (tk == t).then_some(ek),
-                };
+        let slot = |k: usize| self.ring[(self.head + k) % ENERGY_SLOTS];
+        // The first snapshot at or after `t`, by bisection: `record` keeps their times rising.
+        let (mut lo, mut hi) = (0, self.len);
+        while lo < hi {
+            let mid = (lo + hi) / 2;
+            if slot(mid).0 < t {
+                lo = mid + 1;
+            } else {
+                hi = mid;
             }
-            prev = Some((tk, ek));
+        }
+        let prev = lo.checked_sub(1).map(slot);
+        if lo < self.len {
+            let (tk, ek) = slot(lo);
+            return match prev {
+                Some((tp, ep)) if tk > tp => {
+                    Some(ep + ((ek - ep) as u128 * (t - tp) as u128 / (tk - tp) as u128) as Nanos)
+                }
+                Some(_) => Some(ek),
+                None => (tk == t).then_some(ek),
+            };
         }
         match prev {
             Some((tp, ep)) if now > tp && t <= now => Some(
@@ -650,6 +658,73 @@ mod tests {
     use super::*;
 
     const S: Nanos = 1_000_000_000;
+
+    /// `Delivered::at` finds the snapshots around an instant by bisection: the same answer as a
+    /// scan from the oldest snapshot, at each snapshot's instant, next to it, between two,
+    /// before the oldest and after `now`, with the ring filled and wrapped several times and
+    /// some records too close to the last to be kept.
+    #[test]
+    fn the_delivered_history_at_an_instant_is_what_a_scan_finds() {
+        fn scan(d: &Delivered, t: Nanos, now: Nanos, on_now: Nanos) -> Option<Nanos> {
+            let mut prev: Option<(Nanos, Nanos)> = None;
+            for k in 0..d.len {
+                let (tk, ek) = d.ring[(d.head + k) % ENERGY_SLOTS];
+                if tk >= t {
+                    return match prev {
+                        Some((tp, ep)) if tk > tp => Some(
+                            ep + ((ek - ep) as u128 * (t - tp) as u128 / (tk - tp) as u128)
+                                as Nanos,
+                        ),
+                        Some(_) => Some(ek),
+                        None => (tk == t).then_some(ek),
+                    };
+                }
+                prev = Some((tk, ek));
+            }
+            match prev {
+                Some((tp, ep)) if now > tp && t <= now => Some(
+                    ep + ((on_now.saturating_sub(ep)) as u128 * (t - tp) as u128
+                        / (now - tp) as u128) as Nanos,
+                ),
+                _ => None,
+            }
+        }
+        let mut d = Delivered::new(60 * S);
+        let mut rng = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move |below: u64| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            rng % below.max(1)
+        };
+        let (mut now, mut on) = (5 * S, 0);
+        let mut checked = 0;
+        for _ in 0..4 * ENERGY_SLOTS {
+            let step = next(2 * d.spacing);
+            now += step;
+            on += next(step + 1);
+            d.record(now, on);
+            let on_now = on + next(S);
+            let mut probes = vec![0, 1, now, now + 1, now.saturating_sub(1)];
+            for k in 0..d.len {
+                let (tk, _) = d.ring[(d.head + k) % ENERGY_SLOTS];
+                probes.extend([tk.saturating_sub(1), tk, tk + 1, tk + next(d.spacing)]);
+            }
+            for t in probes {
+                assert_eq!(
+                    d.at(t, now, on_now),
+                    scan(&d, t, now, on_now),
+                    "at {t}, now {now}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(
+            d.len == ENERGY_SLOTS && checked > 100_000,
+            "{} slots, {checked} probes",
+            d.len
+        );
+    }
 
     fn klipper() -> Runaway {
         Runaway {

@@ -166,18 +166,24 @@ impl Model {
         if t >= self.at {
             return self.x;
         }
-        let mut prev: Option<(Nanos, f64)> = None;
-        for k in 0..self.len {
-            let (tk, xk) = self.ring[(self.head + k) % SLOTS];
-            if tk >= t {
-                return match prev {
-                    Some((tp, xp)) if tk > tp => {
-                        xp + (xk - xp) * (t - tp) as f64 / (tk - tp) as f64
-                    }
-                    _ => xk,
-                };
+        let slot = |k: usize| self.ring[(self.head + k) % SLOTS];
+        // The first snapshot at or after `t`, by bisection: `push` keeps their times rising.
+        let (mut lo, mut hi) = (0, self.len);
+        while lo < hi {
+            let mid = (lo + hi) / 2;
+            if slot(mid).0 < t {
+                lo = mid + 1;
+            } else {
+                hi = mid;
             }
-            prev = Some((tk, xk));
+        }
+        let prev = lo.checked_sub(1).map(slot);
+        if lo < self.len {
+            let (tk, xk) = slot(lo);
+            return match prev {
+                Some((tp, xp)) if tk > tp => xp + (xk - xp) * (t - tp) as f64 / (tk - tp) as f64,
+                _ => xk,
+            };
         }
         // Between the newest snapshot and `at`.
         match prev {
@@ -231,6 +237,72 @@ mod tests {
 
     const S: Nanos = 1_000_000_000;
     const MS: Nanos = 1_000_000;
+
+    /// `x_at` finds the snapshots around an instant by bisection: the same state as a scan from
+    /// the oldest snapshot, at each snapshot's instant, next to it, between two, before the
+    /// oldest and after the last instant advanced to, with the ring filled and wrapped.
+    #[test]
+    fn the_state_at_an_instant_is_what_a_scan_finds() {
+        fn scan(m: &Model, t: Nanos) -> f64 {
+            if t >= m.at {
+                return m.x;
+            }
+            let mut prev: Option<(Nanos, f64)> = None;
+            for k in 0..m.len {
+                let (tk, xk) = m.ring[(m.head + k) % SLOTS];
+                if tk >= t {
+                    return match prev {
+                        Some((tp, xp)) if tk > tp => {
+                            xp + (xk - xp) * (t - tp) as f64 / (tk - tp) as f64
+                        }
+                        _ => xk,
+                    };
+                }
+                prev = Some((tk, xk));
+            }
+            match prev {
+                Some((tp, xp)) if m.at > tp => {
+                    xp + (m.x - xp) * (t - tp) as f64 / (m.at - tp) as f64
+                }
+                _ => m.x,
+            }
+        }
+        let p = ModelParams {
+            gain_c_per_pct: 1.0,
+            tau_s: 60.0,
+            dead_time_s: 4.0,
+            ambient_c: 20.0,
+            sensor_tau_s: 2.0,
+        };
+        let mut m = Model::new(p);
+        m.restart(S, 0, 20.0);
+        let (mut now, mut on) = (S, 0);
+        let mut checked = 0;
+        for i in 0..4 * SLOTS as u64 {
+            let step = (i * 7_919 % 97) * MS;
+            now += step;
+            on += step * (i % 3) / 2;
+            m.advance(now, on);
+            let mut probes = vec![0, 1, now, now + 1, now - 1];
+            for k in 0..m.len {
+                let (tk, _) = m.ring[(m.head + k) % SLOTS];
+                probes.extend([tk.saturating_sub(1), tk, tk + 1, tk + m.spacing / 3]);
+            }
+            for t in probes {
+                assert_eq!(
+                    m.x_at(t).to_bits(),
+                    scan(&m, t).to_bits(),
+                    "at {t}, now {now}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(
+            m.len == SLOTS && checked > 50_000,
+            "{} slots, {checked} probes",
+            m.len
+        );
+    }
 
     fn model_of(p: &PlantParams) -> ModelParams {
         ModelParams {
