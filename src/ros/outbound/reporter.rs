@@ -471,7 +471,8 @@ impl Reporter {
                     ),
                     Err(e) => warn!("{name}: heater fault reset refused: {e}"),
                 }
-                self.state.answer_reset(ch, ticket, result);
+                // Dropped when the reset's request has given up.
+                self.state.resets().answer(ch, ticket, result);
             }
             Event::Autotune { ticket, report } => {
                 use crate::core::heater::autotune::{Phase, Progress, Report};
@@ -508,7 +509,7 @@ impl Reporter {
                     Report::Progress(p) => self.health[ch].autotune = Some(*p),
                     Report::Finished(_) => self.health[ch].autotune = None,
                 }
-                self.state.file_autotune(ch, ticket, report);
+                self.state.autotunes().file(ch, ticket, report);
             }
             Event::Plan(_) | Event::Edge { .. } => {}
         }
