@@ -43,7 +43,7 @@ use crate::ros::inbound::valve::{self as valve_inputs, ValveAnswers, ValveRun};
 use crate::ros::interface::msg::{self, RosMessage};
 use crate::ros::interface::{qos, type_hash};
 use crate::ros::outbound::diagnostics::ChannelHealth;
-use crate::ros::outbound::mcap_trace::{self, McapTrace};
+use crate::ros::outbound::mcap_trace::{self, McapTrace, TraceKey};
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
 use crate::ros::outbound::traces::TraceReport;
 use crate::ros::outbound::valve::ValveOut;
@@ -401,8 +401,8 @@ fn channel_health(cfg: &StartupConfig, hardware_ids: &[String]) -> Vec<ChannelHe
 }
 
 /// The MCAP trace files of `--trace` / `trace`, if any: every channel's edges and status and
-/// `/diagnostics`, under the names the node publishes them on (the order
-/// [`Reporter::record_to`] expects).
+/// `/diagnostics`, under the names the node publishes them on, each with the key
+/// [`Reporter`] records it under.
 fn mcap_trace(
     cfg: &StartupConfig,
     ep: &Endpoints<'_>,
@@ -417,19 +417,22 @@ fn mcap_trace(
         return Ok(None);
     }
     let mut topics = Vec::with_capacity(2 * names.len() + 1);
-    for name in names {
+    for (ch, name) in names.iter().enumerate() {
         topics.push(mcap_trace::Topic {
+            key: TraceKey::Edges(ch),
             name: ep.topic_name(&format!("~/{name}/edges"))?,
             package: msg::OutputEdge::PACKAGE,
             type_name: msg::OutputEdge::NAME,
         });
         topics.push(mcap_trace::Topic {
+            key: TraceKey::Status(ch),
             name: ep.topic_name(&format!("~/{name}/status"))?,
             package: msg::ChannelStatus::PACKAGE,
             type_name: msg::ChannelStatus::NAME,
         });
     }
     topics.push(mcap_trace::Topic {
+        key: TraceKey::Diagnostics,
         name: ep.topic_name("/diagnostics")?,
         package: msg::DiagnosticArray::PACKAGE,
         type_name: msg::DiagnosticArray::NAME,

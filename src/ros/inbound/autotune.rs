@@ -4,8 +4,10 @@
 //!
 //! The run itself lives in the output thread's channel core, which alone knows when the line
 //! was really on and stops the run on a heater fault, the e-stop, a deactivate or a disable.
-//! The action's task sends the goal and a cancel through the request queue and reads the
-//! core's reports (start, each cycle, the end) that the report thread files in the node state.
+//! The action's task sends the goal and a cancel through the request queue and takes the
+//! core's reports (start, each cycle, the end) from the channel's mailbox
+//! ([`Mailbox`](super::replies::Mailbox)), where the report thread files them and wakes it: it
+//! sleeps until a report is filed, a request comes or a run's time to report is over.
 //!
 //! The action server ([`ActionServer`]) answers every request as it comes and never waits for
 //! a client: one run per channel at a time, so a goal that comes while a run goes is rejected
@@ -36,8 +38,9 @@ use tokio::task::JoinHandle;
 
 /// The rule that gives the gains, as the result names it.
 pub const RULE: &str = "tyreus_luyben";
-/// How often the task looks for the core's reports while a run goes.
-const POLL: Duration = Duration::from_millis(50);
+/// How soon the task tries again to send a cancel that did not reach the output thread's
+/// queue (it was full).
+const CANCEL_RETRY: Duration = Duration::from_millis(50);
 /// The latest a run starts after its goal was accepted: the output thread drops a goal it
 /// takes later.
 pub const START_BY: Duration = Duration::from_secs(1);
@@ -80,7 +83,8 @@ struct Run {
     apply: bool,
     started: bool,
     canceling: bool,
-    /// Whether the cancel reached the output thread's queue (tried again at each poll).
+    /// Whether the cancel reached the output thread's queue (tried again every
+    /// [`CANCEL_RETRY`]).
     cancel_sent: bool,
     /// When the last report came (or the goal was sent).
     last: Instant,
@@ -88,16 +92,30 @@ struct Run {
     stale: Duration,
 }
 
+impl Run {
+    /// When the task must look at the run without a report: when it is lost if none comes
+    /// by then, or sooner to send a cancel again.
+    fn wake_at(&self) -> Instant {
+        let lost = self.last + if self.started { self.stale } else { START_WAIT };
+        if self.canceling && !self.cancel_sent {
+            lost.min(Instant::now() + CANCEL_RETRY)
+        } else {
+            lost
+        }
+    }
+}
+
 async fn serve(mut server: Server, inputs: Arc<Inputs>, ch: usize, name: String) {
     let mut run: Option<Run> = None;
-    let mut poll_at = Instant::now();
     let mut expire_at: Option<Instant> = None;
+    let mailbox = inputs.state().autotunes();
     loop {
-        let wake = match (&run, expire_at) {
-            (Some(_), Some(e)) => Some(poll_at.min(e)),
-            (Some(_), None) => Some(poll_at),
-            (None, e) => e,
-        };
+        let wake = run
+            .as_ref()
+            .map(Run::wake_at)
+            .into_iter()
+            .chain(expire_at)
+            .min();
         let timer = async {
             match wake {
                 Some(t) => tokio::time::sleep_until(t.into()).await,
@@ -108,10 +126,7 @@ async fn serve(mut server: Server, inputs: Arc<Inputs>, ch: usize, name: String)
             event = server.next() => match event {
                 Some(Event::Goal(g)) => match &run {
                     Some(r) => server.reject(g, &format!("a run is under way (goal {:?})", r.id)),
-                    None => {
-                        run = start(&mut server, &inputs, ch, &name, g);
-                        poll_at = Instant::now() + POLL;
-                    }
+                    None => run = start(&mut server, &inputs, ch, &name, g),
                 },
                 Some(Event::Cancel(ids)) => {
                     if let Some(r) = run.as_mut().filter(|r| ids.contains(&r.id) && !r.canceling) {
@@ -122,16 +137,15 @@ async fn serve(mut server: Server, inputs: Arc<Inputs>, ch: usize, name: String)
                 }
                 None => {}
             },
-            _ = timer => {
-                if let Some(r) = run.as_mut() {
-                    if Instant::now() >= poll_at {
-                        poll_at = Instant::now() + POLL;
-                        if let Some((status, result)) = progress(&server, &inputs, ch, &name, r) {
-                            server.end(&r.id, status, result);
-                            run = None;
-                        }
-                    }
-                }
+            // A report was filed (the report thread woke the task), or the run's time to
+            // report is over.
+            () = mailbox.filed(ch), if run.is_some() => {}
+            () = timer => {}
+        }
+        if let Some(r) = run.as_mut() {
+            if let Some((status, result)) = progress(&server, &inputs, ch, &name, r) {
+                server.end(&r.id, status, result);
+                run = None;
             }
         }
         expire_at = server.expire();
@@ -189,9 +203,9 @@ fn start(
     let stale = Duration::from_secs_f64(
         param(inputs, ch, |c| c.autotune_timeout_s).unwrap_or(1200.0) + 60.0,
     );
-    let ticket = inputs.state().reset_ticket();
+    let ticket = inputs.state().ticket();
     // Reports of an earlier run that nobody took.
-    inputs.state().take_autotune(ch, 0);
+    inputs.state().autotunes().take(ch, 0);
     let start_by = monotonic_ns() + START_BY.as_nanos() as u64;
     if let Err(e) = inputs.send(
         ch,
@@ -239,7 +253,7 @@ fn progress(
     if run.canceling && !run.cancel_sent {
         run.cancel_sent = inputs.send(ch, Input::AutotuneCancel(run.ticket)).is_ok();
     }
-    for report in inputs.state().take_autotune(ch, run.ticket) {
+    for report in inputs.state().autotunes().take(ch, run.ticket) {
         run.last = Instant::now();
         match report {
             Report::Refused(why) => {
@@ -252,7 +266,7 @@ fn progress(
         }
     }
     let quiet = run.last.elapsed();
-    if (!run.started && quiet > START_WAIT) || quiet > run.stale {
+    if (!run.started && quiet >= START_WAIT) || quiet >= run.stale {
         let _ = inputs.send(ch, Input::AutotuneCancel(run.ticket));
         let why = if run.started {
             format!("no report from the output thread for {} s", quiet.as_secs())

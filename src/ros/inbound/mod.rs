@@ -2,8 +2,8 @@
 //! ([`estop`]), the heater loop's readings, setpoints and fault resets ([`heater`]), its
 //! autotune action ([`autotune`]), the valves' positions ([`valve`]), the managed node
 //! ([`lifecycle`]), the parameter services ([`param_services`]),
-//! and what the callbacks share with the report side ([`node_state`], the notes of
-//! [`inputs`]).
+//! what the callbacks share with the report side ([`node_state`], the notes of [`inputs`]),
+//! and the reply paths of the requests that wait for the output thread's answer ([`replies`]).
 //!
 //! Layer 4 of the ROS shell: may import [`interface`](super::interface),
 //! [`config`](super::config) and [`wire`](super::wire); never the outbound side.
@@ -15,4 +15,5 @@ pub mod inputs;
 pub mod lifecycle;
 pub mod node_state;
 pub mod param_services;
+pub mod replies;
 pub mod valve;

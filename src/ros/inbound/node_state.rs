@@ -1,20 +1,23 @@
 //! What the ROS callbacks share with the report thread without a lock: the node's lifecycle
 //! state (the cell the lifecycle itself keeps it in), the e-stop, the number of duty commands each channel received, and the settings of
 //! the command-rate check (`expected_command_hz_min/max`, `command_hz_window`,
-//! `command_hz_tolerance`).
+//! `command_hz_tolerance`), and the reply paths of the requests that wait for the output
+//! thread's answer ([`replies`](super::replies)).
 //!
-//! Every field is an atomic written by one side and read by the other: a callback never waits
+//! Every other field is an atomic written by one side and read by the other: a callback never waits
 //! for the report thread, and the report thread never waits for a callback. Nothing here
 //! publishes or reads a clock. A change the report thread must show at once (the e-stop, a
 //! note queued for it) wakes it ([`NodeState::wake_reporter`]): it sleeps until something is
 //! due rather than looking again and again.
 
+use crate::core::heater::ResetRefusal;
 use crate::output_thread::ReportWaker;
 use crate::ros::config::params::ParamStore;
 pub use crate::ros::config::params::{
     DEFAULT_COMMAND_HZ_TOLERANCE, DEFAULT_COMMAND_HZ_WINDOW, MAX_COMMAND_HZ_WINDOW,
     MAX_EXPECTED_COMMAND_HZ,
 };
+use crate::ros::inbound::replies::{Mailbox, ReplySlots, Tickets};
 use crate::ros::interface::lifecycle::{state, state_label};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -75,28 +78,15 @@ pub struct NodeState {
     tolerance: AtomicU64,
     /// `heater_fault_latches_estop`.
     heater_estop: AtomicBool,
-    /// Per channel, the last answer to `~/<ch>/reset_fault`: its ticket and the outcome. The
-    /// one lock here, held for a copy by the report thread and the reset service only.
-    resets: Box<[std::sync::Mutex<Option<ResetAnswer>>]>,
-    next_ticket: std::sync::atomic::AtomicU32,
-    /// Per channel, the reports of autotune runs the action has not taken yet (a lock held
-    /// for a push by the report thread and a drain by the action task).
-    autotunes: Box<[AutotuneMailbox]>,
+    /// Tickets of the requests that wait for the output thread's answer.
+    tickets: Tickets,
+    /// Per channel, the reply path of the `~/<ch>/reset_fault` that waits.
+    resets: ReplySlots<Result<(), ResetRefusal>>,
+    /// Per channel, the reports of autotune runs the action has not taken yet.
+    autotunes: Mailbox,
     /// Wakes the report thread, once it runs.
     reporter: std::sync::OnceLock<ReportWaker>,
 }
-
-/// One channel's autotune reports waiting for the action, with their tickets.
-type AutotuneMailbox = std::sync::Mutex<std::collections::VecDeque<(u32, AutotuneReport)>>;
-
-pub use crate::core::heater::autotune::Report as AutotuneReport;
-use crate::core::heater::ResetRefusal;
-
-/// How many autotune reports wait per channel at most.
-pub const AUTOTUNE_REPORTS: usize = 64;
-
-/// The answer to a `~/<ch>/reset_fault`: its ticket, and cleared or why not.
-pub type ResetAnswer = (u32, Result<(), ResetRefusal>);
 
 impl NodeState {
     /// The state of a node with `channels` channels: unmanaged (and so always `active`),
@@ -112,11 +102,9 @@ impl NodeState {
             window: AtomicUsize::new(DEFAULT_COMMAND_HZ_WINDOW),
             tolerance: AtomicU64::new(DEFAULT_COMMAND_HZ_TOLERANCE.to_bits()),
             heater_estop: AtomicBool::new(false),
-            resets: (0..channels).map(|_| std::sync::Mutex::new(None)).collect(),
-            next_ticket: std::sync::atomic::AtomicU32::new(1),
-            autotunes: (0..channels)
-                .map(|_| std::sync::Mutex::new(std::collections::VecDeque::new()))
-                .collect(),
+            tickets: Tickets::default(),
+            resets: ReplySlots::new(channels),
+            autotunes: Mailbox::new(channels),
             reporter: std::sync::OnceLock::new(),
         }
     }
@@ -126,58 +114,22 @@ impl NodeState {
         self.heater_estop.load(Ordering::Acquire)
     }
 
-    /// A fresh ticket for a `~/<ch>/reset_fault` request.
-    pub fn reset_ticket(&self) -> u32 {
-        self.next_ticket.fetch_add(1, Ordering::Relaxed)
+    /// A fresh ticket for a request that waits for the output thread's answer (a heater
+    /// fault reset, an autotune goal).
+    pub fn ticket(&self) -> u32 {
+        self.tickets.next()
     }
 
-    /// Files a report of the autotune with `ticket` of `channel` for its action to take. At
-    /// most [`AUTOTUNE_REPORTS`] wait; beyond, the oldest progress report goes (a run's end
-    /// is never dropped for one).
-    pub fn file_autotune(&self, channel: usize, ticket: u32, report: AutotuneReport) {
-        if let Some(slot) = self.autotunes.get(channel) {
-            let mut q = crate::output::panic_off::lock_ignore_poison(slot);
-            if q.len() >= AUTOTUNE_REPORTS {
-                if let Some(i) = q
-                    .iter()
-                    .position(|(_, r)| matches!(r, AutotuneReport::Progress(_)))
-                {
-                    q.remove(i);
-                } else {
-                    q.pop_front();
-                }
-            }
-            q.push_back((ticket, report));
-        }
+    /// Per channel, the reply paths of `~/<ch>/reset_fault`: filed by the service, answered by
+    /// the report thread with the core's `FaultReset` event.
+    pub fn resets(&self) -> &ReplySlots<Result<(), ResetRefusal>> {
+        &self.resets
     }
 
-    /// Takes the reports of the autotune with `ticket` of `channel` that have come, oldest
-    /// first (reports of other tickets are dropped: one run per channel at a time).
-    pub fn take_autotune(&self, channel: usize, ticket: u32) -> Vec<AutotuneReport> {
-        let Some(slot) = self.autotunes.get(channel) else {
-            return Vec::new();
-        };
-        crate::output::panic_off::lock_ignore_poison(slot)
-            .drain(..)
-            .filter(|(t, _)| *t == ticket)
-            .map(|(_, r)| r)
-            .collect()
-    }
-
-    /// Records the output thread's answer to the reset with `ticket` of `channel`.
-    pub fn answer_reset(&self, channel: usize, ticket: u32, result: Result<(), ResetRefusal>) {
-        if let Some(slot) = self.resets.get(channel) {
-            *crate::output::panic_off::lock_ignore_poison(slot) = Some((ticket, result));
-        }
-    }
-
-    /// The answer to the reset with `ticket` of `channel`, once it has come.
-    pub fn reset_answer(&self, channel: usize, ticket: u32) -> Option<Result<(), ResetRefusal>> {
-        let slot = self.resets.get(channel)?;
-        match &*crate::output::panic_off::lock_ignore_poison(slot) {
-            Some((t, r)) if *t == ticket => Some(*r),
-            _ => None,
-        }
+    /// Per channel, the autotune reports for the action: filed by the report thread, taken by
+    /// the action's task.
+    pub fn autotunes(&self) -> &Mailbox {
+        &self.autotunes
     }
 
     /// The state of a node with the store's channels, managed if `managed` says so, the rate

@@ -4,8 +4,9 @@
 //! infinities (the target in force stays) and clamps the rest to 0..100. A valve with
 //! `NAME.feedback_topic` subscribes to it (`std_msgs/Float64`, percent, best effort so that
 //! best-effort and reliable publishers both match); `~/valve/<NAME>/reset` (`std_srvs/Trigger`)
-//! asks the output thread to clear a latched fault and answers with its verdict, which the
-//! report side files in [`ValveAnswers`].
+//! asks the output thread to clear a latched fault and answers with its verdict, which comes
+//! back in the valve's next snapshot and, through the report side, on the request's own reply
+//! path ([`ValveAnswers`]).
 
 //!
 //! End switches (`NAME.open_limit_line`, `NAME.close_limit_line`) are GPIO input lines,
@@ -19,13 +20,13 @@ use crate::output::gpio_input::{InputError, InputLine, InputRequest};
 use crate::output_thread::Input;
 use crate::ros::config::valve::{LimitLine, ValveLimits, ValveSpec};
 use crate::ros::inbound::inputs::Inputs;
+use crate::ros::inbound::replies::{ReplySlots, Tickets};
 use crate::ros::interface::msg::{self, TriggerResponse};
 use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{info, warn};
-use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tokio::task::JoinHandle;
 
 /// One requested end switch line.
@@ -169,51 +170,58 @@ pub struct ValveRun {
 /// How long `~/valve/<NAME>/reset` waits for the output thread's answer.
 pub const VALVE_RESET_WAIT: Duration = Duration::from_secs(1);
 
-/// One valve's last reset answer and the fault it reported last.
-type AnswerSlot = (Option<ResetAnswer>, Option<ValveFault>);
+/// The answer to a valve reset: cleared or not, with the fault the same snapshot reported.
+pub type ValveResetAnswer = (bool, Option<ValveFault>);
 
-/// What the report side knows of each valve's resets: the last answer with its ticket, and
-/// the fault latched before it (for the service's message). The lock is held for a copy.
+/// What the report side tells the valves' reset services: the fault each valve reported last
+/// (for the service's message; the lock is held for a copy), and the answers to the resets,
+/// each handed to its request's reply path ([`ReplySlots`]).
 #[derive(Debug)]
 pub struct ValveAnswers {
-    slots: Box<[Mutex<AnswerSlot>]>,
-    next: AtomicU32,
+    faults: Box<[Mutex<Option<ValveFault>>]>,
+    resets: ReplySlots<ValveResetAnswer>,
+    tickets: Tickets,
 }
 
 impl ValveAnswers {
     /// Slots for `valves` valves.
     pub fn new(valves: usize) -> ValveAnswers {
         ValveAnswers {
-            slots: (0..valves).map(|_| Mutex::new((None, None))).collect(),
-            next: AtomicU32::new(1),
+            faults: (0..valves).map(|_| Mutex::new(None)).collect(),
+            resets: ReplySlots::new(valves),
+            tickets: Tickets::default(),
         }
     }
 
-    /// A fresh ticket.
-    pub fn ticket(&self) -> u32 {
-        self.next.fetch_add(1, Ordering::Relaxed)
-    }
-
-    /// Valve `k`'s snapshot came with `fault` latched and `reset` the last answer.
+    /// Valve `k`'s snapshot came with `fault` latched and `reset` the last answer: the answer
+    /// goes to the reset that waits for it, if one still does (a snapshot repeats the last
+    /// answer; a repeat finds nobody waiting).
     pub fn note(&self, k: usize, fault: Option<ValveFault>, reset: Option<ResetAnswer>) {
-        if let Some(slot) = self.slots.get(k) {
-            *crate::output::panic_off::lock_ignore_poison(slot) = (reset, fault);
+        if let Some(slot) = self.faults.get(k) {
+            *crate::output::panic_off::lock_ignore_poison(slot) = fault;
+        }
+        if let Some(a) = reset {
+            self.resets.answer(k, a.ticket, (a.cleared, fault));
         }
     }
 
     /// The fault valve `k` has latched, as last reported.
     pub fn fault(&self, k: usize) -> Option<ValveFault> {
-        let slot = self.slots.get(k)?;
-        crate::output::panic_off::lock_ignore_poison(slot).1
+        *crate::output::panic_off::lock_ignore_poison(self.faults.get(k)?)
     }
 
-    /// The answer to the reset with `ticket` of valve `k`, once it has come.
-    pub fn answer(&self, k: usize, ticket: u32) -> Option<bool> {
-        let slot = self.slots.get(k)?;
-        match crate::output::panic_off::lock_ignore_poison(slot).0 {
-            Some(a) if a.ticket == ticket => Some(a.cleared),
-            _ => None,
-        }
+    /// Files a reset's reply path for valve `k` under a fresh ticket, hands the ticket to
+    /// `send` (the request to the output thread) and awaits the answer for up to
+    /// [`VALVE_RESET_WAIT`]: `Ok(None)` when none came, `Err` when `send` failed.
+    pub async fn ask(
+        &self,
+        k: usize,
+        send: impl FnOnce(u32) -> Result<(), String>,
+    ) -> Result<Option<ValveResetAnswer>, String> {
+        let ticket = self.tickets.next();
+        let reply = self.resets.expect(k, ticket);
+        send(ticket)?;
+        Ok(reply.within(VALVE_RESET_WAIT).await)
     }
 }
 
@@ -340,10 +348,14 @@ pub fn listen_valves(
             let manual = m.data.trim().parse::<Manual>();
             let _ = to_thread.send(0, Input::ValveManual { valve: k, manual });
         })?);
-        let (to_thread, a, name) = (Arc::clone(inputs), Arc::clone(answers), v.name.clone());
-        let reset = move |_: msg::EmptyRequest| reset(&to_thread, &a, k, &name);
+        let (to_thread, a) = (Arc::clone(inputs), Arc::clone(answers));
+        let name: Arc<str> = v.name.as_str().into();
+        let reset = move |_: msg::EmptyRequest| {
+            let (to_thread, a, name) = (Arc::clone(&to_thread), Arc::clone(&a), Arc::clone(&name));
+            async move { reset(&to_thread, &a, k, &name).await }
+        };
         let mut maker = ep.services();
-        tasks.push(maker.serve(
+        tasks.push(maker.serve_async(
             &format!("~/valve/{}/reset", v.name),
             "std_srvs",
             "Trigger",
@@ -355,52 +367,164 @@ pub fn listen_valves(
 
 /// `~/valve/<NAME>/reset`: asks the output thread to clear valve `k`'s fault and answers with
 /// its verdict (refused while an implausible end switch stays active).
-fn reset(inputs: &Inputs, answers: &ValveAnswers, k: usize, name: &str) -> TriggerResponse {
+async fn reset(inputs: &Inputs, answers: &ValveAnswers, k: usize, name: &str) -> TriggerResponse {
+    let fault = answers.fault(k);
+    let answer = answers
+        .ask(k, |ticket| {
+            inputs
+                .send(0, Input::ValveReset { valve: k, ticket })
+                .map_err(|e| e.to_string())
+        })
+        .await;
+    reset_response(name, fault, answer)
+}
+
+/// The reset service's answer for valve `name`, which had `fault` latched when asked.
+fn reset_response(
+    name: &str,
+    fault: Option<ValveFault>,
+    answer: Result<Option<ValveResetAnswer>, String>,
+) -> TriggerResponse {
     let refuse = |message: String| TriggerResponse {
         success: false,
         message,
     };
-    let fault = answers.fault(k);
-    let ticket = answers.ticket();
-    if let Err(e) = inputs.send(0, Input::ValveReset { valve: k, ticket }) {
-        return refuse(format!("the reset did not reach the output thread: {e}"));
-    }
-    let start = Instant::now();
-    loop {
-        if let Some(cleared) = answers.answer(k, ticket) {
-            let what = fault.map_or("", |f| f.name());
-            return match (cleared, fault) {
-                (true, Some(_)) => {
-                    info!("valve {name}: {what} cleared by a reset");
-                    TriggerResponse {
-                        success: true,
-                        message: format!(
-                            "valve {name}: {what} cleared; the valve is unreferenced and \
-                             waits for a fresh position command"
-                        ),
-                    }
-                }
-                (true, None) => TriggerResponse {
-                    success: true,
-                    message: format!("valve {name}: no fault latched"),
-                },
-                (false, _) => {
-                    let f = answers.fault(k).or(fault);
-                    warn!("valve {name}: reset refused: the cause lasts");
-                    refuse(format!(
-                        "valve {name}: reset refused: {} lasts (an end switch is still active)",
-                        f.map_or("the fault", |f| f.name())
-                    ))
-                }
-            };
-        }
-        if start.elapsed() >= VALVE_RESET_WAIT {
+    let what = fault.map_or("", |f| f.name());
+    let (cleared, now) = match answer {
+        Err(e) => return refuse(format!("the reset did not reach the output thread: {e}")),
+        Ok(None) => {
             return refuse(format!(
                 "valve {name}: no answer from the output thread within {} ms; nothing changed \
                  that is known",
                 VALVE_RESET_WAIT.as_millis()
-            ));
+            ))
         }
-        std::thread::sleep(Duration::from_millis(2));
+        Ok(Some(a)) => a,
+    };
+    match (cleared, fault) {
+        (true, Some(_)) => {
+            info!("valve {name}: {what} cleared by a reset");
+            TriggerResponse {
+                success: true,
+                message: format!(
+                    "valve {name}: {what} cleared; the valve is unreferenced and waits for a \
+                     fresh position command"
+                ),
+            }
+        }
+        (true, None) => TriggerResponse {
+            success: true,
+            message: format!("valve {name}: no fault latched"),
+        },
+        (false, _) => {
+            let f = now.or(fault);
+            warn!("valve {name}: reset refused: the cause lasts");
+            refuse(format!(
+                "valve {name}: reset refused: {} lasts (an end switch is still active)",
+                f.map_or("the fault", |f| f.name())
+            ))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const IMPLAUSIBLE: ValveFault = ValveFault::SwitchImplausible {
+        switches: [true, true],
+        low_pct: 10.0,
+        high_pct: 20.0,
+    };
+
+    fn answer(ticket: u32, cleared: bool) -> Option<ResetAnswer> {
+        Some(ResetAnswer { ticket, cleared })
+    }
+
+    // With tokio's clock paused, a wait that looked again every few ms would move the clock on;
+    // an answer that wakes the request leaves it where it was.
+    #[tokio::test(start_paused = true)]
+    async fn the_snapshot_answer_comes_back_on_the_request_own_path_at_once() {
+        let answers = Arc::new(ValveAnswers::new(2));
+        answers.note(1, Some(IMPLAUSIBLE), None);
+        let before = answers.fault(1);
+        let start = tokio::time::Instant::now();
+        let report_thread = Arc::clone(&answers);
+        let got = answers
+            .ask(1, move |ticket| {
+                tokio::spawn(async move {
+                    tokio::task::yield_now().await;
+                    // A snapshot with another valve's answer, then this valve's.
+                    report_thread.note(0, None, answer(ticket, true));
+                    report_thread.note(1, None, answer(ticket, true));
+                });
+                Ok(())
+            })
+            .await;
+        assert_eq!(got, Ok(Some((true, None))));
+        assert_eq!(start.elapsed(), Duration::ZERO);
+        let r = reset_response("mix", before, got);
+        assert!(r.success);
+        assert_eq!(
+            r.message,
+            "valve mix: switch_implausible cleared; the valve is unreferenced and waits for a \
+             fresh position command"
+        );
+
+        let report_thread = Arc::clone(&answers);
+        let got = answers
+            .ask(1, move |ticket| {
+                tokio::spawn(async move {
+                    tokio::task::yield_now().await;
+                    report_thread.note(1, Some(IMPLAUSIBLE), answer(ticket, false));
+                });
+                Ok(())
+            })
+            .await;
+        assert_eq!(got, Ok(Some((false, Some(IMPLAUSIBLE)))));
+        assert_eq!(start.elapsed(), Duration::ZERO);
+        assert_eq!(
+            reset_response("mix", None, got).message,
+            "valve mix: reset refused: switch_implausible lasts (an end switch is still active)"
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_valve_reset_without_answer_gives_up_after_its_wait_and_its_late_answer_is_dropped() {
+        let answers = ValveAnswers::new(1);
+        let mut sent = None;
+        let start = tokio::time::Instant::now();
+        let got = answers
+            .ask(0, |ticket| {
+                sent = Some(ticket);
+                Ok(())
+            })
+            .await;
+        assert_eq!(got, Ok(None));
+        assert_eq!(start.elapsed(), VALVE_RESET_WAIT);
+        let r = reset_response("mix", None, got);
+        assert!(!r.success);
+        assert_eq!(
+            r.message,
+            "valve mix: no answer from the output thread within 1000 ms; nothing changed that \
+             is known"
+        );
+        // The late snapshot: its fault is kept, its answer dropped; the next reset waits for
+        // its own.
+        let late = sent.unwrap();
+        answers.note(0, Some(IMPLAUSIBLE), answer(late, false));
+        assert_eq!(answers.fault(0), Some(IMPLAUSIBLE));
+        let got = answers
+            .ask(0, |ticket| {
+                answers.note(0, Some(IMPLAUSIBLE), answer(late, false));
+                answers.note(0, None, answer(ticket, true));
+                Ok(())
+            })
+            .await;
+        assert_eq!(got, Ok(Some((true, None))));
+        assert_eq!(
+            answers.ask(0, |_| Err("request queue full".into())).await,
+            Err("request queue full".into())
+        );
     }
 }

@@ -38,7 +38,7 @@ use mcap::records::MessageHeader;
 use rustdds::no_key::SerializerAdapter;
 use rustdds::{CDRSerializerAdapter, SerializedPayload};
 use serde::Serialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
@@ -65,9 +65,23 @@ pub const MAX_CHUNKS_PER_FILE: u64 = 86_400;
 /// The message encoding of every channel.
 pub const MESSAGE_ENCODING: &str = "cdr";
 
+/// What a topic of the trace carries: the key its messages are recorded under
+/// ([`McapTrace::record`]), whatever the order the topics were given in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum TraceKey {
+    /// Channel `n`'s edges (`~/<ch>/edges`; 0 = pw01).
+    Edges(usize),
+    /// Channel `n`'s status (`~/<ch>/status`; 0 = pw01).
+    Status(usize),
+    /// `/diagnostics`.
+    Diagnostics,
+}
+
 /// One topic of the trace.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Topic {
+    /// What it carries.
+    pub key: TraceKey,
     /// The resolved topic name, e.g. `/pwm_actuator/pw01/edges`.
     pub name: String,
     /// The message type's package, e.g. `pwm_actuator_msgs`.
@@ -101,7 +115,8 @@ struct Item {
 pub struct McapTrace {
     tx: Option<SyncSender<Item>>,
     dropped: Arc<AtomicU64>,
-    topics: usize,
+    /// Each topic's place among the topics the files were made with.
+    topics: HashMap<TraceKey, usize>,
     join: Option<JoinHandle<()>>,
 }
 
@@ -148,7 +163,7 @@ impl McapTrace {
         let (tx, rx) = mpsc::sync_channel(QUEUE_CAPACITY);
         let dropped = Arc::new(AtomicU64::new(0));
         let d = Arc::clone(&dropped);
-        let n = topics.len();
+        let keys = topics.iter().enumerate().map(|(i, t)| (t.key, i)).collect();
         let join = std::thread::Builder::new()
             .name("pwm-mcap".into())
             .spawn(move || writer_loop(files, topics, rx, d, flush_period))
@@ -156,18 +171,19 @@ impl McapTrace {
         Ok(McapTrace {
             tx: Some(tx),
             dropped,
-            topics: n,
+            topics: keys,
             join: Some(join),
         })
     }
 
-    /// Queues `msg` for topic `topic` (index into the topics given to [`McapTrace::create`]) at
-    /// `stamp_ns` (wall-clock ns since the epoch). Never waits: a full queue drops it.
-    pub fn record<M: Serialize>(&self, topic: usize, stamp_ns: i64, msg: &M) {
+    /// Queues `msg` for the topic with `key` at `stamp_ns` (wall-clock ns since the epoch); a
+    /// key none of the topics given to [`McapTrace::create`] has is ignored. Never waits: a
+    /// full queue drops it.
+    pub fn record<M: Serialize>(&self, key: TraceKey, stamp_ns: i64, msg: &M) {
         let Some(tx) = &self.tx else { return };
-        if topic >= self.topics {
+        let Some(&topic) = self.topics.get(&key) else {
             return;
-        }
+        };
         let data = match cdr_bytes(msg) {
             Ok(d) => d,
             Err(_) => {
@@ -642,16 +658,19 @@ mod tests {
     fn topics() -> Vec<Topic> {
         vec![
             Topic {
+                key: TraceKey::Edges(0),
                 name: "/pwm_actuator/pw01/edges".into(),
                 package: "pwm_actuator_msgs",
                 type_name: "OutputEdge",
             },
             Topic {
+                key: TraceKey::Status(0),
                 name: "/pwm_actuator/pw01/status".into(),
                 package: "pwm_actuator_msgs",
                 type_name: "ChannelStatus",
             },
             Topic {
+                key: TraceKey::Diagnostics,
                 name: "/diagnostics".into(),
                 package: "diagnostic_msgs",
                 type_name: "DiagnosticArray",
@@ -735,6 +754,41 @@ mod tests {
     }
 
     #[test]
+    fn each_message_goes_to_its_key_topic_whatever_the_topics_order() {
+        let tmp = tempfile::tempdir().unwrap();
+        let path = tmp.path().join("run.mcap");
+        let mut reversed = topics();
+        reversed.reverse();
+        let trace = McapTrace::create(
+            std::slice::from_ref(&path),
+            reversed,
+            TraceLimit::default(),
+            &TraceHealth::new(),
+        )
+        .unwrap();
+        let diag = diagnostics();
+        trace.record(TraceKey::Diagnostics, diag.header.stamp.to_nanos(), &diag);
+        trace.record(TraceKey::Edges(0), 5, &edge(3, true));
+        trace.record(TraceKey::Status(1), 0, &diag); // no such topic: ignored
+        trace.finish();
+        let bytes = std::fs::read(&path).unwrap();
+        let got: Vec<(String, u64)> = mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .map(|m| {
+                let m = m.unwrap();
+                (m.channel.topic.clone(), m.log_time)
+            })
+            .collect();
+        assert_eq!(
+            got,
+            [
+                ("/diagnostics".to_string(), 1_700_000_000_500_000_000),
+                ("/pwm_actuator/pw01/edges".to_string(), 5),
+            ]
+        );
+    }
+
+    #[test]
     fn a_trace_reads_back_with_schemas_channels_and_every_message() {
         let tmp = tempfile::tempdir().unwrap();
         let path = tmp.path().join("run.mcap");
@@ -743,12 +797,12 @@ mod tests {
         let core = crate::core::Channel::new(Default::default(), 0).status(0);
         let status = status_msg(0, &core, 0, 1_700_000_000_000_000_123);
         for e in &edges {
-            trace.record(0, e.stamp.to_nanos(), e);
+            trace.record(TraceKey::Edges(0), e.stamp.to_nanos(), e);
         }
-        trace.record(1, status.stamp.to_nanos(), &status);
+        trace.record(TraceKey::Status(0), status.stamp.to_nanos(), &status);
         let diag = diagnostics();
-        trace.record(2, diag.header.stamp.to_nanos(), &diag);
-        trace.record(3, 0, &diag); // no such topic: ignored
+        trace.record(TraceKey::Diagnostics, diag.header.stamp.to_nanos(), &diag);
+        trace.record(TraceKey::Edges(1), 0, &diag); // no such topic: ignored
         assert_eq!(trace.dropped(), 0);
         trace.finish();
 
@@ -811,7 +865,7 @@ mod tests {
         let n = QUEUE_CAPACITY as u64 * 8;
         let t0 = Instant::now();
         for s in 1..=n {
-            trace.record(0, s as i64, &edge(s, true));
+            trace.record(TraceKey::Edges(0), s as i64, &edge(s, true));
         }
         // Far more than the queue holds, faster than a disk: nothing waited for the writer.
         assert!(t0.elapsed() < Duration::from_secs(5));
@@ -828,7 +882,7 @@ mod tests {
         let path = tmp.path().join("run.mcap");
         let trace = create(&path);
         for s in 1..=10 {
-            trace.record(0, s, &edge(s as u64, true));
+            trace.record(TraceKey::Edges(0), s, &edge(s as u64, true));
         }
         // Within a flush period and a margin, the messages are in the file, before the footer.
         let deadline = Instant::now() + FLUSH_PERIOD * 5;
@@ -894,7 +948,7 @@ mod tests {
         // the schemas and channels): two messages a file, three files.
         let sent = 6;
         for s in 1..=sent {
-            trace.record(0, s, &edge(s as u64, true));
+            trace.record(TraceKey::Edges(0), s, &edge(s as u64, true));
             std::thread::sleep(period * 3);
         }
         trace.finish();
@@ -935,7 +989,7 @@ mod tests {
         for s in 0..sent {
             let mut d = diagnostics();
             d.status[0].message = (0..30).map(|_| noise()).collect();
-            trace.record(2, s, &d);
+            trace.record(TraceKey::Diagnostics, s, &d);
             if s % 200 == 0 {
                 // Room for the writer: nothing is dropped for a full queue.
                 std::thread::sleep(Duration::from_millis(30));

@@ -31,7 +31,7 @@ use crate::ros::outbound::diagnostics::{
     frequency_status_name, LatenessHistogram, NodeHealth, LOSS_WARN_NS, REFUSAL_WARN_NS,
 };
 use crate::ros::outbound::frequency::{FrequencyReport, FrequencyStatus};
-use crate::ros::outbound::mcap_trace::McapTrace;
+use crate::ros::outbound::mcap_trace::{McapTrace, TraceKey};
 use crate::ros::outbound::traces::TraceReport;
 use crate::ros::outbound::valve::ValveOut;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
@@ -285,8 +285,8 @@ impl Reporter {
     }
 
     /// Records from now on every edge, status and `/diagnostics` message published, as
-    /// published, to `trace`, whose topics are each channel's edges and status (in channel
-    /// order), then `/diagnostics`.
+    /// published, to `trace`, under its topics' keys ([`TraceKey`]); a message whose topic the
+    /// trace lacks is not recorded.
     pub fn record_to(&mut self, trace: McapTrace) {
         self.mcap = Some(trace);
     }
@@ -294,11 +294,6 @@ impl Reporter {
     /// Reports on `/diagnostics` and in the log the traces whose state `traces` holds.
     pub fn watch_traces(&mut self, traces: TraceReport) {
         self.traces = traces;
-    }
-
-    /// The MCAP trace's topic of channel `ch`'s edges; its status is the next one.
-    fn mcap_edges_topic(ch: usize) -> usize {
-        2 * ch
     }
 
     /// The valves whose snapshots are published and judged on `/diagnostics`.
@@ -375,7 +370,7 @@ impl Reporter {
             lateness_ns: e.lateness_ns(),
         };
         if let Some(t) = &self.mcap {
-            t.record(Self::mcap_edges_topic(ch), e.wall_ns, &m);
+            t.record(TraceKey::Edges(ch), e.wall_ns, &m);
         }
         if self.pubs[ch].edges.publish(m).is_err() {
             self.health[ch].publish_failures += 1;
@@ -471,7 +466,8 @@ impl Reporter {
                     ),
                     Err(e) => warn!("{name}: heater fault reset refused: {e}"),
                 }
-                self.state.answer_reset(ch, ticket, result);
+                // Dropped when the reset's request has given up.
+                self.state.resets().answer(ch, ticket, result);
             }
             Event::Autotune { ticket, report } => {
                 use crate::core::heater::autotune::{Phase, Progress, Report};
@@ -508,7 +504,7 @@ impl Reporter {
                     Report::Progress(p) => self.health[ch].autotune = Some(*p),
                     Report::Finished(_) => self.health[ch].autotune = None,
                 }
-                self.state.file_autotune(ch, ticket, report);
+                self.state.autotunes().file(ch, ticket, report);
             }
             Event::Plan(_) | Event::Edge { .. } => {}
         }
@@ -517,7 +513,7 @@ impl Reporter {
     fn publish_status(&mut self, ch: usize, s: &Status) {
         let m = status_msg(ch, s, clock::monotonic_ns(), clock::wall_ns());
         if let Some(t) = &self.mcap {
-            t.record(Self::mcap_edges_topic(ch) + 1, m.stamp.to_nanos(), &m);
+            t.record(TraceKey::Status(ch), m.stamp.to_nanos(), &m);
         }
         if self.pubs[ch].status.publish(m).is_err() {
             self.health[ch].publish_failures += 1;
@@ -745,7 +741,7 @@ impl Reporter {
             status,
         };
         if let Some(t) = &self.mcap {
-            t.record(2 * self.names.len(), arr.header.stamp.to_nanos(), &arr);
+            t.record(TraceKey::Diagnostics, arr.header.stamp.to_nanos(), &arr);
         }
         if let Err(e) = self.diagnostics.publish(arr) {
             debug!("cannot publish /diagnostics: {e}");

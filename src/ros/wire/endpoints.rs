@@ -224,8 +224,10 @@ impl ServiceMaker<'_> {
     /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
     /// of type `package/type_name` and the task that answers each request with `handler`, one
     /// request at a time, in order. The handler runs on tokio's blocking pool: it may wait for
-    /// the output thread (a reset's verdict, a safety input taken, up to about a second), and
-    /// must not hold an async worker that every other endpoint shares meanwhile.
+    /// the output thread to take a safety input (up to `SAFETY_TAKE_BOUND`, 250 ms), and must
+    /// not hold an async worker that every other endpoint shares meanwhile. A handler that
+    /// waits for an answer of the output thread is async instead
+    /// ([`ServiceMaker::serve_async`]).
     pub fn serve<Req, Resp>(
         &mut self,
         name: &str,
@@ -236,6 +238,50 @@ impl ServiceMaker<'_> {
     where
         Req: Request,
         Resp: Response,
+    {
+        let handler = std::sync::Arc::new(handler);
+        self.serve_with(name, package, type_name, move |req| {
+            let h = std::sync::Arc::clone(&handler);
+            async move { tokio::task::spawn_blocking(move || h(req)).await }
+        })
+    }
+
+    /// As [`ServiceMaker::serve`], but `handler` is async and runs in the service's task: it
+    /// awaits the answer it needs (its own reply path, with its timeout) and holds no thread
+    /// meanwhile. It must not block.
+    pub fn serve_async<Req, Resp, F, Fut>(
+        &mut self,
+        name: &str,
+        package: &str,
+        type_name: &str,
+        handler: F,
+    ) -> Result<JoinHandle<()>, EndpointError>
+    where
+        Req: Request,
+        Resp: Response,
+        F: Fn(Req) -> Fut + Send + Sync + 'static,
+        Fut: std::future::Future<Output = Resp> + Send + 'static,
+    {
+        self.serve_with(name, package, type_name, move |req| {
+            let answer = handler(req);
+            async move { Ok(answer.await) }
+        })
+    }
+
+    /// The service `name` and its task, answering each request with what `handler`'s future
+    /// gives (a handler that failed is logged and its request left unanswered).
+    fn serve_with<Req, Resp, F, Fut>(
+        &mut self,
+        name: &str,
+        package: &str,
+        type_name: &str,
+        handler: F,
+    ) -> Result<JoinHandle<()>, EndpointError>
+    where
+        Req: Request,
+        Resp: Response,
+        F: Fn(Req) -> Fut + Send + Sync + 'static,
+        Fut: std::future::Future<Output = Result<Resp, tokio::task::JoinError>> + Send + 'static,
     {
         let full = self.id.resolve(name, NameKind::Service, self.remaps)?;
         let qos = crate::ros::interface::qos::services();
@@ -249,7 +295,6 @@ impl ServiceMaker<'_> {
                 qos,
             )
             .map_err(create_err(format!("service {full}")))?;
-        let handler = std::sync::Arc::new(handler);
         Ok(tokio::spawn(async move {
             let stream = server.receive_request_stream();
             futures::pin_mut!(stream);
@@ -257,8 +302,7 @@ impl ServiceMaker<'_> {
                 match r {
                     Ok((id, req)) => {
                         debug!("{full}: request");
-                        let h = std::sync::Arc::clone(&handler);
-                        let resp = match tokio::task::spawn_blocking(move || h(req)).await {
+                        let resp = match handler(req).await {
                             Ok(resp) => resp,
                             Err(e) => {
                                 warn!("{full}: the request's handler failed: {e}");
