@@ -755,18 +755,32 @@ impl Reporter {
     }
 }
 
+/// [`release_free_memory`] trims the heap only when its free memory is at least this much,
+/// bytes. Below it there is little to give back, and a trim every second would hand back the
+/// few pages the next second's messages touch again (7 `madvise` calls a second, each page
+/// then faulted in again, in an idle node).
+const TRIM_FROM_FREE_BYTES: usize = 1 << 20;
+
 /// Hands the heap's free pages back to the kernel (glibc's `malloc_trim`), once a second from
-/// this thread. A burst of input that logs a line per message (an enable flood: 270 000 toggles
-/// in 10 s) leaves tens of MiB freed but scattered among live allocations; glibc returns only
-/// the free memory at the top of a heap by itself, so RSS stayed 70 MiB above its steady state
-/// until this call (measured: 88 MiB, then 18.6 MiB). It runs on the report thread; the output
-/// thread does not allocate, so it never waits for the allocator's locks.
-fn release_free_memory() {
+/// this thread, when at least [`TRIM_FROM_FREE_BYTES`] of the heap are free (glibc's
+/// `mallinfo2().fordblks`, over every arena); returns whether it trimmed. A burst of input that
+/// logs a line per message (an enable flood: 270 000 toggles in 10 s) leaves tens of MiB freed
+/// but scattered among live allocations; glibc returns only the free memory at the top of a heap
+/// by itself, so RSS stayed 70 MiB above its steady state until this call (measured: 88 MiB,
+/// then 18.6 MiB). So RSS stays at most about [`TRIM_FROM_FREE_BYTES`] above what the heap
+/// uses, a second after a burst. It runs on the report thread; the output thread does not
+/// allocate, so it never waits for the allocator's locks.
+fn release_free_memory() -> bool {
     #[cfg(target_env = "gnu")]
-    // SAFETY: malloc_trim only takes the allocator's own locks and touches no Rust state.
+    // SAFETY: mallinfo2 and malloc_trim only take the allocator's own locks and touch no Rust
+    // state.
     unsafe {
-        libc::malloc_trim(0);
+        if libc::mallinfo2().fordblks >= TRIM_FROM_FREE_BYTES {
+            libc::malloc_trim(0);
+            return true;
+        }
     }
+    false
 }
 
 #[cfg(test)]
@@ -774,6 +788,24 @@ mod tests {
     use super::*;
 
     const MS: Nanos = 1_000_000;
+
+    #[cfg(target_env = "gnu")]
+    #[test]
+    fn free_memory_goes_back_once_there_is_enough_of_it() {
+        // 8 MiB in 4 KiB blocks (below glibc's mmap threshold: on the heap), every other one
+        // freed: 4 MiB free, scattered among live blocks, which glibc keeps by itself.
+        let mut blocks: Vec<Vec<u8>> = (0..2048).map(|i| vec![i as u8; 4096]).collect();
+        let mut n = 0;
+        blocks.retain(|_| {
+            n += 1;
+            n % 2 == 0
+        });
+        // SAFETY: mallinfo2 only reads the allocator's statistics under its locks.
+        let free = unsafe { libc::mallinfo2().fordblks };
+        assert!(free >= TRIM_FROM_FREE_BYTES, "{free} bytes free");
+        assert!(release_free_memory(), "not trimmed with {free} bytes free");
+        assert_eq!(blocks.len(), 1024);
+    }
 
     #[test]
     fn a_new_status_rate_does_not_wait_for_the_old_period() {
