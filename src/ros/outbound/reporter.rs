@@ -58,11 +58,11 @@ const DIAGNOSTICS_COALESCE_NS: Nanos = 50_000_000;
 pub const PERIODIC_SLACK_NS: Nanos = 20_000_000;
 
 /// When the report thread wakes for periodic work due at `due`: at `due`, unless an edge (the
-/// end of a channel's running step, in `step_ends`) is due after it by no more than the slack —
-/// [`PERIODIC_SLACK_NS`], and at most a twentieth of `status_period` — in which case the edge's
-/// report wakes the thread and the periodic work is done with it; it then waits at most the
-/// slack, should the edge not come. Periodic messages keep their grid: each is at most the
-/// slack late, never early, and the rate is unchanged.
+/// end of a channel's running step, in `step_ends`) is due at the same instant or after it by no
+/// more than the slack — [`PERIODIC_SLACK_NS`], and at most a twentieth of `status_period` — in
+/// which case the edge's report wakes the thread and the periodic work is done with it; it then
+/// waits at most the slack, should the edge not come. Periodic messages keep their grid: each is
+/// at most the slack late, never early, and the rate is unchanged.
 pub fn periodic_wake(
     due: Nanos,
     step_ends: impl Iterator<Item = Nanos>,
@@ -70,7 +70,7 @@ pub fn periodic_wake(
 ) -> Nanos {
     let slack = status_period.map_or(PERIODIC_SLACK_NS, |p| (p / 20).min(PERIODIC_SLACK_NS));
     let edge_soon = step_ends
-        .filter(|e| *e > due && *e - due <= slack)
+        .filter(|e| *e >= due && *e - due <= slack)
         .min()
         .is_some();
     if edge_soon {
@@ -178,6 +178,25 @@ impl StatusClock {
     pub fn period(&self) -> Option<Nanos> {
         self.period
     }
+
+    /// Moves the grid so that the next status is due one period after `at`.
+    pub fn restart_at(&mut self, at: Nanos) {
+        if let Some(period) = self.period {
+            self.next = at.saturating_add(period);
+        }
+    }
+}
+
+/// Where the report thread's once-a-second grid (the periodic status, the diagnostics run and
+/// the periodic `/diagnostics`) moves to when the first edge since the start is scheduled at
+/// `edge_ns`: to that edge, when it comes before the first diagnostics run (`first_run`), so
+/// that the periodic work falls due together with the edges of the first channel to start,
+/// whatever the time between the report thread's start and that channel's (whenever the
+/// channel's period is a whole number of seconds, or divides one, one wake-up a second does
+/// both); `None` (the grid stays) otherwise. The first periodic status and run then come at most
+/// a period later than they would have, once; after that the grid is as steady as before.
+pub fn grid_for_first_edge(start_ns: Nanos, first_run: Nanos, edge_ns: Nanos) -> Option<Nanos> {
+    (edge_ns > start_ns && edge_ns < first_run).then_some(edge_ns)
 }
 
 /// The report thread's state (see the module documentation).
@@ -200,6 +219,8 @@ pub struct Reporter {
     /// When the next periodic `/diagnostics` is due: at the start, then at each diagnostics
     /// run (on the grid of `next_run`), monotonic ns.
     next_periodic: Nanos,
+    /// Whether an edge was reported since the start (see [`grid_for_first_edge`]).
+    edge_seen: bool,
     signal: Arc<StopSignal>,
     state: Arc<NodeState>,
     /// Per channel: the rate check and its latest result as a status.
@@ -266,6 +287,7 @@ impl Reporter {
             status: StatusClock::new(status_rate_hz, now),
             last_diagnostics: 0,
             next_periodic: 0,
+            edge_seen: false,
             signal,
             state,
             rates,
@@ -362,6 +384,13 @@ impl Reporter {
         let ch = e.channel;
         if ch >= self.names.len() {
             return;
+        }
+        if !self.edge_seen {
+            self.edge_seen = true;
+            if let Some(at) = grid_for_first_edge(self.start_ns, self.next_run, e.scheduled_ns) {
+                self.next_run = at + DIAGNOSTICS_RUN_NS;
+                self.status.restart_at(at);
+            }
         }
         let h = &mut self.health[ch];
         h.edges += 1;
@@ -833,7 +862,11 @@ mod tests {
         // No edge, an edge before, an edge too far after: at its time.
         assert_eq!(periodic_wake(due, [].into_iter(), Some(1_000 * MS)), due);
         assert_eq!(periodic_wake(due, [due - MS].into_iter(), None), due);
-        assert_eq!(periodic_wake(due, [due].into_iter(), None), due);
+        // An edge due at the same instant: its report does it.
+        assert_eq!(
+            periodic_wake(due, [due].into_iter(), None),
+            due + PERIODIC_SLACK_NS
+        );
         assert_eq!(
             periodic_wake(due, [due + slack + 1].into_iter(), Some(1_000 * MS)),
             due
@@ -864,6 +897,31 @@ mod tests {
             periodic_wake(due, [due + 40_000].into_iter(), Some(MS)),
             due + 50_000
         );
+    }
+
+    #[test]
+    fn the_grid_moves_to_the_first_edge_before_the_first_run() {
+        let start = 5_000 * MS;
+        let first_run = start + 1_000 * MS;
+        // A channel started 30 ms after the report thread: the grid moves to its first edge.
+        assert_eq!(
+            grid_for_first_edge(start, first_run, start + 30 * MS),
+            Some(start + 30 * MS)
+        );
+        // An edge at or before the start, or from the first run on: the grid stays.
+        assert_eq!(grid_for_first_edge(start, first_run, start), None);
+        assert_eq!(grid_for_first_edge(start, first_run, first_run), None);
+        // The status follows it: one period after the edge, then a period apart.
+        let mut c = StatusClock::new(1.0, start);
+        c.restart_at(start + 30 * MS);
+        assert_eq!(c.next(), Some(start + 1_030 * MS));
+        assert!(!c.take_due(start + 1_000 * MS));
+        assert!(c.take_due(start + 1_030 * MS));
+        assert_eq!(c.next(), Some(start + 2_030 * MS));
+        // Without a periodic status there is nothing to move.
+        let mut off = StatusClock::new(0.0, start);
+        off.restart_at(start + 30 * MS);
+        assert_eq!(off.next(), None);
     }
 
     #[test]
