@@ -282,6 +282,10 @@ vendor_tests() {
         without_multicast_discovery_no_multicast_locator_is_announced \
         events_set_on_the_grid_at_different_times_fall_due_together \
         a_reader_behind_that_cannot_be_reached_gets_no_fast_heartbeat \
+        the_loops_periodic_events_fall_due_on_the_heartbeat_grid \
+        periodic_discovery_tasks_fall_due_together_on_the_grid \
+        rings_under_a_hold_wake_the_loop_once_when_it_ends a_hold_delivers_after_its_bounds \
+        a_sample_nobody_is_matched_to_does_not_wake_the_event_loop \
         signals_to_the_event_loops_leave_them_running 2>&1 |
         tee "$LOG_DIR/vendor-test.log"
     return "${PIPESTATUS[0]}"

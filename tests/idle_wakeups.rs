@@ -2,7 +2,7 @@
 //! watchdog) it sleeps until its next deadline or request, with one only every tick. Its own
 //! file, so that no other test's output thread runs in the process while the wake-ups of the
 //! thread named `pwm-output` are counted. And the node's report thread, with nothing but its
-//! clocks to keep, wakes once a second for all of them.
+//! clocks to keep, wakes once a second for all of them, as does its DDS event loop.
 
 #[path = "common/ros_harness.rs"]
 mod ros_harness;
@@ -113,5 +113,26 @@ fn an_idle_node_reports_its_status_and_diagnostics_in_one_wake_up_a_second() {
     assert!(
         (3..=8).contains(&woke),
         "the report thread woke {woke} times in 6 s; log:\n{log}"
+    );
+}
+
+#[test]
+fn an_idle_nodes_dds_event_loop_wakes_for_its_heartbeats_and_little_else() {
+    // Two disabled channels and nobody subscribed: the status and /diagnostics written once a
+    // second reach no reader, so they do not wake the participant's event loop thread, and its
+    // own periodic work (the writers' HEARTBEATs and cache cleaning, the preemptive ACKNACKs,
+    // the DDS cache's garbage collection) falls due on one 1 s grid: about 6 wake-ups in 6 s
+    // (rustdds's fifteenth and sixteenth changes, vendor/rustdds/README.pwm_actuator.md);
+    // about 15 when each write woke it and its periodic work had instants of its own.
+    let node = ros_harness::NodeProc::launch(&["--channels", "2"]);
+    let pid = node.pid().to_string();
+    std::thread::sleep(Duration::from_secs(3));
+    let before = sleeps_of_thread_in(&pid, "RustDDS Partici");
+    std::thread::sleep(Duration::from_secs(6));
+    let woke = sleeps_of_thread_in(&pid, "RustDDS Partici") - before;
+    let log = node.stop_ok();
+    assert!(
+        woke <= 11,
+        "the DDS event loop woke {woke} times in 6 s; log:\n{log}"
     );
 }

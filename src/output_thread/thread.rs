@@ -727,11 +727,21 @@ pub struct ThreadLoop<O: Output> {
 }
 
 /// The reader (the ROS side) is woken at most this often while edges come thick and fast, ns.
-/// Each wake-up costs both threads a context switch; at 64 channels x 100 Hz waking per edge
-/// doubled the CPU cost. A wake-up is only deferred when the output thread will run again
-/// within the interval anyway, so deferring never adds a wake-up of its own and reports are
-/// delivered within the interval.
-pub(crate) const READER_WAKE_INTERVAL_NS: Nanos = 2_000_000;
+/// Each wake-up costs both threads a context switch and a cross-CPU wake; at 64 channels x
+/// 100 Hz waking per edge doubled the CPU cost, and at 2 channels x 200 Hz (edges 0.55–1.85 ms
+/// apart) a 2 ms interval still woke the reader for 3 edges of 4. A wake-up is only deferred
+/// when the output thread will run again within the interval anyway (see [`wake_reader_now`]),
+/// so deferring never adds a wake-up of its own, and a report reaches the reader at most this
+/// long after it was pushed, plus the output thread's own lateness at that wake-up.
+pub(crate) const READER_WAKE_INTERVAL_NS: Nanos = 5_000_000;
+
+/// Whether the output thread, with reports pending, wakes the reader now (at `now`, the reader
+/// last woken at `last_wake`, the thread's next deadline `next_deadline`): once the interval
+/// since the last wake-up has passed, or when the thread will not run again before it ends.
+pub(crate) fn wake_reader_now(now: Nanos, last_wake: Nanos, next_deadline: Option<Nanos>) -> bool {
+    let due = last_wake.saturating_add(READER_WAKE_INTERVAL_NS);
+    now >= due || next_deadline.is_none_or(|t| t >= due)
+}
 
 impl<O: Output> ThreadLoop<O> {
     /// One wake-up's work: apply the queued requests, write the edges that are due, report,
@@ -756,10 +766,8 @@ impl<O: Output> ThreadLoop<O> {
         self.wake_pending |= self.worker.take_pushed();
         if self.wake_pending {
             let now = clock::monotonic_ns();
-            let due = self.last_wake + READER_WAKE_INTERVAL_NS;
             // Defer only to a wake-up that is coming anyway before the interval ends.
-            let comes_anyway = self.worker.next_deadline().is_some_and(|t| t < due);
-            if now >= due || !comes_anyway {
+            if wake_reader_now(now, self.last_wake, self.worker.next_deadline()) {
                 let _ = self.rep_wake.write(1);
                 self.last_wake = now;
                 self.wake_pending = false;
@@ -892,4 +900,50 @@ fn real_time_setup(rt_priority: Option<i32>) {
         log::warn!("mlockall refused ({e}); pages may fault on the output path");
     }
     log::info!("output thread running SCHED_FIFO priority {prio}");
+}
+
+#[cfg(test)]
+mod reader_wake_tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        // The output thread runs at each of its deadlines (gaps of 10 us to 12 ms) and pushes a
+        // report at each: every report reaches the reader within READER_WAKE_INTERVAL_NS of
+        // being pushed.
+        #[test]
+        fn a_report_waits_for_the_reader_at_most_the_interval(
+            gaps in proptest::collection::vec(10_000u64..12_000_000, 1..200),
+        ) {
+            let mut runs = vec![1_000_000_000u64];
+            for g in &gaps {
+                let t = runs[runs.len() - 1] + g;
+                runs.push(t);
+            }
+            let mut last_wake = 0;
+            let mut oldest_pending: Option<Nanos> = None;
+            for (i, &now) in runs.iter().enumerate() {
+                oldest_pending.get_or_insert(now);
+                let next = runs.get(i + 1).copied();
+                if wake_reader_now(now, last_wake, next) {
+                    let waited = now - oldest_pending.take().unwrap();
+                    prop_assert!(waited <= READER_WAKE_INTERVAL_NS, "waited {waited} ns");
+                    last_wake = now;
+                }
+            }
+            // The last run has no next deadline: it always wakes the reader.
+            prop_assert!(oldest_pending.is_none());
+        }
+    }
+
+    #[test]
+    fn the_reader_is_woken_when_no_run_comes_before_the_interval_ends() {
+        let ms = 1_000_000;
+        // Last woken at 10 ms: at 11 ms with the next run at 12 ms, deferred; with the next run
+        // at 15 ms or later, or none, now; at 15 ms, now.
+        assert!(!wake_reader_now(11 * ms, 10 * ms, Some(12 * ms)));
+        assert!(wake_reader_now(11 * ms, 10 * ms, Some(15 * ms)));
+        assert!(wake_reader_now(11 * ms, 10 * ms, None));
+        assert!(wake_reader_now(15 * ms, 10 * ms, Some(15 * ms + 1)));
+    }
 }

@@ -58,11 +58,11 @@ const DIAGNOSTICS_COALESCE_NS: Nanos = 50_000_000;
 pub const PERIODIC_SLACK_NS: Nanos = 20_000_000;
 
 /// When the report thread wakes for periodic work due at `due`: at `due`, unless an edge (the
-/// end of a channel's running step, in `step_ends`) is due after it by no more than the slack —
-/// [`PERIODIC_SLACK_NS`], and at most a twentieth of `status_period` — in which case the edge's
-/// report wakes the thread and the periodic work is done with it; it then waits at most the
-/// slack, should the edge not come. Periodic messages keep their grid: each is at most the
-/// slack late, never early, and the rate is unchanged.
+/// end of a channel's running step, in `step_ends`) is due at the same instant or after it by no
+/// more than the slack — [`PERIODIC_SLACK_NS`], and at most a twentieth of `status_period` — in
+/// which case the edge's report wakes the thread and the periodic work is done with it; it then
+/// waits at most the slack, should the edge not come. Periodic messages keep their grid: each is
+/// at most the slack late, never early, and the rate is unchanged.
 pub fn periodic_wake(
     due: Nanos,
     step_ends: impl Iterator<Item = Nanos>,
@@ -70,7 +70,7 @@ pub fn periodic_wake(
 ) -> Nanos {
     let slack = status_period.map_or(PERIODIC_SLACK_NS, |p| (p / 20).min(PERIODIC_SLACK_NS));
     let edge_soon = step_ends
-        .filter(|e| *e > due && *e - due <= slack)
+        .filter(|e| *e >= due && *e - due <= slack)
         .min()
         .is_some();
     if edge_soon {
@@ -178,6 +178,25 @@ impl StatusClock {
     pub fn period(&self) -> Option<Nanos> {
         self.period
     }
+
+    /// Moves the grid so that the next status is due one period after `at`.
+    pub fn restart_at(&mut self, at: Nanos) {
+        if let Some(period) = self.period {
+            self.next = at.saturating_add(period);
+        }
+    }
+}
+
+/// Where the report thread's once-a-second grid (the periodic status, the diagnostics run and
+/// the periodic `/diagnostics`) moves to when the first edge since the start is scheduled at
+/// `edge_ns`: to that edge, when it comes before the first diagnostics run (`first_run`), so
+/// that the periodic work falls due together with the edges of the first channel to start,
+/// whatever the time between the report thread's start and that channel's (whenever the
+/// channel's period is a whole number of seconds, or divides one, one wake-up a second does
+/// both); `None` (the grid stays) otherwise. The first periodic status and run then come at most
+/// a period later than they would have, once; after that the grid is as steady as before.
+pub fn grid_for_first_edge(start_ns: Nanos, first_run: Nanos, edge_ns: Nanos) -> Option<Nanos> {
+    (edge_ns > start_ns && edge_ns < first_run).then_some(edge_ns)
 }
 
 /// The report thread's state (see the module documentation).
@@ -200,6 +219,8 @@ pub struct Reporter {
     /// When the next periodic `/diagnostics` is due: at the start, then at each diagnostics
     /// run (on the grid of `next_run`), monotonic ns.
     next_periodic: Nanos,
+    /// Whether an edge was reported since the start (see [`grid_for_first_edge`]).
+    edge_seen: bool,
     signal: Arc<StopSignal>,
     state: Arc<NodeState>,
     /// Per channel: the rate check and its latest result as a status.
@@ -266,6 +287,7 @@ impl Reporter {
             status: StatusClock::new(status_rate_hz, now),
             last_diagnostics: 0,
             next_periodic: 0,
+            edge_seen: false,
             signal,
             state,
             rates,
@@ -357,6 +379,13 @@ impl Reporter {
         let ch = e.channel;
         if ch >= self.names.len() {
             return;
+        }
+        if !self.edge_seen {
+            self.edge_seen = true;
+            if let Some(at) = grid_for_first_edge(self.start_ns, self.next_run, e.scheduled_ns) {
+                self.next_run = at + DIAGNOSTICS_RUN_NS;
+                self.status.restart_at(at);
+            }
         }
         let h = &mut self.health[ch];
         h.edges += 1;
@@ -751,18 +780,32 @@ impl Reporter {
     }
 }
 
+/// [`release_free_memory`] trims the heap only when its free memory is at least this much,
+/// bytes. Below it there is little to give back, and a trim every second would hand back the
+/// few pages the next second's messages touch again (7 `madvise` calls a second, each page
+/// then faulted in again, in an idle node).
+const TRIM_FROM_FREE_BYTES: usize = 1 << 20;
+
 /// Hands the heap's free pages back to the kernel (glibc's `malloc_trim`), once a second from
-/// this thread. A burst of input that logs a line per message (an enable flood: 270 000 toggles
-/// in 10 s) leaves tens of MiB freed but scattered among live allocations; glibc returns only
-/// the free memory at the top of a heap by itself, so RSS stayed 70 MiB above its steady state
-/// until this call (measured: 88 MiB, then 18.6 MiB). It runs on the report thread; the output
-/// thread does not allocate, so it never waits for the allocator's locks.
-fn release_free_memory() {
+/// this thread, when at least [`TRIM_FROM_FREE_BYTES`] of the heap are free (glibc's
+/// `mallinfo2().fordblks`, over every arena); returns whether it trimmed. A burst of input that
+/// logs a line per message (an enable flood: 270 000 toggles in 10 s) leaves tens of MiB freed
+/// but scattered among live allocations; glibc returns only the free memory at the top of a heap
+/// by itself, so RSS stayed 70 MiB above its steady state until this call (measured: 88 MiB,
+/// then 18.6 MiB). So RSS stays at most about [`TRIM_FROM_FREE_BYTES`] above what the heap
+/// uses, a second after a burst. It runs on the report thread; the output thread does not
+/// allocate, so it never waits for the allocator's locks.
+fn release_free_memory() -> bool {
     #[cfg(target_env = "gnu")]
-    // SAFETY: malloc_trim only takes the allocator's own locks and touches no Rust state.
+    // SAFETY: mallinfo2 and malloc_trim only take the allocator's own locks and touch no Rust
+    // state.
     unsafe {
-        libc::malloc_trim(0);
+        if libc::mallinfo2().fordblks >= TRIM_FROM_FREE_BYTES {
+            libc::malloc_trim(0);
+            return true;
+        }
     }
+    false
 }
 
 #[cfg(test)]
@@ -770,6 +813,24 @@ mod tests {
     use super::*;
 
     const MS: Nanos = 1_000_000;
+
+    #[cfg(target_env = "gnu")]
+    #[test]
+    fn free_memory_goes_back_once_there_is_enough_of_it() {
+        // 8 MiB in 4 KiB blocks (below glibc's mmap threshold: on the heap), every other one
+        // freed: 4 MiB free, scattered among live blocks, which glibc keeps by itself.
+        let mut blocks: Vec<Vec<u8>> = (0..2048).map(|i| vec![i as u8; 4096]).collect();
+        let mut n = 0;
+        blocks.retain(|_| {
+            n += 1;
+            n % 2 == 0
+        });
+        // SAFETY: mallinfo2 only reads the allocator's statistics under its locks.
+        let free = unsafe { libc::mallinfo2().fordblks };
+        assert!(free >= TRIM_FROM_FREE_BYTES, "{free} bytes free");
+        assert!(release_free_memory(), "not trimmed with {free} bytes free");
+        assert_eq!(blocks.len(), 1024);
+    }
 
     #[test]
     fn a_new_status_rate_does_not_wait_for_the_old_period() {
@@ -797,7 +858,11 @@ mod tests {
         // No edge, an edge before, an edge too far after: at its time.
         assert_eq!(periodic_wake(due, [].into_iter(), Some(1_000 * MS)), due);
         assert_eq!(periodic_wake(due, [due - MS].into_iter(), None), due);
-        assert_eq!(periodic_wake(due, [due].into_iter(), None), due);
+        // An edge due at the same instant: its report does it.
+        assert_eq!(
+            periodic_wake(due, [due].into_iter(), None),
+            due + PERIODIC_SLACK_NS
+        );
         assert_eq!(
             periodic_wake(due, [due + slack + 1].into_iter(), Some(1_000 * MS)),
             due
@@ -828,6 +893,31 @@ mod tests {
             periodic_wake(due, [due + 40_000].into_iter(), Some(MS)),
             due + 50_000
         );
+    }
+
+    #[test]
+    fn the_grid_moves_to_the_first_edge_before_the_first_run() {
+        let start = 5_000 * MS;
+        let first_run = start + 1_000 * MS;
+        // A channel started 30 ms after the report thread: the grid moves to its first edge.
+        assert_eq!(
+            grid_for_first_edge(start, first_run, start + 30 * MS),
+            Some(start + 30 * MS)
+        );
+        // An edge at or before the start, or from the first run on: the grid stays.
+        assert_eq!(grid_for_first_edge(start, first_run, start), None);
+        assert_eq!(grid_for_first_edge(start, first_run, first_run), None);
+        // The status follows it: one period after the edge, then a period apart.
+        let mut c = StatusClock::new(1.0, start);
+        c.restart_at(start + 30 * MS);
+        assert_eq!(c.next(), Some(start + 1_030 * MS));
+        assert!(!c.take_due(start + 1_000 * MS));
+        assert!(c.take_due(start + 1_030 * MS));
+        assert_eq!(c.next(), Some(start + 2_030 * MS));
+        // Without a periodic status there is nothing to move.
+        let mut off = StatusClock::new(0.0, start);
+        off.restart_at(start + 30 * MS);
+        assert_eq!(off.next(), None);
     }
 
     #[test]

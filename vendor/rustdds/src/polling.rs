@@ -268,6 +268,13 @@ impl Doorbell {
     Self { entity_id, ready }
   }
 
+  /// pwm_actuator: queues the writer's id without waking the loop, which
+  /// takes it at its next wake-up for anything else
+  /// (`WriterSendBuffer::notify_admitted`).
+  pub(crate) fn queue(&self) {
+    let _ = self.ready.tx.send(self.entity_id);
+  }
+
   pub(crate) fn ring(&self) {
     // pwm_actuator: the wake-up may be held back by the writing thread (see
     // `hold_writer_wakes`, README.pwm_actuator.md).

@@ -31,7 +31,7 @@ use crate::{
     spdp_participant_data::{Participant_GUID, SpdpDiscoveredParticipantData},
   },
   polling::{
-    new_shared_timer, timeout_until, LoopWaker, ReadyReceiver, SharedTimer, WakeReceiver,
+    new_shared_timer, timeout_until, LoopWaker, ReadyReceiver, SharedTimer, Timer, WakeReceiver,
     WakeSender,
   },
   rtps::constant::*,
@@ -305,6 +305,28 @@ impl Discovery {
   const CHECK_PARTICIPANT_MESSAGES: StdDuration = StdDuration::from_secs(1);
   #[cfg(feature = "security")]
   const CACHED_SECURE_DISCOVERY_MESSAGE_RESEND_PERIOD: StdDuration = StdDuration::from_secs(1);
+
+  /// pwm_actuator: sets the periodic discovery task `event` due at its next
+  /// instant on the grid of `Timer::set_on_grid` (whole periods from one
+  /// process-wide origin). Every period here is a whole number of seconds, so
+  /// all of them fall due together at the 1 s instants, which are also those of
+  /// the event loop's slow HEARTBEATs: the thread wakes once a second for all
+  /// of its periodic work instead of at an instant of each task's own. A
+  /// one-shot quick SPDP response is not periodic and is left alone.
+  fn schedule_periodic(timer: &mut Timer<DiscoveryTimerEvent>, event: DiscoveryTimerEvent) {
+    let period = match event {
+      DiscoveryTimerEvent::SendParticipantInfo { reschedule: true } => Self::SPDP_PUBLISH_PERIOD,
+      DiscoveryTimerEvent::SendParticipantInfo { reschedule: false } => return,
+      DiscoveryTimerEvent::ParticipantCleanup => Self::PARTICIPANT_CLEANUP_PERIOD,
+      DiscoveryTimerEvent::TopicCleanup => Self::TOPIC_CLEANUP_PERIOD,
+      DiscoveryTimerEvent::PublishParticipantMessage => Self::CHECK_PARTICIPANT_MESSAGES,
+      #[cfg(feature = "security")]
+      DiscoveryTimerEvent::CachedSecureMessageResend => {
+        Self::CACHED_SECURE_DISCOVERY_MESSAGE_RESEND_PERIOD
+      }
+    };
+    timer.set_on_grid(period, event);
+  }
 
   #[allow(clippy::too_many_arguments)]
   pub fn new(
@@ -620,14 +642,8 @@ impl Discovery {
         StdDuration::from_millis(100),
         DiscoveryTimerEvent::SendParticipantInfo { reschedule: true },
       );
-      t.set_timeout(
-        Self::PARTICIPANT_CLEANUP_PERIOD,
-        DiscoveryTimerEvent::ParticipantCleanup,
-      );
-      t.set_timeout(
-        Self::TOPIC_CLEANUP_PERIOD,
-        DiscoveryTimerEvent::TopicCleanup,
-      );
+      Self::schedule_periodic(&mut t, DiscoveryTimerEvent::ParticipantCleanup);
+      Self::schedule_periodic(&mut t, DiscoveryTimerEvent::TopicCleanup);
       t.set_timeout(
         StdDuration::from_millis(100),
         DiscoveryTimerEvent::PublishParticipantMessage,
@@ -864,38 +880,38 @@ impl Discovery {
                   // Only the periodic announce reschedules itself; the one-shot
                   // quick response does not.
                   if reschedule {
-                    self.discovery_timer.borrow_mut().set_timeout(
-                      Self::SPDP_PUBLISH_PERIOD,
+                    Self::schedule_periodic(
+                      &mut self.discovery_timer.borrow_mut(),
                       DiscoveryTimerEvent::SendParticipantInfo { reschedule: true },
                     );
                   }
                 }
                 DiscoveryTimerEvent::ParticipantCleanup => {
                   self.participant_cleanup();
-                  self.discovery_timer.borrow_mut().set_timeout(
-                    Self::PARTICIPANT_CLEANUP_PERIOD,
+                  Self::schedule_periodic(
+                    &mut self.discovery_timer.borrow_mut(),
                     DiscoveryTimerEvent::ParticipantCleanup,
                   );
                 }
                 DiscoveryTimerEvent::TopicCleanup => {
                   self.topic_cleanup();
-                  self.discovery_timer.borrow_mut().set_timeout(
-                    Self::TOPIC_CLEANUP_PERIOD,
+                  Self::schedule_periodic(
+                    &mut self.discovery_timer.borrow_mut(),
                     DiscoveryTimerEvent::TopicCleanup,
                   );
                 }
                 DiscoveryTimerEvent::PublishParticipantMessage => {
                   self.publish_participant_message();
-                  self.discovery_timer.borrow_mut().set_timeout(
-                    Self::CHECK_PARTICIPANT_MESSAGES,
+                  Self::schedule_periodic(
+                    &mut self.discovery_timer.borrow_mut(),
                     DiscoveryTimerEvent::PublishParticipantMessage,
                   );
                 }
                 #[cfg(feature = "security")]
                 DiscoveryTimerEvent::CachedSecureMessageResend => {
                   self.on_secure_discovery_message_resend_triggered();
-                  self.discovery_timer.borrow_mut().set_timeout(
-                    Self::CACHED_SECURE_DISCOVERY_MESSAGE_RESEND_PERIOD,
+                  Self::schedule_periodic(
+                    &mut self.discovery_timer.borrow_mut(),
                     DiscoveryTimerEvent::CachedSecureMessageResend,
                   );
                 }
@@ -2230,6 +2246,53 @@ mod tests {
     },
     RepresentationIdentifier, SerializedPayload,
   };
+
+  // pwm_actuator: every periodic discovery task falls due on the 1 s grid of
+  // `Timer::set_on_grid`, whenever it was set, so the thread wakes once a
+  // second for all of them; with `set_timeout` each was due a period after it
+  // was set, at an instant of its own.
+  #[test]
+  fn periodic_discovery_tasks_fall_due_together_on_the_grid() {
+    let origin = crate::polling::grid_origin();
+    let second = std::time::Duration::from_secs(1).as_nanos();
+    for (event, period) in [
+      (
+        DiscoveryTimerEvent::SendParticipantInfo { reschedule: true },
+        Discovery::SPDP_PUBLISH_PERIOD,
+      ),
+      (
+        DiscoveryTimerEvent::ParticipantCleanup,
+        Discovery::PARTICIPANT_CLEANUP_PERIOD,
+      ),
+      (
+        DiscoveryTimerEvent::TopicCleanup,
+        Discovery::TOPIC_CLEANUP_PERIOD,
+      ),
+      (
+        DiscoveryTimerEvent::PublishParticipantMessage,
+        Discovery::CHECK_PARTICIPANT_MESSAGES,
+      ),
+    ] {
+      std::thread::sleep(std::time::Duration::from_millis(30));
+      let mut t = Timer::new();
+      let set = std::time::Instant::now();
+      Discovery::schedule_periodic(&mut t, event);
+      let due = t.next_deadline().expect("scheduled");
+      assert!(due > set && due <= set + period, "{event:?} due within its period");
+      assert_eq!(
+        due.saturating_duration_since(origin).as_nanos() % second,
+        0,
+        "{event:?} due off the 1 s grid"
+      );
+    }
+    // The one-shot quick response is not periodic: nothing is scheduled.
+    let mut t = Timer::new();
+    Discovery::schedule_periodic(
+      &mut t,
+      DiscoveryTimerEvent::SendParticipantInfo { reschedule: false },
+    );
+    assert!(t.next_deadline().is_none());
+  }
 
   #[test]
   fn sedp_topic_caches_get_sedp_reader_limits() {

@@ -33,7 +33,7 @@ use crate::{
     },
   },
   polling::{
-    new_shared_timer, timeout_until, wake_channel, LoopWaker, ReadyReceiver, SharedTimer,
+    new_shared_timer, timeout_until, wake_channel, LoopWaker, ReadyReceiver, SharedTimer, Timer,
     WakeReceiver, WakeSender,
   },
   //qos::HasQoSPolicy,
@@ -214,8 +214,8 @@ impl DPEventLoop {
     let shared_timer = new_shared_timer::<DpTimerEvent>();
     {
       let mut t = shared_timer.borrow_mut();
-      t.set_timeout(PREEMPTIVE_ACKNACK_PERIOD, DpTimerEvent::PreemptiveAcknack);
-      t.set_timeout(CACHE_CLEAN_PERIOD, DpTimerEvent::CacheGc);
+      schedule_housekeeping(&mut t, DpTimerEvent::PreemptiveAcknack);
+      schedule_housekeeping(&mut t, DpTimerEvent::CacheGc);
     }
 
     // port number 0 means OS chooses an available port number.
@@ -505,18 +505,15 @@ impl DPEventLoop {
       match timed_event {
         DpTimerEvent::PreemptiveAcknack => {
           self.message_receiver.send_preemptive_acknacks();
-          self
-            .shared_timer
-            .borrow_mut()
-            .set_timeout(PREEMPTIVE_ACKNACK_PERIOD, DpTimerEvent::PreemptiveAcknack);
+          schedule_housekeeping(
+            &mut self.shared_timer.borrow_mut(),
+            DpTimerEvent::PreemptiveAcknack,
+          );
         }
         DpTimerEvent::CacheGc => {
           debug!("Clean DDSCache on timer");
           self.dds_cache.write().unwrap().garbage_collect();
-          self
-            .shared_timer
-            .borrow_mut()
-            .set_timeout(CACHE_CLEAN_PERIOD, DpTimerEvent::CacheGc);
+          schedule_housekeeping(&mut self.shared_timer.borrow_mut(), DpTimerEvent::CacheGc);
         }
         DpTimerEvent::Reader { entity_id, event } => {
           if let Some(reader) = self.message_receiver.reader_mut(entity_id) {
@@ -1272,6 +1269,21 @@ fn check_are_endpoints_securities_compatible(
 // -----------------------------------------------------------
 // -----------------------------------------------------------
 
+/// pwm_actuator: sets the loop's own periodic event (the preemptive ACKNACK
+/// every 5 s, the DDS cache's garbage collection every 4 s) due at its next
+/// instant on the writers' grid (`Timer::set_on_grid`), whose whole seconds
+/// are those of the writers' slow HEARTBEAT: the loop then wakes for all of
+/// them at once instead of at instants of their own. Other events are not
+/// periodic and are left alone.
+fn schedule_housekeeping(timer: &mut Timer<DpTimerEvent>, event: DpTimerEvent) {
+  let period = match event {
+    DpTimerEvent::PreemptiveAcknack => PREEMPTIVE_ACKNACK_PERIOD,
+    DpTimerEvent::CacheGc => CACHE_CLEAN_PERIOD,
+    DpTimerEvent::Reader { .. } | DpTimerEvent::Writer { .. } => return,
+  };
+  timer.set_on_grid(period, event);
+}
+
 #[cfg(test)]
 mod tests {
   use std::{sync::Mutex, thread};
@@ -1287,6 +1299,36 @@ mod tests {
     mio_source,
     polling::{ready_channel, wake_channel, wake_channel_unbounded, LoopWaker},
   };
+
+  // pwm_actuator: the loop's periodic events fall due on the grid of the
+  // writers' slow HEARTBEAT (whole seconds from one process-wide origin),
+  // whenever they were set; with `set_timeout` they were due a period after
+  // they were set, at instants of their own.
+  #[test]
+  fn the_loops_periodic_events_fall_due_on_the_heartbeat_grid() {
+    let origin = crate::polling::grid_origin();
+    let second = Duration::from_secs(1).as_nanos();
+    for (name, event, period) in [
+      (
+        "preemptive ACKNACK",
+        DpTimerEvent::PreemptiveAcknack,
+        PREEMPTIVE_ACKNACK_PERIOD,
+      ),
+      ("cache GC", DpTimerEvent::CacheGc, CACHE_CLEAN_PERIOD),
+    ] {
+      std::thread::sleep(Duration::from_millis(30));
+      let mut t = Timer::new();
+      let set = Instant::now();
+      schedule_housekeeping(&mut t, event);
+      let due = t.next_deadline().expect("scheduled");
+      assert!(due > set && due <= set + period, "{name} due within a period");
+      assert_eq!(
+        due.saturating_duration_since(origin).as_nanos() % second,
+        0,
+        "{name} due off the 1 s grid"
+      );
+    }
+  }
 
   //#[test]
   // TODO: Investigate why this fails in the github CI pipeline

@@ -2012,6 +2012,13 @@ impl Writer {
     match self.qos_policies.compliance_failure_wrt(requested_qos) {
       // matched QoS
       None => {
+        // pwm_actuator: a sample written while no reader was matched may not
+        // have been taken yet (`WriterSendBuffer::notify_admitted`); take it
+        // now, so that a reader matched after it was written sees it as
+        // written before its match, as when the loop had been woken for it.
+        if self.readers.is_empty() {
+          self.process_pending();
+        }
         let new_reader = self.matched_reader_update(reader_proxy);
         // A (possibly new) reliable reader changes the acknowledgement frontier
         // and thus the back-pressure window.

@@ -11,8 +11,14 @@ use log::{debug, error, trace, warn};
 
 use crate::{
   dds::{ddsdata::DDSData, with_key::datawriter::WriteOptions},
+  polling::Doorbell,
   structure::{cache_change::CacheChange, guid::GUID, sequence_number::SequenceNumber},
 };
+
+/// pwm_actuator: at most this many samples of a user-defined writer with no
+/// reader matched wait for the event loop without waking it
+/// (`WriterSendBuffer::notify_admitted`).
+const UNHEARD_AT_MOST: i64 = 32;
 
 /// pwm_actuator: how long a sample addressed to a reader that is not matched yet
 /// (a service reply whose related sample identity names the client's reply
@@ -481,6 +487,31 @@ impl WriterSendBuffer {
     inner.holds.retain(|h| h.reader != reader);
   }
 
+  /// pwm_actuator: tells the participant's event loop about a sample just
+  /// admitted: rings `doorbell` (the writer's id queued, the loop woken) as
+  /// ever, except for a user-defined writer with no reader matched. Such a
+  /// sample has nobody to go to, so its id is only queued and the loop takes
+  /// it at its next wake-up for anything else (at the latest its next timed
+  /// event or its 2 s idle cap; a reader's match is one, and the Writer takes
+  /// what is queued before it matches a reader). The loop is woken all the same
+  /// when more than `UNHEARD_AT_MOST` samples, or than half the unsent backlog
+  /// limit, wait unsent, so a writer never waits for room the loop was not
+  /// asked to make.
+  pub(crate) fn notify_admitted(&self, doorbell: &Doorbell) {
+    let shared = &*self.shared;
+    let unheard = !shared.is_builtin && {
+      let inner = shared.inner.lock().unwrap();
+      let unsent = i64::from(inner.last_seq) - i64::from(inner.sent_frontier);
+      let at_most = UNHEARD_AT_MOST.min(inner.backlog_limit as i64 / 2);
+      inner.matched_readers.is_empty() && unsent <= at_most
+    };
+    if unheard {
+      doorbell.queue();
+    } else {
+      doorbell.ring();
+    }
+  }
+
   /// pwm_actuator: the Writer no longer has `reader` matched.
   pub fn reader_unmatched(&self, reader: GUID) {
     self
@@ -596,6 +627,75 @@ mod tests {
         sequence_number: SequenceNumber::new(1),
       })
       .build()
+  }
+
+  // pwm_actuator: a sample a user-defined writer writes with no reader matched
+  // is queued for the event loop without waking it; with a reader matched, at
+  // the 33rd sample waiting so, and for a built-in writer, the loop is woken.
+  #[test]
+  fn a_sample_nobody_is_matched_to_does_not_wake_the_event_loop() {
+    use mio1::{Events, Poll, Token};
+
+    use crate::{
+      polling::{ready_channel, LoopWaker},
+      structure::guid::{EntityId, EntityKind},
+    };
+    let mut poll = Poll::new().unwrap();
+    let waker = LoopWaker::new();
+    waker.install(&poll, Token(7)).unwrap();
+    let (tx, rx) = ready_channel(&waker);
+    let id = EntityId::new([0, 0, 1], EntityKind::WRITER_NO_KEY_USER_DEFINED);
+    let doorbell = Doorbell::new(id, tx);
+    let mut wakes = || {
+      let mut ev = Events::with_capacity(8);
+      poll.poll(&mut ev, Some(StdDuration::ZERO)).unwrap();
+      ev.iter().count()
+    };
+    let writer = |builtin: bool| {
+      WriterSendBuffer::new(
+        GUID::dummy_test_guid(EntityKind::WRITER_NO_KEY_USER_DEFINED),
+        "t".to_string(),
+        /* reliable_writer */ true,
+        builtin,
+        /* volatile */ true,
+        /* window_limit */ 1000,
+        /* backlog_limit */ 1000,
+        /* max_retain */ 1000,
+      )
+    };
+
+    let buf = writer(false);
+    assert!(admit_now(&buf, WriteOptions::default()));
+    buf.notify_admitted(&doorbell);
+    assert_eq!(rx.drain_unique(), vec![id], "the sample's writer is queued");
+    assert_eq!(wakes(), 0, "woken for a sample nobody is matched to");
+
+    // Up to UNHEARD_AT_MOST samples wait unsent; the next one wakes the loop.
+    for _ in 1..UNHEARD_AT_MOST {
+      assert!(admit_now(&buf, WriteOptions::default()));
+      buf.notify_admitted(&doorbell);
+    }
+    assert_eq!(wakes(), 0);
+    assert!(admit_now(&buf, WriteOptions::default()));
+    buf.notify_admitted(&doorbell);
+    assert_eq!(wakes(), 1, "not woken with {} samples waiting", UNHEARD_AT_MOST + 1);
+    buf.set_sent_frontier(buf.last_change_sequence_number());
+
+    let reader = reply_reader();
+    buf.reader_matched(reader);
+    assert!(admit_now(&buf, WriteOptions::default()));
+    buf.notify_admitted(&doorbell);
+    assert_eq!(wakes(), 1, "not woken for a matched reader");
+    buf.set_sent_frontier(buf.last_change_sequence_number());
+    buf.reader_unmatched(reader);
+    assert!(admit_now(&buf, WriteOptions::default()));
+    buf.notify_admitted(&doorbell);
+    assert_eq!(wakes(), 0, "woken once the reader has gone");
+
+    let builtin = writer(true);
+    assert!(admit_now(&builtin, WriteOptions::default()));
+    builtin.notify_admitted(&doorbell);
+    assert_eq!(wakes(), 1, "a built-in writer's sample did not wake the loop");
   }
 
   fn reply_reader() -> GUID {

@@ -268,9 +268,10 @@ where
     })
   }
 
-  // Wake the event loop to transmit a freshly admitted sample.
+  // Wake the event loop to transmit a freshly admitted sample (pwm_actuator:
+  // unless no reader is matched, see `WriterSendBuffer::notify_admitted`).
   fn ring_doorbell(&self) {
-    self.doorbell.ring();
+    self.send_buffer.notify_admitted(&self.doorbell);
   }
 
   /// Manually refreshes liveliness
