@@ -738,6 +738,12 @@ fn extra_cycles_tell_the_dead_time() {
             .position(|p| p.phase == Phase::DeadTime)
             .expect("a dead_time phase");
         assert!(progress[..first].iter().all(|p| p.phase != Phase::DeadTime));
+        if let Some(p) = progress[first..]
+            .iter()
+            .find(|p| p.dead_time.is_some_and(|d| d.extended_s >= 300.0))
+        {
+            println!("  {} cycles, {}", p.cycles, p.dead_time.unwrap());
+        }
         let last = progress.last().unwrap();
         assert_eq!(last.phase, Phase::DeadTime);
         assert!(last.cycles as usize > MAX_CYCLES, "{last:?}");
