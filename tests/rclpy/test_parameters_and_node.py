@@ -113,6 +113,7 @@ CHANNEL_PARAMS = (
     "stuck_on_time_s",
     "autotune_max_overshoot_c",
     "autotune_timeout_s",
+    "autotune_extend_s",
     "autotune_margin_c",
     "model_gain_c_per_pct",
     "model_tau_s",

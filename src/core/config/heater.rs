@@ -154,6 +154,10 @@ pub struct HeaterParams {
     pub autotune_max_overshoot_c: f64,
     /// An autotune aborts when no relay cycle completes within this, s (1200).
     pub autotune_timeout_s: f64,
+    /// Once an autotune's cycles agree with the model's dead time still uncertain, the relay
+    /// may go on for at most this long, s, until the dead time is told within 10 %; 0 = the
+    /// run ends at once (0).
+    pub autotune_extend_s: f64,
     /// An autotune's target must lie at least this far below `temp_max_c`, °C (Marlin's
     /// M303: 15).
     pub autotune_margin_c: f64,
@@ -228,6 +232,7 @@ impl Default for HeaterParams {
             stuck_on_time_s: 30.0,
             autotune_max_overshoot_c: 20.0,
             autotune_timeout_s: 1200.0,
+            autotune_extend_s: 0.0,
             autotune_margin_c: 15.0,
             model: ModelParams {
                 gain_c_per_pct: 0.0,
@@ -337,6 +342,9 @@ pub struct AutotuneLimits {
     pub max_overshoot_c: f64,
     /// No complete cycle within this aborts, ns.
     pub timeout: Nanos,
+    /// How long the relay may go on after its cycles agree to tell the model's dead time,
+    /// ns; 0 = not at all.
+    pub extend: Nanos,
 }
 
 /// `sensor_stuck`'s settings, validated.
@@ -544,6 +552,7 @@ impl HeaterParams {
             1.0,
             MAX_TIME_S,
         )?;
+        OutOfRange::check("autotune_extend_s", self.autotune_extend_s, 0.0, MAX_TIME_S)?;
         OutOfRange::check(
             "feedforward_timeout_ms",
             self.feedforward_timeout_ms as f64,
@@ -612,6 +621,7 @@ impl HeaterParams {
             autotune: AutotuneLimits {
                 max_overshoot_c: self.autotune_max_overshoot_c,
                 timeout: seconds(self.autotune_timeout_s),
+                extend: seconds(self.autotune_extend_s),
             },
             feedforward_timeout: self.feedforward_timeout_ms * NS_PER_MS,
             ambient_timeout: self.ambient_timeout_ms * NS_PER_MS,

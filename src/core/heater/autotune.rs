@@ -30,6 +30,16 @@
 //! [`MAX_BAND_RATIO`] of the amplitude (the hysteresis shifts the oscillation too far from
 //! the ultimate point).
 //!
+//! **The dead time.** A converged run with a model refines it by a fit over its record
+//! (see [`super::fit`]); where that leaves the dead time uncertain (its standard error above
+//! [`MAX_DEAD_TIME_SE`] of it: on a slow heater with a noisy sensor the relay's corners hardly
+//! show it apart from the sensor's lag) and `autotune_extend_s` is above 0, the relay goes on
+//! ([`Phase::DeadTime`]) in windows of a few hundred seconds, each recorded afresh and fitted
+//! at a fixed grid of splits ([`super::fit::Profile`]), until the windows together tell the
+//! dead time within 10 % or the bound has passed; the run then gives the model with the dead
+//! time the windows give, and says how far they told it. The gains come from the agreeing
+//! cycles, as without the extra ones.
+//!
 //! **The rule.** Tyreus–Luyben's PID: `Kp = 0.45·Ku`, `TI = 2.2·Tu`, `TD = Tu/6.3`, so
 //! `pid_ki = Kp/TI`, `pid_kd = Kp·TD`, with the derivative filtered over `TD/10`. Made for
 //! lag-dominant process loops, which heaters are; on the tests' plants a step from ambient
@@ -37,7 +47,7 @@
 //! to a quarter of the step: their integral, four times faster, fills during the approach.
 
 use super::super::Nanos;
-use super::fit::{Fit, Trace};
+use super::fit::{Fit, Profile, Split, Trace, FIRST_WIDTH, RELAY_BINS};
 use super::{Gains, ModelParams};
 use std::f64::consts::PI;
 
@@ -164,14 +174,18 @@ pub enum Phase {
     Approach,
     /// Relay cycles.
     Relay,
+    /// The cycles agree, the model's dead time is uncertain: the relay goes on, for at most
+    /// `autotune_extend_s`, until the dead time is told within 10 %.
+    DeadTime,
 }
 
 impl Phase {
-    /// `approach` or `relay`.
+    /// `approach`, `relay` or `dead_time`.
     pub fn as_str(self) -> &'static str {
         match self {
             Phase::Approach => "approach",
             Phase::Relay => "relay",
+            Phase::DeadTime => "dead_time",
         }
     }
 }
@@ -188,6 +202,57 @@ pub struct Progress {
     pub amplitude_c: f64,
     /// The last cycle's period, s (0 before the first).
     pub period_s: f64,
+    /// In [`Phase::DeadTime`]: the model's dead time so far and its standard error, s, and
+    /// the relay's time past its agreeing cycles, s.
+    pub dead_time: Option<DeadTimeProgress>,
+}
+
+/// How far the relay's extra cycles have told the dead time (see [`Phase::DeadTime`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeadTimeProgress {
+    /// The dead time the cycles so far give, s.
+    pub dead_time_s: f64,
+    /// Its standard error, s; the relay goes on while it is above [`MAX_DEAD_TIME_SE`] of the
+    /// dead time.
+    pub se_s: f64,
+    /// How long the relay has gone on past its agreeing cycles, s.
+    pub extended_s: f64,
+    /// The most it may (`autotune_extend_s`), s.
+    pub bound_s: f64,
+}
+
+impl std::fmt::Display for DeadTimeProgress {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "telling the dead time: {} s so far, going on until its standard error is \
+             within {:.0} % of it or autotune_extend_s {:.0} s has passed ({:.0} s)",
+            dead_time_with_se(self.dead_time_s, Some(self.se_s)),
+            MAX_DEAD_TIME_SE * 100.0,
+            self.bound_s,
+            self.extended_s
+        )
+    }
+}
+
+/// `0.66 ± 0.11`: the dead time to 0.01 s, its standard error to two significant digits
+/// (`0.50 ± 0.0036`), `< 0.001` below that, `?` when infinite.
+fn dead_time_with_se(dead_time_s: f64, se: Option<f64>) -> String {
+    match se {
+        Some(se) if se < 0.001 => format!("{dead_time_s:.2} ± < 0.001"),
+        Some(se) if se.is_finite() => {
+            let digits = if se >= 0.1 {
+                2
+            } else if se >= 0.01 {
+                3
+            } else {
+                4
+            };
+            format!("{dead_time_s:.2} ± {se:.digits$}")
+        }
+        Some(_) => format!("{dead_time_s:.2} ± ?"),
+        None => format!("{dead_time_s:.2}"),
+    }
 }
 
 /// Why a run ended.
@@ -407,6 +472,20 @@ pub struct Estimate {
     /// gave the model (see [`super::fit::Fit::dead_time_se`]); infinite when the record does
     /// not tell the dead time from the sensor's lag at all.
     pub dead_time_se_s: Option<f64>,
+    /// How far the relay went on past its agreeing cycles to tell the dead time
+    /// (`autotune_extend_s`), when it did.
+    pub extended: Option<Extended>,
+}
+
+/// The relay's extra cycles for the dead time (see [`Phase::DeadTime`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Extended {
+    /// Complete cycles past the agreeing ones.
+    pub cycles: u32,
+    /// Time past them, s.
+    pub secs: f64,
+    /// The bound, `autotune_extend_s`, s.
+    pub bound_s: f64,
 }
 
 impl Estimate {
@@ -427,21 +506,34 @@ impl Estimate {
     /// [`Estimate::dead_time_certain`]) what the run did tell: the two lags' sum.
     pub fn model_summary(&self) -> Option<String> {
         let m = self.model?;
-        let se = match self.dead_time_se_s {
-            Some(se) if se.is_finite() => format!(" ± {se:.2}"),
-            Some(_) => " ± ?".into(),
-            None => String::new(),
-        };
         let mut s = format!(
-            "model: gain {:.4} °C/%, tau {:.1} s, dead time {:.2}{se} s, sensor lag {:.2} s, \
+            "model: gain {:.4} °C/%, tau {:.1} s, dead time {} s, sensor lag {:.2} s, \
              ambient {:.2} °C",
-            m.gain_c_per_pct, m.tau_s, m.dead_time_s, m.sensor_tau_s, m.ambient_c
+            m.gain_c_per_pct,
+            m.tau_s,
+            dead_time_with_se(m.dead_time_s, self.dead_time_se_s),
+            m.sensor_tau_s,
+            m.ambient_c
         );
+        if let Some(x) = self.extended {
+            s.push_str(&format!(
+                "; the relay went on {} more cycles ({:.0} s) to tell the dead time",
+                x.cycles, x.secs
+            ));
+        }
         if self.dead_time_se_s.is_some() && !self.dead_time_certain() {
             s.push_str(&format!(
                 " (the dead time is uncertain: the sensor's noise hides its split from the \
-                 sensor's lag; their sum {:.2} s is what the run identified)",
-                m.dead_time_s + m.sensor_tau_s
+                 sensor's lag; their sum {:.2} s is what the run identified{})",
+                m.dead_time_s + m.sensor_tau_s,
+                match self.extended {
+                    Some(x) => format!(
+                        "; autotune_extend_s {:.0} s ended the relay before the dead time was \
+                         told within 10 %",
+                        x.bound_s
+                    ),
+                    None => "; autotune_extend_s lets the relay go on until it is told".into(),
+                }
             ));
         }
         Some(s)
@@ -586,6 +678,34 @@ pub struct Autotune {
     trace: Trace,
     fit: Option<Fit>,
     pending: Option<Estimate>,
+    /// The relay going on to tell the dead time, once the fit left it uncertain.
+    refine: Option<Refine>,
+}
+
+/// The relay's extra cycles for the dead time ([`Phase::DeadTime`]): the profile over the
+/// windows of the relay so far, each recorded afresh in the run's record, then evaluated
+/// while the relay goes on (a few evaluations per reading).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Refine {
+    profile: Profile,
+    /// When the extra cycles began, and when the progress last changed.
+    since: Nanos,
+    reported: Nanos,
+    /// Complete cycles since.
+    cycles: u32,
+    /// The start of the window being recorded; `None` while one is evaluated.
+    window: Option<Nanos>,
+    /// A window ends at the first cycle end that would take it past this long, ns: its
+    /// record's bins stay fine against the cycle and the lags.
+    window_len: Nanos,
+    /// The record starts afresh: its first reading starts the relay's bins.
+    fresh: bool,
+    /// The bound passed: the run ends once the window is evaluated.
+    ending: bool,
+    /// The last cycle's half peak-to-peak amplitude, °C, and period, s.
+    last: (f64, f64),
+    /// What the windows so far give.
+    split: Option<Split>,
 }
 
 fn spread(values: impl Iterator<Item = f64> + Clone) -> f64 {
@@ -650,6 +770,7 @@ impl Autotune {
             trace: Trace::new(before_pct),
             fit: None,
             pending: None,
+            refine: None,
         }
     }
 
@@ -670,11 +791,31 @@ impl Autotune {
     /// Where the run stands.
     pub fn progress(&self) -> Progress {
         let last = self.n.checked_sub(1).map(|i| self.cycles[i]);
+        let extra = self.refine.filter(|r| r.cycles > 0);
+        let (amplitude_c, period_s) = match (extra, last) {
+            (Some(r), _) => r.last,
+            (None, Some(c)) => (c.amplitude_c, c.period_s),
+            (None, None) => (0.0, 0.0),
+        };
         Progress {
             phase: self.phase,
-            cycles: self.n as u32,
-            amplitude_c: last.map_or(0.0, |c| c.amplitude_c),
-            period_s: last.map_or(0.0, |c| c.period_s),
+            cycles: (self.n as u32).saturating_add(extra.map_or(0, |r| r.cycles)),
+            amplitude_c,
+            period_s,
+            dead_time: self.refine.map(|r| {
+                let first = self.pending.and_then(|e| e.model.zip(e.dead_time_se_s));
+                let (dead_time_s, se_s) = match (r.split, first) {
+                    (Some(s), _) => (s.dead_time_s, s.dead_time_se_s),
+                    (None, Some((m, se))) => (m.dead_time_s, se),
+                    (None, None) => (0.0, f64::INFINITY),
+                };
+                DeadTimeProgress {
+                    dead_time_s,
+                    se_s,
+                    extended_s: r.reported.saturating_sub(r.since) as f64 / 1e9,
+                    bound_s: self.limits.extend as f64 / 1e9,
+                }
+            }),
         }
     }
 
@@ -716,10 +857,18 @@ impl Autotune {
     /// protections, the minimum times and the PWM's period-late switching did to it — over
     /// the temperature's amplitude is the describing function.
     pub fn reading_delivered(&mut self, now: Nanos, celsius: f64, on_total: Nanos) -> Option<Stop> {
-        if let Some(stop) = self.fit_step() {
+        if let Some(stop) = self.fit_step(now) {
+            return Some(stop);
+        }
+        if let Some(stop) = self.refine_step(now) {
             return Some(stop);
         }
         self.trace.record(now, celsius, on_total);
+        if let Some(r) = self.refine.as_mut().filter(|r| r.fresh) {
+            // A window's record: its relay bins start at its first reading.
+            self.trace.split(now);
+            r.fresh = false;
+        }
         if let Some(on_at) = self.on_at {
             let (t0, e0) = self.last;
             let energy = on_total.saturating_sub(e0) as f64;
@@ -776,8 +925,10 @@ impl Autotune {
         None
     }
 
-    /// Runs the model's fit for one reading, while it goes: its end converges the run.
-    fn fit_step(&mut self) -> Option<Stop> {
+    /// Runs the model's fit for one reading at `now`, while it goes: its end converges the
+    /// run, or, with the dead time uncertain and `autotune_extend_s` above 0, starts the
+    /// relay's extra cycles for it ([`Phase::DeadTime`]).
+    fn fit_step(&mut self, now: Nanos) -> Option<Stop> {
         let fit = self.fit.as_mut()?;
         if !fit.run(&self.trace, FIT_EVALS_PER_READING) {
             return None;
@@ -786,6 +937,80 @@ impl Autotune {
         est.model = fit.model(&self.trace);
         est.dead_time_se_s = est.model.and_then(|_| fit.dead_time_se(&self.trace));
         self.fit = None;
+        if let Some(m) = est.model.filter(|_| self.limits.extend > 0) {
+            if !est.dead_time_certain() {
+                // The record as it stands is the first window; later ones are recorded anew.
+                let sum = m.dead_time_s + m.sensor_tau_s;
+                let mut profile = Profile::new(m.tau_s, sum, m.gain_c_per_pct);
+                profile.begin_run();
+                // Bins of at most a sixteenth of the cycle and half the lags.
+                let fine = (est.tu_s / 16.0).min(sum / 2.0);
+                let mut width = FIRST_WIDTH;
+                while (width * 2) as f64 / 1e9 <= fine {
+                    width *= 2;
+                }
+                self.refine = Some(Refine {
+                    profile,
+                    since: now,
+                    reported: now,
+                    cycles: 0,
+                    window: None,
+                    window_len: width.saturating_mul(RELAY_BINS as Nanos),
+                    fresh: false,
+                    ending: false,
+                    split: None,
+                    last: (0.0, 0.0),
+                });
+                self.phase = Phase::DeadTime;
+                self.pending = Some(est);
+                return None;
+            }
+        }
+        self.estimate = Some(est);
+        Some(Stop::Converged)
+    }
+
+    /// The relay's extra cycles at a reading at `now`: the bound, and the evaluation of a
+    /// window, a few evaluations at a time; once the dead time is told within 10 % or the
+    /// bound has passed, the run converges with the model the windows give.
+    fn refine_step(&mut self, now: Nanos) -> Option<Stop> {
+        let r = self.refine.as_mut()?;
+        if now.saturating_sub(r.since) >= self.limits.extend && !r.ending {
+            r.ending = true;
+            r.reported = now;
+            if r.window.take().is_some() {
+                self.trace.freeze();
+                r.profile.begin_window();
+            }
+        }
+        if !r.profile.evaluating() || !r.profile.run(&self.trace, FIT_EVALS_PER_READING) {
+            return None;
+        }
+        r.split = r.profile.split().or(r.split);
+        r.reported = now;
+        let certain = r
+            .split
+            .is_some_and(|s| s.dead_time_se_s <= MAX_DEAD_TIME_SE * s.dead_time_s);
+        if !(certain || r.ending) {
+            // The next window, recorded anew.
+            r.window = Some(now);
+            r.fresh = true;
+            self.trace = Trace::new(self.output_pct());
+            return None;
+        }
+        // The run's end: its progress stays the dead time's.
+        let r = *r;
+        let mut est = self.pending.take()?;
+        if let (Some(m), Some(s)) = (est.model.as_mut(), r.split) {
+            m.dead_time_s = s.dead_time_s;
+            m.sensor_tau_s = s.sensor_tau_s;
+            est.dead_time_se_s = Some(s.dead_time_se_s);
+        }
+        est.extended = Some(Extended {
+            cycles: r.cycles,
+            secs: now.saturating_sub(r.since) as f64 / 1e9,
+            bound_s: self.limits.extend as f64 / 1e9,
+        });
         self.estimate = Some(est);
         Some(Stop::Converged)
     }
@@ -901,11 +1126,26 @@ impl Autotune {
             self.phase = Phase::Relay;
             return None;
         };
-        if self.fit.is_some() {
-            // Converged: the relay goes on while the model's fit runs; the cycles are done.
+        if self.fit.is_some() || self.refine.is_some() {
+            // Converged: the relay goes on while the model's fit runs, or for the dead time;
+            // the cycles are done.
             self.bins = [0.0; BINS];
             self.bin_w = FIRST_BIN;
             self.since = now;
+            if let Some(r) = self.refine.as_mut() {
+                let period = now.saturating_sub(on_at);
+                r.cycles = r.cycles.saturating_add(1);
+                r.reported = now;
+                r.last = ((self.high - self.low) / 2.0, period as f64 / 1e9);
+                // The window ends before the next cycle would take it past its length.
+                if let Some(start) = r.window {
+                    if now.saturating_sub(start).saturating_add(period) > r.window_len {
+                        r.window = None;
+                        self.trace.freeze();
+                        r.profile.begin_window();
+                    }
+                }
+            }
             return None;
         }
         let period_s = (now - on_at) as f64 / 1e9;
@@ -987,6 +1227,7 @@ impl Autotune {
                 delivered_on_pct: mean(|c| c.power_on) * 100.0,
                 model,
                 dead_time_se_s: None,
+                extended: None,
             };
             let d = est.on_fraction;
             if !(MIN_ON_FRACTION..=1.0 - MIN_ON_FRACTION).contains(&d) {
@@ -1074,6 +1315,7 @@ pub(crate) mod tests {
         Limits {
             max_overshoot_c: 20.0,
             timeout: 1200 * S,
+            extend: 0,
         }
     }
 

@@ -22,8 +22,10 @@ use super::ModelParams;
 pub const BINS: usize = 512;
 /// Bins the approach keeps (the rest are the relay's).
 const APPROACH_BINS: usize = 128;
+/// The relay's bins.
+pub const RELAY_BINS: usize = BINS - APPROACH_BINS;
 /// The first width of a bin, ns.
-const FIRST_WIDTH: Nanos = 100_000_000;
+pub const FIRST_WIDTH: Nanos = 100_000_000;
 /// The approach's bins widen by this factor each: fine where a step's response bends (its
 /// dead time and its sensor's lag), coarse along the slow curve after it, 1000 s in all (a
 /// longer approach widens its last bin).
@@ -242,9 +244,28 @@ impl Trace {
 
     /// How many complete bins hold readings.
     fn bins_with_readings(&self) -> usize {
+        self.bins_counted(0.0)
+    }
+
+    /// How many complete bins hold readings and start at least `skip_s` after the record's
+    /// start.
+    fn bins_counted(&self, skip_s: f64) -> usize {
         let (a, r) = self.complete();
-        let full = |i: &usize| self.n[*i] > 0;
-        (0..a).filter(full).count() + (APPROACH_BINS..APPROACH_BINS + r).filter(full).count()
+        let counted = |i: &usize| {
+            let (start, width) = self.span(*i);
+            self.n[*i] > 0 && width > 0 && (start - self.t0) as f64 / 1e9 >= skip_s
+        };
+        (0..a).filter(counted).count() + (APPROACH_BINS..APPROACH_BINS + r).filter(counted).count()
+    }
+
+    /// Whether a reading was recorded.
+    pub fn started(&self) -> bool {
+        self.started
+    }
+
+    /// How long the record runs, ns (0 before its first reading).
+    pub fn length(&self) -> Nanos {
+        self.last.0.saturating_sub(self.t0)
     }
 
     /// The complete bins, in time order: the approach's (all of them once the relay's
@@ -308,7 +329,22 @@ impl Trace {
     /// The least-squares fit for `tau`, `tau_s` and `dead` (s): the sum of squared errors over
     /// the readings and `(ambient, start − ambient, gain)`; `None` when it is singular.
     pub fn evaluate(&self, tau: f64, tau_s: f64, dead: f64) -> Option<(f64, [f64; 3])> {
-        self.evaluate_with(tau, tau_s, dead, &mut |_, _, _| {})
+        self.evaluate_with(tau, tau_s, dead, 0.0, None, &mut |_, _, _| {})
+    }
+
+    /// [`Trace::evaluate`] with the bins that start within `skip_s` of the record's start
+    /// run through but not counted (a record that starts in the middle of a relay, where the
+    /// input of the last dead time and the sensor's lag behind the block are not known, counts
+    /// once they have passed), and the gain `gain` (°C/%) held where given.
+    pub fn evaluate_after(
+        &self,
+        tau: f64,
+        tau_s: f64,
+        dead: f64,
+        skip_s: f64,
+        gain: Option<f64>,
+    ) -> Option<(f64, [f64; 3])> {
+        self.evaluate_with(tau, tau_s, dead, skip_s, gain, &mut |_, _, _| {})
     }
 
     /// [`Trace::evaluate`], telling `each` every bin's index, reading and regressors.
@@ -317,6 +353,8 @@ impl Trace {
         tau: f64,
         tau_s: f64,
         dead: f64,
+        skip_s: f64,
+        gain: Option<f64>,
         each: &mut dyn FnMut(usize, f64, [f64; 3]),
     ) -> Option<(f64, [f64; 3])> {
         let bins = self.complete();
@@ -380,7 +418,7 @@ impl Trace {
                 t = until;
             }
             let n = self.n[i];
-            if n == 0 {
+            if n == 0 || ts < skip_s || w <= 0.0 {
                 continue;
             }
             let nf = n as f64;
@@ -392,12 +430,17 @@ impl Trace {
                 let slope = (b - a) / w - c * w;
                 a + slope * x1 + c * x2
             };
-            let r = [
+            let mut r = [
                 1.0,
                 mean(free0, mid.0, free.1),
                 mean(forced0, mid.1, forced.1),
             ];
-            let y = self.y[i] / nf;
+            let mut y = self.y[i] / nf;
+            if let Some(g) = gain {
+                // The gain's part is known: what is left of the reading, without its regressor.
+                y -= g * r[2];
+                r[2] = 0.0;
+            }
             each(i, y, r);
             for a in 0..3 {
                 v[a] += nf * r[a] * y;
@@ -407,7 +450,13 @@ impl Trace {
             }
             yy += nf * y * y;
         }
-        let theta = solve3(mm, v)?;
+        if gain.is_some() {
+            mm[2][2] = mm[0][0].max(1.0);
+        }
+        let mut theta = solve3(mm, v)?;
+        if let Some(g) = gain {
+            theta[2] = g;
+        }
         let sse = yy - (theta[0] * v[0] + theta[1] * v[1] + theta[2] * v[2]);
         Some((sse.max(0.0), theta))
     }
@@ -605,6 +654,216 @@ impl Fit {
     }
 }
 
+/// Points of the profile along the sensor's share of the apparent dead time: 0, 1/32, .., 1.
+pub const SHARES: usize = 33;
+/// Apparent dead times the profile tries at each share: the fit's, and that less and more
+/// [`SUM_STEP`] of it.
+const SUMS: usize = 3;
+/// See [`SUMS`].
+const SUM_STEP: f64 = 0.1;
+/// A record that starts in the middle of a relay counts after this many of the largest
+/// apparent dead time the profile tries (the input of the last dead time has passed, and the
+/// sensor's lag behind the block has decayed to under 1 %).
+const SKIP_SUMS: f64 = 6.0;
+
+/// The split of the apparent dead time between the dead time and the sensor's lag, told from
+/// several records of one relay: each record (a window of its cycles) is fitted at the same
+/// grid of splits and apparent dead times, the time constant held at the fit's, the linear
+/// parts (ambient, start, gain) its own; the sums of squares add up over the windows, and the
+/// least of the sum is the fit over all of them. Only the grid's sums are kept, so the record
+/// stays one window long however long the relay goes on, and each window keeps its bins fine.
+///
+/// Along the apparent dead time a parabola through its three points gives the least at each
+/// share (the profile); along the share a parabola through the least point and its neighbours
+/// gives the dead time, and its curvature with the noise the residual gives its standard
+/// error, as in [`Fit::dead_time_se`] but with the apparent dead time free.
+///
+/// Bounded work: `SHARES × 3` evaluations per window, a given number per call.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Profile {
+    tau: f64,
+    sum: f64,
+    gain: f64,
+    /// The window under evaluation holds the gain.
+    hold: bool,
+    /// The sums of squares over the windows so far, by share and apparent dead time.
+    sse: [[f64; SUMS]; SHARES],
+    /// The bins counted, and the windows.
+    bins: usize,
+    windows: u32,
+    /// The window under evaluation: the next point, its bins' skip, and its sums.
+    next: usize,
+    skip_s: f64,
+    part: [[f64; SUMS]; SHARES],
+    failed: bool,
+}
+
+/// The split a [`Profile`] gives: the dead time and the sensor's lag, s, and the dead time's
+/// standard error, s (infinite where the profile shows no least).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Split {
+    /// The dead time, s.
+    pub dead_time_s: f64,
+    /// The sensor's time constant, s.
+    pub sensor_tau_s: f64,
+    /// The dead time's standard error, s.
+    pub dead_time_se_s: f64,
+}
+
+impl Profile {
+    /// A profile around the time constant `tau` (s), the apparent dead time `sum` (s, the
+    /// dead time and the sensor's lag together) and the gain `gain` (°C/%) of a fit.
+    pub fn new(tau: f64, sum: f64, gain: f64) -> Profile {
+        Profile {
+            tau,
+            sum: sum.max(1e-3),
+            gain,
+            hold: false,
+            sse: [[0.0; SUMS]; SHARES],
+            bins: 0,
+            windows: 0,
+            next: SHARES * SUMS,
+            skip_s: 0.0,
+            part: [[0.0; SUMS]; SHARES],
+            failed: false,
+        }
+    }
+
+    /// The time a record that starts in the middle of the relay runs before its bins count,
+    /// s (see [`SKIP_SUMS`]).
+    pub fn skip_s(&self) -> f64 {
+        SKIP_SUMS * self.sum * (1.0 + SUM_STEP)
+    }
+
+    /// Windows added so far.
+    pub fn windows(&self) -> u32 {
+        self.windows
+    }
+
+    fn point(&self, k: usize, j: usize) -> (f64, f64) {
+        let sum = self.sum * (1.0 + (j as f64 - 1.0) * SUM_STEP);
+        let share = k as f64 / (SHARES - 1) as f64;
+        (sum * share, sum * (1.0 - share))
+    }
+
+    /// Starts the evaluation of the run's record from its start (the approach, which fixes
+    /// the gain, and the first cycles): all of it counts, its gain its own.
+    pub fn begin_run(&mut self) {
+        self.next = 0;
+        self.skip_s = 0.0;
+        self.hold = false;
+        self.failed = false;
+    }
+
+    /// Starts the evaluation of a window recorded in the middle of the relay: its bins within
+    /// [`Profile::skip_s`] of its start are not counted, and the gain is the fit's. (Around
+    /// one temperature the gain trades against the sensor's lag: both lower the swing the
+    /// sensor shows. The approach fixes it.)
+    pub fn begin_window(&mut self) {
+        self.next = 0;
+        self.skip_s = self.skip_s();
+        self.hold = true;
+        self.failed = false;
+    }
+
+    /// Whether a window's evaluation is under way.
+    pub fn evaluating(&self) -> bool {
+        self.next < SHARES * SUMS
+    }
+
+    /// Runs up to `budget` evaluations of the window `trace`; returns whether the window is
+    /// done. A window the model cannot be fitted to (too few bins, a singular system) is
+    /// left out.
+    pub fn run(&mut self, trace: &Trace, budget: u32) -> bool {
+        let mut left = budget;
+        while left > 0 && self.evaluating() {
+            let (k, j) = (self.next / SUMS, self.next % SUMS);
+            let (tau_s, dead) = self.point(k, j);
+            let gain = self.hold.then_some(self.gain);
+            match trace.evaluate_after(self.tau, tau_s, dead, self.skip_s, gain) {
+                Some((sse, _)) if sse.is_finite() && !self.failed => self.part[k][j] = sse,
+                _ => self.failed = true,
+            }
+            self.next += 1;
+            left -= 1;
+        }
+        if self.evaluating() {
+            return false;
+        }
+        if !self.failed {
+            for (acc, part) in self.sse.iter_mut().zip(&self.part) {
+                for (a, p) in acc.iter_mut().zip(part) {
+                    *a += p;
+                }
+            }
+            self.bins += trace.bins_counted(self.skip_s);
+            self.windows += 1;
+        }
+        self.failed = false;
+        true
+    }
+
+    /// The split the windows so far give; `None` before the first.
+    pub fn split(&self) -> Option<Split> {
+        if self.windows == 0 {
+            return None;
+        }
+        let h = self.sum * SUM_STEP;
+        // Per share, the least over the apparent dead time: (least, apparent dead time).
+        let mut least = [(0.0, 0.0); SHARES];
+        for (k, q) in self.sse.iter().enumerate() {
+            let c = q[0] - 2.0 * q[1] + q[2];
+            let (best, at) = if c > 0.0 {
+                let x = (-(q[2] - q[0]) / (2.0 * c)).clamp(-2.0, 2.0);
+                (q[1] + x * (q[2] - q[0]) / 2.0 + x * x * c / 2.0, x)
+            } else {
+                let j = (0..SUMS)
+                    .min_by(|a, b| q[*a].total_cmp(&q[*b]))
+                    .unwrap_or(1);
+                (q[j], j as f64 - 1.0)
+            };
+            least[k] = (best, self.sum + at * h);
+        }
+        let k = (0..SHARES).min_by(|a, b| least[*a].0.total_cmp(&least[*b].0))?;
+        // The parabola through the least point and its neighbours (the edge's own at an edge).
+        let m = k.clamp(1, SHARES - 2);
+        let (p0, p1, p2) = (least[m - 1].0, least[m].0, least[m + 1].0);
+        let step = 1.0 / (SHARES - 1) as f64;
+        let curv = (p0 - 2.0 * p1 + p2) / (step * step);
+        let x = if curv > 0.0 {
+            (-(p2 - p0) / (2.0 * (p0 - 2.0 * p1 + p2))).clamp(-1.0, 1.0)
+        } else {
+            k as f64 - m as f64
+        };
+        let x = if k == m { x } else { k as f64 - m as f64 };
+        let share = ((m as f64 + x) * step).clamp(0.0, 1.0);
+        // The apparent dead time along the profile, linear between its points.
+        let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+        let sum = if x >= 0.0 {
+            lerp(least[m].1, least[m + 1].1, x)
+        } else {
+            lerp(least[m].1, least[m - 1].1, -x)
+        };
+        let (tau_s, dead) = (sum * share, sum * (1.0 - share));
+        // The dead time against the share along the profile: dL/dshare.
+        let dead_at = |i: usize| least[i].1 * (1.0 - i as f64 * step);
+        let slope = (dead_at(m + 1) - dead_at(m - 1)) / (2.0 * step);
+        let p_min = p1.min(least[k].0);
+        let dof = self.bins as f64 - 3.0 * self.windows as f64 - 2.0;
+        let se = if curv > 0.0 && dof > 0.0 {
+            let var = p_min.max(0.0) / dof;
+            slope.abs() * (2.0 * var / curv).sqrt()
+        } else {
+            f64::INFINITY
+        };
+        Some(Split {
+            dead_time_s: dead,
+            sensor_tau_s: tau_s,
+            dead_time_se_s: se,
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::plant::{Plant, PlantParams};
@@ -738,6 +997,119 @@ mod tests {
                  {worst:.1} %; standard error given {se:.3} s, error/se rms {z:.2}"
             );
         }
+    }
+
+    /// A relay run as [`relay_cycles`] of `cycles` switch-ons after the approach, recorded in
+    /// the run's record, then in `windows` records of `window_s` each started afresh in the
+    /// middle of the relay (their first reading starts their relay bins), with a gap of a
+    /// second between them: the records.
+    fn relay_windows(
+        p: PlantParams,
+        target: f64,
+        band: f64,
+        cycles: u32,
+        window_s: u64,
+        windows: usize,
+    ) -> Vec<Trace> {
+        let mut plant = Plant::new(p, 0, 1);
+        let mut traces = vec![Trace::new(0.0)];
+        let (mut on, mut want, mut on_total, mut since, mut ons) = (false, true, 0u64, 0u64, 0);
+        let mut next: Option<Nanos> = None;
+        for k in 0.. {
+            let t = k * 250 * MS;
+            if t.is_multiple_of(S) && want != on {
+                if on {
+                    on_total += t - since;
+                } else {
+                    since = t;
+                }
+                on = want;
+                plant.line(t, on);
+            }
+            let total = on_total + if on { t - since } else { 0 };
+            let c = plant.reading(t).unwrap();
+            if next.is_some_and(|at| t >= at) {
+                if traces.len() > windows {
+                    break;
+                }
+                traces.push(Trace::new(0.0));
+                let trace = traces.last_mut().unwrap();
+                trace.record(t, c, total);
+                trace.split(t);
+                next = Some(t + window_s * S + S);
+            } else if next.is_none_or(|at| t + S < at) {
+                traces.last_mut().unwrap().record(t, c, total);
+            }
+            if c > target + band && want {
+                want = false;
+                if ons == 0 {
+                    traces[0].split(t);
+                }
+            } else if c < target - band && !want {
+                want = true;
+                ons += 1;
+                if ons == cycles + 1 {
+                    next = Some(t + S);
+                }
+            }
+        }
+        traces
+    }
+
+    /// The profile over windows of a noise-free relay finds the plant's split from a fit's
+    /// apparent dead time 5 % off: the run's record with its own gain, then records started
+    /// in the middle of the relay with the gain held and their start skipped. Each window
+    /// alone tells it too, and the windows' sums add up.
+    #[test]
+    fn the_profile_over_windows_finds_the_split() {
+        let p = PlantParams {
+            rate_c_per_s: 1.0,
+            tau_s: 60.0,
+            dead_time_s: 2.0,
+            ambient_c: 20.0,
+            noise_c: 0.0,
+            sensor_tau_s: 1.0,
+        };
+        let traces = relay_windows(p, 44.0, 0.3, 4, 60, 3);
+        assert_eq!(traces.len(), 4);
+        let mut all = Profile::new(60.0, 3.15, 0.6);
+        for (i, t) in traces.iter().enumerate() {
+            if i == 0 {
+                all.begin_run();
+            } else {
+                all.begin_window();
+            }
+            let mut calls = 0;
+            while !all.run(t, 8) {
+                calls += 1;
+            }
+            assert_eq!(calls, (SHARES * SUMS).div_ceil(8) - 1);
+            assert_eq!(all.windows(), i as u32 + 1, "window {i} was left out");
+            let s = all.split().unwrap();
+            println!("{} windows: {s:?}", i + 1);
+            assert!((s.dead_time_s - 2.0).abs() < 0.03, "{s:?}");
+            assert!((s.sensor_tau_s - 1.0).abs() < 0.03, "{s:?}");
+            // The windows alone, each.
+            let mut one = Profile::new(60.0, 3.15, 0.6);
+            if i == 0 {
+                one.begin_run();
+            } else {
+                one.begin_window();
+            }
+            while !one.run(t, 64) {}
+            let s = one.split().unwrap();
+            assert!((s.dead_time_s - 2.0).abs() < 0.03, "window {i}: {s:?}");
+        }
+        // A window too short to count after its skip is left out.
+        let mut short = Trace::new(0.0);
+        short.record(0, 44.0, 0);
+        short.split(0);
+        for k in 1..20 {
+            short.record(k * 250 * MS, 44.0, 0);
+        }
+        all.begin_window();
+        while !all.run(&short, 64) {}
+        assert_eq!(all.windows(), 4);
     }
 
     /// On a noise-free record the true model fits exactly: the sum of squares vanishes, the

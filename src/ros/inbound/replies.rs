@@ -276,6 +276,7 @@ mod tests {
             cycles,
             amplitude_c: 1.0,
             period_s: 10.0,
+            dead_time: None,
         })
     }
 

@@ -387,6 +387,10 @@ fn autotune_progress(p: &Progress) -> String {
     match p.phase {
         Phase::Approach => p.phase.as_str().to_string(),
         Phase::Relay => format!("{}, {} cycles", p.phase.as_str(), p.cycles),
+        Phase::DeadTime => match p.dead_time {
+            Some(d) => format!("{}, {} cycles, {d}", p.phase.as_str(), p.cycles),
+            None => format!("{}, {} cycles", p.phase.as_str(), p.cycles),
+        },
     }
 }
 
@@ -1557,6 +1561,7 @@ mod tests {
             cycles: 3,
             amplitude_c: 1.5,
             period_s: 4.0,
+            dead_time: None,
         });
         let d = h.to_status("n", 0, NodeCounters::default());
         assert_eq!(d.level, DiagnosticStatus::OK);
@@ -1566,6 +1571,26 @@ mod tests {
                 .starts_with("autotune running (relay, 3 cycles); enabled, 37.0 %"),
             "{}",
             d.message
+        );
+        // Past its agreeing cycles, for the dead time: why, and how far.
+        h.autotune = Some(Progress {
+            phase: Phase::DeadTime,
+            cycles: 30,
+            amplitude_c: 1.5,
+            period_s: 4.0,
+            dead_time: Some(crate::core::heater::autotune::DeadTimeProgress {
+                dead_time_s: 0.52,
+                se_s: 0.041,
+                extended_s: 300.0,
+                bound_s: 2400.0,
+            }),
+        });
+        let d = h.to_status("n", 0, NodeCounters::default());
+        assert_eq!(
+            kv(&d, "autotune"),
+            "dead_time, 30 cycles, telling the dead time: 0.52 ± 0.041 s so far, going on \
+             until its standard error is within 4 % of it or autotune_extend_s 2400 s has \
+             passed (300 s)"
         );
         // A fault outranks it.
         h.status = Some(Status {

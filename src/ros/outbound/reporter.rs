@@ -504,11 +504,15 @@ impl Reporter {
                     Report::Refused(r) => warn!("{name}: autotune refused: {r}"),
                     Report::Started => info!("{name}: autotune started"),
                     Report::Progress(p) => info!(
-                        "{name}: autotune {}: {} cycles, last amplitude {:.2} °C, period {:.1} s",
+                        "{name}: autotune {}: {} cycles, last amplitude {:.2} °C, period {:.1} \
+                         s{}",
                         p.phase.as_str(),
                         p.cycles,
                         p.amplitude_c,
-                        p.period_s
+                        p.period_s,
+                        p.dead_time
+                            .map(|d| format!("; the cycles agree, the relay goes on {d}"))
+                            .unwrap_or_default()
                     ),
                     Report::Finished(o) => match (o.estimate, o.gains) {
                         (Some(e), Some(g)) => info!(
@@ -528,6 +532,7 @@ impl Reporter {
                             cycles: 0,
                             amplitude_c: 0.0,
                             period_s: 0.0,
+                            dead_time: None,
                         })
                     }
                     Report::Progress(p) => self.health[ch].autotune = Some(*p),

@@ -208,6 +208,7 @@ typed_settings! {
         stuck_on_time_s: f64,
         autotune_max_overshoot_c: f64,
         autotune_timeout_s: f64,
+        autotune_extend_s: f64,
         autotune_margin_c: f64,
         model_gain_c_per_pct: f64,
         model_tau_s: f64,

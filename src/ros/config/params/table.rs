@@ -1655,6 +1655,24 @@ pub(super) fn channel_decls() -> Vec<Decl> {
             })
         },
         Decl {
+            description: "Once an autotune's cycles agree but the model's dead time is \
+                          uncertain (its standard error above 4 % of it: the sensor's noise \
+                          hides it behind the sensor's lag), the relay may go on for at most \
+                          this long, s, until the dead time is told within 10 %; the run then \
+                          gives the model, and says when the bound ended it uncertain. 0: the \
+                          run ends as soon as its cycles agree. A slow, noisy heater can need \
+                          40 minutes (docs/autotune.md).",
+            range: Range::Double(0.0, MAX_TIME_S),
+            note: " (0 = off)",
+            core: Some(|c, v| {
+                c.heater.autotune_extend_s = double(v);
+                Ok(())
+            }),
+            ..Decl::new(field!(channel, autotune_extend_s), || {
+                V::Double(heater_defaults().autotune_extend_s)
+            })
+        },
+        Decl {
             description: "An autotune's target must lie at least this far below temp_max_c, °C \
                           (Marlin's M303: 15): the relay overshoots its target.",
             range: Range::Double(0.0, MAX_DELTA_C),
