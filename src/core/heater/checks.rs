@@ -51,16 +51,8 @@ impl Delivered {
     /// The cumulative on time at `t`, interpolated; `None` before the oldest snapshot.
     fn at(&self, t: Nanos, now: Nanos, on_now: Nanos) -> Option<Nanos> {
         let slot = |k: usize| self.ring[(self.head + k) % ENERGY_SLOTS];
-        // The first snapshot at or after `t`, by bisection: `record` keeps their times rising.
-        let (mut lo, mut hi) = (0, self.len);
-        while lo < hi {
-            let mid = (lo + hi) / 2;
-            if slot(mid).0 < t {
-                lo = mid + 1;
-            } else {
-                hi = mid;
-            }
-        }
+        // The first snapshot at or after `t`: `record` keeps their times rising.
+        let lo = super::first_at_or_after(self.len, |k| slot(k).0, t);
         let prev = lo.checked_sub(1).map(slot);
         if lo < self.len {
             let (tk, ek) = slot(lo);

@@ -482,6 +482,21 @@ pub(crate) struct Heat {
     pub(crate) ramp: Option<(f64, Nanos)>,
 }
 
+/// The first of `len` snapshots whose time (`time_of(k)`, ns, rising with `k`) is at or after
+/// `t`, by bisection; `len` when none is.
+pub(crate) fn first_at_or_after(len: usize, time_of: impl Fn(usize) -> Nanos, t: Nanos) -> usize {
+    let (mut lo, mut hi) = (0, len);
+    while lo < hi {
+        let mid = (lo + hi) / 2;
+        if time_of(mid) < t {
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
+    }
+    lo
+}
+
 /// How far back the delivered-duty history reaches, ns: `sensor_stuck`'s time and window.
 pub(crate) fn delivered_span(cfg: &HeaterConfig, window: Nanos) -> Nanos {
     cfg.stuck

@@ -167,16 +167,8 @@ impl Model {
             return self.x;
         }
         let slot = |k: usize| self.ring[(self.head + k) % SLOTS];
-        // The first snapshot at or after `t`, by bisection: `push` keeps their times rising.
-        let (mut lo, mut hi) = (0, self.len);
-        while lo < hi {
-            let mid = (lo + hi) / 2;
-            if slot(mid).0 < t {
-                lo = mid + 1;
-            } else {
-                hi = mid;
-            }
-        }
+        // The first snapshot at or after `t`: `push` keeps their times rising.
+        let lo = super::first_at_or_after(self.len, |k| slot(k).0, t);
         let prev = lo.checked_sub(1).map(slot);
         if lo < self.len {
             let (tk, xk) = slot(lo);
