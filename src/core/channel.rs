@@ -553,7 +553,7 @@ impl Channel {
             self.step = None;
             self.avg.acts = false;
             self.cuts.clear();
-            self.place.slots.clear();
+            self.place.forget_marks();
             if let Some(p) = self.pending.take() {
                 self.put_config(p, now);
             }
@@ -695,7 +695,7 @@ impl Channel {
             return;
         }
         self.cuts.roll();
-        self.place.slots.roll();
+        self.place.roll_marks();
         // Every decision of this period plans with the remainder the last period left.
         self.carry.period_starts();
         let duty = self.decide(t);
@@ -737,7 +737,7 @@ impl Channel {
             return;
         }
         let lead = after.min(room);
-        self.place.placed = lead;
+        self.place.on_at(lead);
         if lead > 0 {
             self.step = Some(Step::off(StepKind::Lead, t, t + lead));
             self.set_level(Level::Low, t, emit);

@@ -84,6 +84,23 @@ impl Placement {
         end
     }
 
+    /// The on phase of the running period starts `at` (ns) after the period's start: as placed
+    /// on the stagger grid, or late for want of a slot.
+    pub(super) fn on_at(&mut self, at: Nanos) {
+        self.placed = at;
+        self.check();
+    }
+
+    /// A new period: what waiting for a slot did in the last one becomes "the one before".
+    pub(super) fn roll_marks(&mut self) {
+        self.slots.roll();
+    }
+
+    /// The channel stops: no wait for a slot is remembered.
+    pub(super) fn forget_marks(&mut self) {
+        self.slots.clear();
+    }
+
     /// A pulse of this period is skipped.
     pub(super) fn skip(&mut self) {
         self.skipped = self.skipped.saturating_add(1);
@@ -224,7 +241,7 @@ impl Channel {
             // A pulse that grew while it waited no longer fits its period.
             return self.skip(t, emit);
         }
-        self.place.placed = t.saturating_sub(self.place.period_start);
+        self.place.on_at(t.saturating_sub(self.place.period_start));
         self.step = Some(Step {
             level: Level::High,
             start: t,
