@@ -304,9 +304,14 @@ fn a_failing_write_drives_the_other_outputs_inactive_and_stops() {
         }
     }
     assert_eq!(fault, Some(1), "the fault is reported with its channel");
+    let kept = e
+        .handle
+        .fault()
+        .expect("the fault is kept for the exit message");
+    assert_eq!((kept.channel, kept.kind), (1, ErrorKind::Injected));
     assert_eq!(
-        e.handle.fault().as_deref(),
-        Some("injected output write failure on line 1 after 5 writes (PWM_ACTUATOR_FAULT)")
+        kept.error.to_string(),
+        "injected output write failure on line 1 after 5 writes (PWM_ACTUATOR_FAULT)"
     );
     assert!(matches!(
         e.requests.send(Request {

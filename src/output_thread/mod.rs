@@ -249,5 +249,5 @@ mod tests;
 pub use thread::{
     monotonic_timer, spawn, spawn_with, Liveness, NotTaken, OutputThread, OutputThreadError,
     OutputThreadHandle, OutputThreadOptions, ReportWaker, Reports, Requests, SafetyPath,
-    ThreadLoop, LIVENESS_TICK_NS, SAFETY_TAKE_BOUND, SHUTDOWN_WAIT,
+    ThreadLoop, WriteFault, LIVENESS_TICK_NS, SAFETY_TAKE_BOUND, SHUTDOWN_WAIT,
 };

@@ -106,7 +106,7 @@ pub enum OutputThreadError {
         kind: ErrorKind,
         /// The backend's error.
         #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
+        source: Arc<dyn std::error::Error + Send + Sync>,
     },
     /// Driving the lines inactive when the thread stopped failed.
     #[error(
@@ -132,6 +132,28 @@ pub enum OutputThreadError {
     /// The output thread panicked.
     #[error("the output thread panicked")]
     Panicked,
+}
+
+/// The output fault that stopped the thread, as [`OutputThreadHandle::fault`] keeps it for the
+/// node's exit message (the same error the thread's result carries).
+#[derive(Debug, Clone)]
+pub struct WriteFault {
+    /// Channel (index) whose write failed (the first of the write when the backend cannot tell).
+    pub channel: usize,
+    /// What kind of failure the backend reported.
+    pub kind: ErrorKind,
+    /// The backend's error.
+    pub error: Arc<dyn std::error::Error + Send + Sync>,
+}
+
+impl From<WriteFault> for OutputThreadError {
+    fn from(f: WriteFault) -> Self {
+        OutputThreadError::OutputFault {
+            channel: f.channel,
+            kind: f.kind,
+            source: f.error,
+        }
+    }
 }
 
 impl OutputThreadError {
@@ -458,7 +480,7 @@ pub struct OutputThreadHandle {
     stop: Arc<AtomicBool>,
     wake: Arc<EventFd>,
     emergency: Arc<dyn EmergencyOff>,
-    fault: Arc<Mutex<Option<String>>>,
+    fault: Arc<Mutex<Option<WriteFault>>>,
     liveness: Liveness,
 }
 
@@ -511,8 +533,8 @@ impl OutputThreadHandle {
         self.emergency.clone()
     }
 
-    /// The text of the output fault that stopped the thread, if one did.
-    pub fn fault(&self) -> Option<String> {
+    /// The output fault that stopped the thread, if one did.
+    pub fn fault(&self) -> Option<WriteFault> {
         self.fault.lock().map(|f| f.clone()).unwrap_or(None)
     }
 }
@@ -719,7 +741,7 @@ pub struct ThreadLoop<O: Output> {
     req_wake: Arc<EventFd>,
     rep_wake: Arc<EventFd>,
     stop: Arc<AtomicBool>,
-    fault: Arc<Mutex<Option<String>>>,
+    fault: Arc<Mutex<Option<WriteFault>>>,
     /// When the reader was last woken, monotonic ns.
     last_wake: Nanos,
     /// Reports are waiting that the reader has not been woken for.
@@ -753,15 +775,16 @@ impl<O: Output> ThreadLoop<O> {
         }
         self.last_work = clock::monotonic_ns();
         if let Err(Stop::Fault { channel, error }) = self.worker.run(&mut self.requests) {
-            if let Ok(mut f) = self.fault.lock() {
-                *f = Some(error.to_string());
-            }
-            let _ = self.rep_wake.write(1);
-            return Err(OutputThreadError::OutputFault {
+            let fault = WriteFault {
                 channel,
                 kind: error.kind(),
-                source: Box::new(error),
-            });
+                error: Arc::new(error),
+            };
+            if let Ok(mut f) = self.fault.lock() {
+                *f = Some(fault.clone());
+            }
+            let _ = self.rep_wake.write(1);
+            return Err(fault.into());
         }
         self.wake_pending |= self.worker.take_pushed();
         if self.wake_pending {

@@ -19,7 +19,7 @@ use crate::output::{
     TraceHealth, TraceSpec,
 };
 use crate::output_thread::{
-    self, Input, OutputThread, OutputThreadError, OutputThreadOptions, Reports,
+    self, Input, OutputThread, OutputThreadError, OutputThreadOptions, Reports, WriteFault,
 };
 use crate::ros::config::args::{self, ArgsError, RosArgs};
 use crate::ros::config::cli::{self, CliError, DEMO_ORIGIN, EXIT_FAILURE, EXIT_USAGE};
@@ -755,7 +755,7 @@ async fn serve(
         }
     };
     // Drives every output inactive, flushes the traces, joins the output thread.
-    let fault_text = handle.fault();
+    let fault = handle.fault();
     let result = handle.shutdown();
     for t in tasks {
         let _ = t.await;
@@ -768,7 +768,7 @@ async fn serve(
     drop(node);
     let _ = tokio::time::timeout(Duration::from_secs(1), spin_task).await;
     drop(context);
-    let faulted = output_fault(fault_text.as_deref(), &result);
+    let faulted = output_fault(fault.as_ref(), &result);
     match result {
         Ok(()) if !faulted => {
             info!("all outputs off; bye");
@@ -786,9 +786,9 @@ async fn serve(
     }
 }
 
-fn output_fault(fault: Option<&str>, result: &Result<(), OutputThreadError>) -> bool {
+fn output_fault(fault: Option<&WriteFault>, result: &Result<(), OutputThreadError>) -> bool {
     if let Some(f) = fault {
-        error!("output fault: {f}");
+        error!("output fault: {}", f.error);
     }
     fault.is_some() || result.is_err()
 }
