@@ -10,7 +10,7 @@
 //! thread completes with the core's `FaultReset` event.
 
 use crate::core::heater::ResetRefusal;
-use crate::output_thread::Input;
+use crate::output_thread::{Input, OutputThreadError};
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::interface::msg::{self, TriggerResponse};
@@ -127,9 +127,7 @@ pub(crate) fn stamp_age(header: &msg::Header, now_wall: i64) -> Option<i64> {
 /// answers with its verdict (refused with the reason while the condition lasts).
 async fn reset(inputs: &Inputs, channel: usize, name: &str) -> TriggerResponse {
     let answer = ask_reset(inputs.state(), channel, |ticket| {
-        inputs
-            .send(channel, Input::ResetFault(ticket))
-            .map_err(|e| e.to_string())
+        inputs.send(channel, Input::ResetFault(ticket))
     })
     .await;
     match answer {
@@ -143,14 +141,14 @@ async fn reset(inputs: &Inputs, channel: usize, name: &str) -> TriggerResponse {
 }
 
 /// How a heater fault reset ended.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug)]
 enum ResetOutcome {
     /// The fault is cleared (or there was none).
     Cleared,
     /// The core refused it.
     Refused(ResetRefusal),
     /// The request did not reach the output thread.
-    NotSent(String),
+    NotSent(OutputThreadError),
     /// No answer within [`RESET_WAIT`].
     NoAnswer,
 }
@@ -160,7 +158,7 @@ enum ResetOutcome {
 async fn ask_reset(
     state: &NodeState,
     channel: usize,
-    send: impl FnOnce(u32) -> Result<(), String>,
+    send: impl FnOnce(u32) -> Result<(), OutputThreadError>,
 ) -> ResetOutcome {
     let ticket = state.ticket();
     let reply = state.resets().expect(channel, ticket);
@@ -221,7 +219,7 @@ mod tests {
             Ok(())
         })
         .await;
-        assert_eq!(cleared, ResetOutcome::Cleared);
+        assert!(matches!(cleared, ResetOutcome::Cleared), "{cleared:?}");
         assert_eq!(start.elapsed(), Duration::ZERO);
         let r = cleared.response("pw02");
         assert!(r.success);
@@ -240,7 +238,10 @@ mod tests {
             Ok(())
         })
         .await;
-        assert_eq!(refused, ResetOutcome::Refused(ResetRefusal::NoFault));
+        assert!(
+            matches!(refused, ResetOutcome::Refused(ResetRefusal::NoFault)),
+            "{refused:?}"
+        );
         assert_eq!(start.elapsed(), Duration::ZERO);
         let r = refused.response("pw01");
         assert!(!r.success);
@@ -257,7 +258,7 @@ mod tests {
             Ok(())
         })
         .await;
-        assert_eq!(outcome, ResetOutcome::NoAnswer);
+        assert!(matches!(outcome, ResetOutcome::NoAnswer), "{outcome:?}");
         assert_eq!(start.elapsed(), RESET_WAIT);
         let r = outcome.response("pw01");
         assert!(!r.success);
@@ -274,16 +275,20 @@ mod tests {
             Ok(())
         })
         .await;
-        assert_eq!(next, ResetOutcome::Cleared);
+        assert!(matches!(next, ResetOutcome::Cleared), "{next:?}");
     }
 
     #[tokio::test(start_paused = true)]
     async fn a_reset_that_does_not_reach_the_output_thread_is_refused_at_once() {
         let state = NodeState::new(1);
-        let outcome = ask_reset(&state, 0, |_| Err("request queue full".into())).await;
+        let outcome = ask_reset(&state, 0, |_| {
+            Err(OutputThreadError::QueueFull { capacity: 256 })
+        })
+        .await;
         assert_eq!(
             outcome.response("pw01").message,
-            "the reset did not reach the output thread: request queue full"
+            "the reset did not reach the output thread: request queue full (256 entries); request \
+             dropped"
         );
     }
 }

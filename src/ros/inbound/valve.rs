@@ -17,7 +17,7 @@
 use crate::core::valve::{Dir, Manual, ResetAnswer, ValveFault, ValveStart};
 use crate::core::ValveConfig;
 use crate::output::gpio_input::{InputError, InputLine, InputRequest};
-use crate::output_thread::Input;
+use crate::output_thread::{Input, OutputThreadError};
 use crate::ros::config::valve::{LimitLine, ValveLimits, ValveSpec};
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::inbound::replies::{ReplySlots, Tickets};
@@ -216,8 +216,8 @@ impl ValveAnswers {
     pub async fn ask(
         &self,
         k: usize,
-        send: impl FnOnce(u32) -> Result<(), String>,
-    ) -> Result<Option<ValveResetAnswer>, String> {
+        send: impl FnOnce(u32) -> Result<(), OutputThreadError>,
+    ) -> Result<Option<ValveResetAnswer>, OutputThreadError> {
         let ticket = self.tickets.next();
         let reply = self.resets.expect(k, ticket);
         send(ticket)?;
@@ -371,9 +371,7 @@ async fn reset(inputs: &Inputs, answers: &ValveAnswers, k: usize, name: &str) ->
     let fault = answers.fault(k);
     let answer = answers
         .ask(k, |ticket| {
-            inputs
-                .send(0, Input::ValveReset { valve: k, ticket })
-                .map_err(|e| e.to_string())
+            inputs.send(0, Input::ValveReset { valve: k, ticket })
         })
         .await;
     reset_response(name, fault, answer)
@@ -383,7 +381,7 @@ async fn reset(inputs: &Inputs, answers: &ValveAnswers, k: usize, name: &str) ->
 fn reset_response(
     name: &str,
     fault: Option<ValveFault>,
-    answer: Result<Option<ValveResetAnswer>, String>,
+    answer: Result<Option<ValveResetAnswer>, OutputThreadError>,
 ) -> TriggerResponse {
     let refuse = |message: String| TriggerResponse {
         success: false,
@@ -461,7 +459,7 @@ mod tests {
                 Ok(())
             })
             .await;
-        assert_eq!(got, Ok(Some((true, None))));
+        assert!(matches!(got, Ok(Some((true, None)))), "{got:?}");
         assert_eq!(start.elapsed(), Duration::ZERO);
         let r = reset_response("mix", before, got);
         assert!(r.success);
@@ -481,7 +479,10 @@ mod tests {
                 Ok(())
             })
             .await;
-        assert_eq!(got, Ok(Some((false, Some(IMPLAUSIBLE)))));
+        assert!(
+            matches!(got, Ok(Some((false, Some(IMPLAUSIBLE))))),
+            "{got:?}"
+        );
         assert_eq!(start.elapsed(), Duration::ZERO);
         assert_eq!(
             reset_response("mix", None, got).message,
@@ -500,7 +501,7 @@ mod tests {
                 Ok(())
             })
             .await;
-        assert_eq!(got, Ok(None));
+        assert!(matches!(got, Ok(None)), "{got:?}");
         assert_eq!(start.elapsed(), VALVE_RESET_WAIT);
         let r = reset_response("mix", None, got);
         assert!(!r.success);
@@ -521,10 +522,18 @@ mod tests {
                 Ok(())
             })
             .await;
-        assert_eq!(got, Ok(Some((true, None))));
+        assert!(matches!(got, Ok(Some((true, None)))), "{got:?}");
+        let full = answers
+            .ask(0, |_| Err(OutputThreadError::QueueFull { capacity: 256 }))
+            .await;
+        assert!(
+            matches!(full, Err(OutputThreadError::QueueFull { capacity: 256 })),
+            "{full:?}"
+        );
         assert_eq!(
-            answers.ask(0, |_| Err("request queue full".into())).await,
-            Err("request queue full".into())
+            reset_response("mix", None, full).message,
+            "the reset did not reach the output thread: request queue full (256 entries); \
+             request dropped"
         );
     }
 }
