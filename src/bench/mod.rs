@@ -62,6 +62,10 @@ pub struct BenchOptions {
     /// at the setpoint is --duty, fed the setpoint as its reading at 10 Hz
     #[arg(long, conflicts_with = "pid")]
     pub mpc: bool,
+    /// Run the three sides this many times, 1..=50, each round ours then the floor (on ours'
+    /// deadlines) then tokio, and print every round and the median of each ratio over them
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = number::<usize>, allow_hyphen_values = true)]
+    pub rounds: usize,
 }
 
 /// Under `--pid`: the setpoint, °C, and the proportional gain, % per °C; the readings lie
@@ -91,6 +95,7 @@ impl Default for BenchOptions {
             max_simultaneous_on: 0,
             pid: false,
             mpc: false,
+            rounds: 1,
         }
     }
 }
@@ -184,6 +189,9 @@ impl BenchOptions {
                 "is outside 0..256",
             );
         }
+        if o.rounds == 0 || o.rounds > 50 {
+            return out("rounds", o.rounds as f64, "is outside 1..50");
+        }
         if o.channels == 0 || o.channels > 256 {
             return out("channels", o.channels as f64, "is outside 1..256");
         }
@@ -256,48 +264,133 @@ pub fn run(opts: BenchOptions) -> i32 {
                 .unwrap_or_default()
         );
     }
-    let (ours, deadlines) = match run_side(&opts, params, Side::Ours) {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("bench (timerfd thread): {}", chain(&e));
-            return 1;
+    let mut rounds = Vec::with_capacity(opts.rounds);
+    for round in 1..=opts.rounds {
+        let summary = match run_round(&opts, params) {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("bench: {e}");
+                return 1;
+            }
+        };
+        if !opts.json {
+            if opts.rounds > 1 {
+                println!("round {round} of {}:", opts.rounds);
+            }
+            println!("{}", table(&summary));
+            println!(
+                "ratio baseline/ours: p50 {:.1}x, p99 {:.1}x",
+                summary.ratio_p50, summary.ratio_p99
+            );
+            println!(
+                "ratio ours/floor: p50 {:.1}x, p99 {:.1}x, cpu {:.1}x",
+                summary.ours_over_floor_p50,
+                summary.ours_over_floor_p99,
+                summary.ours_over_floor_cpu
+            );
         }
-    };
-    let (baseline, _) = match run_side(&opts, params, Side::Baseline) {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("bench (tokio baseline): {}", chain(&e));
-            return 1;
-        }
-    };
-    let floor = match run_floor(&opts, params, &deadlines) {
-        Ok(f) => f,
-        Err(e) => {
-            eprintln!("bench (bare timer floor): {}", chain(&e));
-            return 1;
-        }
-    };
-    let summary = Summary::new(ours, baseline, floor);
+        rounds.push(summary);
+    }
+    let medians = (opts.rounds > 1).then(|| Medians::of(&rounds));
     if opts.json {
-        match serde_json::to_string(&summary) {
+        let json = match (&medians, rounds.as_slice()) {
+            (None, [one]) => serde_json::to_string(one),
+            _ => serde_json::to_string(&RoundsJson {
+                rounds: &rounds,
+                median: medians,
+            }),
+        };
+        match json {
             Ok(j) => println!("{j}"),
             Err(e) => {
                 eprintln!("bench: {e}");
                 return 1;
             }
         }
-    } else {
-        println!("{}", table(&summary));
+    } else if let Some(m) = medians {
         println!(
-            "ratio baseline/ours: p50 {:.1}x, p99 {:.1}x",
-            summary.ratio_p50, summary.ratio_p99
-        );
-        println!(
-            "ratio ours/floor: p50 {:.1}x, p99 {:.1}x, cpu {:.1}x",
-            summary.ours_over_floor_p50, summary.ours_over_floor_p99, summary.ours_over_floor_cpu
+            "median over {} rounds: ours/floor p50 {:.2}x, p99 {:.2}x, cpu {:.2}x; \
+             baseline/ours p50 {:.1}x; early edges {} (ours), {} (floor)",
+            opts.rounds,
+            m.ours_over_floor_p50,
+            m.ours_over_floor_p99,
+            m.ours_over_floor_cpu,
+            m.ratio_p50,
+            m.ours_early,
+            m.floor_early
         );
     }
     0
+}
+
+/// A side of a round that could not be measured, named.
+#[derive(Debug, thiserror::Error)]
+enum RoundError {
+    #[error("timerfd thread: {}", chain(.0))]
+    Ours(BenchError),
+    #[error("tokio baseline: {}", chain(.0))]
+    Baseline(BenchError),
+    #[error("bare timer floor: {}", chain(.0))]
+    Floor(BenchError),
+}
+
+/// One round: ours, then the floor on ours' deadlines right after it (the two the ratios to
+/// the floor compare run back to back), then tokio.
+fn run_round(opts: &BenchOptions, params: ChannelParams) -> Result<Summary, RoundError> {
+    let (ours, deadlines) = run_side(opts, params, Side::Ours).map_err(RoundError::Ours)?;
+    let floor = run_floor(opts, params, &deadlines).map_err(RoundError::Floor)?;
+    let (baseline, _) = run_side(opts, params, Side::Baseline).map_err(RoundError::Baseline)?;
+    Ok(Summary::new(ours, baseline, floor))
+}
+
+/// The median of each ratio over the rounds of a `--rounds` run, and the early edges summed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Medians {
+    /// Baseline p50 over ours.
+    pub ratio_p50: f64,
+    /// Baseline p99 over ours.
+    pub ratio_p99: f64,
+    /// Ours p50 over the floor's.
+    pub ours_over_floor_p50: f64,
+    /// Ours p99 over the floor's.
+    pub ours_over_floor_p99: f64,
+    /// Ours CPU over the floor's.
+    pub ours_over_floor_cpu: f64,
+    /// Edges ours wrote early, over all rounds.
+    pub ours_early: usize,
+    /// Deadlines the floor woke for early, over all rounds.
+    pub floor_early: usize,
+}
+
+impl Medians {
+    fn of(rounds: &[Summary]) -> Medians {
+        let median = |f: fn(&Summary) -> f64| {
+            let mut v: Vec<f64> = rounds.iter().map(f).collect();
+            v.sort_by(f64::total_cmp);
+            let n = v.len();
+            round2(match n {
+                0 => f64::NAN,
+                _ if n % 2 == 1 => v[n / 2],
+                _ => (v[n / 2 - 1] + v[n / 2]) / 2.0,
+            })
+        };
+        Medians {
+            ratio_p50: median(|s| s.ratio_p50),
+            ratio_p99: median(|s| s.ratio_p99),
+            ours_over_floor_p50: median(|s| s.ours_over_floor_p50),
+            ours_over_floor_p99: median(|s| s.ours_over_floor_p99),
+            ours_over_floor_cpu: median(|s| s.ours_over_floor_cpu),
+            ours_early: rounds.iter().map(|s| s.ours.early).sum(),
+            floor_early: rounds.iter().map(|s| s.floor.early).sum(),
+        }
+    }
+}
+
+/// `--json` with more than one round: every round's summary and the medians.
+#[derive(Serialize)]
+struct RoundsJson<'a> {
+    rounds: &'a [Summary],
+    median: Option<Medians>,
 }
 
 /// Everything one run measured, as `--json` prints it. Figures are rounded to 0.01; a ratio
@@ -861,6 +954,43 @@ mod tests {
         assert_eq!(e.to_string(), params.validate().unwrap_err().to_string());
         let e = run_floor(&opts, params, &[]).unwrap_err();
         assert!(matches!(e, BenchError::Config(_)), "{e:?}");
+    }
+
+    #[test]
+    fn rounds_are_bounded_and_their_medians_taken_per_ratio() {
+        assert_eq!(parse_args(&args("--rounds 5")).unwrap().rounds, 5);
+        assert_eq!(refusal(&args("--rounds 0")), "--rounds 0 is outside 1..50");
+        assert_eq!(
+            refusal(&args("--rounds 51")),
+            "--rounds 51 is outside 1..50"
+        );
+        let f = |p50_us, cpu_pct, early| Figures {
+            p50_us,
+            p99_us: 100.0,
+            cpu_pct,
+            early,
+            ..Figures::default()
+        };
+        // Each ratio's median comes from its own round: cpu 3.0 (round 2), p50 1.5 (round 3).
+        let rounds = [
+            Summary::new(f(20.0, 2.0, 0), f(900.0, 2.0, 0), f(10.0, 1.0, 0)),
+            Summary::new(f(30.0, 3.0, 1), f(900.0, 2.0, 0), f(10.0, 1.0, 0)),
+            Summary::new(f(15.0, 4.0, 0), f(900.0, 2.0, 0), f(10.0, 1.0, 2)),
+        ];
+        let m = Medians::of(&rounds);
+        assert_eq!(m.ours_over_floor_cpu, 3.0);
+        assert_eq!(m.ours_over_floor_p50, 2.0);
+        assert_eq!(m.ratio_p50, 45.0);
+        assert_eq!((m.ours_early, m.floor_early), (1, 2));
+        let even = Medians::of(&rounds[..2]);
+        assert_eq!(even.ours_over_floor_cpu, 2.5);
+        let v = serde_json::to_value(RoundsJson {
+            rounds: &rounds,
+            median: Some(m),
+        })
+        .unwrap();
+        assert_eq!(v["rounds"].as_array().unwrap().len(), 3);
+        assert_eq!(v["median"]["ours_over_floor_cpu"], 3.0);
     }
 
     #[test]
