@@ -296,11 +296,12 @@ printf 'rustdds patch tests: %d passed, %d failed\n' "$v_pass" "$v_fail"
 passed=$((passed + v_pass)) failed=$((failed + v_fail))
 
 # 4a'. The type hashes the node computes against the .json files rosidl wrote
-# (tests/type_hashes.rs): ignored by `cargo test` above, which must not need the venv, and
-# counted as skipped there; run here, after setup made the venv.
+# (tests/integration/type_hashes.rs): ignored by `cargo test` above, which must not need the venv,
+# and counted as skipped there; run here, after setup made the venv.
 # shellcheck disable=SC2317  # called through run_step
 type_hash_tests() {
-    cargo test --locked --test type_hashes -- --ignored 2>&1 | tee "$LOG_DIR/type-hashes.log"
+    cargo test --locked --test integration -- --ignored type_hashes:: 2>&1 |
+        tee "$LOG_DIR/type-hashes.log"
     return "${PIPESTATUS[0]}"
 }
 run_step "type hashes against rosidl" type_hash_tests
