@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The tests on real kernel GPIO lines, as scripts/test.sh runs them: prepares the QEMU guest
 # (scripts/gpio-vm.sh --prepare), then runs in it the GPIO backend's integration test
-# (tests/output_gpio_sim.rs, ignored by `cargo test`) and the node-level checks of the release
-# binary (tests/gpio_vm/node_checks.py). Needs the release build (`cargo build --release`).
+# (tests/integration/output_gpio_sim.rs, ignored by `cargo test`) and the node-level checks of
+# the release binary (tests/gpio_vm/node_checks.py). Needs the release build (`cargo build
+# --release`).
 #
 # The last line counts them: "gpio-vm tests: P passed, F failed, S skipped". Exit status:
 #   0    all ran and passed
@@ -27,7 +28,7 @@ esac
 
 timeout_s=${GPIO_VM_TIMEOUT:-900}
 checks=$(python3 tests/gpio_vm/node_checks.py --list | wc -l)
-total=$((checks + 1)) # the node checks and tests/output_gpio_sim.rs
+total=$((checks + 1)) # the node checks and tests/integration/output_gpio_sim.rs
 LOG_DIR="$REPO/target/test-logs"
 mkdir -p "$LOG_DIR"
 log="$LOG_DIR/gpio-vm.log"
@@ -52,17 +53,19 @@ case $? in
         ;;
 esac
 
-test_bin="$(cargo test --locked --no-run --test output_gpio_sim --message-format=json 2>/dev/null \
-    | sed -n 's/.*"executable":"\([^"]*output_gpio_sim[^"]*\)".*/\1/p' | tail -n1)"
+# The integration test binary (tests/integration/), of which the guest runs the module
+# output_gpio_sim alone.
+test_bin="$(cargo test --locked --no-run --test integration --message-format=json 2>/dev/null \
+    | sed -n 's/.*"executable":"\([^"]*\/deps\/integration-[^"]*\)".*/\1/p' | tail -n1)"
 if [[ -z "$test_bin" ]]; then
-    echo "gpio-vm tests: FAILED: cannot build or find the output_gpio_sim test binary"
+    echo "gpio-vm tests: FAILED: cannot build or find the integration test binary"
     count 0 "$total" 0 1
 fi
 
 echo "---- gpio-vm run (time limit $timeout_s s)"
 start=$SECONDS
 scripts/gpio-vm.sh --timeout "$timeout_s" -- tests/gpio_vm/guest.sh "$test_bin" \
-    "$REPO/target/release/pwm_actuator_node" 2>&1 | tee "$log"
+    "$REPO/target/release/pwm_actuator_node" output_gpio_sim:: 2>&1 | tee "$log"
 rc=${PIPESTATUS[0]}
 echo "---- gpio-vm run: exit $rc ($((SECONDS - start)) s)"
 # The Rust test: its libtest summary; the node checks: one PASS or FAIL line each, so those

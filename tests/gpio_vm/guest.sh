@@ -1,7 +1,7 @@
 #!/bin/sh
 # The guest side of scripts/test.sh's gpio-vm step, run inside scripts/gpio-vm.sh: the GPIO
-# backend's integration test (tests/output_gpio_sim.rs, built by cargo on the host) and the
-# node-level checks of the release binary, both on the guest's gpio-sim chip.
+# backend's integration test (tests/integration/output_gpio_sim.rs, built by cargo on the host)
+# and the node-level checks of the release binary, both on the guest's gpio-sim chip.
 #
 # Usage: tests/gpio_vm/guest.sh GPIO_SIM_TEST_BINARY NODE_BINARY [TEST_FILTER]
 #   TEST_FILTER  libtest's name filter for the binary (e.g. `output_gpio_sim::`), when the
@@ -27,7 +27,7 @@ part() {
     [ "$status" -eq 0 ] || rc=1
 }
 
-echo "== tests/output_gpio_sim.rs on $GPIO_SIM_CHIP"
+echo "== tests/integration/output_gpio_sim.rs on $GPIO_SIM_CHIP"
 if [ -n "$filter" ]; then
     part output_gpio_sim "$test_bin" --ignored --test-threads=1 "$filter"
 else

@@ -2,7 +2,7 @@
 //! `.msg` definitions (CDR encodes fields in declaration order, so the order is the contract).
 //!
 //! `pwm_actuator_msgs/*` mirror `msg/*.msg` of this repository (checked by
-//! `tests/ros_msgs.rs`); the others mirror `std_msgs`, `diagnostic_msgs` and
+//! `tests/integration/ros_msgs.rs`); the others mirror `std_msgs`, `diagnostic_msgs` and
 //! `builtin_interfaces` of ROS 2 Jazzy. No logic lives here.
 
 use ros2_client::builtin_interfaces::Time;

@@ -2,11 +2,8 @@
 //! socket named by `NOTIFY_SOCKET`, as systemd does for a `Type=notify` unit; here the test
 //! plays systemd with its own datagram socket.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use nix::sys::signal::Signal;
-use ros_harness::*;
 use std::os::unix::net::UnixDatagram;
 use std::time::Duration;
 

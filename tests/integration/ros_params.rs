@@ -3,13 +3,10 @@
 //! `~/<ch>/params` topic sharing the same state, and start-up values from `-p` and
 //! `--params-file`. The node runs as a process on its own ROS domain.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use pwm_actuator::ros::interface::msg::{ChannelParams, DiagnosticArray};
 use ros2_client::parameters::raw;
 use ros2_client::ParameterValue as V;
-use ros_harness::*;
 
 fn event_has(e: &raw::ParameterEvent, name: &str, int: i64) -> bool {
     e.changed_parameters

@@ -7,12 +7,9 @@
 //! without its security plugins.
 #![cfg(feature = "dds-security")]
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use pwm_actuator::ros::interface::msg::DiagnosticArray;
 use ros2_client::Context;
-use ros_harness::*;
 use rustdds::{DomainParticipantBuilder, DomainParticipantSecurityConfigFiles};
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -2,10 +2,7 @@
 //! it: the node keeps running and its log stays readable — a few lines per kind, then one count
 //! of what was suppressed — instead of one WARN per sample.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
-use ros_harness::*;
+use crate::ros_harness::*;
 use serde::Serialize;
 use std::time::Duration;
 

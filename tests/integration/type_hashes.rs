@@ -5,7 +5,8 @@
 //! directories, separated by `:`).
 //!
 //! Ignored by a plain `cargo test`, which must not need the Python venv: `scripts/test.sh` runs
-//! it after its setup step (`cargo test --test type_hashes -- --ignored`), and counts it there.
+//! it after its setup step (`cargo test --test integration -- --ignored type_hashes::`), and counts
+//! it there.
 
 use pwm_actuator::ros::interface::type_hash::type_hashes;
 use std::collections::BTreeMap;

@@ -3,9 +3,7 @@
 //! take is refused with nothing changed. (The sim and GPIO outputs cannot be made to fail from
 //! outside, so this drives the bridge directly with a failing output.)
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use pwm_actuator::core::Command;
 use pwm_actuator::output::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
 use pwm_actuator::output_thread::{self, OutputThreadError, OutputThreadOptions};
@@ -17,7 +15,6 @@ use pwm_actuator::ros::interface::msg::{DiagnosticArray, DiagnosticStatus, RosMe
 use pwm_actuator::ros::outbound::diagnostics::ChannelHealth;
 use pwm_actuator::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
 use ros2_client::{Context, ContextOptions, Node, NodeName, NodeOptions, ParameterValue};
-use ros_harness::*;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;

@@ -3,10 +3,7 @@
 //! the node cannot use. Each is a bad configuration: exit 2 with a reason, before any output
 //! is touched, and a bounded amount of log.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
-use ros_harness::Domain;
+use crate::ros_harness::Domain;
 use std::path::PathBuf;
 use std::process::Command;
 

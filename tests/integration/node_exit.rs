@@ -2,12 +2,9 @@
 //! SIGQUIT while an output is on (exit 0), a panic in any thread (exit 101), a failing output write (exit 1).
 //! Faults are injected with `PWM_ACTUATOR_FAULT` (see `output::fault`).
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use nix::sys::signal::Signal;
 use pwm_actuator::core::Level;
-use ros_harness::*;
 use std::path::{Path, PathBuf};
 
 /// A trace path in a fresh directory for this test (removed when the guard is dropped).

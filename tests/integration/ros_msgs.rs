@@ -2,12 +2,9 @@
 //! field: same names, same types, same order (the CDR wire layout). The standard messages the
 //! node mirrors are checked against their ROS 2 Jazzy definitions, quoted here.
 
-#[path = "common/ros_shape.rs"]
-mod ros_shape;
-
+use crate::ros_shape::{parse_msg, shape_of, Shape};
 use pwm_actuator::ros::interface::msg::*;
 use ros2_client::builtin_interfaces::Time;
-use ros_shape::{parse_msg, shape_of, Shape};
 use std::path::Path;
 
 fn time_shape() -> Shape {

@@ -2,14 +2,11 @@
 //! input leaving the node running with its last good state. The node runs as a process on its
 //! own ROS domain; this test talks to it with a ros2-client node.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use pwm_actuator::ros::interface::msg::{
     Bool, ChannelStatus, DiagnosticArray, DiagnosticStatus, Float64, OutputEdge, UInt16,
 };
 use ros2_client::{Log, Subscription};
-use ros_harness::*;
 use std::time::Duration;
 
 fn pw01_diag(a: &DiagnosticArray) -> Option<&DiagnosticStatus> {

@@ -4,15 +4,12 @@
 //! `WATCHDOG=1` only while its output thread keeps its schedule, and a hung thread does not
 //! keep a stop from switching the outputs off.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use nix::sys::signal::Signal;
 use pwm_actuator::core::{ChannelParams, Level, Nanos};
 use pwm_actuator::output::fault::HangingOutput;
 use pwm_actuator::output::{read_csv, CsvRow, SimOutput, TraceSpec};
 use pwm_actuator::output_thread::{self, OutputThreadError, OutputThreadOptions, SHUTDOWN_WAIT};
-use ros_harness::*;
 use std::os::unix::net::UnixDatagram;
 use std::time::{Duration, Instant};
 

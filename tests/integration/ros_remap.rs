@@ -1,13 +1,10 @@
 //! Remapping over ROS: `-r __node:=`, `-r __ns:=` and a topic remap, as a launch file passes
 //! them. Topics, services, diagnostics names and `/parameter_events` all follow.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use pwm_actuator::ros::interface::msg::{ChannelStatus, DiagnosticArray, Float64};
 use ros2_client::parameters::raw;
 use ros2_client::ParameterValue as V;
-use ros_harness::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn node_name_namespace_and_topic_remaps() {

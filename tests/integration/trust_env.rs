@@ -3,11 +3,8 @@
 //! (`ROS_AUTOMATIC_DISCOVERY_RANGE`, `ROS_LOCALHOST_ONLY`, `ROS_STATIC_PEERS`), the middleware
 //! asked for (`RMW_IMPLEMENTATION`) and two nodes with one name on a domain.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use pwm_actuator::ros::interface::msg::DiagnosticArray;
-use ros_harness::*;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 

@@ -1,12 +1,9 @@
 //! The command line of the node as a process: help, errors with their reasons and exit codes,
 //! clean shutdown on SIGINT and SIGTERM with the trace flushed, `ROS_DOMAIN_ID` checking.
 
-#[path = "common/ros_harness.rs"]
-mod ros_harness;
-
+use crate::ros_harness::*;
 use nix::sys::signal::Signal;
 use pwm_actuator::core::Level;
-use ros_harness::*;
 use std::process::Command;
 
 /// Runs the node to completion. `domain` is the `ROS_DOMAIN_ID` text; `None` takes a free
