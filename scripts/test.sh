@@ -189,7 +189,8 @@ run_step "cargo build --release" cargo build --release --bins --locked || releas
 # suite. All three need setup's venv and messages (1) and the release binary (3), and all end
 # before the GPIO guest starts (5a).
 BESIDE_TESTS=(tests/rclpy/test_soak.py tests/rclpy/test_participant_storm.py)
-UNTIMED_PART2=(tests/rclpy/test_fresh_clients.py tests/rclpy/test_heater_mpc.py)
+UNTIMED_PART2=(tests/rclpy/test_fresh_clients.py tests/rclpy/test_trace_files.py
+    tests/rclpy/test_heater_mpc.py tests/rclpy/test_valve_loop.py)
 beside_ignore=()
 for t in "${BESIDE_TESTS[@]}"; do
     beside_ignore+=("--ignore=$t")
