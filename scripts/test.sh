@@ -13,7 +13,7 @@
 #
 # What waits on the network or times nothing runs beside the compiles: the Kilted set-up from
 # the start; from the release build on, the two long rclpy memory tests (BESIDE_TESTS below)
-# and, in a pytest process of their own, the rclpy tests marked `untimed`, each test on a ROS
+# and, in two pytest processes of their own, the rclpy tests marked `untimed`, each test on a ROS
 # domain of its own. The rclpy tests that time what the node does run one at a time after the
 # Rust tests (5), beside nothing but what is left of the untimed ones; the GPIO guest, whose
 # sampler is timed, after them, alone. Each step's time is printed, and all of them at the end,
@@ -180,18 +180,26 @@ run_step "cargo build --release" cargo build --release --bins --locked || releas
 # storm of 1,000 short-lived participants (they check that no edge is early and no phase short,
 # which load cannot excuse) — run from here beside clippy and the Rust tests, with PYTEST_ARGS;
 # the rest of the suite runs without them. Their results are added when waited for (4a'').
-# Beside them from here, in a second pytest process: the rest of the suite's tests marked
+# Beside them from here, in two more pytest processes: the rest of the suite's tests marked
 # `untimed`, which time nothing the node does and bound only seconds with a second or a factor
 # of two to spare, so that no load beside them can change their result (tests/rclpy/pytest.ini),
-# with PYTEST_ARGS; waited for, their results added, after the timed ones (5). Both groups need
-# setup's venv and messages (1) and the release binary (3), and both end before the GPIO guest
-# starts (5a).
+# with PYTEST_ARGS; waited for, their results added, after the timed ones (5). Part 2 runs the
+# untimed tests of UNTIMED_PART2 (the longest ones, most of their time spent waiting on simulated
+# plants and fresh processes: about half of the group's time), part 1 those of the rest of the
+# suite. All three need setup's venv and messages (1) and the release binary (3), and all end
+# before the GPIO guest starts (5a).
 BESIDE_TESTS=(tests/rclpy/test_soak.py tests/rclpy/test_participant_storm.py)
+UNTIMED_PART2=(tests/rclpy/test_fresh_clients.py tests/rclpy/test_trace_files.py
+    tests/rclpy/test_heater_mpc.py tests/rclpy/test_valve_loop.py)
 beside_ignore=()
 for t in "${BESIDE_TESTS[@]}"; do
     beside_ignore+=("--ignore=$t")
 done
-beside_pid="" untimed_pid=""
+part2_ignore=()
+for t in "${UNTIMED_PART2[@]}"; do
+    part2_ignore+=("--ignore=$t")
+done
+beside_pid="" untimed_pids=()
 if ((release_ok)); then
     beside_started=$SECONDS
     rm -f "$LOG_DIR/rclpy-beside.ended"
@@ -202,13 +210,20 @@ if ((release_ok)); then
         exit "$rc") &
     beside_pid=$!
     untimed_started=$SECONDS
-    rm -f "$LOG_DIR/rclpy-untimed.ended"
-    (run_pytest_paths jazzy "$LOG_DIR/rclpy-untimed-junit.xml" tests/rclpy -- "${beside_ignore[@]}" \
-        --timing-group=untimed "${pytest_extra[@]}" >"$LOG_DIR/rclpy-untimed.log" 2>&1
-        rc=$?
-        echo "$SECONDS" >"$LOG_DIR/rclpy-untimed.ended"
-        exit "$rc") &
-    untimed_pid=$!
+    for part in 1 2; do
+        if ((part == 1)); then
+            part_paths=(tests/rclpy -- "${beside_ignore[@]}" "${part2_ignore[@]}")
+        else
+            part_paths=("${UNTIMED_PART2[@]}" --)
+        fi
+        rm -f "$LOG_DIR/rclpy-untimed-$part.ended"
+        (run_pytest_paths jazzy "$LOG_DIR/rclpy-untimed-$part-junit.xml" "${part_paths[@]}" \
+            --timing-group=untimed "${pytest_extra[@]}" >"$LOG_DIR/rclpy-untimed-$part.log" 2>&1
+            rc=$?
+            echo "$SECONDS" >"$LOG_DIR/rclpy-untimed-$part.ended"
+            exit "$rc") &
+        untimed_pids+=($!)
+    done
 fi
 
 # beside_span STARTED ENDED_FILE: "from S s to E s of the run", E the second a group beside the
@@ -379,42 +394,53 @@ fi
 # 5. The rest of the rclpy suite (less BESIDE_TESTS and the untimed tests, which run beside the
 # steps since 3a), with the venv's python and the built messages: the tests that time what the
 # node does, one at a time as ever (`--timing-group timed`), beside nothing but what is left of
-# the untimed ones; then the untimed ones are waited for, their output printed. Each group has
-# its own results file, and both are counted; the step fails if either part fails or leaves no
-# results file. A part that PYTEST_ARGS select nothing of (pytest exit 5) is not a failure while
-# the other part ran tests; both selecting nothing is.
+# the untimed ones; then the two parts of the untimed ones are waited for, their output printed.
+# Each pytest process has its own results file, and all are counted; the step fails if any of
+# them fails or leaves no results file. A process that PYTEST_ARGS select nothing of (pytest
+# exit 5) is not a failure while another one ran tests; all selecting nothing is.
 # shellcheck disable=SC2317  # called through run_step
 rclpy_suite() {
-    local start=$SECONDS timed_rc=0 untimed_rc=0 timed_end untimed_end
-    if [[ -n "$untimed_pid" ]] && [[ ! -f "$LOG_DIR/rclpy-untimed.ended" ]]; then
-        echo "rclpy tests: the untimed ones run beside these since $untimed_started s (output in rclpy-untimed.log, printed below)"
+    local start=$SECONDS timed_end part part_end any_ran=0 ok=1 rc
+    local rcs=()
+    if ((${#untimed_pids[@]})); then
+        echo "rclpy tests: the untimed ones run beside these since $untimed_started s, in two parts (output in rclpy-untimed-1.log and -2.log, printed below)"
     fi
+    rc=0
     run_pytest_paths jazzy "$LOG_DIR/rclpy-junit.xml" tests/rclpy -- "${beside_ignore[@]}" \
-        --timing-group=timed "${pytest_extra[@]}" || timed_rc=$?
+        --timing-group=timed "${pytest_extra[@]}" || rc=$?
     timed_end=$SECONDS
-    wait "$untimed_pid" || untimed_rc=$?
-    untimed_end=$(cat "$LOG_DIR/rclpy-untimed.ended" 2>/dev/null || echo "$SECONDS")
-    banner "rclpy tests: the untimed ones (beside the steps since the release build)"
-    cat "$LOG_DIR/rclpy-untimed.log"
-    if ((${#pytest_extra[@]})); then
-        if ((timed_rc == 5 && untimed_rc != 5)); then
-            timed_rc=0
-        elif ((untimed_rc == 5 && timed_rc != 5)); then
-            untimed_rc=0
-        fi
-    fi
+    rcs+=("$rc")
     add_junit_counts "$LOG_DIR/rclpy-junit.xml"
-    add_junit_counts "$LOG_DIR/rclpy-untimed-junit.xml"
     printf -- '---- rclpy tests, timed, one at a time: exit %d (%d s, from %d s to %d s of the run)\n' \
-        "$timed_rc" $((timed_end - start)) "$start" "$timed_end"
-    printf -- '---- rclpy tests, untimed, beside the steps: exit %d (%d s, %s)\n' \
-        "$untimed_rc" $((untimed_end - untimed_started)) \
-        "$(beside_span "$untimed_started" "$LOG_DIR/rclpy-untimed.ended")"
+        "$rc" $((timed_end - start)) "$start" "$timed_end"
     step_times+=("$(printf '%6d s  %s' $((timed_end - start)) \
         "rclpy tests, timed (one at a time, from $start s to $timed_end s of the run)")")
-    step_times+=("$(printf '%6d s  %s (beside the steps, %s)' $((untimed_end - untimed_started)) \
-        "rclpy tests, untimed" "$(beside_span "$untimed_started" "$LOG_DIR/rclpy-untimed.ended")")")
-    ((timed_rc == 0 && untimed_rc == 0))
+    for part in 1 2; do
+        rc=0
+        wait "${untimed_pids[part - 1]}" || rc=$?
+        rcs+=("$rc")
+        part_end=$(cat "$LOG_DIR/rclpy-untimed-$part.ended" 2>/dev/null || echo "$SECONDS")
+        banner "rclpy tests: the untimed ones, part $part (beside the steps since the release build)"
+        cat "$LOG_DIR/rclpy-untimed-$part.log"
+        add_junit_counts "$LOG_DIR/rclpy-untimed-$part-junit.xml"
+        printf -- '---- rclpy tests, untimed, part %d, beside the steps: exit %d (%d s, %s)\n' \
+            "$part" "$rc" $((part_end - untimed_started)) \
+            "$(beside_span "$untimed_started" "$LOG_DIR/rclpy-untimed-$part.ended")"
+        step_times+=("$(printf '%6d s  %s (beside the steps, %s)' $((part_end - untimed_started)) \
+            "rclpy tests, untimed, part $part" \
+            "$(beside_span "$untimed_started" "$LOG_DIR/rclpy-untimed-$part.ended")")")
+    done
+    for rc in "${rcs[@]}"; do
+        ((rc != 5)) && any_ran=1
+    done
+    for rc in "${rcs[@]}"; do
+        # With PYTEST_ARGS, a process they select nothing of is no failure while another ran.
+        if ((rc == 5 && ${#pytest_extra[@]} && any_ran)); then
+            continue
+        fi
+        ((rc == 0)) || ok=0
+    done
+    ((ok))
 }
 if ((release_ok)); then
     run_step "rclpy tests" rclpy_suite

@@ -118,7 +118,7 @@ def wait_until(
 #: lateness or length of anything on the line), and what it asserts over time is of seconds
 #: with a second or a factor of two to spare (a simulated plant's temperature in a band, a check
 #: named within its window's seconds, a peer seen within a look). scripts/test.sh runs these
-#: (`--timing-group untimed`) in a pytest process of their own beside all the others
+#: (`--timing-group untimed`) in two pytest processes of their own beside all the others
 #: (`--timing-group timed`), which run one at a time.
 UNTIMED = "untimed"
 

@@ -258,12 +258,8 @@ def memory_kb(pid: int) -> dict[str, int]:
     return got
 
 
-# Two rounds of 100,000 requests: about 45 s here, twice that on a loaded machine.
-@pytest.mark.timeout(420)
-def test_unknown_result_requests_are_answered_at_once_and_keep_no_memory(
-    node_process, process_launcher, ros, tmp_path
-):
-    proc, ch = start(node_process, ros, **PARAMS)
+def test_unknown_result_requests_are_answered_at_once(node_process, ros):
+    start(node_process, ros, **PARAMS)
     # One request alone: answered at once with STATUS_UNKNOWN and an empty result.
     client = make_client(ros.node, ACTION)
     ros.spin_until(client.service_is_ready, "the get_result service", timeout=30)
@@ -285,6 +281,16 @@ def test_unknown_result_requests_are_answered_at_once_and_keep_no_memory(
     ros.spin_until(answer.done, "the cancel of an unknown goal", timeout=10)
     assert answer.result().return_code == CancelGoal.Response.ERROR_UNKNOWN_GOAL_ID
 
+
+# Two rounds of 100,000 requests: about 45 s here, twice that on a loaded machine. Untimed
+# (pytest.ini): what the node's memory keeps, and every request answered (a client gives up
+# only after 20 s without an answer); how soon one is answered is the test above's.
+@pytest.mark.timeout(420)
+@pytest.mark.untimed
+def test_a_flood_of_unknown_result_requests_keeps_no_memory(
+    node_process, process_launcher, ros, tmp_path
+):
+    proc, ch = start(node_process, ros, **PARAMS)
     # The flood, from processes of their own. Each first sends as many requests as it will
     # then, unmeasured: its participant is discovered, and the node's allocator reaches its
     # working set for this traffic (the DDS layer allocates and frees for each request on

@@ -453,6 +453,10 @@ def test_the_loop_follows_its_process_value_holds_when_it_goes_stale_and_obeys_m
     assert proc.terminate() == 0, proc.output()
 
 
+# Untimed (pytest.ini): readings 5 s old against a 1 s timeout move nothing; fresh ones, with a
+# second to spare, open the valve by more than 5 % within 2.5 s where the loop's integral makes
+# 25 % of them.
+@pytest.mark.untimed
 def test_a_temperature_process_value_counts_only_when_fresh(node_process, ros):
     """docs/valve.md: a `sensor_msgs/Temperature` process value is aged by its stamp; readings
     older than `process_timeout_ms` on arrival move nothing, fresh ones drive the loop."""

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 
+import pytest
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Temperature
 from std_msgs.msg import Float64
@@ -49,6 +50,14 @@ SETTLE_S, STEP_S, RECOVER_S, END_S = 50.0, 80.0, 40.0, 140.0
 BAND_C = 1.0
 
 
+# Untimed (pytest.ini): a simulated plant's temperature in a band, as the heater tests. The plant
+# moves in seconds (dead time 3 s, time constant 20 s, a 500 ms sample), far slower than any
+# stall that load gives the node or the simulator; the valve's true position is the integral of
+# the node's edges stamped with their write times, so a late edge is seen as it happened; the
+# readings are counted at 0.8 of what comes, 6 s of stall to spare; the recovery is asserted from
+# 40 s after the step and comes about 28 s after it. The largest error in the band is the noise's
+# ±0.5 K and the loop's own: 0.80 K in docs/valve.md's run, 0.75 K beside a compile.
+@pytest.mark.untimed
 def test_the_loop_holds_the_mixed_water_and_rejects_a_supply_step(node_process, ros):
     node = node_process(
         node_args(

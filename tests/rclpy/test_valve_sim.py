@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import random
 
+import pytest
 from pwm_actuator_msgs.msg import ValveState
 from std_msgs.msg import Float64
 
@@ -28,6 +29,12 @@ COMMANDS = 200
 SAMPLE_EVERY = 20
 
 
+# Untimed (pytest.ini): the true position and the node's estimate are both integrals of the same
+# edges, stamped with their write times, so an edge that load makes late moves both alike; the
+# waits are for the valve standing (20 s and 5 s for moves of about a second). The figures come
+# from the seeded commands: quiet and beside a compile, the same largest uncertainty (51.5 %)
+# and error (30.9 %).
+@pytest.mark.untimed
 def test_two_hundred_random_positions_stay_within_the_reported_uncertainty(
     node_process, ros
 ):
