@@ -12,7 +12,8 @@
 # the reason; a failed preparation or a guest that hangs fails the run.
 #
 # What waits on the network or times nothing runs beside the compiles: the Kilted set-up from
-# the start; from the release build on, the two long rclpy memory tests (BESIDE_TESTS below)
+# the start; from the release build on, the README's and docs' runnable commands (3b), the two
+# long rclpy memory tests (BESIDE_TESTS below)
 # and, in two pytest processes of their own, the rclpy tests marked `untimed`, each test on a ROS
 # domain of its own. The rclpy tests that time what the node does run one at a time after the
 # Rust tests (5), beside nothing but what is left of the untimed ones; the GPIO guest, whose
@@ -234,25 +235,31 @@ beside_span() {
     printf 'from %d s to %d s of the run' "$1" "$ended"
 }
 
-if ((!quick)); then
-    run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
-fi
-
 # 3b. The shell blocks of README.md and docs/*.md marked runnable here
 # (scripts/check-doc-commands.py): each must exit 0; the others are listed with the reason they
 # cannot run here (hardware, the ros2 command line, runs of minutes) and counted as skipped.
+# Only their exit status counts, and they spend most of their time asleep (one is a benchmark
+# run of a minute whose figures nobody reads here), so they run beside clippy and the Rust
+# tests from the release build on; waited for, their output printed, after the Rust tests.
 doc_commands() {
-    python3 scripts/check-doc-commands.py 2>&1 | tee "$LOG_DIR/doc-commands.log"
-    return "${PIPESTATUS[0]}"
+    python3 scripts/check-doc-commands.py >"$LOG_DIR/doc-commands.log" 2>&1
 }
+doc_pid=""
 if ((release_ok)); then
-    run_step "doc commands" doc_commands
-    read -r d_pass d_fail d_skip < <(sed -n 's/^doc commands: \([0-9]*\) passed, \([0-9]*\) failed, \([0-9]*\) not runnable here$/\1 \2 \3/p' \
-        "$LOG_DIR/doc-commands.log" | tail -n1 | grep . || echo "0 1 0")
-    passed=$((passed + d_pass)) failed=$((failed + d_fail)) skipped=$((skipped + d_skip))
+    doc_started=$SECONDS
+    rm -f "$LOG_DIR/doc-commands.ended"
+    (doc_commands
+        rc=$?
+        echo "$SECONDS" >"$LOG_DIR/doc-commands.ended"
+        exit "$rc") &
+    doc_pid=$!
 else
     failed=$((failed + 1))
     failed_steps+=("doc commands (no release build)")
+fi
+
+if ((!quick)); then
+    run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
 fi
 
 # 4. Rust tests, every test binary even after a failure. The full output goes to the console
@@ -277,6 +284,28 @@ printf 'cargo test: %d passed, %d failed, %d ignored in %d test binaries\n' \
     "$c_pass" "$c_fail" "$c_skip" "$c_bins"
 grep '^test result: ' "$LOG_DIR/cargo-test.log" | sed 's/^/  /'
 passed=$((passed + c_pass)) failed=$((failed + c_fail)) skipped=$((skipped + c_skip))
+
+# 3b'. The doc commands started at 3b: their output, their time and their results.
+if [[ -n "$doc_pid" ]]; then
+    banner "doc commands (beside the steps since 3b)"
+    doc_rc=0
+    wait "$doc_pid" || doc_rc=$?
+    cat "$LOG_DIR/doc-commands.log"
+    doc_ended=$(cat "$LOG_DIR/doc-commands.ended" 2>/dev/null || echo "$SECONDS")
+    doc_when="$(beside_span "$doc_started" "$LOG_DIR/doc-commands.ended")"
+    if ((doc_rc != 0)); then
+        failed_steps+=("doc commands")
+        printf -- '---- doc commands: FAILED (exit %d, %d s, %s)\n' "$doc_rc" \
+            $((doc_ended - doc_started)) "$doc_when"
+    else
+        printf -- '---- doc commands: ok (%d s, %s)\n' $((doc_ended - doc_started)) "$doc_when"
+    fi
+    step_times+=("$(printf '%6d s  %s (beside the steps, %s)' $((doc_ended - doc_started)) \
+        "doc commands" "$doc_when")")
+    read -r d_pass d_fail d_skip < <(sed -n 's/^doc commands: \([0-9]*\) passed, \([0-9]*\) failed, \([0-9]*\) not runnable here$/\1 \2 \3/p' \
+        "$LOG_DIR/doc-commands.log" | tail -n1 | grep . || echo "0 1 0")
+    passed=$((passed + d_pass)) failed=$((failed + d_fail)) skipped=$((skipped + d_skip))
+fi
 
 # 4a. The vendored rustdds's patch (vendor/rustdds/README.pwm_actuator.md): the unit tests of
 # its changes. The crate is a path dependency, not a member of this package, so `cargo test`
@@ -364,6 +393,7 @@ fi
 # 4c. The systemd unit in launch-notes/: `systemd-analyze verify` with the binary paths pointed
 # at the release build (/usr/local/bin is not installed here). One check; skipped, with the
 # reason, where systemd-analyze is missing.
+# shellcheck disable=SC2317  # called through run_step
 verify_unit() {
     local dir rc
     dir="$(mktemp -d)"
