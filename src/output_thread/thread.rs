@@ -292,8 +292,13 @@ impl SafetyPath {
         };
         let fd = match registered {
             Ok(fd) => fd,
-            // The reactor refused the eventfd: nothing will wake this wait, the bound decides.
-            Err(_) => return std::future::pending().await,
+            Err(e) => {
+                let (_, e) = e.into_parts();
+                log::error!(
+                    "cannot await the output thread's acknowledgment ({e}): waiting for the bound"
+                );
+                return std::future::pending().await;
+            }
         };
         loop {
             // Registered before this look: a signal after it makes the eventfd readable.
