@@ -4,9 +4,11 @@
 //!
 //! Each is a latest-value slot of atomics: the ROS side stores the value and bumps a request
 //! counter; the output thread reads the slot at every wake-up, before any queued request, applies
-//! what changed, writes the lines, and only then stores the counter it has taken. A caller that
-//! must not report a safety action as done before the lines have it waits for that
-//! acknowledgment ([`SafetySlot::taken`]).
+//! what changed, writes the lines, and only then stores the counter it has taken and signals the
+//! acknowledgment eventfd (once per wake-up that took one). A caller that must not report a
+//! safety action as done before the lines have it waits for that acknowledgment
+//! ([`SafetyPath::take_async`](super::SafetyPath::take_async), or
+//! [`SafetyPath::take`](super::SafetyPath::take) on a plain thread).
 //!
 //! The e-stop is an epoch, odd while latched: a latch and a reset that both happen before the
 //! thread looks are still applied as a latch followed by a reset (every channel disabled),

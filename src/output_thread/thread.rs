@@ -11,15 +11,17 @@ use super::{Input, Report, Request};
 use crate::clock;
 use crate::core::{Bank, ChannelConfig, Nanos};
 use crate::output::{EmergencyOff, ErrorKind, Output, OutputError};
-use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+use nix::poll::{poll, ppoll, PollFd, PollFlags, PollTimeout};
 use nix::sys::eventfd::{EfdFlags, EventFd};
 use nix::sys::time::TimeSpec;
 use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFlags};
-use std::os::fd::{AsFd, BorrowedFd};
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, RawFd};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
+use tokio::io::unix::AsyncFd;
+use tokio::io::Interest;
 
 /// Options of the output thread.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -168,18 +170,65 @@ impl OutputThreadError {
 }
 
 /// How long a safety input may wait for the output thread to take it before the outputs are
-/// switched off through the emergency handle instead ([`SafetyPath::take`]). The thread takes
-/// one within microseconds when it runs; only a thread stuck in a write or starved of CPU for
-/// this long misses it.
+/// switched off through the emergency handle instead ([`SafetyPath::take_async`],
+/// [`SafetyPath::take`]). The thread takes one within microseconds when it runs; only a thread
+/// stuck in a write or starved of CPU for this long misses it.
 pub const SAFETY_TAKE_BOUND: Duration = Duration::from_millis(250);
+
+/// The output thread's acknowledgment of the safety inputs: an eventfd it writes once at each
+/// wake-up at which it applied a safety input and wrote the lines, and once more when it has
+/// stopped. Nothing else: an idle thread, or one that runs with no safety input pending, never
+/// writes it. One waiter at a time reads it (`reader`) and then looks at the slot's counter, so
+/// no acknowledgment is consumed by a waiter it was not for.
+pub(crate) struct Ack {
+    fd: EventFd,
+    reader: tokio::sync::Mutex<()>,
+}
+
+impl Ack {
+    pub(crate) fn new() -> Result<Ack, nix::Error> {
+        Ok(Ack {
+            fd: EventFd::from_flags(EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK)?,
+            reader: tokio::sync::Mutex::new(()),
+        })
+    }
+
+    /// The output thread's signal: one `write` on the eventfd (never blocks: EAGAIN only when
+    /// the counter is saturated, and then a signal is pending anyway).
+    pub(crate) fn signal(&self) {
+        let _ = self.fd.write(1);
+    }
+
+    /// Resets the eventfd (EAGAIN: nothing was pending).
+    fn clear(&self) {
+        let _ = self.fd.read();
+    }
+}
+
+/// The acknowledgment's eventfd as tokio's reactor registers it, for the time of one wait (the
+/// eventfd itself stays open with the path).
+struct AckFd(Arc<Ack>);
+
+impl AsRawFd for AckFd {
+    fn as_raw_fd(&self) -> RawFd {
+        self.0.fd.as_raw_fd()
+    }
+}
 
 /// The safety inputs' path to the output thread (see [`safety`](super::safety)): the e-stop,
 /// the hold of the lines and the planner's limits, as latest values the thread reads at every
 /// wake-up before any queued request. Never full, never blocks; cheap to clone.
+///
+/// A safety input is stored and the thread woken first; the caller then waits for the
+/// acknowledgment, which the thread gives once it has applied the input and written the lines:
+/// it stores the slot's "taken" counter and writes an eventfd ([`Ack`]). Async code awaits that
+/// eventfd through tokio's reactor ([`SafetyPath::take_async`]); a plain thread sleeps in
+/// `ppoll` on it ([`SafetyPath::take`]). Neither polls the counter on a clock.
 #[derive(Clone)]
 pub struct SafetyPath {
     slot: Arc<SafetySlot>,
     wake: Arc<EventFd>,
+    ack: Arc<Ack>,
     emergency: Arc<dyn EmergencyOff>,
     alive: Arc<AtomicBool>,
 }
@@ -216,29 +265,139 @@ impl SafetyPath {
         self.slot.estop_latched()
     }
 
+    /// Where request `request` stands now: taken (`Ok`), the thread stopped without taking it,
+    /// or neither yet (`None`).
+    fn look(&self, request: u64) -> Option<Result<(), NotTaken>> {
+        if self.slot.taken(request) {
+            return Some(Ok(()));
+        }
+        if !self.alive.load(Ordering::Acquire) {
+            return Some(Err(NotTaken::Stopped));
+        }
+        None
+    }
+
+    /// Where request `request` stands once `bound` has passed.
+    fn at_bound(&self, request: u64, bound: Duration) -> Result<(), NotTaken> {
+        self.look(request).unwrap_or(Err(NotTaken::Late(bound)))
+    }
+
     /// Waits up to `bound` until the output thread has applied request `request` and written
-    /// the lines; returns how long that took.
-    pub fn wait(&self, request: u64, bound: Duration) -> Result<Duration, NotTaken> {
-        let start = std::time::Instant::now();
+    /// the lines; returns how long that took (on tokio's clock). Holds no thread meanwhile: it
+    /// awaits the thread's acknowledgment eventfd through tokio's reactor, so it returns as
+    /// soon as the thread has written it (a stopped thread writes it too: then
+    /// [`NotTaken::Stopped`] at once), and [`NotTaken::Late`] exactly at `bound`.
+    ///
+    /// # Panics
+    ///
+    /// In a runtime without an I/O driver (the node's runtime and tokio's test runtimes have
+    /// one: `enable_all`), as every tokio I/O does.
+    pub async fn wait_async(&self, request: u64, bound: Duration) -> Result<Duration, NotTaken> {
+        let start = tokio::time::Instant::now();
+        let r = match tokio::time::timeout(bound, self.until_taken(request)).await {
+            Ok(r) => r,
+            Err(_) => self.at_bound(request, bound),
+        };
+        r.map(|()| start.elapsed())
+    }
+
+    /// [`SafetyPath::wait_async`]'s wait, without the bound (the caller's timeout ends it).
+    async fn until_taken(&self, request: u64) -> Result<(), NotTaken> {
+        if let Some(r) = self.look(request) {
+            return r;
+        }
+        let _reader = self.ack.reader.lock().await;
+        // SAFETY: the eventfd stays open while `AckFd` holds its `Arc`, and `as_raw_fd` always
+        // returns it.
+        let registered = unsafe {
+            AsyncFd::register_with_interest(AckFd(Arc::clone(&self.ack)), Interest::READABLE)
+        };
+        let fd = match registered {
+            Ok(fd) => fd,
+            Err(e) => {
+                let (_, e) = e.into_parts();
+                log::error!(
+                    "cannot await the output thread's acknowledgment ({e}): waiting for the bound"
+                );
+                return std::future::pending().await;
+            }
+        };
         loop {
-            if self.slot.taken(request) {
-                return Ok(start.elapsed());
+            // Registered before this look: a signal after it makes the eventfd readable.
+            if let Some(r) = self.look(request) {
+                return r;
             }
-            if !self.alive.load(Ordering::Acquire) {
-                return Err(NotTaken::Stopped);
+            match fd.readable().await {
+                Ok(mut ready) => {
+                    // Read before looking again, so that a later signal wakes the next await.
+                    ready.get_inner().0.clear();
+                    ready.clear_ready();
+                }
+                // The runtime is shutting down: the bound decides.
+                Err(_) => std::future::pending::<()>().await,
             }
-            if start.elapsed() >= bound {
-                return Err(NotTaken::Late(bound));
-            }
-            std::thread::sleep(Duration::from_micros(50));
         }
     }
 
-    /// [`SafetyPath::store`], then [`SafetyPath::wait`] up to [`SAFETY_TAKE_BOUND`]. A thread
-    /// that still runs but did not take it in time has every output switched off through the
-    /// emergency handle (the outputs stay off for the rest of the process: the thread's next
-    /// write fails and it stops with an output fault); a stopped thread has left them off.
-    /// Either way no line is on when this returns an error.
+    /// As [`SafetyPath::wait_async`], for a plain thread (a thread of tokio's blocking pool, a
+    /// test): sleeps in `ppoll` on the acknowledgment eventfd, up to `bound`, and returns how
+    /// long it waited (on the monotonic clock). Returns at once when the request is already
+    /// taken or the thread has stopped.
+    ///
+    /// # Panics
+    ///
+    /// When it has to wait and is called from async code (tokio refuses to block a worker
+    /// there): async code uses [`SafetyPath::wait_async`].
+    pub fn wait(&self, request: u64, bound: Duration) -> Result<Duration, NotTaken> {
+        let start = std::time::Instant::now();
+        if let Some(r) = self.look(request) {
+            return r.map(|()| start.elapsed());
+        }
+        // A waiter ahead of this one is woken by its own request being taken (at the latest
+        // when this one is, the counter only grows) or by its bound, begun before this one's.
+        let _reader = self.ack.reader.blocking_lock();
+        loop {
+            if let Some(r) = self.look(request) {
+                return r.map(|()| start.elapsed());
+            }
+            let left = bound.saturating_sub(start.elapsed());
+            if left.is_zero() {
+                return Err(NotTaken::Late(bound));
+            }
+            let mut fds = [PollFd::new(self.ack.fd.as_fd(), PollFlags::POLLIN)];
+            let timeout = TimeSpec::from_duration(left);
+            if let Ok(n) = ppoll(&mut fds, Some(timeout), None) {
+                if n > 0 {
+                    self.ack.clear();
+                }
+            }
+        }
+    }
+
+    /// [`SafetyPath::store`], then [`SafetyPath::wait_async`] up to [`SAFETY_TAKE_BOUND`]. A
+    /// thread that still runs but did not take it in time has every output switched off
+    /// through the emergency handle (the outputs stay off for the rest of the process: the
+    /// thread's next write fails and it stops with an output fault); a stopped thread has left
+    /// them off. Either way no line is on when this returns an error.
+    ///
+    /// The input is stored before the first await: dropping the future stores it all the same,
+    /// and gives up only the acknowledgment and the emergency handle's fallback.
+    pub async fn take_async(&self, input: Input) -> Result<Duration, NotTaken> {
+        let request = self.store(input);
+        let r = self.wait_async(request, SAFETY_TAKE_BOUND).await;
+        if r.is_err() {
+            self.emergency.all_inactive();
+        }
+        r
+    }
+
+    /// As [`SafetyPath::take_async`], for a plain thread: waits with [`SafetyPath::wait`] (the
+    /// lifecycle's transitions, which run on tokio's blocking pool).
+    ///
+    /// # Panics
+    ///
+    /// As [`SafetyPath::wait`], when called from async code and the thread has not taken the
+    /// input yet.
     pub fn take(&self, input: Input) -> Result<Duration, NotTaken> {
         let request = self.store(input);
         let r = self.wait(request, SAFETY_TAKE_BOUND);
@@ -633,6 +792,7 @@ where
     let liveness = Liveness::new(clock::monotonic_ns());
     let slot = Arc::new(SafetySlot::new(!opts.start_held, opts.bank));
     let alive = Arc::new(AtomicBool::new(true));
+    let ack = Arc::new(Ack::new().map_err(sys("eventfd"))?);
 
     let thread = {
         let (req_wake, rep_wake, stop, fault, dropped, liveness) = (
@@ -643,7 +803,7 @@ where
             dropped.clone(),
             liveness.clone(),
         );
-        let (slot, alive) = (slot.clone(), alive.clone());
+        let (slot, alive, ack) = (slot.clone(), alive.clone(), ack.clone());
         std::thread::Builder::new()
             .name("pwm-output".into())
             .spawn(move || {
@@ -665,6 +825,7 @@ where
                     requests: req_rx,
                     req_wake,
                     rep_wake,
+                    ack: Arc::clone(&ack),
                     stop,
                     fault,
                     last_wake: 0,
@@ -676,6 +837,8 @@ where
                 let ran = run(&mut thread);
                 let finished = thread.finish();
                 alive.store(false, Ordering::Release);
+                // A waiter for a safety input learns at once that it will not be taken.
+                ack.signal();
                 ran.and(finished)
             })
             .map_err(OutputThreadError::Spawn)?
@@ -688,6 +851,7 @@ where
             safety: SafetyPath {
                 slot,
                 wake: req_wake.clone(),
+                ack,
                 emergency: emergency.clone(),
                 alive,
             },
@@ -740,6 +904,8 @@ pub struct ThreadLoop<O: Output> {
     requests: rtrb::Consumer<Request>,
     req_wake: Arc<EventFd>,
     rep_wake: Arc<EventFd>,
+    /// The safety inputs' acknowledgment, signalled after a wake-up that took one.
+    ack: Arc<Ack>,
     stop: Arc<AtomicBool>,
     fault: Arc<Mutex<Option<WriteFault>>>,
     /// When the reader was last woken, monotonic ns.
@@ -785,6 +951,10 @@ impl<O: Output> ThreadLoop<O> {
             }
             let _ = self.rep_wake.write(1);
             return Err(fault.into());
+        }
+        if self.worker.take_acked() {
+            // Only after a wake-up that took a safety input: no cost at any other.
+            self.ack.signal();
         }
         self.wake_pending |= self.worker.take_pushed();
         if self.wake_pending {
@@ -968,5 +1138,169 @@ mod reader_wake_tests {
         assert!(wake_reader_now(11 * ms, 10 * ms, Some(15 * ms)));
         assert!(wake_reader_now(11 * ms, 10 * ms, None));
         assert!(wake_reader_now(15 * ms, 10 * ms, Some(15 * ms + 1)));
+    }
+}
+
+#[cfg(test)]
+mod safety_ack_tests {
+    //! The safety inputs' acknowledgment, with the test playing the output thread: a task that
+    //! sleeps on the thread's request eventfd as the thread does, and on a wake-up applies what
+    //! the slot holds and signals the acknowledgment, as [`ThreadLoop::work`] does.
+    use super::*;
+    use std::sync::atomic::AtomicUsize;
+
+    /// An emergency handle that counts its uses.
+    #[derive(Default)]
+    struct CountingOff(AtomicUsize);
+
+    impl EmergencyOff for CountingOff {
+        fn all_inactive(&self) {
+            self.0.fetch_add(1, Ordering::SeqCst);
+        }
+    }
+
+    fn fake() -> (SafetyPath, Arc<CountingOff>) {
+        let off = Arc::new(CountingOff::default());
+        let flags = EfdFlags::EFD_CLOEXEC | EfdFlags::EFD_NONBLOCK;
+        let path = SafetyPath {
+            slot: Arc::new(SafetySlot::new(true, Bank::default())),
+            wake: Arc::new(EventFd::from_flags(flags).unwrap()),
+            ack: Arc::new(Ack::new().unwrap()),
+            emergency: off.clone(),
+            alive: Arc::new(AtomicBool::new(true)),
+        };
+        (path, off)
+    }
+
+    struct WakeFd(Arc<EventFd>);
+    impl AsRawFd for WakeFd {
+        fn as_raw_fd(&self) -> RawFd {
+            self.0.as_raw_fd()
+        }
+    }
+
+    /// Plays the output thread: sleeps until a request wakes it, then applies what the slot
+    /// holds and signals the acknowledgment (`stops`: leaves instead, as a thread that stopped).
+    fn thread(path: &SafetyPath, stops: bool) -> tokio::task::JoinHandle<()> {
+        let path = path.clone();
+        tokio::spawn(async move {
+            // SAFETY: the eventfd stays open while `WakeFd` holds its `Arc`.
+            let wake = unsafe {
+                AsyncFd::register_with_interest(WakeFd(Arc::clone(&path.wake)), Interest::READABLE)
+            }
+            .unwrap();
+            wake.readable().await.unwrap().clear_ready();
+            if stops {
+                path.alive.store(false, Ordering::Release);
+            } else {
+                path.slot.mark_taken(path.slot.wanted().request);
+            }
+            path.ack.signal();
+        })
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn an_acknowledgment_arrives_with_no_time_passing() {
+        let (path, off) = fake();
+        let thread = thread(&path, false);
+        let start = tokio::time::Instant::now();
+        // The task playing the thread shares this runtime's only thread: a wait that blocked
+        // it (a sleep between looks at the counter) would never let it run.
+        let r = path.take_async(Input::EStop(true)).await;
+        assert_eq!(r, Ok(Duration::ZERO));
+        assert_eq!(tokio::time::Instant::now(), start, "no time passed");
+        assert_eq!(off.0.load(Ordering::SeqCst), 0, "no emergency off");
+        assert!(path.estop_latched());
+        thread.await.unwrap();
+        // Already taken: answered without waiting.
+        assert_eq!(
+            path.wait_async(1, SAFETY_TAKE_BOUND).await,
+            Ok(Duration::ZERO)
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_late_acknowledgment_ends_exactly_at_the_bound_with_everything_off() {
+        let (path, off) = fake();
+        let start = tokio::time::Instant::now();
+        let r = path.take_async(Input::Live(false)).await;
+        assert_eq!(r, Err(NotTaken::Late(SAFETY_TAKE_BOUND)));
+        assert_eq!(
+            r.unwrap_err().to_string(),
+            "the output thread did not take it within 250 ms"
+        );
+        assert_eq!(tokio::time::Instant::now() - start, SAFETY_TAKE_BOUND);
+        assert_eq!(
+            off.0.load(Ordering::SeqCst),
+            1,
+            "every output switched off once"
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_stopped_thread_answers_stopped_at_once() {
+        // Stopped before the input.
+        let (path, off) = fake();
+        path.alive.store(false, Ordering::Release);
+        let start = tokio::time::Instant::now();
+        assert_eq!(
+            path.take_async(Input::EStop(true)).await,
+            Err(NotTaken::Stopped)
+        );
+        assert_eq!(tokio::time::Instant::now(), start);
+        assert_eq!(off.0.load(Ordering::SeqCst), 1);
+        // Stopping while the input waits.
+        let (path, off) = fake();
+        let thread = thread(&path, true);
+        let r = path.take_async(Input::Live(false)).await;
+        assert_eq!(r, Err(NotTaken::Stopped));
+        assert_eq!(r.unwrap_err().to_string(), "the output thread has stopped");
+        assert_eq!(tokio::time::Instant::now(), start, "no time passed");
+        assert_eq!(off.0.load(Ordering::SeqCst), 1);
+        thread.await.unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn waiters_at_once_are_all_answered_by_one_acknowledgment() {
+        let (path, off) = fake();
+        let (a, b) = (
+            path.store(Input::EStop(true)),
+            path.store(Input::Live(false)),
+        );
+        let thread = thread(&path, false);
+        let start = tokio::time::Instant::now();
+        let (ra, rb) = tokio::join!(
+            path.wait_async(a, SAFETY_TAKE_BOUND),
+            path.wait_async(b, SAFETY_TAKE_BOUND)
+        );
+        assert_eq!((ra, rb), (Ok(Duration::ZERO), Ok(Duration::ZERO)));
+        assert_eq!(tokio::time::Instant::now(), start);
+        assert_eq!(off.0.load(Ordering::SeqCst), 0);
+        thread.await.unwrap();
+    }
+
+    #[test]
+    fn a_plain_thread_waits_without_a_runtime() {
+        let (path, off) = fake();
+        let request = path.store(Input::EStop(true));
+        let taker = {
+            let path = path.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(20));
+                path.slot.mark_taken(path.slot.wanted().request);
+                path.ack.signal();
+            })
+        };
+        let took = path.wait(request, SAFETY_TAKE_BOUND).unwrap();
+        assert!(took >= Duration::from_millis(20), "{took:?}");
+        taker.join().unwrap();
+        // Nobody takes it: late at the bound, every output off.
+        let start = std::time::Instant::now();
+        assert_eq!(
+            path.take(Input::Live(false)),
+            Err(NotTaken::Late(SAFETY_TAKE_BOUND))
+        );
+        assert!(start.elapsed() >= SAFETY_TAKE_BOUND);
+        assert_eq!(off.0.load(Ordering::SeqCst), 1);
     }
 }

@@ -36,6 +36,8 @@ pub(crate) struct Worker<O: Output> {
     dropped: Arc<AtomicU64>,
     /// Set when at least one report was pushed since the last `take_pushed`.
     pushed: bool,
+    /// Set when a safety input was applied and written since the last `take_acked`.
+    acked: bool,
     heartbeat: Option<Heartbeat>,
     /// The safety inputs' slot, and what of it has been applied.
     safety: Arc<SafetySlot>,
@@ -113,6 +115,7 @@ impl<O: Output> Worker<O> {
             reports,
             dropped,
             pushed: false,
+            acked: false,
             heartbeat: None,
             seen: safety.wanted(),
             safety,
@@ -177,6 +180,12 @@ impl<O: Output> Worker<O> {
         std::mem::take(&mut self.pushed)
     }
 
+    /// Whether a safety input was applied and written since the last call (the caller then
+    /// signals the acknowledgment once).
+    pub(crate) fn take_acked(&mut self) -> bool {
+        std::mem::take(&mut self.acked)
+    }
+
     /// Applies every queued request, then every due deadline, writes the resulting edges in one
     /// call, and reports them.
     pub(crate) fn run(&mut self, requests: &mut Consumer<Request>) -> Result<(), Stop<O::Error>> {
@@ -236,6 +245,7 @@ impl<O: Output> Worker<O> {
         if let Some(request) = taken {
             // Applied and written: only now is it done.
             self.safety.mark_taken(request);
+            self.acked = true;
         }
         Ok(())
     }

@@ -738,7 +738,7 @@ async fn serve(
     // Every line off and held off now, not after the ROS side is torn down: no pulse starts
     // while the node stops. A thread that does not take it in time has the outputs switched
     // off by the emergency handle.
-    if let Err(e) = inputs.safety().take(Input::Live(false)) {
+    if let Err(e) = inputs.safety().take_async(Input::Live(false)).await {
         warn!("the hold of the lines at stop was not taken: {e}");
     }
     drop(pinger);

@@ -274,6 +274,120 @@ fn a_safety_input_not_taken_in_time_switches_the_outputs_off_by_the_emergency_ha
     ));
 }
 
+/// How often the calling thread has given up the CPU of its own accord so far (its sleeps and
+/// waits), from `/proc/thread-self/status`.
+fn voluntary_switches() -> u64 {
+    let status = std::fs::read_to_string("/proc/thread-self/status").unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("voluntary_ctxt_switches:"))
+        .and_then(|v| v.trim().parse().ok())
+        .expect("voluntary_ctxt_switches in /proc/thread-self/status")
+}
+
+/// Stalls the thread's next write and releases it `after` from another thread.
+fn stalled_for(shared: &Arc<Shared>, after: Duration) -> std::thread::JoinHandle<()> {
+    std::thread::sleep(Duration::from_millis(50));
+    shared.stall();
+    let s = Arc::clone(shared);
+    std::thread::spawn(move || {
+        std::thread::sleep(after);
+        s.release();
+    })
+}
+
+/// The most wake-ups a waiter may see while the thread is stuck for 100 ms: it sleeps until the
+/// thread has taken the input (a wake-up or two); one that looked at the counter every 50 µs
+/// woke some 840 times here.
+const WAKE_UPS: u64 = 20;
+
+/// A plain thread (the lifecycle's transitions run on one) that waits for the acknowledgment
+/// behind a write stuck for 100 ms sleeps until the thread has taken the input.
+#[test]
+fn a_waiting_thread_sleeps_until_the_input_is_taken() {
+    let (shared, e) = start(1, 50.0);
+    let safety = e.requests.safety();
+    let release = stalled_for(&shared, Duration::from_millis(100));
+    let before = voluntary_switches();
+    let took = safety.take(Input::EStop(true));
+    let woken = voluntary_switches() - before;
+    release.join().unwrap();
+    let took = took.expect("taken once the write returned");
+    assert!(took >= Duration::from_millis(80), "{took:?}");
+    assert!(woken <= WAKE_UPS, "the waiter woke {woken} times");
+    assert!(!shared.tripped.load(Ordering::SeqCst));
+    shared.off_and_stays_off("e-stop");
+    e.handle.shutdown().unwrap();
+}
+
+/// Async code awaits the acknowledgment without holding its thread: a runtime's only thread
+/// awaiting one behind a write stuck for 100 ms sleeps until the thread has taken it.
+#[test]
+fn an_awaited_acknowledgment_holds_no_thread() {
+    let (shared, e) = start(2, 50.0);
+    let safety = e.requests.safety();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let release = stalled_for(&shared, Duration::from_millis(100));
+    let before = voluntary_switches();
+    let took = rt.block_on(safety.take_async(Input::Live(false)));
+    let woken = voluntary_switches() - before;
+    release.join().unwrap();
+    let took = took.expect("taken once the write returned");
+    assert!(took >= Duration::from_millis(80), "{took:?}");
+    assert!(woken <= WAKE_UPS, "the runtime's thread woke {woken} times");
+    assert!(!shared.tripped.load(Ordering::SeqCst));
+    shared.off_and_stays_off("hold");
+    // A running thread answers at once.
+    let took = rt.block_on(safety.take_async(Input::Live(true))).unwrap();
+    assert!(took < SAFETY_TAKE_BOUND, "{took:?}");
+    e.handle.shutdown().unwrap();
+}
+
+/// An awaited safety input the thread does not take in time ends at the bound with every output
+/// switched off by the emergency handle; after the thread has stopped, one is answered at once.
+#[test]
+fn an_awaited_input_not_taken_in_time_switches_the_outputs_off() {
+    let (shared, e) = start(2, 90.0);
+    std::thread::sleep(Duration::from_millis(50));
+    shared.stall();
+    let safety = e.requests.safety();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let start = Instant::now();
+    let r = rt.block_on(safety.take_async(Input::EStop(true)));
+    assert_eq!(r, Err(NotTaken::Late(SAFETY_TAKE_BOUND)));
+    assert!(start.elapsed() >= SAFETY_TAKE_BOUND);
+    assert!(
+        start.elapsed() < 4 * SAFETY_TAKE_BOUND,
+        "{:?}",
+        start.elapsed()
+    );
+    assert!(
+        shared.tripped.load(Ordering::SeqCst),
+        "emergency handle used"
+    );
+    assert!(!shared.any_high(), "every line off");
+    shared.release();
+    let start = Instant::now();
+    while !e.handle.is_finished() {
+        assert!(start.elapsed() < Duration::from_secs(5), "the thread stops");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let start = Instant::now();
+    let r = rt.block_on(safety.take_async(Input::Live(false)));
+    assert_eq!(r, Err(NotTaken::Stopped));
+    assert!(start.elapsed() < SAFETY_TAKE_BOUND, "{:?}", start.elapsed());
+    assert!(matches!(
+        e.handle.shutdown(),
+        Err(OutputThreadError::OutputFault { .. })
+    ));
+}
+
 /// A change that must reach the output thread together (a parameter change touching several
 /// channels and valves) is queued whole or not at all: with room for one request, two are
 /// refused and the room is untouched.

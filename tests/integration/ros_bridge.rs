@@ -188,10 +188,12 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         "{result:?}"
     );
     // The output thread is gone: a parameter change cannot reach it and changes nothing.
-    let r = bridge.set_params(
-        vec![("pw01.period_ms".into(), ParameterValue::Integer(200))],
-        "test",
-    );
+    let r = bridge
+        .set_params(
+            vec![("pw01.period_ms".into(), ParameterValue::Integer(200))],
+            "test",
+        )
+        .await;
     assert!(matches!(r, Err(ChangeError::OutputThread { .. })), "{r:?}");
     assert_eq!(
         bridge.with_params(|s| s.channel(0).map(|c| c.period_ms)),

@@ -143,7 +143,7 @@ async fn serve(mut server: Server, inputs: Arc<Inputs>, ch: usize, name: String)
             () = timer => {}
         }
         if let Some(r) = run.as_mut() {
-            if let Some((status, result)) = progress(&server, &inputs, ch, &name, r) {
+            if let Some((status, result)) = progress(&server, &inputs, ch, &name, r).await {
                 server.end(&r.id, status, result);
                 run = None;
             }
@@ -243,7 +243,7 @@ fn start(
 
 /// Takes the core's reports of the run: publishes its feedback, and returns how it ended once
 /// it has.
-fn progress(
+async fn progress(
     server: &Server,
     inputs: &Inputs,
     ch: usize,
@@ -262,7 +262,9 @@ fn progress(
             }
             Report::Started => run.started = true,
             Report::Progress(p) => server.feedback(run.id, feedback(p)),
-            Report::Finished(o) => return Some(finish(inputs, name, run.apply, run.canceling, o)),
+            Report::Finished(o) => {
+                return Some(finish(inputs, name, run.apply, run.canceling, o).await)
+            }
         }
     }
     let quiet = run.last.elapsed();
@@ -285,7 +287,7 @@ fn progress(
 }
 
 /// The result of a run that ended with `o`; with `apply` and gains, sets them as parameters.
-fn finish(
+async fn finish(
     inputs: &Inputs,
     name: &str,
     apply: bool,
@@ -346,7 +348,7 @@ fn finish(
                 .chain(model.into_iter().flatten())
                 .map(|(k, v)| (format!("{name}.{k}"), ParameterValue::Double(v)))
                 .collect();
-                match inputs.set_params(items, "autotune") {
+                match inputs.set_params(items, "autotune").await {
                     Ok(()) => r.applied = true,
                     Err(e) => r
                         .message

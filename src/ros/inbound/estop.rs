@@ -10,14 +10,13 @@
 
 use crate::clock;
 use crate::core::Nanos;
-use crate::output::panic_off::lock_ignore_poison as lock;
 use crate::output_thread::Input;
 use crate::ros::inbound::inputs::Inputs;
 use crate::ros::interface::msg::{self, TriggerResponse};
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
 use log::{error, info, warn};
 use std::sync::Arc;
-use std::sync::Mutex;
+use tokio::sync::Mutex;
 use tokio::task::JoinHandle;
 
 /// Why the e-stop was latched.
@@ -30,7 +29,8 @@ pub enum Cause {
 }
 
 /// The e-stop's state, shared by the `~/estop` callback, the reset service and the timeout
-/// check. One lock orders the three, so a reset and an input never cross.
+/// check. One lock orders the three, so a reset and an input never cross; it is tokio's, held
+/// across the await of the output thread's acknowledgment, which holds no thread meanwhile.
 ///
 /// Whether it is latched, and how often it latched, are published through the node state
 /// (`Inputs::state`), which the diagnostics read.
@@ -72,33 +72,33 @@ impl EStop {
 
     /// A value on `~/estop`: `true` latches (once; repeats change nothing), `false` is
     /// remembered (it allows a reset and feeds the timeout) and never releases by itself.
-    pub fn input(&self, inputs: &Inputs, asserted: bool) {
-        let mut s = lock(&self.state);
+    pub async fn input(&self, inputs: &Inputs, asserted: bool) {
+        let mut s = self.state.lock().await;
         s.asserted = asserted;
         if asserted {
-            self.latch(&mut s, inputs, Cause::Input);
+            self.latch(&mut s, inputs, Cause::Input).await;
         } else {
             s.last_release = clock::monotonic_ns();
         }
     }
 
     /// Latches when the timeout is set and no `false` came within it; returns whether it did.
-    pub fn check_timeout(&self, inputs: &Inputs, now: Nanos) -> bool {
+    pub async fn check_timeout(&self, inputs: &Inputs, now: Nanos) -> bool {
         if self.timeout_ns == 0 {
             return false;
         }
-        let mut s = lock(&self.state);
+        let mut s = self.state.lock().await;
         if s.latched || now.saturating_sub(s.last_release) < self.timeout_ns {
             return false;
         }
-        self.latch(&mut s, inputs, Cause::Timeout);
+        self.latch(&mut s, inputs, Cause::Timeout).await;
         true
     }
 
     /// `~/reset_estop`: clears the latch only while the last input is `false` (and, with a
     /// timeout, a `false` is recent); every channel is then disabled.
-    pub fn reset(&self, inputs: &Inputs) -> TriggerResponse {
-        let mut s = lock(&self.state);
+    pub async fn reset(&self, inputs: &Inputs) -> TriggerResponse {
+        let mut s = self.state.lock().await;
         let refuse = |message: &str| TriggerResponse {
             success: false,
             message: message.to_string(),
@@ -118,7 +118,7 @@ impl EStop {
         if self.timeout_ns > 0 && now.saturating_sub(s.last_release) >= self.timeout_ns {
             return refuse("no false on ~/estop within estop_timeout_ms: the stop is still open");
         }
-        if let Err(e) = inputs.safety().take(Input::EStop(false)) {
+        if let Err(e) = inputs.safety().take_async(Input::EStop(false)).await {
             // Latched again in the slot, so the thread and this state agree when it resumes.
             inputs.safety().store(Input::EStop(true));
             return refuse(&format!("the reset was not applied: {e}"));
@@ -135,7 +135,7 @@ impl EStop {
         }
     }
 
-    fn latch(&self, s: &mut State, inputs: &Inputs, cause: Cause) {
+    async fn latch(&self, s: &mut State, inputs: &Inputs, cause: Cause) {
         if s.latched {
             return;
         }
@@ -150,7 +150,7 @@ impl EStop {
         };
         // Said only once the output thread has written the lines, or the emergency handle
         // has switched them off.
-        match inputs.safety().take(Input::EStop(true)) {
+        match inputs.safety().take_async(Input::EStop(true)).await {
             Ok(took) => warn!(
                 "e-stop latched ({why}): every output driven inactive ({} us after the input)",
                 took.as_micros()
@@ -172,11 +172,17 @@ pub fn spawn(
 ) -> Result<Vec<JoinHandle<()>>, EndpointError> {
     let mut tasks = Vec::new();
     let (to_thread, e) = (Arc::clone(inputs), Arc::clone(estop));
-    tasks.push(ep.listen("~/estop", move |m: msg::Bool| e.input(&to_thread, m.data))?);
+    tasks.push(ep.listen_async("~/estop", move |m: msg::Bool| {
+        let (to_thread, e) = (Arc::clone(&to_thread), Arc::clone(&e));
+        async move { e.input(&to_thread, m.data).await }
+    })?);
     let (to_thread, e) = (Arc::clone(inputs), Arc::clone(estop));
-    let reset = move |_: msg::EmptyRequest| e.reset(&to_thread);
+    let reset = move |_: msg::EmptyRequest| {
+        let (to_thread, e) = (Arc::clone(&to_thread), Arc::clone(&e));
+        async move { e.reset(&to_thread).await }
+    };
     let mut maker = ep.services();
-    tasks.push(maker.serve("~/reset_estop", "std_srvs", "Trigger", reset)?);
+    tasks.push(maker.serve_async("~/reset_estop", "std_srvs", "Trigger", reset)?);
     if let Some(period) = estop.timeout_check_period() {
         let (to_thread, e) = (Arc::clone(inputs), Arc::clone(estop));
         tasks.push(tokio::spawn(async move {
@@ -184,7 +190,7 @@ pub fn spawn(
             tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
             loop {
                 tick.tick().await;
-                e.check_timeout(&to_thread, clock::monotonic_ns());
+                e.check_timeout(&to_thread, clock::monotonic_ns()).await;
             }
         }));
     }

@@ -195,56 +195,60 @@ impl Inputs {
     }
 
     /// Applies a parameter change through either door (`door` names it in the log), checked
-    /// whole; see the module documentation.
-    pub fn set_params(
+    /// whole; see the module documentation. A change of the node's planner is answered only
+    /// once the output thread has taken it (awaited, up to `SAFETY_TAKE_BOUND`, 250 ms).
+    pub async fn set_params(
         &self,
         items: Vec<(String, ParameterValue)>,
         door: &str,
     ) -> Result<(), ChangeError> {
-        let mut store = lock(&self.params);
-        let accepted = match store.check(&items, Stage::Live) {
-            Ok(a) => a,
-            Err(e) => {
+        // The store's lock is held for the check and the commit only, never across an await.
+        let (accepted, before, after, changed) = {
+            let mut store = lock(&self.params);
+            let accepted = match store.check(&items, Stage::Live) {
+                Ok(a) => a,
+                Err(e) => {
+                    drop(store);
+                    self.refused(&items, door, &e.to_string());
+                    return Err(e.into());
+                }
+            };
+            // The output thread first, all the new configurations or none: if it cannot take them,
+            // nothing changes.
+            let new: Vec<Request> = accepted
+                .configs
+                .iter()
+                .map(|&(channel, cfg)| Request {
+                    channel,
+                    input: Input::Config(cfg),
+                })
+                .chain(
+                    accepted
+                        .valve_configs
+                        .iter()
+                        .map(|&(valve, config)| Request {
+                            channel: 0,
+                            input: Input::ValveConfig { valve, config },
+                        }),
+                )
+                .collect();
+            if let Err(source) = lock(&self.requests).send_all(&new) {
                 drop(store);
+                let e = ChangeError::OutputThread { source };
                 self.refused(&items, door, &e.to_string());
-                return Err(e.into());
+                return Err(e);
             }
+            let before = store.node_settings();
+            let changed = store.commit(&accepted);
+            self.state.apply_params(&store);
+            let after = store.node_settings();
+            (accepted, before, after, changed)
         };
-        // The output thread first, all the new configurations or none: if it cannot take them,
-        // nothing changes.
-        let new: Vec<Request> = accepted
-            .configs
-            .iter()
-            .map(|&(channel, cfg)| Request {
-                channel,
-                input: Input::Config(cfg),
-            })
-            .chain(
-                accepted
-                    .valve_configs
-                    .iter()
-                    .map(|&(valve, config)| Request {
-                        channel: 0,
-                        input: Input::ValveConfig { valve, config },
-                    }),
-            )
-            .collect();
-        if let Err(source) = lock(&self.requests).send_all(&new) {
-            drop(store);
-            let e = ChangeError::OutputThread { source };
-            self.refused(&items, door, &e.to_string());
-            return Err(e);
-        }
-        let before = store.node_settings();
-        let changed = store.commit(&accepted);
-        self.state.apply_params(&store);
-        let after = store.node_settings();
-        drop(store);
         if after.bank != before.bank {
             // Through the safety path (a lowered limit must not wait behind commands), and
             // answered only once the output thread has it: a lowered limit acts at once, the
             // phase at each channel's next period start.
-            if let Err(e) = self.safety.take(Input::Bank(after.bank)) {
+            if let Err(e) = self.safety.take_async(Input::Bank(after.bank)).await {
                 log::error!(
                     "the planner's new settings were not taken: {e}; every output switched off \
                      by the emergency handle"
@@ -379,13 +383,16 @@ pub fn listen_channels(
         let to_thread = Arc::clone(inputs);
         let door = format!("~/{name}/params");
         let topic = door.clone();
-        tasks.push(ep.listen(&topic, move |m: msg::ChannelParams| {
-            match params::items_from_msg(ch, &m) {
-                Ok(items) => {
-                    // A refusal is logged and recorded by `set_params` itself.
-                    let _ = to_thread.set_params(items, &door);
+        tasks.push(ep.listen_async(&topic, move |m: msg::ChannelParams| {
+            let (to_thread, door) = (Arc::clone(&to_thread), door.clone());
+            async move {
+                match params::items_from_msg(ch, &m) {
+                    Ok(items) => {
+                        // A refusal is logged and recorded by `set_params` itself.
+                        let _ = to_thread.set_params(items, &door).await;
+                    }
+                    Err(e) => to_thread.refused_message(ch, &door, &e.to_string()),
                 }
-                Err(e) => to_thread.refused_message(ch, &door, &e.to_string()),
             }
         })?);
     }

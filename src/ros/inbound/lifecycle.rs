@@ -120,9 +120,12 @@ impl Actions for LineActions {
 impl LineActions {
     /// Lets every line follow its channel, or holds every line inactive.
     ///
-    /// Answered only once the output thread has taken it. A hold it did not take in time has
-    /// switched every output off through the emergency handle (so the lines are off and the
-    /// transition stands); a release it did not take is withdrawn and the transition fails.
+    /// Answered only once the output thread has taken it: the transitions run on tokio's
+    /// blocking pool (`ServiceMaker::serve`), so this waits on that thread
+    /// ([`SafetyPath::take`](crate::output_thread::SafetyPath::take), asleep on the
+    /// acknowledgment eventfd, at most `SAFETY_TAKE_BOUND`, 250 ms). A hold it did not take in
+    /// time has switched every output off through the emergency handle (so the lines are off and
+    /// the transition stands); a release it did not take is withdrawn and the transition fails.
     fn live(&self, live: bool) -> Result<(), TransitionError> {
         let safety = self.inputs.safety();
         match safety.take(Input::Live(live)) {

@@ -98,19 +98,27 @@ fn items(req: SetParametersRequest) -> Vec<(String, ParameterValue)> {
 }
 
 /// `set_parameters`: each parameter on its own, in order, as rclcpp does.
-fn set(inputs: &Inputs, req: SetParametersRequest) -> SetParametersResponse {
-    SetParametersResponse {
-        results: items(req)
-            .into_iter()
-            .map(|item| result(inputs.set_params(vec![item], "set_parameters")))
-            .collect(),
+async fn set(inputs: Arc<Inputs>, req: SetParametersRequest) -> SetParametersResponse {
+    let mut results = Vec::new();
+    for item in items(req) {
+        results.push(result(
+            inputs.set_params(vec![item], "set_parameters").await,
+        ));
     }
+    SetParametersResponse { results }
 }
 
 /// `set_parameters_atomically`: all or nothing.
-fn set_atomically(inputs: &Inputs, req: SetParametersRequest) -> SetParametersAtomicallyResponse {
+async fn set_atomically(
+    inputs: Arc<Inputs>,
+    req: SetParametersRequest,
+) -> SetParametersAtomicallyResponse {
     SetParametersAtomicallyResponse {
-        result: result(inputs.set_params(items(req), "set_parameters_atomically")),
+        result: result(
+            inputs
+                .set_params(items(req), "set_parameters_atomically")
+                .await,
+        ),
     }
 }
 
@@ -143,6 +151,30 @@ impl Servers<'_> {
     }
 }
 
+impl Servers<'_> {
+    /// As [`Servers::spawn`], with an async `handler` that runs in the service's task (a
+    /// change awaits the output thread's acknowledgment of a new planner there).
+    fn spawn_async<Req, Resp, Fut>(
+        &mut self,
+        base: &'static str,
+        type_name: &'static str,
+        handler: fn(Arc<Inputs>, Req) -> Fut,
+    ) -> Result<JoinHandle<()>, EndpointError>
+    where
+        Req: Request,
+        Resp: Response,
+        Fut: std::future::Future<Output = Resp> + Send + 'static,
+    {
+        let inputs = Arc::clone(self.inputs);
+        self.maker.serve_async(
+            &format!("~/{base}"),
+            "rcl_interfaces",
+            type_name,
+            move |req| handler(Arc::clone(&inputs), req),
+        )
+    }
+}
+
 /// Creates the six parameter services and the tasks serving them.
 pub fn spawn(
     ep: &mut Endpoints<'_>,
@@ -155,8 +187,8 @@ pub fn spawn(
     Ok(vec![
         s.spawn("get_parameters", "GetParameters", get)?,
         s.spawn("get_parameter_types", "GetParameterTypes", get_types)?,
-        s.spawn("set_parameters", "SetParameters", set)?,
-        s.spawn(
+        s.spawn_async("set_parameters", "SetParameters", set)?,
+        s.spawn_async(
             "set_parameters_atomically",
             "SetParametersAtomically",
             set_atomically,

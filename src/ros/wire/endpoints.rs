@@ -111,6 +111,30 @@ where
     })
 }
 
+/// Runs `on_msg` for every message of `sub`, awaiting each before taking the next (in order),
+/// until the task is aborted: for a callback that awaits an answer of the output thread.
+pub(crate) fn listen_async<M, F, Fut>(
+    full: String,
+    sub: Subscription<M>,
+    mut on_msg: F,
+) -> JoinHandle<()>
+where
+    M: Message + Send + Sync + 'static,
+    F: FnMut(M) -> Fut + Send + 'static,
+    Fut: std::future::Future<Output = ()> + Send,
+{
+    tokio::spawn(async move {
+        let stream = sub.async_stream();
+        futures::pin_mut!(stream);
+        while let Some(r) = stream.next().await {
+            match r {
+                Ok((m, _info)) => on_msg(m).await,
+                Err(e) => warn!("{full}: unreadable message: {e}"),
+            }
+        }
+    })
+}
+
 /// What every endpoint of the node is made with: the node, its identity and the remapping
 /// rules. Each owner of a group of endpoints (a channel's topics, the e-stop, the lifecycle,
 /// the parameter services, the reporter's publishers) makes them through this.
@@ -142,6 +166,23 @@ impl Endpoints<'_> {
     {
         let (full, sub) = subscription::<M>(self.node, self.id, self.remaps, name)?;
         Ok(listen(full, sub, on_msg))
+    }
+
+    /// As [`Endpoints::listen`], but `on_msg` is async and awaited before the next message is
+    /// taken: for a callback that awaits the output thread's acknowledgment of a safety input
+    /// and must not hold an async worker meanwhile.
+    pub fn listen_async<M, F, Fut>(
+        &mut self,
+        name: &str,
+        on_msg: F,
+    ) -> Result<JoinHandle<()>, EndpointError>
+    where
+        M: RosMessage + Send + Sync + 'static,
+        F: FnMut(M) -> Fut + Send + 'static,
+        Fut: std::future::Future<Output = ()> + Send,
+    {
+        let (full, sub) = subscription::<M>(self.node, self.id, self.remaps, name)?;
+        Ok(listen_async(full, sub, on_msg))
     }
 
     /// Subscribes to `name` with `qos` (a sensor's best effort) and hands each message to
@@ -223,11 +264,11 @@ impl ServiceMaker<'_> {
 
     /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
     /// of type `package/type_name` and the task that answers each request with `handler`, one
-    /// request at a time, in order. The handler runs on tokio's blocking pool: it may wait for
-    /// the output thread to take a safety input (up to `SAFETY_TAKE_BOUND`, 250 ms), and must
-    /// not hold an async worker that every other endpoint shares meanwhile. A handler that
-    /// waits for an answer of the output thread is async instead
-    /// ([`ServiceMaker::serve_async`]).
+    /// request at a time, in order. The handler runs on tokio's blocking pool: it may block (the
+    /// lifecycle's transitions wait there for the output thread to take the hold of the lines,
+    /// up to `SAFETY_TAKE_BOUND`, 250 ms) without holding an async worker that every other
+    /// endpoint shares. A handler that waits for an answer of the output thread (a reply or a
+    /// safety input's acknowledgment) can be async instead ([`ServiceMaker::serve_async`]).
     pub fn serve<Req, Resp>(
         &mut self,
         name: &str,
