@@ -11,9 +11,8 @@
 # guest at all (not Debian, or packages missing and not root) are they reported as skipped, with
 # the reason; a failed preparation or a guest that hangs fails the run.
 #
-# What waits on the network or times nothing runs beside the compiles: the Kilted set-up, the
-# GPIO guest's preparation and the vendored RustDDS's patch tests (their own compile) from the
-# start; from the release build on, the README's and docs' runnable commands (3b), the two
+# What waits on the network or times nothing runs beside the compiles: the Kilted set-up and
+# the GPIO guest's preparation from the start; from the release build on, the README's and docs' runnable commands (3b), the two
 # long rclpy memory tests (BESIDE_TESTS below)
 # and, in two pytest processes of their own, the rclpy tests marked `untimed`, each test on a ROS
 # domain of its own. The rclpy tests that time what the node does run one at a time after the
@@ -167,50 +166,6 @@ gpio_prepare_log="$LOG_DIR/gpio-vm-prepare.log"
 scripts/gpio-vm.sh --prepare >"$gpio_prepare_log" 2>&1 </dev/null &
 gpio_prepare_pid=$!
 
-# 1d. The vendored rustdds's patch (vendor/rustdds/README.pwm_actuator.md): the unit tests of
-# its changes. The crate is a path dependency, not a member of this package, so `cargo test`
-# (4) does not run them; its own other tests are upstream's and are not counted here.
-# A target directory of its own, because it shares little with the node's test build anyway:
-# its dev-dependencies and the node's dependencies enable different features of the crates both
-# use (proc-macro2, syn, log, futures-core, nix, rustix, ...), so that build's artifacts do not
-# fit it. Even as a workspace member, with one Cargo.lock and in the same target directory, it
-# compiled 118 of its 175 crates again (47 of them crates the node's build has, with other
-# features) and took 62 s instead of 71 s; a member would also be formatted by `cargo fmt
-# --all`, which would rewrite the upstream files.
-vendor_tests() {
-    cargo test --lib --locked --manifest-path vendor/rustdds/Cargo.toml \
-        --target-dir "$REPO/target/vendor-rustdds" -- \
-        data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
-        reply_written_before_its_reader_matched_goes_to_it_on_match cache_cleaning_ acknowledged_samples_beyond_depth_go_on_insert \
-        reply_outlives_the_history_depth_until_its_reader_matches held_reply_ \
-        unanswered_nack_is_repeated_until_the_samples_come \
-        endpoints_announce_their_user_data_in_sedp gone_participants_and_endpoints_leave_nothing_behind \
-        a_participant_back_within_its_attic_time_gets_its_endpoints_back \
-        samples_of_a_lost_participant_leave_built_in_topic_caches \
-        gone_writers_and_forgotten_instances_leave_the_read_state \
-        spdp_announcements_go_to_static_peers \
-        without_multicast_discovery_no_multicast_locator_is_announced \
-        events_set_on_the_grid_at_different_times_fall_due_together \
-        a_reader_behind_that_cannot_be_reached_gets_no_fast_heartbeat \
-        the_loops_periodic_events_fall_due_on_the_heartbeat_grid \
-        periodic_discovery_tasks_fall_due_together_on_the_grid \
-        rings_under_a_hold_wake_the_loop_once_when_it_ends a_hold_delivers_after_its_bounds \
-        a_sample_nobody_is_matched_to_does_not_wake_the_event_loop \
-        signals_to_the_event_loops_leave_them_running 2>&1 |
-        tee "$LOG_DIR/vendor-test.log"
-    return "${PIPESTATUS[0]}"
-}
-# It compiles in a target directory of its own and needs nothing the steps below make, so it
-# runs beside them from here, its compile filling what the set-up and the release build leave
-# of the two cores; waited for, its output printed and counted, after the Rust tests (4a).
-vendor_started=$SECONDS
-rm -f "$LOG_DIR/vendor-test.ended"
-(vendor_tests >/dev/null
-    rc=$?
-    echo "$SECONDS" >"$LOG_DIR/vendor-test.ended"
-    exit "$rc") &
-vendor_pid=$!
-
 # 2. Static checks.
 if ((quick)); then
     skipped_steps+=("cargo fmt" "cargo clippy")
@@ -360,24 +315,43 @@ if [[ -n "$doc_pid" ]]; then
     passed=$((passed + d_pass)) failed=$((failed + d_fail)) skipped=$((skipped + d_skip))
 fi
 
-# 4a. The rustdds patch tests started at 1d: their output, their time and their results.
-banner "rustdds patch tests (beside the steps since 1d)"
-vendor_rc=0
-wait "$vendor_pid" || vendor_rc=$?
-cat "$LOG_DIR/vendor-test.log"
-vendor_ended=$(cat "$LOG_DIR/vendor-test.ended" 2>/dev/null || echo "$SECONDS")
-vendor_when="$(beside_span "$vendor_started" "$LOG_DIR/vendor-test.ended")"
-if ((vendor_rc != 0)); then
-    failed_steps+=("rustdds patch tests")
-    printf -- '---- rustdds patch tests: FAILED (exit %d, %d s, %s)\n' "$vendor_rc" \
-        $((vendor_ended - vendor_started)) "$vendor_when"
-else
-    printf -- '---- rustdds patch tests: ok (%d s, %s)\n' $((vendor_ended - vendor_started)) \
-        "$vendor_when"
-fi
-step_times+=("$(printf '%6d s  %s (beside the steps, %s)' $((vendor_ended - vendor_started)) \
-    "rustdds patch tests" "$vendor_when")")
-
+# 4a. The vendored rustdds's patch (vendor/rustdds/README.pwm_actuator.md): the unit tests of
+# its changes. The crate is a path dependency, not a member of this package, so `cargo test`
+# above does not run them; its own other tests are upstream's and are not counted here.
+# A target directory of its own, because it shares little with the node's test build anyway:
+# its dev-dependencies and the node's dependencies enable different features of the crates both
+# use (proc-macro2, syn, log, futures-core, nix, rustix, ...), so that build's artifacts do not
+# fit it. Even as a workspace member, with one Cargo.lock and in the same target directory, it
+# compiled 118 of its 175 crates again (47 of them crates the node's build has, with other
+# features) and took 62 s instead of 71 s; a member would also be formatted by `cargo fmt
+# --all`, which would rewrite the upstream files. Not beside the steps either: run from the
+# start beside the release build, its compile took cores that build needed (252 s instead of
+# 145 s), and the timed rclpy tests started 89 s later.
+# shellcheck disable=SC2317  # called through run_step
+vendor_tests() {
+    cargo test --lib --locked --manifest-path vendor/rustdds/Cargo.toml \
+        --target-dir "$REPO/target/vendor-rustdds" -- \
+        data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
+        reply_written_before_its_reader_matched_goes_to_it_on_match cache_cleaning_ acknowledged_samples_beyond_depth_go_on_insert \
+        reply_outlives_the_history_depth_until_its_reader_matches held_reply_ \
+        unanswered_nack_is_repeated_until_the_samples_come \
+        endpoints_announce_their_user_data_in_sedp gone_participants_and_endpoints_leave_nothing_behind \
+        a_participant_back_within_its_attic_time_gets_its_endpoints_back \
+        samples_of_a_lost_participant_leave_built_in_topic_caches \
+        gone_writers_and_forgotten_instances_leave_the_read_state \
+        spdp_announcements_go_to_static_peers \
+        without_multicast_discovery_no_multicast_locator_is_announced \
+        events_set_on_the_grid_at_different_times_fall_due_together \
+        a_reader_behind_that_cannot_be_reached_gets_no_fast_heartbeat \
+        the_loops_periodic_events_fall_due_on_the_heartbeat_grid \
+        periodic_discovery_tasks_fall_due_together_on_the_grid \
+        rings_under_a_hold_wake_the_loop_once_when_it_ends a_hold_delivers_after_its_bounds \
+        a_sample_nobody_is_matched_to_does_not_wake_the_event_loop \
+        signals_to_the_event_loops_leave_them_running 2>&1 |
+        tee "$LOG_DIR/vendor-test.log"
+    return "${PIPESTATUS[0]}"
+}
+run_step "rustdds patch tests" vendor_tests
 read -r v_pass v_fail < <(awk '/^test result: /{for(i=1;i<=NF;i++){if($(i+1)~/^passed;?$/)p+=$i; if($(i+1)~/^failed;?$/)f+=$i}} END{print p+0, f+0}' "$LOG_DIR/vendor-test.log")
 printf 'rustdds patch tests: %d passed, %d failed\n' "$v_pass" "$v_fail"
 passed=$((passed + v_pass)) failed=$((failed + v_fail))
