@@ -34,7 +34,8 @@ minute it prints the figures so far. At the end it stops the node with SIGTERM a
   design).
 
 It exits 1 when the slope is above --max-slope-kb-per-min, or any of early edges, phases below
-the minimum, missing edge messages, disagreeing messages, a node exit other than 0 is not 0, and 2
+the minimum, missing edge messages, disagreeing messages and reports the node says on
+/diagnostics it dropped (`reports_dropped`) is not 0, or the node exits other than with 0; and 2
 when the node does not start.
 """
 
@@ -78,6 +79,9 @@ LOAD = {
 #: Duty command rate per channel, Hz.
 RATE_HZ = {"pw01": 10.0, "pw02": 2.0, "pw03": 10.0, "pw04": 10.0}
 SAMPLE_S = 10.0
+# The edge readers' history (messages) and how many waiting callbacks one turn of the loop runs.
+EDGE_READER_DEPTH = 5000
+SPIN_BATCH = 500
 TOGGLE_S = 5.0
 PARAMS_S = 30.0
 
@@ -204,9 +208,17 @@ class Controller:
         # Per channel: seq -> (level, lateness_ns) of every edge message received.
         self.edges: dict[str, dict[int, tuple[int, int]]] = {ch: {} for ch in CHANNELS}
         self.received = {"status": 0, "diagnostics": 0}
+        # The highest `reports_dropped` the node reported on /diagnostics: reports its output
+        # thread could not hand to the ROS side, lost before any message was published.
+        self.reports_dropped = 0
         for ch in CHANNELS:
+            # The node's edges writer keeps the last 100 samples (reliable); the history of
+            # this reader is deeper, so that this process falling behind for a while (it shares
+            # the machine with compiles in the test command) does not lose what its DDS layer
+            # has already received: pw03 sends 100 edges a second.
             n.create_subscription(
-                OutputEdge, f"{NODE}/{ch}/edges", lambda m, ch=ch: self._edge(ch, m), 100
+                OutputEdge, f"{NODE}/{ch}/edges", lambda m, ch=ch: self._edge(ch, m),
+                EDGE_READER_DEPTH,
             )
             n.create_subscription(ChannelStatus, f"{NODE}/{ch}/status", self._status, 10)
         n.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, 10)
@@ -224,11 +236,25 @@ class Controller:
     def _status(self, _m: ChannelStatus) -> None:
         self.received["status"] += 1
 
-    def _diagnostics(self, _m: DiagnosticArray) -> None:
+    def _diagnostics(self, m: DiagnosticArray) -> None:
         self.received["diagnostics"] += 1
+        for st in m.status:
+            for kv in st.values:
+                if kv.key == "reports_dropped" and kv.value.isdigit():
+                    self.reports_dropped = max(self.reports_dropped, int(kv.value))
 
     def spin(self, seconds: float) -> None:
+        """Waits up to `seconds` for a callback, then runs those already waiting (at most
+        SPIN_BATCH): one `spin_once` takes a single callback, fewer than pw03's edges come."""
         self.executor.spin_once(timeout_sec=max(0.0, seconds))
+        for _ in range(SPIN_BATCH):
+            before = self.taken()
+            self.executor.spin_once(timeout_sec=0.0)
+            if self.taken() == before:
+                break
+
+    def taken(self) -> int:
+        return sum(len(e) for e in self.edges.values()) + sum(self.received.values())
 
     def wait_matched(self, timeout_s: float) -> bool:
         end = time.monotonic() + timeout_s
@@ -508,6 +534,7 @@ def main() -> int:
         "edges_total": sum(c["trace_edges"] for c in per_channel.values()),
         "edge_messages_missing": lost,
         "edge_messages_disagreeing": disagree,
+        "reports_dropped_by_the_node": ctl.reports_dropped,
         **tr,
         "node_alive_until_sigterm": alive,
         "exit_code": code,
@@ -523,7 +550,7 @@ def main() -> int:
     elif slope > a.max_slope_kb_per_min:
         failures.append(f"RSS slope {slope:.2f} kB/min above {a.max_slope_kb_per_min:g}")
     for k in ("early_edges", "phases_below_minimum", "edge_messages_missing",
-              "edge_messages_disagreeing"):
+              "edge_messages_disagreeing", "reports_dropped_by_the_node"):
         if figures[k]:
             failures.append(f"{k}: {figures[k]}")
     if not alive:

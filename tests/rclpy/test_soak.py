@@ -5,7 +5,8 @@ twincat_ba channel, a 500 ms hold channel with a watchdog; an rclpy controller s
 duties at 10 Hz and 2 Hz, toggling an enable, changing parameters every 30 s; CSV trace on) for
 3 minutes against the node binary, on a ROS domain of its own, and requires it to pass: RSS slope
 after the first minute within the bound below, no early edge, no phase below its minimum, no
-edge message missing or disagreeing with the trace, exit 0 on SIGTERM.
+edge message missing or disagreeing with the trace, no report the node says on /diagnostics it
+dropped, exit 0 on SIGTERM.
 
 The bound is wide on purpose: RSS moves by a few hundred kB from one 10 s sample to the next
 (the heap is trimmed once a second, DDS caches are cleaned every 4 and 6 s), so the slope of a
