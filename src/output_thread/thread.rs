@@ -659,6 +659,21 @@ impl OutputThreadHandle {
         self.stop_and_join()
     }
 
+    /// [`OutputThreadHandle::shutdown`] for async code: it runs on tokio's blocking pool (it
+    /// may wait up to [`SHUTDOWN_WAIT`], 2 s, for a thread stuck in a write), so no async
+    /// worker is held meanwhile.
+    ///
+    /// # Panics
+    ///
+    /// Outside a tokio runtime.
+    pub async fn shutdown_async(self) -> Result<(), OutputThreadError> {
+        tokio::task::spawn_blocking(move || self.shutdown())
+            .await
+            // The shutdown panicked, or the runtime dropped it before it ran: either way the
+            // handle, dropped, has stopped the thread.
+            .unwrap_or(Err(OutputThreadError::Panicked))
+    }
+
     /// [`OutputThreadHandle::shutdown`]'s work, for it and for dropping the handle.
     fn stop_and_join(&mut self) -> Result<(), OutputThreadError> {
         self.stop.store(true, Ordering::SeqCst);

@@ -388,6 +388,42 @@ fn an_awaited_input_not_taken_in_time_switches_the_outputs_off() {
     ));
 }
 
+/// Stopping the thread from async code holds no thread: with the thread stuck in a write for
+/// 150 ms, a current-thread runtime's other task keeps running while the stop waits.
+#[test]
+fn an_awaited_shutdown_holds_no_thread() {
+    let (shared, e) = start(1, 50.0);
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let release = stalled_for(&shared, Duration::from_millis(150));
+    let (result, ticks) = rt.block_on(async move {
+        let stopping = Arc::new(AtomicBool::new(true));
+        let ticker = {
+            let stopping = Arc::clone(&stopping);
+            tokio::spawn(async move {
+                let mut ticks = 0u32;
+                while stopping.load(Ordering::SeqCst) {
+                    tokio::time::sleep(Duration::from_millis(5)).await;
+                    ticks += 1;
+                }
+                ticks
+            })
+        };
+        let result = e.handle.shutdown_async().await;
+        stopping.store(false, Ordering::SeqCst);
+        (result, ticker.await.unwrap())
+    });
+    release.join().unwrap();
+    result.unwrap();
+    assert!(
+        ticks >= 5,
+        "the runtime's other task ran {ticks} times while the stop waited"
+    );
+    assert!(!shared.any_high(), "every line off");
+}
+
 /// A change that must reach the output thread together (a parameter change touching several
 /// channels and valves) is queued whole or not at all: with room for one request, two are
 /// refused and the room is untouched.
