@@ -265,6 +265,13 @@ impl SafetyPath {
         self.slot.estop_latched()
     }
 
+    /// The planner's settings (`phase`, `max_simultaneous_on`) the slot holds: what the output
+    /// thread applies at its next wake-up, and what it has applied once the latest request is
+    /// taken.
+    pub fn bank(&self) -> Bank {
+        self.slot.wanted().bank
+    }
+
     /// Where request `request` stands now: taken (`Ok`), the thread stopped without taking it,
     /// or neither yet (`None`).
     fn look(&self, request: u64) -> Option<Result<(), NotTaken>> {
