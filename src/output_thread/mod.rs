@@ -247,7 +247,7 @@ pub(crate) mod worker;
 mod tests;
 
 pub use thread::{
-    monotonic_timer, spawn, spawn_with, Liveness, NotTaken, OutputThread, OutputThreadError,
-    OutputThreadHandle, OutputThreadOptions, ReportWaker, Reports, Requests, SafetyPath,
-    ThreadLoop, WriteFault, LIVENESS_TICK_NS, SAFETY_TAKE_BOUND, SHUTDOWN_WAIT,
+    monotonic_timer, spawn, spawn_with, Acknowledgment, Liveness, NotTaken, OutputThread,
+    OutputThreadError, OutputThreadHandle, OutputThreadOptions, ReportWaker, Reports, Requests,
+    SafetyPath, ThreadLoop, WriteFault, LIVENESS_TICK_NS, SAFETY_TAKE_BOUND, SHUTDOWN_WAIT,
 };

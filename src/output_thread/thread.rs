@@ -265,6 +265,13 @@ impl SafetyPath {
         self.slot.estop_latched()
     }
 
+    /// The planner's settings (`phase`, `max_simultaneous_on`) the slot holds: what the output
+    /// thread applies at its next wake-up, and what it has applied once the latest request is
+    /// taken.
+    pub fn bank(&self) -> Bank {
+        self.slot.wanted().bank
+    }
+
     /// Where request `request` stands now: taken (`Ok`), the thread stopped without taking it,
     /// or neither yet (`None`).
     fn look(&self, request: u64) -> Option<Result<(), NotTaken>> {
@@ -286,7 +293,8 @@ impl SafetyPath {
     /// the lines; returns how long that took (on tokio's clock). Holds no thread meanwhile: it
     /// awaits the thread's acknowledgment eventfd through tokio's reactor, so it returns as
     /// soon as the thread has written it (a stopped thread writes it too: then
-    /// [`NotTaken::Stopped`] at once), and [`NotTaken::Late`] exactly at `bound`.
+    /// [`NotTaken::Stopped`] at once), and [`NotTaken::Late`] exactly at `bound`. Only waits:
+    /// the emergency handle's fallback is [`SafetyPath::acknowledgment`]'s.
     ///
     /// # Panics
     ///
@@ -294,11 +302,23 @@ impl SafetyPath {
     /// one: `enable_all`), as every tokio I/O does.
     pub async fn wait_async(&self, request: u64, bound: Duration) -> Result<Duration, NotTaken> {
         let start = tokio::time::Instant::now();
-        let r = match tokio::time::timeout(bound, self.until_taken(request)).await {
+        self.wait_until(request, start + bound, bound)
+            .await
+            .map(|()| start.elapsed())
+    }
+
+    /// [`SafetyPath::wait_async`] up to `deadline` (on tokio's clock); `bound` is what a late
+    /// answer names.
+    async fn wait_until(
+        &self,
+        request: u64,
+        deadline: tokio::time::Instant,
+        bound: Duration,
+    ) -> Result<(), NotTaken> {
+        match tokio::time::timeout_at(deadline, self.until_taken(request)).await {
             Ok(r) => r,
             Err(_) => self.at_bound(request, bound),
-        };
-        r.map(|()| start.elapsed())
+        }
     }
 
     /// [`SafetyPath::wait_async`]'s wait, without the bound (the caller's timeout ends it).
@@ -374,21 +394,47 @@ impl SafetyPath {
         }
     }
 
-    /// [`SafetyPath::store`], then [`SafetyPath::wait_async`] up to [`SAFETY_TAKE_BOUND`]. A
+    /// Checks that the output thread takes request `request` (as [`SafetyPath::store`] has just
+    /// returned it) within [`SAFETY_TAKE_BOUND`] from now, and answers how long it took. A
     /// thread that still runs but did not take it in time has every output switched off
     /// through the emergency handle (the outputs stay off for the rest of the process: the
     /// thread's next write fails and it stops with an output fault); a stopped thread has left
-    /// them off. Either way no line is on when this returns an error.
+    /// them off. Either way no line is on when the answer is an error.
     ///
-    /// The input is stored before the first await: dropping the future stores it all the same,
-    /// and gives up only the acknowledgment and the emergency handle's fallback.
-    pub async fn take_async(&self, input: Input) -> Result<Duration, NotTaken> {
-        let request = self.store(input);
-        let r = self.wait_async(request, SAFETY_TAKE_BOUND).await;
-        if r.is_err() {
-            self.emergency.all_inactive();
+    /// The check runs apart from the answer: in a task of its own on the current tokio runtime
+    /// (on a plain thread where none runs, or for the rest of the bound when the runtime drops
+    /// the task). Dropping the [`Acknowledgment`] — its awaiting task cancelled, a timeout
+    /// around it — gives up only the answer: the input has been stored for the thread, so the
+    /// bound is checked all the same and the fallback still switches every output off.
+    pub fn acknowledgment(&self, request: u64) -> Acknowledgment {
+        let (reply, answer) = tokio::sync::oneshot::channel();
+        let check = Check {
+            path: self.clone(),
+            request,
+            start: tokio::time::Instant::now(),
+        };
+        match tokio::runtime::Handle::try_current() {
+            Ok(runtime) => {
+                // The task is detached: the answer comes back through `reply`.
+                drop(runtime.spawn(check.run(reply)));
+            }
+            Err(_) => check.on_plain_thread(reply),
         }
-        r
+        Acknowledgment {
+            answer,
+            emergency: Arc::clone(&self.emergency),
+        }
+    }
+
+    /// [`SafetyPath::store`], then its [`SafetyPath::acknowledgment`] awaited: answered once
+    /// the output thread has applied the input and written the lines, or at
+    /// [`SAFETY_TAKE_BOUND`] with every output switched off through the emergency handle.
+    ///
+    /// The input is stored, and its check begun, before the first await: dropping the future
+    /// stores it all the same and gives up only the answer, never the emergency handle's
+    /// fallback.
+    pub async fn take_async(&self, input: Input) -> Result<Duration, NotTaken> {
+        self.acknowledgment(self.store(input)).await
     }
 
     /// As [`SafetyPath::take_async`], for a plain thread: waits with [`SafetyPath::wait`] (the
@@ -410,6 +456,121 @@ impl SafetyPath {
     /// Whether request `request` has been taken.
     pub fn taken(&self, request: u64) -> bool {
         self.slot.taken(request)
+    }
+}
+
+/// The answer of one safety input's check ([`SafetyPath::acknowledgment`]): a future of how
+/// long the output thread took to apply the input and write the lines, or why it did not. The
+/// check itself runs apart from this future; dropping it gives up only the answer.
+pub struct Acknowledgment {
+    answer: tokio::sync::oneshot::Receiver<Result<Duration, NotTaken>>,
+    emergency: Arc<dyn EmergencyOff>,
+}
+
+impl std::future::Future for Acknowledgment {
+    type Output = Result<Duration, NotTaken>;
+
+    fn poll(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Self::Output> {
+        std::pin::Pin::new(&mut self.answer).poll(cx).map(|answer| {
+            answer.unwrap_or_else(|_| {
+                // The check ended without an answer (it panicked): nothing says the input was
+                // taken, so every output goes off.
+                self.emergency.all_inactive();
+                Err(NotTaken::Late(SAFETY_TAKE_BOUND))
+            })
+        })
+    }
+}
+
+/// Where a check's answer goes.
+type Reply = tokio::sync::oneshot::Sender<Result<Duration, NotTaken>>;
+
+/// One safety input's check: request `request`, stored at `start` (tokio's clock), must be
+/// taken by `start` + [`SAFETY_TAKE_BOUND`].
+#[derive(Clone)]
+struct Check {
+    path: SafetyPath,
+    request: u64,
+    start: tokio::time::Instant,
+}
+
+impl Check {
+    /// The check as a task: awaits the acknowledgment up to the bound. Should the runtime drop
+    /// the task first (it shuts down), [`Unanswered`] checks the rest on a plain thread.
+    async fn run(self, reply: Reply) {
+        let mut pending = Unanswered {
+            check: self.clone(),
+            reply: Some(reply),
+        };
+        let r = self
+            .path
+            .wait_until(
+                self.request,
+                self.start + SAFETY_TAKE_BOUND,
+                SAFETY_TAKE_BOUND,
+            )
+            .await;
+        if let Some(reply) = pending.reply.take() {
+            let _ = reply.send(self.outcome(r, self.start.elapsed()));
+        }
+    }
+
+    /// The check for the rest of the bound on a plain thread of its own (asleep in `ppoll` on
+    /// the acknowledgment eventfd). A thread that cannot be started leaves nothing to check
+    /// the bound: every output goes off at once.
+    fn on_plain_thread(self, reply: Reply) {
+        let left =
+            (self.start + SAFETY_TAKE_BOUND).saturating_duration_since(tokio::time::Instant::now());
+        let waited_before = self.start.elapsed();
+        let emergency = Arc::clone(&self.path.emergency);
+        let spawned = std::thread::Builder::new()
+            .name("pwm-safety-ack".into())
+            .spawn(move || {
+                let answer = match self.path.wait(self.request, left) {
+                    Ok(waited) => self.outcome(Ok(()), waited_before + waited),
+                    Err(e) => self.outcome(Err(e), left),
+                };
+                let _ = reply.send(answer);
+            });
+        if spawned.is_err() {
+            log::error!(
+                "cannot start a thread to check a safety input's acknowledgment: every output \
+                 switched off by the emergency handle"
+            );
+            emergency.all_inactive();
+        }
+    }
+
+    /// The answer for `r` after `took`; an error first switches every output off.
+    fn outcome(&self, r: Result<(), NotTaken>, took: Duration) -> Result<Duration, NotTaken> {
+        match r {
+            Ok(()) => Ok(took),
+            Err(e) => {
+                self.path.emergency.all_inactive();
+                Err(match e {
+                    NotTaken::Late(_) => NotTaken::Late(SAFETY_TAKE_BOUND),
+                    stopped => stopped,
+                })
+            }
+        }
+    }
+}
+
+/// A check not answered yet: dropped so (its task dropped by a runtime that shuts down, or
+/// unwinding), it hands the rest of the bound to a plain thread.
+struct Unanswered {
+    check: Check,
+    reply: Option<Reply>,
+}
+
+impl Drop for Unanswered {
+    fn drop(&mut self) {
+        if let Some(reply) = self.reply.take() {
+            self.check.clone().on_plain_thread(reply);
+        }
     }
 }
 
@@ -657,6 +818,21 @@ impl OutputThreadHandle {
     /// is [`OutputThreadError::Hung`].
     pub fn shutdown(mut self) -> Result<(), OutputThreadError> {
         self.stop_and_join()
+    }
+
+    /// [`OutputThreadHandle::shutdown`] for async code: it runs on tokio's blocking pool (it
+    /// may wait up to [`SHUTDOWN_WAIT`], 2 s, for a thread stuck in a write), so no async
+    /// worker is held meanwhile.
+    ///
+    /// # Panics
+    ///
+    /// Outside a tokio runtime.
+    pub async fn shutdown_async(self) -> Result<(), OutputThreadError> {
+        tokio::task::spawn_blocking(move || self.shutdown())
+            .await
+            // The shutdown panicked, or the runtime dropped it before it ran: either way the
+            // handle, dropped, has stopped the thread.
+            .unwrap_or(Err(OutputThreadError::Panicked))
     }
 
     /// [`OutputThreadHandle::shutdown`]'s work, for it and for dropping the handle.
@@ -1277,6 +1453,102 @@ mod safety_ack_tests {
         assert_eq!(tokio::time::Instant::now(), start);
         assert_eq!(off.0.load(Ordering::SeqCst), 0);
         thread.await.unwrap();
+    }
+
+    /// A waiter that gives up before the bound (a timeout around it, its task cancelled)
+    /// leaves the check running: every output goes off exactly at the bound all the same.
+    #[tokio::test(start_paused = true)]
+    async fn a_dropped_wait_still_switches_everything_off_at_the_bound() {
+        let (path, off) = fake();
+        let start = tokio::time::Instant::now();
+        let gave_up =
+            tokio::time::timeout(SAFETY_TAKE_BOUND / 5, path.take_async(Input::EStop(true))).await;
+        assert!(gave_up.is_err(), "the waiter gave up before the bound");
+        assert!(path.estop_latched(), "the input is stored all the same");
+        tokio::time::sleep_until(start + SAFETY_TAKE_BOUND - Duration::from_millis(1)).await;
+        assert_eq!(off.0.load(Ordering::SeqCst), 0, "not before the bound");
+        tokio::time::sleep_until(start + SAFETY_TAKE_BOUND + Duration::from_millis(1)).await;
+        assert_eq!(
+            off.0.load(Ordering::SeqCst),
+            1,
+            "every output off at the bound"
+        );
+        // A task that waits is aborted: the same.
+        let (path, off) = fake();
+        let start = tokio::time::Instant::now();
+        let waiter = {
+            let path = path.clone();
+            tokio::spawn(async move { path.take_async(Input::Live(false)).await })
+        };
+        tokio::time::sleep(SAFETY_TAKE_BOUND / 5).await;
+        waiter.abort();
+        assert!(waiter.await.unwrap_err().is_cancelled());
+        tokio::time::sleep_until(start + SAFETY_TAKE_BOUND + Duration::from_millis(1)).await;
+        assert_eq!(off.0.load(Ordering::SeqCst), 1);
+        // An acknowledgment never awaited: the same.
+        let (path, off) = fake();
+        drop(path.acknowledgment(path.store(Input::Live(false))));
+        tokio::time::sleep(SAFETY_TAKE_BOUND + Duration::from_millis(1)).await;
+        assert_eq!(off.0.load(Ordering::SeqCst), 1);
+    }
+
+    /// One taken in time after its waiter gave up switches nothing off.
+    #[tokio::test(start_paused = true)]
+    async fn a_dropped_wait_taken_in_time_switches_nothing_off() {
+        let (path, off) = fake();
+        let gave_up =
+            tokio::time::timeout(SAFETY_TAKE_BOUND / 5, path.take_async(Input::EStop(true))).await;
+        assert!(gave_up.is_err());
+        // The store has woken the task playing the thread: it takes the input at once.
+        thread(&path, false).await.unwrap();
+        tokio::time::sleep(2 * SAFETY_TAKE_BOUND).await;
+        assert_eq!(off.0.load(Ordering::SeqCst), 0);
+    }
+
+    /// A runtime that shuts down while a check runs hands the rest of the bound to a plain
+    /// thread; with no runtime at all the check runs on one from the start.
+    #[test]
+    fn a_check_outlives_its_runtime() {
+        let (path, off) = fake();
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        let start = std::time::Instant::now();
+        let gave_up = rt.block_on(async {
+            tokio::time::timeout(
+                Duration::from_millis(20),
+                path.take_async(Input::EStop(true)),
+            )
+            .await
+        });
+        assert!(gave_up.is_err());
+        drop(rt);
+        assert_eq!(off.0.load(Ordering::SeqCst), 0, "not before the bound");
+        while off.0.load(Ordering::SeqCst) == 0 {
+            assert!(
+                start.elapsed() < 8 * SAFETY_TAKE_BOUND,
+                "never switched off"
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert!(
+            start.elapsed() >= SAFETY_TAKE_BOUND,
+            "{:?}",
+            start.elapsed()
+        );
+        // No runtime: a plain thread checks, and the answer can still be awaited.
+        let (path, off) = fake();
+        let start = std::time::Instant::now();
+        let ack = path.acknowledgment(path.store(Input::Live(false)));
+        let answer = futures::executor::block_on(ack);
+        assert_eq!(answer, Err(NotTaken::Late(SAFETY_TAKE_BOUND)));
+        assert!(
+            start.elapsed() >= SAFETY_TAKE_BOUND,
+            "{:?}",
+            start.elapsed()
+        );
+        assert_eq!(off.0.load(Ordering::SeqCst), 1);
     }
 
     #[test]

@@ -747,16 +747,18 @@ async fn serve(
     }
     quit.store(true, Ordering::SeqCst);
     wake_reports.wake();
-    let reporter = match pump_thread.join() {
-        Ok(r) => Some(r),
-        Err(_) => {
+    // Joined on tokio's blocking pool, as the output thread below: no async worker waits.
+    let reporter = match tokio::task::spawn_blocking(move || pump_thread.join()).await {
+        Ok(Ok(r)) => Some(r),
+        _ => {
             warn!("the report thread panicked");
             None
         }
     };
-    // Drives every output inactive, flushes the traces, joins the output thread.
+    // Drives every output inactive, flushes the traces, joins the output thread (up to
+    // SHUTDOWN_WAIT, 2 s, for a thread stuck in a write).
     let fault = handle.fault();
-    let result = handle.shutdown();
+    let result = handle.shutdown_async().await;
     for t in tasks {
         let _ = t.await;
     }

@@ -2,7 +2,8 @@
 //! stuck in a write (as a hung driver or CPU starvation would leave it) while commands fill the
 //! queue, an e-stop, a hold of the lines and a lowered `max_simultaneous_on` are still taken —
 //! first, as soon as the thread runs again — and acknowledged only once written; one the thread
-//! does not take within the bound has the outputs switched off by the emergency handle.
+//! does not take within the bound has the outputs switched off by the emergency handle, whether
+//! or not anyone still waits for it.
 
 use pwm_actuator::core::{Bank, ChannelParams, Command, Level, Phase};
 use pwm_actuator::output::{EmergencyOff, ErrorKind, LineChange, Output, OutputError};
@@ -386,6 +387,99 @@ fn an_awaited_input_not_taken_in_time_switches_the_outputs_off() {
         e.handle.shutdown(),
         Err(OutputThreadError::OutputFault { .. })
     ));
+}
+
+/// A waiter that gives up before the bound (a timeout around it, a cancelled task) takes no
+/// part of the check with it: the input has been stored for the thread, so with the thread
+/// stuck in a write every line still goes off through the emergency handle when the bound
+/// passes.
+#[test]
+fn an_input_whose_waiter_gave_up_still_switches_the_outputs_off_at_the_bound() {
+    let (shared, e) = start(2, 90.0);
+    std::thread::sleep(Duration::from_millis(50));
+    shared.stall();
+    let safety = e.requests.safety();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let start = Instant::now();
+    let gave_up = rt.block_on(async {
+        tokio::time::timeout(
+            Duration::from_millis(20),
+            safety.take_async(Input::EStop(true)),
+        )
+        .await
+    });
+    assert!(gave_up.is_err(), "the waiter gave up before the bound");
+    assert!(
+        !shared.tripped.load(Ordering::SeqCst),
+        "not before the bound"
+    );
+    // The runtime runs on, as the node's does, and with it the check.
+    rt.block_on(async {
+        while !shared.tripped.load(Ordering::SeqCst) {
+            assert!(
+                start.elapsed() < 4 * SAFETY_TAKE_BOUND,
+                "no emergency handle within {:?}",
+                start.elapsed()
+            );
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    });
+    assert!(
+        start.elapsed() >= SAFETY_TAKE_BOUND,
+        "{:?}",
+        start.elapsed()
+    );
+    assert!(!shared.any_high(), "every line off");
+    shared.release();
+    let start = Instant::now();
+    while !e.handle.is_finished() {
+        assert!(start.elapsed() < Duration::from_secs(5), "the thread stops");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert!(!shared.any_high());
+    assert!(matches!(
+        e.handle.shutdown(),
+        Err(OutputThreadError::OutputFault { .. })
+    ));
+}
+
+/// Stopping the thread from async code holds no thread: with the thread stuck in a write for
+/// 150 ms, a current-thread runtime's other task keeps running while the stop waits.
+#[test]
+fn an_awaited_shutdown_holds_no_thread() {
+    let (shared, e) = start(1, 50.0);
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let release = stalled_for(&shared, Duration::from_millis(150));
+    let (result, ticks) = rt.block_on(async move {
+        let stopping = Arc::new(AtomicBool::new(true));
+        let ticker = {
+            let stopping = Arc::clone(&stopping);
+            tokio::spawn(async move {
+                let mut ticks = 0u32;
+                while stopping.load(Ordering::SeqCst) {
+                    tokio::time::sleep(Duration::from_millis(5)).await;
+                    ticks += 1;
+                }
+                ticks
+            })
+        };
+        let result = e.handle.shutdown_async().await;
+        stopping.store(false, Ordering::SeqCst);
+        (result, ticker.await.unwrap())
+    });
+    release.join().unwrap();
+    result.unwrap();
+    assert!(
+        ticks >= 5,
+        "the runtime's other task ran {ticks} times while the stop waited"
+    );
+    assert!(!shared.any_high(), "every line off");
 }
 
 /// A change that must reach the output thread together (a parameter change touching several

@@ -204,3 +204,66 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
     assert!(ended, "the report thread saw the output thread end");
     drop(reporter);
 }
+
+/// Two parameter changes at once reach the output thread in the order the store took them:
+/// here the first change's planner is awaited only after the second change is done whole (as
+/// when the first's task is descheduled as soon as it has released the store), and the output
+/// thread still ends with the store's planner, the second's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_planner_changes_reach_the_output_thread_in_the_stores_order() {
+    let dom = Domain::acquire();
+    let ctx = Context::with_options(ContextOptions::new().domain_id(dom.id)).unwrap();
+    let mut node = ctx
+        .new_node(
+            NodeName::new("/", "order_test").unwrap(),
+            NodeOptions::new().start_parameter_services(false),
+        )
+        .unwrap();
+    let events = node
+        .create_publisher(&ctx.get_parameter_events_topic(), None)
+        .unwrap();
+    let store = ParamStore::new(1);
+    let started = output_thread::spawn(
+        vec![store.channel_config(0).unwrap()],
+        FailingOutput {
+            ok_writes: usize::MAX,
+        },
+        OutputThreadOptions {
+            bank: store.node_settings().bank,
+            ..OutputThreadOptions::default()
+        },
+    )
+    .unwrap();
+    let (notes_tx, _notes_rx) = std::sync::mpsc::sync_channel(NOTE_QUEUE);
+    let state = Arc::new(NodeState::from_store(&store));
+    let inputs = Inputs::new(
+        "/order_test".into(),
+        store,
+        started.requests,
+        events,
+        notes_tx,
+        state,
+    );
+    let limit = |n| {
+        vec![(
+            "max_simultaneous_on".to_string(),
+            ParameterValue::Integer(n),
+        )]
+    };
+
+    let first = inputs.apply_params(&limit(2), "first").unwrap();
+    let second = inputs.apply_params(&limit(1), "second").unwrap();
+    inputs.announce(second).await;
+    inputs.announce(first).await;
+
+    let stored = inputs.with_params(|s| s.node_settings().bank);
+    assert_eq!(stored.max_on, 1, "the store holds the later change");
+    // Both acknowledgments came (none late: no emergency handle, no error), so the output
+    // thread has read the slot since the last store: it runs with what the slot holds.
+    assert_eq!(
+        inputs.safety().bank(),
+        stored,
+        "the output thread ends with the store's planner"
+    );
+    started.handle.shutdown().unwrap();
+}

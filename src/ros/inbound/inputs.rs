@@ -5,7 +5,9 @@
 //! "One state, two doors": the parameter services and the `~/<ch>/params` topic both go through
 //! [`Inputs::set_params`], which checks a change whole, hands the new channel configurations to
 //! the output thread, and only then commits the values and announces them on
-//! `/parameter_events`. A refused change leaves everything as it was and is told to the
+//! `/parameter_events`. A new planner goes to the output thread's safety path under the
+//! store's lock, with the commit: concurrent changes reach the thread in the order the store
+//! took them. A refused change leaves everything as it was and is told to the
 //! reporter (for `/diagnostics`) through its small queue, as are the rates it keeps.
 //!
 //! The locks here (the parameter store, the request queue's producer, the last enables) are
@@ -16,9 +18,11 @@
 use crate::clock;
 use crate::core::{split_command, Command, Nanos};
 use crate::output::panic_off::lock_ignore_poison as lock;
-use crate::output_thread::{Input, OutputThreadError, Request, Requests, SafetyPath};
+use crate::output_thread::{
+    Acknowledgment, Input, OutputThreadError, Request, Requests, SafetyPath,
+};
 use crate::ros::config::params::ChannelStart;
-use crate::ros::config::params::{self, show_value, ParamError, ParamStore, Stage};
+use crate::ros::config::params::{self, show_value, Accepted, ParamError, ParamStore, Stage};
 use crate::ros::config::split::SplitPair;
 use crate::ros::inbound::node_state::NodeState;
 use crate::ros::interface::msg;
@@ -66,6 +70,23 @@ pub enum ChangeError {
         #[source]
         source: OutputThreadError,
     },
+}
+
+/// A parameter change [`Inputs::apply_params`] has applied: committed to the store, its
+/// channel and valve configurations queued for the output thread and its planner, if it
+/// changed, stored for the thread. [`Inputs::announce`] finishes it.
+pub struct AppliedChange {
+    /// The door it came through, for the log.
+    door: String,
+    accepted: Accepted,
+    /// The changed values, for `/parameter_events`.
+    changed: Vec<raw::Parameter>,
+    /// The output thread's acknowledgment of the new planner, when the planner changed.
+    bank: Option<Acknowledgment>,
+    /// The new `status_rate_hz`, Hz, when it changed.
+    status_rate_hz: Option<f64>,
+    /// The new `edge_log_rate`, lines per second and channel, when it changed.
+    edge_log_rate: Option<u32>,
 }
 
 /// The state the ROS callbacks share (see the module documentation).
@@ -197,58 +218,105 @@ impl Inputs {
     /// Applies a parameter change through either door (`door` names it in the log), checked
     /// whole; see the module documentation. A change of the node's planner is answered only
     /// once the output thread has taken it (awaited, up to `SAFETY_TAKE_BOUND`, 250 ms).
+    /// [`Inputs::apply_params`], then [`Inputs::announce`].
     pub async fn set_params(
         &self,
         items: Vec<(String, ParameterValue)>,
         door: &str,
     ) -> Result<(), ChangeError> {
-        // The store's lock is held for the check and the commit only, never across an await.
-        let (accepted, before, after, changed) = {
-            let mut store = lock(&self.params);
-            let accepted = match store.check(&items, Stage::Live) {
-                Ok(a) => a,
-                Err(e) => {
-                    drop(store);
-                    self.refused(&items, door, &e.to_string());
-                    return Err(e.into());
-                }
-            };
-            // The output thread first, all the new configurations or none: if it cannot take them,
-            // nothing changes.
-            let new: Vec<Request> = accepted
-                .configs
-                .iter()
-                .map(|&(channel, cfg)| Request {
-                    channel,
-                    input: Input::Config(cfg),
-                })
-                .chain(
-                    accepted
-                        .valve_configs
-                        .iter()
-                        .map(|&(valve, config)| Request {
-                            channel: 0,
-                            input: Input::ValveConfig { valve, config },
-                        }),
-                )
-                .collect();
-            if let Err(source) = lock(&self.requests).send_all(&new) {
+        let change = self.apply_params(&items, door)?;
+        self.announce(change).await;
+        Ok(())
+    }
+
+    /// A parameter change's first half, all under the store's lock and never blocking: checks
+    /// it whole, queues the new channel and valve configurations for the output thread (all or
+    /// none: if it cannot take them, nothing changes), commits the values, and stores a changed
+    /// planner in the safety path. The planner is stored under the same lock as the commit, so
+    /// the output thread takes the planners of concurrent changes in the order the store
+    /// committed them, and ends with the store's. A refusal is logged and told to the reporter
+    /// here.
+    pub fn apply_params(
+        &self,
+        items: &[(String, ParameterValue)],
+        door: &str,
+    ) -> Result<AppliedChange, ChangeError> {
+        let mut store = lock(&self.params);
+        let accepted = match store.check(items, Stage::Live) {
+            Ok(a) => a,
+            Err(e) => {
                 drop(store);
-                let e = ChangeError::OutputThread { source };
-                self.refused(&items, door, &e.to_string());
-                return Err(e);
+                self.refused(items, door, &e.to_string());
+                return Err(e.into());
             }
-            let before = store.node_settings();
-            let changed = store.commit(&accepted);
-            self.state.apply_params(&store);
-            let after = store.node_settings();
-            (accepted, before, after, changed)
         };
-        if after.bank != before.bank {
-            // Through the safety path (a lowered limit must not wait behind commands), and
-            // answered only once the output thread has it: a lowered limit acts at once, the
-            // phase at each channel's next period start.
-            if let Err(e) = self.safety.take_async(Input::Bank(after.bank)).await {
+        // The output thread first, all the new configurations or none: if it cannot take them,
+        // nothing changes.
+        let new: Vec<Request> = accepted
+            .configs
+            .iter()
+            .map(|&(channel, cfg)| Request {
+                channel,
+                input: Input::Config(cfg),
+            })
+            .chain(
+                accepted
+                    .valve_configs
+                    .iter()
+                    .map(|&(valve, config)| Request {
+                        channel: 0,
+                        input: Input::ValveConfig { valve, config },
+                    }),
+            )
+            .collect();
+        if let Err(source) = lock(&self.requests).send_all(&new) {
+            drop(store);
+            let e = ChangeError::OutputThread { source };
+            self.refused(items, door, &e.to_string());
+            return Err(e);
+        }
+        let before = store.node_settings();
+        let changed = store.commit(&accepted);
+        self.state.apply_params(&store);
+        let after = store.node_settings();
+        // Through the safety path (a lowered limit must not wait behind commands): storing
+        // never blocks, and its check begins now; the acknowledgment is awaited once the lock
+        // is released.
+        let bank = (after.bank != before.bank).then(|| {
+            self.safety
+                .acknowledgment(self.safety.store(Input::Bank(after.bank)))
+        });
+        drop(store);
+        Ok(AppliedChange {
+            door: door.to_string(),
+            accepted,
+            changed,
+            bank,
+            status_rate_hz: (after.status_rate_hz != before.status_rate_hz)
+                .then_some(after.status_rate_hz),
+            edge_log_rate: (after.edge_log_rate != before.edge_log_rate)
+                .then_some(after.edge_log_rate),
+        })
+    }
+
+    /// A parameter change's second half, after [`Inputs::apply_params`]: awaits the output
+    /// thread's acknowledgment of a changed planner (a lowered limit acts at once, the phase
+    /// at each channel's next period start; one not taken within `SAFETY_TAKE_BOUND`, 250 ms,
+    /// has every output switched off through the emergency handle), then logs the change,
+    /// tells the reporter of changed rates and announces it on `/parameter_events`. A change
+    /// dropped before this is neither logged nor announced, but its planner is checked all the
+    /// same ([`SafetyPath::acknowledgment`]).
+    pub async fn announce(&self, change: AppliedChange) {
+        let AppliedChange {
+            door,
+            accepted,
+            changed,
+            bank,
+            status_rate_hz,
+            edge_log_rate,
+        } = change;
+        if let Some(ack) = bank {
+            if let Err(e) = ack.await {
                 log::error!(
                     "the planner's new settings were not taken: {e}; every output switched off \
                      by the emergency handle"
@@ -261,17 +329,16 @@ impl Inputs {
         for (name, value) in &accepted.changes {
             info!("parameter {name} = {} (via {door})", show_value(value));
         }
-        if after.status_rate_hz != before.status_rate_hz {
-            self.note(Note::StatusRate(after.status_rate_hz));
+        if let Some(hz) = status_rate_hz {
+            self.note(Note::StatusRate(hz));
         }
-        if after.edge_log_rate != before.edge_log_rate {
-            self.note(Note::EdgeLogRate(after.edge_log_rate));
+        if let Some(rate) = edge_log_rate {
+            self.note(Note::EdgeLogRate(rate));
         }
         if accepted.changes.is_empty() {
             debug!("parameters unchanged (via {door})");
         }
         self.publish_param_event(Vec::new(), changed);
-        Ok(())
     }
 
     /// Logs a refusal and tells the reporter, for the diagnostics of the channels it names.

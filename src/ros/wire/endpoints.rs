@@ -93,21 +93,16 @@ pub(crate) fn subscription_with<M: RosMessage + 'static>(
     Ok((full, s))
 }
 
-/// Runs `on_msg` for every message of `sub`, until the task is aborted.
+/// Runs `on_msg` for every message of `sub`, until the task is aborted: [`listen_async`]'s loop
+/// with a callback that is done when it returns.
 pub(crate) fn listen<M, F>(full: String, sub: Subscription<M>, mut on_msg: F) -> JoinHandle<()>
 where
     M: Message + Send + Sync + 'static,
     F: FnMut(M) + Send + 'static,
 {
-    tokio::spawn(async move {
-        let stream = sub.async_stream();
-        futures::pin_mut!(stream);
-        while let Some(r) = stream.next().await {
-            match r {
-                Ok((m, _info)) => on_msg(m),
-                Err(e) => warn!("{full}: unreadable message: {e}"),
-            }
-        }
+    listen_async(full, sub, move |m| {
+        on_msg(m);
+        std::future::ready(())
     })
 }
 
