@@ -221,7 +221,7 @@ impl AsRawFd for AckFd {
 ///
 /// A safety input is stored and the thread woken first; the caller then waits for the
 /// acknowledgment, which the thread gives once it has applied the input and written the lines:
-/// it stores the slot's "taken" counter and writes an eventfd ([`Ack`]). Async code awaits that
+/// it stores the slot's "taken" counter and writes an eventfd (`Ack`). Async code awaits that
 /// eventfd through tokio's reactor ([`SafetyPath::take_async`]); a plain thread sleeps in
 /// `ppoll` on it ([`SafetyPath::take`]). Neither polls the counter on a clock.
 #[derive(Clone)]
