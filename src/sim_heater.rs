@@ -86,6 +86,8 @@ pub struct SimHeaterOptions {
     pub record: Option<PathBuf>,
     /// Also act as the user: publish this setpoint (°C) on the channel's ~/<ch>/setpoint once
     /// a second
+    // The text is `--help`'s, where `<ch>` is no HTML tag.
+    #[allow(rustdoc::invalid_html_tags)]
     #[arg(long, value_name = "C")]
     pub setpoint: Option<f64>,
     /// Print the temperature and the line's share of on time this often, s (0: never)

@@ -37,7 +37,7 @@ pub enum Input {
     /// ignored. While held the heartbeat line rests inactive.
     Live(bool),
     /// Sets the node-level planner: `phase` and `max_simultaneous_on` (see
-    /// [`Bank`](crate::core::Bank)); the request's channel is ignored. Takes effect at each
+    /// [`Bank`]); the request's channel is ignored. Takes effect at each
     /// channel's next period start.
     Bank(Bank),
     /// A temperature reading of the channel's feedback, °C (any value: NaN and infinities

@@ -221,7 +221,7 @@ impl AsRawFd for AckFd {
 ///
 /// A safety input is stored and the thread woken first; the caller then waits for the
 /// acknowledgment, which the thread gives once it has applied the input and written the lines:
-/// it stores the slot's "taken" counter and writes an eventfd ([`Ack`]). Async code awaits that
+/// it stores the slot's "taken" counter and writes an eventfd (`Ack`). Async code awaits that
 /// eventfd through tokio's reactor ([`SafetyPath::take_async`]); a plain thread sleeps in
 /// `ppoll` on it ([`SafetyPath::take`]). Neither polls the counter on a clock.
 #[derive(Clone)]
@@ -415,8 +415,14 @@ impl SafetyPath {
         };
         match tokio::runtime::Handle::try_current() {
             Ok(runtime) => {
-                // The task is detached: the answer comes back through `reply`.
-                drop(runtime.spawn(check.run(reply)));
+                // The task is detached: the answer comes back through `reply`. The guard is
+                // the task's before its first poll: a runtime that has shut down drops the
+                // task unpolled, and the check goes to a plain thread all the same.
+                let pending = Unanswered {
+                    check,
+                    reply: Some(reply),
+                };
+                drop(runtime.spawn(pending.run()));
             }
             Err(_) => check.on_plain_thread(reply),
         }
@@ -498,26 +504,6 @@ struct Check {
 }
 
 impl Check {
-    /// The check as a task: awaits the acknowledgment up to the bound. Should the runtime drop
-    /// the task first (it shuts down), [`Unanswered`] checks the rest on a plain thread.
-    async fn run(self, reply: Reply) {
-        let mut pending = Unanswered {
-            check: self.clone(),
-            reply: Some(reply),
-        };
-        let r = self
-            .path
-            .wait_until(
-                self.request,
-                self.start + SAFETY_TAKE_BOUND,
-                SAFETY_TAKE_BOUND,
-            )
-            .await;
-        if let Some(reply) = pending.reply.take() {
-            let _ = reply.send(self.outcome(r, self.start.elapsed()));
-        }
-    }
-
     /// The check for the rest of the bound on a plain thread of its own (asleep in `ppoll` on
     /// the acknowledgment eventfd). A thread that cannot be started leaves nothing to check
     /// the bound: every output goes off at once.
@@ -564,6 +550,27 @@ impl Check {
 struct Unanswered {
     check: Check,
     reply: Option<Reply>,
+}
+
+impl Unanswered {
+    /// The check as a task: awaits the acknowledgment up to the bound. Should the runtime drop
+    /// the task first (it shuts down, or had shut down before the task's first poll), the drop
+    /// checks the rest on a plain thread.
+    async fn run(mut self) {
+        let check = &self.check;
+        let r = check
+            .path
+            .wait_until(
+                check.request,
+                check.start + SAFETY_TAKE_BOUND,
+                SAFETY_TAKE_BOUND,
+            )
+            .await;
+        let answer = check.outcome(r, check.start.elapsed());
+        if let Some(reply) = self.reply.take() {
+            let _ = reply.send(answer);
+        }
+    }
 }
 
 impl Drop for Unanswered {
@@ -1549,6 +1556,52 @@ mod safety_ack_tests {
             start.elapsed()
         );
         assert_eq!(off.0.load(Ordering::SeqCst), 1);
+    }
+
+    /// A runtime that has shut down drops a task spawned on it before its first poll: the
+    /// check goes to a plain thread all the same. Taken in time, it is answered so, with no
+    /// emergency off; never taken, with its answer given up, every output goes off at the
+    /// bound.
+    #[test]
+    fn a_check_begun_on_a_runtime_that_has_shut_down_runs_on_a_plain_thread() {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        let handle = rt.handle().clone();
+        drop(rt);
+        let _entered = handle.enter();
+        let (path, off) = fake();
+        let request = path.store(Input::EStop(true));
+        let taker = {
+            let path = path.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(20));
+                path.slot.mark_taken(path.slot.wanted().request);
+                path.ack.signal();
+            })
+        };
+        let answer = futures::executor::block_on(path.acknowledgment(request));
+        taker.join().unwrap();
+        let took = answer.expect("taken in time");
+        assert!(took >= Duration::from_millis(20), "{took:?}");
+        assert_eq!(off.0.load(Ordering::SeqCst), 0, "no emergency off");
+        // Never taken, the answer given up: the bound is checked all the same.
+        let (path, off) = fake();
+        let start = std::time::Instant::now();
+        drop(path.acknowledgment(path.store(Input::Live(false))));
+        while off.0.load(Ordering::SeqCst) == 0 {
+            assert!(
+                start.elapsed() < 8 * SAFETY_TAKE_BOUND,
+                "never switched off"
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert!(
+            start.elapsed() >= SAFETY_TAKE_BOUND,
+            "{:?}",
+            start.elapsed()
+        );
     }
 
     #[test]

@@ -466,7 +466,7 @@ pub struct Estimate {
     /// maximum on time can deliver less than commanded; a switch reaches the line at the
     /// next period start, which shifts a little of each half into the other).
     pub delivered_on_pct: f64,
-    /// The heater's thermal model the cycles give (see [`identify`]), when they give one.
+    /// The heater's thermal model the cycles and the approach give, when they give one.
     pub model: Option<ModelParams>,
     /// The standard error of the model's dead time, s, when the fit over the run's record
     /// gave the model (see [`super::fit::Fit::dead_time_se`]); infinite when the record does

@@ -730,7 +730,7 @@ impl Profile {
     }
 
     /// The time a record that starts in the middle of the relay runs before its bins count,
-    /// s (see [`SKIP_SUMS`]).
+    /// s (see `SKIP_SUMS`).
     pub fn skip_s(&self) -> f64 {
         SKIP_SUMS * self.sum * (1.0 + SUM_STEP)
     }

@@ -842,7 +842,7 @@ impl Valve {
 
     /// A process value arriving at `now`, `age` ns after its stamp (`None`: unstamped;
     /// negative: stamped in the future): see the loop's freshness rule
-    /// ([`control`](self::control)). The loop acts on it at its next sample.
+    /// ([`control`]). The loop acts on it at its next sample.
     pub fn process_value(
         &mut self,
         now: Nanos,

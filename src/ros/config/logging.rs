@@ -463,7 +463,7 @@ const INPUT_TARGETS: [&str; 2] = [
 ];
 
 /// Whether records of `level` from `target` go through the rate limiter: warnings and errors
-/// from anywhere, and any record from the modules input drives ([`INPUT_TARGETS`]).
+/// from anywhere, and any record from the modules input drives (`INPUT_TARGETS`).
 pub fn rate_limited(level: log::Level, target: &str) -> bool {
     level <= log::Level::Warn || INPUT_TARGETS.contains(&target)
 }

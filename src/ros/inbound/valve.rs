@@ -95,7 +95,7 @@ const SWITCH_WAIT: Duration = Duration::from_secs(1);
 
 /// Starts one reader thread per switch line (after [`listen_valves`] made the valves): it sends
 /// the level read at start, then each change. A read error is logged once and retried every
-/// [`SWITCH_WAIT`]; the threads end with the process.
+/// `SWITCH_WAIT` (1 s); the threads end with the process.
 pub fn spawn_switch_readers(switches: Vec<SwitchLine>, inputs: &Arc<Inputs>) {
     for s in switches {
         let inputs = Arc::clone(inputs);

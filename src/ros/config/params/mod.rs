@@ -4,12 +4,12 @@
 //!
 //! A change is checked whole, on a copy of the store's typed settings ([`ChannelValues`], ...):
 //! every value is coerced to its declared type, range-checked, and written to its field; then
-//! every channel it touches is mapped once into a [`ChannelParams`] and validated by the core
-//! ([`ChannelParams::validate`]), every valve it touches as a `ValveParams` (its
-//! `validate`), so cross-parameter rules (`min_on_ms <= period_ms`, the minima fitting the
-//! period, a valve's minimum pulse within its travel times) hold whatever order the values
-//! arrive in. A refused change leaves
-//! the store untouched and says why. Nothing here talks to ROS or to the output thread.
+//! every channel it touches is mapped once into a [`ChannelParams`](crate::core::ChannelParams)
+//! and validated by the core
+//! ([`ChannelParams::validate`](crate::core::ChannelParams::validate)), every valve it touches
+//! as a `ValveParams` (its `validate`), so cross-parameter rules (`min_on_ms <= period_ms`, the
+//! minima fitting the period, a valve's minimum pulse within its travel times) hold whatever
+//! order the values arrive in. A refused change leaves the store untouched and says why. Nothing here talks to ROS or to the output thread.
 //!
 //! Type coercion, the same through every door: an integer parameter accepts a double that is a
 //! whole number (`500.0` becomes `500`), a double parameter accepts an integer (`1` becomes
