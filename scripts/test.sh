@@ -314,15 +314,34 @@ else
     failed_steps+=("doc commands (no release build)")
 fi
 
+# 2c. Clippy's lints, `cargo clippy --all-targets -- -D warnings`, not in a build of their own:
+# clippy's driver, as `cargo clippy` sets it (RUSTC_WORKSPACE_WRAPPER, CLIPPY_ARGS), compiles
+# this crate's targets in the build of the Rust tests (4), so that every target `--all-targets`
+# names is linted as it is compiled. `cargo clippy` checks every dependency once more in a mode
+# of its own that no other step can use (110 CPU-s on the VM, nearly all of it the
+# dependencies); here the dependencies are the release build's (scripts/cargo-test.sh), and the
+# lints add 4 CPU-s to the tests' build (55 CPU-s with them). A warning fails this step as it
+# fails `cargo clippy`; the tests are then built again without the lints (lint_env emptied), so
+# that they all still run. lint_env is the environment of every build of the Rust tests below
+# (4, 4a', 5a): the same for all, so that none compiles this crate again. The driver's builds
+# differ from rustc's only in the lints and in running no MIR optimizations (nor the alignment
+# and null checks of raw pointers that debug assertions add) on this crate's code.
+lint_env=()
 if ((!quick)); then
-    run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
+    lint_env=(RUSTC_WORKSPACE_WRAPPER="$(rustc --print sysroot)/bin/clippy-driver"
+        CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__")
+    run_step "cargo clippy" env "${lint_env[@]}" scripts/cargo-test.sh --all-targets --locked \
+        --no-run || lint_env=()
 fi
 
-# 4. Rust tests, every test binary even after a failure. The full output goes to the console
-# and to a log; the per-binary result lines are counted afterwards.
+# 4. Rust tests, every test binary even after a failure, built by scripts/cargo-test.sh (the
+# release build's dependencies; this crate with debug assertions and overflow checks); at 2c
+# already, unless clippy failed or was skipped. The full output goes to the console and to a
+# log; the per-binary result lines are counted afterwards.
 # shellcheck disable=SC2317  # called through run_step
 cargo_tests() {
-    cargo test --all-targets --no-fail-fast --locked 2>&1 | tee "$LOG_DIR/cargo-test.log"
+    env "${lint_env[@]}" scripts/cargo-test.sh --all-targets --no-fail-fast --locked 2>&1 |
+        tee "$LOG_DIR/cargo-test.log"
 }
 run_step "cargo test" cargo_tests
 cargo_counts="$(awk '
@@ -400,8 +419,8 @@ passed=$((passed + v_pass)) failed=$((failed + v_fail))
 # and counted as skipped there; run here, after setup made the venv.
 # shellcheck disable=SC2317  # called through run_step
 type_hash_tests() {
-    cargo test --locked --test integration -- --ignored type_hashes:: 2>&1 |
-        tee "$LOG_DIR/type-hashes.log"
+    env "${lint_env[@]}" scripts/cargo-test.sh --locked --test integration -- --ignored \
+        type_hashes:: 2>&1 | tee "$LOG_DIR/type-hashes.log"
     return "${PIPESTATUS[0]}"
 }
 run_step "type hashes against rosidl" type_hash_tests
@@ -520,7 +539,7 @@ else
     echo "gpio-vm: prepared beside the steps since 1c (output in gpio-vm-prepare.log):"
     tail -n 3 "$gpio_prepare_log"
     vm_start=$SECONDS
-    scripts/gpio-vm-tests.sh 2>&1 | tee "$LOG_DIR/gpio-vm-tests.log"
+    env "${lint_env[@]}" scripts/gpio-vm-tests.sh 2>&1 | tee "$LOG_DIR/gpio-vm-tests.log"
     vm_rc=${PIPESTATUS[0]}
     printf -- '---- gpio-vm tests: exit %d (%d s)\n' "$vm_rc" $((SECONDS - vm_start))
     step_times+=("$(printf '%6d s  %s' $((SECONDS - vm_start)) "gpio-vm tests")")
