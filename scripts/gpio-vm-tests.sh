@@ -54,8 +54,9 @@ case $? in
 esac
 
 # The integration test binary (tests/integration/), of which the guest runs the module
-# output_gpio_sim alone.
-test_bin="$(cargo test --locked --no-run --test integration --message-format=json 2>/dev/null \
+# output_gpio_sim alone: built as scripts/test.sh builds the Rust tests (scripts/cargo-test.sh),
+# so that under it this finds the binary built already.
+test_bin="$(scripts/cargo-test.sh --locked --no-run --test integration --message-format=json 2>/dev/null \
     | sed -n 's/.*"executable":"\([^"]*\/deps\/integration-[^"]*\)".*/\1/p' | tail -n1)"
 if [[ -z "$test_bin" ]]; then
     echo "gpio-vm tests: FAILED: cannot build or find the integration test binary"

@@ -75,6 +75,7 @@ run_step() {
 # Adds the counts of a pytest junit XML file to the totals; its skips also go to junit_skipped.
 # No result file at all (pytest did not start) counts as one failed test, so it never looks clean.
 junit_skipped=0
+# shellcheck disable=SC2317  # called through beside_done too
 add_junit_counts() {
     local p_tests p_fail p_err p_skip
     junit_skipped=0
@@ -102,6 +103,7 @@ EOF
 # messages (scripts/env.sh) against the release binary, results in JUNIT (counted by
 # add_junit_counts). Returns pytest's status: 0 all passed, 1 some failed, 5 no test collected
 # (a failure here too).
+# shellcheck disable=SC2317  # called through beside_start too
 run_pytest_paths() {
     local distro="$1" junit="$2" ws rc
     shift 2
@@ -142,6 +144,74 @@ run_pytest() {
     run_pytest_paths "$distro" "$junit" tests/rclpy -- "${ignore[@]}" "$@" || rc=$?
     add_junit_counts "$junit"
     return "$rc"
+}
+
+# beside_start NAME_IN_LOGS COMMAND...: runs COMMAND beside the steps, its output in
+# $LOG_DIR/NAME_IN_LOGS.log; it writes the second of the run it ended in
+# $LOG_DIR/NAME_IN_LOGS.ended. Its process in beside_started_pid, for beside_done.
+beside_started_pid=""
+beside_start() {
+    local name="$1"
+    shift
+    rm -f "$LOG_DIR/$name.ended"
+    ("$@" >"$LOG_DIR/$name.log" 2>&1
+        rc=$?
+        echo "$SECONDS" >"$LOG_DIR/$name.ended"
+        exit "$rc") &
+    beside_started_pid=$!
+}
+
+# beside_span STARTED ENDED_FILE: "from S s to E s of the run", E the second a group beside the
+# steps wrote when it ended (now, if it wrote none).
+beside_span() {
+    local ended
+    ended=$(cat "$2" 2>/dev/null || echo "$SECONDS")
+    printf 'from %d s to %d s of the run' "$1" "$ended"
+}
+
+# beside_done [--exit] [--none-selected] NAME PID STARTED NAME_IN_LOGS BANNER COUNT...: the end
+# of a group that ran beside the steps, as process PID since STARTED s of the run, its output in
+# $LOG_DIR/NAME_IN_LOGS.log and the second it ended in $LOG_DIR/NAME_IN_LOGS.ended: waits for
+# it, prints BANNER and its output, runs COUNT (which adds its results to the totals), then
+# prints its status, its time and its span and adds them to the step times. Its exit status is
+# left in beside_rc. A non-zero status fails the step NAME; with --exit the status line gives
+# the exit status instead and the caller judges it. With --none-selected, a group that
+# PYTEST_ARGS select nothing of (pytest exit 5) is said so, neither counted nor timed.
+beside_rc=0
+beside_done() {
+    local exit_line=0 none_selected=0
+    while [[ "$1" == --* ]]; do
+        case "$1" in
+            --exit) exit_line=1 ;;
+            --none-selected) none_selected=1 ;;
+        esac
+        shift
+    done
+    local name="$1" pid="$2" started="$3" log="$LOG_DIR/$4.log" ended_file="$LOG_DIR/$4.ended"
+    local banner_text="$5" ended when
+    shift 5
+    banner "$banner_text"
+    beside_rc=0
+    wait "$pid" || beside_rc=$?
+    cat "$log"
+    if ((none_selected && beside_rc == 5 && ${#pytest_extra[@]})); then
+        printf -- '---- %s: none selected by the pytest arguments\n' "$name"
+        return
+    fi
+    "$@"
+    ended=$(cat "$ended_file" 2>/dev/null || echo "$SECONDS")
+    when="$(beside_span "$started" "$ended_file")"
+    if ((exit_line)); then
+        printf -- '---- %s, beside the steps: exit %d (%d s, %s)\n' "$name" "$beside_rc" \
+            $((ended - started)) "$when"
+    elif ((beside_rc != 0)); then
+        failed_steps+=("$name")
+        printf -- '---- %s: FAILED (exit %d, %d s, %s)\n' "$name" "$beside_rc" \
+            $((ended - started)) "$when"
+    else
+        printf -- '---- %s: ok (%d s, %s)\n' "$name" $((ended - started)) "$when"
+    fi
+    step_times+=("$(printf '%6d s  %s (beside the steps, %s)' $((ended - started)) "$name" "$when")")
 }
 
 # 1. The ROS 2 environment. Nothing else can run without it.
@@ -211,13 +281,9 @@ done
 beside_pid="" untimed_pids=()
 if ((release_ok)); then
     beside_started=$SECONDS
-    rm -f "$LOG_DIR/rclpy-beside.ended"
-    (run_pytest_paths jazzy "$LOG_DIR/rclpy-beside-junit.xml" "${BESIDE_TESTS[@]}" -- \
-        "${pytest_extra[@]}" >"$LOG_DIR/rclpy-beside.log" 2>&1
-        rc=$?
-        echo "$SECONDS" >"$LOG_DIR/rclpy-beside.ended"
-        exit "$rc") &
-    beside_pid=$!
+    beside_start rclpy-beside run_pytest_paths jazzy "$LOG_DIR/rclpy-beside-junit.xml" \
+        "${BESIDE_TESTS[@]}" -- "${pytest_extra[@]}"
+    beside_pid=$beside_started_pid
     untimed_started=$SECONDS
     for part in 1 2; do
         if ((part == 1)); then
@@ -225,23 +291,12 @@ if ((release_ok)); then
         else
             part_paths=("${UNTIMED_PART2[@]}" --)
         fi
-        rm -f "$LOG_DIR/rclpy-untimed-$part.ended"
-        (run_pytest_paths jazzy "$LOG_DIR/rclpy-untimed-$part-junit.xml" "${part_paths[@]}" \
-            --timing-group=untimed "${pytest_extra[@]}" >"$LOG_DIR/rclpy-untimed-$part.log" 2>&1
-            rc=$?
-            echo "$SECONDS" >"$LOG_DIR/rclpy-untimed-$part.ended"
-            exit "$rc") &
-        untimed_pids+=($!)
+        beside_start "rclpy-untimed-$part" run_pytest_paths jazzy \
+            "$LOG_DIR/rclpy-untimed-$part-junit.xml" "${part_paths[@]}" --timing-group=untimed \
+            "${pytest_extra[@]}"
+        untimed_pids+=("$beside_started_pid")
     done
 fi
-
-# beside_span STARTED ENDED_FILE: "from S s to E s of the run", E the second a group beside the
-# steps wrote when it ended (now, if it wrote none).
-beside_span() {
-    local ended
-    ended=$(cat "$2" 2>/dev/null || echo "$SECONDS")
-    printf 'from %d s to %d s of the run' "$1" "$ended"
-}
 
 # 3b. The shell blocks of README.md and docs/*.md marked runnable here
 # (scripts/check-doc-commands.py): each must exit 0; the others are listed with the reason they
@@ -249,32 +304,44 @@ beside_span() {
 # Only their exit status counts, and they spend most of their time asleep (one is a benchmark
 # run of a minute whose figures nobody reads here), so they run beside clippy and the Rust
 # tests from the release build on; waited for, their output printed, after the Rust tests.
-doc_commands() {
-    python3 scripts/check-doc-commands.py >"$LOG_DIR/doc-commands.log" 2>&1
-}
 doc_pid=""
 if ((release_ok)); then
     doc_started=$SECONDS
-    rm -f "$LOG_DIR/doc-commands.ended"
-    (doc_commands
-        rc=$?
-        echo "$SECONDS" >"$LOG_DIR/doc-commands.ended"
-        exit "$rc") &
-    doc_pid=$!
+    beside_start doc-commands python3 scripts/check-doc-commands.py
+    doc_pid=$beside_started_pid
 else
     failed=$((failed + 1))
     failed_steps+=("doc commands (no release build)")
 fi
 
+# 2c. Clippy's lints, `cargo clippy --all-targets -- -D warnings`, not in a build of their own:
+# clippy's driver, as `cargo clippy` sets it (RUSTC_WORKSPACE_WRAPPER, CLIPPY_ARGS), compiles
+# this crate's targets in the build of the Rust tests (4), so that every target `--all-targets`
+# names is linted as it is compiled. `cargo clippy` checks every dependency once more in a mode
+# of its own that no other step can use (110 CPU-s on the VM, nearly all of it the
+# dependencies); here the dependencies are the release build's (scripts/cargo-test.sh), and the
+# lints add 4 CPU-s to the tests' build (55 CPU-s with them). A warning fails this step as it
+# fails `cargo clippy`; the tests are then built again without the lints (lint_env emptied), so
+# that they all still run. lint_env is the environment of every build of the Rust tests below
+# (4, 4a', 5a): the same for all, so that none compiles this crate again. The driver's builds
+# differ from rustc's only in the lints and in running no MIR optimizations (nor the alignment
+# and null checks of raw pointers that debug assertions add) on this crate's code.
+lint_env=()
 if ((!quick)); then
-    run_step "cargo clippy" cargo clippy --all-targets --locked -- -D warnings
+    lint_env=(RUSTC_WORKSPACE_WRAPPER="$(rustc --print sysroot)/bin/clippy-driver"
+        CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__")
+    run_step "cargo clippy" env "${lint_env[@]}" scripts/cargo-test.sh --all-targets --locked \
+        --no-run || lint_env=()
 fi
 
-# 4. Rust tests, every test binary even after a failure. The full output goes to the console
-# and to a log; the per-binary result lines are counted afterwards.
+# 4. Rust tests, every test binary even after a failure, built by scripts/cargo-test.sh (the
+# release build's dependencies; this crate with debug assertions and overflow checks); at 2c
+# already, unless clippy failed or was skipped. The full output goes to the console and to a
+# log; the per-binary result lines are counted afterwards.
 # shellcheck disable=SC2317  # called through run_step
 cargo_tests() {
-    cargo test --all-targets --no-fail-fast --locked 2>&1 | tee "$LOG_DIR/cargo-test.log"
+    env "${lint_env[@]}" scripts/cargo-test.sh --all-targets --no-fail-fast --locked 2>&1 |
+        tee "$LOG_DIR/cargo-test.log"
 }
 run_step "cargo test" cargo_tests
 cargo_counts="$(awk '
@@ -294,25 +361,16 @@ grep '^test result: ' "$LOG_DIR/cargo-test.log" | sed 's/^/  /'
 passed=$((passed + c_pass)) failed=$((failed + c_fail)) skipped=$((skipped + c_skip))
 
 # 3b'. The doc commands started at 3b: their output, their time and their results.
-if [[ -n "$doc_pid" ]]; then
-    banner "doc commands (beside the steps since 3b)"
-    doc_rc=0
-    wait "$doc_pid" || doc_rc=$?
-    cat "$LOG_DIR/doc-commands.log"
-    doc_ended=$(cat "$LOG_DIR/doc-commands.ended" 2>/dev/null || echo "$SECONDS")
-    doc_when="$(beside_span "$doc_started" "$LOG_DIR/doc-commands.ended")"
-    if ((doc_rc != 0)); then
-        failed_steps+=("doc commands")
-        printf -- '---- doc commands: FAILED (exit %d, %d s, %s)\n' "$doc_rc" \
-            $((doc_ended - doc_started)) "$doc_when"
-    else
-        printf -- '---- doc commands: ok (%d s, %s)\n' $((doc_ended - doc_started)) "$doc_when"
-    fi
-    step_times+=("$(printf '%6d s  %s (beside the steps, %s)' $((doc_ended - doc_started)) \
-        "doc commands" "$doc_when")")
+# shellcheck disable=SC2317  # called through beside_done
+doc_counts() {
+    local d_pass d_fail d_skip
     read -r d_pass d_fail d_skip < <(sed -n 's/^doc commands: \([0-9]*\) passed, \([0-9]*\) failed, \([0-9]*\) not runnable here$/\1 \2 \3/p' \
         "$LOG_DIR/doc-commands.log" | tail -n1 | grep . || echo "0 1 0")
     passed=$((passed + d_pass)) failed=$((failed + d_fail)) skipped=$((skipped + d_skip))
+}
+if [[ -n "$doc_pid" ]]; then
+    beside_done "doc commands" "$doc_pid" "$doc_started" doc-commands \
+        "doc commands (beside the steps since 3b)" doc_counts
 fi
 
 # 4a. The vendored rustdds's patch (vendor/rustdds/README.pwm_actuator.md): the unit tests of
@@ -326,10 +384,12 @@ fi
 # features) and took 62 s instead of 71 s; a member would also be formatted by `cargo fmt
 # --all`, which would rewrite the upstream files. Not beside the steps either: run from the
 # start beside the release build, its compile took cores that build needed (252 s instead of
-# 145 s), and the timed rclpy tests started 89 s later.
+# 145 s), and the timed rclpy tests started 89 s later. Without debug info and incremental
+# files, which only a debugger would use: 86 CPU-s to compile instead of 100.
 # shellcheck disable=SC2317  # called through run_step
 vendor_tests() {
-    cargo test --lib --locked --manifest-path vendor/rustdds/Cargo.toml \
+    CARGO_PROFILE_TEST_DEBUG=false CARGO_INCREMENTAL=0 \
+        cargo test --lib --locked --manifest-path vendor/rustdds/Cargo.toml \
         --target-dir "$REPO/target/vendor-rustdds" -- \
         data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
         reply_written_before_its_reader_matched_goes_to_it_on_match cache_cleaning_ acknowledged_samples_beyond_depth_go_on_insert \
@@ -361,8 +421,8 @@ passed=$((passed + v_pass)) failed=$((failed + v_fail))
 # and counted as skipped there; run here, after setup made the venv.
 # shellcheck disable=SC2317  # called through run_step
 type_hash_tests() {
-    cargo test --locked --test integration -- --ignored type_hashes:: 2>&1 |
-        tee "$LOG_DIR/type-hashes.log"
+    env "${lint_env[@]}" scripts/cargo-test.sh --locked --test integration -- --ignored \
+        type_hashes:: 2>&1 | tee "$LOG_DIR/type-hashes.log"
     return "${PIPESTATUS[0]}"
 }
 run_step "type hashes against rosidl" type_hash_tests
@@ -376,28 +436,9 @@ skipped=$((skipped - 1)) # the ignored type_hashes test, counted above
 # GPIO guest (5a), whose sampler is timed: their output, their time and their results. With
 # PYTEST_ARGS that select none of them (pytest exit 5) nothing is counted.
 if [[ -n "$beside_pid" ]]; then
-    banner "rclpy memory tests (beside the compiles since 3a)"
-    beside_rc=0
-    wait "$beside_pid" || beside_rc=$?
-    cat "$LOG_DIR/rclpy-beside.log"
-    beside_name="rclpy memory tests"
-    if ((beside_rc == 5 && ${#pytest_extra[@]})); then
-        printf -- '---- %s: none selected by the pytest arguments\n' "$beside_name"
-    else
+    beside_done --none-selected "rclpy memory tests" "$beside_pid" "$beside_started" rclpy-beside \
+        "rclpy memory tests (beside the compiles since 3a)" \
         add_junit_counts "$LOG_DIR/rclpy-beside-junit.xml"
-        beside_ended=$(cat "$LOG_DIR/rclpy-beside.ended" 2>/dev/null || echo "$SECONDS")
-        beside_when="$(beside_span "$beside_started" "$LOG_DIR/rclpy-beside.ended")"
-        if ((beside_rc != 0)); then
-            failed_steps+=("$beside_name")
-            printf -- '---- %s: FAILED (exit %d, %d s, %s)\n' "$beside_name" "$beside_rc" \
-                $((beside_ended - beside_started)) "$beside_when"
-        else
-            printf -- '---- %s: ok (%d s, %s)\n' "$beside_name" \
-                $((beside_ended - beside_started)) "$beside_when"
-        fi
-        step_times+=("$(printf '%6d s  %s (beside the steps, %s)' \
-            $((beside_ended - beside_started)) "$beside_name" "$beside_when")")
-    fi
 fi
 
 # 4c. The systemd unit in launch-notes/: `systemd-analyze verify` with the binary paths pointed
@@ -440,7 +481,7 @@ fi
 # exit 5) is not a failure while another one ran tests; all selecting nothing is.
 # shellcheck disable=SC2317  # called through run_step
 rclpy_suite() {
-    local start=$SECONDS timed_end part part_end any_ran=0 ok=1 rc
+    local start=$SECONDS timed_end part any_ran=0 ok=1 rc
     local rcs=()
     if ((${#untimed_pids[@]})); then
         echo "rclpy tests: the untimed ones run beside these since $untimed_started s, in two parts (output in rclpy-untimed-1.log and -2.log, printed below)"
@@ -456,19 +497,11 @@ rclpy_suite() {
     step_times+=("$(printf '%6d s  %s' $((timed_end - start)) \
         "rclpy tests, timed (one at a time, from $start s to $timed_end s of the run)")")
     for part in 1 2; do
-        rc=0
-        wait "${untimed_pids[part - 1]}" || rc=$?
-        rcs+=("$rc")
-        part_end=$(cat "$LOG_DIR/rclpy-untimed-$part.ended" 2>/dev/null || echo "$SECONDS")
-        banner "rclpy tests: the untimed ones, part $part (beside the steps since the release build)"
-        cat "$LOG_DIR/rclpy-untimed-$part.log"
-        add_junit_counts "$LOG_DIR/rclpy-untimed-$part-junit.xml"
-        printf -- '---- rclpy tests, untimed, part %d, beside the steps: exit %d (%d s, %s)\n' \
-            "$part" "$rc" $((part_end - untimed_started)) \
-            "$(beside_span "$untimed_started" "$LOG_DIR/rclpy-untimed-$part.ended")"
-        step_times+=("$(printf '%6d s  %s (beside the steps, %s)' $((part_end - untimed_started)) \
-            "rclpy tests, untimed, part $part" \
-            "$(beside_span "$untimed_started" "$LOG_DIR/rclpy-untimed-$part.ended")")")
+        beside_done --exit "rclpy tests, untimed, part $part" "${untimed_pids[part - 1]}" \
+            "$untimed_started" "rclpy-untimed-$part" \
+            "rclpy tests: the untimed ones, part $part (beside the steps since the release build)" \
+            add_junit_counts "$LOG_DIR/rclpy-untimed-$part-junit.xml"
+        rcs+=("$beside_rc")
     done
     for rc in "${rcs[@]}"; do
         ((rc != 5)) && any_ran=1
@@ -508,7 +541,7 @@ else
     echo "gpio-vm: prepared beside the steps since 1c (output in gpio-vm-prepare.log):"
     tail -n 3 "$gpio_prepare_log"
     vm_start=$SECONDS
-    scripts/gpio-vm-tests.sh 2>&1 | tee "$LOG_DIR/gpio-vm-tests.log"
+    env "${lint_env[@]}" scripts/gpio-vm-tests.sh 2>&1 | tee "$LOG_DIR/gpio-vm-tests.log"
     vm_rc=${PIPESTATUS[0]}
     printf -- '---- gpio-vm tests: exit %d (%d s)\n' "$vm_rc" $((SECONDS - vm_start))
     step_times+=("$(printf '%6d s  %s' $((SECONDS - vm_start)) "gpio-vm tests")")
