@@ -1134,3 +1134,136 @@ proptest! {
         prop_assert_eq!(violations(), Vec::<String>::new());
     }
 }
+
+/// Wakes at every deadline up to `t`, and asserts before and after each wake-up that the
+/// earliest deadline kept is the one a scan of every channel finds (an assertion that holds
+/// in builds without debug assertions too).
+fn run_checked(b: &mut Bench, t: Nanos) {
+    loop {
+        let (kept, scanned) = b.worker.channel_deadlines();
+        assert_eq!(kept, scanned, "at {} ns", now());
+        match b.worker.next_deadline() {
+            Some(d) if d.max(now()) <= t => {
+                set_now(d.max(now()));
+                b.wake();
+            }
+            _ => break,
+        }
+    }
+    set_now(t.max(now()));
+}
+
+#[test]
+fn every_kind_of_action_keeps_the_deadlines_a_scan_finds() {
+    // A heater that latches the e-stop of every channel, a channel cut by its maximum on time
+    // and tripped by its watchdog into a fault value, a valve on lines 2 and 3, a split pair
+    // on 4 and 5: the heater's own timers, the heater fault through the e-stop, the valve on
+    // the board, the interlock, the planner, the hold.
+    let heater = ChannelParams {
+        heater: crate::core::heater::HeaterParams {
+            feedback: true,
+            temp_max_c: 300.0,
+            ..Default::default()
+        },
+        ..params(1000, 0, None)
+    };
+    let timed = ChannelParams {
+        max_on_ms: 150,
+        command_timeout_ms: 500,
+        fault_duty_pct: 20.0,
+        ..params(200, 0, None)
+    };
+    let p = params(100, 0, None);
+    let mut b = Bench::new(&[heater, timed, p, p, p, p], &[(4, 5)], false);
+    let config = valve_params().validate().unwrap();
+    b.send(
+        2,
+        Input::AddValve {
+            close: 3,
+            config,
+            start: Default::default(),
+        },
+    );
+    b.send(0, Input::HeaterEstop(true));
+    for (ch, d) in [(0, 100.0), (1, 100.0), (4, 60.0), (5, 0.0)] {
+        b.send(ch, Input::Command(Command::Percent(d)));
+        b.send(ch, Input::Enable(true));
+    }
+    let feed = |b: &mut Bench, celsius| b.send(0, Input::Feedback { celsius, age: None });
+    feed(&mut b, 25.0);
+    b.wake();
+    run_checked(&mut b, now() + 700 * MS);
+    b.send(
+        0,
+        Input::ValvePosition {
+            valve: 0,
+            pct: 50.0,
+        },
+    );
+    feed(&mut b, 26.0);
+    run_checked(&mut b, now() + 700 * MS);
+    b.send(4, Input::Command(Command::Percent(0.0)));
+    b.send(5, Input::Command(Command::Percent(70.0)));
+    b.send(
+        0,
+        Input::Bank(Bank {
+            phase: Phase::Stagger,
+            max_on: 1,
+        }),
+    );
+    feed(&mut b, 27.0);
+    run_checked(&mut b, now() + 700 * MS);
+    b.send(
+        0,
+        Input::Bank(Bank {
+            phase: Phase::Sync,
+            max_on: 0,
+        }),
+    );
+    b.send(0, Input::Live(false));
+    b.wake();
+    run_checked(&mut b, now() + 300 * MS);
+    b.send(0, Input::Live(true));
+    b.wake();
+    // No reading any more: the heater's own timer latches its fault, and with it the e-stop.
+    run_checked(&mut b, now() + 4_000 * MS);
+    assert!(
+        b.slot.estop_latched(),
+        "the heater fault latched the e-stop"
+    );
+    LINES.with(|l| {
+        let l = l.borrow();
+        assert!(!l.high.iter().any(|h| *h), "{:?}", l.high);
+    });
+    b.send(0, Input::EStop(false));
+    b.wake();
+    run_checked(&mut b, now() + 1_000 * MS);
+    assert_eq!(violations(), Vec::<String>::new());
+}
+
+#[test]
+fn a_deadline_an_action_left_unmarked_is_read_again_within_a_second() {
+    // A 50 % pulse of a 10 s period falls 5 s after its rise. 50 ms in, its duty drops to 1 %
+    // at once by a path that does not mark the channel: the fall is due 100 ms after the rise,
+    // but the deadline kept still says 5 s. The next wake-up more than a second after the last
+    // full read reads every channel again, and the line goes off there, not 5 s on.
+    let mut b = Bench::new(&[params(10_000, 0, Some(ApplyAt::Immediate))], &[], false);
+    let t0 = now();
+    b.send(0, Input::Command(Command::Percent(50.0)));
+    b.send(0, Input::Enable(true));
+    b.wake();
+    assert!(LINES.with(|l| l.borrow().high[0]));
+    set_now(t0 + 50 * MS);
+    b.worker
+        .channel_unmarked(0)
+        .command(now(), Command::Percent(1.0), &mut |_| {});
+    let (kept, scanned) = b.worker.channel_deadlines();
+    assert_ne!(kept, scanned, "the change went unmarked");
+    // A wake-up that comes anyway (a request, another line, the liveness tick).
+    set_now(t0 + 1_100 * MS);
+    b.wake();
+    assert!(!LINES.with(|l| l.borrow().high[0]), "the line went off");
+    let (kept, scanned) = b.worker.channel_deadlines();
+    assert_eq!(kept, scanned);
+    assert_eq!(violations(), Vec::<String>::new());
+}

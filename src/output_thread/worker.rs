@@ -67,7 +67,16 @@ pub(crate) struct Worker<O: Output> {
     /// A status snapshot the full report queue refused is sent again at this instant, ns: the
     /// thread wakes for it even when no edge or request is due.
     resend_at: Option<Nanos>,
+    /// When every channel's deadline was last read, monotonic ns (see [`FULL_READ_NS`]).
+    full_read_at: Nanos,
 }
+
+/// At a wake-up at least this long after every channel's deadline was last read, ns, every
+/// channel is read again (and looked at, as a scan would). The deadlines kept are exact as long
+/// as every action on a channel marks it; this bounds how long a deadline missed by an action
+/// that did not could stay unserved, at wake-ups that come anyway (another channel's edge, a
+/// request, the liveness tick). It adds no wake-up, and costs one scan a second at most.
+pub(crate) const FULL_READ_NS: Nanos = 1_000_000_000;
 
 /// How long after the full report queue refused a status snapshot it is offered again, ns:
 /// time for the reader to drain the queue.
@@ -139,6 +148,7 @@ impl<O: Output> Worker<O> {
             valve_touched: Vec::with_capacity(n / 2),
             owner: vec![None; n],
             resend_at: None,
+            full_read_at: now,
         }
     }
 
@@ -160,6 +170,13 @@ impl<O: Output> Worker<O> {
     pub(crate) fn channel_deadlines(&self) -> (Option<Nanos>, Option<Nanos>) {
         let scanned = self.channels.iter().filter_map(Channel::poll_at).min();
         (self.deadlines.first(&self.channels), scanned)
+    }
+
+    /// Channel `i` for a test to change without the worker marking it: an action that forgets
+    /// its mark.
+    #[cfg(test)]
+    pub(crate) fn channel_unmarked(&mut self, i: usize) -> &mut Channel {
+        &mut self.channels[i]
     }
 
     /// Toggles output line `line` every `half` ns from `now + half` on (a half period of at
@@ -220,6 +237,11 @@ impl<O: Output> Worker<O> {
             self.apply(now, req);
         }
         let now = (self.clock)();
+        if now.saturating_sub(self.full_read_at) >= FULL_READ_NS {
+            // Now and then, every channel, as a scan would: whatever an action left unmarked.
+            self.mark_all();
+            self.full_read_at = now;
+        }
         // In channel order, as a scan of every channel would: the channels whose deadline may
         // have come, and any channel acted on along the way (a partner, a slot handed on) that
         // comes later in that order.
