@@ -60,7 +60,7 @@ pub struct Bank {
 impl Bank {
     /// Sets channel `i` up for an action at `now` (ns): its place on the grid, and whether an
     /// on phase may start (a slot free, and under stagger no other line of its group on).
-    /// Call before every action on it (a poll, an input).
+    /// Call before every action on it (a poll, an input). Changes no other channel.
     pub fn before(&self, channels: &mut [Channel], i: usize, now: Nanos) {
         if i >= channels.len() {
             return;
@@ -83,7 +83,7 @@ impl Bank {
     /// lower channel); their events go to `emit` with the channel index. Call after every
     /// action on any channel.
     pub fn after(&self, channels: &mut [Channel], at: Nanos, emit: &mut dyn FnMut(usize, Event)) {
-        if self.max_on == 0 && self.phase == Phase::Sync {
+        if !self.plans() {
             return;
         }
         // Each grant ends one wait (started or skipped), so this ends.
@@ -95,6 +95,12 @@ impl Bank {
         {
             channels[k].grant(at, &mut |e| emit(k, e));
         }
+    }
+
+    /// Whether [`Bank::after`] can act on any channel: a limit is set, or the phases are
+    /// staggered.
+    pub fn plans(&self) -> bool {
+        self.max_on != 0 || self.phase == Phase::Stagger
     }
 
     /// After `max_simultaneous_on` was lowered at `at` (ns): the latest-started on phases give

@@ -239,6 +239,7 @@ pub enum Report {
     },
 }
 
+mod deadlines;
 pub mod safety;
 mod thread;
 pub(crate) mod worker;

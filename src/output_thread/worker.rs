@@ -4,6 +4,7 @@
 //!
 //! Nothing here sleeps, locks, or allocates after construction.
 
+use super::deadlines::{Deadlines, Marks};
 use super::safety::{SafetySlot, Wanted};
 use super::{EdgeReport, Input, Report, Request};
 use crate::clock;
@@ -28,8 +29,16 @@ pub(crate) struct Worker<O: Output> {
     /// at the moment it writes a rise.
     board: Arc<LineBoard>,
     bank: Bank,
+    /// Every channel's next deadline, kept in order: read again for the channels acted on.
+    deadlines: Deadlines,
+    /// Channels acted on since the last look for a heater fault.
+    acted: Marks,
+    /// The channels a wake-up walks (those whose deadline may have come, those that may hold a
+    /// rise), kept here so the walk never allocates.
+    walk: Marks,
     seq: Vec<u64>,
-    touched: Vec<bool>,
+    /// Channels whose state changed since their last status snapshot.
+    touched: Marks,
     changes: Vec<LineChange>,
     output: O,
     reports: Producer<Report>,
@@ -58,7 +67,16 @@ pub(crate) struct Worker<O: Output> {
     /// A status snapshot the full report queue refused is sent again at this instant, ns: the
     /// thread wakes for it even when no edge or request is due.
     resend_at: Option<Nanos>,
+    /// When every channel's deadline was last read, monotonic ns (see [`FULL_READ_NS`]).
+    full_read_at: Nanos,
 }
+
+/// At a wake-up at least this long after every channel's deadline was last read, ns, every
+/// channel is read again (and looked at, as a scan would). The deadlines kept are exact as long
+/// as every action on a channel marks it; this bounds how long a deadline missed by an action
+/// that did not could stay unserved, at wake-ups that come anyway (another channel's edge, a
+/// request, the liveness tick). It adds no wake-up, and costs one scan a second at most.
+pub(crate) const FULL_READ_NS: Nanos = 1_000_000_000;
 
 /// How long after the full report queue refused a status snapshot it is offered again, ns:
 /// time for the reader to drain the queue.
@@ -102,12 +120,15 @@ impl<O: Output> Worker<O> {
             ch.seat_on(&board, i);
         }
         Worker {
+            deadlines: Deadlines::new(&channels),
+            acted: Marks::new(n),
+            walk: Marks::new(n),
             channels,
             interlocks: Interlocks::new(n),
             board,
             bank: Bank::default(),
             seq: vec![0; n],
-            touched: vec![false; n],
+            touched: Marks::new(n),
             // At most two edges per channel can come out of one wake-up (a request edge and a
             // deadline edge); reserve generously so the hot path never grows the vector.
             changes: Vec::with_capacity(4 * n + 4),
@@ -127,6 +148,7 @@ impl<O: Output> Worker<O> {
             valve_touched: Vec::with_capacity(n / 2),
             owner: vec![None; n],
             resend_at: None,
+            full_read_at: now,
         }
     }
 
@@ -143,6 +165,20 @@ impl<O: Output> Worker<O> {
         self.valves.get(k)
     }
 
+    /// The earliest channel deadline as kept in order, and as a scan of every channel finds it.
+    #[cfg(test)]
+    pub(crate) fn channel_deadlines(&self) -> (Option<Nanos>, Option<Nanos>) {
+        let scanned = self.channels.iter().filter_map(Channel::poll_at).min();
+        (self.deadlines.first(&self.channels), scanned)
+    }
+
+    /// Channel `i` for a test to change without the worker marking it: an action that forgets
+    /// its mark.
+    #[cfg(test)]
+    pub(crate) fn channel_unmarked(&mut self, i: usize) -> &mut Channel {
+        &mut self.channels[i]
+    }
+
     /// Toggles output line `line` every `half` ns from `now + half` on (a half period of at
     /// least 1 ms is used).
     pub(crate) fn start_heartbeat(&mut self, line: usize, half: Nanos, now: Nanos) {
@@ -157,7 +193,12 @@ impl<O: Output> Worker<O> {
 
     /// The earliest deadline of any channel or of the heartbeat, monotonic ns.
     pub(crate) fn next_deadline(&self) -> Option<Nanos> {
-        let channels = self.channels.iter().filter_map(Channel::poll_at).min();
+        let channels = self.deadlines.first(&self.channels);
+        debug_assert_eq!(
+            channels,
+            self.channels.iter().filter_map(Channel::poll_at).min(),
+            "the deadlines kept are every channel's own"
+        );
         let valves = self
             .valves
             .iter()
@@ -196,14 +237,27 @@ impl<O: Output> Worker<O> {
             self.apply(now, req);
         }
         let now = (self.clock)();
-        for i in 0..self.channels.len() {
+        if now.saturating_sub(self.full_read_at) >= FULL_READ_NS {
+            // Now and then, every channel, as a scan would: whatever an action left unmarked.
+            self.mark_all();
+            self.full_read_at = now;
+        }
+        // In channel order, as a scan of every channel would: the channels whose deadline may
+        // have come, and any channel acted on along the way (a partner, a slot handed on) that
+        // comes later in that order.
+        self.deadlines.take_due(now, &mut self.walk);
+        let mut from = 0;
+        while let Some(i) = self.walk.first_from(from) {
+            self.debug_none_between(from, i, |c| c.poll_at().is_some_and(|t| t <= now));
+            from = i + 1;
             if self.channels[i].poll_at().is_some_and(|t| t <= now) {
                 let held = self.channels[i].occupies();
                 self.bank.before(&mut self.channels, i, now);
                 let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
                 self.channels[i].poll(now, &mut |e| sink.event(e));
                 self.pushed |= sink.pushed;
-                self.touched[i] = true;
+                self.touched.set(i);
+                self.mark(i);
                 self.sync_pair(i, now);
                 // Only a slot given up can let a waiting pulse start. It is handed on at the
                 // fall's scheduled instant, so the next pulse starts where the last one ended,
@@ -218,8 +272,13 @@ impl<O: Output> Worker<O> {
                         .map_or(now, |c| c.scheduled_ns);
                     self.sync_bank(fell);
                 }
+                self.walk.add(self.deadlines.stale());
             }
         }
+        self.debug_none_between(from, self.channels.len(), |c| {
+            c.poll_at().is_some_and(|t| t <= now)
+        });
+        self.walk.clear();
         self.retry_rises(now);
         self.run_valves(now);
         if let Some(r) = self.sync_heater_faults(now) {
@@ -241,7 +300,9 @@ impl<O: Output> Worker<O> {
                 hb.next = now + hb.half;
             }
         }
-        self.flush(now)?;
+        let flushed = self.flush(now);
+        self.deadlines.refresh(&self.channels);
+        flushed?;
         if let Some(request) = taken {
             // Applied and written: only now is it done.
             self.safety.mark_taken(request);
@@ -289,14 +350,26 @@ impl<O: Output> Worker<O> {
     /// releases it. Returns the slot's request number when it latched the e-stop.
     fn sync_heater_faults(&mut self, now: Nanos) -> Option<u64> {
         let (mut changed, mut new) = (false, false);
-        for (ch, seen) in self.channels.iter().zip(self.heater_faulted.iter_mut()) {
-            let faulted = ch.heater_fault().is_some();
+        // Only an action on a channel latches or clears its fault.
+        let mut from = 0;
+        while let Some(i) = self.acted.first_from(from) {
+            from = i + 1;
+            let faulted = self.channels[i].heater_fault().is_some();
+            let seen = &mut self.heater_faulted[i];
             if faulted != *seen {
                 changed = true;
                 new |= faulted;
                 *seen = faulted;
             }
         }
+        self.acted.clear();
+        debug_assert!(
+            self.channels
+                .iter()
+                .zip(&self.heater_faulted)
+                .all(|(c, seen)| c.heater_fault().is_some() == *seen),
+            "a heater fault changed on a channel not acted on"
+        );
         let mut taken = None;
         if new && self.heater_estop && !self.safety.estop_latched() {
             self.safety.estop(true);
@@ -311,15 +384,48 @@ impl<O: Output> Worker<O> {
     /// Rises the board of the lines held back while another line was high, written now that
     /// it allows them, in channel order; each keeps the pair and the planner in step.
     fn retry_rises(&mut self, now: Nanos) {
-        for i in 0..self.channels.len() {
+        // Only a channel that held a rise at its last read, or was acted on since, holds one.
+        self.deadlines.add_may_hold_rise(&mut self.walk);
+        let mut from = 0;
+        while let Some(i) = self.walk.first_from(from) {
+            self.debug_none_between(from, i, |c| c.rise_due(now));
+            from = i + 1;
             if !self.channels[i].rise_due(now) {
                 continue;
             }
             let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
             self.channels[i].retry_rise(now, &mut |e| sink.event(e));
             self.pushed |= sink.pushed;
-            self.touched[i] = true;
+            self.touched.set(i);
+            self.mark(i);
             self.sync_pair(i, now);
+            self.deadlines.add_may_hold_rise(&mut self.walk);
+        }
+        self.debug_none_between(from, self.channels.len(), |c| c.rise_due(now));
+        self.walk.clear();
+    }
+
+    /// Channel `i` was acted on: its deadline is read again, and it is looked at for a heater
+    /// fault.
+    fn mark(&mut self, i: usize) {
+        self.deadlines.mark(i);
+        self.acted.set(i);
+    }
+
+    /// Every channel may have been acted on.
+    fn mark_all(&mut self) {
+        self.deadlines.mark_all();
+        self.acted.set_all();
+    }
+
+    /// Debug builds: no channel in `from..to` is one `acts` says a wake-up acts on. The walks
+    /// over the channels skip the ones not in their set; this checks at every wake-up of every
+    /// test that they skip none that a scan of every channel would have acted on.
+    fn debug_none_between(&self, from: usize, to: usize, acts: impl Fn(&Channel) -> bool) {
+        if cfg!(debug_assertions) {
+            for k in from..to.min(self.channels.len()) {
+                assert!(!acts(&self.channels[k]), "channel {k} skipped by the walk");
+            }
         }
     }
 
@@ -330,7 +436,10 @@ impl<O: Output> Worker<O> {
             return;
         };
         self.across(|channels, pairs, _, emit| pairs.sync(channels, i, now, emit));
-        self.touched[p] = true;
+        self.touched.set(p);
+        // The interlock acts on the pair only.
+        self.mark(i);
+        self.mark(p);
     }
 
     /// Runs a step of a planner over the channels (`f`: the split-range pairs, the node-level
@@ -350,7 +459,7 @@ impl<O: Output> Worker<O> {
                 let mut sink = Sink::new(c, changes, reports, dropped);
                 sink.event(e);
                 pushed |= sink.pushed;
-                touched[c] = true;
+                touched.set(c);
             },
         );
         self.pushed |= pushed;
@@ -366,13 +475,19 @@ impl<O: Output> Worker<O> {
         }
         // A lowered limit takes effect at once, a raised one lets waiting pulses start.
         self.across(|channels, _, bank, emit| bank.shed(channels, now, emit));
+        self.mark_all();
         self.sync_bank(now);
+        self.deadlines.refresh(&self.channels);
     }
 
     /// After any action, at `now` (the instant a line went off, when one did): on phases
     /// waiting for a slot that may start now do (written in this same batch).
     fn sync_bank(&mut self, now: Nanos) {
-        self.across(|channels, _, bank, emit| bank.after(channels, now, emit));
+        if self.bank.plans() {
+            self.across(|channels, _, bank, emit| bank.after(channels, now, emit));
+            // It may start any channel's waiting on phase.
+            self.mark_all();
+        }
     }
 
     /// Latches or releases the e-stop of every channel and valve at `now`.
@@ -387,6 +502,7 @@ impl<O: Output> Worker<O> {
         self.each_valve(now, |v, now, emit| v.set_live(now, live, emit));
         self.each_channel(now, |ch, now, emit| ch.set_live(now, live, emit));
         self.heartbeat_gate(now);
+        self.deadlines.refresh(&self.channels);
     }
 
     /// Runs `f` on every channel at `now`, then keeps every split-range pair apart.
@@ -396,8 +512,9 @@ impl<O: Output> Worker<O> {
             let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
             f(&mut self.channels[i], now, &mut |e| sink.event(e));
             self.pushed |= sink.pushed;
-            self.touched[i] = true;
+            self.touched.set(i);
         }
+        self.mark_all();
         for i in 0..self.channels.len() {
             self.sync_pair(i, now);
         }
@@ -493,6 +610,7 @@ impl<O: Output> Worker<O> {
             return;
         }
         self.bank.before(&mut self.channels, req.channel, now);
+        self.mark(req.channel);
         let Some(ch) = self.channels.get_mut(req.channel) else {
             return;
         };
@@ -545,7 +663,7 @@ impl<O: Output> Worker<O> {
             | Input::ValveSwitch { .. } => {}
         }
         self.pushed |= sink.pushed;
-        self.touched[req.channel] = true;
+        self.touched.set(req.channel);
         self.sync_pair(req.channel, now);
         self.sync_bank(now);
     }
@@ -579,6 +697,7 @@ impl<O: Output> Worker<O> {
                     // The minimum of the phase this edge begins counts from when it reached
                     // the line.
                     self.channels[c.line].edge_written(actual_ns);
+                    self.mark(c.line);
                 }
                 self.seq[c.line] += 1;
                 self.push(Report::Edge(EdgeReport {
@@ -623,6 +742,7 @@ impl<O: Output> Worker<O> {
             let mut sink = Sink::new(i, &mut self.changes, &mut self.reports, &self.dropped);
             self.channels[i].set_enable(now, false, &mut |e| sink.event(e));
             self.pushed |= sink.pushed;
+            self.mark(i);
         }
         let mut v = Valve::start(config, now, start);
         v.seat_on(&self.board, open, close);
@@ -706,27 +826,29 @@ impl<O: Output> Worker<O> {
                 self.valve_touched[v] = !sent;
             }
         }
-        for i in 0..self.channels.len() {
-            if std::mem::take(&mut self.touched[i]) {
-                let status = self.channels[i].status(now);
-                let sent = push_report(
-                    &mut self.reports,
-                    &self.dropped,
-                    Report::Status {
-                        channel: i,
-                        status,
-                        at_ns: now,
-                    },
-                );
-                self.pushed |= sent;
-                // A status is the latest state, not an event: one the full queue refused is
-                // sent again at the next wake-up, so the reader never keeps a stale one.
-                self.touched[i] = !sent;
+        let mut from = 0;
+        while let Some(i) = self.touched.first_from(from) {
+            from = i + 1;
+            let status = self.channels[i].status(now);
+            let sent = push_report(
+                &mut self.reports,
+                &self.dropped,
+                Report::Status {
+                    channel: i,
+                    status,
+                    at_ns: now,
+                },
+            );
+            self.pushed |= sent;
+            // A status is the latest state, not an event: one the full queue refused is sent
+            // again at the next wake-up, so the reader never keeps a stale one.
+            if sent {
+                self.touched.unset(i);
             }
         }
         // That next wake-up comes even when nothing else is due (a channel at 0 or 100 %, a
         // stopped valve): the state the reader shows never waits for an unrelated edge.
-        let refused = self.touched.iter().chain(&self.valve_touched).any(|t| *t);
+        let refused = !self.touched.is_empty() || self.valve_touched.iter().any(|t| *t);
         self.resend_at = refused.then_some(now + STATUS_RESEND_NS);
     }
 

@@ -126,6 +126,14 @@ impl Channel {
         self.seat.as_ref().is_some_and(|s| !s.may_rise())
     }
 
+    /// Whether a rise is held back (by a gate, the board of the node's lines or a minimum
+    /// break). Only then can [`Channel::poll_at`] change without any action on this channel:
+    /// it names the held rise only while the board allows it, and the board changes with the
+    /// other lines.
+    pub fn holds_rise(&self) -> bool {
+        matches!(self.line.held, Some((Level::High, _)))
+    }
+
     /// Whether a rise held back is due at `now` (its minimum break has passed) and no gate
     /// keeps it off the line: [`Channel::retry_rise`] would write it.
     pub fn rise_due(&self, now: Nanos) -> bool {
