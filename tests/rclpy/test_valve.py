@@ -442,6 +442,9 @@ def test_the_loop_follows_its_process_value_holds_when_it_goes_stale_and_obeys_m
     start = len(states.messages)
     manual.publish(String(data="open"))
     states.wait_for(lambda s: s.motion == "opening", start=start, timeout=5.0)
+    # From after the "opening" state on: a state published before the command came says
+    # "stopped" too, at the held position.
+    start = len(states.messages)
     manual.publish(String(data="stop"))
     stopped = states.wait_for(lambda s: s.motion == "stopped", start=start, timeout=5.0)
     assert stopped.position_pct > held, (held, stopped)
