@@ -217,11 +217,17 @@ async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
     .await
     .expect("SV 5000 clamped to 4095");
     assert!(s.enabled);
-    assert!(
-        node.log().contains("SV 5000 is outside 0..4095"),
-        "{}",
-        node.log()
-    );
+    // The line is written by the report thread and read from the node's stderr by a thread of
+    // this test: it can come a moment after the status that says the same.
+    let end = std::time::Instant::now() + LONG;
+    while !node.log().contains("SV 5000 is outside 0..4095") {
+        assert!(
+            std::time::Instant::now() < end,
+            "no log line for the clamped SV:\n{}",
+            node.log()
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
 
     // A good command clears the flag.
     command_until(&duty, Float64 { data: 20.0 }, &status, |s| {
