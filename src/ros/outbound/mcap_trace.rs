@@ -288,11 +288,41 @@ fn write_options() -> mcap::WriteOptions {
 }
 
 /// The I/O error inside an MCAP error — from the file directly, or from the record encoder
-/// that writes to it — or the MCAP error as one.
+/// that writes to it — or the MCAP error as one. The writer wraps its record encoder's errors
+/// in an I/O error of its own (`io::Error::other(binrw::Error::Io(..))`): the error of the
+/// file, with its OS error number, is looked for inside that too.
 fn io_error(e: mcap::McapError) -> std::io::Error {
     match e {
-        mcap::McapError::Io(e) | mcap::McapError::Parse(binrw::Error::Io(e)) => e,
+        mcap::McapError::Io(e) | mcap::McapError::Parse(binrw::Error::Io(e)) => innermost_io(e),
         e => std::io::Error::other(e),
+    }
+}
+
+/// `e`, or the I/O error with an OS error number it wraps (at most a few levels deep).
+fn innermost_io(e: std::io::Error) -> std::io::Error {
+    fn os_code(e: &(dyn std::error::Error + 'static), depth: usize) -> Option<i32> {
+        if depth == 0 {
+            return None;
+        }
+        if let Some(io) = e.downcast_ref::<std::io::Error>() {
+            return io
+                .raw_os_error()
+                .or_else(|| io.get_ref().and_then(|r| os_code(r, depth - 1)));
+        }
+        match e.downcast_ref::<binrw::Error>() {
+            Some(binrw::Error::Io(io)) => os_code(io, depth - 1),
+            Some(binrw::Error::Backtrace(bt)) => os_code(&*bt.error, depth - 1),
+            _ => match e.downcast_ref::<mcap::McapError>() {
+                Some(mcap::McapError::Io(io) | mcap::McapError::Parse(binrw::Error::Io(io))) => {
+                    os_code(io, depth - 1)
+                }
+                _ => e.source().and_then(|s| os_code(s, depth - 1)),
+            },
+        }
+    }
+    match os_code(&e, 8) {
+        Some(code) if e.raw_os_error().is_none() => std::io::Error::from_raw_os_error(code),
+        _ => e,
     }
 }
 
@@ -732,6 +762,8 @@ mod tests {
         for e in [
             mcap::McapError::Io(full()),
             mcap::McapError::Parse(binrw::Error::Io(full())),
+            // A message's header, written by the MCAP writer through its record encoder.
+            mcap::McapError::Io(std::io::Error::other(binrw::Error::Io(full()))),
         ] {
             let shown = format!("{e:?}");
             assert_eq!(io_error(e).raw_os_error(), Some(libc::ENOSPC), "{shown}");
