@@ -1355,6 +1355,23 @@ mod safety_ack_tests {
         (path, off)
     }
 
+    /// Waits, on this thread, until the fake emergency handle `off` was called, and checks it
+    /// was not before the bound from `start`.
+    fn wait_off_at_the_bound(off: &AtomicUsize, start: std::time::Instant) {
+        while off.load(Ordering::SeqCst) == 0 {
+            assert!(
+                start.elapsed() < 8 * SAFETY_TAKE_BOUND,
+                "never switched off"
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert!(
+            start.elapsed() >= SAFETY_TAKE_BOUND,
+            "{:?}",
+            start.elapsed()
+        );
+    }
+
     struct WakeFd(Arc<EventFd>);
     impl AsRawFd for WakeFd {
         fn as_raw_fd(&self) -> RawFd {
@@ -1532,18 +1549,7 @@ mod safety_ack_tests {
         assert!(gave_up.is_err());
         drop(rt);
         assert_eq!(off.0.load(Ordering::SeqCst), 0, "not before the bound");
-        while off.0.load(Ordering::SeqCst) == 0 {
-            assert!(
-                start.elapsed() < 8 * SAFETY_TAKE_BOUND,
-                "never switched off"
-            );
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        assert!(
-            start.elapsed() >= SAFETY_TAKE_BOUND,
-            "{:?}",
-            start.elapsed()
-        );
+        wait_off_at_the_bound(&off.0, start);
         // No runtime: a plain thread checks, and the answer can still be awaited.
         let (path, off) = fake();
         let start = std::time::Instant::now();
@@ -1590,18 +1596,7 @@ mod safety_ack_tests {
         let (path, off) = fake();
         let start = std::time::Instant::now();
         drop(path.acknowledgment(path.store(Input::Live(false))));
-        while off.0.load(Ordering::SeqCst) == 0 {
-            assert!(
-                start.elapsed() < 8 * SAFETY_TAKE_BOUND,
-                "never switched off"
-            );
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        assert!(
-            start.elapsed() >= SAFETY_TAKE_BOUND,
-            "{:?}",
-            start.elapsed()
-        );
+        wait_off_at_the_bound(&off.0, start);
     }
 
     #[test]
