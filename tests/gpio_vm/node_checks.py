@@ -232,15 +232,22 @@ def check_timing(samples, active, period_ms, on_ms, tol_ms=3.0):
     # (that on time looks as much shorter or longer; the grid holds). So the medians are held to
     # `tol_ms`, the pulse count exactly (one pulse per period, none missed or added: every
     # period within half a period of its nominal length), and the delivered duty to 2 points
-    # over the periods whose on time the sampler saw within 10 ms of the median — at most one
-    # period in five may be set aside as seen late, and how many were is printed.
+    # over the periods whose on time and length the sampler both saw within 10 ms of their
+    # medians — at most one on time in five may be seen late, and how many were is printed. (A
+    # rise seen late lengthens one period and shortens the next with its on time: weighing the
+    # long period but not the short one would bias the duty down by the delay.)
     pairs = list(zip(ons, periods))
-    seen = [(o, p) for o, p in pairs if abs(o - mo) <= 10.0]
-    late = len(pairs) - len(seen)
+    late = sum(abs(o - mo) > 10.0 for o, _ in pairs)
     require(late * 5 <= len(pairs), f"{late} of {len(pairs)} on times seen off the median: {ons}")
+    seen = [(o, p) for o, p in pairs if abs(o - mo) <= 10.0 and abs(p - mp) <= 10.0]
+    require(len(seen) * 2 >= len(pairs),
+            f"only {len(seen)} of {len(pairs)} periods seen on time: periods {periods}, on {ons}")
     ratio = sum(o for o, _ in seen) / sum(p for _, p in seen) * 100
     want = on_ms / period_ms * 100
-    require(abs(ratio - want) <= 2, f"delivered duty {ratio:.2f} %, expected {want:.1f} %")
+    require(abs(ratio - want) <= 2,
+            f"delivered duty {ratio:.2f} %, expected {want:.1f} %, over {len(seen)} of "
+            f"{len(pairs)} periods: periods {[round(p, 1) for p in periods]}, on "
+            f"{[round(o, 1) for o in ons]}")
     require(all(abs(p - period_ms) < period_ms / 2 for p in periods),
             f"a pulse missed or added: periods {periods}")
     require(all(0 < o < period_ms for o in ons), f"on times {ons}")
