@@ -50,7 +50,7 @@ pub fn spawn<O: Output>(
 
 /// The loop: the same syscalls per wake-up as the output thread's loop (its
 /// [`ThreadLoop::sleep_on`]: arm the timer with an absolute deadline, poll it beside the
-/// request eventfd, read what fired), then one clock read.
+/// request eventfd, clear a request wake-up), then one clock read.
 /// A deadline not yet due when the timer is armed cannot be taken early: the timer is
 /// absolute.
 /// After the last deadline it only waits for the stop.

@@ -1183,7 +1183,7 @@ impl<O: Output> ThreadLoop<O> {
     }
 
     /// Sleeps on `timer` armed with the absolute CLOCK_MONOTONIC `deadline` (none: until a
-    /// request), or on the request eventfd, whichever fires first, and reads what fired. A late
+    /// request), or on the request eventfd, whichever fires first, and clears a request wake-up. A late
     /// wake-up does not push later deadlines back: they are absolute. Returns whether the
     /// timer fired.
     pub fn sleep_on(
@@ -1212,10 +1212,10 @@ impl<O: Output> ThreadLoop<O> {
         }
         let fired = |fd: &PollFd| fd.revents().is_some_and(|r| r.contains(PollFlags::POLLIN));
         let (timer_fired, request_fired) = (fired(&fds[0]), fired(&fds[1]));
-        // Read only what fired: every saved syscall is saved thousands of times a second.
-        if timer_fired {
-            let _ = timer.wait();
-        }
+        // Every saved syscall is saved thousands of times a second. The timer's expiration is
+        // not read: arming or disarming it before the next poll clears it (the kernel zeroes
+        // the count in timerfd_settime), so a read would only stand between the wake-up and
+        // the write.
         if request_fired {
             self.clear_request_wake();
         }
@@ -1276,6 +1276,41 @@ fn real_time_setup(rt_priority: Option<i32>) {
         log::warn!("mlockall refused ({e}); pages may fault on the output path");
     }
     log::info!("output thread running SCHED_FIFO priority {prio}");
+}
+
+#[cfg(test)]
+mod timer_tests {
+    use super::*;
+
+    fn readable(timer: &TimerFd) -> bool {
+        let mut fds = [PollFd::new(timer.as_fd(), PollFlags::POLLIN)];
+        poll(&mut fds, PollTimeout::ZERO).unwrap() == 1
+    }
+
+    fn arm(timer: &TimerFd, at: Nanos) {
+        timer
+            .set(
+                Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(at))),
+                TimerSetTimeFlags::TFD_TIMER_ABSTIME,
+            )
+            .unwrap();
+    }
+
+    // The output thread's loop never reads its timer's expirations: it relies on arming (or
+    // disarming) the timer to clear them, so that a fired timer does not wake the next poll.
+    #[test]
+    fn arming_or_disarming_the_timer_clears_an_expiration_never_read() {
+        let timer = monotonic_timer().unwrap();
+        let now = crate::clock::monotonic_ns();
+        arm(&timer, now.saturating_sub(1_000_000));
+        assert!(readable(&timer), "a deadline in the past fires at once");
+        arm(&timer, now + 60_000_000_000);
+        assert!(!readable(&timer), "armed again: the old expiration is gone");
+        arm(&timer, now.saturating_sub(1_000_000));
+        assert!(readable(&timer));
+        timer.unset().unwrap();
+        assert!(!readable(&timer), "disarmed: the old expiration is gone");
+    }
 }
 
 #[cfg(test)]
