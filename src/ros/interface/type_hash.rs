@@ -28,6 +28,10 @@
 //!
 //! `tests/rclpy/test_type_hashes.py` compares what every endpoint of the node announces with
 //! the hashes rosidl wrote in its `.json` files.
+//!
+//! rmw_zenoh carries the same hashes in its key expressions and liveliness tokens, beside a
+//! type name of its own for each endpoint ([`zenoh_type_name`]): there a service is one
+//! endpoint, named and hashed as the service type, not as its request and response.
 
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeMap, BTreeSet};
@@ -665,6 +669,31 @@ pub fn dds_type_name(ros_type: &str) -> Option<String> {
     topic_type.then(|| format!("{pkg}::{kind}::dds_::{name}_"))
 }
 
+/// The type name rmw_zenoh gives the Zenoh endpoints of a ROS type, in its data keys and
+/// liveliness tokens: DDS-style (`<pkg>::<kind>::dds_::<Name>_`), for the types that are the
+/// type of a topic or a service there. Every message (`std_msgs::msg::dds_::Float64_`); a
+/// service itself, whose request and reply travel on one key
+/// (`std_srvs::srv::dds_::Trigger_`); an action's two services and its feedback message
+/// (`pkg::action::dds_::Autotune_SendGoal_`, `..._GetResult_`, `..._FeedbackMessage_`); the
+/// action's cancel service and status topic are `action_msgs`' `CancelGoal` and
+/// `GoalStatusArray`, which this gives as a service and a message. The hash that goes with
+/// the name is the hash of the same ROS type (for a service, the service's, not its
+/// request's). `None` for a service's request, response and event, and an action itself and
+/// its goal, result and feedback, which no Zenoh endpoint carries as its type.
+pub fn zenoh_type_name(ros_type: &str) -> Option<String> {
+    let (pkg, rest) = ros_type.split_once('/')?;
+    let (kind, name) = rest.split_once('/')?;
+    let derived = |suffixes: &[&str]| suffixes.iter().any(|s| name.ends_with(s));
+    let endpoint_type = match kind {
+        "msg" => true,
+        "srv" => !derived(&["_Request", "_Response", "_Event"]),
+        "action" => derived(&["_SendGoal", "_GetResult", "_FeedbackMessage"]),
+        _ => false,
+    };
+    (endpoint_type && !pkg.is_empty() && !name.is_empty())
+        .then(|| format!("{pkg}::{kind}::dds_::{name}_"))
+}
+
 /// The USER_DATA a ROS 2 endpoint announces its type hash with (rmw_dds_common's
 /// `encode_type_hash_for_user_data_qos`).
 pub fn user_data(hash: &str) -> Vec<u8> {
@@ -1004,5 +1033,51 @@ mod tests {
         }
         assert_eq!(dds_type_name("std_srvs/srv/Trigger_Event"), None);
         assert_eq!(user_data("RIHS01_00"), b"typehash=RIHS01_00;");
+    }
+
+    /// rmw_zenoh's type names (docs/design.md, "Topic and Service name mapping": the
+    /// `std_msgs::msg::dds_::String_` and `example_interfaces::srv::dds_::AddTwoInts_`
+    /// examples): a message as DDS names it, a service by its own name, an action by its two
+    /// services and its feedback message.
+    #[test]
+    fn zenoh_type_names_are_rmw_zenohs() {
+        let z = |t: &str| zenoh_type_name(t);
+        assert_eq!(
+            z("std_msgs/msg/String").as_deref(),
+            Some("std_msgs::msg::dds_::String_")
+        );
+        assert_eq!(
+            z("example_interfaces/srv/AddTwoInts").as_deref(),
+            Some("example_interfaces::srv::dds_::AddTwoInts_")
+        );
+        assert_eq!(
+            z("action_msgs/srv/CancelGoal").as_deref(),
+            Some("action_msgs::srv::dds_::CancelGoal_")
+        );
+        for (part, name) in [
+            ("_SendGoal", "p::action::dds_::A_SendGoal_"),
+            ("_GetResult", "p::action::dds_::A_GetResult_"),
+            ("_FeedbackMessage", "p::action::dds_::A_FeedbackMessage_"),
+        ] {
+            assert_eq!(z(&format!("p/action/A{part}")).as_deref(), Some(name));
+        }
+        for none in [
+            "std_srvs/srv/Trigger_Request",
+            "std_srvs/srv/Trigger_Response",
+            "std_srvs/srv/Trigger_Event",
+            "p/action/A",
+            "p/action/A_Goal",
+            "p/action/A_Result",
+            "p/action/A_Feedback",
+            "p/action/A_SendGoal_Request",
+            "p/action/A_GetResult_Response",
+            "p/action/A_SendGoal_Event",
+            "p/other/A",
+            "std_msgs/Float64",
+            "/msg/A",
+            "p/msg/",
+        ] {
+            assert_eq!(z(none), None, "{none}");
+        }
     }
 }

@@ -1,7 +1,8 @@
 //! Making the node's endpoints: subscriptions, publishers and the tasks that listen
 //! ([`endpoints`]), with the one service maker every service goes through, the action
-//! server with its goals ([`action`]), and the watch for another node with this node's
-//! name ([`name_clash`]).
+//! server with its goals ([`action`]), the watch for another node with this node's
+//! name ([`name_clash`]), and rmw_zenoh's wire format: keys, liveliness tokens, attachments
+//! and GIDs ([`zenoh_keys`]).
 //!
 //! Layer 3 of the ROS shell: may import [`interface`](super::interface) and
 //! [`config`](super::config).
@@ -9,3 +10,4 @@
 pub mod action;
 pub mod endpoints;
 pub mod name_clash;
+pub mod zenoh_keys;
