@@ -16,8 +16,7 @@
 # long rclpy memory tests (BESIDE_TESTS below)
 # and, in two pytest processes of their own, the rclpy tests marked `untimed`, each test on a ROS
 # domain of its own. The rclpy tests that time what the node does run one at a time after the
-# Rust tests (5), beside nothing but what is left of the untimed ones and a third process of
-# them that starts with the timed ones (UNTIMED_LATE below); the GPIO guest, whose
+# Rust tests (5), beside nothing but what is left of the untimed ones; the GPIO guest, whose
 # sampler is timed, after them, alone. Each step's time is printed, and all of them at the end,
 # with when each group that ran beside the steps started and ended.
 #
@@ -265,23 +264,18 @@ run_step "cargo build --release" cargo build --release --bins --locked || releas
 # of two to spare, so that no load beside them can change their result (tests/rclpy/pytest.ini),
 # with PYTEST_ARGS; waited for, their results added, after the timed ones (5). Part 2 runs the
 # untimed tests of UNTIMED_PART2 (the longest ones, most of their time spent waiting on simulated
-# plants: about half of the group's time), part 1 those of the rest of the suite but
-# UNTIMED_LATE. All three need setup's venv and messages (1) and the release binary (3), and all
-# end before the GPIO guest starts (5a). The untimed tests of UNTIMED_LATE (the rclpy reference
-# node's 700 fresh-client trials: about 200 CPU-s) start with the timed ones instead (5): until
-# then both cores are busy (the compiles, the Rust tests, the memory tests, parts 1 and 2), so
-# their work there only moves the timed tests' start; beside the timed ones two-thirds of the
-# cores are idle.
+# plants and fresh processes: about half of the group's time), part 1 those of the rest of the
+# suite. All three need setup's venv and messages (1) and the release binary (3), and all end
+# before the GPIO guest starts (5a).
 BESIDE_TESTS=(tests/rclpy/test_soak.py tests/rclpy/test_participant_storm.py)
-UNTIMED_PART2=(tests/rclpy/test_trace_files.py tests/rclpy/test_heater_mpc.py
-    tests/rclpy/test_valve_loop.py)
-UNTIMED_LATE=(tests/rclpy/test_fresh_clients.py)
+UNTIMED_PART2=(tests/rclpy/test_fresh_clients.py tests/rclpy/test_trace_files.py
+    tests/rclpy/test_heater_mpc.py tests/rclpy/test_valve_loop.py)
 beside_ignore=()
 for t in "${BESIDE_TESTS[@]}"; do
     beside_ignore+=("--ignore=$t")
 done
 part2_ignore=()
-for t in "${UNTIMED_PART2[@]}" "${UNTIMED_LATE[@]}"; do
+for t in "${UNTIMED_PART2[@]}"; do
     part2_ignore+=("--ignore=$t")
 done
 beside_pid="" untimed_pids=()
@@ -481,20 +475,16 @@ fi
 # 5. The rest of the rclpy suite (less BESIDE_TESTS and the untimed tests, which run beside the
 # steps since 3a), with the venv's python and the built messages: the tests that time what the
 # node does, one at a time as ever (`--timing-group timed`), beside nothing but what is left of
-# the untimed ones and the untimed tests of UNTIMED_LATE, started with them in a third pytest
-# process; then the three parts of the untimed ones are waited for, their output printed.
+# the untimed ones; then the two parts of the untimed ones are waited for, their output printed.
 # Each pytest process has its own results file, and all are counted; the step fails if any of
 # them fails or leaves no results file. A process that PYTEST_ARGS select nothing of (pytest
 # exit 5) is not a failure while another one ran tests; all selecting nothing is.
 # shellcheck disable=SC2317  # called through run_step
 rclpy_suite() {
-    local start=$SECONDS timed_end part any_ran=0 ok=1 rc late_pid
+    local start=$SECONDS timed_end part any_ran=0 ok=1 rc
     local rcs=()
-    beside_start rclpy-untimed-3 run_pytest_paths jazzy "$LOG_DIR/rclpy-untimed-3-junit.xml" \
-        "${UNTIMED_LATE[@]}" -- --timing-group=untimed "${pytest_extra[@]}"
-    late_pid=$beside_started_pid
     if ((${#untimed_pids[@]})); then
-        echo "rclpy tests: the untimed ones run beside these since $untimed_started s, in two parts, and those of ${UNTIMED_LATE[*]} since $start s (output in rclpy-untimed-1.log, -2.log and -3.log, printed below)"
+        echo "rclpy tests: the untimed ones run beside these since $untimed_started s, in two parts (output in rclpy-untimed-1.log and -2.log, printed below)"
     fi
     rc=0
     run_pytest_paths jazzy "$LOG_DIR/rclpy-junit.xml" tests/rclpy -- "${beside_ignore[@]}" \
@@ -513,10 +503,6 @@ rclpy_suite() {
             add_junit_counts "$LOG_DIR/rclpy-untimed-$part-junit.xml"
         rcs+=("$beside_rc")
     done
-    beside_done --exit "rclpy tests, untimed, part 3" "$late_pid" "$start" "rclpy-untimed-3" \
-        "rclpy tests: the untimed ones, part 3 (beside the timed ones)" \
-        add_junit_counts "$LOG_DIR/rclpy-untimed-3-junit.xml"
-    rcs+=("$beside_rc")
     for rc in "${rcs[@]}"; do
         ((rc != 5)) && any_ran=1
     done
