@@ -214,6 +214,19 @@ impl NodeProc {
         self.log().contains(needle)
     }
 
+    /// As [`NodeProc::wait_log`] for async tests, whose runtime runs its other tasks meanwhile:
+    /// waits until `done` holds for the log, up to `timeout`; whether it did.
+    pub async fn log_until(&self, timeout: Duration, done: impl Fn(&str) -> bool) -> bool {
+        let end = Instant::now() + timeout;
+        while !done(&self.log()) {
+            if Instant::now() >= end {
+                return false;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        true
+    }
+
     /// Waits until the node says it is running (or fails the test with its log).
     pub fn wait_running(&self) {
         assert!(

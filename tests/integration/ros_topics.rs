@@ -219,15 +219,12 @@ async fn bad_input_leaves_the_node_running_with_its_last_good_state() {
     assert!(s.enabled);
     // The line is written by the report thread and read from the node's stderr by a thread of
     // this test: it can come a moment after the status that says the same.
-    let end = std::time::Instant::now() + LONG;
-    while !node.log().contains("SV 5000 is outside 0..4095") {
-        assert!(
-            std::time::Instant::now() < end,
-            "no log line for the clamped SV:\n{}",
-            node.log()
-        );
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    assert!(
+        node.log_until(LONG, |log| log.contains("SV 5000 is outside 0..4095"))
+            .await,
+        "no log line for the clamped SV:\n{}",
+        node.log()
+    );
 
     // A good command clears the flag.
     command_until(&duty, Float64 { data: 20.0 }, &status, |s| {
@@ -302,14 +299,12 @@ async fn the_watchdog_trips_to_error() {
     .await;
     assert!(a.header.stamp.to_nanos() >= recovered.stamp.to_nanos());
     assert!(pw01_diag(&a).unwrap().message.starts_with("watchdog"));
-    let end = std::time::Instant::now() + LONG;
-    while node.log().matches("watchdog tripped").count() <= trips_before {
-        assert!(
-            std::time::Instant::now() < end,
-            "no log line for the trip after the command:\n{}",
-            node.log()
-        );
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    assert!(
+        node.log_until(LONG, |log| log.matches("watchdog tripped").count()
+            > trips_before)
+            .await,
+        "no log line for the trip after the command:\n{}",
+        node.log()
+    );
     node.stop_ok();
 }
