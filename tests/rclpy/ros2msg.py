@@ -71,27 +71,26 @@ def own_text(type_name: str) -> str:
     raise ValueError(f"not a message type: {type_name}")
 
 
+def field_type_name(ftype: str, pkg: str) -> str:
+    """rosidl's name of the message type a field of package `pkg` names as `Name` or
+    `other_pkg/Name` (an action's own parts, `Name_Goal` and the like, live in `pkg/action`)."""
+    if "/" not in ftype:
+        ftype = f"{pkg}/{ftype}"
+    dep_pkg, dep = ftype.split("/")
+    kind = "action" if dep.endswith(("_Goal", "_Result", "_Feedback")) else "msg"
+    return f"{dep_pkg}/{kind}/{dep}"
+
+
 def _field_types(text: str, pkg: str) -> list[str]:
-    """The message types `text`'s fields name, as `pkg/msg/Name` (or the action part's)."""
+    """The message types `text`'s fields name, as rosidl names them."""
     out = []
     for line in text.splitlines():
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        ftype = line.split()[0]
-        if "=" in line.split()[1] if len(line.split()) > 1 else False:
-            continue  # a constant
-        base = re.sub(r"\[.*\]$", "", ftype)
-        base = re.sub(r"<=\d+$", "", base)
-        if base in PRIMITIVES or base.startswith("string<=") or base.startswith("wstring<="):
-            continue
-        if "/" not in base:
-            base = f"{pkg}/{base}"
-        dep_pkg, dep = base.split("/")
-        if dep.endswith(("_Goal", "_Result", "_Feedback")):
-            out.append(f"{dep_pkg}/action/{dep}")
-        else:
-            out.append(f"{dep_pkg}/msg/{dep}")
+        words = line.split("#", 1)[0].split()
+        if not words or (len(words) > 1 and "=" in words[1]):
+            continue  # nothing, or a constant
+        base = re.sub(r"<=\d+$", "", re.sub(r"\[.*\]$", "", words[0]))
+        if base not in PRIMITIVES:
+            out.append(field_type_name(base, pkg))
     return out
 
 

@@ -121,15 +121,7 @@ def value(ftype: str, seed: int):
         if base == "string" and "<=" in ftype:
             v = v[: int(ftype.split("<=")[1])]
         return v, v
-    return message(nested(base), seed)
-
-
-def nested(ftype: str) -> str:
-    """rosidl's name of a nested field type `pkg/Name` (an action's own parts live in
-    `pkg/action`)."""
-    pkg, name = ftype.split("/")
-    kind = "action" if name.endswith(("_Goal", "_Result", "_Feedback")) else "msg"
-    return f"{pkg}/{kind}/{name}"
+    return message(ros2msg.field_type_name(base, ""), seed)
 
 
 def message(type_name: str, seed: int = 0):
