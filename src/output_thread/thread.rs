@@ -1193,15 +1193,7 @@ impl<O: Output> ThreadLoop<O> {
     ) -> Result<bool, OutputThreadError> {
         let sys = |what| move |source| OutputThreadError::Sys { what, source };
         self.liveness.promise(deadline.unwrap_or(Nanos::MAX));
-        match deadline {
-            Some(t) => timer
-                .set(
-                    Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(t))),
-                    TimerSetTimeFlags::TFD_TIMER_ABSTIME,
-                )
-                .map_err(sys("timerfd_settime"))?,
-            None => timer.unset().map_err(sys("timerfd_settime"))?,
-        }
+        arm(timer, deadline).map_err(sys("timerfd_settime"))?;
         let mut fds = [
             PollFd::new(timer.as_fd(), PollFlags::POLLIN),
             PollFd::new(self.request_wake_fd(), PollFlags::POLLIN),
@@ -1233,6 +1225,18 @@ impl<O: Output> ThreadLoop<O> {
             kind: e.kind(),
             source: Box::new(e),
         })
+    }
+}
+
+/// Arms `timer` to fire at the absolute CLOCK_MONOTONIC `deadline`, ns, or disarms it (`None`).
+/// Either clears an expiration not read yet (timerfd_settime zeroes the count).
+fn arm(timer: &TimerFd, deadline: Option<Nanos>) -> nix::Result<()> {
+    match deadline {
+        Some(t) => timer.set(
+            Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(t))),
+            TimerSetTimeFlags::TFD_TIMER_ABSTIME,
+        ),
+        None => timer.unset(),
     }
 }
 
@@ -1287,28 +1291,19 @@ mod timer_tests {
         poll(&mut fds, PollTimeout::ZERO).unwrap() == 1
     }
 
-    fn arm(timer: &TimerFd, at: Nanos) {
-        timer
-            .set(
-                Expiration::OneShot(TimeSpec::from_duration(Duration::from_nanos(at))),
-                TimerSetTimeFlags::TFD_TIMER_ABSTIME,
-            )
-            .unwrap();
-    }
-
     // The output thread's loop never reads its timer's expirations: it relies on arming (or
     // disarming) the timer to clear them, so that a fired timer does not wake the next poll.
     #[test]
     fn arming_or_disarming_the_timer_clears_an_expiration_never_read() {
         let timer = monotonic_timer().unwrap();
         let now = crate::clock::monotonic_ns();
-        arm(&timer, now.saturating_sub(1_000_000));
+        arm(&timer, Some(now.saturating_sub(1_000_000))).unwrap();
         assert!(readable(&timer), "a deadline in the past fires at once");
-        arm(&timer, now + 60_000_000_000);
+        arm(&timer, Some(now + 60_000_000_000)).unwrap();
         assert!(!readable(&timer), "armed again: the old expiration is gone");
-        arm(&timer, now.saturating_sub(1_000_000));
+        arm(&timer, Some(now.saturating_sub(1_000_000))).unwrap();
         assert!(readable(&timer));
-        timer.unset().unwrap();
+        arm(&timer, None).unwrap();
         assert!(!readable(&timer), "disarmed: the old expiration is gone");
     }
 }
