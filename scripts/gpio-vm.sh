@@ -5,10 +5,11 @@
 # the guest, chrooted into this machine's root, in the current directory. Prints the command's
 # output and exits with its status.
 #
-# Usage: scripts/gpio-vm.sh [--lines N] [--timeout S] [--] COMMAND [ARGS...]
+# Usage: scripts/gpio-vm.sh [--lines N] [--timeout S] [--cpus N] [--] COMMAND [ARGS...]
 #        scripts/gpio-vm.sh --prepare     install and build only (no boot)
 #   --lines N    lines of the gpio-sim chip (default 8)
 #   --timeout S  kill the guest after S seconds of wall time (default 300)
+#   --cpus N     the guest's virtual CPUs (default 2); each busy one takes a core of this machine
 #
 # In the guest COMMAND sees GPIO_SIM_CHIP (/dev/gpiochipN), GPIO_SIM_SYSFS (the chip's sysfs
 # directory holding sim_gpioN/value and pull) and GPIO_SIM_LINES. It runs as root with the
@@ -28,6 +29,7 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 CACHE="$REPO/.gpio-vm"
 LINES=8
 TIMEOUT=300
+CPUS=2
 PREPARE_ONLY=0
 # Exit status when the guest itself could not run (distinct from the command's own statuses).
 NO_GUEST=125
@@ -50,8 +52,9 @@ while (($#)); do
     case "$1" in
         --lines) LINES=${2:?--lines needs a number}; shift ;;
         --timeout) TIMEOUT=${2:?--timeout needs seconds}; shift ;;
+        --cpus) CPUS=${2:?--cpus needs a number}; shift ;;
         --prepare) PREPARE_ONLY=1 ;;
-        -h | --help) sed -n '2,23p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+        -h | --help) sed -n '2,24p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
         --) shift; break ;;
         -*) die "unknown option '$1' (try --help)" ;;
         *) break ;;
@@ -60,6 +63,7 @@ while (($#)); do
 done
 [[ "$LINES" =~ ^[1-9][0-9]*$ ]] || die "--lines: '$LINES' is not a positive number"
 [[ "$TIMEOUT" =~ ^[1-9][0-9]*$ ]] || die "--timeout: '$TIMEOUT' is not a positive number"
+[[ "$CPUS" =~ ^[1-8]$ ]] || die "--cpus: '$CPUS' is not a number from 1 to 8"
 if ((!PREPARE_ONLY && $# == 0)); then
     die "no command given (try --help)"
 fi
@@ -285,7 +289,7 @@ trap 'rm -rf "$RUN"' EXIT
 start=$SECONDS
 set +e
 timeout --foreground -k 5 "$TIMEOUT" qemu-system-x86_64 \
-    -accel tcg,thread=multi -cpu max -smp 2 -m 1024 -nographic -no-reboot -nic none \
+    -accel tcg,thread=multi -cpu max -smp "$CPUS" -m 1024 -nographic -no-reboot -nic none \
     -kernel "$BUILT/vmlinuz" -initrd "$BUILT/initrd.gz" \
     -append "console=ttyS0 quiet loglevel=1 panic=-1 gpiovm.lines=$LINES gpiovm.run=$RUN" \
     -virtfs local,path=/,mount_tag=host,security_model=none,multidevs=remap \

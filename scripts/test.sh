@@ -16,8 +16,9 @@
 # long rclpy memory tests (BESIDE_TESTS below)
 # and, in two pytest processes of their own, the rclpy tests marked `untimed`, each test on a ROS
 # domain of its own. The rclpy tests that time what the node does run one at a time after the
-# Rust tests (5), beside nothing but what is left of the untimed ones; the GPIO guest, whose
-# sampler is timed, after them, alone. Each step's time is printed, and all of them at the end,
+# Rust tests (5), beside nothing but what is left of the untimed ones and, once those have ended,
+# the GPIO guest's checks that time nothing (in a guest of one virtual CPU); the GPIO guest's
+# timed checks after them, alone. Each step's time is printed, and all of them at the end,
 # with when each group that ran beside the steps started and ended.
 #
 # Usage: scripts/test.sh [--quick] [-- PYTEST_ARGS...]
@@ -266,7 +267,7 @@ run_step "cargo build --release" cargo build --release --bins --locked || releas
 # untimed tests of UNTIMED_PART2 (the longest ones, most of their time spent waiting on simulated
 # plants and fresh processes: about half of the group's time), part 1 those of the rest of the
 # suite. All three need setup's venv and messages (1) and the release binary (3), and all end
-# before the GPIO guest starts (5a).
+# before the GPIO guest starts (5-).
 BESIDE_TESTS=(tests/rclpy/test_soak.py tests/rclpy/test_participant_storm.py)
 UNTIMED_PART2=(tests/rclpy/test_fresh_clients.py tests/rclpy/test_trace_files.py
     tests/rclpy/test_heater_mpc.py tests/rclpy/test_valve_loop.py)
@@ -515,47 +516,96 @@ rclpy_suite() {
     done
     ((ok))
 }
+# 5-. Beside what is left of the timed rclpy tests once both untimed parts have ended: the GPIO
+# guest's checks that time nothing (scripts/gpio-vm-tests.sh --group untimed: levels, exit
+# statuses, log lines; node_checks.py's UNTIMED), in a guest of one virtual CPU, so that it
+# takes at most one core, the load of one untimed part. Waited for, its output printed and its
+# results counted, in 5a, before the guest's timed checks.
+# shellcheck disable=SC2317  # called through beside_start
+gpio_untimed_after_the_untimed_rclpy() {
+    local part
+    for part in 1 2; do
+        while [[ ! -e "$LOG_DIR/rclpy-untimed-$part.ended" ]]; do
+            kill -0 "$$" 2>/dev/null || return 1 # the run was stopped
+            sleep 1
+        done
+    done
+    # The preparation started at 1c (its apt-get must not meet another one).
+    while kill -0 "$gpio_prepare_pid" 2>/dev/null; do
+        sleep 1
+    done
+    echo "$SECONDS" >"$LOG_DIR/gpio-vm-tests-untimed.started"
+    env "${lint_env[@]}" scripts/gpio-vm-tests.sh --group untimed
+}
+gpio_untimed_pid=""
 if ((release_ok)); then
+    rm -f "$LOG_DIR/gpio-vm-tests-untimed.started"
+    beside_start gpio-vm-tests-untimed gpio_untimed_after_the_untimed_rclpy
+    gpio_untimed_pid=$beside_started_pid
     run_step "rclpy tests" rclpy_suite
 else
     skipped_steps+=("rclpy tests (no release build)")
     failed_steps+=("rclpy tests")
 fi
 
-# 5a. Real kernel GPIO lines, after the rclpy tests so that nothing runs beside the guest's timed
-# sampler: in a QEMU guest with a gpio-sim chip, the GPIO backend's integration test (ignored by
-# `cargo test` above, counted as skipped there) and the node-level checks of the release binary
-# in tests/gpio_vm/, by scripts/gpio-vm-tests.sh. Counted as passed only when they ran and
-# passed. They count as skipped only where this machine cannot run the guest at all (not Debian,
-# or packages missing and not root to install them), with the reason; a preparation that fails,
-# a guest that hangs (killed after GPIO_VM_TIMEOUT seconds, default 900) or one that ends
-# without a result fails them, with the reason.
+# 5a. Real kernel GPIO lines, in a QEMU guest with a gpio-sim chip: the GPIO backend's
+# integration test (ignored by `cargo test` above, counted as skipped there) and the node-level
+# checks of the release binary in tests/gpio_vm/, by scripts/gpio-vm-tests.sh, in two groups:
+# the untimed ones, started at 5- beside the timed rclpy tests, waited for here; then the timed
+# ones (the line's duty, period and on times, heartbeats, how soon a switch stops a drive),
+# after everything else, so that nothing runs beside the guest's timed sampler. Counted as
+# passed only when they ran and passed. They count as skipped only where this machine cannot
+# run the guest at all (not Debian, or packages missing and not root to install them), with the
+# reason; a preparation that fails, a guest that hangs (killed after GPIO_VM_TIMEOUT seconds,
+# default 900) or one that ends without a result fails them, with the reason.
+# gpio_vm_count NAME LOG STATUS TOTAL: adds the counts of scripts/gpio-vm-tests.sh's last line
+# in LOG (TOTAL failed if it printed none) to the totals, and NAME to the failed or skipped
+# steps by its exit STATUS.
+gpio_vm_count() {
+    local name="$1" log="$2" rc="$3" total="$4" p f k
+    read -r p f k < <(sed -n 's/^gpio-vm tests: \([0-9]*\) passed, \([0-9]*\) failed, \([0-9]*\) skipped$/\1 \2 \3/p' \
+        "$log" | tail -n1 | grep . || echo "0 $total 0")
+    case $rc in
+        0) ;;
+        120) skipped_steps+=("$name (this machine cannot run the guest: see above)") ;;
+        *) failed_steps+=("$name") ;;
+    esac
+    # A run that failed without saying what counts one failure at least.
+    ((rc != 0 && rc != 120 && f == 0)) && f=1
+    passed=$((passed + p)) failed=$((failed + f)) skipped=$((skipped + k))
+}
 vm_total=$(($(python3 tests/gpio_vm/node_checks.py --list | wc -l) + 1))
+vm_untimed_total=$(($(python3 tests/gpio_vm/node_checks.py --list --group untimed | wc -l) + 1))
 if ((!release_ok)); then
     echo "gpio-vm tests: FAILED (no release build): $vm_total tests did not run"
     failed=$((failed + vm_total))
     failed_steps+=("gpio-vm tests (no release build)")
 else
+    banner "gpio-vm tests, untimed (beside the timed rclpy tests)"
+    vm_rc=0
+    wait "$gpio_untimed_pid" || vm_rc=$?
+    cat "$LOG_DIR/gpio-vm-tests-untimed.log"
+    vm_started=$(cat "$LOG_DIR/gpio-vm-tests-untimed.started" 2>/dev/null || echo "$SECONDS")
+    vm_ended=$(cat "$LOG_DIR/gpio-vm-tests-untimed.ended" 2>/dev/null || echo "$SECONDS")
+    printf -- '---- gpio-vm tests, untimed: exit %d (%d s, from %d s to %d s of the run)\n' \
+        "$vm_rc" $((vm_ended - vm_started)) "$vm_started" "$vm_ended"
+    step_times+=("$(printf '%6d s  %s' $((vm_ended - vm_started)) \
+        "gpio-vm tests, untimed (one virtual CPU, beside the steps, from $vm_started s to $vm_ended s of the run)")")
+    gpio_vm_count "gpio-vm tests, untimed" "$LOG_DIR/gpio-vm-tests-untimed.log" "$vm_rc" \
+        "$vm_untimed_total"
+
     wait "$gpio_prepare_pid" 2>/dev/null || true
-    banner "gpio-vm tests"
+    banner "gpio-vm tests, timed"
     echo "gpio-vm: prepared beside the steps since 1c (output in gpio-vm-prepare.log):"
     tail -n 3 "$gpio_prepare_log"
     vm_start=$SECONDS
-    env "${lint_env[@]}" scripts/gpio-vm-tests.sh 2>&1 | tee "$LOG_DIR/gpio-vm-tests.log"
+    env "${lint_env[@]}" scripts/gpio-vm-tests.sh --group timed 2>&1 |
+        tee "$LOG_DIR/gpio-vm-tests-timed.log"
     vm_rc=${PIPESTATUS[0]}
-    printf -- '---- gpio-vm tests: exit %d (%d s)\n' "$vm_rc" $((SECONDS - vm_start))
-    step_times+=("$(printf '%6d s  %s' $((SECONDS - vm_start)) "gpio-vm tests")")
-    read -r v_pass v_fail v_skip < <(sed -n 's/^gpio-vm tests: \([0-9]*\) passed, \([0-9]*\) failed, \([0-9]*\) skipped$/\1 \2 \3/p' \
-        "$LOG_DIR/gpio-vm-tests.log" | tail -n1 | grep . || echo "0 $vm_total 0")
-    case $vm_rc in
-        0) ;;
-        120) skipped_steps+=("gpio-vm tests (this machine cannot run the guest: see above)") ;;
-        *) failed_steps+=("gpio-vm tests") ;;
-    esac
-    # A run that failed without saying what counts one failure at least.
-    ((vm_rc != 0 && vm_rc != 120 && v_fail == 0)) && v_fail=1
-    passed=$((passed + v_pass)) failed=$((failed + v_fail))
-    skipped=$((skipped + v_skip))
+    printf -- '---- gpio-vm tests, timed: exit %d (%d s)\n' "$vm_rc" $((SECONDS - vm_start))
+    step_times+=("$(printf '%6d s  %s' $((SECONDS - vm_start)) "gpio-vm tests, timed (alone)")")
+    gpio_vm_count "gpio-vm tests, timed" "$LOG_DIR/gpio-vm-tests-timed.log" "$vm_rc" \
+        $((vm_total - vm_untimed_total))
 fi
 skipped=$((skipped - 1)) # the ignored output_gpio_sim test, counted above
 

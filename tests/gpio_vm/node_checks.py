@@ -8,8 +8,11 @@ GPIO_SIM_SYSFS (the chip's sysfs directory). Every check starts the node as a pr
 a level is attributed to the node only while the node holds the line: gpio-sim shows the line's
 pull once it is released, whatever was driven last.
 
-Usage: node_checks.py NODE_BINARY [CHECK_NAME...]
-       node_checks.py --list     names of the checks, one a line (runs nothing)
+Usage: node_checks.py [--group timed|untimed] NODE_BINARY [CHECK_NAME...]
+       node_checks.py --list [--group timed|untimed]   names of the checks, one a line (runs nothing)
+  --group timed    only the checks that time what the line does (UNTIMED below excluded)
+  --group untimed  only the checks in UNTIMED: levels, exit statuses and log lines, each
+                   asserting no bound of time the load of a busy host could reach
 Prints `PASS name` or `FAIL name: why` per check, then `gpio-vm checks: N passed, M failed`.
 Exit status 0 when every check passed. Standard library only: the guest runs the host's
 /usr/bin/python3.
@@ -25,7 +28,8 @@ import time
 
 CHIP = os.environ.get("GPIO_SIM_CHIP", "")
 SYSFS = os.environ.get("GPIO_SIM_SYSFS", "")
-NODE = sys.argv[1] if len(sys.argv) > 1 else ""
+#: The node binary under test (set by main from the command line).
+NODE = ""
 
 # struct gpio_v2_line_info (linux/gpio.h): name[32], consumer[32], offset, num_attrs, flags,
 # attrs[10] (16 bytes each), padding[4]: 256 bytes.
@@ -801,18 +805,65 @@ CHECKS = [
 ]
 
 
+#: The checks whose result no load of the host can change: what they assert is a level held
+#: (sampled while the node holds the line), an exit status, a log line or a line request's
+#: outcome, and their only waits are timeouts of seconds (the 6 s panic of
+#: `panic_ends_inactive` is a start-up margin, not a bound on the line). scripts/test.sh runs
+#: them beside the timed rclpy tests (`--group untimed`) and the rest after them, alone. Every
+#: check that measures the line's timing — a duty, a period, a traced on time, a heartbeat's
+#: toggles, how soon a switch stops a drive, a drive's length — is not in it.
+UNTIMED = {
+    "lines_start_inactive",
+    "sigterm_ends_inactive",
+    "sigint_ends_inactive",
+    "panic_ends_inactive",
+    "write_fault_ends_inactive",
+    "sigkill_then_safe_off",
+    "safe_off_refuses_a_held_line",
+    "busy_line_is_a_configuration_error",
+    "missing_chip_is_a_configuration_error",
+    "two_channels_on_one_line_refused",
+    "valve_switch_where_it_cannot_be_is_implausible",
+    "bad_switch_line_is_a_configuration_error",
+}
+
+
+def in_group(check, group):
+    """Whether `check` belongs to `group` ("timed", "untimed" or None for all)."""
+    if group is None:
+        return True
+    return (check.__name__ in UNTIMED) == (group == "untimed")
+
+
 def main():
-    if NODE == "--list":
-        for check in CHECKS:
-            print(check.__name__)
-        return 0
-    if not (NODE and CHIP and SYSFS):
-        print("usage: node_checks.py NODE_BINARY (inside scripts/gpio-vm.sh)", file=sys.stderr)
+    global NODE
+    args = sys.argv[1:]
+    group = None
+    if "--group" in args[:2]:
+        at = args.index("--group")
+        group = args[at + 1] if at + 1 < len(args) else ""
+        del args[at:at + 2]
+        if group not in ("timed", "untimed"):
+            print(f"node_checks.py: unknown group {group!r} (timed or untimed)", file=sys.stderr)
+            return 2
+    unknown = sorted(UNTIMED - {c.__name__ for c in CHECKS})
+    if unknown:
+        print(f"node_checks.py: UNTIMED names no check: {unknown}", file=sys.stderr)
         return 2
-    wanted = sys.argv[2:]
+    if args[:1] == ["--list"]:
+        for check in CHECKS:
+            if in_group(check, group):
+                print(check.__name__)
+        return 0
+    NODE = args[0] if args else ""
+    if not (NODE and CHIP and SYSFS):
+        print("usage: node_checks.py [--group timed|untimed] NODE_BINARY (inside scripts/gpio-vm.sh)",
+              file=sys.stderr)
+        return 2
+    wanted = args[1:]
     passed = failed = 0
     for check in CHECKS:
-        if wanted and check.__name__ not in wanted:
+        if not in_group(check, group) or wanted and check.__name__ not in wanted:
             continue
         t = time.monotonic()
         try:
