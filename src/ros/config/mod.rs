@@ -1,6 +1,6 @@
 //! What the node is told before it runs: the command line ([`cli`], [`args`]), its names
 //! ([`names`]), its parameters and their one table ([`params`]), split-range pairs
-//! ([`split`]), the valves ([`valve`]) and their state files ([`valve_state`]), discovery ([`discovery`]) and security ([`security`]) settings, the logger
+//! ([`split`]), the valves ([`valve`]) and their state files ([`valve_state`]), discovery ([`discovery`]), Zenoh session ([`zenoh`]) and security ([`security`]) settings, the logger
 //! they set up ([`logging`]), and what the start-up makes of them all ([`start`]).
 //!
 //! Layer 2 of the ROS shell: may import [`interface`](super::interface) only. `safe-off`, which
@@ -17,3 +17,4 @@ pub mod split;
 pub mod start;
 pub mod valve;
 pub mod valve_state;
+pub mod zenoh;
