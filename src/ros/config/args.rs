@@ -631,19 +631,24 @@ pub struct FileSection {
     pub params: Vec<(String, ParameterValue)>,
 }
 
+/// The bytes of the file at `path` if it holds at most `max` of them, `None` if it holds more:
+/// at most one byte more than the bound is read, whatever the file claims to be (a FIFO,
+/// /dev/zero).
+pub fn read_at_most(path: &Path, max: u64) -> std::io::Result<Option<Vec<u8>>> {
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)?
+        .take(max + 1)
+        .read_to_end(&mut bytes)?;
+    Ok((bytes.len() as u64 <= max).then_some(bytes))
+}
+
 /// Reads and parses a ROS 2 parameter file.
 pub fn load_params_file(path: &Path) -> Result<Vec<FileSection>, ArgsError> {
     let read_err = |source| ArgsError::ReadParamsFile {
         path: path.to_path_buf(),
         source,
     };
-    // Read at most one byte more than the bound, whatever the file claims to be (a FIFO,
-    // /dev/zero).
-    let mut bytes = Vec::new();
-    std::fs::File::open(path)
-        .and_then(|f| f.take(MAX_PARAMS_FILE_BYTES + 1).read_to_end(&mut bytes))
-        .map_err(read_err)?;
-    if bytes.len() as u64 > MAX_PARAMS_FILE_BYTES {
+    let Some(bytes) = read_at_most(path, MAX_PARAMS_FILE_BYTES).map_err(read_err)? else {
         let size = std::fs::metadata(path)
             .ok()
             .map(|m| m.len())
@@ -652,7 +657,7 @@ pub fn load_params_file(path: &Path) -> Result<Vec<FileSection>, ArgsError> {
             path: path.to_path_buf(),
             reason: YamlError::FileTooLarge(size),
         });
-    }
+    };
     let text = String::from_utf8(bytes).map_err(|e| {
         read_err(std::io::Error::new(
             std::io::ErrorKind::InvalidData,

@@ -23,6 +23,7 @@
 
 use std::path::PathBuf;
 
+use crate::ros::config::args::read_at_most;
 use crate::ros::config::logging::shown;
 
 /// `ZENOH_SESSION_CONFIG_URI`.
@@ -211,12 +212,9 @@ fn router_check(value: Option<&str>, warnings: &mut Vec<String>) -> RouterCheck 
     }
 }
 
-/// The session configuration's JSON5 text: the file of `settings` read with `read_file` (at
-/// most [`MAX_CONFIG_FILE_BYTES`]), or [`DEFAULT_SESSION_CONFIG`].
-pub fn config_text(
-    settings: &ZenohSettings,
-    read_file: impl Fn(&std::path::Path, u64) -> std::io::Result<Vec<u8>>,
-) -> Result<String, ZenohConfigError> {
+/// The session configuration's JSON5 text: the file of `settings` (at most
+/// [`MAX_CONFIG_FILE_BYTES`]), or [`DEFAULT_SESSION_CONFIG`].
+pub fn config_text(settings: &ZenohSettings) -> Result<String, ZenohConfigError> {
     let Some(path) = &settings.config_file else {
         return Ok(DEFAULT_SESSION_CONFIG.to_string());
     };
@@ -224,21 +222,10 @@ pub fn config_text(
         path: shown(&path.to_string_lossy()),
         reason,
     };
-    let bytes = read_file(path, MAX_CONFIG_FILE_BYTES + 1).map_err(|e| error(e.to_string()))?;
-    if bytes.len() as u64 > MAX_CONFIG_FILE_BYTES {
-        return Err(error(format!("larger than {MAX_CONFIG_FILE_BYTES} bytes")));
-    }
+    let bytes = read_at_most(path, MAX_CONFIG_FILE_BYTES)
+        .map_err(|e| error(e.to_string()))?
+        .ok_or_else(|| error(format!("larger than {MAX_CONFIG_FILE_BYTES} bytes")))?;
     String::from_utf8(bytes).map_err(|_| error("not UTF-8 text".to_string()))
-}
-
-/// Reads at most `limit` bytes of the file at `path`.
-pub fn read_file_limited(path: &std::path::Path, limit: u64) -> std::io::Result<Vec<u8>> {
-    use std::io::Read;
-    let mut bytes = Vec::new();
-    std::fs::File::open(path)?
-        .take(limit)
-        .read_to_end(&mut bytes)?;
-    Ok(bytes)
 }
 
 /// What the router check ends with.
@@ -311,10 +298,7 @@ mod tests {
         assert!(s.overrides.is_empty());
         assert_eq!(s.router_check, RouterCheck::Attempts(1));
         assert!(s.warnings.is_empty());
-        assert_eq!(
-            config_text(&s, |_, _| unreachable!()).unwrap(),
-            DEFAULT_SESSION_CONFIG
-        );
+        assert_eq!(config_text(&s).unwrap(), DEFAULT_SESSION_CONFIG);
         // An empty URI is rmw_zenoh's default too.
         let s = read(env(&[(SESSION_CONFIG_URI_ENV, "")])).unwrap();
         assert_eq!(s.config_file, None);
@@ -410,7 +394,7 @@ mod tests {
         std::fs::write(&big, vec![b' '; MAX_CONFIG_FILE_BYTES as usize + 1]).unwrap();
         let text = |p: &std::path::Path| {
             let s = read(env(&[(SESSION_CONFIG_URI_ENV, p.to_str().unwrap())])).unwrap();
-            config_text(&s, read_file_limited)
+            config_text(&s)
         };
         assert_eq!(text(&good).unwrap(), "{ mode: \"client\" }");
         let e = text(&big).unwrap_err().to_string();
