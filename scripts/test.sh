@@ -171,7 +171,8 @@ beside_span() {
 }
 
 # beside_done [--exit] [--none-selected] NAME PID STARTED NAME_IN_LOGS BANNER COUNT...: the end
-# of a group that ran beside the steps, as process PID since STARTED s of the run, its output in
+# of a group that ran beside the steps, as process PID since STARTED s of the run (or the second
+# it wrote in $LOG_DIR/NAME_IN_LOGS.started, when it waited before it began), its output in
 # $LOG_DIR/NAME_IN_LOGS.log and the second it ended in $LOG_DIR/NAME_IN_LOGS.ended: waits for
 # it, prints BANNER and its output, runs COUNT (which adds its results to the totals), then
 # prints its status, its time and its span and adds them to the step times. Its exit status is
@@ -189,11 +190,12 @@ beside_done() {
         shift
     done
     local name="$1" pid="$2" started="$3" log="$LOG_DIR/$4.log" ended_file="$LOG_DIR/$4.ended"
-    local banner_text="$5" ended when
+    local started_file="$LOG_DIR/$4.started" banner_text="$5" ended when
     shift 5
     banner "$banner_text"
     beside_rc=0
     wait "$pid" || beside_rc=$?
+    started=$(cat "$started_file" 2>/dev/null || echo "$started")
     cat "$log"
     if ((none_selected && beside_rc == 5 && ${#pytest_extra[@]})); then
         printf -- '---- %s: none selected by the pytest arguments\n' "$name"
@@ -574,6 +576,12 @@ gpio_vm_count() {
     ((rc != 0 && rc != 120 && f == 0)) && f=1
     passed=$((passed + p)) failed=$((failed + f)) skipped=$((skipped + k))
 }
+# gpio_untimed_count: gpio_vm_count of the untimed group, by beside_done's status.
+# shellcheck disable=SC2317  # called through beside_done
+gpio_untimed_count() {
+    gpio_vm_count "gpio-vm tests, untimed" "$LOG_DIR/gpio-vm-tests-untimed.log" "$beside_rc" \
+        "$vm_untimed_total"
+}
 vm_total=$(($(python3 tests/gpio_vm/node_checks.py --list | wc -l) + 1))
 vm_untimed_total=$(($(python3 tests/gpio_vm/node_checks.py --list --group untimed | wc -l) + 1))
 if ((!release_ok)); then
@@ -581,18 +589,9 @@ if ((!release_ok)); then
     failed=$((failed + vm_total))
     failed_steps+=("gpio-vm tests (no release build)")
 else
-    banner "gpio-vm tests, untimed (beside the timed rclpy tests)"
-    vm_rc=0
-    wait "$gpio_untimed_pid" || vm_rc=$?
-    cat "$LOG_DIR/gpio-vm-tests-untimed.log"
-    vm_started=$(cat "$LOG_DIR/gpio-vm-tests-untimed.started" 2>/dev/null || echo "$SECONDS")
-    vm_ended=$(cat "$LOG_DIR/gpio-vm-tests-untimed.ended" 2>/dev/null || echo "$SECONDS")
-    printf -- '---- gpio-vm tests, untimed: exit %d (%d s, from %d s to %d s of the run)\n' \
-        "$vm_rc" $((vm_ended - vm_started)) "$vm_started" "$vm_ended"
-    step_times+=("$(printf '%6d s  %s' $((vm_ended - vm_started)) \
-        "gpio-vm tests, untimed (one virtual CPU, beside the steps, from $vm_started s to $vm_ended s of the run)")")
-    gpio_vm_count "gpio-vm tests, untimed" "$LOG_DIR/gpio-vm-tests-untimed.log" "$vm_rc" \
-        "$vm_untimed_total"
+    beside_done --exit "gpio-vm tests, untimed (one virtual CPU)" "$gpio_untimed_pid" \
+        "$SECONDS" gpio-vm-tests-untimed "gpio-vm tests, untimed (beside the timed rclpy tests)" \
+        gpio_untimed_count
 
     wait "$gpio_prepare_pid" 2>/dev/null || true
     banner "gpio-vm tests, timed"
