@@ -58,6 +58,10 @@ DEFAULT_NODE_BINARY = REPO_ROOT / "target" / "release" / "pwm_actuator_node"
 
 #: Default timeout of every wait, in seconds.
 DEFAULT_TIMEOUT = float(os.environ.get("PWM_TEST_TIMEOUT", "20"))
+#: How long a test waits for a process it started to be discovered (its publisher matched),
+#: seconds: a lost discovery packet costs a period of announcements (RustDDS: 10 s), and the
+#: test command loses some under its load.
+DISCOVERY_S = 60.0
 #: How long a node gets to exit after SIGTERM before it is killed and the test fails, seconds.
 TERM_GRACE_S = 10.0
 #: ROS domain ids handed to tests: 1..101. 0 is left to whatever else runs on the machine, and
@@ -79,6 +83,17 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = DISCOVERY_RANGE
 
 class WaitTimeout(AssertionError):
     """A wait ran out of time; the message says what was awaited."""
+
+
+def udp_receive_buffer_errors() -> Optional[int]:
+    """The host's count of UDP datagrams dropped because a socket's receive buffer was full
+    (`Udp: RcvbufErrors` in /proc/net/snmp), or None where that file cannot be read."""
+    try:
+        lines = [l.split() for l in Path("/proc/net/snmp").read_text().splitlines()
+                 if l.startswith("Udp:")]
+        return int(lines[1][lines[0].index("RcvbufErrors")])
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def wait_until(
@@ -576,15 +591,30 @@ class MessageLog:
         )
         return list(self.messages)
 
-    def wait_for_publishers(self, count: int = 1, timeout: Optional[float] = None) -> None:
-        """Waits until this subscription is matched with `count` publishers."""
+    def wait_for_publishers(self, count: int = 1, timeout: Optional[float] = None) -> float:
+        """Waits until this subscription is matched with `count` publishers; returns the wait (s).
+
+        A timeout's message adds the host's UDP datagrams dropped for full receive buffers
+        during the wait (/proc/net/snmp), which tells a discovery packet lost under load from
+        a participant that never announced itself.
+        """
         sub = self.subscription
         assert sub is not None
-        self._ros.spin_until(
-            lambda: sub.get_publisher_count() >= count,
-            f"{count} publisher(s) matched on {self.topic}",
-            timeout,
-        )
+        t0 = time.monotonic()
+        drops = udp_receive_buffer_errors()
+        try:
+            self._ros.spin_until(
+                lambda: sub.get_publisher_count() >= count,
+                f"{count} publisher(s) matched on {self.topic}",
+                timeout,
+            )
+        except WaitTimeout as e:
+            after = udp_receive_buffer_errors()
+            lost = "unknown" if drops is None or after is None else after - drops
+            raise WaitTimeout(
+                f"{e}; UDP datagrams dropped for full receive buffers meanwhile: {lost}"
+            ) from None
+        return time.monotonic() - t0
 
 
 class _OwnNode:

@@ -27,6 +27,7 @@ from std_msgs.msg import Float64
 
 from pwm_actuator_msgs.msg import ValveState
 
+from conftest import DISCOVERY_S
 from helpers_rules import NODE, node_args, trace_edges
 
 TOPIC = "/mixing/temperature"
@@ -103,6 +104,8 @@ def test_the_loop_holds_the_mixed_water_and_rejects_a_supply_step(node_process, 
     hot = ros.publisher(Float64, "/mixing/hot")
     ros.wait_for_subscribers(setpoint, 1, timeout=20.0)
     ros.wait_for_subscribers(hot, 1, timeout=20.0)
+    readings.wait_for_publishers(1, timeout=DISCOVERY_S)
+    truth.wait_for_publishers(1, timeout=DISCOVERY_S)
     readings.wait_for(timeout=20.0)
     truth.wait_for(timeout=20.0)
     first = readings.messages[-1].temperature

@@ -22,6 +22,7 @@ import pytest
 from pwm_actuator_msgs.msg import ValveState
 from std_msgs.msg import Float64
 
+from conftest import DISCOVERY_S
 from helpers_rules import NODE, node_args
 
 TRAVEL_MS = 1000
@@ -68,6 +69,9 @@ def test_two_hundred_random_positions_stay_within_the_reported_uncertainty(
     states = ros.subscribe(ValveState, f"{NODE}/valve/mix/state")
     pub = ros.publisher(Float64, f"{NODE}/valve/mix/position")
     ros.wait_for_subscribers(pub, 1)
+    # Discovery of the simulated valve first, with a bound of its own: under the test
+    # command's load one lost discovery packet costs a period of RustDDS's announcements (10 s).
+    truth.wait_for_publishers(1, timeout=DISCOVERY_S)
     truth.wait_for(timeout=20.0)
     states.wait_for(lambda s: s.referenced and s.motion == "stopped", timeout=20.0)
 
