@@ -277,6 +277,9 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
             // thread reached after taking the 70 % command, which its status report dates.
             // That is the period's start at which the replay, told the same, matches the trace;
             // late only if the thread was stalled past it with the command already in hand.
+            // A start the thread stalled through wrote no rise (its pulse is merged and
+            // counted missed), so the candidates are the rises written and the starts of the
+            // periods after them, on the channel's grid.
             let applied = reports
                 .iter()
                 .find_map(|r| match r {
@@ -288,13 +291,15 @@ fn the_trace_matches_the_core_schedule_edge_for_edge() {
                     _ => None,
                 })
                 .expect("the 70 % command was reported");
-            let starts: Vec<Nanos> = got
+            let period = cfgs[ch].period;
+            let mut starts: Vec<Nanos> = got
                 .iter()
-                .filter(|(at, level)| {
-                    level.is_high() && at + 100_000_000 >= applied && *at <= applied + 10_000_000
-                })
-                .map(|(at, _)| *at)
+                .filter(|(_, level)| level.is_high())
+                .flat_map(|(at, _)| (0..4).map(move |k| at + k * period))
+                .filter(|at| at + 100_000_000 >= applied && *at <= applied + 10_000_000)
                 .collect();
+            starts.sort_unstable();
+            starts.dedup();
             let runs: Vec<Replay> = starts
                 .iter()
                 .map(|c| replay(cfgs[ch], duty, enable_at, Some(*c), last, end, &written))
