@@ -18,17 +18,17 @@ DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "pwm_actuator-ros-domains"
 
 
 def take_domain(tool: str) -> tuple[int, int]:
-    """A ROS domain id no other run holds, from 101 down, and the descriptor whose lock holds
+    """A ROS domain id no other run holds, from 48 down, and the descriptor whose lock holds
     it (released when the process exits). Exits with `tool` named when every id is held."""
     DOMAIN_LOCK_DIR.mkdir(parents=True, exist_ok=True)
-    for d in range(101, 0, -1):
+    for d in range(48, 0, -1):
         fd = os.open(DOMAIN_LOCK_DIR / f"{d}.lock", os.O_RDWR | os.O_CREAT, 0o666)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             return d, fd
         except BlockingIOError:
             os.close(fd)
-    sys.exit(f"{tool}: every ROS domain id 1..101 is held by a test run")
+    sys.exit(f"{tool}: every ROS domain id 1..48 is held by a test run")
 
 
 def proc_status(pid: int, keys: tuple[str, ...]) -> dict[str, int]:

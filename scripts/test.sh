@@ -390,8 +390,12 @@ fi
 # 145 s), and the timed rclpy tests started 89 s later. Without debug info and incremental
 # files, which only a debugger would use: 86 CPU-s to compile instead of 100.
 # shellcheck disable=SC2317  # called through run_step
+# The vendored tests bind the well-known ports of the domains they use and take none of the
+# lock files the other suites share (1..48, tests/rclpy/conftest.py), so they get domains of
+# their own: 49..101 (RUSTDDS_TEST_DOMAIN_ID is the base, their largest offset 52). With their
+# default, 0..52, one of them found its port taken by an rclpy test's participant.
 vendor_tests() {
-    CARGO_PROFILE_TEST_DEBUG=false CARGO_INCREMENTAL=0 \
+    RUSTDDS_TEST_DOMAIN_ID=49 CARGO_PROFILE_TEST_DEBUG=false CARGO_INCREMENTAL=0 \
         cargo test --lib --locked --manifest-path vendor/rustdds/Cargo.toml \
         --target-dir "$REPO/target/vendor-rustdds" -- \
         data_frag::tests::inline_qos_ reader_asks_for_samples_sent_before_the_writer_was_matched \
