@@ -593,8 +593,8 @@ class MessageLog:
         )
         return list(self.messages)
 
-    def wait_for_publishers(self, count: int = 1, timeout: Optional[float] = None) -> float:
-        """Waits until this subscription is matched with `count` publishers; returns the wait (s).
+    def wait_for_publishers(self, count: int = 1, timeout: Optional[float] = None) -> None:
+        """Waits until this subscription is matched with `count` publishers.
 
         A timeout's message adds the host's UDP datagrams dropped for full receive buffers
         during the wait (/proc/net/snmp), which tells a discovery packet lost under load from
@@ -602,7 +602,6 @@ class MessageLog:
         """
         sub = self.subscription
         assert sub is not None
-        t0 = time.monotonic()
         drops = udp_receive_buffer_errors()
         try:
             self._ros.spin_until(
@@ -616,7 +615,6 @@ class MessageLog:
             raise WaitTimeout(
                 f"{e}; UDP datagrams dropped for full receive buffers meanwhile: {lost}"
             ) from None
-        return time.monotonic() - t0
 
 
 class _OwnNode:
