@@ -1,0 +1,303 @@
+//! The node's Zenoh session, as rmw_zenoh_cpp opens one for a context: the configuration from
+//! the environment ([`config::zenoh`](crate::ros::config::zenoh)), the router check, and the
+//! node's liveliness token (`@ros2_lv/<domain>/<zid>/0/0/NN/...`,
+//! [`NodeToken`](super::zenoh_keys::NodeToken)), which is how every rmw_zenoh peer sees the node
+//! in its graph. The node's token is declared when the session opens and withdrawn when it
+//! closes; the endpoints' tokens and data keys are made from the same session.
+//!
+//! The calls here block (zenoh's `Wait`): they run at start-up, before the node's own runtime,
+//! or on a thread that may block.
+
+use zenoh::liveliness::LivelinessToken;
+use zenoh::{Config, Session, Wait};
+
+use crate::ros::config::logging::shown;
+use crate::ros::config::zenoh::{
+    check_router, RouterCheckOutcome, ZenohSettings, CONFIG_OVERRIDE_ENV,
+};
+use crate::ros::wire::zenoh_keys::{KeyError, NodeToken};
+
+/// What stops the session from opening.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    /// The configuration's text is not a Zenoh configuration.
+    #[error("the Zenoh session configuration is not valid: {0}")]
+    Config(String),
+    /// Zenoh could not open the session (e.g. a listen endpoint it cannot bind).
+    #[error("cannot open the Zenoh session: {0}")]
+    Open(String),
+    /// The node's names make no valid liveliness token.
+    #[error("the node's liveliness token: {0}")]
+    Token(#[from] KeyError),
+    /// Zenoh refused the node's liveliness token.
+    #[error("cannot declare the node's liveliness token: {0}")]
+    Declare(String),
+}
+
+/// The session's configuration: `text` (JSON5) with the overrides of `settings` inserted in
+/// order; an override the configuration refuses is `warn`ed about (escaped) and left out, as
+/// rmw_zenoh does.
+pub fn config(
+    text: &str,
+    settings: &ZenohSettings,
+    mut warn: impl FnMut(String),
+) -> Result<Config, SessionError> {
+    let mut config =
+        Config::from_json5(text).map_err(|e| SessionError::Config(shown(&e.to_string())))?;
+    for (key, value) in &settings.overrides {
+        if let Err(e) = config.insert_json5(key, value) {
+            warn(format!(
+                "{CONFIG_OVERRIDE_ENV}: ignored the invalid pair ({}, {}): {}",
+                shown(key),
+                shown(value),
+                shown(&e.to_string())
+            ));
+        }
+    }
+    Ok(config)
+}
+
+/// An open session with the node's liveliness token declared.
+pub struct NodeSession {
+    session: Session,
+    /// The node's token, withdrawn when this is dropped (before the session closes).
+    token: Option<LivelinessToken>,
+    /// The node's liveliness key.
+    pub node_key: String,
+    /// The session's id, lowercase hex.
+    pub zid: String,
+    /// What the router check found.
+    pub router: RouterCheckOutcome,
+}
+
+impl NodeSession {
+    /// Opens a session with `config`, runs the router check of `settings` (warnings to
+    /// `warn`), and declares the liveliness token of the node `namespace`/`name` in `domain`,
+    /// with `enclave` (`/` for none).
+    pub fn open(
+        config: Config,
+        settings: &ZenohSettings,
+        domain: u32,
+        enclave: &str,
+        namespace: &str,
+        name: &str,
+        warn: impl FnMut(String),
+    ) -> Result<NodeSession, SessionError> {
+        let session = zenoh::open(config)
+            .wait()
+            .map_err(|e| SessionError::Open(shown(&e.to_string())))?;
+        let router = check_router(
+            settings.router_check,
+            || session.info().routers_zid().wait().next().is_some(),
+            std::thread::sleep,
+            warn,
+        );
+        let zid = session.zid().to_string();
+        let node_key = NodeToken {
+            domain,
+            zid: zid.clone(),
+            node_id: 0,
+            enclave: enclave.to_string(),
+            namespace: namespace.to_string(),
+            name: name.to_string(),
+        }
+        .key()?;
+        let token = session
+            .liveliness()
+            .declare_token(node_key.as_str())
+            .wait()
+            .map_err(|e| SessionError::Declare(shown(&e.to_string())))?;
+        Ok(NodeSession {
+            session,
+            token: Some(token),
+            node_key,
+            zid,
+            router,
+        })
+    }
+
+    /// The session, for the endpoints.
+    pub fn session(&self) -> &Session {
+        &self.session
+    }
+
+    /// Withdraws the node's token and closes the session: every peer sees the node leave at
+    /// once rather than when its lease runs out.
+    pub fn close(mut self) {
+        if let Some(token) = self.token.take() {
+            let _ = token.undeclare().wait();
+        }
+        let _ = self.session.close().wait();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ros::config::zenoh::{read, RouterCheck, DEFAULT_SESSION_CONFIG};
+    use crate::ros::wire::zenoh_keys::{parse_token, Token};
+    use std::collections::HashMap;
+    use std::net::TcpListener;
+
+    fn settings(pairs: &[(&str, &str)]) -> ZenohSettings {
+        let map: HashMap<String, String> = pairs
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        read(|k| map.get(k).cloned()).unwrap()
+    }
+
+    /// A port nobody listens on now.
+    fn free_port() -> u16 {
+        TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port()
+    }
+
+    /// A router on `port` in this process, as `rmw_zenohd` would be.
+    fn router(port: u16) -> Session {
+        let mut c = Config::default();
+        c.insert_json5("mode", r#""router""#).unwrap();
+        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
+            .unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        zenoh::open(c).wait().unwrap()
+    }
+
+    #[test]
+    fn the_default_config_parses_and_holds_rmw_zenohs_ros_settings() {
+        let c = config(DEFAULT_SESSION_CONFIG, &settings(&[]), |w| panic!("{w}")).unwrap();
+        for (key, want) in [
+            ("mode", r#""peer""#),
+            ("connect/endpoints", r#"["tcp/localhost:7447"]"#),
+            ("listen/endpoints", r#"["tcp/localhost:0"]"#),
+            ("scouting/multicast/enabled", "false"),
+            ("scouting/gossip/enabled", "true"),
+            (
+                "timestamping/enabled",
+                r#"{"router":true,"peer":true,"client":true}"#,
+            ),
+            ("queries_default_timeout", "600000"),
+            ("transport/unicast/open_timeout", "60000"),
+            ("transport/shared_memory/enabled", "false"),
+        ] {
+            let got: String = c
+                .get_json(key)
+                .unwrap()
+                .chars()
+                .filter(|c| !c.is_whitespace())
+                .collect();
+            assert_eq!(got, want, "{key}");
+        }
+    }
+
+    #[test]
+    fn overrides_are_inserted_and_an_invalid_one_is_warned_about_and_left_out() {
+        let s = settings(&[(
+            CONFIG_OVERRIDE_ENV,
+            r#"connect/endpoints=["tcp/127.0.0.1:7999"];mode="nonsense";no/such/key=1"#,
+        )]);
+        let mut warnings = Vec::new();
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| warnings.push(w)).unwrap();
+        assert_eq!(
+            c.get_json("connect/endpoints").unwrap(),
+            r#"["tcp/127.0.0.1:7999"]"#
+        );
+        assert_eq!(c.get_json("mode").unwrap(), r#""peer""#);
+        assert_eq!(warnings.len(), 2, "{warnings:?}");
+        assert!(warnings[0].contains("(mode, \"nonsense\")"), "{warnings:?}");
+        assert!(warnings[1].contains("(no/such/key, 1)"), "{warnings:?}");
+    }
+
+    #[test]
+    fn a_file_that_is_not_a_zenoh_config_is_an_error() {
+        let e = config("{ mode: ", &settings(&[]), |_| {}).unwrap_err();
+        assert!(matches!(e, SessionError::Config(_)), "{e}");
+    }
+
+    #[test]
+    fn the_node_token_is_seen_through_a_router_and_withdrawn_when_the_node_closes() {
+        let port = free_port();
+        let router = router(port);
+        let s = settings(&[(
+            CONFIG_OVERRIDE_ENV,
+            &format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#),
+        )]);
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+        let mut warnings = Vec::new();
+        let node = NodeSession::open(c, &s, 17, "/", "/lab", "pwm_actuator", |w| warnings.push(w))
+            .unwrap();
+        assert_eq!(node.router, RouterCheckOutcome::Seen(1), "{warnings:?}");
+        assert!(warnings.is_empty(), "{warnings:?}");
+        let keys = |router: &Session| -> Vec<String> {
+            router
+                .liveliness()
+                .get("@ros2_lv/17/**")
+                .wait()
+                .unwrap()
+                .iter()
+                .filter_map(|r| r.into_result().ok())
+                .map(|s| s.key_expr().to_string())
+                .collect()
+        };
+        // The token reaches the router a moment after it is declared.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        let mut seen = keys(&router);
+        while seen.is_empty() && std::time::Instant::now() < deadline {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            seen = keys(&router);
+        }
+        assert_eq!(seen, vec![node.node_key.clone()]);
+        match parse_token(&seen[0]).unwrap() {
+            Token::Node(t) => {
+                assert_eq!(
+                    (t.domain, t.namespace.as_str(), t.name.as_str()),
+                    (17, "/lab", "pwm_actuator")
+                );
+                assert_eq!(t.zid, node.zid);
+            }
+            other => panic!("{other:?}"),
+        }
+        node.close();
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        while !keys(&router).is_empty() {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "the node's token outlived it"
+            );
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        router.close().wait().unwrap();
+    }
+
+    #[test]
+    fn without_a_router_the_node_warns_at_each_attempt_and_opens() {
+        let port = free_port();
+        let s = settings(&[
+            (
+                CONFIG_OVERRIDE_ENV,
+                &format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#),
+            ),
+            ("ZENOH_ROUTER_CHECK_ATTEMPTS", "2"),
+        ]);
+        assert_eq!(s.router_check, RouterCheck::Attempts(2));
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+        let mut warnings = Vec::new();
+        let start = std::time::Instant::now();
+        let node =
+            NodeSession::open(c, &s, 3, "/", "/", "pwm_actuator", |w| warnings.push(w)).unwrap();
+        assert_eq!(node.router, RouterCheckOutcome::NotSeen(2));
+        assert_eq!(warnings.len(), 3, "{warnings:?}");
+        assert!(
+            warnings[0].contains("Unable to connect to a Zenoh router"),
+            "{warnings:?}"
+        );
+        assert!(warnings[2].contains("after 2 attempt(s)"), "{warnings:?}");
+        // One second between the two attempts.
+        assert!(start.elapsed() >= std::time::Duration::from_secs(1));
+        node.close();
+    }
+}
