@@ -35,8 +35,6 @@ use crate::output::{Nanos, TraceError};
 use crate::ros::interface::schema;
 use log::warn;
 use mcap::records::MessageHeader;
-use rustdds::no_key::SerializerAdapter;
-use rustdds::{CDRSerializerAdapter, SerializedPayload};
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
@@ -90,19 +88,7 @@ pub struct Topic {
     pub type_name: &'static str,
 }
 
-/// The CDR bytes of `msg` as the node publishes them: the encapsulation header (`CDR_LE`,
-/// options 0), then the message; the serializer's error when `msg` cannot be written as CDR.
-pub fn cdr_bytes<M: Serialize>(
-    msg: &M,
-) -> Result<Vec<u8>, <CDRSerializerAdapter<M> as SerializerAdapter<M>>::Error> {
-    type Adapter<M> = CDRSerializerAdapter<M>;
-    let body = <Adapter<M> as SerializerAdapter<M>>::to_bytes(msg)?;
-    let payload = SerializedPayload::new_from_bytes(
-        <Adapter<M> as SerializerAdapter<M>>::output_encoding(),
-        body,
-    );
-    Ok(rustdds::bytes::Bytes::from(payload).to_vec())
-}
+pub use crate::ros::interface::cdr::cdr_bytes;
 
 /// A message on its way to the writer thread.
 struct Item {
@@ -751,7 +737,8 @@ mod tests {
     /// Decodes CDR bytes as a subscriber of the node does.
     fn decode<M: DeserializeOwned>(bytes: &[u8]) -> M {
         let payload =
-            SerializedPayload::from_bytes(&rustdds::bytes::Bytes::copy_from_slice(bytes)).unwrap();
+            rustdds::SerializedPayload::from_bytes(&rustdds::bytes::Bytes::copy_from_slice(bytes))
+                .unwrap();
         CDRDeserializerAdapter::<M>::from_bytes(&payload.value, payload.representation_identifier)
             .unwrap()
     }

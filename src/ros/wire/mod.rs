@@ -3,7 +3,7 @@
 //! server with its goals ([`action`]), the watch for another node with this node's
 //! name ([`name_clash`]), and rmw_zenoh's wire format: keys, liveliness tokens, attachments
 //! and GIDs ([`zenoh_keys`]), and with the `zenoh` feature the node's Zenoh session
-//! ([`zenoh_session`]).
+//! ([`zenoh_session`]) and its publishers ([`zenoh_pub`]).
 //!
 //! Layer 3 of the ROS shell: may import [`interface`](super::interface) and
 //! [`config`](super::config).
@@ -12,5 +12,7 @@ pub mod action;
 pub mod endpoints;
 pub mod name_clash;
 pub mod zenoh_keys;
+#[cfg(feature = "zenoh")]
+pub mod zenoh_pub;
 #[cfg(feature = "zenoh")]
 pub mod zenoh_session;

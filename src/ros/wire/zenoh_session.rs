@@ -15,7 +15,9 @@ use crate::ros::config::logging::shown;
 use crate::ros::config::zenoh::{
     check_router, RouterCheckOutcome, ZenohSettings, CONFIG_OVERRIDE_ENV,
 };
-use crate::ros::wire::zenoh_keys::{KeyError, NodeToken};
+use crate::ros::wire::zenoh_keys::{EndpointType, EntityKind, EntityToken, KeyError, NodeToken};
+use ros2_client::QosProfile;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// What stops the session from opening.
 #[derive(Debug, thiserror::Error)]
@@ -64,6 +66,11 @@ pub struct NodeSession {
     token: Option<LivelinessToken>,
     /// The node's liveliness key.
     pub node_key: String,
+    /// The node as its token tells it.
+    node: NodeToken,
+    /// The next endpoint's id: rmw_zenoh counts the node and its endpoints with one counter,
+    /// the node 0.
+    next_entity: AtomicU64,
     /// The session's id, lowercase hex.
     pub zid: String,
     /// What the router check found.
@@ -93,15 +100,15 @@ impl NodeSession {
             warn,
         );
         let zid = session.zid().to_string();
-        let node_key = NodeToken {
+        let node = NodeToken {
             domain,
             zid: zid.clone(),
             node_id: 0,
             enclave: enclave.to_string(),
             namespace: namespace.to_string(),
             name: name.to_string(),
-        }
-        .key()?;
+        };
+        let node_key = node.key()?;
         let token = session
             .liveliness()
             .declare_token(node_key.as_str())
@@ -111,6 +118,8 @@ impl NodeSession {
             session,
             token: Some(token),
             node_key,
+            node,
+            next_entity: AtomicU64::new(1),
             zid,
             router,
         })
@@ -119,6 +128,31 @@ impl NodeSession {
     /// The session, for the endpoints.
     pub fn session(&self) -> &Session {
         &self.session
+    }
+
+    /// The ROS domain id.
+    pub fn domain(&self) -> u32 {
+        self.node.domain
+    }
+
+    /// The token of a new endpoint of this node: the next entity id, `kind`, the fully
+    /// qualified `name`, its type and QoS.
+    pub fn entity(
+        &self,
+        kind: EntityKind,
+        name: &str,
+        ty: EndpointType,
+        qos: QosProfile,
+    ) -> EntityToken {
+        EntityToken {
+            node: self.node.clone(),
+            entity_id: self.next_entity.fetch_add(1, Ordering::Relaxed),
+            kind,
+            name: name.to_string(),
+            ty,
+            qos,
+            backends: None,
+        }
     }
 
     /// Withdraws the node's token and closes the session: every peer sees the node leave at
