@@ -20,3 +20,16 @@ pub fn cdr_bytes<M: Serialize>(
     );
     Ok(rustdds::bytes::Bytes::from(payload).to_vec())
 }
+
+/// Reads `bytes` as [`cdr_bytes`] writes them (either byte order of the encapsulation header
+/// RustDDS reads); the reason as text when they are not a `M`. Never panics.
+pub fn from_cdr_bytes<M: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<M, String> {
+    use rustdds::no_key::DeserializerAdapter;
+    let payload = SerializedPayload::from_bytes(&rustdds::bytes::Bytes::copy_from_slice(bytes))
+        .map_err(|e| e.to_string())?;
+    rustdds::CDRDeserializerAdapter::<M>::from_bytes(
+        &payload.value,
+        payload.representation_identifier,
+    )
+    .map_err(|e| e.to_string())
+}
