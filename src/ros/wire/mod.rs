@@ -3,8 +3,8 @@
 //! server with its goals ([`action`]), the watch for another node with this node's
 //! name ([`name_clash`]), and rmw_zenoh's wire format: keys, liveliness tokens, attachments
 //! and GIDs ([`zenoh_keys`]), and with the `zenoh` feature the node's Zenoh session
-//! ([`zenoh_session`]) its publishers ([`zenoh_pub`]) and subscriptions
-//! ([`zenoh_sub`]).
+//! ([`zenoh_session`]) its publishers ([`zenoh_pub`]), subscriptions
+//! ([`zenoh_sub`]) and service servers ([`zenoh_srv`]).
 //!
 //! Layer 3 of the ROS shell: may import [`interface`](super::interface) and
 //! [`config`](super::config).
@@ -17,5 +17,7 @@ pub mod zenoh_keys;
 pub mod zenoh_pub;
 #[cfg(feature = "zenoh")]
 pub mod zenoh_session;
+#[cfg(feature = "zenoh")]
+pub mod zenoh_srv;
 #[cfg(feature = "zenoh")]
 pub mod zenoh_sub;

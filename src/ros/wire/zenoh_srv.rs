@@ -1,0 +1,467 @@
+//! A service server of the node on Zenoh, as rmw_zenoh_cpp makes one (design.md "Service
+//! Servers", `rmw_service_data.cpp`): a complete queryable on the service's data key
+//! (`<domain>/<service>/<type name>/<type hash>`) and its liveliness token (`SS`). A request is
+//! a query whose payload is the request's CDR bytes and whose attachment carries the client's
+//! sequence number and GID; the reply carries the response's CDR bytes and an attachment with
+//! the same sequence number, a fresh source timestamp and the client's GID, which is how the
+//! client matches it.
+//!
+//! As with subscriptions ([`zenoh_sub`](super::zenoh_sub)), zenoh's callback never waits on
+//! the node: a request larger than [`MAX_SAMPLE_BYTES`] is answered with an error at once and
+//! counted, any other is queued (the QoS depth; the oldest, when the queue is full, answered
+//! with an error and counted); one task takes them in order and answers each with the
+//! handler's response. A request without a valid attachment, or that is not the service's
+//! request type, is answered with an error naming why (escaped) and counted.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::marker::PhantomData;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use log::warn;
+use ros2_client::qos::History;
+use ros2_client::QosProfile;
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+use tokio::sync::Notify;
+use tokio::task::JoinHandle;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::query::{Query, Queryable};
+use zenoh::Wait;
+
+use crate::ros::config::logging::shown;
+use crate::ros::interface::cdr::{cdr_bytes, from_cdr_bytes};
+use crate::ros::interface::qos::MAX_SAMPLE_BYTES;
+use crate::ros::wire::zenoh_keys::{data_key, Attachment, EndpointType, EntityKind, KeyError};
+use crate::ros::wire::zenoh_session::NodeSession;
+
+/// Most requests a service holds that its task has not taken yet (its QoS depth, at most
+/// this).
+pub const MAX_QUEUE: usize = 1000;
+
+/// Why a service cannot be made.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// The service's name or type make no valid key.
+    #[error("service {service}: {source}")]
+    Key {
+        /// The service.
+        service: String,
+        /// Why.
+        #[source]
+        source: KeyError,
+    },
+    /// Zenoh refused the queryable or its token.
+    #[error("service {service}: cannot declare it: {why}")]
+    Declare {
+        /// The service.
+        service: String,
+        /// Zenoh's error (escaped).
+        why: String,
+    },
+}
+
+/// What a service refused, counted since it was made; each was answered with an error.
+#[derive(Debug, Default)]
+pub struct Refused {
+    /// Requests larger than [`MAX_SAMPLE_BYTES`].
+    pub too_large: AtomicU64,
+    /// Requests pushed out of a full queue (the oldest).
+    pub overflowed: AtomicU64,
+    /// Requests without a valid attachment or not of the request type.
+    pub malformed: AtomicU64,
+}
+
+struct Queue {
+    queries: Mutex<VecDeque<Query>>,
+    depth: usize,
+    ready: Notify,
+}
+
+/// Answers `query` with an error `why`; a failure to send is not the node's to handle.
+fn refuse(query: &Query, why: &str) {
+    let _ = query.reply_err(why.to_string()).wait();
+}
+
+/// A service server on Zenoh and its task; the token is withdrawn and the task aborted when it
+/// is dropped.
+pub struct ZenohService<Req, Resp> {
+    _queryable: Queryable<()>,
+    _token: LivelinessToken,
+    task: JoinHandle<()>,
+    /// The data key.
+    pub key: String,
+    /// The liveliness key.
+    pub token_key: String,
+    /// What it refused.
+    pub refused: Arc<Refused>,
+    _types: PhantomData<fn(Req) -> Resp>,
+}
+
+impl<Req, Resp> Drop for ZenohService<Req, Resp> {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+impl<Req, Resp> ZenohService<Req, Resp>
+where
+    Req: DeserializeOwned + Send + 'static,
+    Resp: Serialize + Send + 'static,
+{
+    /// Serves the fully qualified `service` of ROS type `ros_type` (`std_srvs/srv/Trigger`; its
+    /// hash looked up in `hashes`) with `qos`, answering each request with what `handler`'s
+    /// future gives, one at a time, in order, in a task of the current tokio runtime (a
+    /// handler that failed is logged and its request answered with an error).
+    pub fn serve_with<F, Fut>(
+        node: &NodeSession,
+        service: &str,
+        ros_type: &str,
+        qos: QosProfile,
+        hashes: &BTreeMap<String, String>,
+        handler: F,
+    ) -> Result<Self, ServiceError>
+    where
+        F: Fn(Req) -> Fut + Send + Sync + 'static,
+        Fut: std::future::Future<Output = Result<Resp, tokio::task::JoinError>> + Send + 'static,
+    {
+        let key_err = |source| ServiceError::Key {
+            service: service.to_string(),
+            source,
+        };
+        let declare_err = |e: zenoh::Error| ServiceError::Declare {
+            service: service.to_string(),
+            why: shown(&e.to_string()),
+        };
+        let ty = EndpointType::of(hashes, ros_type).map_err(key_err)?;
+        let key = data_key(node.domain(), service, &ty).map_err(key_err)?;
+        let depth = match qos.history {
+            History::KeepLast { depth } => depth.clamp(1, MAX_QUEUE),
+            History::KeepAll => MAX_QUEUE,
+        };
+        let token_key = node
+            .entity(EntityKind::Service, service, ty, qos)
+            .key()
+            .map_err(key_err)?;
+        let queue = Arc::new(Queue {
+            queries: Mutex::new(VecDeque::with_capacity(depth)),
+            depth,
+            ready: Notify::new(),
+        });
+        let refused = Arc::new(Refused::default());
+        let queryable = node
+            .session()
+            .declare_queryable(key.clone())
+            .complete(true)
+            .callback({
+                let (queue, refused) = (queue.clone(), refused.clone());
+                move |query: Query| {
+                    let size = query.payload().map_or(0, |p| p.len())
+                        + query.attachment().map_or(0, |a| a.len());
+                    if size > MAX_SAMPLE_BYTES {
+                        refused.too_large.fetch_add(1, Ordering::Relaxed);
+                        refuse(
+                            &query,
+                            &format!("request of {size} bytes, more than {MAX_SAMPLE_BYTES}"),
+                        );
+                        return;
+                    }
+                    let mut queries = queue.queries.lock().unwrap_or_else(|p| p.into_inner());
+                    let pushed_out = if queries.len() >= queue.depth {
+                        queries.pop_front()
+                    } else {
+                        None
+                    };
+                    queries.push_back(query);
+                    drop(queries);
+                    if let Some(old) = pushed_out {
+                        refused.overflowed.fetch_add(1, Ordering::Relaxed);
+                        refuse(
+                            &old,
+                            "the service's queue was full: a newer request took its place",
+                        );
+                    }
+                    queue.ready.notify_one();
+                }
+            })
+            .wait()
+            .map_err(declare_err)?;
+        let token = node
+            .session()
+            .liveliness()
+            .declare_token(token_key.clone())
+            .wait()
+            .map_err(declare_err)?;
+        let task = tokio::spawn({
+            let (queue, refused, service, key) = (
+                queue.clone(),
+                refused.clone(),
+                service.to_string(),
+                key.clone(),
+            );
+            async move {
+                let mut last_warning: Option<std::time::Instant> = None;
+                loop {
+                    let next = queue
+                        .queries
+                        .lock()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .pop_front();
+                    let Some(query) = next else {
+                        queue.ready.notified().await;
+                        continue;
+                    };
+                    let request = query
+                        .attachment()
+                        .ok_or_else(|| "no attachment".to_string())
+                        .and_then(|a| Attachment::decode(&a.to_bytes()).map_err(|e| e.to_string()))
+                        .and_then(|a| {
+                            let bytes = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
+                            Ok((a, from_cdr_bytes::<Req>(&bytes)?))
+                        });
+                    let (attachment, req) = match request {
+                        Ok(r) => r,
+                        Err(why) => {
+                            refused.malformed.fetch_add(1, Ordering::Relaxed);
+                            let why = shown(&why);
+                            if last_warning.is_none_or(|t| t.elapsed().as_secs() >= 10) {
+                                last_warning = Some(std::time::Instant::now());
+                                warn!("{service}: unreadable request on Zenoh: {why}");
+                            }
+                            refuse(&query, &format!("unreadable request: {why}"));
+                            continue;
+                        }
+                    };
+                    let resp = match handler(req).await {
+                        Ok(resp) => resp,
+                        Err(e) => {
+                            warn!("{service}: the request's handler failed: {e}");
+                            refuse(&query, "the service's handler failed");
+                            continue;
+                        }
+                    };
+                    let payload = match cdr_bytes(&resp) {
+                        Ok(p) => p,
+                        Err(e) => {
+                            warn!("{service}: cannot serialize the response: {e}");
+                            refuse(&query, "the response could not be serialized");
+                            continue;
+                        }
+                    };
+                    let now = SystemTime::now()
+                        .duration_since(UNIX_EPOCH)
+                        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
+                    let reply = Attachment {
+                        source_timestamp_ns: now,
+                        ..attachment
+                    };
+                    if let Err(e) = query
+                        .reply(key.as_str(), payload)
+                        .attachment(reply.encode().to_vec())
+                        .wait()
+                    {
+                        warn!(
+                            "{service}: cannot send the response: {}",
+                            shown(&e.to_string())
+                        );
+                    }
+                }
+            }
+        });
+        Ok(ZenohService {
+            _queryable: queryable,
+            _token: token,
+            task,
+            key,
+            token_key,
+            refused,
+            _types: PhantomData,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ros::config::zenoh::{read, DEFAULT_SESSION_CONFIG};
+    use crate::ros::interface::msg::{EmptyRequest, TriggerResponse};
+    use crate::ros::interface::qos;
+    use crate::ros::interface::type_hash::type_hashes;
+    use crate::ros::wire::zenoh_keys::{parse_token, Gid, Token};
+    use crate::ros::wire::zenoh_session::config;
+    use std::net::TcpListener;
+    use std::time::{Duration, Instant};
+    use zenoh::query::Reply;
+    use zenoh::{Config, Session};
+
+    fn free_port() -> u16 {
+        TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port()
+    }
+
+    fn router(port: u16) -> Session {
+        let mut c = Config::default();
+        c.insert_json5("mode", r#""router""#).unwrap();
+        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
+            .unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        zenoh::open(c).wait().unwrap()
+    }
+
+    fn node(port: u16) -> NodeSession {
+        let s = read(|k| {
+            (k == "ZENOH_CONFIG_OVERRIDE").then(|| {
+                format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#)
+            })
+        })
+        .unwrap();
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+        NodeSession::open(c, &s, 7, "/", "/", "pwm_actuator", |w| panic!("{w}")).unwrap()
+    }
+
+    /// One request from `client` as rmw_zenoh's client sends it; the replies.
+    fn call(
+        client: &Session,
+        key: &str,
+        payload: Vec<u8>,
+        attachment: Option<Vec<u8>>,
+    ) -> Vec<Reply> {
+        let mut get = client
+            .get(key)
+            .payload(payload)
+            .target(zenoh::query::QueryTarget::AllComplete)
+            .consolidation(zenoh::query::ConsolidationMode::None)
+            .timeout(Duration::from_secs(5));
+        if let Some(a) = attachment {
+            get = get.attachment(a);
+        }
+        get.wait().unwrap().iter().collect()
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_request_is_answered_with_the_echoed_sequence_and_the_clients_gid() {
+        let port = free_port();
+        let router = router(port);
+        let node = node(port);
+        let hashes = type_hashes().unwrap();
+        let calls = Arc::new(AtomicU64::new(0));
+        let srv = ZenohService::<EmptyRequest, TriggerResponse>::serve_with(
+            &node,
+            "/pwm_actuator/reset_estop",
+            "std_srvs/srv/Trigger",
+            qos::services(),
+            &hashes,
+            {
+                let calls = calls.clone();
+                move |_req| {
+                    let n = calls.fetch_add(1, Ordering::Relaxed) + 1;
+                    async move {
+                        Ok(TriggerResponse {
+                            success: true,
+                            message: format!("call {n}"),
+                        })
+                    }
+                }
+            },
+        )
+        .unwrap();
+        assert!(
+            srv.key
+                .starts_with("7/pwm_actuator/reset_estop/std_srvs::srv::dds_::Trigger_/RIHS01_"),
+            "{}",
+            srv.key
+        );
+        match parse_token(&srv.token_key).unwrap() {
+            Token::Entity(e) => {
+                assert_eq!(e.kind, EntityKind::Service);
+                assert_eq!(e.ty.hash, hashes["std_srvs/srv/Trigger"]);
+            }
+            other => panic!("{other:?}"),
+        }
+        let client_gid = Gid([7; 16]);
+        let request = |seq: i64| {
+            Attachment {
+                sequence: seq,
+                source_timestamp_ns: 1,
+                gid: client_gid,
+            }
+            .encode()
+            .to_vec()
+        };
+        // The queryable reaches the router a moment after it is declared.
+        let deadline = Instant::now() + Duration::from_secs(5);
+        let replies = loop {
+            let r = call(
+                &router,
+                &srv.key,
+                cdr_bytes(&EmptyRequest::default()).unwrap(),
+                Some(request(41)),
+            );
+            if !r.is_empty() || Instant::now() > deadline {
+                break r;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        assert_eq!(replies.len(), 1);
+        let sample = replies[0].result().unwrap();
+        let resp: TriggerResponse = from_cdr_bytes(&sample.payload().to_bytes()).unwrap();
+        assert!(
+            resp.success && resp.message.starts_with("call "),
+            "{resp:?}"
+        );
+        let a = Attachment::decode(&sample.attachment().unwrap().to_bytes()).unwrap();
+        assert_eq!((a.sequence, a.gid), (41, client_gid));
+        assert!(a.source_timestamp_ns > 1);
+        // A request without an attachment, and one that is not the request type, are
+        // answered with an error and counted; the next good one is served.
+        let r = call(
+            &router,
+            &srv.key,
+            cdr_bytes(&EmptyRequest::default()).unwrap(),
+            None,
+        );
+        let why = r[0]
+            .result()
+            .unwrap_err()
+            .payload()
+            .try_to_string()
+            .unwrap()
+            .to_string();
+        assert!(why.contains("no attachment"), "{why}");
+        let r = call(&router, &srv.key, vec![9], Some(request(42)));
+        assert!(r[0].result().is_err());
+        let r = call(
+            &router,
+            &srv.key,
+            vec![0; MAX_SAMPLE_BYTES + 1],
+            Some(request(43)),
+        );
+        let why = r[0]
+            .result()
+            .unwrap_err()
+            .payload()
+            .try_to_string()
+            .unwrap()
+            .to_string();
+        assert!(why.contains("more than"), "{why}");
+        assert_eq!(srv.refused.malformed.load(Ordering::Relaxed), 2);
+        assert_eq!(srv.refused.too_large.load(Ordering::Relaxed), 1);
+        let r = call(
+            &router,
+            &srv.key,
+            cdr_bytes(&EmptyRequest::default()).unwrap(),
+            Some(request(44)),
+        );
+        let a =
+            Attachment::decode(&r[0].result().unwrap().attachment().unwrap().to_bytes()).unwrap();
+        assert_eq!(a.sequence, 44);
+        drop(srv);
+        node.close();
+        router.close().wait().unwrap();
+    }
+}
