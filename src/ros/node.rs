@@ -47,7 +47,7 @@ use crate::ros::outbound::mcap_trace::{self, McapTrace, TraceKey};
 use crate::ros::outbound::reporter::{ChannelPubs, Reporter, StopSignal};
 use crate::ros::outbound::traces::TraceReport;
 use crate::ros::outbound::valve::ValveOut;
-use crate::ros::wire::endpoints::{EndpointError, Endpoints};
+use crate::ros::wire::endpoints::{EndpointError, Endpoints, Mw};
 use crate::ros::wire::name_clash::{self, NameClash};
 use crate::service::WatchdogPinger;
 use log::{debug, error, info, warn};
@@ -562,43 +562,16 @@ async fn serve(
         Ok(n) => debug!("type hashes announced for {n} endpoint types"),
         Err(e) => warn!("endpoints announce no type hash: {e}"),
     }
-    let participant = disc
-        .participant(domain, secure.as_deref())
-        .map_err(|e| ros_err("the DDS participant")(e.into()))?;
-    let context =
-        Context::from_domain_participant(participant).map_err(ros_err("the DDS participant"))?;
-    disc.log(disc.confine()?);
-    let node_name = NodeName::new(&id.namespace, &id.name).map_err(|e| NodeError::Ros {
-        what: format!("node {fqn}"),
-        source: Box::new(e),
-    })?;
-    let mut node = context
-        .new_node(
-            node_name,
-            NodeOptions::new()
-                .enable_rosout(ros.rosout_logs != Some(false))
-                .start_parameter_services(false),
-        )
-        .map_err(|e| NodeError::Ros {
-            what: format!("node {fqn}"),
-            source: Box::new(e),
-        })?;
-    logging::attach_rosout(node.logging_handle());
-    let spinner = node.spinner().map_err(ros_err("the node spinner"))?;
-    let spin_task = tokio::spawn(async move {
-        if let Err(e) = spinner.spin().await {
-            warn!("ROS spinner stopped: {e}");
-        }
-    });
     let mut tasks: Vec<JoinHandle<()>> = Vec::new();
-    if let Some(events) = node.status_receiver() {
-        let clash = NameClash::new(&context.domain_participant(), fqn.clone());
-        tasks.push(tokio::spawn(name_clash::watch(events, clash)));
-    }
+    let mut side = if disc.zenoh {
+        RosSide::zenoh(&id, domain, secure.as_deref()).await?
+    } else {
+        RosSide::dds(&id, &ros, domain, &disc, secure.as_deref(), &mut tasks)?
+    };
 
     let names: Vec<String> = cfg.channels.iter().map(|c| c.name.clone()).collect();
     let mut ep = Endpoints {
-        node: &mut node,
+        mw: side.mw(),
         id: &id,
         remaps,
     };
@@ -623,9 +596,7 @@ async fn serve(
             out.keep_state(dir.clone(), run.config);
         }
     }
-    let param_events = node
-        .create_publisher(&context.get_parameter_events_topic(), None)
-        .map_err(ros_err("publisher /parameter_events"))?;
+    let param_events = side.parameter_events()?;
 
     let started = start_output_thread(&cfg, output)?;
     let OutputThread {
@@ -665,7 +636,7 @@ async fn serve(
     inputs.announce_declared();
 
     let mut ep = Endpoints {
-        node: &mut node,
+        mw: side.mw(),
         id: &id,
         remaps,
     };
@@ -766,10 +737,7 @@ async fn serve(
     // The reporter's publishers go with the node, after the shutdown: their last samples (the
     // diagnostics of a fault) have had that long to leave.
     drop(reporter);
-    // Dropping the node tells its spinner to stop.
-    drop(node);
-    let _ = tokio::time::timeout(Duration::from_secs(1), spin_task).await;
-    drop(context);
+    side.close().await;
     let faulted = output_fault(fault.as_ref(), &result);
     match result {
         Ok(()) if !faulted => {
@@ -784,6 +752,203 @@ async fn serve(
                 None => error!("output thread: {}", chain(&e)),
             }
             Ok(EXIT_FAILURE)
+        }
+    }
+}
+
+/// The node's ROS side on the middleware `RMW_IMPLEMENTATION` chose (config::discovery): its
+/// DDS participant and node, or its Zenoh session. Everything else of the node is made on it
+/// through [`Endpoints`] and knows no middleware. One value for the node's whole life: its
+/// size does not matter.
+#[allow(clippy::large_enum_variant)]
+enum RosSide {
+    /// DDS: the context, the node and the task that spins it.
+    Dds {
+        context: Context,
+        node: ros2_client::Node,
+        spin_task: JoinHandle<()>,
+    },
+    /// Zenoh: the session with the node's token.
+    #[cfg(feature = "zenoh")]
+    Zenoh(crate::ros::wire::zenoh_session::ZenohNode),
+}
+
+impl RosSide {
+    /// The DDS participant for `domain` (discovery `disc`, secured with `secure`), the node
+    /// with its `/rosout` (unless `--ros-args -p` turned it off) and spinner, and the watch for
+    /// another node of this name, pushed to `tasks`.
+    fn dds(
+        id: &NodeIdentity,
+        ros: &RosArgs,
+        domain: u16,
+        disc: &Discovery,
+        secure: Option<&std::path::Path>,
+        tasks: &mut Vec<JoinHandle<()>>,
+    ) -> Result<RosSide, NodeError> {
+        let fqn = id.fully_qualified();
+        let participant = disc
+            .participant(domain, secure)
+            .map_err(|e| ros_err("the DDS participant")(e.into()))?;
+        let context = Context::from_domain_participant(participant)
+            .map_err(ros_err("the DDS participant"))?;
+        disc.log(disc.confine()?);
+        let node_name = NodeName::new(&id.namespace, &id.name).map_err(|e| NodeError::Ros {
+            what: format!("node {fqn}"),
+            source: Box::new(e),
+        })?;
+        let mut node = context
+            .new_node(
+                node_name,
+                NodeOptions::new()
+                    .enable_rosout(ros.rosout_logs != Some(false))
+                    .start_parameter_services(false),
+            )
+            .map_err(|e| NodeError::Ros {
+                what: format!("node {fqn}"),
+                source: Box::new(e),
+            })?;
+        logging::attach_rosout(node.logging_handle());
+        let spinner = node.spinner().map_err(ros_err("the node spinner"))?;
+        let spin_task = tokio::spawn(async move {
+            if let Err(e) = spinner.spin().await {
+                warn!("ROS spinner stopped: {e}");
+            }
+        });
+        if let Some(events) = node.status_receiver() {
+            let clash = NameClash::new(&context.domain_participant(), fqn.clone());
+            tasks.push(tokio::spawn(name_clash::watch(events, clash)));
+        }
+        Ok(RosSide::Dds {
+            context,
+            node,
+            spin_task,
+        })
+    }
+
+    /// The Zenoh session for `domain` with rmw_zenoh's configuration from the environment,
+    /// its router check and the node's token. Security on Zenoh is the session
+    /// configuration's (`ZENOH_SESSION_CONFIG_URI`, as zenoh_security_tools writes it): an
+    /// SROS2 enclave asked for is refused.
+    #[cfg(feature = "zenoh")]
+    async fn zenoh(
+        id: &NodeIdentity,
+        domain: u16,
+        secure: Option<&std::path::Path>,
+    ) -> Result<RosSide, NodeError> {
+        use crate::ros::config::zenoh as zcfg;
+        use crate::ros::wire::zenoh_session::{config, NodeSession, ZenohNode};
+        let failed = |e: String| NodeError::Ros {
+            what: "the Zenoh session".into(),
+            source: e.into(),
+        };
+        if let Some(enclave) = secure {
+            return Err(failed(format!(
+                "DDS security (enclave {}) does not apply on Zenoh: secure the session with \
+                 its own configuration (ZENOH_SESSION_CONFIG_URI, e.g. from \
+                 zenoh_security_tools) and run without ROS_SECURITY_ENABLE",
+                enclave.display()
+            )));
+        }
+        let settings = zcfg::read(|k| std::env::var(k).ok()).map_err(|e| failed(e.to_string()))?;
+        for w in &settings.warnings {
+            warn!("{w}");
+        }
+        let text = zcfg::config_text(&settings, zcfg::read_file_limited)
+            .map_err(|e| failed(e.to_string()))?;
+        let cfg = config(&text, &settings, |w| warn!("{w}")).map_err(|e| failed(e.to_string()))?;
+        let hashes = type_hash::type_hashes().map_err(|e| failed(e.to_string()))?;
+        let (namespace, name) = (id.namespace.clone(), id.name.clone());
+        // The session's calls block (the router check sleeps between attempts).
+        let session = tokio::task::spawn_blocking(move || {
+            NodeSession::open(
+                cfg,
+                &settings,
+                u32::from(domain),
+                "/",
+                &namespace,
+                &name,
+                |w| warn!("{w}"),
+            )
+        })
+        .await
+        .map_err(|e| failed(e.to_string()))?
+        .map_err(|e| failed(e.to_string()))?;
+        info!(
+            "on Zenoh: session {}, {}; /rosout is not published on Zenoh",
+            session.zid,
+            match session.router {
+                zcfg::RouterCheckOutcome::Seen(_) => "connected to a router",
+                zcfg::RouterCheckOutcome::NotSeen(_) => "no router seen",
+                zcfg::RouterCheckOutcome::Skipped => "router check skipped",
+            }
+        );
+        Ok(RosSide::Zenoh(ZenohNode { session, hashes }))
+    }
+
+    #[cfg(not(feature = "zenoh"))]
+    async fn zenoh(
+        _id: &NodeIdentity,
+        _domain: u16,
+        _secure: Option<&std::path::Path>,
+    ) -> Result<RosSide, NodeError> {
+        unreachable!("config::discovery refuses Zenoh without the zenoh feature")
+    }
+
+    /// The middleware for [`Endpoints`].
+    fn mw(&mut self) -> Mw<'_> {
+        match self {
+            RosSide::Dds { node, .. } => Mw::Dds(node),
+            #[cfg(feature = "zenoh")]
+            RosSide::Zenoh(z) => Mw::Zenoh(z),
+        }
+    }
+
+    /// The publisher of `/parameter_events`.
+    fn parameter_events(
+        &mut self,
+    ) -> Result<
+        crate::ros::wire::mw::Publisher<ros2_client::parameters::raw::ParameterEvent>,
+        NodeError,
+    > {
+        match self {
+            RosSide::Dds { context, node, .. } => node
+                .create_publisher(&context.get_parameter_events_topic(), None)
+                .map(crate::ros::wire::mw::Publisher::Dds)
+                .map_err(ros_err("publisher /parameter_events")),
+            #[cfg(feature = "zenoh")]
+            RosSide::Zenoh(z) => crate::ros::wire::zenoh_pub::ZenohPublisher::of_type(
+                &z.session,
+                "/parameter_events",
+                "rcl_interfaces/msg/ParameterEvent",
+                qos::parameter_events(),
+                &z.hashes,
+            )
+            .map(crate::ros::wire::mw::Publisher::Zenoh)
+            .map_err(|e| NodeError::Ros {
+                what: "publisher /parameter_events".into(),
+                source: Box::new(e),
+            }),
+        }
+    }
+
+    /// Leaves ROS: the node and its spinner (up to 1 s), then the participant; or the token
+    /// and the session.
+    async fn close(self) {
+        match self {
+            RosSide::Dds {
+                context,
+                node,
+                spin_task,
+            } => {
+                // Dropping the node tells its spinner to stop.
+                drop(node);
+                let _ = tokio::time::timeout(Duration::from_secs(1), spin_task).await;
+                drop(context);
+            }
+            #[cfg(feature = "zenoh")]
+            RosSide::Zenoh(z) => {
+                let _ = tokio::task::spawn_blocking(move || z.session.close()).await;
+            }
         }
     }
 }

@@ -68,11 +68,11 @@ fn publisher<M: RosMessage>(
     node: &mut Node,
     topic: &str,
     qos: ros2_client::QosProfile,
-) -> ros2_client::Publisher<M> {
+) -> pwm_actuator::ros::wire::mw::Publisher<M> {
     let t = node
         .create_topic(&to_ros_name(topic).unwrap(), M::type_name(), &qos)
         .unwrap();
-    node.create_publisher(&t, Some(qos)).unwrap()
+    pwm_actuator::ros::wire::mw::Publisher::Dds(node.create_publisher(&t, Some(qos)).unwrap())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -129,7 +129,7 @@ async fn an_output_fault_is_an_error_and_stops_the_node() {
         "/bridge_test".into(),
         store,
         started.requests,
-        events,
+        pwm_actuator::ros::wire::mw::Publisher::Dds(events),
         notes_tx,
         state,
     ));
@@ -240,7 +240,7 @@ async fn concurrent_planner_changes_reach_the_output_thread_in_the_stores_order(
         "/order_test".into(),
         store,
         started.requests,
-        events,
+        pwm_actuator::ros::wire::mw::Publisher::Dds(events),
         notes_tx,
         state,
     );

@@ -104,6 +104,9 @@ pub struct Discovery {
     /// The static peers' IPv4 addresses, each with the entry of `ROS_STATIC_PEERS` it came
     /// from; empty under `OFF`.
     pub peers: Vec<(String, Ipv4Addr)>,
+    /// The node runs on Zenoh (`RMW_IMPLEMENTATION=rmw_zenoh*`, built with the `zenoh`
+    /// feature) instead of DDS; the range and peers then do not apply.
+    pub zenoh: bool,
     /// Warnings to log once at start-up (deprecated or ignored variables).
     pub warnings: Vec<String>,
 }
@@ -113,10 +116,11 @@ pub struct Discovery {
 pub enum DiscoveryError {
     /// `RMW_IMPLEMENTATION` asks for a middleware the node cannot speak.
     #[error(
-        "{RMW_ENV}={value}: this node speaks DDS only (RTPS through RustDDS) and cannot join a \
-         Zenoh network, where no peer could command it or see its diagnostics. Run it without \
-         {RMW_ENV} (or with a DDS one: {dds}) and the nodes that talk to it on a DDS-based \
-         middleware (docs/deployment.md)",
+        "{RMW_ENV}={value}: this build of the node speaks DDS only (RTPS through RustDDS; it was \
+         built without the `zenoh` cargo feature) and cannot join a Zenoh network, where no \
+         peer could command it or see its diagnostics. Run a build with `--features zenoh`, or \
+         run it without {RMW_ENV} (or with a DDS one: {dds}) and the nodes that talk to it on \
+         a DDS-based middleware (docs/deployment.md)",
         dds = DDS_RMWS.join(", ")
     )]
     Middleware {
@@ -165,6 +169,15 @@ pub fn read_resolving(
     let mut warnings = Vec::new();
     if let Some(rmw) = var(RMW_ENV).filter(|v| !v.is_empty()) {
         if rmw.starts_with("rmw_zenoh") {
+            if cfg!(feature = "zenoh") {
+                // Zenoh's own settings are read where its session opens (config::zenoh).
+                return Ok(Discovery {
+                    range: Range::Subnet,
+                    peers: Vec::new(),
+                    zenoh: true,
+                    warnings,
+                });
+            }
             return Err(DiscoveryError::Middleware { value: shown(&rmw) });
         }
         if !DDS_RMWS.contains(&rmw.as_str()) {
@@ -197,6 +210,7 @@ pub fn read_resolving(
         return Ok(Discovery {
             range: Range::Localhost,
             peers: Vec::new(),
+            zenoh: false,
             warnings,
         });
     }
@@ -256,6 +270,7 @@ pub fn read_resolving(
     Ok(Discovery {
         range,
         peers,
+        zenoh: false,
         warnings,
     })
 }
@@ -530,6 +545,10 @@ mod tests {
             assert!(d.warnings.is_empty(), "{rmw}: {:?}", d.warnings);
         }
         for rmw in ["rmw_zenoh_cpp", "rmw_zenoh"] {
+            if cfg!(feature = "zenoh") {
+                assert!(read_with(&[(RMW_ENV, rmw)]).unwrap().zenoh, "{rmw}");
+                continue;
+            }
             let e = read_with(&[(RMW_ENV, rmw)]).unwrap_err();
             assert!(
                 matches!(&e, DiscoveryError::Middleware { value } if value == rmw),
@@ -537,8 +556,9 @@ mod tests {
             );
             let text = e.to_string();
             assert!(
-                text.starts_with(&format!("{RMW_ENV}={rmw}: this node speaks DDS only"))
-                    && text.contains("rmw_cyclonedds_cpp"),
+                text.starts_with(&format!(
+                    "{RMW_ENV}={rmw}: this build of the node speaks DDS only"
+                )) && text.contains("rmw_cyclonedds_cpp"),
                 "{text}"
             );
         }
@@ -746,6 +766,7 @@ mod tests {
         let d = Discovery {
             range: Range::Localhost,
             peers: vec![],
+            zenoh: false,
             warnings: vec![],
         };
         match d.confine() {

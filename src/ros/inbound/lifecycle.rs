@@ -26,8 +26,8 @@ use crate::ros::interface::msg::{
 use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::ServiceMaker;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
+use crate::ros::wire::mw::Publisher;
 use log::{info, warn};
-use ros2_client::Publisher;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use tokio::task::JoinHandle;

@@ -76,6 +76,15 @@ pub fn services() -> QosProfile {
     QosProfile::publisher_default().history(History::KeepLast { depth: 10 })
 }
 
+/// `/parameter_events` on Zenoh: rclcpp's `rmw_qos_profile_parameter_events` (reliable,
+/// volatile, keep last 1000). On DDS the topic is ros2-client's own (reliable, transient local,
+/// keep last 1).
+pub fn parameter_events() -> QosProfile {
+    QosProfile::publisher_default()
+        .history(History::KeepLast { depth: 1000 })
+        .durability(Durability::Volatile)
+}
+
 /// An action server's endpoints as ROS 2's defaults: its three services as
 /// [`services`], volatile; feedback reliable, volatile, keep last 10; the status
 /// transient-local keep last 1 (`rcl_action_qos_profile_status_default`), which action

@@ -20,9 +20,9 @@ use crate::ros::inbound::valve::ValveAnswers;
 use crate::ros::interface::msg::{self, DiagnosticStatus, KeyValue};
 use crate::ros::interface::qos;
 use crate::ros::wire::endpoints::{EndpointError, Endpoints};
+use crate::ros::wire::mw::Publisher;
 use log::{debug, error, info, warn};
 use ros2_client::builtin_interfaces::Time;
-use ros2_client::Publisher;
 use std::path::PathBuf;
 use std::sync::Arc;
 

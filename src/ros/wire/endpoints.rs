@@ -7,10 +7,11 @@ use crate::ros::config::args::Remap;
 use crate::ros::config::names::{to_ros_name, NameError, NameKind, NodeIdentity};
 use crate::ros::interface::msg::RosMessage;
 use crate::ros::interface::qos;
+use crate::ros::wire::mw::Publisher;
 use futures::StreamExt;
 use log::{debug, warn};
 use ros2_client::{
-    Message, Node, Publisher, QosProfile, Server, ServiceMapping, ServiceTypeName, Subscription,
+    Message, Node, QosProfile, Server, ServiceMapping, ServiceTypeName, Subscription,
 };
 use tokio::task::JoinHandle;
 
@@ -20,6 +21,23 @@ pub enum EndpointError {
     /// Its name does not resolve (e.g. a bad remap).
     #[error(transparent)]
     Name(#[from] NameError),
+    /// Zenoh refused to create it.
+    #[cfg(feature = "zenoh")]
+    #[error("ROS on Zenoh: cannot create {what}: {why}")]
+    Zenoh {
+        /// What: `publisher /pwm_actuator/pw01/edges`, ...
+        what: String,
+        /// Why.
+        why: String,
+    },
+    /// The middleware in use does not carry it.
+    #[error("ROS: {what} is not available on {middleware}")]
+    Unsupported {
+        /// What: `action /pwm_actuator/pw01/autotune`.
+        what: String,
+        /// The middleware.
+        middleware: &'static str,
+    },
     /// DDS refused to create it.
     #[error("ROS: cannot create {what}")]
     Create {
@@ -65,6 +83,7 @@ pub(crate) fn publisher<M: RosMessage>(
     let (full, t) = topic(node, id, remaps, name, M::type_name(), &qos)?;
     debug!("publishing {full}");
     node.create_publisher(&t, Some(qos))
+        .map(Publisher::Dds)
         .map_err(create_err(format!("publisher {full}")))
 }
 
@@ -130,12 +149,51 @@ where
     })
 }
 
-/// What every endpoint of the node is made with: the node, its identity and the remapping
-/// rules. Each owner of a group of endpoints (a channel's topics, the e-stop, the lifecycle,
-/// the parameter services, the reporter's publishers) makes them through this.
+/// The middleware the node's endpoints are made on: its DDS node, or its Zenoh session.
+pub enum Mw<'a> {
+    /// DDS: the ros2-client node.
+    Dds(&'a mut Node),
+    /// Zenoh: the session with the node's token, and the type hashes its keys carry.
+    #[cfg(feature = "zenoh")]
+    Zenoh(&'a crate::ros::wire::zenoh_session::ZenohNode),
+}
+
+impl Mw<'_> {
+    /// The same middleware for a shorter borrow.
+    pub fn reborrow(&mut self) -> Mw<'_> {
+        match self {
+            Mw::Dds(node) => Mw::Dds(node),
+            #[cfg(feature = "zenoh")]
+            Mw::Zenoh(z) => Mw::Zenoh(z),
+        }
+    }
+}
+
+/// Keeps a Zenoh endpoint (and its own task) until the returned task is aborted, as a DDS
+/// endpoint lives in the task that listens on it.
+#[cfg(feature = "zenoh")]
+fn hold<T: Send + 'static>(endpoint: T) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        let _endpoint = endpoint;
+        std::future::pending::<()>().await
+    })
+}
+
+/// A Zenoh endpoint's error as an [`EndpointError`] naming `what`.
+#[cfg(feature = "zenoh")]
+fn zenoh_err<E: std::fmt::Display>(what: String) -> impl FnOnce(E) -> EndpointError {
+    move |e| EndpointError::Zenoh {
+        what,
+        why: e.to_string(),
+    }
+}
+
+/// What every endpoint of the node is made with: the middleware, the node's identity and the
+/// remapping rules. Each owner of a group of endpoints (a channel's topics, the e-stop, the
+/// lifecycle, the parameter services, the reporter's publishers) makes them through this.
 pub struct Endpoints<'a> {
-    /// The node.
-    pub node: &'a mut Node,
+    /// The middleware.
+    pub mw: Mw<'a>,
     /// Its name and namespace.
     pub id: &'a NodeIdentity,
     /// The remapping rules.
@@ -149,7 +207,17 @@ impl Endpoints<'_> {
         name: &str,
         qos: QosProfile,
     ) -> Result<Publisher<M>, EndpointError> {
-        publisher(self.node, self.id, self.remaps, name, qos)
+        match &mut self.mw {
+            Mw::Dds(node) => publisher(node, self.id, self.remaps, name, qos),
+            #[cfg(feature = "zenoh")]
+            Mw::Zenoh(z) => {
+                let full = self.id.resolve(name, NameKind::Topic, self.remaps)?;
+                debug!("publishing {full} on Zenoh");
+                crate::ros::wire::zenoh_pub::ZenohPublisher::new(&z.session, &full, qos, &z.hashes)
+                    .map(Publisher::Zenoh)
+                    .map_err(zenoh_err(format!("publisher {full}")))
+            }
+        }
     }
 
     /// A subscription of `name` with the commands' QoS, and the task that runs `on_msg` for
@@ -159,8 +227,7 @@ impl Endpoints<'_> {
         M: RosMessage + Send + Sync + 'static,
         F: FnMut(M) + Send + 'static,
     {
-        let (full, sub) = subscription::<M>(self.node, self.id, self.remaps, name)?;
-        Ok(listen(full, sub, on_msg))
+        self.listen_with(name, qos::commands(), on_msg)
     }
 
     /// As [`Endpoints::listen`], but `on_msg` is async and awaited before the next message is
@@ -176,8 +243,26 @@ impl Endpoints<'_> {
         F: FnMut(M) -> Fut + Send + 'static,
         Fut: std::future::Future<Output = ()> + Send,
     {
-        let (full, sub) = subscription::<M>(self.node, self.id, self.remaps, name)?;
-        Ok(listen_async(full, sub, on_msg))
+        match &mut self.mw {
+            Mw::Dds(node) => {
+                let (full, sub) = subscription::<M>(node, self.id, self.remaps, name)?;
+                Ok(listen_async(full, sub, on_msg))
+            }
+            #[cfg(feature = "zenoh")]
+            Mw::Zenoh(z) => {
+                let full = self.id.resolve(name, NameKind::Topic, self.remaps)?;
+                debug!("subscribing {full} on Zenoh");
+                crate::ros::wire::zenoh_sub::ZenohSubscription::listen_async(
+                    &z.session,
+                    &full,
+                    qos::commands(),
+                    &z.hashes,
+                    on_msg,
+                )
+                .map(hold)
+                .map_err(zenoh_err(format!("subscription {full}")))
+            }
+        }
     }
 
     /// Subscribes to `name` with `qos` (a sensor's best effort) and hands each message to
@@ -192,8 +277,22 @@ impl Endpoints<'_> {
         M: RosMessage + Send + Sync + 'static,
         F: FnMut(M) + Send + 'static,
     {
-        let (full, sub) = subscription_with::<M>(self.node, self.id, self.remaps, name, qos)?;
-        Ok(listen(full, sub, on_msg))
+        match &mut self.mw {
+            Mw::Dds(node) => {
+                let (full, sub) = subscription_with::<M>(node, self.id, self.remaps, name, qos)?;
+                Ok(listen(full, sub, on_msg))
+            }
+            #[cfg(feature = "zenoh")]
+            Mw::Zenoh(z) => {
+                let full = self.id.resolve(name, NameKind::Topic, self.remaps)?;
+                debug!("subscribing {full} on Zenoh");
+                crate::ros::wire::zenoh_sub::ZenohSubscription::listen(
+                    &z.session, &full, qos, &z.hashes, on_msg,
+                )
+                .map(hold)
+                .map_err(zenoh_err(format!("subscription {full}")))
+            }
+        }
     }
 
     /// The resolved name of the topic `name` (a node's topic name, remapped as the node's
@@ -205,7 +304,7 @@ impl Endpoints<'_> {
     /// The service maker over the same node, identity and rules.
     pub fn services(&mut self) -> ServiceMaker<'_> {
         ServiceMaker {
-            node: self.node,
+            mw: self.mw.reborrow(),
             id: self.id,
             remaps: self.remaps,
         }
@@ -220,10 +319,11 @@ impl<T: Message + Clone + Send + Sync + 'static> Request for T {}
 pub trait Response: Message + Send + Sync + 'static {}
 impl<T: Message + Send + Sync + 'static> Response for T {}
 
-/// What a node's services are created with: the node, its identity and remapping rules.
+/// What a node's services are created with: the middleware, the node's identity and remapping
+/// rules.
 pub struct ServiceMaker<'a> {
-    /// The node.
-    pub node: &'a mut Node,
+    /// The middleware.
+    pub mw: Mw<'a>,
     /// Its name and namespace.
     pub id: &'a NodeIdentity,
     /// The remapping rules.
@@ -247,14 +347,25 @@ impl ServiceMaker<'_> {
     {
         let full = self.id.resolve(name, NameKind::Service, self.remaps)?;
         debug!("action {full}");
-        self.node
-            .create_action_server(
-                ServiceMapping::Enhanced,
-                &to_ros_name(&full)?,
-                &ros2_client::ActionTypeName::new(package, type_name),
-                crate::ros::interface::qos::action_server(),
-            )
-            .map_err(create_err(format!("action {full}")))
+        // One arm without the `zenoh` feature.
+        #[allow(clippy::infallible_destructuring_match)]
+        let node = match &mut self.mw {
+            Mw::Dds(node) => node,
+            #[cfg(feature = "zenoh")]
+            Mw::Zenoh(_) => {
+                return Err(EndpointError::Unsupported {
+                    what: format!("the action {full}"),
+                    middleware: "Zenoh",
+                })
+            }
+        };
+        node.create_action_server(
+            ServiceMapping::Enhanced,
+            &to_ros_name(&full)?,
+            &ros2_client::ActionTypeName::new(package, type_name),
+            crate::ros::interface::qos::action_server(),
+        )
+        .map_err(create_err(format!("action {full}")))
     }
 
     /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
@@ -321,8 +432,26 @@ impl ServiceMaker<'_> {
     {
         let full = self.id.resolve(name, NameKind::Service, self.remaps)?;
         let qos = crate::ros::interface::qos::services();
-        let server: Server<Req, Resp> = self
-            .node
+        // One arm without the `zenoh` feature.
+        #[allow(clippy::infallible_destructuring_match)]
+        let node = match &mut self.mw {
+            Mw::Dds(node) => node,
+            #[cfg(feature = "zenoh")]
+            Mw::Zenoh(z) => {
+                debug!("service {full} on Zenoh");
+                return crate::ros::wire::zenoh_srv::ZenohService::<Req, Resp>::serve_with(
+                    &z.session,
+                    &full,
+                    &format!("{package}/srv/{type_name}"),
+                    qos,
+                    &z.hashes,
+                    handler,
+                )
+                .map(hold)
+                .map_err(zenoh_err(format!("service {full}")));
+            }
+        };
+        let server: Server<Req, Resp> = node
             .create_server(
                 ServiceMapping::Enhanced,
                 &to_ros_name(&full)?,

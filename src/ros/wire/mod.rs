@@ -11,6 +11,7 @@
 
 pub mod action;
 pub mod endpoints;
+pub mod mw;
 pub mod name_clash;
 pub mod zenoh_keys;
 #[cfg(feature = "zenoh")]

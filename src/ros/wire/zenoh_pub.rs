@@ -102,6 +102,21 @@ impl<M: RosMessage + Serialize> ZenohPublisher<M> {
         qos: QosProfile,
         hashes: &BTreeMap<String, String>,
     ) -> Result<Self, PublisherError> {
+        let ros_type = format!("{}/msg/{}", M::PACKAGE, M::NAME);
+        Self::of_type(node, topic, &ros_type, qos, hashes)
+    }
+}
+
+impl<M: Serialize> ZenohPublisher<M> {
+    /// As [`ZenohPublisher::new`] for a message type named `ros_type`
+    /// (`rcl_interfaces/msg/ParameterEvent`) rather than by [`RosMessage`].
+    pub fn of_type(
+        node: &NodeSession,
+        topic: &str,
+        ros_type: &str,
+        qos: QosProfile,
+        hashes: &BTreeMap<String, String>,
+    ) -> Result<Self, PublisherError> {
         let key_err = |source| PublisherError::Key {
             topic: topic.to_string(),
             source,
@@ -110,8 +125,7 @@ impl<M: RosMessage + Serialize> ZenohPublisher<M> {
             topic: topic.to_string(),
             why: shown(&e.to_string()),
         };
-        let ty = EndpointType::of(hashes, &format!("{}/msg/{}", M::PACKAGE, M::NAME))
-            .map_err(key_err)?;
+        let ty = EndpointType::of(hashes, ros_type).map_err(key_err)?;
         let key = data_key(node.domain(), topic, &ty).map_err(key_err)?;
         let reliable = qos.reliability != Reliability::BestEffort;
         let transient_local = qos.durability == Durability::TransientLocal;

@@ -59,6 +59,15 @@ pub fn config(
     Ok(config)
 }
 
+/// What the node's endpoints on Zenoh are made with: its session and the type hashes
+/// ([`type_hashes`](crate::ros::interface::type_hash::type_hashes)) their keys carry.
+pub struct ZenohNode {
+    /// The session.
+    pub session: NodeSession,
+    /// The type hashes.
+    pub hashes: std::collections::BTreeMap<String, String>,
+}
+
 /// An open session with the node's liveliness token declared.
 pub struct NodeSession {
     session: Session,

@@ -115,6 +115,25 @@ impl<M: RosMessage + DeserializeOwned + Send + 'static> ZenohSubscription<M> {
         hashes: &BTreeMap<String, String>,
         mut on_msg: impl FnMut(M) + Send + 'static,
     ) -> Result<Self, SubscriptionError> {
+        Self::listen_async(node, topic, qos, hashes, move |m| {
+            on_msg(m);
+            std::future::ready(())
+        })
+    }
+
+    /// As [`ZenohSubscription::listen`], but `on_msg` is async and awaited before the next
+    /// message is taken.
+    pub fn listen_async<F, Fut>(
+        node: &NodeSession,
+        topic: &str,
+        qos: QosProfile,
+        hashes: &BTreeMap<String, String>,
+        mut on_msg: F,
+    ) -> Result<Self, SubscriptionError>
+    where
+        F: FnMut(M) -> Fut + Send + 'static,
+        Fut: std::future::Future<Output = ()> + Send,
+    {
         let key_err = |source| SubscriptionError::Key {
             topic: topic.to_string(),
             source,
@@ -190,7 +209,7 @@ impl<M: RosMessage + DeserializeOwned + Send + 'static> ZenohSubscription<M> {
                         continue;
                     };
                     match from_cdr_bytes::<M>(&bytes) {
-                        Ok(m) => on_msg(m),
+                        Ok(m) => on_msg(m).await,
                         Err(why) => {
                             dropped.undecodable.fetch_add(1, Ordering::Relaxed);
                             if last_warning.is_none_or(|t| t.elapsed().as_secs() >= 10) {
