@@ -14,7 +14,8 @@
 # build the tests with clippy's lints: see its step 2c).
 #
 # Usage: scripts/cargo-test.sh [CARGO_TEST_ARGS...]   e.g. --all-targets, --lib NAME, -- --ignored
-#   (run from anywhere; CARGO_TARGET_DIR is honoured).
+#   (run from anywhere; CARGO_TARGET_DIR is honoured; PWM_FEATURES, e.g. `zenoh`, adds
+#   `--features PWM_FEATURES`, as scripts/test.sh builds the release binary with it).
 
 set -euo pipefail
 
@@ -22,4 +23,4 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO"
 target_dir="${CARGO_TARGET_DIR:-$REPO/target}"
 CARGO_BUILD_BUILD_DIR="${CARGO_BUILD_BUILD_DIR:-$target_dir}" exec cargo test --profile bench \
-    --target-dir "$target_dir/tests" "$@"
+    --target-dir "$target_dir/tests" ${PWM_FEATURES:+--features "$PWM_FEATURES"} "$@"

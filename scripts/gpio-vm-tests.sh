@@ -21,6 +21,7 @@
 #                    with nothing beside it
 #   (no group)       all of them, in one guest of two virtual CPUs
 #   GPIO_VM_TIMEOUT  seconds the guest may run before it is killed as hung (default 900)
+#   PWM_ACTUATOR_NODE  the node binary (default target/release/pwm_actuator_node)
 
 set -uo pipefail
 
@@ -28,7 +29,7 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$REPO" || exit 1
 group="" cpus=2
 case "${1:-}" in
-    -h | --help) sed -n '2,24p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h | --help) sed -n '2,25p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     "") ;;
     --group)
         group=${2:-}
@@ -84,7 +85,7 @@ fi
 echo "---- gpio-vm run${group:+, $group checks} ($cpus virtual CPUs, time limit $timeout_s s)"
 start=$SECONDS
 scripts/gpio-vm.sh --timeout "$timeout_s" --cpus "$cpus" -- tests/gpio_vm/guest.sh "$test_bin" \
-    "$REPO/target/release/pwm_actuator_node" output_gpio_sim:: "$group" 2>&1 | tee "$log"
+    "${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}" output_gpio_sim:: "$group" 2>&1 | tee "$log"
 rc=${PIPESTATUS[0]}
 echo "---- gpio-vm run: exit $rc ($((SECONDS - start)) s)"
 # The Rust test: its libtest summary; the node checks: one PASS or FAIL line each, so those

@@ -122,6 +122,7 @@ run_pytest_paths() {
         PWM_DISTRO="$distro" source "$REPO/scripts/env.sh"
         # ROS logs of the run stay in the checkout (git-ignored), not in ~/.ros.
         export ROS_HOME="$ws/ros_home"
+        # shellcheck disable=SC2030  # the copy of 3, or the release build
         export PWM_ACTUATOR_NODE="${PWM_ACTUATOR_NODE:-$REPO/target/release/pwm_actuator_node}"
         exec python -m pytest "${paths[@]}" -v -ra --junitxml="$junit" "$@"
     ) </dev/null
@@ -256,7 +257,21 @@ fi
 
 # 3. The release binary the rclpy suite runs.
 release_ok=1
-run_step "cargo build --release" cargo build --release --bins --locked || release_ok=0
+# The node is built and tested with the `zenoh` feature: one binary that runs on DDS or, with
+# RMW_IMPLEMENTATION=rmw_zenoh_cpp, on Zenoh (tests/rclpy/test_zenoh.py); the Rust tests and
+# clippy build with the same features (scripts/cargo-test.sh reads PWM_FEATURES), so that they
+# reuse this build's dependencies.
+export PWM_FEATURES=zenoh
+run_step "cargo build --release" cargo build --release --bins --locked --features "$PWM_FEATURES" ||
+    release_ok=0
+# Every test below runs this build's binary from a copy: the docs' commands (3b), run beside
+# the tests, build target/release/ as the docs say, without the feature.
+if ((release_ok)); then
+    mkdir -p "$REPO/target/test-bin"
+    cp "$REPO/target/release/pwm_actuator_node" "$REPO/target/test-bin/pwm_actuator_node"
+    # shellcheck disable=SC2031  # run_pytest_paths's subshell only reads it
+    export PWM_ACTUATOR_NODE="$REPO/target/test-bin/pwm_actuator_node"
+fi
 
 # 3a. The two long rclpy tests that time no edge — memory under a 3-minute soak and after a
 # storm of 1,000 short-lived participants (they check that no edge is early and no phase short,
