@@ -296,6 +296,12 @@ impl LogConfig {
 
     /// The level for records of `target`.
     pub fn level_for(&self, target: &str) -> LevelFilter {
+        // tracing's log bridge (turned on by a crate in the tree, e.g. with the `zenoh`
+        // feature) writes a record when a span is entered or left, at the span's level, with
+        // the span's name for a message: no event, never written.
+        if target == "tracing::span" || target.starts_with("tracing::span::") {
+            return LevelFilter::Off;
+        }
         let matches = |prefix: &str| {
             target == prefix
                 || target
@@ -513,6 +519,8 @@ mod tests {
         assert_eq!(c.level_for("pwm_actuator"), LevelFilter::Info);
         assert_eq!(c.level_for("rustdds::rtps"), LevelFilter::Error);
         assert_eq!(c.level_for("pwm_actuatorx"), LevelFilter::Error);
+        assert_eq!(c.level_for("tracing::span"), LevelFilter::Off);
+        assert_eq!(c.level_for("tracing::span::active"), LevelFilter::Off);
         assert!(c.stderr && c.rosout);
         assert_eq!(c.name, "heater");
     }
