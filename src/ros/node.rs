@@ -853,8 +853,7 @@ impl RosSide {
         for w in &settings.warnings {
             warn!("{w}");
         }
-        let text = zcfg::config_text(&settings, zcfg::read_file_limited)
-            .map_err(|e| failed(e.to_string()))?;
+        let text = zcfg::config_text(&settings).map_err(|e| failed(e.to_string()))?;
         let cfg = config(&text, &settings, |w| warn!("{w}")).map_err(|e| failed(e.to_string()))?;
         let hashes = type_hash::type_hashes().map_err(|e| failed(e.to_string()))?;
         let (namespace, name) = (id.namespace.clone(), id.name.clone());

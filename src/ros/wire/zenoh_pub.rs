@@ -219,45 +219,12 @@ impl<M: Serialize> ZenohPublisher<M> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros::config::zenoh::{read, DEFAULT_SESSION_CONFIG};
     use crate::ros::interface::msg::{Bool, Float64};
     use crate::ros::interface::qos;
     use crate::ros::interface::type_hash::type_hashes;
     use crate::ros::wire::zenoh_keys::{parse_token, Token};
-    use crate::ros::wire::zenoh_session::config;
-    use std::net::TcpListener;
+    use crate::ros::wire::zenoh_session::test_peers::{free_port, node, router};
     use std::time::Instant;
-    use zenoh::{Config, Session};
-
-    fn free_port() -> u16 {
-        TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port()
-    }
-
-    fn router(port: u16) -> Session {
-        let mut c = Config::default();
-        c.insert_json5("mode", r#""router""#).unwrap();
-        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
-            .unwrap();
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .unwrap();
-        c.insert_json5("timestamping/enabled", "true").unwrap();
-        zenoh::open(c).wait().unwrap()
-    }
-
-    fn node(port: u16) -> NodeSession {
-        let s = read(|k| {
-            (k == "ZENOH_CONFIG_OVERRIDE").then(|| {
-                format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#)
-            })
-        })
-        .unwrap();
-        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
-        NodeSession::open(c, &s, 5, "/", "/", "pwm_actuator", |w| panic!("{w}")).unwrap()
-    }
 
     /// Waits up to 5 s for `f` to give something.
     fn within_5_s<T>(mut f: impl FnMut() -> Option<T>) -> T {
@@ -282,7 +249,7 @@ mod tests {
     fn samples_carry_cdr_and_the_attachment_on_the_exact_key_and_the_token_tells_the_publisher() {
         let port = free_port();
         let router = router(port);
-        let node = node(port);
+        let node = node(port, 5);
         let hashes = type_hashes().unwrap();
         let publisher = ZenohPublisher::<Float64>::new(
             &node,
@@ -358,7 +325,7 @@ mod tests {
     fn a_late_joiner_of_a_transient_local_topic_gets_the_last_sample_from_the_cache() {
         let port = free_port();
         let router = router(port);
-        let node = node(port);
+        let node = node(port, 5);
         let hashes = type_hashes().unwrap();
         let e1 = ZenohPublisher::<Bool>::new(&node, "/pwm_actuator/pw01/e1", qos::e1(), &hashes)
             .unwrap();

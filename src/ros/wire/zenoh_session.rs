@@ -176,11 +176,11 @@ impl NodeSession {
 
 #[cfg(test)]
 mod tests {
+    use super::test_peers::{free_port, router};
     use super::*;
     use crate::ros::config::zenoh::{read, RouterCheck, DEFAULT_SESSION_CONFIG};
     use crate::ros::wire::zenoh_keys::{parse_token, Token};
     use std::collections::HashMap;
-    use std::net::TcpListener;
 
     fn settings(pairs: &[(&str, &str)]) -> ZenohSettings {
         let map: HashMap<String, String> = pairs
@@ -188,26 +188,6 @@ mod tests {
             .map(|(k, v)| (k.to_string(), v.to_string()))
             .collect();
         read(|k| map.get(k).cloned()).unwrap()
-    }
-
-    /// A port nobody listens on now.
-    fn free_port() -> u16 {
-        TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port()
-    }
-
-    /// A router on `port` in this process, as `rmw_zenohd` would be.
-    fn router(port: u16) -> Session {
-        let mut c = Config::default();
-        c.insert_json5("mode", r#""router""#).unwrap();
-        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
-            .unwrap();
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .unwrap();
-        zenoh::open(c).wait().unwrap()
     }
 
     #[test]
@@ -342,5 +322,48 @@ mod tests {
         // One second between the two attempts.
         assert!(start.elapsed() >= std::time::Duration::from_secs(1));
         node.close();
+    }
+}
+
+/// What the Zenoh modules' tests share: a free port, a router on it in the test process (as
+/// `rmw_zenohd` would be), and the node's session connected to it.
+#[cfg(test)]
+pub(crate) mod test_peers {
+    use super::{config, NodeSession};
+    use crate::ros::config::zenoh::{read, DEFAULT_SESSION_CONFIG};
+    use std::net::TcpListener;
+    use zenoh::{Config, Session, Wait};
+
+    /// A port nobody listens on now.
+    pub(crate) fn free_port() -> u16 {
+        TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port()
+    }
+
+    /// A router on `port` in this process, timestamping (publication caches need it).
+    pub(crate) fn router(port: u16) -> Session {
+        let mut c = Config::default();
+        c.insert_json5("mode", r#""router""#).unwrap();
+        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
+            .unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        c.insert_json5("timestamping/enabled", "true").unwrap();
+        zenoh::open(c).wait().unwrap()
+    }
+
+    /// The node's session in ROS domain `domain`, connected to the router on `port` alone.
+    pub(crate) fn node(port: u16, domain: u32) -> NodeSession {
+        let s = read(|k| {
+            (k == "ZENOH_CONFIG_OVERRIDE").then(|| {
+                format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#)
+            })
+        })
+        .unwrap();
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+        NodeSession::open(c, &s, domain, "/", "/", "pwm_actuator", |w| panic!("{w}")).unwrap()
     }
 }

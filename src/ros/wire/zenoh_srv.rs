@@ -284,45 +284,14 @@ where
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros::config::zenoh::{read, DEFAULT_SESSION_CONFIG};
     use crate::ros::interface::msg::{EmptyRequest, TriggerResponse};
     use crate::ros::interface::qos;
     use crate::ros::interface::type_hash::type_hashes;
     use crate::ros::wire::zenoh_keys::{parse_token, Gid, Token};
-    use crate::ros::wire::zenoh_session::config;
-    use std::net::TcpListener;
+    use crate::ros::wire::zenoh_session::test_peers::{free_port, node, router};
     use std::time::{Duration, Instant};
     use zenoh::query::Reply;
-    use zenoh::{Config, Session};
-
-    fn free_port() -> u16 {
-        TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port()
-    }
-
-    fn router(port: u16) -> Session {
-        let mut c = Config::default();
-        c.insert_json5("mode", r#""router""#).unwrap();
-        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
-            .unwrap();
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .unwrap();
-        zenoh::open(c).wait().unwrap()
-    }
-
-    fn node(port: u16) -> NodeSession {
-        let s = read(|k| {
-            (k == "ZENOH_CONFIG_OVERRIDE").then(|| {
-                format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#)
-            })
-        })
-        .unwrap();
-        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
-        NodeSession::open(c, &s, 7, "/", "/", "pwm_actuator", |w| panic!("{w}")).unwrap()
-    }
+    use zenoh::Session;
 
     /// One request from `client` as rmw_zenoh's client sends it; the replies.
     fn call(
@@ -347,7 +316,7 @@ mod tests {
     async fn a_request_is_answered_with_the_echoed_sequence_and_the_clients_gid() {
         let port = free_port();
         let router = router(port);
-        let node = node(port);
+        let node = node(port, 7);
         let hashes = type_hashes().unwrap();
         let calls = Arc::new(AtomicU64::new(0));
         let srv = ZenohService::<EmptyRequest, TriggerResponse>::serve_with(

@@ -236,45 +236,13 @@ impl<M: RosMessage + DeserializeOwned + Send + 'static> ZenohSubscription<M> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros::config::zenoh::{read, DEFAULT_SESSION_CONFIG};
     use crate::ros::interface::cdr::cdr_bytes;
     use crate::ros::interface::msg::Float64;
     use crate::ros::interface::qos;
     use crate::ros::interface::type_hash::type_hashes;
     use crate::ros::wire::zenoh_keys::{parse_token, Token};
-    use crate::ros::wire::zenoh_session::config;
-    use std::net::TcpListener;
+    use crate::ros::wire::zenoh_session::test_peers::{free_port, node, router};
     use std::time::{Duration, Instant};
-    use zenoh::{Config, Session};
-
-    fn free_port() -> u16 {
-        TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port()
-    }
-
-    fn router(port: u16) -> Session {
-        let mut c = Config::default();
-        c.insert_json5("mode", r#""router""#).unwrap();
-        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
-            .unwrap();
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .unwrap();
-        zenoh::open(c).wait().unwrap()
-    }
-
-    fn node(port: u16) -> NodeSession {
-        let s = read(|k| {
-            (k == "ZENOH_CONFIG_OVERRIDE").then(|| {
-                format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#)
-            })
-        })
-        .unwrap();
-        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
-        NodeSession::open(c, &s, 6, "/", "/", "pwm_actuator", |w| panic!("{w}")).unwrap()
-    }
 
     /// Waits up to 5 s for `f` to hold.
     fn within_5_s(mut f: impl FnMut() -> bool) {
@@ -289,7 +257,7 @@ mod tests {
     async fn duties_put_on_the_exact_key_reach_the_callback_and_bad_ones_are_counted() {
         let port = free_port();
         let router = router(port);
-        let node = node(port);
+        let node = node(port, 6);
         let hashes = type_hashes().unwrap();
         let got = Arc::new(Mutex::new(Vec::new()));
         let sub = ZenohSubscription::<Float64>::listen(
@@ -337,7 +305,7 @@ mod tests {
     async fn a_callback_that_falls_behind_loses_the_oldest_samples_beyond_the_depth() {
         let port = free_port();
         let router = router(port);
-        let node = node(port);
+        let node = node(port, 6);
         let hashes = type_hashes().unwrap();
         let (started_tx, started_rx) = std::sync::mpsc::channel::<()>();
         let (gate_tx, gate_rx) = std::sync::mpsc::channel::<()>();
