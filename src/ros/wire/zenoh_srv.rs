@@ -12,12 +12,15 @@
 //! with an error and counted); one task takes them in order and answers each with the
 //! handler's response. A request without a valid attachment, or that is not the service's
 //! request type, is answered with an error naming why (escaped) and counted.
+//!
+//! An action's three services are [`ZenohRequests`] without the task: their owner takes each
+//! request with a [`Responder`] and answers it when it can (a `get_result` when its goal ends).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::marker::PhantomData;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use log::warn;
 use ros2_client::qos::History;
@@ -76,7 +79,8 @@ pub struct Refused {
 struct Queue {
     queries: Mutex<VecDeque<Query>>,
     depth: usize,
-    ready: Notify,
+    /// Notified at each request queued (shared by the services of one action).
+    ready: Arc<Notify>,
 }
 
 /// Answers `query` with an error `why`; a failure to send is not the node's to handle.
@@ -84,48 +88,93 @@ fn refuse(query: &Query, why: &str) {
     let _ = query.reply_err(why.to_string()).wait();
 }
 
-/// A service server on Zenoh and its task; the token is withdrawn and the task aborted when it
-/// is dropped.
-pub struct ZenohService<Req, Resp> {
+/// A request taken, to be answered once through [`Responder::reply`] (at once, or later: an
+/// action's `get_result` waits for its goal's end). Dropped unanswered, the client's query
+/// ends without a reply.
+pub struct Responder {
+    query: Query,
+    attachment: Attachment,
+    key: String,
+    service: Arc<str>,
+}
+
+impl std::fmt::Debug for Responder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Responder")
+            .field("service", &self.service)
+            .field("sequence", &self.attachment.sequence)
+            .finish()
+    }
+}
+
+impl Responder {
+    /// Answers with `resp`: its CDR bytes, and the request's attachment with a fresh source
+    /// timestamp. A failure is logged.
+    pub fn reply<Resp: Serialize>(self, resp: &Resp) {
+        let payload = match cdr_bytes(resp) {
+            Ok(p) => p,
+            Err(e) => {
+                warn!("{}: cannot serialize the response: {e}", self.service);
+                refuse(&self.query, "the response could not be serialized");
+                return;
+            }
+        };
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
+        let reply = Attachment {
+            source_timestamp_ns: now,
+            ..self.attachment
+        };
+        if let Err(e) = self
+            .query
+            .reply(self.key.as_str(), payload)
+            .attachment(reply.encode().to_vec())
+            .wait()
+        {
+            warn!(
+                "{}: cannot send the response: {}",
+                self.service,
+                shown(&e.to_string())
+            );
+        }
+    }
+
+    /// Answers with an error `why`.
+    pub fn refuse(self, why: &str) {
+        refuse(&self.query, why);
+    }
+}
+
+/// The requests of one service on Zenoh, queued as they arrive, bounded, for their owner to
+/// take ([`ZenohRequests::take`]); the token is withdrawn when this is dropped.
+pub struct ZenohRequests<Req> {
     _queryable: Queryable<()>,
     _token: LivelinessToken,
-    task: JoinHandle<()>,
+    queue: Arc<Queue>,
+    service: Arc<str>,
     /// The data key.
     pub key: String,
     /// The liveliness key.
     pub token_key: String,
     /// What it refused.
     pub refused: Arc<Refused>,
-    _types: PhantomData<fn(Req) -> Resp>,
+    last_warning: Mutex<Option<Instant>>,
+    _types: PhantomData<fn() -> Req>,
 }
 
-impl<Req, Resp> Drop for ZenohService<Req, Resp> {
-    fn drop(&mut self) {
-        self.task.abort();
-    }
-}
-
-impl<Req, Resp> ZenohService<Req, Resp>
-where
-    Req: DeserializeOwned + Send + 'static,
-    Resp: Serialize + Send + 'static,
-{
-    /// Serves the fully qualified `service` of ROS type `ros_type` (`std_srvs/srv/Trigger`; its
-    /// hash looked up in `hashes`) with `qos`, answering each request with what `handler`'s
-    /// future gives, one at a time, in order, in a task of the current tokio runtime (a
-    /// handler that failed is logged and its request answered with an error).
-    pub fn serve_with<F, Fut>(
+impl<Req: DeserializeOwned> ZenohRequests<Req> {
+    /// Declares the fully qualified `service` of ROS type `ros_type` (`std_srvs/srv/Trigger`,
+    /// or an action's `pkg/action/Name_SendGoal`; its hash looked up in `hashes`) with `qos`;
+    /// `ready` is notified at each request queued.
+    pub fn declare(
         node: &NodeSession,
         service: &str,
         ros_type: &str,
         qos: QosProfile,
         hashes: &BTreeMap<String, String>,
-        handler: F,
-    ) -> Result<Self, ServiceError>
-    where
-        F: Fn(Req) -> Fut + Send + Sync + 'static,
-        Fut: std::future::Future<Output = Result<Resp, tokio::task::JoinError>> + Send + 'static,
-    {
+        ready: Arc<Notify>,
+    ) -> Result<Self, ServiceError> {
         let key_err = |source| ServiceError::Key {
             service: service.to_string(),
             source,
@@ -147,7 +196,7 @@ where
         let queue = Arc::new(Queue {
             queries: Mutex::new(VecDeque::with_capacity(depth)),
             depth,
-            ready: Notify::new(),
+            ready,
         });
         let refused = Arc::new(Refused::default());
         let queryable = node
@@ -193,85 +242,148 @@ where
             .declare_token(token_key.clone())
             .wait()
             .map_err(declare_err)?;
+        Ok(ZenohRequests {
+            _queryable: queryable,
+            _token: token,
+            queue,
+            service: service.into(),
+            key,
+            token_key,
+            refused,
+            last_warning: Mutex::new(None),
+            _types: PhantomData,
+        })
+    }
+
+    /// The oldest request queued and readable, if any: one without a valid attachment or that
+    /// is not of the request type is answered with an error naming why (escaped), counted,
+    /// and passed over (logged at most once in 10 s).
+    pub fn try_take(&self) -> Option<(Responder, Req)> {
+        loop {
+            let query = self
+                .queue
+                .queries
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .pop_front()?;
+            let request = query
+                .attachment()
+                .ok_or_else(|| "no attachment".to_string())
+                .and_then(|a| Attachment::decode(&a.to_bytes()).map_err(|e| e.to_string()))
+                .and_then(|a| {
+                    let bytes = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
+                    Ok((a, from_cdr_bytes::<Req>(&bytes)?))
+                });
+            match request {
+                Ok((attachment, req)) => {
+                    let r = Responder {
+                        query,
+                        attachment,
+                        key: self.key.clone(),
+                        service: self.service.clone(),
+                    };
+                    return Some((r, req));
+                }
+                Err(why) => {
+                    self.refused.malformed.fetch_add(1, Ordering::Relaxed);
+                    let why = shown(&why);
+                    let mut last = self.last_warning.lock().unwrap_or_else(|p| p.into_inner());
+                    if last.is_none_or(|t| t.elapsed().as_secs() >= 10) {
+                        *last = Some(Instant::now());
+                        warn!("{}: unreadable request on Zenoh: {why}", self.service);
+                    }
+                    refuse(&query, &format!("unreadable request: {why}"));
+                }
+            }
+        }
+    }
+
+    /// Waits for the next readable request ([`ZenohRequests::try_take`]). Cancel-safe: a
+    /// request taken is returned by the same poll.
+    pub async fn take(&self) -> (Responder, Req) {
+        loop {
+            let notified = self.queue.ready.notified();
+            let mut notified = std::pin::pin!(notified);
+            notified.as_mut().enable();
+            if let Some(r) = self.try_take() {
+                return r;
+            }
+            notified.await;
+        }
+    }
+}
+
+/// A service server on Zenoh and its task; the token is withdrawn and the task aborted when it
+/// is dropped.
+pub struct ZenohService<Req, Resp> {
+    _requests: Arc<ZenohRequests<Req>>,
+    task: JoinHandle<()>,
+    /// The data key.
+    pub key: String,
+    /// The liveliness key.
+    pub token_key: String,
+    /// What it refused.
+    pub refused: Arc<Refused>,
+    _types: PhantomData<fn(Req) -> Resp>,
+}
+
+impl<Req, Resp> Drop for ZenohService<Req, Resp> {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+impl<Req, Resp> ZenohService<Req, Resp>
+where
+    Req: DeserializeOwned + Send + 'static,
+    Resp: Serialize + Send + 'static,
+{
+    /// Serves the fully qualified `service` of ROS type `ros_type` (`std_srvs/srv/Trigger`; its
+    /// hash looked up in `hashes`) with `qos`, answering each request with what `handler`'s
+    /// future gives, one at a time, in order, in a task of the current tokio runtime (a
+    /// handler that failed is logged and its request answered with an error).
+    pub fn serve_with<F, Fut>(
+        node: &NodeSession,
+        service: &str,
+        ros_type: &str,
+        qos: QosProfile,
+        hashes: &BTreeMap<String, String>,
+        handler: F,
+    ) -> Result<Self, ServiceError>
+    where
+        F: Fn(Req) -> Fut + Send + Sync + 'static,
+        Fut: std::future::Future<Output = Result<Resp, tokio::task::JoinError>> + Send + 'static,
+    {
+        let requests = Arc::new(ZenohRequests::<Req>::declare(
+            node,
+            service,
+            ros_type,
+            qos,
+            hashes,
+            Arc::new(Notify::new()),
+        )?);
+        let (key, token_key, refused) = (
+            requests.key.clone(),
+            requests.token_key.clone(),
+            requests.refused.clone(),
+        );
         let task = tokio::spawn({
-            let (queue, refused, service, key) = (
-                queue.clone(),
-                refused.clone(),
-                service.to_string(),
-                key.clone(),
-            );
+            let (requests, service) = (requests.clone(), service.to_string());
             async move {
-                let mut last_warning: Option<std::time::Instant> = None;
                 loop {
-                    let next = queue
-                        .queries
-                        .lock()
-                        .unwrap_or_else(|p| p.into_inner())
-                        .pop_front();
-                    let Some(query) = next else {
-                        queue.ready.notified().await;
-                        continue;
-                    };
-                    let request = query
-                        .attachment()
-                        .ok_or_else(|| "no attachment".to_string())
-                        .and_then(|a| Attachment::decode(&a.to_bytes()).map_err(|e| e.to_string()))
-                        .and_then(|a| {
-                            let bytes = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
-                            Ok((a, from_cdr_bytes::<Req>(&bytes)?))
-                        });
-                    let (attachment, req) = match request {
-                        Ok(r) => r,
-                        Err(why) => {
-                            refused.malformed.fetch_add(1, Ordering::Relaxed);
-                            let why = shown(&why);
-                            if last_warning.is_none_or(|t| t.elapsed().as_secs() >= 10) {
-                                last_warning = Some(std::time::Instant::now());
-                                warn!("{service}: unreadable request on Zenoh: {why}");
-                            }
-                            refuse(&query, &format!("unreadable request: {why}"));
-                            continue;
-                        }
-                    };
-                    let resp = match handler(req).await {
-                        Ok(resp) => resp,
+                    let (responder, req) = requests.take().await;
+                    match handler(req).await {
+                        Ok(resp) => responder.reply(&resp),
                         Err(e) => {
                             warn!("{service}: the request's handler failed: {e}");
-                            refuse(&query, "the service's handler failed");
-                            continue;
+                            responder.refuse("the service's handler failed");
                         }
-                    };
-                    let payload = match cdr_bytes(&resp) {
-                        Ok(p) => p,
-                        Err(e) => {
-                            warn!("{service}: cannot serialize the response: {e}");
-                            refuse(&query, "the response could not be serialized");
-                            continue;
-                        }
-                    };
-                    let now = SystemTime::now()
-                        .duration_since(UNIX_EPOCH)
-                        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
-                    let reply = Attachment {
-                        source_timestamp_ns: now,
-                        ..attachment
-                    };
-                    if let Err(e) = query
-                        .reply(key.as_str(), payload)
-                        .attachment(reply.encode().to_vec())
-                        .wait()
-                    {
-                        warn!(
-                            "{service}: cannot send the response: {}",
-                            shown(&e.to_string())
-                        );
                     }
                 }
             }
         });
         Ok(ZenohService {
-            _queryable: queryable,
-            _token: token,
+            _requests: requests,
             task,
             key,
             token_key,
