@@ -564,7 +564,7 @@ async fn serve(
     }
     let mut tasks: Vec<JoinHandle<()>> = Vec::new();
     let mut side = if disc.zenoh {
-        RosSide::zenoh(&id, domain, secure.as_deref()).await?
+        RosSide::zenoh(&id, &ros, domain, secure.as_deref()).await?
     } else {
         RosSide::dds(&id, &ros, domain, &disc, secure.as_deref(), &mut tasks)?
     };
@@ -832,6 +832,7 @@ impl RosSide {
     #[cfg(feature = "zenoh")]
     async fn zenoh(
         id: &NodeIdentity,
+        ros: &RosArgs,
         domain: u16,
         secure: Option<&std::path::Path>,
     ) -> Result<RosSide, NodeError> {
@@ -857,9 +858,10 @@ impl RosSide {
         let cfg = config(&text, &settings, |w| warn!("{w}")).map_err(|e| failed(e.to_string()))?;
         let hashes = type_hash::type_hashes().map_err(|e| failed(e.to_string()))?;
         let (namespace, name) = (id.namespace.clone(), id.name.clone());
+        let fqn = id.fully_qualified();
         // The session's calls block (the router check sleeps between attempts).
         let session = tokio::task::spawn_blocking(move || {
-            NodeSession::open(
+            let mut session = NodeSession::open(
                 cfg,
                 &settings,
                 u32::from(domain),
@@ -867,13 +869,39 @@ impl RosSide {
                 &namespace,
                 &name,
                 |w| warn!("{w}"),
-            )
+            )?;
+            session.watch_name_clash(&fqn, |w| warn!("{w}"))?;
+            Ok::<_, crate::ros::wire::zenoh_session::SessionError>(session)
         })
         .await
         .map_err(|e| failed(e.to_string()))?
         .map_err(|e| failed(e.to_string()))?;
+        if ros.rosout_logs != Some(false) {
+            use crate::ros::wire::zenoh_pub::ZenohPublisher;
+            let rosout = ZenohPublisher::<ros2_client::log::Log>::of_type(
+                &session,
+                "/rosout",
+                "rcl_interfaces/msg/Log",
+                qos::rosout(),
+                &hashes,
+            )
+            .map_err(|e| failed(e.to_string()))?;
+            // Zenoh's put of a keep-last sample drops rather than waits (zenoh_pub), so a
+            // record logged on any thread is sent without blocking it.
+            logging::attach_rosout_sink(Box::new(move |r: logging::RosoutRecord<'_>| {
+                let _ = rosout.publish(&ros2_client::log::Log {
+                    stamp: ros2_client::builtin_interfaces::Time::now(),
+                    level: logging::ros_level(r.level),
+                    name: r.name.to_string(),
+                    msg: r.text.to_string(),
+                    file: r.file.to_string(),
+                    function: r.function.to_string(),
+                    line: r.line,
+                });
+            }));
+        }
         info!(
-            "on Zenoh: session {}, {}; /rosout is not published on Zenoh",
+            "on Zenoh: session {}, {}",
             session.zid,
             match session.router {
                 zcfg::RouterCheckOutcome::Seen(_) => "connected to a router",
@@ -887,6 +915,7 @@ impl RosSide {
     #[cfg(not(feature = "zenoh"))]
     async fn zenoh(
         _id: &NodeIdentity,
+        _ros: &RosArgs,
         _domain: u16,
         _secure: Option<&std::path::Path>,
     ) -> Result<RosSide, NodeError> {

@@ -177,6 +177,7 @@ def test_the_graph_has_the_node_and_every_endpoint_with_rosidls_hash(
             ("MP", "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
             ("MP", "/parameter_events", "rcl_interfaces/msg/ParameterEvent"),
             ("MP", "/pwm_actuator/transition_event", "lifecycle_msgs/msg/TransitionEvent"),
+            ("MP", "/rosout", "rcl_interfaces/msg/Log"),
             ("MS", "/pwm_actuator/pw01/duty", "std_msgs/msg/Float64"),
             ("MS", "/pwm_actuator/pw01/enable", "std_msgs/msg/Bool"),
             ("MS", "/pwm_actuator/estop", "std_msgs/msg/Bool"),
@@ -213,6 +214,7 @@ def test_the_graph_has_the_node_and_every_endpoint_with_rosidls_hash(
         assert found[("MP", "/pwm_actuator/pw01/e1")][12] == ":1:,1:,:,:,,"
         assert found[("MP", "/pwm_actuator/pw01/edges")][12] == "::,100:,:,:,,"
         assert found[("MS", "/pwm_actuator/pw01/duty")][12] == "::,10:,:,:,,"
+        assert found[("MP", "/rosout")][12] == ":1:,1:,:,:,,"
     finally:
         c.close()
 
@@ -270,6 +272,11 @@ def test_parameters_are_got_and_set_through_the_parameter_services(
     start_node(node_process, router, d, channels=1, pw01__period_ms=200)
     c = client(router.port)
     try:
+        logs: list = []
+        log_key = data_key(d, "/rosout", "rcl_interfaces/msg/Log")
+        log_sub = c.declare_subscriber(
+            log_key, lambda s: logs.append(ros2msg.decode("rcl_interfaces/msg/Log",
+                                                          s.payload.to_bytes())))
         call = Call(c)
         get = lambda: call(d, f"{NODE}/get_parameters", "rcl_interfaces/srv/GetParameters",
                            {"names": ["pw01.period_ms"]})
@@ -282,6 +289,12 @@ def test_parameters_are_got_and_set_through_the_parameter_services(
         assert [x.successful for x in r.results] == [True], r.results
         again = get()
         assert [v.double_value or v.integer_value for v in again.values] == [100]
+        # The change is logged, and the record reaches /rosout on its exact key.
+        line = wait_until("the change on /rosout", lambda: next(
+            (m for m in logs if m.msg.startswith("parameter pw01.period_ms = 100")), None))
+        assert (line.level, line.name) == (20, "pwm_actuator"), line
+        assert abs(line.stamp.sec - time.time()) < 60, line.stamp
+        log_sub.undeclare()
     finally:
         c.close()
 
@@ -333,3 +346,4 @@ def test_a_late_joiner_gets_e1s_last_sample(node_process, router, ros_domain_id:
         sub.undeclare()
     finally:
         c.close()
+

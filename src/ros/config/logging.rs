@@ -337,7 +337,38 @@ struct Logger {
     limiter: Mutex<RateLimiter>,
 }
 
-static ROSOUT: OnceLock<NodeLoggingHandle> = OnceLock::new();
+/// One of the node's own records as `/rosout` carries it (`rcl_interfaces/msg/Log`'s fields
+/// but the stamp, which the sink takes when it sends).
+pub struct RosoutRecord<'a> {
+    /// The record's level (ROS's DEBUG for `log`'s debug and trace).
+    pub level: log::Level,
+    /// The logger's name (the node's base name).
+    pub name: &'a str,
+    /// The text, escaped as on stderr.
+    pub text: &'a str,
+    /// The source file, or empty.
+    pub file: &'a str,
+    /// The module, or empty.
+    pub function: &'a str,
+    /// The source line, or 0.
+    pub line: u32,
+}
+
+/// Where the node's own records go on `/rosout`: a publisher on the middleware in use. It is
+/// called on the thread that logs, so it must not wait.
+pub type RosoutSink = Box<dyn Fn(RosoutRecord<'_>) + Send + Sync>;
+
+/// `rcl_interfaces/msg/Log`'s level for `level`.
+pub fn ros_level(level: log::Level) -> u8 {
+    match level {
+        log::Level::Error => 40,
+        log::Level::Warn => 30,
+        log::Level::Info => 20,
+        log::Level::Debug | log::Level::Trace => 10,
+    }
+}
+
+static ROSOUT: OnceLock<RosoutSink> = OnceLock::new();
 
 thread_local! {
     // Publishing to /rosout may log (DDS internals); such records are never forwarded again.
@@ -375,21 +406,14 @@ impl Logger {
             if let Some(h) = ROSOUT.get() {
                 if !IN_ROSOUT.with(Cell::get) {
                     IN_ROSOUT.with(|c| c.set(true));
-                    let level = match level {
-                        log::Level::Error => ros2_client::ros2::LogLevel::Error,
-                        log::Level::Warn => ros2_client::ros2::LogLevel::Warn,
-                        log::Level::Info => ros2_client::ros2::LogLevel::Info,
-                        log::Level::Debug | log::Level::Trace => ros2_client::ros2::LogLevel::Debug,
-                    };
-                    h.rosout_raw(
-                        ros2_client::builtin_interfaces::Time::now(),
+                    h(RosoutRecord {
                         level,
-                        &self.config.name,
-                        &text,
-                        record.file().unwrap_or(""),
-                        record.module_path().unwrap_or(""),
-                        record.line().unwrap_or(0),
-                    );
+                        name: &self.config.name,
+                        text: &text,
+                        file: record.file().unwrap_or(""),
+                        function: record.module_path().unwrap_or(""),
+                        line: record.line().unwrap_or(0),
+                    });
                     IN_ROSOUT.with(|c| c.set(false));
                 }
             }
@@ -497,9 +521,31 @@ pub fn flush_suppressed() {
     }
 }
 
-/// From now on, the node's records also go to `/rosout` through `handle` (once per process).
+/// From now on, the node's records also go to `/rosout` through `handle`, its DDS writer
+/// (once per process).
 pub fn attach_rosout(handle: NodeLoggingHandle) {
-    let _ = ROSOUT.set(handle);
+    attach_rosout_sink(Box::new(move |r: RosoutRecord<'_>| {
+        let level = match r.level {
+            log::Level::Error => ros2_client::ros2::LogLevel::Error,
+            log::Level::Warn => ros2_client::ros2::LogLevel::Warn,
+            log::Level::Info => ros2_client::ros2::LogLevel::Info,
+            log::Level::Debug | log::Level::Trace => ros2_client::ros2::LogLevel::Debug,
+        };
+        handle.rosout_raw(
+            ros2_client::builtin_interfaces::Time::now(),
+            level,
+            r.name,
+            r.text,
+            r.file,
+            r.function,
+            r.line,
+        );
+    }));
+}
+
+/// From now on, the node's records also go to `/rosout` through `sink` (once per process).
+pub fn attach_rosout_sink(sink: RosoutSink) {
+    let _ = ROSOUT.set(sink);
 }
 
 #[cfg(test)]

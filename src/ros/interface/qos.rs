@@ -28,6 +28,14 @@ use std::time::Duration;
 /// field is under 400 bytes.
 pub const MAX_SAMPLE_BYTES: usize = 256 * 1024;
 
+/// `/rosout` on Zenoh, as ros2-client makes it on DDS (the table above): reliable, transient
+/// local, keep last 1.
+pub fn rosout() -> QosProfile {
+    QosProfile::publisher_default()
+        .history(History::KeepLast { depth: 1 })
+        .durability(Durability::TransientLocal)
+}
+
 /// Subscriptions to commands: rclpy's default profile (reliable, volatile, keep last 10).
 pub fn commands() -> QosProfile {
     QosProfile::publisher_default().history(History::KeepLast { depth: 10 })

@@ -9,15 +9,27 @@
 //! or on a thread that may block.
 
 use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::{Sample, SampleKind};
 use zenoh::{Config, Session, Wait};
 
 use crate::ros::config::logging::shown;
 use crate::ros::config::zenoh::{
     check_router, RouterCheckOutcome, ZenohSettings, CONFIG_OVERRIDE_ENV,
 };
-use crate::ros::wire::zenoh_keys::{EndpointType, EntityKind, EntityToken, KeyError, NodeToken};
+use crate::ros::interface::qos::MAX_SAMPLE_BYTES;
+use crate::ros::wire::zenoh_keys::{
+    parse_token, EndpointType, EntityKind, EntityToken, KeyError, NodeToken, Token, ADMIN_SPACE,
+};
 use ros2_client::QosProfile;
+use std::collections::BTreeSet;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
+
+/// How many other sessions holding a node of this name are warned about, each once; beyond
+/// that one more line says the rest are not (a bound on what a hostile peer can make the node
+/// remember or log).
+pub const MAX_CLASHES_WARNED: usize = 16;
 
 /// What stops the session from opening.
 #[derive(Debug, thiserror::Error)]
@@ -34,11 +46,26 @@ pub enum SessionError {
     /// Zenoh refused the node's liveliness token.
     #[error("cannot declare the node's liveliness token: {0}")]
     Declare(String),
+    /// Zenoh refused the subscription to the graph's node tokens.
+    #[error("cannot watch the graph for another node of this name: {0}")]
+    Watch(String),
 }
+
+/// Where Zenoh's configuration keeps the largest message a link reassembles from fragments.
+pub const MAX_MESSAGE_KEY: &str = "transport/link/rx/max_message_size";
+
+/// The largest message the node's session reassembles, in bytes: the largest sample the node
+/// accepts ([`MAX_SAMPLE_BYTES`]) and 16 KiB for what Zenoh's message carries beside it (key
+/// expression, attachment, extensions). Zenoh's default is 1 GiB, per link and for each
+/// priority and reliability (16 buffers); a larger message is dropped by Zenoh as it arrives,
+/// before it is reassembled, and the link stays up.
+pub const MAX_MESSAGE_BYTES: usize = MAX_SAMPLE_BYTES + 16 * 1024;
 
 /// The session's configuration: `text` (JSON5) with the overrides of `settings` inserted in
 /// order; an override the configuration refuses is `warn`ed about (escaped) and left out, as
-/// rmw_zenoh does.
+/// rmw_zenoh does. The largest message reassembled ([`MAX_MESSAGE_KEY`]) is at most
+/// [`MAX_MESSAGE_BYTES`]: a larger setting is lowered to it, with a warning, as the DDS side
+/// bounds its samples; a smaller one is kept.
 pub fn config(
     text: &str,
     settings: &ZenohSettings,
@@ -56,8 +83,27 @@ pub fn config(
             ));
         }
     }
+    let set: Option<u64> = config
+        .get_json(MAX_MESSAGE_KEY)
+        .ok()
+        .and_then(|v| v.trim().parse().ok());
+    if set.is_none_or(|n| n > MAX_MESSAGE_BYTES as u64) {
+        if let Some(n) = set.filter(|&n| n != ZENOH_DEFAULT_MAX_MESSAGE_BYTES) {
+            warn(format!(
+                "Zenoh: {MAX_MESSAGE_KEY} {n} lowered to {MAX_MESSAGE_BYTES}, the largest \
+                 message the node takes"
+            ));
+        }
+        config
+            .insert_json5(MAX_MESSAGE_KEY, &MAX_MESSAGE_BYTES.to_string())
+            .map_err(|e| SessionError::Config(shown(&e.to_string())))?;
+    }
     Ok(config)
 }
+
+/// Zenoh's own default for [`MAX_MESSAGE_KEY`] (1 GiB), lowered without a warning: the user
+/// did not choose it.
+const ZENOH_DEFAULT_MAX_MESSAGE_BYTES: u64 = 1 << 30;
 
 /// What the node's endpoints on Zenoh are made with: its session and the type hashes
 /// ([`type_hashes`](crate::ros::interface::type_hash::type_hashes)) their keys carry.
@@ -73,6 +119,8 @@ pub struct NodeSession {
     session: Session,
     /// The node's token, withdrawn when this is dropped (before the session closes).
     token: Option<LivelinessToken>,
+    /// The watch for another node of this name ([`NodeSession::watch_name_clash`]).
+    clash: Option<Subscriber<()>>,
     /// The node's liveliness key.
     pub node_key: String,
     /// The node as its token tells it.
@@ -126,6 +174,7 @@ impl NodeSession {
         Ok(NodeSession {
             session,
             token: Some(token),
+            clash: None,
             node_key,
             node,
             next_entity: AtomicU64::new(1),
@@ -164,9 +213,70 @@ impl NodeSession {
         }
     }
 
+    /// Warns through `warn`, once for each, about every other session on this domain that
+    /// holds a node with this node's namespace and name, now and whenever one appears, as
+    /// ROS 2 does on DDS (both would receive the same commands and parameter requests and log
+    /// under one name); until the session closes. rmw_zenoh's graph is its liveliness tokens,
+    /// and a node's names its session. Only logs; what the node does is unchanged.
+    pub fn watch_name_clash(
+        &mut self,
+        fqn: &str,
+        warn: impl Fn(String) + Send + Sync + 'static,
+    ) -> Result<(), SessionError> {
+        let own = self.zid.clone();
+        let (namespace, name) = (self.node.namespace.clone(), self.node.name.clone());
+        let fqn = fqn.to_string();
+        let warned: Mutex<BTreeSet<String>> = Mutex::new(BTreeSet::new());
+        let key = format!("{ADMIN_SPACE}/{}/**", self.node.domain);
+        let sub = self
+            .session
+            .liveliness()
+            .declare_subscriber(key)
+            .history(true)
+            .callback(move |sample: Sample| {
+                if sample.kind() != SampleKind::Put {
+                    return;
+                }
+                let Ok(Token::Node(t)) = parse_token(sample.key_expr().as_str()) else {
+                    return;
+                };
+                if t.zid == own || t.namespace != namespace || t.name != name {
+                    return;
+                }
+                let Ok(mut w) = warned.lock() else { return };
+                if w.len() > MAX_CLASHES_WARNED || w.contains(&t.zid) {
+                    return;
+                }
+                if w.len() == MAX_CLASHES_WARNED {
+                    w.insert(String::new());
+                    warn(format!(
+                        "more than {MAX_CLASHES_WARNED} other nodes named {fqn} on this ROS \
+                         domain: no more are named"
+                    ));
+                    return;
+                }
+                w.insert(t.zid.clone());
+                warn(format!(
+                    "there are {} nodes with the name {fqn} on this ROS domain (another in \
+                     Zenoh session {}): both receive the same commands and parameter requests \
+                     and log under one name; give each a unique name (-r __node:=NAME or -r \
+                     __ns:=/NS)",
+                    w.len() + 1,
+                    t.zid
+                ));
+            })
+            .wait()
+            .map_err(|e| SessionError::Watch(shown(&e.to_string())))?;
+        self.clash = Some(sub);
+        Ok(())
+    }
+
     /// Withdraws the node's token and closes the session: every peer sees the node leave at
     /// once rather than when its lease runs out.
     pub fn close(mut self) {
+        if let Some(clash) = self.clash.take() {
+            let _ = clash.undeclare().wait();
+        }
         if let Some(token) = self.token.take() {
             let _ = token.undeclare().wait();
         }
@@ -179,7 +289,6 @@ mod tests {
     use super::test_peers::{free_port, router};
     use super::*;
     use crate::ros::config::zenoh::{read, RouterCheck, DEFAULT_SESSION_CONFIG};
-    use crate::ros::wire::zenoh_keys::{parse_token, Token};
     use std::collections::HashMap;
 
     fn settings(pairs: &[(&str, &str)]) -> ZenohSettings {
@@ -233,6 +342,39 @@ mod tests {
         assert_eq!(warnings.len(), 2, "{warnings:?}");
         assert!(warnings[0].contains("(mode, \"nonsense\")"), "{warnings:?}");
         assert!(warnings[1].contains("(no/such/key, 1)"), "{warnings:?}");
+    }
+
+    #[test]
+    fn the_largest_message_reassembled_is_the_nodes_bound_unless_set_lower() {
+        let bound = MAX_MESSAGE_BYTES.to_string();
+        let mut warnings = Vec::new();
+        let c = config(DEFAULT_SESSION_CONFIG, &settings(&[]), |w| warnings.push(w)).unwrap();
+        assert_eq!(c.get_json(MAX_MESSAGE_KEY).unwrap(), bound);
+        assert!(warnings.is_empty(), "{warnings:?}");
+        // Zenoh's own default, written out in a file, is lowered without a word.
+        let c = config(
+            "{ transport: { link: { rx: { max_message_size: 1073741824 } } } }",
+            &settings(&[]),
+            |w| warnings.push(w),
+        )
+        .unwrap();
+        assert_eq!(c.get_json(MAX_MESSAGE_KEY).unwrap(), bound);
+        assert!(warnings.is_empty(), "{warnings:?}");
+        // A larger choice is lowered and said; a smaller one kept.
+        let s = settings(&[(
+            CONFIG_OVERRIDE_ENV,
+            "transport/link/rx/max_message_size=10000000",
+        )]);
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| warnings.push(w)).unwrap();
+        assert_eq!(c.get_json(MAX_MESSAGE_KEY).unwrap(), bound);
+        assert_eq!(warnings.len(), 1, "{warnings:?}");
+        assert!(warnings[0].contains("10000000 lowered to"), "{warnings:?}");
+        let s = settings(&[(
+            CONFIG_OVERRIDE_ENV,
+            "transport/link/rx/max_message_size=65536",
+        )]);
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+        assert_eq!(c.get_json(MAX_MESSAGE_KEY).unwrap(), "65536");
     }
 
     #[test]
@@ -292,6 +434,66 @@ mod tests {
                 "the node's token outlived it"
             );
             std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        router.close().wait().unwrap();
+    }
+
+    #[test]
+    fn another_node_of_this_name_is_warned_about_once_and_other_names_not_at_all() {
+        let port = free_port();
+        let router = router(port);
+        let s = settings(&[(
+            CONFIG_OVERRIDE_ENV,
+            // Each listens on loopback, as rmw_zenoh's peers do: they meet through the router
+            // and then connect to each other.
+            &format!(
+                r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=["tcp/127.0.0.1:0"]"#
+            ),
+        )]);
+        let open = |ns: &str, name: &str| {
+            let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+            NodeSession::open(c, &s, 18, "/", ns, name, |w| panic!("{w}")).unwrap()
+        };
+        // One of this name is there before the watch starts, one comes after; one of another
+        // name and one in another namespace are not clashes.
+        let before = open("/lab", "pwm_actuator");
+        let mut node = open("/lab", "pwm_actuator");
+        let warnings = std::sync::Arc::new(Mutex::new(Vec::<String>::new()));
+        let w = warnings.clone();
+        node.watch_name_clash("/lab/pwm_actuator", move |m| w.lock().unwrap().push(m))
+            .unwrap();
+        let other_name = open("/lab", "heater");
+        let other_ns = open("/", "pwm_actuator");
+        let after = open("/lab", "pwm_actuator");
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        while warnings.lock().unwrap().len() < 2 {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "{:?}",
+                warnings.lock().unwrap()
+            );
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(500));
+        let got = warnings.lock().unwrap().clone();
+        assert_eq!(got.len(), 2, "{got:?}");
+        for zid in [&before.zid, &after.zid] {
+            assert_eq!(
+                got.iter().filter(|w| w.contains(zid.as_str())).count(),
+                1,
+                "{got:?}"
+            );
+        }
+        assert!(
+            got[0].contains("2 nodes with the name /lab/pwm_actuator"),
+            "{got:?}"
+        );
+        assert!(
+            got[1].contains("3 nodes with the name /lab/pwm_actuator"),
+            "{got:?}"
+        );
+        for n in [before, node, other_name, other_ns, after] {
+            n.close();
         }
         router.close().wait().unwrap();
     }

@@ -242,6 +242,7 @@ mod tests {
     use crate::ros::interface::type_hash::type_hashes;
     use crate::ros::wire::zenoh_keys::{parse_token, Token};
     use crate::ros::wire::zenoh_session::test_peers::{free_port, node, router};
+    use crate::ros::wire::zenoh_session::MAX_MESSAGE_BYTES;
     use std::time::{Duration, Instant};
 
     /// Waits up to 5 s for `f` to hold.
@@ -285,10 +286,12 @@ mod tests {
             put(cdr_bytes(&Float64 { data: 12.5 }).unwrap());
             !got.lock().unwrap().is_empty()
         });
-        // Not a Float64 (three bytes), then oversize, then a good one: only that one arrives
-        // (after any 12.5 still on its way).
+        // Not a Float64 (three bytes), then oversize, then larger than the session reassembles
+        // (dropped by Zenoh, the link kept), then a good one: only that one arrives (after any
+        // 12.5 still on its way).
         put(vec![0, 1, 0]);
         put(vec![0; MAX_SAMPLE_BYTES + 1]);
+        put(vec![0; MAX_MESSAGE_BYTES + 1]);
         put(cdr_bytes(&Float64 { data: 40.0 }).unwrap());
         within_5_s(|| got.lock().unwrap().last() == Some(&40.0));
         let got = got.lock().unwrap().clone();
