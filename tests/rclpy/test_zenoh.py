@@ -11,9 +11,11 @@ to it (`ZENOH_CONFIG_OVERRIDE`), and so does the client, as a peer of its own.
 
 from __future__ import annotations
 
+import concurrent.futures
 import os
 import socket
 import struct
+import threading
 import time
 from typing import Any, Callable, Optional
 
@@ -139,6 +141,7 @@ class Call:
         self.session = session
         self.gid = os.urandom(16)
         self.seq = 0
+        self.last: Any = None
 
     def __call__(self, domain: int, service: str, srv_type: str, fields: dict) -> Any:
         self.seq += 1
@@ -160,7 +163,8 @@ class Call:
         seq, ts, gid = read_attachment(sample.attachment)
         assert (seq, gid) == (self.seq, self.gid), f"{service}: reply attachment {seq}, {gid.hex()}"
         assert abs(time.time_ns() - ts) < 5e9
-        return ros2msg.decode(f"{srv_type}_Response", sample.payload.to_bytes())
+        self.last = ros2msg.decode(f"{srv_type}_Response", sample.payload.to_bytes())
+        return self.last
 
 
 def test_the_graph_has_the_node_and_every_endpoint_with_rosidls_hash(
@@ -347,3 +351,107 @@ def test_a_late_joiner_gets_e1s_last_sample(node_process, router, ros_domain_id:
     finally:
         c.close()
 
+
+ACTION = f"{NODE}/pw01/autotune"
+AUTOTUNE = "pwm_actuator_msgs/action/Autotune"
+
+
+def test_the_autotune_action_takes_a_goal_reports_it_and_cancels_it(
+    node_process, router, ros_domain_id: int
+):
+    d = ros_domain_id
+    feedback_topic = "/heater/temperature"
+    start_node(node_process, router, d, channels=1, pw01__enable=True, pw01__period_ms=200,
+               pw01__feedback_topic=feedback_topic, pw01__control="pid", pw01__pid_kp=20.0,
+               pw01__pid_ki=5.0, pw01__temp_min_c=0.0, pw01__temp_max_c=150.0,
+               pw01__feedback_timeout_ms=1000)
+    c = client(router.port)
+    stop = threading.Event()
+    try:
+        # The action's five endpoints, each with rosidl's hash.
+        want = {
+            ("SS", f"{ACTION}/_action/send_goal", f"{AUTOTUNE}_SendGoal"),
+            ("SS", f"{ACTION}/_action/cancel_goal", "action_msgs/srv/CancelGoal"),
+            ("SS", f"{ACTION}/_action/get_result", f"{AUTOTUNE}_GetResult"),
+            ("MP", f"{ACTION}/_action/feedback", f"{AUTOTUNE}_FeedbackMessage"),
+            ("MP", f"{ACTION}/_action/status", "action_msgs/msg/GoalStatusArray"),
+        }
+
+        def seen() -> Optional[dict]:
+            found = {(t.split("/")[5], t.split("/")[9].replace("%", "/")): t.split("/")
+                     for t in tokens(c, d) if len(t.split("/")) >= 13}
+            return found if all((k, n) in found for k, n, _ in want) else None
+
+        found = wait_until("the action's tokens", seen)
+        for kind, name, ros_type in want:
+            chunks = found[(kind, name)]
+            assert chunks[10] == zenoh_type(ros_type), chunks
+            assert chunks[11] == rosidl_hash(ros_type), (name, chunks[11])
+
+        # A heater reading ten times a second, as a sensor node would publish it.
+        temp_key = data_key(d, feedback_topic, "sensor_msgs/msg/Temperature")
+        feed_gid = os.urandom(16)
+
+        def feed() -> None:
+            n = 0
+            while not stop.is_set():
+                n += 1
+                now = time.time_ns()
+                c.put(temp_key, ros2msg.encode("sensor_msgs/msg/Temperature", {
+                    "header": {"stamp": {"sec": now // 10**9, "nanosec": now % 10**9},
+                               "frame_id": ""},
+                    "temperature": 25.0, "variance": 0.0}), attachment=attachment(n, feed_gid))
+                time.sleep(0.1)
+
+        threading.Thread(target=feed, daemon=True).start()
+        statuses: list = []
+        c.declare_subscriber(
+            data_key(d, f"{ACTION}/_action/status", "action_msgs/msg/GoalStatusArray"),
+            lambda s: statuses.append(ros2msg.decode("action_msgs/msg/GoalStatusArray",
+                                                     s.payload.to_bytes())))
+        feedback: list = []
+        c.declare_subscriber(
+            data_key(d, f"{ACTION}/_action/feedback", f"{AUTOTUNE}_FeedbackMessage"),
+            lambda s: feedback.append(ros2msg.decode(f"{AUTOTUNE}_FeedbackMessage",
+                                                     s.payload.to_bytes())))
+        goal_id = list(os.urandom(16))
+        call = Call(c)
+        send = lambda: call(d, f"{ACTION}/_action/send_goal", f"{AUTOTUNE}_SendGoal", {
+            "goal_id": {"uuid": goal_id},
+            "goal": {"target_c": 60.0, "amplitude_pct": 0.0, "noise_band_c": 0.5,
+                     "apply": False}})
+        # Refused until the first reading is in; a refused goal leaves nothing behind.
+        wait_until("the goal accepted", lambda: getattr(_or_none(send), "accepted", False))
+
+        def status_of(uuid: list) -> Optional[int]:
+            """The goal's status in the newest status array."""
+            if not statuses:
+                return None
+            return next((s.status for s in statuses[-1].status_list
+                         if list(s.goal_info.goal_id.uuid) == uuid), None)
+
+        wait_until("the goal executing on the status topic", lambda: status_of(goal_id) == 2)
+        wait_until("the goal's feedback", lambda: any(
+            list(f.goal_id.uuid) == goal_id for f in feedback))
+        # get_result waits for the end: its reply comes after the cancel.
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            result = pool.submit(Call(c), d, f"{ACTION}/_action/get_result",
+                                 f"{AUTOTUNE}_GetResult", {"goal_id": {"uuid": goal_id}})
+            time.sleep(0.5)
+            assert not result.done()
+            r = call(d, f"{ACTION}/_action/cancel_goal", "action_msgs/srv/CancelGoal", {
+                "goal_info": {"goal_id": {"uuid": goal_id}, "stamp": {"sec": 0, "nanosec": 0}}})
+            assert r.return_code == 0, r
+            assert [list(g.goal_id.uuid) for g in r.goals_canceling] == [goal_id], r
+            got = result.result(timeout=WAIT_S + 5)
+        assert got.status == 5, got  # STATUS_CANCELED
+        assert got.result.stop == "canceled", got.result
+        wait_until("the goal canceled on the status topic", lambda: status_of(goal_id) == 5)
+        # A goal the server does not know: answered at once, STATUS_UNKNOWN.
+        t0 = time.monotonic()
+        unknown = call(d, f"{ACTION}/_action/get_result", f"{AUTOTUNE}_GetResult",
+                       {"goal_id": {"uuid": list(os.urandom(16))}})
+        assert unknown.status == 0 and time.monotonic() - t0 < 2.0, unknown
+    finally:
+        stop.set()
+        c.close()

@@ -31,7 +31,7 @@ use ros2_client::action::{
 };
 use ros2_client::action_msgs::{CancelGoalResponseEnum, GoalStatus, GoalStatusArray};
 use ros2_client::builtin_interfaces::Time;
-use ros2_client::{Message, ReadResult, RmwRequestId};
+use ros2_client::{Message, RmwRequestId};
 use std::future::Future;
 use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
@@ -279,7 +279,7 @@ pub struct GoalRequest<G> {
     pub id: GoalId,
     /// What the goal asks.
     pub goal: G,
-    req: RmwRequestId,
+    req: Request,
 }
 
 /// What the owner of an action server is told.
@@ -292,12 +292,41 @@ pub enum Event<G> {
     Cancel(Vec<GoalId>),
 }
 
-/// One request taken from an endpoint.
-enum Incoming<G> {
-    Goal(ReadResult<(RmwRequestId, SendGoalRequest<G>)>),
-    Cancel(ReadResult<(RmwRequestId, CancelGoalRequest)>),
-    Result(ReadResult<(RmwRequestId, GetResultRequest)>),
+/// A request taken from one of the action's services, by which it is answered.
+#[derive(Debug)]
+pub enum Request {
+    /// On DDS: the request's id.
+    Dds(RmwRequestId),
+    /// On Zenoh: the query itself.
+    #[cfg(feature = "zenoh")]
+    Zenoh(crate::ros::wire::zenoh_srv::Responder),
 }
+
+/// An action's five endpoints on the middleware in use.
+pub enum ActionEndpoints<G, R, F>
+where
+    G: Message + Clone,
+    R: Message + Clone,
+    F: Message,
+{
+    /// ros2-client's, on DDS.
+    Dds(Box<Endpoints<G, R, F>>),
+    /// On Zenoh, as rmw_zenoh makes them.
+    #[cfg(feature = "zenoh")]
+    Zenoh(Box<zenoh_action::ZenohActionEndpoints<G, F>>),
+}
+
+/// One request taken from an endpoint (an unreadable one: why, as text).
+enum Incoming<G> {
+    Goal(Result<(Request, SendGoalRequest<G>), String>),
+    Cancel(Result<(Request, CancelGoalRequest), String>),
+    Result(Result<(Request, GetResultRequest), String>),
+}
+
+/// A request of one middleware answered through the other's endpoints: never made, as an
+/// action's requests and endpoints come from one [`ActionEndpoints`].
+#[cfg(feature = "zenoh")]
+const OTHER_MIDDLEWARE: &str = "a request of another middleware";
 
 /// Polls `f` once. The futures of ros2-client's `async_receive_request` keep nothing between
 /// polls: the reader holds the waker, and a request taken is returned by the same poll.
@@ -305,7 +334,38 @@ fn poll_once<T>(f: impl Future<Output = T>, cx: &mut Context<'_>) -> Poll<T> {
     std::pin::pin!(f).poll(cx)
 }
 
-/// An action server: ros2-client's endpoints for the action, and the goals ([`GoalTable`]).
+/// The next request on any of ros2-client's three services, looking at `first` first.
+async fn next_dds<G, R, F>(ep: &mut Endpoints<G, R, F>, first: usize) -> Incoming<G>
+where
+    G: Message + Clone + 'static,
+    R: Message + Clone + 'static,
+    F: Message + 'static,
+{
+    fn ours<T>(r: ros2_client::ReadResult<(RmwRequestId, T)>) -> Result<(Request, T), String> {
+        r.map(|(id, t)| (Request::Dds(id), t))
+            .map_err(|e| e.to_string())
+    }
+    std::future::poll_fn(|cx| {
+        for k in 0..3 {
+            let got = match (first + k) % 3 {
+                0 => poll_once(ep.goal_server().async_receive_request(), cx)
+                    .map(|r| Incoming::Goal(ours(r))),
+                1 => poll_once(ep.cancel_server().async_receive_request(), cx)
+                    .map(|r| Incoming::Cancel(ours(r))),
+                _ => poll_once(ep.result_server().async_receive_request(), cx)
+                    .map(|r| Incoming::Result(ours(r))),
+            };
+            if got.is_ready() {
+                return got;
+            }
+        }
+        Poll::Pending
+    })
+    .await
+}
+
+/// An action server: the action's endpoints ([`ActionEndpoints`]), and the goals
+/// ([`GoalTable`]).
 pub struct ActionServer<G, R, F>
 where
     G: Message + Clone,
@@ -313,8 +373,8 @@ where
     F: Message,
 {
     name: String,
-    ep: Endpoints<G, R, F>,
-    goals: GoalTable<R, RmwRequestId>,
+    ep: ActionEndpoints<G, R, F>,
+    goals: GoalTable<R, Request>,
     /// Which endpoint is looked at first by the next [`ActionServer::next`], so that a flood
     /// on one cannot starve the others.
     turn: usize,
@@ -327,7 +387,7 @@ where
     F: Message + 'static,
 {
     /// The server of `ep`, named `name` in the log (`pw01: autotune`).
-    pub fn new(name: String, ep: Endpoints<G, R, F>) -> Self {
+    pub fn new(name: String, ep: ActionEndpoints<G, R, F>) -> Self {
         ActionServer {
             name,
             ep,
@@ -337,7 +397,7 @@ where
     }
 
     /// The goals kept.
-    pub fn goals(&self) -> &GoalTable<R, RmwRequestId> {
+    pub fn goals(&self) -> &GoalTable<R, Request> {
         &self.goals
     }
 
@@ -349,25 +409,11 @@ where
     pub async fn next(&mut self) -> Option<Event<G>> {
         let first = self.turn;
         self.turn = (self.turn + 1) % 3;
-        let ep = &mut self.ep;
-        let incoming = std::future::poll_fn(|cx| {
-            for k in 0..3 {
-                let got = match (first + k) % 3 {
-                    0 => {
-                        poll_once(ep.goal_server().async_receive_request(), cx).map(Incoming::Goal)
-                    }
-                    1 => poll_once(ep.cancel_server().async_receive_request(), cx)
-                        .map(Incoming::Cancel),
-                    _ => poll_once(ep.result_server().async_receive_request(), cx)
-                        .map(Incoming::Result),
-                };
-                if got.is_ready() {
-                    return got;
-                }
-            }
-            Poll::Pending
-        })
-        .await;
+        let incoming = match &mut self.ep {
+            ActionEndpoints::Dds(ep) => next_dds(ep, first).await,
+            #[cfg(feature = "zenoh")]
+            ActionEndpoints::Zenoh(ep) => ep.next(first).await,
+        };
         self.handle(incoming)
     }
 
@@ -401,9 +447,7 @@ where
                 if !ids.is_empty() {
                     self.publish_statuses();
                 }
-                if let Err(e) = self.ep.send_cancel_response(req, response) {
-                    warn!("{name}: cannot answer a cancel: {e}");
-                }
+                self.answer_cancel(req, response);
                 (!ids.is_empty()).then_some(Event::Cancel(ids))
             }
             Incoming::Result(Ok((req, GetResultRequest { goal_id }))) => {
@@ -439,26 +483,70 @@ where
         }
     }
 
-    fn answer_goal(&self, req: RmwRequestId, accepted: bool, stamp: Time) {
-        if let Err(e) = self
-            .ep
-            .send_goal_response(req, SendGoalResponse { accepted, stamp })
-        {
+    fn answer_goal(&self, req: Request, accepted: bool, stamp: Time) {
+        let resp = SendGoalResponse { accepted, stamp };
+        let sent = match (&self.ep, req) {
+            (ActionEndpoints::Dds(ep), Request::Dds(id)) => {
+                ep.send_goal_response(id, resp).map_err(|e| e.to_string())
+            }
+            #[cfg(feature = "zenoh")]
+            (ActionEndpoints::Zenoh(_), Request::Zenoh(r)) => {
+                r.reply(&resp);
+                Ok(())
+            }
+            #[cfg(feature = "zenoh")]
+            _ => Err(OTHER_MIDDLEWARE.to_string()),
+        };
+        if let Err(e) = sent {
             warn!("{}: cannot answer a goal request: {e}", self.name);
         }
     }
 
-    fn answer_result(&self, req: RmwRequestId, status: GoalStatusEnum, result: R) {
-        if let Err(e) = self
-            .ep
-            .send_result(req, GetResultResponse { status, result })
-        {
+    fn answer_cancel(&self, req: Request, resp: CancelGoalResponse) {
+        let sent = match (&self.ep, req) {
+            (ActionEndpoints::Dds(ep), Request::Dds(id)) => {
+                ep.send_cancel_response(id, resp).map_err(|e| e.to_string())
+            }
+            #[cfg(feature = "zenoh")]
+            (ActionEndpoints::Zenoh(_), Request::Zenoh(r)) => {
+                r.reply(&resp);
+                Ok(())
+            }
+            #[cfg(feature = "zenoh")]
+            _ => Err(OTHER_MIDDLEWARE.to_string()),
+        };
+        if let Err(e) = sent {
+            warn!("{}: cannot answer a cancel: {e}", self.name);
+        }
+    }
+
+    fn answer_result(&self, req: Request, status: GoalStatusEnum, result: R) {
+        let resp = GetResultResponse { status, result };
+        let sent = match (&self.ep, req) {
+            (ActionEndpoints::Dds(ep), Request::Dds(id)) => {
+                ep.send_result(id, resp).map_err(|e| e.to_string())
+            }
+            #[cfg(feature = "zenoh")]
+            (ActionEndpoints::Zenoh(_), Request::Zenoh(r)) => {
+                r.reply(&resp);
+                Ok(())
+            }
+            #[cfg(feature = "zenoh")]
+            _ => Err(OTHER_MIDDLEWARE.to_string()),
+        };
+        if let Err(e) = sent {
             warn!("{}: cannot send a result: {e}", self.name);
         }
     }
 
     fn publish_statuses(&self) {
-        if let Err(e) = self.ep.send_goal_statuses(self.goals.statuses()) {
+        let statuses = self.goals.statuses();
+        let sent = match &self.ep {
+            ActionEndpoints::Dds(ep) => ep.send_goal_statuses(statuses).map_err(|e| e.to_string()),
+            #[cfg(feature = "zenoh")]
+            ActionEndpoints::Zenoh(ep) => ep.status.publish(&statuses).map_err(|e| e.to_string()),
+        };
+        if let Err(e) = sent {
             warn!("{}: cannot publish the goal statuses: {e}", self.name);
         }
     }
@@ -490,7 +578,18 @@ where
 
     /// Publishes feedback of the goal `id`.
     pub fn feedback(&self, id: GoalId, feedback: F) {
-        if let Err(e) = self.ep.send_feedback(id, feedback) {
+        let sent = match &self.ep {
+            ActionEndpoints::Dds(ep) => ep.send_feedback(id, feedback).map_err(|e| e.to_string()),
+            #[cfg(feature = "zenoh")]
+            ActionEndpoints::Zenoh(ep) => ep
+                .feedback
+                .publish(&ros2_client::action::FeedbackMessage {
+                    goal_id: id,
+                    feedback,
+                })
+                .map_err(|e| e.to_string()),
+        };
+        if let Err(e) = sent {
             warn!("{}: cannot publish feedback: {e}", self.name);
         }
     }
@@ -511,6 +610,135 @@ where
             self.publish_statuses();
         }
         self.goals.next_expiry()
+    }
+}
+
+/// The action's endpoints on Zenoh, as rmw_zenoh makes an action: three services and two
+/// topics under `<action>/_action/`, with the types rosidl gives an action.
+#[cfg(feature = "zenoh")]
+pub mod zenoh_action {
+    use super::{Incoming, Request};
+    use crate::ros::wire::zenoh_pub::{PublisherError, ZenohPublisher};
+    use crate::ros::wire::zenoh_session::NodeSession;
+    use crate::ros::wire::zenoh_srv::{ServiceError, ZenohRequests};
+    use ros2_client::action::{
+        ActionServerQosPolicies, CancelGoalRequest, FeedbackMessage, GetResultRequest,
+        SendGoalRequest,
+    };
+    use ros2_client::action_msgs::GoalStatusArray;
+    use ros2_client::Message;
+    use std::collections::BTreeMap;
+    use std::sync::Arc;
+    use tokio::sync::Notify;
+
+    /// Why the action's endpoints cannot be made.
+    #[derive(Debug, thiserror::Error)]
+    pub enum ActionError {
+        /// One of its services.
+        #[error(transparent)]
+        Service(#[from] ServiceError),
+        /// One of its topics.
+        #[error(transparent)]
+        Topic(#[from] PublisherError),
+    }
+
+    /// The three services' requests (one notification for all) and the two publishers.
+    pub struct ZenohActionEndpoints<G, F> {
+        goal: ZenohRequests<SendGoalRequest<G>>,
+        cancel: ZenohRequests<CancelGoalRequest>,
+        result: ZenohRequests<GetResultRequest>,
+        ready: Arc<Notify>,
+        /// `<action>/_action/feedback`.
+        pub feedback: ZenohPublisher<FeedbackMessage<F>>,
+        /// `<action>/_action/status` (transient local: late joiners get the goals kept).
+        pub status: ZenohPublisher<GoalStatusArray>,
+    }
+
+    impl<G: Message, F: Message> ZenohActionEndpoints<G, F> {
+        /// The endpoints of the fully qualified action `action` of type
+        /// `<package>/action/<name>` (`ros_type`) with `qos`.
+        pub fn new(
+            node: &NodeSession,
+            action: &str,
+            ros_type: &str,
+            qos: ActionServerQosPolicies,
+            hashes: &BTreeMap<String, String>,
+        ) -> Result<Self, ActionError> {
+            let ready = Arc::new(Notify::new());
+            let service = |name: &str| format!("{action}/_action/{name}");
+            Ok(ZenohActionEndpoints {
+                goal: ZenohRequests::declare(
+                    node,
+                    &service("send_goal"),
+                    &format!("{ros_type}_SendGoal"),
+                    qos.goal_service,
+                    hashes,
+                    ready.clone(),
+                )?,
+                cancel: ZenohRequests::declare(
+                    node,
+                    &service("cancel_goal"),
+                    "action_msgs/srv/CancelGoal",
+                    qos.cancel_service,
+                    hashes,
+                    ready.clone(),
+                )?,
+                result: ZenohRequests::declare(
+                    node,
+                    &service("get_result"),
+                    &format!("{ros_type}_GetResult"),
+                    qos.result_service,
+                    hashes,
+                    ready.clone(),
+                )?,
+                ready,
+                feedback: ZenohPublisher::of_type(
+                    node,
+                    &service("feedback"),
+                    &format!("{ros_type}_FeedbackMessage"),
+                    qos.feedback_publisher,
+                    hashes,
+                )?,
+                status: ZenohPublisher::of_type(
+                    node,
+                    &service("status"),
+                    "action_msgs/msg/GoalStatusArray",
+                    qos.status_publisher,
+                    hashes,
+                )?,
+            })
+        }
+
+        /// The next readable request of the three services, looking at `first` first
+        /// (0 goal, 1 cancel, 2 result). Cancel-safe: a request taken is returned by the same
+        /// poll.
+        pub(super) async fn next(&self, first: usize) -> Incoming<G> {
+            loop {
+                let notified = self.ready.notified();
+                let mut notified = std::pin::pin!(notified);
+                notified.as_mut().enable();
+                for k in 0..3 {
+                    match (first + k) % 3 {
+                        0 => {
+                            if let Some((r, q)) = self.goal.try_take() {
+                                return Incoming::Goal(Ok((Request::Zenoh(r), q)));
+                            }
+                        }
+                        1 => {
+                            if let Some((r, q)) = self.cancel.try_take() {
+                                return Incoming::Cancel(Ok((Request::Zenoh(r), q)));
+                            }
+                        }
+                        _ => {
+                            if let Some((r, q)) = self.result.try_take() {
+                                return Incoming::Result(Ok((Request::Zenoh(r), q)));
+                            }
+                        }
+                    }
+                }
+                notified.await;
+            }
+        }
     }
 }
 

@@ -7,6 +7,7 @@ use crate::ros::config::args::Remap;
 use crate::ros::config::names::{to_ros_name, NameError, NameKind, NodeIdentity};
 use crate::ros::interface::msg::RosMessage;
 use crate::ros::interface::qos;
+use crate::ros::wire::action::ActionEndpoints;
 use crate::ros::wire::mw::Publisher;
 use futures::StreamExt;
 use log::{debug, warn};
@@ -29,14 +30,6 @@ pub enum EndpointError {
         what: String,
         /// Why.
         why: String,
-    },
-    /// The middleware in use does not carry it.
-    #[error("ROS: {what} is not available on {middleware}")]
-    Unsupported {
-        /// What: `action /pwm_actuator/pw01/autotune`.
-        what: String,
-        /// The middleware.
-        middleware: &'static str,
     },
     /// DDS refused to create it.
     #[error("ROS: cannot create {what}")]
@@ -339,7 +332,7 @@ impl ServiceMaker<'_> {
         name: &str,
         package: &str,
         type_name: &str,
-    ) -> Result<ros2_client::action::ActionServer<G, R, F>, EndpointError>
+    ) -> Result<ActionEndpoints<G, R, F>, EndpointError>
     where
         G: Message + Clone + 'static,
         R: Message + Clone + 'static,
@@ -347,25 +340,27 @@ impl ServiceMaker<'_> {
     {
         let full = self.id.resolve(name, NameKind::Service, self.remaps)?;
         debug!("action {full}");
-        // One arm without the `zenoh` feature.
-        #[allow(clippy::infallible_destructuring_match)]
-        let node = match &mut self.mw {
-            Mw::Dds(node) => node,
+        match &mut self.mw {
+            Mw::Dds(node) => node
+                .create_action_server(
+                    ServiceMapping::Enhanced,
+                    &to_ros_name(&full)?,
+                    &ros2_client::ActionTypeName::new(package, type_name),
+                    crate::ros::interface::qos::action_server(),
+                )
+                .map(|ep| ActionEndpoints::Dds(Box::new(ep)))
+                .map_err(create_err(format!("action {full}"))),
             #[cfg(feature = "zenoh")]
-            Mw::Zenoh(_) => {
-                return Err(EndpointError::Unsupported {
-                    what: format!("the action {full}"),
-                    middleware: "Zenoh",
-                })
-            }
-        };
-        node.create_action_server(
-            ServiceMapping::Enhanced,
-            &to_ros_name(&full)?,
-            &ros2_client::ActionTypeName::new(package, type_name),
-            crate::ros::interface::qos::action_server(),
-        )
-        .map_err(create_err(format!("action {full}")))
+            Mw::Zenoh(z) => crate::ros::wire::action::zenoh_action::ZenohActionEndpoints::new(
+                &z.session,
+                &full,
+                &format!("{package}/action/{type_name}"),
+                crate::ros::interface::qos::action_server(),
+                &z.hashes,
+            )
+            .map(|z| ActionEndpoints::Zenoh(Box::new(z)))
+            .map_err(zenoh_err(format!("action {full}"))),
+        }
     }
 
     /// Creates the service `name` (resolved as a node's service name, e.g. `~/reset_estop`)
