@@ -305,6 +305,84 @@ mod tests {
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_session_configurations_access_control_decides_what_reaches_the_node() {
+        use crate::ros::config::zenoh::{read, DEFAULT_SESSION_CONFIG};
+        use crate::ros::interface::msg::Bool;
+        use crate::ros::wire::zenoh_session::{config, NodeSession};
+        let port = free_port();
+        let router = router(port);
+        // Zenoh's access control, as a site would put it in the session's configuration: puts
+        // on pw01's duty denied as they come in, everything else allowed.
+        let acl = r#"{enabled:true,default_permission:"allow",rules:[{id:"no_duty",messages:["put"],flows:["ingress"],permission:"deny",key_exprs:["*/pwm_actuator/pw01/duty/**"]}],subjects:[{id:"anyone"}],policies:[{rules:["no_duty"],subjects:["anyone"]}]}"#;
+        let s = read(|k| {
+            (k == "ZENOH_CONFIG_OVERRIDE").then(|| {
+                format!(
+                    r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[];access_control={acl}"#
+                )
+            })
+        })
+        .unwrap();
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+        let node =
+            NodeSession::open(c, &s, 9, "/", "/", "pwm_actuator", |w| panic!("{w}")).unwrap();
+        let hashes = type_hashes().unwrap();
+        let duties = Arc::new(Mutex::new(Vec::new()));
+        let duty = ZenohSubscription::<Float64>::listen(
+            &node,
+            "/pwm_actuator/pw01/duty",
+            qos::commands(),
+            &hashes,
+            {
+                let duties = duties.clone();
+                move |m: Float64| duties.lock().unwrap().push(m.data)
+            },
+        )
+        .unwrap();
+        let enables = Arc::new(Mutex::new(Vec::new()));
+        let enable = ZenohSubscription::<Bool>::listen(
+            &node,
+            "/pwm_actuator/pw01/enable",
+            qos::commands(),
+            &hashes,
+            {
+                let enables = enables.clone();
+                move |m: Bool| enables.lock().unwrap().push(m.data)
+            },
+        )
+        .unwrap();
+        let (duty_key, enable_key) = (duty.key.clone(), enable.key.clone());
+        // Both subscriptions reach the router; the duty put each time beside the enable never
+        // arrives.
+        within_5_s(|| {
+            router
+                .put(
+                    duty_key.as_str(),
+                    cdr_bytes(&Float64 { data: 30.0 }).unwrap(),
+                )
+                .wait()
+                .unwrap();
+            router
+                .put(
+                    enable_key.as_str(),
+                    cdr_bytes(&Bool { data: true }).unwrap(),
+                )
+                .wait()
+                .unwrap();
+            enables.lock().unwrap().len() >= 3
+        });
+        std::thread::sleep(Duration::from_millis(300));
+        assert!(
+            duties.lock().unwrap().is_empty(),
+            "{:?}",
+            duties.lock().unwrap()
+        );
+        assert_eq!(duty.dropped.too_large.load(Ordering::Relaxed), 0);
+        drop((duty, enable));
+        node.close();
+        router.close().wait().unwrap();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_callback_that_falls_behind_loses_the_oldest_samples_beyond_the_depth() {
         let port = free_port();
         let router = router(port);
