@@ -14,8 +14,8 @@
 # build the tests with clippy's lints: see its step 2c).
 #
 # Usage: scripts/cargo-test.sh [CARGO_TEST_ARGS...]   e.g. --all-targets, --lib NAME, -- --ignored
-#   (run from anywhere; CARGO_TARGET_DIR is honoured; PWM_FEATURES, e.g. `zenoh`, adds
-#   `--features PWM_FEATURES`, as scripts/test.sh builds the release binary with it).
+#   (run from anywhere; CARGO_TARGET_DIR is honoured; PWM_FEATURES, e.g. `dds-security`, adds
+#   `--features PWM_FEATURES`).
 
 set -euo pipefail
 

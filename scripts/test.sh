@@ -257,15 +257,11 @@ fi
 
 # 3. The release binary the rclpy suite runs.
 release_ok=1
-# The node is built and tested with the `zenoh` feature: one binary that runs on DDS or, with
-# RMW_IMPLEMENTATION=rmw_zenoh_cpp, on Zenoh (tests/rclpy/test_zenoh.py); the Rust tests and
-# clippy build with the same features (scripts/cargo-test.sh reads PWM_FEATURES), so that they
-# reuse this build's dependencies.
-export PWM_FEATURES=zenoh
-run_step "cargo build --release" cargo build --release --bins --locked --features "$PWM_FEATURES" ||
-    release_ok=0
+# The default features: one binary that runs on DDS or, with RMW_IMPLEMENTATION=rmw_zenoh_cpp,
+# on Zenoh (the `zenoh` feature; tests/rclpy/test_zenoh.py).
+run_step "cargo build --release" cargo build --release --bins --locked || release_ok=0
 # Every test below runs this build's binary from a copy: the docs' commands (3b), run beside
-# the tests, build target/release/ as the docs say, without the feature.
+# the tests, build target/release/ again as the docs say.
 if ((release_ok)); then
     mkdir -p "$REPO/target/test-bin"
     cp "$REPO/target/release/pwm_actuator_node" "$REPO/target/test-bin/pwm_actuator_node"

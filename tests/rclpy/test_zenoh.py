@@ -1,4 +1,4 @@
-"""The node on Zenoh (`RMW_IMPLEMENTATION=rmw_zenoh_cpp`, a build with the `zenoh` feature),
+"""The node on Zenoh (`RMW_IMPLEMENTATION=rmw_zenoh_cpp`; the `zenoh` feature, a default one),
 checked by a client that is neither rclpy nor ros2-client nor RustDDS: the `eclipse-zenoh`
 Python package, speaking rmw_zenoh's wire format from its design document
 (rmw_zenoh/docs/design.md: key expressions, liveliness tokens, the 33-byte attachment, GIDs as

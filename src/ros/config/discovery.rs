@@ -118,7 +118,7 @@ pub enum DiscoveryError {
     #[error(
         "{RMW_ENV}={value}: this build of the node speaks DDS only (RTPS through RustDDS; it was \
          built without the `zenoh` cargo feature) and cannot join a Zenoh network, where no \
-         peer could command it or see its diagnostics. Run a build with `--features zenoh`, or \
+         peer could command it or see its diagnostics. Run a build with the default features, or \
          run it without {RMW_ENV} (or with a DDS one: {dds}) and the nodes that talk to it on \
          a DDS-based middleware (docs/deployment.md)",
         dds = DDS_RMWS.join(", ")
