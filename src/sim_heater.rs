@@ -2,7 +2,8 @@
 //! so the whole loop can be tried without hardware (part of the binary only).
 //!
 //! It listens to a channel's `~/<ch>/edges` (the node's real edges, as they reached the line)
-//! and runs the core's first-order-plus-dead-time [`Plant`] on them in real time, its sensor
+//! and runs the core's first-order-plus-dead-time [`Plant`] on them in real time, each edge
+//! from the instant its stamp says the line was written (not its arrival), its sensor
 //! lagging the block by `--sensor-tau`, publishing the sensor as `sensor_msgs/Temperature` at
 //! a fixed rate. Faults are injected from the command line (`--fault`, `--fault-after`) or at
 //! run time on `/sim_heater/fault` (`std_msgs/String`: `none`, `heater_disconnected`,
@@ -206,6 +207,20 @@ fn fan(p: &mut Plant, record: &mut Record, now: u64, share: f64) {
     record.line(secs_since(record.1, now), "fan", share, t);
 }
 
+/// The oldest an edge is taken to be on arrival, ns: a stamp from further back (a clock set
+/// back, another host's skewed clock) counts as this old.
+const MAX_EDGE_AGE_NS: i64 = 2_000_000_000;
+
+/// When an edge reached the line, on this process's monotonic clock (ns): its wall-clock
+/// stamp's age on arrival (`wall_now`, ns since the epoch) taken back from `mono_now`, within
+/// 0..[`MAX_EDGE_AGE_NS`]. The plant then heats for the time the line was on, not for the time
+/// the edge took to arrive: a message delayed on the way (a loaded host, a lost packet sent
+/// again) moves the edge's arrival, never the heater.
+fn edge_at(stamp_ns: i64, wall_now: i64, mono_now: u64) -> u64 {
+    let age = wall_now.saturating_sub(stamp_ns).clamp(0, MAX_EDGE_AGE_NS);
+    mono_now.saturating_sub(age as u64)
+}
+
 fn secs_since(start: u64, t: u64) -> f64 {
     t.saturating_sub(start) as f64 / 1e9
 }
@@ -294,13 +309,14 @@ async fn serve(
             let stream = edges.async_stream();
             futures::pin_mut!(stream);
             while let Some(Ok((e, _))) = stream.next().await {
-                let now = clock::monotonic_ns();
+                let (mono, wall) = (clock::monotonic_ns(), clock::wall_ns());
                 let mut p = plant.lock().unwrap_or_else(|p| p.into_inner());
-                p.line(now, e.level);
+                let at = edge_at(e.stamp.to_nanos(), wall, mono).max(p.line_state().1);
+                p.line(at, e.level);
                 let t = p.temperature();
                 drop(p);
                 record.lock().unwrap_or_else(|p| p.into_inner()).line(
-                    secs(now),
+                    secs(at),
                     "line",
                     f64::from(u8::from(e.level)),
                     t,
@@ -455,6 +471,39 @@ mod tests {
             .try_get_matches_from(["sim-heater"])
             .expect("defaults parse");
         options(&m).expect("defaults are options")
+    }
+
+    #[test]
+    fn an_edge_counts_from_its_stamp_not_its_arrival() {
+        let (wall, mono) = (1_800_000_000_000_000_000, 5_000_000_000);
+        // Written 300 ms before it arrived: 300 ms back on the monotonic clock.
+        assert_eq!(edge_at(wall - 300_000_000, wall, mono), 4_700_000_000);
+        // A stamp from the future (a skewed clock) is now; one from long ago is 2 s old.
+        assert_eq!(edge_at(wall + 1_000_000_000, wall, mono), mono);
+        assert_eq!(edge_at(0, wall, mono), 3_000_000_000);
+        assert_eq!(edge_at(wall - 300_000_000, wall, 100), 0);
+    }
+
+    #[test]
+    fn a_late_edge_heats_the_plant_as_if_it_had_arrived_at_once() {
+        // Dead time 0.5 s: an edge that arrives 300 ms after its stamp is still in time.
+        let p = PlantParams {
+            rate_c_per_s: 5.0,
+            tau_s: 20.0,
+            dead_time_s: 0.5,
+            ambient_c: 20.0,
+            noise_c: 0.0,
+            ..PlantParams::default()
+        };
+        let (mut on_time, mut late) = (Plant::new(p, 0, 1), Plant::new(p, 0, 1));
+        let s = 1_000_000_000;
+        on_time.line(s, true);
+        late.advance(s + 300_000_000);
+        late.line(edge_at(-300_000_000, 0, s + 300_000_000), true);
+        for t in [s, 2 * s, 5 * s] {
+            assert_eq!(on_time.reading(t), late.reading(t), "at {t} ns");
+        }
+        assert!(on_time.temperature() > 30.0, "{}", on_time.temperature());
     }
 
     #[test]
