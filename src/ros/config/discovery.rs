@@ -34,9 +34,10 @@
 //! `RMW_IMPLEMENTATION` names the middleware the rest of a ROS 2 system loads. The node speaks
 //! DDS (RTPS) itself and loads none, so it meets every DDS-based one (`rmw_fastrtps_cpp`,
 //! `rmw_fastrtps_dynamic_cpp`, `rmw_cyclonedds_cpp`, `rmw_connextdds`, `rmw_gurumdds_cpp`) on the
-//! wire. `rmw_zenoh_cpp` (or any `rmw_zenoh*`) it cannot join: asked for it, the node refuses to
-//! start rather than run where no Zenoh peer can command it or see its diagnostics. Any other
-//! value is warned about (echoed escaped) and the node runs on DDS.
+//! wire. `rmw_zenoh_cpp` (or any `rmw_zenoh*`) puts the node on Zenoh (`zenoh` in
+//! [`Discovery`]); a build without the `zenoh` feature refuses to start instead, rather than run
+//! where no Zenoh peer can command it or see its diagnostics. Any other value is warned about
+//! (echoed escaped) and the node runs on DDS.
 //!
 //! This module reads variables, resolves peer names (the system's resolver may ask a DNS
 //! server), builds the participant and sets socket options; it must not send or receive
