@@ -499,6 +499,57 @@ mod tests {
     }
 
     #[test]
+    fn a_router_that_asks_for_a_user_and_password_takes_the_node_only_with_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let users = dir.path().join("users.txt");
+        std::fs::write(&users, "ops:s3cret\n").unwrap();
+        let port = free_port();
+        let mut c = Config::default();
+        c.insert_json5("mode", r#""router""#).unwrap();
+        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
+            .unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        c.insert_json5(
+            "transport/auth/usrpwd/dictionary_file",
+            &format!("{:?}", users.to_str().unwrap()),
+        )
+        .unwrap();
+        let router = zenoh::open(c).wait().unwrap();
+        let open = |password: &str| {
+            let s = settings(&[(
+                CONFIG_OVERRIDE_ENV,
+                &format!(
+                    r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[];transport/auth/usrpwd/user="ops";transport/auth/usrpwd/password="{password}""#
+                ),
+            )]);
+            let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+            let mut warnings = Vec::new();
+            let node = NodeSession::open(c, &s, 19, "/", "/", "pwm_actuator", |w| warnings.push(w));
+            (node, warnings)
+        };
+        let (good, warnings) = open("s3cret");
+        let good = good.unwrap();
+        assert_eq!(good.router, RouterCheckOutcome::Seen(1), "{warnings:?}");
+        // A wrong password: the router refuses the link (the session opens, routerless).
+        let (bad, warnings) = open("guess");
+        if let Ok(bad) = bad {
+            assert_eq!(bad.router, RouterCheckOutcome::NotSeen(1), "{warnings:?}");
+            assert!(
+                !router
+                    .info()
+                    .peers_zid()
+                    .wait()
+                    .any(|z| z.to_string() == bad.zid),
+                "the router took a node with the wrong password"
+            );
+            bad.close();
+        }
+        good.close();
+        router.close().wait().unwrap();
+    }
+
+    #[test]
     fn without_a_router_the_node_warns_at_each_attempt_and_opens() {
         let port = free_port();
         let s = settings(&[
