@@ -19,7 +19,8 @@ use crate::ros::config::zenoh::{
 };
 use crate::ros::interface::qos::MAX_SAMPLE_BYTES;
 use crate::ros::wire::zenoh_keys::{
-    parse_token, EndpointType, EntityKind, EntityToken, KeyError, NodeToken, Token, ADMIN_SPACE,
+    mangle, parse_token, EndpointType, EntityKind, EntityToken, KeyError, NodeToken, Token,
+    ADMIN_SPACE,
 };
 use ros2_client::QosProfile;
 use std::collections::BTreeSet;
@@ -227,7 +228,14 @@ impl NodeSession {
         let (namespace, name) = (self.node.namespace.clone(), self.node.name.clone());
         let fqn = fqn.to_string();
         let warned: Mutex<BTreeSet<String>> = Mutex::new(BTreeSet::new());
-        let key = format!("{ADMIN_SPACE}/{}/**", self.node.domain);
+        // Only node tokens of this namespace and name: what the session is sent and keeps
+        // does not grow with the rest of the domain's graph.
+        let key = format!(
+            "{ADMIN_SPACE}/{}/*/*/*/NN/*/{}/{}",
+            self.node.domain,
+            mangle(&namespace),
+            mangle(&name)
+        );
         let sub = self
             .session
             .liveliness()
