@@ -228,14 +228,19 @@ fn run_inner(args: &[String], logger_ready: &mut bool) -> Result<i32, NodeError>
         .enable_all()
         .build()
         .map_err(NodeError::Runtime)?;
-    rt.block_on(serve(
+    let result = rt.block_on(serve(
         id,
         parsed.ros,
         su.store,
         cfg,
         (splits, runs, limits, state_dir, records),
         (domain, disc, secure),
-    ))
+    ));
+    // Dropping the runtime would wait for every blocking task, such as a Zenoh router check
+    // a stop signal cut short, which may look for a router until one is there; the lines are
+    // off by now.
+    rt.shutdown_timeout(std::time::Duration::from_secs(1));
+    result
 }
 
 /// What each valve starts with: its wired end switches, its feedback topic; and the record of
@@ -564,7 +569,19 @@ async fn serve(
     }
     let mut tasks: Vec<JoinHandle<()>> = Vec::new();
     let mut side = if disc.zenoh {
-        RosSide::zenoh(&id, &ros, domain, secure.as_deref()).await?
+        for w in &disc.warnings {
+            warn!("{w}");
+        }
+        // The router check may look for a router until one is there
+        // (`ZENOH_ROUTER_CHECK_ATTEMPTS=0`): a stop signal meanwhile ends the node at once,
+        // its lines never driven (the output, dropped, leaves them off).
+        tokio::select! {
+            side = RosSide::zenoh(&id, &ros, domain, secure.as_deref()) => side?,
+            got = signals.any() => {
+                info!("{got} while joining Zenoh: stopping; the lines were never driven");
+                return Ok(0);
+            }
+        }
     } else {
         RosSide::dds(&id, &ros, domain, &disc, secure.as_deref(), &mut tasks)?
     };
@@ -1016,22 +1033,27 @@ impl StopSignals {
         )
     }
 
+    /// Waits for a stop signal; says which. Never ends with no signal caught.
+    async fn any(&mut self) -> String {
+        let signals = &mut self.0;
+        if signals.is_empty() {
+            // select_all needs at least one future.
+            return std::future::pending().await;
+        }
+        let recv = signals
+            .iter_mut()
+            .map(|(name, s)| Box::pin(async move { s.recv().await.map(|_| *name) }));
+        futures::future::select_all(recv)
+            .await
+            .0
+            .unwrap_or("signal stream closed")
+            .to_string()
+    }
+
     /// Waits for a stop signal or the reporter asking to stop; says which.
     async fn wait(&mut self, stop: &StopSignal) -> String {
-        let signals = &mut self.0;
-        let any_signal = async move {
-            if signals.is_empty() {
-                // select_all needs at least one future; with no signal caught, only the
-                // reporter can stop the node.
-                return std::future::pending().await;
-            }
-            let recv = signals
-                .iter_mut()
-                .map(|(name, s)| Box::pin(async move { s.recv().await.map(|_| *name) }));
-            futures::future::select_all(recv).await.0
-        };
         tokio::select! {
-            got = any_signal => got.unwrap_or("signal stream closed").to_string(),
+            got = self.any() => got,
             _ = stop.stop.notified() => {
                 if stop.fault.load(Ordering::SeqCst) {
                     "output fault".to_string()

@@ -393,3 +393,72 @@ fn a_node_alone_on_its_domain_says_nothing_about_names() {
         node.log()
     );
 }
+
+#[cfg(feature = "zenoh")]
+#[test]
+fn a_stop_signal_while_the_node_looks_for_a_zenoh_router_ends_it_at_once() {
+    use std::io::{BufRead, BufReader};
+    // ZENOH_ROUTER_CHECK_ATTEMPTS=0: the node looks for a router until one is there, and
+    // none ever is.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let dom = Domain::acquire();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_pwm_actuator_node"));
+    for v in TRUST_VARS {
+        cmd.env_remove(v);
+    }
+    let mut child = cmd
+        .env("RMW_IMPLEMENTATION", "rmw_zenoh_cpp")
+        .env("ZENOH_ROUTER_CHECK_ATTEMPTS", "0")
+        .env(
+            "ZENOH_CONFIG_OVERRIDE",
+            format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#),
+        )
+        .env("ROS_DOMAIN_ID", dom.id.to_string())
+        .env_remove("ZENOH_SESSION_CONFIG_URI")
+        .env_remove("ROS_DISTRO")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the node binary runs");
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let mut log = String::new();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !log.contains("Unable to connect to a Zenoh router (attempt 2)") {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(l) => log += &(l + "\n"),
+            Err(_) => panic!("no second router check within 30 s:\n{log}"),
+        }
+    }
+    let pid = nix::unistd::Pid::from_raw(child.id() as i32);
+    nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM).unwrap();
+    let sent = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if sent.elapsed() > Duration::from_secs(10) {
+            let _ = child.kill();
+            panic!("still running 10 s after SIGTERM:\n{log}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    while let Ok(l) = rx.recv_timeout(Duration::from_millis(500)) {
+        log += &(l + "\n");
+    }
+    assert_eq!(status.code(), Some(0), "{log}");
+    assert!(
+        log.contains("SIGTERM while joining Zenoh: stopping; the lines were never driven"),
+        "{log}"
+    );
+}

@@ -172,6 +172,17 @@ pub fn read_resolving(
         if rmw.starts_with("rmw_zenoh") {
             if cfg!(feature = "zenoh") {
                 // Zenoh's own settings are read where its session opens (config::zenoh).
+                // The DDS discovery variables do not apply there: said, so that a site that
+                // counts on one of them to keep the node on this host knows it does not.
+                for v in [RANGE_ENV, PEERS_ENV, LOCALHOST_ONLY_ENV] {
+                    if var(v).is_some_and(|x| !x.is_empty()) {
+                        warnings.push(format!(
+                            "{v} is ignored on Zenoh: what the node reaches is the session \
+                             configuration's (connect/endpoints, listen/endpoints; \
+                             ZENOH_CONFIG_OVERRIDE)"
+                        ));
+                    }
+                }
                 return Ok(Discovery {
                     range: Range::Subnet,
                     peers: Vec::new(),
@@ -547,7 +558,25 @@ mod tests {
         }
         for rmw in ["rmw_zenoh_cpp", "rmw_zenoh"] {
             if cfg!(feature = "zenoh") {
-                assert!(read_with(&[(RMW_ENV, rmw)]).unwrap().zenoh, "{rmw}");
+                let d = read_with(&[(RMW_ENV, rmw)]).unwrap();
+                assert!(d.zenoh && d.warnings.is_empty(), "{rmw}: {d:?}");
+                // The DDS discovery variables are said to be ignored, each by name.
+                let d = read_with(&[
+                    (RMW_ENV, rmw),
+                    (RANGE_ENV, "LOCALHOST"),
+                    (PEERS_ENV, "10.0.0.2"),
+                    (LOCALHOST_ONLY_ENV, "1"),
+                ])
+                .unwrap();
+                assert!(d.zenoh, "{rmw}");
+                assert_eq!(d.warnings.len(), 3, "{:?}", d.warnings);
+                for (w, v) in d
+                    .warnings
+                    .iter()
+                    .zip([RANGE_ENV, PEERS_ENV, LOCALHOST_ONLY_ENV])
+                {
+                    assert!(w.starts_with(&format!("{v} is ignored on Zenoh")), "{w}");
+                }
                 continue;
             }
             let e = read_with(&[(RMW_ENV, rmw)]).unwrap_err();
