@@ -22,11 +22,26 @@ use std::time::Duration;
 
 /// The largest sample the node accepts on any input (its topics and its parameter services),
 /// in bytes of serialized payload. Anything larger is dropped by the DDS layer before it is
-/// reassembled from fragments, cached or decoded, and counted (`samples_too_large` on
-/// `/diagnostics`). The largest legitimate input is a `set_parameters` request naming every
+/// reassembled from fragments, cached or decoded (on Zenoh: before it is copied or decoded),
+/// and counted (`samples_too_large` on `/diagnostics`). The largest legitimate input is a `set_parameters` request naming every
 /// parameter of 99 channels: 1 691 parameters, 141 600 bytes; a `ChannelParams` naming every
 /// field is under 400 bytes.
 pub const MAX_SAMPLE_BYTES: usize = 256 * 1024;
+
+/// Samples and requests larger than [`MAX_SAMPLE_BYTES`] that the node's Zenoh endpoints
+/// dropped since start (RustDDS counts the DDS side's).
+static ZENOH_TOO_LARGE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Counts one sample or request a Zenoh endpoint dropped for its size.
+pub fn note_zenoh_too_large() {
+    ZENOH_TOO_LARGE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// Samples and requests the node's Zenoh endpoints dropped for their size since start; 0 on
+/// DDS. Added to RustDDS's count in `samples_too_large` on `/diagnostics`.
+pub fn zenoh_too_large() -> u64 {
+    ZENOH_TOO_LARGE.load(std::sync::atomic::Ordering::Relaxed)
+}
 
 /// `/rosout` on Zenoh, as ros2-client makes it on DDS (the table above): reliable, transient
 /// local, keep last 1.

@@ -588,7 +588,7 @@ impl Reporter {
         self.take_notes(now);
         self.counters = NodeCounters {
             reports_dropped: dropped_total,
-            samples_too_large: rustdds::received_samples_too_large(),
+            samples_too_large: rustdds::received_samples_too_large() + qos::zenoh_too_large(),
         };
         if now >= self.next_run {
             self.run_diagnostics(now);

@@ -35,7 +35,7 @@ use zenoh::Wait;
 
 use crate::ros::config::logging::shown;
 use crate::ros::interface::cdr::{cdr_bytes, from_cdr_bytes};
-use crate::ros::interface::qos::MAX_SAMPLE_BYTES;
+use crate::ros::interface::qos::{self, MAX_SAMPLE_BYTES};
 use crate::ros::wire::zenoh_keys::{data_key, Attachment, EndpointType, EntityKind, KeyError};
 use crate::ros::wire::zenoh_session::NodeSession;
 
@@ -206,10 +206,11 @@ impl<Req: DeserializeOwned> ZenohRequests<Req> {
             .callback({
                 let (queue, refused) = (queue.clone(), refused.clone());
                 move |query: Query| {
-                    let size = query.payload().map_or(0, |p| p.len())
-                        + query.attachment().map_or(0, |a| a.len());
+                    // The payload, as on DDS (see zenoh_sub).
+                    let size = query.payload().map_or(0, |p| p.len());
                     if size > MAX_SAMPLE_BYTES {
                         refused.too_large.fetch_add(1, Ordering::Relaxed);
+                        qos::note_zenoh_too_large();
                         refuse(
                             &query,
                             &format!("request of {size} bytes, more than {MAX_SAMPLE_BYTES}"),
@@ -397,7 +398,6 @@ where
 mod tests {
     use super::*;
     use crate::ros::interface::msg::{EmptyRequest, TriggerResponse};
-    use crate::ros::interface::qos;
     use crate::ros::interface::type_hash::type_hashes;
     use crate::ros::wire::zenoh_keys::{parse_token, Gid, Token};
     use crate::ros::wire::zenoh_session::test_peers::{free_port, node, router};

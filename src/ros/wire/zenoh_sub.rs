@@ -29,7 +29,7 @@ use zenoh::Wait;
 use crate::ros::config::logging::shown;
 use crate::ros::interface::cdr::from_cdr_bytes;
 use crate::ros::interface::msg::RosMessage;
-use crate::ros::interface::qos::MAX_SAMPLE_BYTES;
+use crate::ros::interface::qos::{self, MAX_SAMPLE_BYTES};
 use crate::ros::wire::zenoh_keys::{data_key, EndpointType, EntityKind, KeyError};
 use crate::ros::wire::zenoh_session::NodeSession;
 
@@ -170,9 +170,11 @@ impl<M: RosMessage + DeserializeOwned + Send + 'static> ZenohSubscription<M> {
             .callback({
                 let (queue, dropped) = (queue.clone(), dropped.clone());
                 move |sample| {
-                    let size = sample.payload().len() + sample.attachment().map_or(0, |a| a.len());
-                    if size > MAX_SAMPLE_BYTES {
+                    // The payload, as on DDS: the attachment (33 bytes from rmw_zenoh) is
+                    // bounded with the whole message by the session's reassembly bound.
+                    if sample.payload().len() > MAX_SAMPLE_BYTES {
                         dropped.too_large.fetch_add(1, Ordering::Relaxed);
+                        qos::note_zenoh_too_large();
                         return;
                     }
                     let bytes = sample.payload().to_bytes().into_owned();
@@ -238,7 +240,6 @@ mod tests {
     use super::*;
     use crate::ros::interface::cdr::cdr_bytes;
     use crate::ros::interface::msg::Float64;
-    use crate::ros::interface::qos;
     use crate::ros::interface::type_hash::type_hashes;
     use crate::ros::wire::zenoh_keys::{parse_token, Token};
     use crate::ros::wire::zenoh_session::test_peers::{free_port, node, router};
@@ -289,15 +290,27 @@ mod tests {
         // Not a Float64 (three bytes), then oversize, then larger than the session reassembles
         // (dropped by Zenoh, the link kept), then a good one: only that one arrives (after any
         // 12.5 still on its way).
+        let too_large_before = qos::zenoh_too_large();
         put(vec![0, 1, 0]);
+        // At the bound with rmw_zenoh's 33-byte attachment: not too large (the payload is
+        // bounded, as on DDS), only not a Float64.
+        let mut at_bound = vec![0u8; MAX_SAMPLE_BYTES];
+        at_bound[..2].copy_from_slice(&[0xff, 0xff]); // no CDR representation
+        router
+            .put(key.as_str(), at_bound)
+            .attachment(vec![0u8; 33])
+            .wait()
+            .unwrap();
         put(vec![0; MAX_SAMPLE_BYTES + 1]);
         put(vec![0; MAX_MESSAGE_BYTES + 1]);
         put(cdr_bytes(&Float64 { data: 40.0 }).unwrap());
         within_5_s(|| got.lock().unwrap().last() == Some(&40.0));
         let got = got.lock().unwrap().clone();
         assert!(got[..got.len() - 1].iter().all(|&x| x == 12.5), "{got:?}");
-        assert_eq!(sub.dropped.undecodable.load(Ordering::Relaxed), 1);
+        assert_eq!(sub.dropped.undecodable.load(Ordering::Relaxed), 2);
         assert_eq!(sub.dropped.too_large.load(Ordering::Relaxed), 1);
+        // Counted for /diagnostics too (other tests may add theirs meanwhile).
+        assert!(qos::zenoh_too_large() > too_large_before);
         assert_eq!(sub.dropped.overflowed.load(Ordering::Relaxed), 0);
         drop(sub);
         node.close();
