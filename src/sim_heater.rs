@@ -215,7 +215,8 @@ const MAX_EDGE_AGE_NS: i64 = 2_000_000_000;
 /// stamp's age on arrival (`wall_now`, ns since the epoch) taken back from `mono_now`, within
 /// 0..[`MAX_EDGE_AGE_NS`]. The plant then heats for the time the line was on, not for the time
 /// the edge took to arrive: a message delayed on the way (a loaded host, a lost packet sent
-/// again) moves the edge's arrival, never the heater.
+/// again) by less than the plant's dead time moves the edge's arrival, not the heater; a longer
+/// delay moves the heater by what exceeds the dead time (the plant is not run backwards).
 fn edge_at(stamp_ns: i64, wall_now: i64, mono_now: u64) -> u64 {
     let age = wall_now.saturating_sub(stamp_ns).clamp(0, MAX_EDGE_AGE_NS);
     mono_now.saturating_sub(age as u64)
