@@ -331,22 +331,30 @@ def test_the_lifecycle_walks_through_change_state_and_get_state(
 
 def test_a_late_joiner_gets_e1s_last_sample(node_process, router, ros_domain_id: int):
     d = ros_domain_id
+    # No minimum time: e1 (the duty could not be reproduced) is false, published once at the
+    # start and never changed, before anyone listens; what the late joiner gets can only be
+    # that sample from the publisher's cache.
     start_node(node_process, router, d, channels=1, pw01__period_ms=200, pw01__enable=True,
                pw01__duty=50.0)
-    time.sleep(2.0)  # e1 published before anyone listens
+    time.sleep(2.0)
     c = client(router.port)
     try:
         got: list = []
         key = data_key(d, "/pwm_actuator/pw01/e1", "std_msgs/msg/Bool")
+        declared_ns = time.time_ns()
         sub = zenoh.ext.declare_advanced_subscriber(
             c, key,
             history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
             handler=lambda s: got.append((s.payload.to_bytes(), s.attachment)),
         )
         wait_until("e1's cached sample", lambda: got)
+        time.sleep(1.0)  # nothing live follows
+        assert len(got) == 1, got
         payload, att = got[0]
-        assert ros2msg.decode("std_msgs/msg/Bool", payload).data in (True, False)
-        read_attachment(att)
+        assert ros2msg.decode("std_msgs/msg/Bool", payload).data is False
+        seq, stamp_ns, _ = read_attachment(att)
+        assert seq >= 1, seq
+        assert stamp_ns < declared_ns - 1_000_000_000, (stamp_ns, declared_ns)
         sub.undeclare()
     finally:
         c.close()
