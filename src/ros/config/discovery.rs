@@ -167,10 +167,20 @@ pub fn read_resolving(
     var: impl Fn(&str) -> Option<String>,
     resolve: impl Fn(&str) -> std::io::Result<Vec<IpAddr>>,
 ) -> Result<Discovery, DiscoveryError> {
+    read_in_build(var, resolve, cfg!(feature = "zenoh"))
+}
+
+/// [`read_resolving`] in a build with (`zenoh_built`) or without the `zenoh` feature: a
+/// parameter, so that the tests of either build check both.
+fn read_in_build(
+    var: impl Fn(&str) -> Option<String>,
+    resolve: impl Fn(&str) -> std::io::Result<Vec<IpAddr>>,
+    zenoh_built: bool,
+) -> Result<Discovery, DiscoveryError> {
     let mut warnings = Vec::new();
     if let Some(rmw) = var(RMW_ENV).filter(|v| !v.is_empty()) {
         if rmw.starts_with("rmw_zenoh") {
-            if cfg!(feature = "zenoh") {
+            if zenoh_built {
                 // Zenoh's own settings are read where its session opens (config::zenoh).
                 // The DDS discovery variables do not apply there: said, so that a site that
                 // counts on one of them to keep the node on this host knows it does not.
@@ -556,30 +566,47 @@ mod tests {
             let d = read_with(&[(RMW_ENV, rmw)]).unwrap();
             assert!(d.warnings.is_empty(), "{rmw}: {:?}", d.warnings);
         }
+        // Both builds, whichever this one is: with the `zenoh` feature Zenoh is taken,
+        // without it refused.
+        let in_build = |vars: &[(&str, &str)], zenoh_built: bool| {
+            read_in_build(
+                |k| {
+                    vars.iter()
+                        .find(|(n, _)| *n == k)
+                        .map(|(_, v)| v.to_string())
+                },
+                |_| Ok(Vec::new()),
+                zenoh_built,
+            )
+        };
+        assert_eq!(
+            read_with(&[(RMW_ENV, "rmw_zenoh_cpp")]).is_ok(),
+            cfg!(feature = "zenoh")
+        );
         for rmw in ["rmw_zenoh_cpp", "rmw_zenoh"] {
-            if cfg!(feature = "zenoh") {
-                let d = read_with(&[(RMW_ENV, rmw)]).unwrap();
-                assert!(d.zenoh && d.warnings.is_empty(), "{rmw}: {d:?}");
-                // The DDS discovery variables are said to be ignored, each by name.
-                let d = read_with(&[
+            let d = in_build(&[(RMW_ENV, rmw)], true).unwrap();
+            assert!(d.zenoh && d.warnings.is_empty(), "{rmw}: {d:?}");
+            // The DDS discovery variables are said to be ignored, each by name.
+            let d = in_build(
+                &[
                     (RMW_ENV, rmw),
                     (RANGE_ENV, "LOCALHOST"),
                     (PEERS_ENV, "10.0.0.2"),
                     (LOCALHOST_ONLY_ENV, "1"),
-                ])
-                .unwrap();
-                assert!(d.zenoh, "{rmw}");
-                assert_eq!(d.warnings.len(), 3, "{:?}", d.warnings);
-                for (w, v) in d
-                    .warnings
-                    .iter()
-                    .zip([RANGE_ENV, PEERS_ENV, LOCALHOST_ONLY_ENV])
-                {
-                    assert!(w.starts_with(&format!("{v} is ignored on Zenoh")), "{w}");
-                }
-                continue;
+                ],
+                true,
+            )
+            .unwrap();
+            assert!(d.zenoh, "{rmw}");
+            assert_eq!(d.warnings.len(), 3, "{:?}", d.warnings);
+            for (w, v) in d
+                .warnings
+                .iter()
+                .zip([RANGE_ENV, PEERS_ENV, LOCALHOST_ONLY_ENV])
+            {
+                assert!(w.starts_with(&format!("{v} is ignored on Zenoh")), "{w}");
             }
-            let e = read_with(&[(RMW_ENV, rmw)]).unwrap_err();
+            let e = in_build(&[(RMW_ENV, rmw)], false).unwrap_err();
             assert!(
                 matches!(&e, DiscoveryError::Middleware { value } if value == rmw),
                 "{e:?}"
