@@ -182,10 +182,19 @@ fn read_in_build(
         if rmw.starts_with("rmw_zenoh") {
             if zenoh_built {
                 // Zenoh's own settings are read where its session opens (config::zenoh).
-                // The DDS discovery variables do not apply there: said, so that a site that
-                // counts on one of them to keep the node on this host knows it does not.
+                // The DDS discovery variables do not apply there: a value that would narrow
+                // or widen discovery on DDS is said to be ignored, so that a site that counts
+                // on one to keep the node on this host knows it does not. The defaults
+                // (`SUBNET`, `ROS_LOCALHOST_ONLY=0`, no peers) pass without a word.
                 for v in [RANGE_ENV, PEERS_ENV, LOCALHOST_ONLY_ENV] {
-                    if var(v).is_some_and(|x| !x.is_empty()) {
+                    let value = var(v).unwrap_or_default();
+                    let value = value.trim();
+                    let matters = match v {
+                        RANGE_ENV => !matches!(value, "" | "SUBNET" | "SYSTEM_DEFAULT"),
+                        LOCALHOST_ONLY_ENV => !matches!(value, "" | "0"),
+                        _ => value.split(';').any(|p| !p.trim().is_empty()),
+                    };
+                    if matters {
                         warnings.push(format!(
                             "{v} is ignored on Zenoh: what the node reaches is the session \
                              configuration's (connect/endpoints, listen/endpoints; \
@@ -586,6 +595,18 @@ mod tests {
         for rmw in ["rmw_zenoh_cpp", "rmw_zenoh"] {
             let d = in_build(&[(RMW_ENV, rmw)], true).unwrap();
             assert!(d.zenoh && d.warnings.is_empty(), "{rmw}: {d:?}");
+            // Their defaults are no news.
+            let d = in_build(
+                &[
+                    (RMW_ENV, rmw),
+                    (RANGE_ENV, "SUBNET"),
+                    (PEERS_ENV, " ; "),
+                    (LOCALHOST_ONLY_ENV, "0"),
+                ],
+                true,
+            )
+            .unwrap();
+            assert!(d.warnings.is_empty(), "{rmw}: {:?}", d.warnings);
             // The DDS discovery variables are said to be ignored, each by name.
             let d = in_build(
                 &[
