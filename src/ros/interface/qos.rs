@@ -32,6 +32,10 @@ pub const MAX_SAMPLE_BYTES: usize = 256 * 1024;
 /// dropped since start (RustDDS counts the DDS side's).
 static ZENOH_TOO_LARGE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
+/// Held by the tests that drop oversize Zenoh inputs, so that each counts only its own.
+#[cfg(all(test, feature = "zenoh"))]
+pub(crate) static ZENOH_TOO_LARGE_TESTS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// Counts one sample or request a Zenoh endpoint dropped for its size.
 pub fn note_zenoh_too_large() {
     ZENOH_TOO_LARGE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);

@@ -516,6 +516,23 @@ mod tests {
         assert!(why.contains("no attachment"), "{why}");
         let r = call(&router, &srv.key, vec![9], Some(request(42)));
         assert!(r[0].result().is_err());
+        let _counting = qos::ZENOH_TOO_LARGE_TESTS
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
+        let too_large_before = qos::zenoh_too_large();
+        // At the bound with its attachment: not too large (the payload is bounded, as on
+        // DDS), only not the request type.
+        let mut at_bound = vec![0u8; MAX_SAMPLE_BYTES];
+        at_bound[..2].copy_from_slice(&[0xff, 0xff]); // no CDR representation
+        let r = call(&router, &srv.key, at_bound, Some(request(45)));
+        let why = r[0]
+            .result()
+            .unwrap_err()
+            .payload()
+            .try_to_string()
+            .unwrap()
+            .to_string();
+        assert!(!why.contains("more than"), "{why}");
         let r = call(
             &router,
             &srv.key,
@@ -530,8 +547,10 @@ mod tests {
             .unwrap()
             .to_string();
         assert!(why.contains("more than"), "{why}");
-        assert_eq!(srv.refused.malformed.load(Ordering::Relaxed), 2);
+        assert_eq!(srv.refused.malformed.load(Ordering::Relaxed), 3);
         assert_eq!(srv.refused.too_large.load(Ordering::Relaxed), 1);
+        // Counted for /diagnostics too.
+        assert_eq!(qos::zenoh_too_large(), too_large_before + 1);
         let r = call(
             &router,
             &srv.key,
