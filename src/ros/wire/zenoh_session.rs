@@ -135,6 +135,17 @@ pub struct NodeSession {
     pub router: RouterCheckOutcome,
 }
 
+/// The key expression of the node tokens of `namespace`/`name` in `domain`, from any session:
+/// only those, so that what the name-clash watch is sent and keeps does not grow with the rest
+/// of the domain's graph.
+fn clash_key(domain: u32, namespace: &str, name: &str) -> String {
+    format!(
+        "{ADMIN_SPACE}/{domain}/*/*/*/NN/*/{}/{}",
+        mangle(namespace),
+        mangle(name)
+    )
+}
+
 impl NodeSession {
     /// Opens a session with `config`, runs the router check of `settings` (warnings to
     /// `warn`), and declares the liveliness token of the node `namespace`/`name` in `domain`,
@@ -228,14 +239,7 @@ impl NodeSession {
         let (namespace, name) = (self.node.namespace.clone(), self.node.name.clone());
         let fqn = fqn.to_string();
         let warned: Mutex<BTreeSet<String>> = Mutex::new(BTreeSet::new());
-        // Only node tokens of this namespace and name: what the session is sent and keeps
-        // does not grow with the rest of the domain's graph.
-        let key = format!(
-            "{ADMIN_SPACE}/{}/*/*/*/NN/*/{}/{}",
-            self.node.domain,
-            mangle(&namespace),
-            mangle(&name)
-        );
+        let key = clash_key(self.node.domain, &namespace, &name);
         let sub = self
             .session
             .liveliness()
@@ -504,6 +508,35 @@ mod tests {
             n.close();
         }
         router.close().wait().unwrap();
+    }
+
+    #[test]
+    fn the_name_clash_watch_takes_the_node_tokens_of_its_name_only() {
+        use zenoh::key_expr::KeyExpr;
+        let token = |ns: &str, name: &str, domain: u32| {
+            NodeToken {
+                domain,
+                zid: "1f2e3d4c5b6a79880123456789abcdef".into(),
+                node_id: 3,
+                enclave: "/".into(),
+                namespace: ns.into(),
+                name: name.into(),
+            }
+            .key()
+            .unwrap()
+        };
+        for ns in ["/", "/lab", "/site/lab"] {
+            let watch = KeyExpr::try_from(clash_key(4, ns, "pwm_actuator")).unwrap();
+            let has = |k: String| watch.includes(&KeyExpr::try_from(k).unwrap());
+            assert!(has(token(ns, "pwm_actuator", 4)), "{ns}: {watch}");
+            assert!(!has(token(ns, "heater", 4)), "{ns}");
+            assert!(!has(token(ns, "pwm_actuator", 5)), "{ns}");
+            assert!(!has(token("/other", "pwm_actuator", 4)), "{ns}");
+        }
+        // An endpoint's token of that node is not a node token.
+        let watch = KeyExpr::try_from(clash_key(4, "/", "pwm_actuator")).unwrap();
+        let endpoint = token("/", "pwm_actuator", 4).replace("/NN/", "/MP/") + "/%duty/x/y/z";
+        assert!(!watch.intersects(&KeyExpr::try_from(endpoint).unwrap()));
     }
 
     #[test]
