@@ -16,7 +16,12 @@ it.
 The same trials run against an rclpy node of the same shape (reference_node.py), the yardstick,
 in a test of their own: that node must answer every call and apply every command within
 CONFIRM_TIMEOUT_S (6 s), but its times are only shown, since a Python node on a loaded 2-core
-machine is itself sometimes late. Its trials take under a second even then, so the 6 s bound has
+machine is itself sometimes late. The yardstick runs on rmw_fastrtps as shipped, which drops a
+response when the fresh client's response reader is not matched within the response writer's
+`max_blocking_time` (100 ms by default) and says so on stderr ("client will not receive
+response": rmw_fastrtps_shared_cpp's rmw_response.cpp, ros2/ros2#1253): such a drop is counted
+and shown, not failed, as long as each unanswered call has its warning and they stay below 1 in
+100 calls; anything else the reference misses fails the test. Its trials take under a second even then, so the 6 s bound has
 far more than a factor of two to spare: that test is `untimed` (pytest.ini) and scripts/test.sh
 runs it beside the others, while the node's trials, timed, run one test at a time. Both tables (p50, p99, max per kind) are printed together
 at the end of the run (conftest.py's `show_figures`), also when the two tests ran in different
@@ -66,6 +71,8 @@ ASSERT_S = 1.0
 #: What a lane waits for a command to take effect before it counts it as not applied, s.
 CONFIRM_TIMEOUT_S = 6.0
 REFERENCE_NODE = Path(__file__).with_name("reference_node.py")
+#: What rmw_fastrtps writes when it drops a response to a client whose reader it has not matched.
+RMW_DROPPED_RESPONSE = "client will not receive response"
 KINDS = SERVICE_KINDS + TOPIC_KINDS
 
 
@@ -304,14 +311,32 @@ def measure(
 def test_the_rclpy_reference_node_answers_every_fresh_client_and_one_shot_publisher(
     process_launcher, ros_domain_id: int, show_figures
 ):
-    """The yardstick: every call answered and every command applied within 6 s; times shown."""
+    """The yardstick: every call answered (but for rmw_fastrtps's own, rare, drops) and every
+    command applied within 6 s; times shown."""
     reference = process_launcher.launch(
         [sys.executable, str(REFERENCE_NODE), str(LANES)], name="reference"
     )
     reference.wait_for_output("reference node ready")
     outcomes = measure(ros_domain_id, show_figures, "1-reference", "rclpy reference node")
     reference.terminate()
-    problems = failures("rclpy reference node", outcomes, CONFIRM_TIMEOUT_S)
+    dropped_by_rmw = reference.stderr().count(RMW_DROPPED_RESPONSE)
+    unanswered = [o for o in outcomes if o.trial.kind in SERVICE_KINDS and o.problem == "no answer"]
+    service_calls = sum(1 for o in outcomes if o.trial.kind in SERVICE_KINDS)
+    show_figures(
+        "fresh clients",
+        "1-reference-rmw",
+        f"  rmw_fastrtps dropped {dropped_by_rmw} of the reference's {service_calls} responses "
+        f"({RMW_DROPPED_RESPONSE!r}); {len(unanswered)} calls unanswered",
+    )
+    # Each unanswered call has rmw_fastrtps's own warning, and they are rare.
+    assert len(unanswered) <= dropped_by_rmw, (
+        f"{len(unanswered)} calls unanswered, {dropped_by_rmw} dropped by rmw_fastrtps:\n"
+        + "\n".join(failures("rclpy reference node", unanswered, CONFIRM_TIMEOUT_S))
+    )
+    assert len(unanswered) * 100 < service_calls, f"{len(unanswered)} of {service_calls} unanswered"
+    problems = failures(
+        "rclpy reference node", [o for o in outcomes if o not in unanswered], CONFIRM_TIMEOUT_S
+    )
     assert not problems, f"{len(problems)} trials failed:\n" + "\n".join(problems[:40])
 
 
