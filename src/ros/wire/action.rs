@@ -32,6 +32,7 @@ use ros2_client::action::{
 use ros2_client::action_msgs::{CancelGoalResponseEnum, GoalStatus, GoalStatusArray};
 use ros2_client::builtin_interfaces::Time;
 use ros2_client::{Message, RmwRequestId};
+use serde::Serialize;
 use std::future::Future;
 use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
@@ -483,11 +484,18 @@ where
         }
     }
 
-    fn answer_goal(&self, req: Request, accepted: bool, stamp: Time) {
-        let resp = SendGoalResponse { accepted, stamp };
+    /// Answers `req` with `resp`: on DDS through `send` with the request's id, on Zenoh as the
+    /// query's reply. A failure is warned about as "cannot `what`".
+    fn answer<T: Serialize, E: std::fmt::Display>(
+        &self,
+        req: Request,
+        resp: T,
+        what: &str,
+        send: impl FnOnce(&Endpoints<G, R, F>, RmwRequestId, T) -> Result<(), E>,
+    ) {
         let sent = match (&self.ep, req) {
             (ActionEndpoints::Dds(ep), Request::Dds(id)) => {
-                ep.send_goal_response(id, resp).map_err(|e| e.to_string())
+                send(ep, id, resp).map_err(|e| e.to_string())
             }
             #[cfg(feature = "zenoh")]
             (ActionEndpoints::Zenoh(_), Request::Zenoh(r)) => {
@@ -498,45 +506,28 @@ where
             _ => Err(OTHER_MIDDLEWARE.to_string()),
         };
         if let Err(e) = sent {
-            warn!("{}: cannot answer a goal request: {e}", self.name);
+            warn!("{}: cannot {what}: {e}", self.name);
         }
     }
 
+    fn answer_goal(&self, req: Request, accepted: bool, stamp: Time) {
+        let resp = SendGoalResponse { accepted, stamp };
+        self.answer(req, resp, "answer a goal request", |ep, id, r| {
+            ep.send_goal_response(id, r)
+        });
+    }
+
     fn answer_cancel(&self, req: Request, resp: CancelGoalResponse) {
-        let sent = match (&self.ep, req) {
-            (ActionEndpoints::Dds(ep), Request::Dds(id)) => {
-                ep.send_cancel_response(id, resp).map_err(|e| e.to_string())
-            }
-            #[cfg(feature = "zenoh")]
-            (ActionEndpoints::Zenoh(_), Request::Zenoh(r)) => {
-                r.reply(&resp);
-                Ok(())
-            }
-            #[cfg(feature = "zenoh")]
-            _ => Err(OTHER_MIDDLEWARE.to_string()),
-        };
-        if let Err(e) = sent {
-            warn!("{}: cannot answer a cancel: {e}", self.name);
-        }
+        self.answer(req, resp, "answer a cancel", |ep, id, r| {
+            ep.send_cancel_response(id, r)
+        });
     }
 
     fn answer_result(&self, req: Request, status: GoalStatusEnum, result: R) {
         let resp = GetResultResponse { status, result };
-        let sent = match (&self.ep, req) {
-            (ActionEndpoints::Dds(ep), Request::Dds(id)) => {
-                ep.send_result(id, resp).map_err(|e| e.to_string())
-            }
-            #[cfg(feature = "zenoh")]
-            (ActionEndpoints::Zenoh(_), Request::Zenoh(r)) => {
-                r.reply(&resp);
-                Ok(())
-            }
-            #[cfg(feature = "zenoh")]
-            _ => Err(OTHER_MIDDLEWARE.to_string()),
-        };
-        if let Err(e) = sent {
-            warn!("{}: cannot send a result: {e}", self.name);
-        }
+        self.answer(req, resp, "send a result", |ep, id, r| {
+            ep.send_result(id, r)
+        });
     }
 
     fn publish_statuses(&self) {
