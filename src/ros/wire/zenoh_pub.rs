@@ -24,7 +24,7 @@ use zenoh_ext::{AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, Mis
 use crate::ros::config::logging::shown;
 use crate::ros::interface::cdr::cdr_bytes;
 use crate::ros::interface::msg::RosMessage;
-use crate::ros::wire::zenoh_keys::{data_key, Attachment, EndpointType, EntityKind, Gid, KeyError};
+use crate::ros::wire::zenoh_keys::{Attachment, EntityKind, Gid, KeyError};
 use crate::ros::wire::zenoh_session::NodeSession;
 
 /// Most samples a transient-local publisher keeps for late joiners (its QoS depth, at most
@@ -125,13 +125,12 @@ impl<M: Serialize> ZenohPublisher<M> {
             topic: topic.to_string(),
             why: shown(&e.to_string()),
         };
-        let ty = EndpointType::of(hashes, ros_type).map_err(key_err)?;
-        let key = data_key(node.domain(), topic, &ty).map_err(key_err)?;
         let reliable = qos.reliability != Reliability::BestEffort;
         let transient_local = qos.durability == Durability::TransientLocal;
         let history = qos.history;
-        let entity = node.entity(EntityKind::Publisher, topic, ty, qos);
-        let token_key = entity.key().map_err(key_err)?;
+        let (key, token_key) = node
+            .endpoint_keys(EntityKind::Publisher, topic, ros_type, qos, hashes)
+            .map_err(key_err)?;
         let gid = Gid::of_token(&token_key);
         let congestion = if reliable && history == History::KeepAll {
             CongestionControl::Block

@@ -19,11 +19,12 @@ use crate::ros::config::zenoh::{
 };
 use crate::ros::interface::qos::MAX_SAMPLE_BYTES;
 use crate::ros::wire::zenoh_keys::{
-    mangle, parse_token, EndpointType, EntityKind, EntityToken, KeyError, NodeToken, Token,
-    ADMIN_SPACE,
+    data_key, mangle, parse_token, EndpointType, EntityKind, EntityToken, KeyError, NodeToken,
+    Token, ADMIN_SPACE,
 };
+use ros2_client::qos::History;
 use ros2_client::QosProfile;
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 
@@ -205,16 +206,20 @@ impl NodeSession {
         self.node.domain
     }
 
-    /// The token of a new endpoint of this node: the next entity id, `kind`, the fully
-    /// qualified `name`, its type and QoS.
-    pub fn entity(
+    /// The keys of a new endpoint of this node (the next entity id): `kind`, the fully
+    /// qualified `name`, of ROS type `ros_type` (`std_msgs/msg/Float64`, its hash looked up in
+    /// `hashes`), with `qos`. Returns (its data key, its liveliness token's key).
+    pub fn endpoint_keys(
         &self,
         kind: EntityKind,
         name: &str,
-        ty: EndpointType,
+        ros_type: &str,
         qos: QosProfile,
-    ) -> EntityToken {
-        EntityToken {
+        hashes: &BTreeMap<String, String>,
+    ) -> Result<(String, String), KeyError> {
+        let ty = EndpointType::of(hashes, ros_type)?;
+        let key = data_key(self.domain(), name, &ty)?;
+        let token = EntityToken {
             node: self.node.clone(),
             entity_id: self.next_entity.fetch_add(1, Ordering::Relaxed),
             kind,
@@ -222,7 +227,8 @@ impl NodeSession {
             ty,
             qos,
             backends: None,
-        }
+        };
+        Ok((key, token.key()?))
     }
 
     /// Warns through `warn`, once for each, about every other session on this domain that
@@ -293,6 +299,15 @@ impl NodeSession {
             let _ = token.undeclare().wait();
         }
         let _ = self.session.close().wait();
+    }
+}
+
+/// How many unread samples or requests an endpoint with `history` holds: its depth, from 1
+/// to `max`; `max` for keep-all.
+pub fn queue_depth(history: History, max: usize) -> usize {
+    match history {
+        History::KeepLast { depth } => depth.clamp(1, max),
+        History::KeepAll => max,
     }
 }
 

@@ -23,7 +23,6 @@ use std::sync::{Arc, Mutex};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use log::warn;
-use ros2_client::qos::History;
 use ros2_client::QosProfile;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
@@ -36,8 +35,8 @@ use zenoh::Wait;
 use crate::ros::config::logging::shown;
 use crate::ros::interface::cdr::{cdr_bytes, from_cdr_bytes};
 use crate::ros::interface::qos::{self, MAX_SAMPLE_BYTES};
-use crate::ros::wire::zenoh_keys::{data_key, Attachment, EndpointType, EntityKind, KeyError};
-use crate::ros::wire::zenoh_session::NodeSession;
+use crate::ros::wire::zenoh_keys::{Attachment, EntityKind, KeyError};
+use crate::ros::wire::zenoh_session::{queue_depth, NodeSession};
 
 /// Most requests a service holds that its task has not taken yet (its QoS depth, at most
 /// this).
@@ -183,15 +182,9 @@ impl<Req: DeserializeOwned> ZenohRequests<Req> {
             service: service.to_string(),
             why: shown(&e.to_string()),
         };
-        let ty = EndpointType::of(hashes, ros_type).map_err(key_err)?;
-        let key = data_key(node.domain(), service, &ty).map_err(key_err)?;
-        let depth = match qos.history {
-            History::KeepLast { depth } => depth.clamp(1, MAX_QUEUE),
-            History::KeepAll => MAX_QUEUE,
-        };
-        let token_key = node
-            .entity(EntityKind::Service, service, ty, qos)
-            .key()
+        let depth = queue_depth(qos.history, MAX_QUEUE);
+        let (key, token_key) = node
+            .endpoint_keys(EntityKind::Service, service, ros_type, qos, hashes)
             .map_err(key_err)?;
         let queue = Arc::new(Queue {
             queries: Mutex::new(VecDeque::with_capacity(depth)),
@@ -405,6 +398,12 @@ mod tests {
     use zenoh::query::Reply;
     use zenoh::Session;
 
+    /// The error `reply` carries, as text; panics if it is an answer.
+    fn refusal(reply: &Reply) -> String {
+        let error = reply.result().expect_err("an error reply");
+        error.payload().try_to_string().unwrap().to_string()
+    }
+
     /// One request from `client` as rmw_zenoh's client sends it; the replies.
     fn call(
         client: &Session,
@@ -506,13 +505,7 @@ mod tests {
             cdr_bytes(&EmptyRequest::default()).unwrap(),
             None,
         );
-        let why = r[0]
-            .result()
-            .unwrap_err()
-            .payload()
-            .try_to_string()
-            .unwrap()
-            .to_string();
+        let why = refusal(&r[0]);
         assert!(why.contains("no attachment"), "{why}");
         let r = call(&router, &srv.key, vec![9], Some(request(42)));
         assert!(r[0].result().is_err());
@@ -525,13 +518,7 @@ mod tests {
         let mut at_bound = vec![0u8; MAX_SAMPLE_BYTES];
         at_bound[..2].copy_from_slice(&[0xff, 0xff]); // no CDR representation
         let r = call(&router, &srv.key, at_bound, Some(request(45)));
-        let why = r[0]
-            .result()
-            .unwrap_err()
-            .payload()
-            .try_to_string()
-            .unwrap()
-            .to_string();
+        let why = refusal(&r[0]);
         assert!(!why.contains("more than"), "{why}");
         let r = call(
             &router,
@@ -539,13 +526,7 @@ mod tests {
             vec![0; MAX_SAMPLE_BYTES + 1],
             Some(request(43)),
         );
-        let why = r[0]
-            .result()
-            .unwrap_err()
-            .payload()
-            .try_to_string()
-            .unwrap()
-            .to_string();
+        let why = refusal(&r[0]);
         assert!(why.contains("more than"), "{why}");
         assert_eq!(srv.refused.malformed.load(Ordering::Relaxed), 3);
         assert_eq!(srv.refused.too_large.load(Ordering::Relaxed), 1);

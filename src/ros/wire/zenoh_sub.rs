@@ -17,7 +17,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use log::warn;
-use ros2_client::qos::{Durability, History};
+use ros2_client::qos::Durability;
 use ros2_client::QosProfile;
 use serde::de::DeserializeOwned;
 use tokio::sync::Notify;
@@ -30,8 +30,8 @@ use crate::ros::config::logging::shown;
 use crate::ros::interface::cdr::from_cdr_bytes;
 use crate::ros::interface::msg::RosMessage;
 use crate::ros::interface::qos::{self, MAX_SAMPLE_BYTES};
-use crate::ros::wire::zenoh_keys::{data_key, EndpointType, EntityKind, KeyError};
-use crate::ros::wire::zenoh_session::NodeSession;
+use crate::ros::wire::zenoh_keys::{EntityKind, KeyError};
+use crate::ros::wire::zenoh_session::{queue_depth, NodeSession};
 
 /// Most samples a subscription holds that its task has not taken yet (its QoS depth, at most
 /// this).
@@ -147,16 +147,10 @@ impl<M: RosMessage + DeserializeOwned + Send + 'static> ZenohSubscription<M> {
                 topic: topic.to_string(),
             });
         }
-        let ty = EndpointType::of(hashes, &format!("{}/msg/{}", M::PACKAGE, M::NAME))
-            .map_err(key_err)?;
-        let key = data_key(node.domain(), topic, &ty).map_err(key_err)?;
-        let depth = match qos.history {
-            History::KeepLast { depth } => depth.clamp(1, MAX_QUEUE),
-            History::KeepAll => MAX_QUEUE,
-        };
-        let token_key = node
-            .entity(EntityKind::Subscription, topic, ty, qos)
-            .key()
+        let ros_type = format!("{}/msg/{}", M::PACKAGE, M::NAME);
+        let depth = queue_depth(qos.history, MAX_QUEUE);
+        let (key, token_key) = node
+            .endpoint_keys(EntityKind::Subscription, topic, &ros_type, qos, hashes)
             .map_err(key_err)?;
         let queue = Arc::new(Queue {
             samples: Mutex::new(VecDeque::with_capacity(depth)),
@@ -244,6 +238,7 @@ mod tests {
     use crate::ros::wire::zenoh_keys::{parse_token, Token};
     use crate::ros::wire::zenoh_session::test_peers::{free_port, node, router};
     use crate::ros::wire::zenoh_session::MAX_MESSAGE_BYTES;
+    use ros2_client::qos::History;
     use std::time::{Duration, Instant};
 
     /// Waits up to 5 s for `f` to hold.
