@@ -573,36 +573,123 @@ mod tests {
         .unwrap();
         let router = zenoh::open(c).wait().unwrap();
         let open = |password: &str| {
-            let s = settings(&[(
-                CONFIG_OVERRIDE_ENV,
+            open_with(
                 &format!(
                     r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[];transport/auth/usrpwd/user="ops";transport/auth/usrpwd/password="{password}""#
                 ),
-            )]);
-            let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
-            let mut warnings = Vec::new();
-            let node = NodeSession::open(c, &s, 19, "/", "/", "pwm_actuator", |w| warnings.push(w));
-            (node, warnings)
+                19,
+            )
         };
-        let (good, warnings) = open("s3cret");
+        assert_router_takes_only(router, open("s3cret"), open("guess"), "the wrong password");
+    }
+
+    /// The node's session opened with `ZENOH_CONFIG_OVERRIDE` set to `overrides` on `domain`,
+    /// and the warnings it gave.
+    fn open_with(overrides: &str, domain: u32) -> (Result<NodeSession, SessionError>, Vec<String>) {
+        let s = settings(&[(CONFIG_OVERRIDE_ENV, overrides)]);
+        let c = config(DEFAULT_SESSION_CONFIG, &s, |w| panic!("{w}")).unwrap();
+        let mut warnings = Vec::new();
+        let node = NodeSession::open(c, &s, domain, "/", "/", "pwm_actuator", |w| {
+            warnings.push(w)
+        });
+        (node, warnings)
+    }
+
+    /// That `router` took the `good` node and refused the `bad` one, which has `lacks`: a
+    /// refused link leaves the session open without a router, or not opened. Closes all three.
+    fn assert_router_takes_only(
+        router: Session,
+        (good, warnings): (Result<NodeSession, SessionError>, Vec<String>),
+        (bad, bad_warnings): (Result<NodeSession, SessionError>, Vec<String>),
+        lacks: &str,
+    ) {
+        let held = |zid: &str| {
+            let info = router.info();
+            let mut zids = info.peers_zid().wait().chain(info.routers_zid().wait());
+            zids.any(|z| z.to_string() == zid)
+        };
         let good = good.unwrap();
         assert_eq!(good.router, RouterCheckOutcome::Seen(1), "{warnings:?}");
-        // A wrong password: the router refuses the link (the session opens, routerless).
-        let (bad, warnings) = open("guess");
+        assert!(held(&good.zid), "the router does not hold the node");
         if let Ok(bad) = bad {
-            assert_eq!(bad.router, RouterCheckOutcome::NotSeen(1), "{warnings:?}");
-            assert!(
-                !router
-                    .info()
-                    .peers_zid()
-                    .wait()
-                    .any(|z| z.to_string() == bad.zid),
-                "the router took a node with the wrong password"
+            assert_eq!(
+                bad.router,
+                RouterCheckOutcome::NotSeen(1),
+                "{bad_warnings:?}"
             );
+            assert!(!held(&bad.zid), "the router took a node with {lacks}");
             bad.close();
         }
         good.close();
         router.close().wait().unwrap();
+    }
+
+    /// A certificate authority and, signed by it, a certificate for `127.0.0.1` and
+    /// `localhost` per name in `leaves`, written to `dir` as PEM: the CA's file, then per leaf
+    /// (certificate file, key file), each quoted for a JSON5 value.
+    fn tls_files(dir: &std::path::Path, leaves: &[&str]) -> (String, Vec<(String, String)>) {
+        use rcgen::{BasicConstraints, CertificateParams, CertifiedIssuer, IsCa, KeyPair};
+        let write = |name: &str, pem: String| {
+            let path = dir.join(name);
+            std::fs::write(&path, pem).unwrap();
+            format!("{:?}", path.to_str().unwrap())
+        };
+        let mut ca = CertificateParams::new(Vec::<String>::new()).unwrap();
+        ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+        let ca = CertifiedIssuer::self_signed(ca, KeyPair::generate().unwrap()).unwrap();
+        let ca_file = write("ca.pem", ca.pem());
+        let leaves = leaves
+            .iter()
+            .map(|name| {
+                let key = KeyPair::generate().unwrap();
+                let names = vec!["127.0.0.1".to_string(), "localhost".to_string()];
+                let cert = CertificateParams::new(names)
+                    .unwrap()
+                    .signed_by(&key, &*ca)
+                    .unwrap();
+                (
+                    write(&format!("{name}.pem"), cert.pem()),
+                    write(&format!("{name}-key.pem"), key.serialize_pem()),
+                )
+            })
+            .collect();
+        (ca_file, leaves)
+    }
+
+    #[test]
+    fn a_router_on_tls_that_asks_for_a_client_certificate_takes_the_node_only_with_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let (ca, leaves) = tls_files(dir.path(), &["router", "node"]);
+        let ((router_cert, router_key), (node_cert, node_key)) = (&leaves[0], &leaves[1]);
+        let port = free_port();
+        let mut c = Config::default();
+        c.insert_json5("mode", r#""router""#).unwrap();
+        c.insert_json5("listen/endpoints", &format!(r#"["tls/127.0.0.1:{port}"]"#))
+            .unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        for (key, value) in [
+            ("root_ca_certificate", ca.as_str()),
+            ("listen_certificate", router_cert),
+            ("listen_private_key", router_key),
+            ("enable_mtls", "true"),
+        ] {
+            c.insert_json5(&format!("transport/link/tls/{key}"), value)
+                .unwrap();
+        }
+        let router = zenoh::open(c).wait().unwrap();
+        let open = |client_certificate: bool| {
+            let mut link = format!(
+                r#"connect/endpoints=["tls/127.0.0.1:{port}"];listen/endpoints=[];transport/link/tls/root_ca_certificate={ca}"#
+            );
+            if client_certificate {
+                link += &format!(
+                    r#";transport/link/tls/enable_mtls=true;transport/link/tls/connect_certificate={node_cert};transport/link/tls/connect_private_key={node_key}"#
+                );
+            }
+            open_with(&link, 18)
+        };
+        assert_router_takes_only(router, open(true), open(false), "no client certificate");
     }
 
     #[test]
