@@ -406,11 +406,15 @@ fn a_stop_signal_while_the_node_looks_for_a_zenoh_router_ends_it_at_once() {
         .unwrap()
         .port();
     let dom = Domain::acquire();
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("lines.csv");
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_pwm_actuator_node"));
     for v in TRUST_VARS {
         cmd.env_remove(v);
     }
     let mut child = cmd
+        .arg("--trace")
+        .arg(&csv)
         .env("RMW_IMPLEMENTATION", "rmw_zenoh_cpp")
         .env("ZENOH_ROUTER_CHECK_ATTEMPTS", "0")
         .env(
@@ -461,4 +465,9 @@ fn a_stop_signal_while_the_node_looks_for_a_zenoh_router_ends_it_at_once() {
         log.contains("SIGTERM while joining Zenoh: stopping; the lines were never driven"),
         "{log}"
     );
+    // What reached the lines: each set to off as the output opened and closed, never on.
+    let text = std::fs::read_to_string(&csv).expect("the output's trace was written");
+    let rows = pwm_actuator::output::read_csv(&text).expect("a CSV trace");
+    assert!(!rows.is_empty(), "an empty trace:\n{text}");
+    assert!(rows.iter().all(|r| !r.level.is_high()), "{rows:?}");
 }
