@@ -313,7 +313,7 @@ pub fn queue_depth(history: History, max: usize) -> usize {
 
 #[cfg(test)]
 mod tests {
-    use super::test_peers::{free_port, router};
+    use super::test_peers::{free_port, router, router_config};
     use super::*;
     use crate::ros::config::zenoh::{read, RouterCheck, DEFAULT_SESSION_CONFIG};
     use std::collections::HashMap;
@@ -560,12 +560,7 @@ mod tests {
         let users = dir.path().join("users.txt");
         std::fs::write(&users, "ops:s3cret\n").unwrap();
         let port = free_port();
-        let mut c = Config::default();
-        c.insert_json5("mode", r#""router""#).unwrap();
-        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
-            .unwrap();
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .unwrap();
+        let mut c = router_config(&format!("tcp/127.0.0.1:{port}"));
         c.insert_json5(
             "transport/auth/usrpwd/dictionary_file",
             &format!("{:?}", users.to_str().unwrap()),
@@ -662,12 +657,7 @@ mod tests {
         let (ca, leaves) = tls_files(dir.path(), &["router", "node"]);
         let ((router_cert, router_key), (node_cert, node_key)) = (&leaves[0], &leaves[1]);
         let port = free_port();
-        let mut c = Config::default();
-        c.insert_json5("mode", r#""router""#).unwrap();
-        c.insert_json5("listen/endpoints", &format!(r#"["tls/127.0.0.1:{port}"]"#))
-            .unwrap();
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .unwrap();
+        let mut c = router_config(&format!("tls/127.0.0.1:{port}"));
         for (key, value) in [
             ("root_ca_certificate", ca.as_str()),
             ("listen_certificate", router_cert),
@@ -690,6 +680,64 @@ mod tests {
             open_with(&link, 18)
         };
         assert_router_takes_only(router, open(true), open(false), "no client certificate");
+    }
+
+    /// An RSA key pair for Zenoh's public-key authentication, written to `dir` as PKCS#1 PEM:
+    /// (public key file, private key file), each quoted for a JSON5 value.
+    fn rsa_files(dir: &std::path::Path, name: &str) -> (String, String) {
+        use rsa::pkcs1::{EncodeRsaPrivateKey, EncodeRsaPublicKey, LineEnding};
+        let key = rsa::RsaPrivateKey::new(&mut rsa::rand_core::OsRng, 2048).unwrap();
+        let public = dir.join(format!("{name}-pub.pem"));
+        let private = dir.join(format!("{name}-key.pem"));
+        let public_pem = key.to_public_key().to_pkcs1_pem(LineEnding::LF).unwrap();
+        std::fs::write(&public, public_pem).unwrap();
+        std::fs::write(
+            &private,
+            key.to_pkcs1_pem(LineEnding::LF).unwrap().as_bytes(),
+        )
+        .unwrap();
+        let quoted = |p: std::path::PathBuf| format!("{:?}", p.to_str().unwrap());
+        (quoted(public), quoted(private))
+    }
+
+    #[test]
+    fn a_configuration_asking_for_public_key_authentication_joins_no_router() {
+        // Zenoh 1.10 reads no list of known keys from its configuration: a router asking for
+        // public-key authentication refuses every key, and a node asking for it joins no
+        // router. The node fails closed: its key settings are not ignored.
+        let dir = tempfile::tempdir().unwrap();
+        let (node_pub, node_key) = rsa_files(dir.path(), "node");
+        let (router_pub, router_key) = rsa_files(dir.path(), "router");
+        let router = |with_key: bool| {
+            let port = free_port();
+            let mut c = router_config(&format!("tcp/127.0.0.1:{port}"));
+            if with_key {
+                c.insert_json5("transport/auth/pubkey/public_key_file", &router_pub)
+                    .unwrap();
+                c.insert_json5("transport/auth/pubkey/private_key_file", &router_key)
+                    .unwrap();
+            }
+            (zenoh::open(c).wait().unwrap(), port)
+        };
+        let open = |port: u16, with_key: bool| {
+            let mut link =
+                format!(r#"connect/endpoints=["tcp/127.0.0.1:{port}"];listen/endpoints=[]"#);
+            if with_key {
+                link += &format!(
+                    r#";transport/auth/pubkey/public_key_file={node_pub};transport/auth/pubkey/private_key_file={node_key}"#
+                );
+            }
+            open_with(&link, 16)
+        };
+        let (router_with_key, port) = router(true);
+        let (node, warnings) = open(port, true);
+        let node = node.unwrap();
+        assert_eq!(node.router, RouterCheckOutcome::NotSeen(1), "{warnings:?}");
+        node.close();
+        router_with_key.close().wait().unwrap();
+        // A router without authentication takes the node without key settings, not with them.
+        let (router, port) = router(false);
+        assert_router_takes_only(router, open(port, false), open(port, true), "key settings");
     }
 
     #[test]
@@ -741,14 +789,22 @@ pub(crate) mod test_peers {
 
     /// A router on `port` in this process, timestamping (publication caches need it).
     pub(crate) fn router(port: u16) -> Session {
+        zenoh::open(router_config(&format!("tcp/127.0.0.1:{port}")))
+            .wait()
+            .unwrap()
+    }
+
+    /// The configuration of a router listening on `endpoint` alone (`tcp/127.0.0.1:7447`), as
+    /// `rmw_zenohd`'s but for the endpoint and without multicast scouting.
+    pub(crate) fn router_config(endpoint: &str) -> Config {
         let mut c = Config::default();
         c.insert_json5("mode", r#""router""#).unwrap();
-        c.insert_json5("listen/endpoints", &format!(r#"["tcp/127.0.0.1:{port}"]"#))
+        c.insert_json5("listen/endpoints", &format!(r#"["{endpoint}"]"#))
             .unwrap();
         c.insert_json5("scouting/multicast/enabled", "false")
             .unwrap();
         c.insert_json5("timestamping/enabled", "true").unwrap();
-        zenoh::open(c).wait().unwrap()
+        c
     }
 
     /// The node's session in ROS domain `domain`, connected to the router on `port` alone.
