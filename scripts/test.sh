@@ -450,6 +450,25 @@ printf 'type hashes against rosidl: %d passed, %d failed\n' "$t_pass" "$t_fail"
 passed=$((passed + t_pass)) failed=$((failed + t_fail))
 skipped=$((skipped - 1)) # the ignored type_hashes test, counted above
 
+# 4b. The DDS-only build (`--no-default-features`, documented in docs/deployment.md): every
+# target compiled with clippy's lints, none run (their DDS behaviour is the default build's,
+# tested above). It compiles again the dependencies whose features differ without Zenoh (tokio
+# without `test-util` and what is built on it, the TLS and RSA crates of the tests): about 80 s
+# on the critical path, 140 CPU-s. The intermediate files are the release build's as in 4; the
+# final ones go to target/dds-only/, never over the test binaries the GPIO guest runs (5a).
+# shellcheck disable=SC2317  # called through run_step
+dds_only_build() {
+    local target="${CARGO_TARGET_DIR:-$REPO/target}"
+    CARGO_BUILD_BUILD_DIR="${CARGO_BUILD_BUILD_DIR:-$target}" CARGO_TARGET_DIR="$target/dds-only" \
+        env "${lint_env[@]}" \
+        scripts/cargo-test.sh --no-default-features --all-targets --locked --no-run
+}
+if ((quick)); then
+    skipped_steps+=("cargo clippy, DDS only")
+else
+    run_step "cargo clippy, DDS only" dds_only_build
+fi
+
 # 4a''. The rclpy memory tests started at 3a, waited for before the timed rclpy tests (5) and the
 # GPIO guest (5a), whose sampler is timed: their output, their time and their results. With
 # PYTEST_ARGS that select none of them (pytest exit 5) nothing is counted.
